@@ -1,0 +1,67 @@
+"""The ``depthnerf`` command line: a thin dispatcher over ``depthnerf.commands``.
+
+Each subcommand lives in ``depthnerf/commands/<module>.py`` and exposes ``add_arguments(parser)`` and
+``run(args) -> int``; modules are imported lazily so ``depthnerf --help`` stays fast. A
+:class:`~depthnerf.errors.DepthnerfError` becomes one line ``error: ...`` on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from depthnerf import __version__
+from depthnerf.errors import DepthnerfError
+
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "synth": ("synth", "generate the synthetic SRN-protocol benchmark (cars or chairs)"),
+    "inspect": ("inspect", "validate an SRN-format dataset folder and summarise it"),
+    "depth": ("depth", "precompute monocular depth priors into the cache"),
+    "depth-eval": ("depth_eval", "evaluate a depth estimator (AbsRel, delta<1.25) against ground truth"),
+    "train": ("train", "train a (depth-aware) pixelNeRF preset"),
+    "eval": ("evaluate", "evaluate a run or checkpoint by the SRN protocol"),
+    "compare": ("compare", "print a Table-1 style Markdown table from runs or eval summaries"),
+    "reconstruct": ("reconstruct", "reconstruct one photo: depth, novel views, turntable, mesh"),
+    "checkpoints": ("checkpoints", "list the shipped checkpoints"),
+    "demo": ("demo", "offline demo: synthesise unseen objects and reconstruct them from one view"),
+}
+
+
+def _command_module(name: str):
+    module, _ = SUBCOMMANDS[name]
+    return importlib.import_module(f"depthnerf.commands.{module}")
+
+
+def build_parser(argv: list[str]) -> argparse.ArgumentParser:
+    """The top-level parser; only the selected subcommand's module is imported."""
+    parser = argparse.ArgumentParser(prog="depthnerf", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"depthnerf {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    for name, (_, help_text) in SUBCOMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == chosen:
+            _command_module(name).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(argv)
+    args, extra = parser.parse_known_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    module = _command_module(args.command)
+    if extra and not getattr(module, "ACCEPTS_OVERRIDES", False):
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args.overrides = extra
+    try:
+        return int(module.run(args) or 0)
+    except DepthnerfError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

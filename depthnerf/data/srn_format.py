@@ -1,0 +1,160 @@
+"""File-level reading and writing of the ShapeNet SRN format (the layout pixelNeRF uses).
+
+One object folder ``<root>/<category>_<split>/<object_id>/`` holds::
+
+    intrinsics.txt        4 lines: "f cx cy 0." / "0. 0. 0." / "1." / "H W"   (f, c in pixels of an H x W image)
+    rgb/NNNNNN.png        RGB or RGBA, 8- or 16-bit; RGBA is composited on white
+    pose/NNNNNN.txt       16 numbers, a 4x4 camera-to-world matrix, OpenCV camera axes (see ``cameras``)
+    depth/NNNNNN.npz      optional: float32 z-depth under key "depth", 0 where there is no surface (lossless)
+    mask/NNNNNN.png       optional: 8-bit, non-zero = object
+    mesh.ply              optional: the ground-truth mesh in world coordinates
+
+Every reader raises :class:`~depthnerf.errors.DepthnerfError` with one line naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from depthnerf.data.cameras import Intrinsics
+from depthnerf.errors import DepthnerfError
+
+RIGID_TOL = 1e-3
+"""Tolerance on ``R^T R = I``, ``det R = 1`` and the last row ``[0 0 0 1]`` of a pose."""
+
+
+def read_intrinsics(path: Path) -> Intrinsics:
+    """Parse ``intrinsics.txt`` (focal, principal point on line 1; ``H W`` on the last line)."""
+    path = Path(path)
+    try:
+        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+    except OSError as err:
+        raise DepthnerfError(f"{path}: cannot read intrinsics ({err.strerror or err})") from None
+    try:
+        focal, cx, cy = (float(x) for x in lines[0][:3])
+        height, width = (int(float(x)) for x in lines[-1][:2])
+        if len(lines) < 2 or len(lines[-1]) < 2:
+            raise ValueError
+    except (ValueError, IndexError):
+        raise DepthnerfError(f"{path}: malformed intrinsics (expected 'f cx cy 0.' ... 'H W')") from None
+    if not all(np.isfinite([focal, cx, cy])) or focal <= 0 or height <= 0 or width <= 0:
+        raise DepthnerfError(f"{path}: invalid intrinsics values f={focal} c=({cx},{cy}) size={height}x{width}")
+    return Intrinsics(focal=focal, cx=cx, cy=cy, height=height, width=width)
+
+
+def write_intrinsics(path: Path, intr: Intrinsics) -> None:
+    """Write ``intrinsics.txt`` in the SRN layout."""
+    Path(path).write_text(f"{intr.focal:.6f} {intr.cx:.6f} {intr.cy:.6f} 0.\n0. 0. 0.\n1.\n{intr.height} {intr.width}\n")
+
+
+def read_pose(path: Path) -> np.ndarray:
+    """Read a 4x4 camera-to-world pose and check that it is a finite rigid transform."""
+    path = Path(path)
+    try:
+        values = np.array(path.read_text().split(), dtype=np.float64)
+    except OSError as err:
+        raise DepthnerfError(f"{path}: cannot read pose ({err.strerror or err})") from None
+    except ValueError:
+        raise DepthnerfError(f"{path}: pose is not 16 numbers") from None
+    if values.size != 16:
+        raise DepthnerfError(f"{path}: pose has {values.size} numbers, expected 16 (a 4x4 matrix)")
+    pose = values.reshape(4, 4)
+    if not np.all(np.isfinite(pose)):
+        raise DepthnerfError(f"{path}: pose contains NaN or inf")
+    rot = pose[:3, :3]
+    if (np.abs(rot.T @ rot - np.eye(3)).max() > RIGID_TOL or abs(np.linalg.det(rot) - 1) > RIGID_TOL
+            or np.abs(pose[3] - [0, 0, 0, 1]).max() > RIGID_TOL):
+        raise DepthnerfError(f"{path}: pose is not a rigid transform (rotation not orthonormal or bad last row)")
+    return pose.astype(np.float32)
+
+
+def write_pose(path: Path, c2w: np.ndarray) -> None:
+    """Write a 4x4 camera-to-world pose as 16 numbers on one line."""
+    Path(path).write_text(" ".join(f"{v:.8f}" for v in np.asarray(c2w, dtype=np.float64).reshape(-1)) + "\n")
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """Read an RGB(A) PNG of 8 or 16 bits as float32 ``H x W x 3`` in [0, 1], alpha composited on white."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            arr = np.asarray(im)
+            mode = im.mode
+    except FileNotFoundError:
+        raise DepthnerfError(f"{path}: image file is missing") from None
+    except (OSError, ValueError, Image.DecompressionBombError) as err:
+        raise DepthnerfError(f"{path}: unreadable image ({err})") from None
+    if arr.dtype == np.uint8:
+        img = arr.astype(np.float32) / 255.0
+    elif arr.dtype in (np.uint16, np.int32, np.uint32) or mode.startswith("I;16") or mode == "I":
+        img = arr.astype(np.float32) / 65535.0
+    else:
+        img = arr.astype(np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    elif img.shape[-1] == 2:  # grey + alpha
+        img = np.concatenate([np.repeat(img[..., :1], 3, axis=-1), img[..., 1:]], axis=-1)
+    if img.shape[-1] == 4:
+        alpha = img[..., 3:]
+        img = img[..., :3] * alpha + (1.0 - alpha)
+    if img.ndim != 3 or img.shape[-1] != 3:
+        raise DepthnerfError(f"{path}: unsupported image layout {arr.shape} (mode {mode})")
+    return np.clip(img, 0.0, 1.0)
+
+
+def write_rgb(path: Path, img: np.ndarray) -> None:
+    """Write float ``H x W x 3`` in [0, 1] (or uint8) as an 8-bit RGB PNG."""
+    arr = np.asarray(img)
+    if arr.dtype != np.uint8:
+        arr = np.round(np.clip(arr, 0.0, 1.0) * 255.0).astype(np.uint8)
+    Image.fromarray(arr, mode="RGB").save(path)
+
+
+def read_depth(path: Path) -> np.ndarray:
+    """Read a float32 z-depth map (0 = no surface) from ``.npz`` (key ``depth``), without unpickling."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            depth = np.asarray(data["depth"], dtype=np.float32)
+    except FileNotFoundError:
+        raise DepthnerfError(f"{path}: depth file is missing") from None
+    except (OSError, ValueError, KeyError) as err:
+        raise DepthnerfError(f"{path}: unreadable depth map ({err})") from None
+    if depth.ndim != 2 or not np.all(np.isfinite(depth)) or (depth < 0).any():
+        raise DepthnerfError(f"{path}: depth map must be a finite, non-negative H x W array")
+    return depth
+
+
+def write_depth(path: Path, depth: np.ndarray) -> None:
+    """Write a float32 z-depth map losslessly (compressed ``.npz``, key ``depth``)."""
+    np.savez_compressed(path, depth=np.asarray(depth, dtype=np.float32))
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """Read a mask PNG as a boolean ``H x W`` array (non-zero = object)."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            arr = np.asarray(im.convert("L"))
+    except FileNotFoundError:
+        raise DepthnerfError(f"{path}: mask file is missing") from None
+    except (OSError, ValueError) as err:
+        raise DepthnerfError(f"{path}: unreadable mask ({err})") from None
+    return arr > 0
+
+
+def write_mask(path: Path, mask: np.ndarray) -> None:
+    """Write a boolean mask as an 8-bit PNG (255 = object)."""
+    Image.fromarray(np.asarray(mask, dtype=np.uint8) * 255, mode="L").save(path)
+
+
+def mask_from_white(img: np.ndarray) -> np.ndarray:
+    """pixelNeRF's mask for SRN images without one: pixels whose 8-bit RGB is not white in **all** channels.
+
+    (pixelNeRF: ``(img != 255).all(axis=-1)`` on the uint8 image.)
+    """
+    return (np.round(img * 255.0) != 255).all(axis=-1)

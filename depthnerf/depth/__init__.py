@@ -1,0 +1,1 @@
+"""Depth stage: frozen monocular depth estimators (relative disparity), their normalisation and cache."""

@@ -1,0 +1,1 @@
+"""Model stage: image(+depth) encoder, pixel-aligned feature sampling, NeRF MLP, the pixelNeRF module."""

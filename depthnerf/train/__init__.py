@@ -1,0 +1,1 @@
+"""Training stage: configs and presets, batching, the training loop, checkpoints, distributed set-up."""
