@@ -82,6 +82,8 @@ def read_rgb(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as im:
             im.load()
+            if im.mode in ("P", "PA", "LA", "CMYK", "YCbCr", "HSV", "1"):
+                im = im.convert("RGBA")  # palette and other modes: let PIL resolve them to colours
             arr = np.asarray(im)
             mode = im.mode
     except FileNotFoundError:

@@ -1,0 +1,96 @@
+"""``depthnerf inspect --data DIR``: validate an SRN-format dataset folder and summarise each split.
+
+Every ``<category>_<split>`` folder under ``DIR`` (or only ``--category`` / ``--split``) is indexed with every
+pose read and checked and every PNG header opened and size-checked (:func:`depthnerf.data.srn.index_split`).
+The first bad file stops the run with ``error: <file>: <problem>`` (exit 2) unless ``--skip-bad``, which leaves
+bad objects out and lists them. A tqdm bar on stderr shows progress when stderr is a terminal.
+
+``--json PATH`` writes the same summary as JSON::
+
+    {"root": "<DIR>",
+     "splits": [{"category", "split", "path", "objects", "views_min", "views_max", "views_total",
+                 "resolution": [H, W] or null if mixed, "resolutions": [[H, W], ...],
+                 "focal_min", "focal_max", "radius_min", "radius_max",
+                 "has_depth", "has_mask", "has_mesh",                          # true if every object has it
+                 "objects_with_depth", "objects_with_mask", "objects_with_mesh",
+                 "skipped": ["<file>: <problem>", ...]}, ...]}
+
+Focal lengths are in pixels at the on-disk resolution; the camera radius is the norm of the pose translation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+from depthnerf.data.srn import SPLITS, discover_categories, index_split, split_dir
+from depthnerf.data.validate import SplitSummary, summarize_split
+from depthnerf.errors import DepthnerfError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
+    parser.add_argument("--json", type=Path, default=None, help="also write the summary as JSON to this file")
+    parser.add_argument("--skip-bad", action="store_true", help="leave out bad objects and list them, not fail")
+    parser.add_argument("--category", default=None, help="only this category (default: every one found)")
+    parser.add_argument("--split", choices=SPLITS, default=None, help="only this split (default: every one found)")
+
+
+def _range(low: float | None, high: float | None, digits: int) -> str:
+    if low is None or high is None:
+        return "?"
+    a, b = f"{low:.{digits}f}", f"{high:.{digits}f}"
+    return a if a == b or math.isclose(low, high) else f"{a}-{b}"
+
+
+def _presence(count: int, total: int) -> str:
+    return "all" if count == total else "none" if count == 0 else f"{count}/{total} objects"
+
+
+def format_summary(s: SplitSummary) -> list[str]:
+    """The printed lines of one split's summary."""
+    if s.resolution is not None:
+        res = f"{s.resolution[0]}x{s.resolution[1]}"
+    else:
+        res = "mixed: " + ", ".join(f"{h}x{w}" for h, w in s.resolutions)
+    lines = [
+        f"{s.category}_{s.split}  ({s.path})",
+        f"  objects        {s.objects}" + (f"  ({len(s.skipped)} skipped)" if s.skipped else ""),
+        f"  views/object   {_range(s.views_min, s.views_max, 0)}  (total {s.views_total})",
+        f"  resolution     {res}",
+        f"  focal          {_range(s.focal_min, s.focal_max, 3)}",
+        f"  camera radius  {_range(s.radius_min, s.radius_max, 3)}",
+        f"  depth          {_presence(s.objects_with_depth, s.objects)}",
+        f"  mask           {_presence(s.objects_with_mask, s.objects)}",
+        f"  mesh           {_presence(s.objects_with_mesh, s.objects)}",
+    ]
+    lines += [f"  skipped: {line}" for line in s.skipped]
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    root: Path = args.data
+    categories = [args.category] if args.category else discover_categories(root)
+    if not categories:
+        raise DepthnerfError(f"{root}: no <category>_<split> folders (e.g. cars_train) found")
+    summaries = []
+    for category in categories:
+        splits = [args.split] if args.split else [s for s in SPLITS if split_dir(root, category, s).is_dir()]
+        if not splits:
+            raise DepthnerfError(f"{root}: no {category}_<split> folders found")
+        for split in splits:
+            index = index_split(root, category, split, skip_bad=args.skip_bad, check_files=True, progress=True)
+            summary = summarize_split(index)
+            print("\n".join(format_summary(summary)), flush=True)
+            summaries.append(summary)
+    if args.json is not None:
+        payload = {"root": str(root), "splits": [dataclasses.asdict(s) for s in summaries]}
+        try:
+            args.json.write_text(json.dumps(payload, indent=2) + "\n")
+        except OSError as err:
+            raise DepthnerfError(f"{args.json}: cannot write JSON summary ({err.strerror or err})") from None
+        print(f"wrote {args.json}")
+    return 0

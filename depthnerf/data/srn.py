@@ -1,0 +1,370 @@
+"""The ShapeNet SRN dataset as pixelNeRF reads it: a split index of object folders and per-object view loading.
+
+Layout (file formats in :mod:`depthnerf.data.srn_format`)::
+
+    <root>/<category>_<split>/<object_id>/{intrinsics.txt, rgb/NNNNNN.png, pose/NNNNNN.txt}
+                                          [depth/NNNNNN.npz, mask/NNNNNN.png, mesh.ply]
+
+with ``split`` in :data:`SPLITS`. SRN quirk: the public chairs train set sits one level deeper,
+``chairs_train/chairs_2.0_train/<object_id>/``; :func:`split_dir` resolves ``<c>_<s>/<c>_2.0_<s>/`` for every
+category and split. Every sub-folder of a split folder is an object (plain files there are ignored).
+
+Conventions, as in pixelNeRF's ``SRNDataset`` unless said otherwise:
+
+- Views are the sorted file stems of ``rgb/*.png``; ``pose/*.txt`` (and ``depth/*.npz``, ``mask/*.png`` when those
+  folders exist) must have exactly the same stems. A view index is a position in that sorted list.
+- Images are float ``[0, 1]``, alpha composited on white; 8- and 16-bit PNGs work (Pillow reads 16-bit *colour*
+  PNGs at 8-bit precision, 16-bit grey at full precision).
+- Poses stay camera-to-world with OpenCV axes (no flip to OpenGL axes; see :mod:`depthnerf.data.cameras`).
+- Mask: ``mask/`` when present, else pixelNeRF's rule: a pixel is object unless its 8-bit value is 255 in *all*
+  channels (``(img != 255).all(-1)``). Bbox: ``[x0, y0, x1, y1] = [cmin, rmin, cmax, rmax]`` of the mask,
+  inclusive. **An all-white view** (the real SRN cars test set has one) gets an empty mask and the full-image box
+  ``[0, 0, W-1, H-1]`` (pixelNeRF raises there; a full box just means "sample rays anywhere").
+- Resizing (``load_object(resolution=...)``): images by area resampling (``F.interpolate(mode="area")``),
+  intrinsics by :meth:`Intrinsics.resized` (exact for integer-centred pixels). A resized mask pixel is object when
+  any of its footprint was object (area coverage > 0), so the mask and the bbox (recomputed from the resized mask)
+  never cut off the object. Depth (0 = background) is resized as the area mean of the *valid* (non-zero) depths in
+  each footprint, 0 where there are none, so background zeros never pull surfaces towards the camera.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+from tqdm import tqdm
+
+from depthnerf.data import srn_format
+from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.validate import ObjectCheck, check_object
+from depthnerf.errors import DepthnerfError
+
+SPLITS = ("train", "val", "test")
+"""The split names of an SRN release, as they appear in ``<category>_<split>`` folder names."""
+
+
+@dataclass(frozen=True)
+class CategoryDefaults:
+    """Facts about how an SRN category was rendered (dataset facts, not model settings)."""
+
+    z_near: float
+    """Near bound of the ray distance used for rendering it (pixelNeRF's value)."""
+    z_far: float
+    """Far bound of the ray distance used for rendering it (pixelNeRF's value)."""
+    camera_radius: float
+    """Distance of the cameras from the object centre (world origin)."""
+    focal: float
+    """Focal length in pixels at ``image_size``."""
+    image_size: int
+    """Side of the square images of the release, in pixels."""
+
+
+CATEGORY_DEFAULTS: Mapping[str, CategoryDefaults] = MappingProxyType({
+    "cars": CategoryDefaults(z_near=0.8, z_far=1.8, camera_radius=1.3, focal=131.25, image_size=128),
+    "chairs": CategoryDefaults(z_near=1.25, z_far=2.75, camera_radius=2.0, focal=131.25, image_size=128),
+})
+"""Known SRN categories (read-only mapping)."""
+
+
+def category_defaults(name: str) -> CategoryDefaults:
+    """The :class:`CategoryDefaults` of a known category; a clear error for any other name."""
+    try:
+        return CATEGORY_DEFAULTS[name]
+    except KeyError:
+        known = ", ".join(sorted(CATEGORY_DEFAULTS))
+        raise DepthnerfError(
+            f"unknown SRN category {name!r} (known: {known}); SRN-format data of other categories still loads, "
+            "but its z-range (z_near, z_far) must be given explicitly") from None
+
+
+@dataclass(frozen=True)
+class ObjectRecord:
+    """Cheap index entry for one object folder: names and intrinsics, no pixels."""
+
+    category: str
+    """Category name (``cars``, ``chairs``, ...)."""
+    split: str
+    """One of :data:`SPLITS`."""
+    object_id: str
+    """Name of the object folder."""
+    path: Path
+    """The object folder."""
+    view_names: tuple[str, ...]
+    """File stems of the views, sorted (e.g. ``"000064"``)."""
+    intrinsics: Intrinsics
+    """As written in ``intrinsics.txt`` (at the on-disk resolution)."""
+    has_depth: bool
+    """``depth/`` holds a z-depth map for every view."""
+    has_mask: bool
+    """``mask/`` holds a mask for every view."""
+    mesh_path: Path | None
+    """``mesh.ply`` when present."""
+
+    @property
+    def num_views(self) -> int:
+        """Number of views."""
+        return len(self.view_names)
+
+    def rgb_path(self, view: int) -> Path:
+        """``rgb/<stem>.png`` of view index ``view``."""
+        return self.path / "rgb" / f"{self.view_names[view]}.png"
+
+    def pose_path(self, view: int) -> Path:
+        """``pose/<stem>.txt`` of view index ``view``."""
+        return self.path / "pose" / f"{self.view_names[view]}.txt"
+
+    def depth_path(self, view: int) -> Path:
+        """``depth/<stem>.npz`` of view index ``view`` (exists only if ``has_depth``)."""
+        return self.path / "depth" / f"{self.view_names[view]}.npz"
+
+    def mask_path(self, view: int) -> Path:
+        """``mask/<stem>.png`` of view index ``view`` (exists only if ``has_mask``)."""
+        return self.path / "mask" / f"{self.view_names[view]}.png"
+
+
+@dataclass
+class SplitIndex:
+    """All objects of one ``<category>_<split>`` folder."""
+
+    category: str
+    """Category name."""
+    split: str
+    """One of :data:`SPLITS`."""
+    path: Path
+    """The folder holding the object folders (after the chairs nesting quirk)."""
+    objects: list[ObjectRecord]
+    """Valid objects, sorted by ``object_id``."""
+    skipped: list[str]
+    """One line (file and problem) per object skipped with ``skip_bad=True``."""
+    checks: dict[str, ObjectCheck] = field(default_factory=dict)
+    """Per ``object_id``: what the file checks measured (filled when indexed with ``check_files=True``)."""
+
+
+def split_dir(root: Path, category: str, split: str) -> Path:
+    """``<root>/<category>_<split>``, or its ``<category>_2.0_<split>`` sub-folder when that exists (SRN chairs).
+
+    Only resolves the path; :func:`index_split` reports a missing folder.
+    """
+    if split not in SPLITS:
+        raise DepthnerfError(f"unknown split {split!r} (expected one of {', '.join(SPLITS)})")
+    base = Path(root) / f"{category}_{split}"
+    nested = base / f"{category}_2.0_{split}"
+    return nested if nested.is_dir() else base
+
+
+def discover_categories(root: Path) -> list[str]:
+    """Sorted category names found as ``<category>_<split>`` folders directly under ``root``."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DepthnerfError(f"{root}: dataset folder does not exist")
+    found = set()
+    for entry in root.iterdir():
+        category, _, split = entry.name.rpartition("_")
+        if entry.is_dir() and category and split in SPLITS and not entry.name.startswith("."):
+            found.add(category)
+    return sorted(found)
+
+
+def _stems(folder: Path, suffix: str) -> list[str]:
+    """Sorted stems of the ``*suffix`` files in ``folder``; any other (non-hidden) entry is an error."""
+    stems = []
+    for entry in folder.iterdir():
+        if entry.name.startswith("."):
+            continue
+        if entry.suffix != suffix or not entry.is_file():
+            raise DepthnerfError(f"{entry}: unexpected entry in {folder.name}/ (expected only *{suffix} files)")
+        stems.append(entry.stem)
+    return sorted(stems)
+
+
+def _pair(obj: Path, names: list[str], folder: str, suffix: str) -> None:
+    """Check that ``<obj>/<folder>`` has exactly one ``*suffix`` file per view stem in ``names``."""
+    other = _stems(obj / folder, suffix)
+    if other == names:
+        return
+    missing = sorted(set(names) - set(other))
+    extra = sorted(set(other) - set(names))
+    example = (f"rgb/{missing[0]}.png has no {folder}/{missing[0]}{suffix}" if missing
+               else f"{folder}/{extra[0]}{suffix} has no rgb/{extra[0]}.png")
+    raise DepthnerfError(f"{obj}: {len(names)} images in rgb/ but {len(other)} files in {folder}/ "
+                         f"that do not pair up by name (e.g. {example})")
+
+
+def index_object(path: Path, category: str, split: str) -> ObjectRecord:
+    """Index one object folder: read ``intrinsics.txt`` and pair the view files by name (no per-view reads)."""
+    path = Path(path)
+    intrinsics = srn_format.read_intrinsics(path / "intrinsics.txt")
+    for folder in ("rgb", "pose"):
+        if not (path / folder).is_dir():
+            raise DepthnerfError(f"{path}: missing {folder}/ folder")
+    names = _stems(path / "rgb", ".png")
+    if not names:
+        raise DepthnerfError(f"{path / 'rgb'}: no .png images")
+    _pair(path, names, "pose", ".txt")
+    has_depth, has_mask = (path / "depth").is_dir(), (path / "mask").is_dir()
+    if has_depth:
+        _pair(path, names, "depth", ".npz")
+    if has_mask:
+        _pair(path, names, "mask", ".png")
+    mesh = path / "mesh.ply"
+    return ObjectRecord(category=category, split=split, object_id=path.name, path=path, view_names=tuple(names),
+                        intrinsics=intrinsics, has_depth=has_depth, has_mask=has_mask,
+                        mesh_path=mesh if mesh.is_file() else None)
+
+
+def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False, check_files: bool = True,
+                progress: bool = False) -> SplitIndex:
+    """Index ``<root>/<category>_<split>``.
+
+    Always: reads every ``intrinsics.txt`` and pairs view files by name. ``check_files``: also reads and checks
+    every pose and opens every image header (see :func:`~depthnerf.data.validate.check_object`). A bad object
+    raises :class:`DepthnerfError`, or with ``skip_bad`` is left out and listed in ``skipped``. A split without
+    usable objects is an error. ``progress`` shows a tqdm bar on stderr (when it is a terminal).
+    """
+    folder = split_dir(root, category, split)
+    if not folder.is_dir():
+        raise DepthnerfError(f"{folder}: split folder does not exist")
+    object_dirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not object_dirs:
+        raise DepthnerfError(f"{folder}: empty split (no object folders)")
+    index = SplitIndex(category=category, split=split, path=folder, objects=[], skipped=[])
+    bar = tqdm(object_dirs, desc=f"{category}_{split}", unit="obj", file=sys.stderr, leave=False,
+               disable=None if progress else True)
+    for obj_dir in bar:
+        try:
+            record = index_object(obj_dir, category, split)
+            if check_files:
+                index.checks[record.object_id] = check_object(record)
+        except DepthnerfError as err:
+            if not skip_bad:
+                raise
+            index.skipped.append(str(err))
+            continue
+        index.objects.append(record)
+    if not index.objects:
+        raise DepthnerfError(f"{folder}: no usable objects ({len(index.skipped)} skipped; first: {index.skipped[0]})")
+    return index
+
+
+@dataclass
+class ObjectViews:
+    """Some views of one object, loaded (what the training data loader returns per object)."""
+
+    record: ObjectRecord
+    """The index entry the views came from."""
+    view_indices: Int[Tensor, " V"]
+    """Indices into ``record.view_names`` of the loaded views, in load order."""
+    images: Float[Tensor, "V 3 H W"]
+    """RGB in ``[0, 1]``, composited on white."""
+    poses: Float[Tensor, "V 4 4"]
+    """Camera-to-world, OpenCV camera axes."""
+    intrinsics: Intrinsics
+    """Intrinsics of the returned images (after any resize)."""
+    masks: Bool[Tensor, "V H W"]
+    """Object pixels (see the module docstring for the rule and for resizing)."""
+    bboxes: Int[Tensor, "V 4"]
+    """``[x0, y0, x1, y1]`` of the mask, inclusive; the full image for an empty mask."""
+    depths: Float[Tensor, "V H W"] | None
+    """Ground-truth z-depth, 0 = background (``with_depth=True`` only); resized by valid-depth area mean."""
+
+
+def mask_bboxes(masks: Bool[Tensor, "V H W"]) -> Int[Tensor, "V 4"]:
+    """``[x0, y0, x1, y1]`` (inclusive) of each mask; ``[0, 0, W-1, H-1]`` for an empty mask."""
+    m = masks.detach().cpu().numpy()  # numpy's any() is ~100x faster than torch's on bool tensors
+    _, height, width = m.shape
+    rows, cols = m.any(axis=2), m.any(axis=1)
+    # argmax returns the first maximal index: the first / last row and column that hold object pixels.
+    boxes = np.stack([cols.argmax(1), rows.argmax(1), width - 1 - cols[:, ::-1].argmax(1),
+                      height - 1 - rows[:, ::-1].argmax(1)], axis=1)
+    boxes[~rows.any(axis=1)] = [0, 0, width - 1, height - 1]
+    return torch.from_numpy(boxes.astype(np.int64))
+
+
+def _view_indices(record: ObjectRecord, views: Sequence[int] | None) -> list[int]:
+    if views is None:
+        return list(range(record.num_views))
+    out = [int(v) for v in views]
+    if not out:
+        raise DepthnerfError(f"{record.path}: no views requested")
+    bad = [v for v in out if not 0 <= v < record.num_views]
+    if bad:
+        raise DepthnerfError(f"{record.path}: view index {bad[0]} out of range (object has {record.num_views} views)")
+    return out
+
+
+def _resized(intr: Intrinsics, height: int, width: int, where: Path) -> Intrinsics:
+    try:
+        return intr.resized(height, width)
+    except ValueError as err:
+        raise DepthnerfError(f"{where}: cannot resize ({err})") from None
+
+
+def _resample(images: Float[Tensor, "V 3 H W"], masks: Bool[Tensor, "V H W"], depths: Float[Tensor, "V H W"] | None,
+              size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Area-resample images, masks (coverage > 0) and depths (mean of the valid depths) to ``size``."""
+    images = F.interpolate(images, size=size, mode="area")
+    masks = F.interpolate(masks[:, None].float(), size=size, mode="area")[:, 0] > 0
+    if depths is not None:
+        valid = (depths > 0).float()[:, None]
+        total = F.interpolate(depths[:, None] * valid, size=size, mode="area")[:, 0]
+        cover = F.interpolate(valid, size=size, mode="area")[:, 0]
+        depths = torch.where(cover > 0, total / cover.clamp_min(1e-12), torch.zeros_like(total))
+    return images, masks, depths
+
+
+def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, resolution: int | None = None,
+                with_depth: bool = False, check_size: bool = True) -> ObjectViews:
+    """Load views of one object (all by default) as tensors; see the module docstring for the conventions.
+
+    ``resolution``: output height (width scales with it; SRN images are square), area resampling.
+    ``with_depth``: also load ``depth/`` (an error if the object has none).
+    ``check_size``: an image whose size differs from ``intrinsics.txt`` is an error; with ``False`` the
+    intrinsics are instead rescaled to the decoded size (which must be a uniform rescale).
+    """
+    indices = _view_indices(record, views)
+    if with_depth and not record.has_depth:
+        raise DepthnerfError(f"{record.path}: no depth/ folder (ground-truth depth requested)")
+    images = [srn_format.read_rgb(record.rgb_path(v)) for v in indices]
+    height, width = images[0].shape[:2]
+    for v, img in zip(indices, images, strict=True):
+        if img.shape[:2] != (height, width):
+            raise DepthnerfError(f"{record.rgb_path(v)}: image is {img.shape[0]}x{img.shape[1]} but "
+                                 f"{record.rgb_path(indices[0]).name} is {height}x{width}")
+    intr = record.intrinsics
+    if (height, width) != (intr.height, intr.width):
+        if check_size:
+            raise DepthnerfError(f"{record.rgb_path(indices[0])}: image is {height}x{width} but "
+                                 f"{record.path / 'intrinsics.txt'} says {intr.height}x{intr.width}")
+        intr = _resized(intr, height, width, record.path)
+    if record.has_mask:
+        masks = [srn_format.read_mask(record.mask_path(v)) for v in indices]
+    else:
+        masks = [srn_format.mask_from_white(img) for img in images]
+    depths = [srn_format.read_depth(record.depth_path(v)) for v in indices] if with_depth else None
+    for kind, arrays, path_of in (("mask", masks, record.mask_path), ("depth map", depths or [], record.depth_path)):
+        for v, arr in zip(indices, arrays, strict=False):
+            if arr.shape != (height, width):
+                raise DepthnerfError(f"{path_of(v)}: {kind} is {arr.shape[0]}x{arr.shape[1]} but the image is "
+                                     f"{height}x{width}")
+    poses = np.stack([srn_format.read_pose(record.pose_path(v)) for v in indices])
+    images_t = torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous()
+    masks_t = torch.from_numpy(np.stack(masks))
+    depths_t = torch.from_numpy(np.stack(depths)) if depths is not None else None
+    if resolution is not None and resolution != height:
+        new_width = resolution * width / height
+        if resolution <= 0 or new_width != int(new_width):
+            raise DepthnerfError(f"{record.path}: cannot resize {height}x{width} images to height {resolution} "
+                                 "(the width would not be a whole number of pixels)")
+        images_t, masks_t, depths_t = _resample(images_t, masks_t, depths_t, (resolution, int(new_width)))
+        intr = _resized(intr, resolution, int(new_width), record.path)
+    return ObjectViews(record=record, view_indices=torch.tensor(indices, dtype=torch.long), images=images_t,
+                       poses=torch.from_numpy(poses), intrinsics=intr, masks=masks_t, bboxes=mask_bboxes(masks_t),
+                       depths=depths_t)

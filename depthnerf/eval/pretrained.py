@@ -1,0 +1,102 @@
+"""Loading a trained model from anything a user may call a checkpoint.
+
+``--checkpoint`` (eval, reconstruct, the Python API) accepts, in this order:
+1. a shipped checkpoint name (``depthnerf checkpoints`` lists them, e.g. ``cpu-cars-depth``): a file
+   ``depthnerf/checkpoints/<name>.safetensors`` inside the package;
+2. a ``.safetensors`` weights file written by training or by ``scripts/export_checkpoint.py``;
+3. a checkpoint directory (``RUN/checkpoints/step_XXXXXXXX`` or ``.../best``);
+4. a run directory: its ``checkpoints/best`` if validation ran, else its latest checkpoint.
+
+The weights' metadata carries the model config and the run's whole training config, so the model is rebuilt
+exactly and loaded strictly (a mismatch is an error naming the file, never a partial load).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.config import PixelNeRFConfig
+from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.train import checkpoint as ckpt
+from depthnerf.train.config import TrainConfig, from_dict_config
+from depthnerf.train.overrides import from_dict
+
+SHIPPED_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
+"""Where the package's own checkpoints live."""
+
+
+def shipped_checkpoints() -> dict[str, Path]:
+    """Names and paths of the checkpoints shipped inside the package."""
+    return {p.stem: p for p in sorted(SHIPPED_DIR.glob("*.safetensors"))}
+
+
+def resolve_checkpoint(spec: str | Path) -> Path:
+    """The weights file a checkpoint spec names (see the module docstring)."""
+    shipped = shipped_checkpoints()
+    if isinstance(spec, str) and spec in shipped:
+        return shipped[spec]
+    path = Path(spec)
+    if path.is_file():
+        return path
+    if (path / "model.safetensors").is_file():
+        return path / "model.safetensors"
+    ckpt_root = path / "checkpoints"
+    if ckpt_root.is_dir():
+        if (ckpt_root / "best" / "model.safetensors").is_file():
+            return ckpt_root / "best" / "model.safetensors"
+        latest = ckpt.latest_checkpoint(ckpt_root)
+        if latest is not None:
+            return latest / "model.safetensors"
+        raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")
+    names = ", ".join(shipped) or "none shipped"
+    raise DepthnerfError(f"{spec}: not a checkpoint file, checkpoint folder, run folder or shipped name ({names})")
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclass
+class Pretrained:
+    """A loaded model with everything needed to use it as it was trained."""
+
+    model: PixelNeRF
+    """The network, in eval mode."""
+    config: TrainConfig
+    """The training config it came from (z-range, resolution, depth prior, renderer)."""
+    path: Path
+    """The weights file."""
+    sha256: str
+    """SHA-256 of the weights file (provenance in eval summaries)."""
+    step: int
+    """Training steps behind these weights."""
+
+
+def load_pretrained(spec: str | Path, device: torch.device | str = "cpu") -> Pretrained:
+    """Load a checkpoint spec into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
+    path = resolve_checkpoint(spec)
+    tensors, meta = ckpt.read_weights(path)
+    model_cfg = from_dict(PixelNeRFConfig, ckpt.checkpoint_config(meta, path), where=f"{path} model config")
+    if "train_config" not in meta:
+        raise DepthnerfError(f"{path}: checkpoint has no training config in its metadata (not written by depthnerf "
+                             "train or scripts/export_checkpoint.py)")
+    import json
+
+    try:
+        train_cfg = from_dict_config(json.loads(meta["train_config"]))
+    except json.JSONDecodeError:
+        raise DepthnerfError(f"{path}: checkpoint's training config is not valid JSON") from None
+    model = PixelNeRF(model_cfg)
+    ckpt.load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
+    model.to(device).eval()
+    return Pretrained(model=model, config=train_cfg, path=path, sha256=sha256_file(path),
+                      step=int(meta.get("step", 0)))

@@ -1,0 +1,53 @@
+"""Rendering whole images of one encoded object from a set of target cameras (validation, eval, reconstruction).
+
+The field callables close over ONE object (batch size 1); all target views' rays are concatenated into one
+``[1, N*H*W]`` bundle and rendered in chunks by :func:`~depthnerf.render.pipeline.render_image`, so memory is
+bounded by ``chunk`` whatever N and the image size are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from depthnerf.data.cameras import Intrinsics
+from depthnerf.render.config import RenderConfig
+from depthnerf.render.guide import DepthGuide
+from depthnerf.render.pipeline import FieldFn, render_image
+from depthnerf.render.rays import RayBundle, rays_from_camera
+
+
+@dataclass
+class ViewRenders:
+    """Rendered images of N target views (the fine pass when there is one)."""
+
+    rgb: Float[Tensor, "N H W 3"]
+    """Colour in [0, 1] on the configured background."""
+    depth: Float[Tensor, "N H W"]
+    """Expected ray distance divided by opacity (the visible surface's distance; ``far`` where opacity ~ 0)."""
+    opacity: Float[Tensor, "N H W"]
+    """Accumulated opacity in [0, 1]."""
+
+
+def view_rays(c2w: Float[Tensor, "N 4 4"], intr: Intrinsics, near: float, far: float) -> RayBundle:
+    """All pixels of N cameras as one ``[1, N*H*W]`` bundle (view-major, then row-major pixels)."""
+    rays = rays_from_camera(c2w, intr, near, far)  # [N, H*W]
+    return RayBundle(*(x.reshape(1, -1, *x.shape[2:]) for x in (rays.origins, rays.directions, rays.near, rays.far)))
+
+
+@torch.no_grad()
+def render_views(coarse: FieldFn, fine: FieldFn | None, c2w: Float[Tensor, "N 4 4"], intr: Intrinsics,
+                 near: float, far: float, cfg: RenderConfig, *, chunk: int = 4096,
+                 guide: DepthGuide | None = None) -> ViewRenders:
+    """Render N full views of one encoded object (deterministic sampling, no gradients)."""
+    n, h, w = c2w.shape[0], intr.height, intr.width
+    rays = view_rays(c2w, intr, near, far)
+    out = render_image(coarse, fine, rays, cfg, chunk=chunk, guide=guide)
+    res = out.fine if out.fine is not None else out.coarse
+    opacity = res.opacity.reshape(n, h, w)
+    depth = torch.where(opacity > 1e-4, res.depth.reshape(n, h, w) / opacity.clamp_min(1e-4),
+                        torch.full_like(opacity, far))
+    return ViewRenders(rgb=res.rgb.reshape(n, h, w, 3).clamp(0, 1), depth=depth, opacity=opacity)

@@ -1,0 +1,191 @@
+"""Training batches as a pure function of ``(seed, step)``: exact resume and rank sharding for free.
+
+Schedule (pixelNeRF / the paper): each step draws ``objects_per_batch`` objects; for each object one random source
+view and ``rays_per_object`` target rays from its *other* views. During the bounding-box phase target rays are drawn
+inside the object's 2D box in the target view (pixelNeRF's ``bbox`` sampling), afterwards from the whole image.
+
+Determinism: object order is an epoch-wise permutation drawn from ``seed + epoch``; the source view, target views
+and pixels of item ``k`` at step ``s`` come from a generator seeded by ``hash(seed, s, k)``. Nothing depends on
+DataLoader workers, on how many ranks share the batch, or on where a run was resumed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import TypeVar
+
+import torch
+from jaxtyping import Bool, Float, Int
+from torch import Tensor
+
+_MIX = 0x9E3779B97F4A7C15
+T = TypeVar("T")
+
+
+def item_seed(seed: int, step: int, k: int) -> int:
+    """A 63-bit seed for item ``k`` of step ``step`` (splitmix-style mixing, stable across Python versions)."""
+    x = (seed * 1_000_003 + step) * 1_000_033 + k
+    x = (x + _MIX) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return (x ^ (x >> 31)) & 0x7FFFFFFFFFFFFFFF
+
+
+@dataclass(frozen=True)
+class BatchPlan:
+    """Which objects step ``s`` trains on, from the schedule alone."""
+
+    num_objects: int
+    """Number of training objects."""
+    seed: int
+    """Run seed."""
+    bbox_steps: int
+    """Steps of the bounding-box phase (phase 1)."""
+    objects_phase1: int
+    """Objects per batch in phase 1."""
+    objects_phase2: int
+    """Objects per batch in phase 2."""
+
+    def batch_size(self, step: int) -> int:
+        return self.objects_phase1 if step < self.bbox_steps else self.objects_phase2
+
+    def consumed(self, step: int) -> int:
+        """Objects consumed by steps ``0 .. step-1``."""
+        p1 = min(step, self.bbox_steps)
+        return p1 * self.objects_phase1 + max(0, step - self.bbox_steps) * self.objects_phase2
+
+    def epoch(self, step: int) -> float:
+        """Fractional epoch at the start of ``step`` (objects consumed / objects in the set)."""
+        return self.consumed(step) / self.num_objects
+
+    def _perm(self, epoch: int) -> Tensor:
+        g = torch.Generator().manual_seed(item_seed(self.seed, -1, epoch))
+        return torch.randperm(self.num_objects, generator=g)
+
+    def objects(self, step: int) -> list[int]:
+        """Indices of the objects of ``step``, drawn without replacement through epoch-wise permutations."""
+        start, n = self.consumed(step), self.batch_size(step)
+        out = []
+        for pos in range(start, start + n):
+            epoch, off = divmod(pos, self.num_objects)
+            out.append(int(self._perm(epoch)[off]))
+        return out
+
+
+def shard(items: Sequence[T], rank: int, world: int) -> list[T]:
+    """The contiguous slice of a global batch that ``rank`` of ``world`` processes (sizes must divide)."""
+    if len(items) % world:
+        raise ValueError(f"global batch of {len(items)} objects does not split over {world} ranks")
+    per = len(items) // world
+    return list(items[rank * per:(rank + 1) * per])
+
+
+@dataclass(frozen=True)
+class ItemKey:
+    """Everything a worker needs to build one training item deterministically."""
+
+    object_index: int
+    """Index into the training split's object list."""
+    seed: int
+    """Seed of this item's generator (from :func:`item_seed`)."""
+    use_bbox: bool
+    """Draw target pixels inside the target view's bounding box."""
+
+
+def pick_views(num_views: int, num_targets: int, gen: torch.Generator) -> tuple[int, list[int]]:
+    """One source view and ``num_targets`` distinct target views among the others (all others if fewer)."""
+    perm = torch.randperm(num_views, generator=gen).tolist()
+    src, others = perm[0], perm[1:]
+    return src, others[:num_targets] if num_targets > 0 else others
+
+
+def sample_pixels(num_rays: int, masks_shape: tuple[int, int, int], bboxes: Int[Tensor, "V 4"] | None,
+                  gen: torch.Generator) -> tuple[Int[Tensor, " R"], Int[Tensor, " R"], Int[Tensor, " R"]]:
+    """``num_rays`` (view, row, col) triples, uniform over the views' pixels or inside their boxes.
+
+    Boxes are ``x0, y0, x1, y1`` inclusive (pixelNeRF). Sampling is with replacement, as pixelNeRF's.
+    """
+    v_count, height, width = masks_shape
+    view = torch.randint(v_count, (num_rays,), generator=gen)
+    if bboxes is None:
+        row = torch.randint(height, (num_rays,), generator=gen)
+        col = torch.randint(width, (num_rays,), generator=gen)
+    else:
+        box = bboxes[view].to(torch.float64)
+        u = torch.rand(num_rays, 2, generator=gen, dtype=torch.float64)
+        col = (box[:, 0] + u[:, 0] * (box[:, 2] - box[:, 0] + 1)).floor().long().clamp(0, width - 1)
+        row = (box[:, 1] + u[:, 1] * (box[:, 3] - box[:, 1] + 1)).floor().long().clamp(0, height - 1)
+    return view, row, col
+
+
+@dataclass
+class TrainBatch:
+    """One collated training batch (B objects of this rank)."""
+
+    src_images: Float[Tensor, "B 1 3 H W"]
+    """Source image per object, [0, 1]."""
+    src_poses: Float[Tensor, "B 1 4 4"]
+    """Source camera-to-world (OpenCV axes)."""
+    src_prior: Float[Tensor, "B 1 1 H W"] | None
+    """Normalised depth prior of the source view, or None for the baseline."""
+    focal: Float[Tensor, " B"]
+    """Focal length in pixels at the training resolution."""
+    principal: Float[Tensor, "B 2"]
+    """Principal point (cx, cy)."""
+    ray_origins: Float[Tensor, "B R 3"]
+    """World ray origins of the target rays."""
+    ray_dirs: Float[Tensor, "B R 3"]
+    """Unit world ray directions."""
+    target_rgb: Float[Tensor, "B R 3"]
+    """Ground-truth colours of the target rays."""
+    target_prior: Float[Tensor, "B R"] | None
+    """Normalised prior disparity at the target pixels (for the optional depth loss)."""
+    target_fg: Bool[Tensor, "B R"]
+    """Whether each target pixel is foreground."""
+
+    def item(self, k: int) -> TrainBatch:
+        """Object ``k`` of the batch, as a batch of one."""
+        return TrainBatch(**{n: (None if v is None else v[k:k + 1]) for n, v in vars(self).items()})
+
+    def to(self, device: torch.device) -> TrainBatch:
+        fields = {k: (v.to(device, non_blocking=True) if torch.is_tensor(v) else v) for k, v in vars(self).items()}
+        return TrainBatch(**fields)
+
+
+def collate(items: list[TrainBatch]) -> TrainBatch:
+    """Stack per-object items (each with B = 1) into one batch."""
+    def cat(name: str):
+        vals = [getattr(i, name) for i in items]
+        return None if vals[0] is None else torch.cat(vals, dim=0)
+    return TrainBatch(**{name: cat(name) for name in vars(items[0])})
+
+
+def step_keys(plan: BatchPlan, step: int, rank: int = 0, world: int = 1) -> list[ItemKey]:
+    """The item keys this rank builds at ``step``."""
+    objs = plan.objects(step)
+    keys = [ItemKey(o, item_seed(plan.seed, step, k), step < plan.bbox_steps) for k, o in enumerate(objs)]
+    return shard(keys, rank, world)
+
+
+@dataclass(frozen=True)
+class StepSampler:
+    """DataLoader batch sampler: one list of this rank's keys per step, from ``start`` (resume) to ``stop``."""
+
+    plan: BatchPlan
+    """The schedule."""
+    start: int
+    """First step (the resumed step)."""
+    stop: int
+    """One past the last step."""
+    rank: int = 0
+    """This process's rank."""
+    world: int = 1
+    """Number of processes."""
+
+    def __iter__(self) -> Iterator[list[ItemKey]]:
+        for step in range(self.start, self.stop):
+            yield step_keys(self.plan, step, self.rank, self.world)
+
+    def __len__(self) -> int:
+        return max(0, self.stop - self.start)

@@ -1,0 +1,226 @@
+"""Checkpoints you can trust: safetensors weights, atomic writes, strict loading, exact-resume state.
+
+Layout of a run's ``checkpoints/`` folder::
+
+    step_00001000/            one checkpoint (a directory, renamed into place atomically)
+        model.safetensors     model weights; metadata ``{"format", "config", "step"}`` (config = model config JSON)
+        optimizer.safetensors optimizer tensors (Adam moments, per-parameter step counts)
+        state.json            step, optimizer hyper-parameters, training counters, metrics at save time
+    best/                     copy of the checkpoint with the best validation PSNR (same layout)
+    latest                    text file naming the newest complete checkpoint directory
+
+A checkpoint directory only appears under its final name once every file in it is written and fsynced, so a
+process killed at any moment leaves either the previous state or the new one, never a half-written checkpoint.
+Nothing here unpickles: tensors go through safetensors, everything else through JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from depthnerf.errors import DepthnerfError
+
+FORMAT = "depthnerf-checkpoint-1"
+"""Format tag stored in every weights file's metadata."""
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "w") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], step: int = 0,
+                 dtype: torch.dtype | None = None, extra: dict[str, str] | None = None) -> None:
+    """Write ``module``'s state dict as safetensors with its model config in the metadata (atomically)."""
+    tensors = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
+               for k, v in module.state_dict().items()}
+    meta = {"format": FORMAT, "config": json.dumps(config, sort_keys=True), "step": str(step), **(extra or {})}
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    save_file(tensors, str(tmp), metadata=meta)
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Load a weights file written by :func:`save_weights`: ``(tensors, metadata)``; errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise DepthnerfError(f"{path}: checkpoint weights file not found")
+    try:
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
+            meta = dict(f.metadata() or {})
+        tensors = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as err:
+        raise DepthnerfError(f"{path}: not a readable safetensors checkpoint ({err})") from None
+    if meta.get("format") != FORMAT:
+        raise DepthnerfError(f"{path}: not a depthnerf checkpoint (format {meta.get('format')!r}, expected {FORMAT})")
+    return tensors, meta
+
+
+def checkpoint_config(meta: dict[str, str], path: Path) -> dict[str, Any]:
+    """The model config dict stored in a checkpoint's metadata."""
+    try:
+        return json.loads(meta["config"])
+    except (KeyError, json.JSONDecodeError):
+        raise DepthnerfError(f"{path}: checkpoint metadata has no valid model config") from None
+
+
+def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: Path) -> None:
+    """Load weights with every key and shape checked; a mismatch is a one-line error naming the file."""
+    own = module.state_dict()
+    missing = sorted(set(own) - set(tensors))
+    unexpected = sorted(set(tensors) - set(own))
+    shapes = [k for k in own if k in tensors and own[k].shape != tensors[k].shape]
+    if missing or unexpected or shapes:
+        parts = []
+        if missing:
+            parts.append(f"missing {len(missing)} tensors (e.g. {missing[0]})")
+        if unexpected:
+            parts.append(f"unexpected {len(unexpected)} tensors (e.g. {unexpected[0]})")
+        if shapes:
+            k = shapes[0]
+            parts.append(f"shape mismatch for {k}: file {tuple(tensors[k].shape)} vs model {tuple(own[k].shape)}")
+        raise DepthnerfError(f"{path}: checkpoint does not match the model config: {'; '.join(parts)}")
+    module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()}, strict=True)
+
+
+def _optimizer_to_files(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    sd = opt.state_dict()
+    tensors: dict[str, torch.Tensor] = {}
+    scalars: dict[str, dict[str, Any]] = {}
+    for pid, st in sd["state"].items():
+        for name, value in st.items():
+            if torch.is_tensor(value):
+                tensors[f"{pid}.{name}"] = value.detach().contiguous().cpu()
+            else:
+                scalars.setdefault(str(pid), {})[name] = value
+    return tensors, {"param_groups": sd["param_groups"], "scalars": scalars}
+
+
+def _optimizer_from_files(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], info: dict[str, Any]) -> None:
+    state: dict[int, dict[str, Any]] = {}
+    for key, value in tensors.items():
+        pid, name = key.split(".", 1)
+        state.setdefault(int(pid), {})[name] = value
+    for pid, st in info.get("scalars", {}).items():
+        state.setdefault(int(pid), {}).update(st)
+    opt.load_state_dict({"state": state, "param_groups": info["param_groups"]})
+
+
+@dataclass(frozen=True)
+class TrainingState:
+    """What a resumed run needs besides weights: all batches and noise derive from (seed, step)."""
+
+    step: int
+    """Number of optimisation steps completed."""
+    best_psnr: float
+    """Best validation PSNR so far (-inf before the first validation)."""
+    extra: dict[str, Any]
+    """Free-form JSON state (e.g. last metrics)."""
+
+
+def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                    model_config: dict[str, Any], state: TrainingState, keep_last: int = 3,
+                    train_config: dict[str, Any] | None = None) -> Path:
+    """Write ``ckpt_root/step_XXXXXXXX`` atomically, point ``latest`` at it, prune older ones (keep ``keep_last``).
+
+    ``train_config`` (the run's whole config) goes into the weights' metadata too, so a weights file alone says
+    how to use it (z-range, resolution, depth prior).
+    """
+    ckpt_root = Path(ckpt_root)
+    ckpt_root.mkdir(parents=True, exist_ok=True)
+    name = f"step_{state.step:08d}"
+    tmp = ckpt_root / f".{name}.{os.getpid()}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    extra = {"train_config": json.dumps(train_config, sort_keys=True)} if train_config is not None else None
+    save_weights(tmp / "model.safetensors", model, model_config, step=state.step, extra=extra)
+    opt_tensors, opt_info = _optimizer_to_files(optimizer)
+    save_file(opt_tensors, str(tmp / "optimizer.safetensors"))
+    with open(tmp / "optimizer.safetensors", "rb") as f:
+        os.fsync(f.fileno())
+    payload = {"step": state.step, "best_psnr": state.best_psnr, "extra": state.extra, "optimizer": opt_info}
+    _write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1))
+    _fsync_dir(tmp)
+    final = ckpt_root / name
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    _fsync_dir(ckpt_root)
+    _write_text_atomic(ckpt_root / "latest", name + "\n")
+    steps = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())
+    for old in steps[:-keep_last] if keep_last > 0 else []:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def mark_best(ckpt_root: Path, ckpt_dir: Path) -> None:
+    """Make ``ckpt_root/best`` an atomic copy of ``ckpt_dir``."""
+    tmp = ckpt_root / f".best.{os.getpid()}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(ckpt_dir, tmp)
+    old = ckpt_root / f".best.{os.getpid()}.old"
+    if (ckpt_root / "best").exists():
+        os.replace(ckpt_root / "best", old)
+    os.replace(tmp, ckpt_root / "best")
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def latest_checkpoint(ckpt_root: Path) -> Path | None:
+    """The newest complete checkpoint directory, or None when there is none."""
+    pointer = Path(ckpt_root) / "latest"
+    if not pointer.is_file():
+        return None
+    path = Path(ckpt_root) / pointer.read_text().strip()
+    if not (path / "state.json").is_file():
+        raise DepthnerfError(f"{pointer}: points at {path.name}, which is incomplete or missing")
+    return path
+
+
+def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None,
+                    model_config: dict[str, Any]) -> TrainingState:
+    """Restore weights (strictly, after checking the stored model config) and optimizer; return the state."""
+    ckpt_dir = Path(ckpt_dir)
+    tensors, meta = read_weights(ckpt_dir / "model.safetensors")
+    stored = checkpoint_config(meta, ckpt_dir / "model.safetensors")
+    if stored != json.loads(json.dumps(model_config)):
+        diff = sorted(k for k in set(stored) | set(model_config) if stored.get(k) != model_config.get(k))
+        raise DepthnerfError(f"{ckpt_dir}: checkpoint was trained with a different model config (differs in: "
+                             f"{', '.join(diff)}); resume with the run's own config")
+    load_state_strict(model, tensors, ckpt_dir / "model.safetensors")
+    try:
+        payload = json.loads((ckpt_dir / "state.json").read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise DepthnerfError(f"{ckpt_dir / 'state.json'}: unreadable training state ({err})") from None
+    if optimizer is not None:
+        try:
+            opt_tensors = load_file(str(ckpt_dir / "optimizer.safetensors"))
+        except (SafetensorError, OSError) as err:
+            raise DepthnerfError(f"{ckpt_dir / 'optimizer.safetensors'}: unreadable optimizer state ({err})") from None
+        _optimizer_from_files(optimizer, opt_tensors, payload["optimizer"])
+    return TrainingState(step=int(payload["step"]), best_psnr=float(payload["best_psnr"]), extra=payload["extra"])

@@ -1,0 +1,173 @@
+"""The training config tree and the named presets.
+
+One dataclass per component, a docstring under every field. The model and renderer get their own configs
+(:class:`~depthnerf.model.config.PixelNeRFConfig`, :class:`~depthnerf.render.config.RenderConfig`), never this tree.
+Presets are functions of the depth prior, because the paper's method and the baseline differ by one switch:
+``--depth none`` builds the pixelNeRF baseline (``encoder.use_depth = False``), any other estimator the
+depth-aware model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
+from depthnerf.render.config import RenderConfig, SamplerConfig
+
+DepthPrior = Literal["none", "bundled", "oracle", "depth-anything-v2"]
+
+
+@dataclass
+class DataConfig:
+    """Which images the run reads and how."""
+
+    root: str = "data/synth"
+    """Dataset root holding ``<category>_{train,val,test}/`` folders (SRN layout)."""
+    category: str = "cars"
+    """Folder prefix of the category (``cars`` reads ``cars_train`` ...); also picks the default z-range."""
+    resolution: int = 128
+    """Training image size (square); images are area-resampled and intrinsics rescaled when it differs."""
+    z_near: float | None = None
+    """Near bound of the ray distance; None = the category's SRN value (cars 0.8, chairs 1.25)."""
+    z_far: float | None = None
+    """Far bound of the ray distance; None = the category's SRN value (cars 1.8, chairs 2.75)."""
+    target_views: int = 0
+    """Target views loaded per object and step (0 = all views but the source, as pixelNeRF)."""
+    num_workers: int = 2
+    """DataLoader worker processes (0 = load in the main process)."""
+
+
+@dataclass
+class PriorConfig:
+    """The frozen monocular depth prior fed to the depth-aware encoder."""
+
+    estimator: DepthPrior = "bundled"
+    """``none`` (pixelNeRF baseline), ``bundled`` (offline default), ``oracle`` (ground truth), or
+    ``depth-anything-v2`` (the paper's; needs a local checkpoint and a cache made by ``depthnerf depth``)."""
+    checkpoint: str | None = None
+    """Estimator weights (hub id or local directory) for ``depth-anything-v2``; a weights file for ``bundled``."""
+
+
+@dataclass
+class ScheduleConfig:
+    """Optimisation schedule (the paper's, scaled by preset)."""
+
+    max_steps: int = 400_000
+    """Total optimisation steps."""
+    lr: float = 1e-4
+    """Adam learning rate."""
+    bbox_steps: int = 100_000
+    """Steps of phase 1: target rays inside the object's 2D box; afterwards from the full image."""
+    objects_phase1: int = 4
+    """Objects per step in phase 1 (global batch, split across ranks)."""
+    objects_phase2: int = 8
+    """Objects per step in phase 2."""
+    rays_per_object: int = 128
+    """Target rays per object per step."""
+    lr_decay: float = 0.995
+    """Exponential learning-rate decay per epoch of phase 2 (1.0 = constant)."""
+    depth_loss_weight: float = 0.0
+    """Weight of the scale/shift-invariant depth loss against the target view's prior (beyond the paper; 0 = off)."""
+
+
+@dataclass
+class LogConfig:
+    """Observability and checkpoints."""
+
+    log_every: int = 50
+    """Write a ``metrics.jsonl`` line and TensorBoard scalars every this many steps."""
+    val_every: int = 2000
+    """Validate (PSNR/SSIM on fixed val objects) every this many steps (0 = never)."""
+    val_objects: int = 4
+    """Number of fixed validation objects (the first ones of the val split)."""
+    val_views: tuple[int, ...] = (0, 125, 200)
+    """Target views rendered per validation object (view 64 is the input, as in the test protocol)."""
+    checkpoint_every: int = 2000
+    """Write a checkpoint every this many steps (and at the end)."""
+    keep_last: int = 3
+    """Number of most recent checkpoints kept (plus ``best``)."""
+    render_chunk: int = 4096
+    """Rays per chunk when rendering full images."""
+
+
+@dataclass
+class TrainConfig:
+    """Everything a training run is, written to ``RUN_DIR/config.json``."""
+
+    preset: str = "custom"
+    """Name of the preset this config started from."""
+    seed: int = 0
+    """Seed of every random choice (objects, views, rays, sample jitter, initialisation)."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Dataset."""
+    prior: PriorConfig = field(default_factory=PriorConfig)
+    """Depth prior."""
+    model: PixelNeRFConfig = field(default_factory=PixelNeRFConfig)
+    """Network."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """Renderer."""
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    """Optimisation schedule."""
+    log: LogConfig = field(default_factory=LogConfig)
+    """Logging, validation and checkpoints."""
+
+
+def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) -> TrainConfig:
+    """Switch between the baseline (``none``) and the depth-aware model; the only difference is the encoder input."""
+    if estimator not in ("none", "bundled", "oracle", "depth-anything-v2"):
+        raise DepthnerfError(f"--depth {estimator!r}: choose none, bundled, oracle or depth-anything-v2")
+    encoder = dataclasses.replace(cfg.model.encoder, use_depth=estimator != "none")
+    return dataclasses.replace(cfg, prior=PriorConfig(estimator=estimator, checkpoint=checkpoint),  # type: ignore[arg-type]
+                               model=dataclasses.replace(cfg.model, encoder=encoder))
+
+
+def _paper(category: str) -> TrainConfig:
+    """The paper's settings at 128x128 (pixelNeRF SRN defaults; for GPUs)."""
+    return TrainConfig(preset=f"paper-{category}", data=DataConfig(root=f"data/srn/{category}", category=category,
+                                                                   resolution=128, num_workers=8),
+                       prior=PriorConfig(estimator="depth-anything-v2"), model=PixelNeRFConfig(),
+                       render=RenderConfig(), schedule=ScheduleConfig(), log=LogConfig())
+
+
+def _cpu(category: str) -> TrainConfig:
+    """Sized for a 2-core CPU in <= 45 minutes (each reduction documented in docs/presets.md)."""
+    small_field = FieldConfig(d_hidden=128, n_blocks=5, combine_layer=3)
+    return TrainConfig(
+        preset=f"cpu-{category}",
+        data=DataConfig(root="data/synth", category=category, resolution=64, target_views=0, num_workers=1),
+        prior=PriorConfig(estimator="bundled"),
+        model=PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet34"), coarse=small_field, fine=small_field),
+        render=RenderConfig(sampler=SamplerConfig(n_coarse=32, n_importance=16, n_gaussian=8)),
+        schedule=ScheduleConfig(max_steps=6000, bbox_steps=1500, objects_phase1=4, objects_phase2=4,
+                                rays_per_object=128, lr=1e-4 * 3, lr_decay=0.995),
+        log=LogConfig(log_every=25, val_every=500, val_objects=4, val_views=(0, 125, 200),
+                      checkpoint_every=250, keep_last=2, render_chunk=4096),
+    )
+
+
+PRESETS: dict[str, Callable[[], TrainConfig]] = {
+    "paper-cars": lambda: _paper("cars"),
+    "paper-chairs": lambda: _paper("chairs"),
+    "cpu-cars": lambda: _cpu("cars"),
+    "cpu-chairs": lambda: _cpu("chairs"),
+}
+"""Named presets; each in a baseline and a depth-aware form through :func:`with_prior`."""
+
+
+def preset(name: str) -> TrainConfig:
+    """The config of a named preset (a fresh copy)."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise DepthnerfError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+
+
+def from_dict_config(data: dict) -> TrainConfig:
+    """A :class:`TrainConfig` from ``config.json`` (strict: unknown keys are an error)."""
+    from depthnerf.train.overrides import from_dict
+
+    return from_dict(TrainConfig, data, where="config.json")

@@ -1,0 +1,225 @@
+"""The training loop: the paper's schedule, exact resume, rank-0 logging, PyTorch DDP across processes.
+
+Per step: the global batch of objects comes from :class:`~depthnerf.train.batching.BatchPlan` (a function of
+``(seed, step)``), each rank takes its contiguous share, and every object is encoded and rendered on its own with
+its own generator (so a rank's result does not depend on which other objects share its batch: the BatchNorm
+statistics are those of the object's source view, and 2 ranks x 2 objects equal 1 process x 4 objects). The loss is
+pixelNeRF's: mean squared error of the coarse plus the fine colour (plus the optional depth loss); gradients are
+accumulated over the rank's objects and averaged across ranks by DDP. BatchNorm running statistics (used only in
+eval mode) are not synchronised on CPU (SyncBatchNorm needs a GPU); DDP keeps rank 0's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from depthnerf.data.srn import category_defaults, index_split
+from depthnerf.depth.cache import PriorStore
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
+from depthnerf.render.config import RenderConfig
+from depthnerf.render.depth_loss import ssi_depth_loss
+from depthnerf.render.pipeline import render_rays
+from depthnerf.render.rays import RayBundle
+from depthnerf.train import checkpoint as ckpt
+from depthnerf.train.batching import BatchPlan, StepSampler, TrainBatch, collate, item_seed, step_keys
+from depthnerf.train.config import TrainConfig
+from depthnerf.train.distributed import DistInfo, barrier
+from depthnerf.train.items import TrainItems
+from depthnerf.train.overrides import to_dict
+from depthnerf.train.run_log import RunLog
+from depthnerf.train.validate import validate
+
+
+@dataclass
+class LossTerms:
+    """Losses of one object's rays."""
+
+    total: torch.Tensor
+    """What is back-propagated."""
+    coarse: torch.Tensor
+    """MSE of the coarse colour."""
+    fine: torch.Tensor
+    """MSE of the fine colour (0 without a fine pass)."""
+    depth: torch.Tensor
+    """Scale/shift-invariant depth loss (0 when off)."""
+
+
+class ObjectLoss(torch.nn.Module):
+    """Encode one object's source view, render its target rays, return the losses (DDP wraps this module)."""
+
+    def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float) -> None:
+        super().__init__()
+        self.model = model
+        self.render_cfg = render_cfg
+        self.depth_weight = depth_weight
+
+    def forward(self, item: TrainBatch, near: float, far: float, generator: torch.Generator) -> LossTerms:
+        src = SourceViews(images=item.src_images, poses=item.src_poses, focal=item.focal,
+                          principal=item.principal, prior=item.src_prior)
+        enc = self.model.encode(src)
+        fine_fn = self.model.field(enc, "fine") if self.model.fine is not None else None
+        rays = RayBundle(item.ray_origins, item.ray_dirs, torch.full_like(item.ray_origins[..., 0], near),
+                         torch.full_like(item.ray_origins[..., 0], far))
+        out = render_rays(self.model.field(enc, "coarse"), fine_fn, rays, self.render_cfg, train=True,
+                          generator=generator)
+        coarse = torch.mean((out.coarse.rgb - item.target_rgb) ** 2)
+        fine = torch.mean((out.fine.rgb - item.target_rgb) ** 2) if out.fine is not None else coarse * 0
+        total = coarse + fine
+        depth = total * 0
+        if self.depth_weight > 0 and item.target_prior is not None:
+            res = out.fine if out.fine is not None else out.coarse
+            depth = ssi_depth_loss(res.normalized_depth(), item.target_prior, item.target_fg)
+            total = total + self.depth_weight * depth
+        return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth)
+
+
+def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
+    """Constant in phase 1; ``lr * decay^(whole epochs since phase 2 began)`` afterwards."""
+    s = cfg.schedule
+    if step < s.bbox_steps or s.lr_decay == 1.0:
+        return s.lr
+    epochs = math.floor(plan.epoch(step) - plan.epoch(s.bbox_steps))
+    return s.lr * s.lr_decay ** epochs
+
+
+def z_range(cfg: TrainConfig) -> tuple[float, float]:
+    """(near, far) of the run: explicit config values, else the category's SRN values."""
+    if cfg.data.z_near is not None and cfg.data.z_far is not None:
+        return cfg.data.z_near, cfg.data.z_far
+    d = category_defaults(cfg.data.category)
+    return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)
+
+
+def _write_run_files(run_dir: Path, cfg: TrainConfig, store: PriorStore | None, n_train: int) -> None:
+    (run_dir / "config.json").write_text(json.dumps(to_dict(cfg), indent=1) + "\n")
+    prior = {"estimator": cfg.prior.estimator, **(store.provenance if store is not None else {})}
+    (run_dir / "prior.json").write_text(json.dumps(prior, indent=1, default=str) + "\n")
+    root = Path(cfg.data.root)
+    card_path = root / f"{cfg.data.category}_card.json"
+    card = json.loads(card_path.read_text()) if card_path.is_file() else None
+    data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
+                 "resolution": cfg.data.resolution, "dataset_card": card}
+    (run_dir / "data_card.json").write_text(json.dumps(data_card, indent=1) + "\n")
+
+
+def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True) -> dict:
+    """Train (or resume) a run in ``run_dir``; returns the final state as a dict."""
+    run_dir = Path(run_dir)
+    ckpt_root = run_dir / "checkpoints"
+    latest = ckpt.latest_checkpoint(ckpt_root) if ckpt_root.exists() else None
+    if latest is not None and not resume:
+        raise DepthnerfError(f"{run_dir}: already holds a run (last checkpoint {latest.name}); pass --resume to "
+                             "continue it or choose another --out")
+    root, cat = Path(cfg.data.root), cfg.data.category
+    records = index_split(root, cat, "train").objects
+    store = PriorStore.open(root, cfg.prior.estimator, cfg.prior.checkpoint, resolution=cfg.data.resolution)
+    if store is not None:
+        store.check(records)
+    val_records = []
+    if cfg.log.val_every > 0 and info.is_main:
+        try:
+            val_records = index_split(root, cat, "val").objects[: cfg.log.val_objects]
+        except DepthnerfError as err:
+            raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
+                                 ) from None
+        if store is not None:
+            store.check(val_records)
+    near, far = z_range(cfg)
+
+    torch.manual_seed(cfg.seed)
+    model = PixelNeRF(cfg.model).to(info.device)
+    if info.device.type == "cuda":
+        model.encoder.to(memory_format=torch.channels_last)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr)
+    model_cfg = to_dict(cfg.model)
+    state = ckpt.TrainingState(step=0, best_psnr=-math.inf, extra={})
+    if latest is not None:
+        state = ckpt.load_checkpoint(latest, model, optimizer, model_cfg)
+    start = state.step
+    if info.is_main:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        _write_run_files(run_dir, cfg, store, len(records))
+    barrier(info)
+
+    loss_module = ObjectLoss(model, cfg.render, cfg.schedule.depth_loss_weight)
+    runner = DistributedDataParallel(loss_module) if info.world > 1 else loss_module
+    s = cfg.schedule
+    plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
+                     objects_phase1=s.objects_phase1, objects_phase2=s.objects_phase2)
+    items = TrainItems(records, store, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
+                       rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0)
+    loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
+                        collate_fn=collate, num_workers=cfg.data.num_workers,
+                        persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None)
+    log = RunLog(run_dir, start) if info.is_main else None
+    bar = tqdm(total=s.max_steps, initial=start, desc="train", unit="it", dynamic_ncols=True,
+               disable=not (progress and info.is_main))
+    amp = (torch.autocast("cuda", dtype=torch.bfloat16) if info.device.type == "cuda"
+           else contextlib.nullcontext())
+    model.train()
+    step, best, last_saved = start, state.best_psnr, None
+    t_last, rays_since = time.perf_counter(), 0
+    for batch in loader:
+        lr = learning_rate(cfg, plan, step)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        batch = batch.to(info.device)
+        keys = step_keys(plan, step, info.rank, info.world)
+        optimizer.zero_grad(set_to_none=True)
+        sums = torch.zeros(4, dtype=torch.float64)
+        for k, key in enumerate(keys):
+            gen = torch.Generator(info.device).manual_seed(item_seed(key.seed, step, 1))
+            sync = contextlib.nullcontext() if (info.world == 1 or k == len(keys) - 1) else runner.no_sync()
+            with sync, amp:
+                terms = runner(batch.item(k), near, far, gen)
+                (terms.total / len(keys)).backward()
+            sums += torch.tensor([float(t.detach()) for t in (terms.total, terms.coarse, terms.fine, terms.depth)],
+                                 dtype=torch.float64)
+        optimizer.step()
+        step += 1
+        rays_since += len(keys) * s.rays_per_object * info.world
+        bar.update(1)
+        means = sums / len(keys)
+        if info.world > 1:
+            torch.distributed.all_reduce(means)
+            means /= info.world
+        if info.is_main and (step % cfg.log.log_every == 0 or step == s.max_steps):
+            now = time.perf_counter()
+            psnr = -10.0 * math.log10(max(float(means[2] if model.fine is not None else means[1]), 1e-10))
+            values = {"loss": float(means[0]), "loss_coarse": float(means[1]), "loss_fine": float(means[2]),
+                      "loss_depth": float(means[3]), "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
+                      "rays_per_s": rays_since / max(now - t_last, 1e-9)}
+            log.log(step, values)
+            bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")
+            t_last, rays_since = now, 0
+        val_now = cfg.log.val_every > 0 and (step % cfg.log.val_every == 0 or step == s.max_steps)
+        improved = False
+        if info.is_main and val_now:
+            res = validate(model, val_records, store, cfg.log.val_views, cfg.data.resolution, near, far,
+                           cfg.render, cfg.log.render_chunk, info.device)
+            log.log(step, {"val_psnr": res.psnr, "val_ssim": res.ssim}, prefix="val")
+            log.images(step, res.images)
+            improved = res.psnr > best
+            best = max(best, res.psnr)
+        if info.is_main and (step % cfg.log.checkpoint_every == 0 or step == s.max_steps or improved):
+            last_saved = ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg,
+                                              ckpt.TrainingState(step=step, best_psnr=best, extra={}),
+                                              keep_last=cfg.log.keep_last, train_config=to_dict(cfg))
+            if improved:
+                ckpt.mark_best(ckpt_root, last_saved)
+    bar.close()
+    if log is not None:
+        log.close()
+    barrier(info)
+    return {"step": step, "best_val_psnr": best, "checkpoint": str(last_saved) if last_saved else None}

@@ -1,0 +1,79 @@
+"""A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step) and TensorBoard events.
+
+On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
+its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s``, so the logged curves of a resumed
+run are exactly those of an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _clean(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+class RunLog:
+    """Writer for ``RUN_DIR/metrics.jsonl`` and ``RUN_DIR/tb`` (rank 0 only)."""
+
+    def __init__(self, run_dir: Path, start_step: int, tensorboard: bool = True) -> None:
+        self.path = Path(run_dir) / "metrics.jsonl"
+        self._truncate(start_step)
+        self.writer = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=start_step if start_step else None)
+
+    def _truncate(self, start_step: int) -> None:
+        if not self.path.exists():
+            return
+        keep = []
+        for line in self.path.read_text().splitlines():
+            try:
+                if json.loads(line).get("step", 0) <= start_step:
+                    keep.append(line)
+            except json.JSONDecodeError:
+                break  # a line cut by a kill: everything after it is also after the checkpoint
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        tmp.write_text("".join(k + "\n" for k in keep))
+        os.replace(tmp, self.path)
+
+    def log(self, step: int, values: dict[str, float], prefix: str = "train") -> None:
+        """Append one JSON line and the matching TensorBoard scalars."""
+        with open(self.path, "a") as f:
+            f.write(json.dumps({"step": step, **{k: _clean(v) for k, v in values.items()}}) + "\n")
+        if self.writer is not None:
+            for key, value in values.items():
+                if isinstance(value, int | float) and math.isfinite(value):
+                    self.writer.add_scalar(f"{prefix}/{key}", value, step)
+
+    def images(self, step: int, images: dict[str, np.ndarray]) -> None:
+        """TensorBoard images (``H x W x 3`` or ``H x W`` arrays in [0, 1])."""
+        if self.writer is None:
+            return
+        for name, img in images.items():
+            arr = np.asarray(img, dtype=np.float32)
+            if arr.ndim == 2:
+                arr = np.repeat(arr[..., None], 3, axis=-1)
+            self.writer.add_image(f"val/{name}", np.clip(arr, 0, 1), step, dataformats="HWC")
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.flush()
+            self.writer.close()
+
+
+def read_metrics(run_dir: Path) -> list[dict[str, Any]]:
+    """All JSON lines of a run's ``metrics.jsonl``."""
+    path = Path(run_dir) / "metrics.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []

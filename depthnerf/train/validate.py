@@ -1,0 +1,69 @@
+"""Validation during training: PSNR/SSIM on a few fixed val objects, rendered from the protocol's input view."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from depthnerf.data.srn import ObjectRecord, load_object
+from depthnerf.depth.cache import PriorStore
+from depthnerf.eval.metrics import object_metrics
+from depthnerf.model.conditioning import source_views
+from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.render.config import RenderConfig
+from depthnerf.render.views import render_views
+
+INPUT_VIEW = 64
+"""The SRN protocol's input view (objects with fewer views use view 0)."""
+
+
+@dataclass
+class ValidationResult:
+    """Mean metrics over the validation objects and images of the first one for TensorBoard."""
+
+    psnr: float
+    """Mean over objects of the per-object mean PSNR (dB)."""
+    ssim: float
+    """Mean over objects of the per-object mean SSIM."""
+    images: dict[str, np.ndarray]
+    """source, target, render, depth (rendered, normalised to [0, 1]) and prior (if any) of the first object."""
+
+
+def input_view(record: ObjectRecord) -> int:
+    return INPUT_VIEW if record.num_views > INPUT_VIEW else 0
+
+
+@torch.no_grad()
+def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStore | None, views: Sequence[int],
+             resolution: int, near: float, far: float, render_cfg: RenderConfig, chunk: int,
+             device: torch.device) -> ValidationResult:
+    """Render ``views`` of each record from its input view and score them against the ground truth."""
+    was_training = model.training
+    model.eval()
+    scores, images = [], {}
+    try:
+        for i, record in enumerate(records):
+            src = input_view(record)
+            targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
+            obj = load_object(record, [src, *targets], resolution=resolution)
+            disp = store.load(record, [src]) if store is not None else None
+            enc = model.encode(source_views(obj, [0], disp, device))
+            out = render_views(model.field(enc, "coarse"), model.field(enc, "fine") if model.fine else None,
+                               obj.poses[1:].to(device), obj.intrinsics, near, far, render_cfg, chunk=chunk)
+            preds = out.rgb.cpu().numpy()
+            gts = obj.images[1:].permute(0, 2, 3, 1).numpy()
+            scores.append(object_metrics(record.object_id, list(preds), list(gts)))
+            if i == 0:
+                depth = out.depth[0].cpu().numpy()
+                images = {"source": obj.images[0].permute(1, 2, 0).numpy(), "target": gts[0], "render": preds[0],
+                          "depth": (far - depth) / (far - near)}
+                if disp is not None:
+                    d = disp[0].numpy()
+                    images["prior"] = (d - d.min()) / max(float(d.max() - d.min()), 1e-8)
+    finally:
+        model.train(was_training)
+    return ValidationResult(psnr=float(np.mean([s.psnr for s in scores])),
+                            ssim=float(np.mean([s.ssim for s in scores])), images=images)

@@ -1,0 +1,21 @@
+"""Shared pytest fixtures. Builders live in ``tests/fixtures_srn.py`` (importable from any test module)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from fixtures_srn import make_srn_fixture
+
+
+@pytest.fixture
+def srn_root(tmp_path: Path) -> Path:
+    """A fresh tiny SRN cars folder: ``cars_train`` (2 objects) and ``cars_test`` (1), 3 views of 16x16."""
+    return make_srn_fixture(tmp_path / "srn")
+
+
+@pytest.fixture
+def srn_root_full(tmp_path: Path) -> Path:
+    """Like ``srn_root`` with depth, masks and meshes, and a ``cars_val`` split."""
+    return make_srn_fixture(tmp_path / "srn", splits={"train": 2, "val": 1, "test": 1}, with_depth=True,
+                            with_mask=True, with_mesh=True)

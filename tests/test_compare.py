@@ -1,0 +1,106 @@
+"""``depthnerf compare`` on hand-made eval summaries."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from depthnerf.cli import main
+from depthnerf.eval.table import PAPER_LABEL
+
+
+def _summary(path: Path, method: str, category: str, psnr: float, ssim: float, **extra) -> Path:
+    data = {"psnr": psnr, "ssim": ssim, "objects": 3, "views": 150, "checkpoint_sha256": "ab" * 32,
+            "preset": "cpu-small", "category": category, "depth_prior": extra.pop("depth_prior", "none"),
+            "method": method, "protocol": "SRN: source view 64, 250 targets", **extra}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data))
+    return path
+
+
+def _rows(text: str) -> dict[str, list[str]]:
+    """Markdown table -> {first cell: other cells}, plus the header under key 'Method'."""
+    lines = [ln for ln in text.splitlines() if ln.startswith("| ")]
+    return {cells[0]: cells[1:] for cells in ([c.strip() for c in ln.strip("|").split("|")] for ln in lines)}
+
+
+@pytest.fixture
+def runs(tmp_path: Path) -> dict[str, Path]:
+    """A baseline run dir with two eval folders, a depth-aware eval out dir, and a bare summary file."""
+    base = tmp_path / "runs" / "baseline"
+    _summary(base / "eval" / "chairs_test" / "summary.json", "pixelNeRF (baseline)", "chairs", 21.234, 0.87654,
+             lpips=0.1234)
+    _summary(base / "eval" / "cars_test" / "summary.json", "pixelNeRF (baseline)", "cars", 20.5, 0.8)
+    ours = _summary(tmp_path / "out" / "ours_chairs" / "summary.json", "depth-aware (bundled)", "chairs", 22.0,
+                    0.9, depth_prior="bundled", chamfer_l1=0.012345, fscore=0.61, fscore_tau=0.01, lpips=None)
+    return {"run": base, "eval_dir": ours.parent, "file": ours}
+
+
+def test_table_has_table1_shape_and_missing_cells(runs, capsys):
+    assert main(["compare", str(runs["run"]), str(runs["eval_dir"])]) == 0
+    rows = _rows(capsys.readouterr().out)
+    assert rows["Method"] == ["Chairs PSNR", "Chairs SSIM", "Chairs CD-L1", "Chairs F-score", "Chairs LPIPS",
+                              "Cars PSNR", "Cars SSIM"]
+    assert rows["pixelNeRF (baseline)"] == ["21.23", "0.877", "—", "—", "0.123", "20.50", "0.800"]
+    assert rows["depth-aware (bundled)"] == ["22.00", "0.900", "0.0123", "0.610", "—", "—", "—"]
+    assert len(rows) == 3
+
+
+def test_reference_rows_are_labelled_and_out_file_matches(runs, tmp_path, capsys):
+    out = tmp_path / "tables" / "table1.md"
+    assert main(["compare", str(runs["file"]), "--reference", "paper", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert out.read_text() == text
+    rows = _rows(text)
+    assert rows["Method"] == ["Chairs PSNR", "Chairs SSIM", "Chairs CD-L1", "Chairs F-score", "Cars PSNR",
+                              "Cars SSIM"]  # ours has lpips null: no LPIPS column
+    paper = {k: v for k, v in rows.items() if PAPER_LABEL in k}
+    assert paper[f"SRN — {PAPER_LABEL}"][:2] == ["22.89", "0.89"]
+    assert paper[f"SRN — {PAPER_LABEL}"][-2:] == ["22.25", "0.88"]
+    assert paper[f"pixelNeRF — {PAPER_LABEL}"][-2:] == ["23.17", "0.89"]
+    assert paper[f"VisionNeRF — {PAPER_LABEL}"][:2] == ["24.48", "0.92"]
+    assert paper[f"Ours (depth-aware pixelNeRF) — {PAPER_LABEL}"][:2] == ["24.26", "0.91"]
+    assert paper[f"Ours (depth-aware pixelNeRF) — {PAPER_LABEL}"][-2:] == ["23.50", "0.90"]
+    assert rows["depth-aware (bundled)"][-2:] == ["—", "—"]  # measured only on chairs
+    assert "checkpoint abababababab" in text and "depth prior bundled" in text and "F-score tau 0.01" in text
+
+
+def test_same_file_twice_is_one_row(runs, capsys):
+    assert main(["compare", str(runs["file"]), str(runs["eval_dir"])]) == 0
+    assert len(_rows(capsys.readouterr().out)) == 2
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (lambda d: d.pop("checkpoint_sha256"), "summary is missing checkpoint_sha256"),
+        (lambda d: d.update(psnr="22.1"), "'psnr' must be a finite number"),
+        (lambda d: d.update(views=-1), "'views' must be a non-negative integer"),
+        (lambda d: d.update(method=""), "'method' must be a non-empty string"),
+    ],
+)
+def test_bad_summary_is_one_line_error(tmp_path, capsys, edit, match):
+    path = _summary(tmp_path / "summary.json", "m", "cars", 20.0, 0.8)
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+    assert main(["compare", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {path}: ") and match in err and err.count("\n") == 1
+
+
+def test_bad_paths_and_conflicts(runs, tmp_path, capsys):
+    (tmp_path / "broken.json").write_text("{not json")
+    (tmp_path / "empty_dir").mkdir()
+    twin = _summary(tmp_path / "twin" / "summary.json", "pixelNeRF (baseline)", "cars", 1.0, 0.1)
+    for args, match in [
+        ([str(tmp_path / "broken.json")], "not valid JSON"),
+        ([str(tmp_path / "nowhere")], "no such file or directory"),
+        ([str(tmp_path / "empty_dir")], "no summary.json here"),
+        ([str(runs["run"]), str(twin)], "is also given by"),
+    ]:
+        assert main(["compare", *args]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and match in err
