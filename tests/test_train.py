@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from fixtures_srn import make_srn_fixture
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.train import checkpoint as ckpt
@@ -21,8 +22,6 @@ from depthnerf.train.batching import BatchPlan, sample_pixels, step_keys
 from depthnerf.train.config import preset, with_prior
 from depthnerf.train.loop import learning_rate
 from depthnerf.train.run_log import read_metrics
-
-from fixtures_srn import make_srn_fixture
 
 TINY = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
         "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--render.sampler.n_coarse", "8",

@@ -74,7 +74,7 @@ class Intrinsics:
 
 
 def look_at(eye: Float[Tensor, "*B 3"], target: Float[Tensor, "*B 3"] | None = None,
-            up: Float[Tensor, "3"] | None = None) -> Float[Tensor, "*B 4 4"]:
+            up: Float[Tensor, " 3"] | None = None) -> Float[Tensor, "*B 4 4"]:
     """Camera-to-world poses (OpenCV axes) of cameras at ``eye`` looking at ``target`` (default: origin).
 
     ``up`` (default world +z) fixes the roll: the camera's -y axis (image up) is as close to ``up`` as possible.

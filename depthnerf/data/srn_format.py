@@ -14,6 +14,8 @@ Every reader raises :class:`~depthnerf.errors.DepthnerfError` with one line nami
 
 from __future__ import annotations
 
+import io
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -132,8 +134,17 @@ def read_depth(path: Path) -> np.ndarray:
 
 
 def write_depth(path: Path, depth: np.ndarray) -> None:
-    """Write a float32 z-depth map losslessly (compressed ``.npz``, key ``depth``)."""
-    np.savez_compressed(path, depth=np.asarray(depth, dtype=np.float32))
+    """Write a float32 z-depth map losslessly (compressed ``.npz``, key ``depth``), byte-for-byte deterministic.
+
+    Same container as ``np.savez_compressed`` (readable by ``np.load``), but with a fixed zip timestamp so the
+    same map always gives the same bytes.
+    """
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.ascontiguousarray(depth, dtype=np.float32), allow_pickle=False)
+    info = zipfile.ZipInfo("depth.npy", date_time=(1980, 1, 1, 0, 0, 0))
+    info.compress_type = zipfile.ZIP_DEFLATED
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr(info, buf.getvalue())
 
 
 def read_mask(path: Path) -> np.ndarray:

@@ -143,6 +143,8 @@ class TrainBatch:
     """Normalised prior disparity at the target pixels (for the optional depth loss)."""
     target_fg: Bool[Tensor, "B R"]
     """Whether each target pixel is foreground."""
+    target_cos: Float[Tensor, "B R"]
+    """Camera-frame z of each unit target ray direction (z-depth = ray distance * this)."""
 
     def item(self, k: int) -> TrainBatch:
         """Object ``k`` of the batch, as a batch of one."""

@@ -59,5 +59,5 @@ class TrainItems(Dataset):
             focal=torch.tensor([intr.focal]), principal=torch.tensor([[intr.cx, intr.cy]]),
             ray_origins=origins[None], ray_dirs=dirs[None],
             target_rgb=obj.images[tgt][view, :, row, col][None], target_prior=target_prior,
-            target_fg=obj.masks[tgt][view, row, col][None],
+            target_fg=obj.masks[tgt][view, row, col][None], target_cos=dirs_cam[:, 2][None],
         )

@@ -79,7 +79,8 @@ class ObjectLoss(torch.nn.Module):
         depth = total * 0
         if self.depth_weight > 0 and item.target_prior is not None:
             res = out.fine if out.fine is not None else out.coarse
-            depth = ssi_depth_loss(res.normalized_depth(), item.target_prior, item.target_fg)
+            depth = ssi_depth_loss(res.normalized_depth(), item.target_prior, item.target_fg,
+                                   dirs_cam_z=item.target_cos)
             total = total + self.depth_weight * depth
         return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth)
 

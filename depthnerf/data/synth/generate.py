@@ -1,0 +1,330 @@
+"""The SRN-protocol generator behind ``depthnerf synth``: objects, views, files, resume, dataset card.
+
+Layout written (SRN, see :mod:`depthnerf.data.srn_format`)::
+
+    DIR/<category>_<split>/<object_id>/intrinsics.txt, rgb/NNNNNN.png, pose/NNNNNN.txt, depth/NNNNNN.npz,
+                                       mask/NNNNNN.png, mesh.ply, .synth_done.json
+    DIR/<category>_card.json
+
+``split`` is train (``views_train`` = 50 random upper-hemisphere views per object), val and test (``views_test``
+= 251 spiral views each; view 64 is the standard input view). Chairs' train split is flat (``chairs_train``).
+
+Determinism: object ``k`` of ``split`` draws everything from ``SeedSequence(seed, spawn_key=(crc32(category),
+split, k))``, so files do not depend on ``--workers``, on the order of work or on resuming. Object ids are
+``synth_<category>_<split>_<k:06d>``. Resume: ``.synth_done.json`` is written last (atomically) and lists the
+settings; objects with it are skipped, folders without it are deleted and redone, and a marker with different
+settings is an error (use a fresh ``--out``). The card is rebuilt from all markers at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import os
+import shutil
+import zlib
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from depthnerf.data import srn_format
+from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.synth.cars import CAR_REVISION, CAR_STYLES, build_car, car_style_summary, sample_car
+from depthnerf.data.synth.chairs import (
+    ARCHETYPE_WEIGHTS,
+    CHAIR_ARCHETYPES,
+    CHAIR_DIAGONAL,
+    CHAIR_REVISION,
+    build_chair,
+    chair_style_summary,
+    sample_chair,
+)
+from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
+from depthnerf.data.synth.views import ViewConfig, hemisphere_eyes, poses_from_eyes, spiral_eyes
+from depthnerf.errors import DepthnerfError
+
+GENERATOR_VERSION = "depthnerf-synth-1"
+"""Version of the generator as a whole (renderer, protocol, file layout)."""
+
+
+def generator_version(category: str) -> str:
+    """Generator version plus the category's shape-grammar revision: it changes whenever the files generated
+    for the same settings would change, so resuming never mixes objects of two revisions."""
+    revision = CAR_REVISION if category == "cars" else CHAIR_REVISION
+    return f"{GENERATOR_VERSION}/{category}-r{revision}"
+SPLITS = ("train", "val", "test")
+"""Splits in seed order."""
+MARKER = ".synth_done.json"
+"""Per-object completion marker (written last)."""
+SRN_INTRINSICS = Intrinsics(focal=131.25, cx=64.0, cy=64.0, height=128, width=128)
+"""SRN's intrinsics at 128 x 128 (as in its intrinsics files)."""
+
+
+@dataclass(frozen=True)
+class CategorySpec:
+    """Per-category camera setup and normalisation (SRN values)."""
+
+    radius: float
+    """Camera distance from the origin."""
+    z_near: float
+    """pixelNeRF's near bound (ray distance)."""
+    z_far: float
+    """pixelNeRF's far bound (ray distance)."""
+    diagonal: float
+    """Bounding-box diagonal of the normalised objects."""
+
+
+def category_spec(category: str) -> CategorySpec:
+    """Camera radius, z-range and object size of ``cars`` or ``chairs``."""
+    if category == "cars":
+        return CategorySpec(radius=1.3, z_near=0.8, z_far=1.8, diagonal=1.0)
+    if category == "chairs":
+        return CategorySpec(radius=2.0, z_near=1.25, z_far=2.75, diagonal=CHAIR_DIAGONAL)
+    raise DepthnerfError(f"synth: unknown category {category!r} (expected cars or chairs)")
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What ``depthnerf synth`` generates."""
+
+    category: str
+    """``cars`` or ``chairs``."""
+    out: Path
+    """Dataset root; split folders and the card go inside."""
+    train_objects: int = 20
+    """Objects in the train split."""
+    val_objects: int = 5
+    """Objects in the val split."""
+    test_objects: int = 5
+    """Objects in the test split."""
+    resolution: int = 128
+    """Image size (square); the focal scales like ``Intrinsics.resized``."""
+    seed: int = 0
+    """Master seed."""
+    workers: int = 1
+    """Worker processes (1: generate in this process)."""
+    views_train: int = 50
+    """Views per train object (SRN: 50)."""
+    views_test: int = 251
+    """Views per val/test object (SRN: 251)."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """Renderer settings."""
+    progress: bool = True
+    """Show a tqdm progress bar."""
+
+    def counts(self) -> dict[str, int]:
+        return {"train": self.train_objects, "val": self.val_objects, "test": self.test_objects}
+
+    def intrinsics(self) -> Intrinsics:
+        return SRN_INTRINSICS.resized(self.resolution, self.resolution)
+
+
+@dataclass(frozen=True)
+class ObjectJob:
+    """One object to generate (picklable, sent to a worker)."""
+
+    config: SynthConfig
+    """The run's configuration."""
+    split: str
+    """train, val or test."""
+    index: int
+    """Object number within the split."""
+
+    @property
+    def object_id(self) -> str:
+        return f"synth_{self.config.category}_{self.split}_{self.index:06d}"
+
+    @property
+    def folder(self) -> Path:
+        return Path(self.config.out) / f"{self.config.category}_{self.split}" / self.object_id
+
+    def settings(self) -> dict:
+        """What must match for a finished object to be reused."""
+        c = self.config
+        views = c.views_train if self.split == "train" else c.views_test
+        return {"generator": generator_version(c.category), "seed": c.seed, "resolution": c.resolution, "views": views,
+                "antialias": c.render.antialias}
+
+
+def object_rngs(seed: int, category: str, split: str, index: int) -> tuple[np.random.Generator, np.random.Generator]:
+    """Independent shape and camera generators of one object, from (seed, category, split, index) only."""
+    ss = np.random.SeedSequence(seed, spawn_key=(zlib.crc32(category.encode()), SPLITS.index(split), index))
+    shape, views = ss.spawn(2)
+    return np.random.default_rng(shape), np.random.default_rng(views)
+
+
+def object_poses(split: str, n_views: int, spec: CategorySpec, rng: np.random.Generator) -> np.ndarray:
+    """Camera-to-world poses of one object: random hemisphere (train) or the spiral (val/test)."""
+    vc = ViewConfig(radius=spec.radius)
+    eyes = hemisphere_eyes(n_views, vc, rng) if split == "train" else spiral_eyes(n_views, vc)
+    return poses_from_eyes(eyes)
+
+
+def _read_marker(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise DepthnerfError(f"{path}: unreadable completion marker ({err}); delete the object folder") from None
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def job_status(job: ObjectJob) -> str:
+    """``done`` (valid marker), ``partial`` (folder without marker) or ``missing``."""
+    marker = _read_marker(job.folder / MARKER)
+    if marker is not None:
+        if marker.get("settings") != job.settings():
+            raise DepthnerfError(f"{job.folder / MARKER}: object was generated with different settings "
+                                 f"{marker.get('settings')} (now {job.settings()}); use a fresh --out")
+        return "done"
+    return "partial" if job.folder.exists() else "missing"
+
+
+def generate_object(job: ObjectJob) -> dict:
+    """Build, render and write one object; returns its marker (also written as the object's last file)."""
+    c = job.config
+    spec = category_spec(c.category)
+    shape_rng, view_rng = object_rngs(c.seed, c.category, job.split, job.index)
+    if c.category == "cars":
+        params = sample_car(shape_rng)
+        mesh, summary = build_car(params), car_style_summary(params)
+    else:
+        params = sample_chair(shape_rng)
+        mesh, summary = build_chair(params), chair_style_summary(params)
+    n_views = job.settings()["views"]
+    poses = object_poses(job.split, n_views, spec, view_rng)
+    folder = job.folder
+    if folder.exists():
+        shutil.rmtree(folder)
+    for sub in ("rgb", "pose", "depth", "mask"):
+        (folder / sub).mkdir(parents=True)
+    intr = c.intrinsics()
+    srn_format.write_intrinsics(folder / "intrinsics.txt", intr)
+    mesh.to_trimesh().export(folder / "mesh.ply")
+    caster, rays = Raycaster(mesh), PixelRays(intr)
+    z_min, z_max, coverage = math.inf, 0.0, []
+    for v, c2w in enumerate(poses):
+        view = render_view(caster, c2w, rays, c.render)
+        name = f"{v:06d}"
+        srn_format.write_rgb(folder / "rgb" / f"{name}.png", view.rgb)
+        srn_format.write_pose(folder / "pose" / f"{name}.txt", c2w)
+        srn_format.write_depth(folder / "depth" / f"{name}.npz", view.depth)
+        srn_format.write_mask(folder / "mask" / f"{name}.png", view.mask)
+        if view.mask.any():
+            z = view.depth[view.mask]
+            z_min, z_max = min(z_min, float(z.min())), max(z_max, float(z.max()))
+        coverage.append(float(view.mask.mean()))
+    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
+    marker = {"object_id": job.object_id, "split": job.split, "settings": job.settings(), "style": summary,
+              "faces": int(len(mesh.faces)), "bbox_min": [round(float(x), 6) for x in lo],
+              "bbox_max": [round(float(x), 6) for x in hi], "depth_min": round(z_min, 6), "depth_max": round(z_max, 6),
+              "mask_coverage_mean": round(float(np.mean(coverage)), 6)}
+    _write_json_atomic(folder / MARKER, marker)
+    return marker
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _run_jobs(config: SynthConfig, jobs: list[ObjectJob]) -> None:
+    """Generate the unfinished objects, in this process or in a pool, with a progress bar."""
+    todo = [j for j in jobs if job_status(j) != "done"]
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=f"synth {config.category}", unit="obj",
+               disable=not config.progress)
+    if config.workers == 1 or len(todo) <= 1:
+        import torch
+
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            for job in todo:
+                generate_object(job)
+                bar.update(1)
+        finally:
+            torch.set_num_threads(threads)
+    else:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(["depthnerf.data.synth.generate"])
+        with ProcessPoolExecutor(max_workers=config.workers, mp_context=ctx, initializer=_init_worker) as pool:
+            futures = [pool.submit(generate_object, job) for job in todo]
+            for fut in as_completed(futures):
+                fut.result()
+                bar.update(1)
+    bar.close()
+
+
+def generate(config: SynthConfig) -> dict:
+    """Generate (or finish) a dataset; returns the dataset card (also written to ``<out>/<category>_card.json``)."""
+    spec = category_spec(config.category)
+    for name, n in config.counts().items():
+        if n < 0:
+            raise DepthnerfError(f"synth: --{name}-objects must be >= 0 (got {n})")
+    if config.resolution < 8 or config.views_train < 1 or config.views_test < 1 or config.workers < 1:
+        raise DepthnerfError("synth: --resolution must be >= 8 and --views-*, --workers >= 1")
+    out = Path(config.out)
+    if out.exists() and not out.is_dir():
+        raise DepthnerfError(f"{out}: output path exists and is not a directory")
+    jobs = [ObjectJob(config, split, k) for split in SPLITS for k in range(config.counts()[split])]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        _run_jobs(config, jobs)
+    except OSError as err:  # disk full, permissions, ...
+        raise DepthnerfError(f"{err.filename or out}: cannot write ({err.strerror or err})") from None
+    card = build_card(config, spec, [_read_marker(j.folder / MARKER) for j in jobs])
+    _write_json_atomic(out / f"{config.category}_card.json", card)
+    return card
+
+
+def build_card(config: SynthConfig, spec: CategorySpec, markers: list[dict]) -> dict:
+    """The dataset card: generator, seed, counts, protocol, cameras, z-range, lighting and styles used."""
+    intr = config.intrinsics()
+    styles: dict[str, dict[str, dict[str, int]]] = {}
+    for m in markers:
+        for key, value in m["style"].items():
+            if key != "finish":
+                styles.setdefault(m["split"], {}).setdefault(key, Counter())[value] += 1
+    depth = [(m["depth_min"], m["depth_max"]) for m in markers if m["depth_max"] > 0]
+    vc = ViewConfig(radius=spec.radius)
+    return {
+        "generator": generator_version(config.category), "category": config.category, "seed": config.seed,
+        "counts": config.counts(), "resolution": config.resolution,
+        "layout": f"{config.category}_<split>/<object_id>/{{intrinsics.txt,rgb,pose,depth,mask,mesh.ply}}",
+        "protocol": {
+            "train_views": config.views_train,
+            "train_cameras": "uniform in area on the upper hemisphere (z = r*u, u ~ U(0, sin(max_elev)), "
+                             "azimuth ~ U(0, 2pi))",
+            "test_views": config.views_test,
+            "test_cameras": "Archimedean spiral, elevation 0 -> max_elev linear in the view index, azimuth step "
+                            f"{vc.spiral_azimuth_span} rad over the spiral",
+            "input_view": vc.input_view, "input_view_azimuth_deg": vc.input_azimuth_deg,
+            "max_elevation_deg": vc.max_elevation_deg,
+        },
+        "camera": {"radius": spec.radius, "focal": intr.focal, "cx": intr.cx, "cy": intr.cy,
+                   "height": intr.height, "width": intr.width, "axes": "OpenCV camera-to-world, world +z up"},
+        "objects": {"bbox_diagonal": spec.diagonal, "centre": [0.0, 0.0, 0.0], "front": "+x", "up": "+z"},
+        "z_range": {"near": spec.z_near, "far": spec.z_far, "kind": "ray distance (pixelNeRF bounds)",
+                    "measured_z_depth_min": min((d[0] for d in depth), default=None),
+                    "measured_z_depth_max": max((d[1] for d in depth), default=None)},
+        "rendering": {"renderer": "trimesh + embreex ray casting, exact float64 depth on the hit triangle",
+                      "antialiasing": "adaptive: RGB of edge pixels averaged over centre + 4 RGSS sub-samples; "
+                                      "depth and mask from the centre ray only" if config.render.antialias
+                      else "none", "background": config.render.background,
+                      "lighting": asdict(config.render.lighting)},
+        "shape_grammar": ({"styles": {s: round(1 / len(CAR_STYLES), 4) for s in CAR_STYLES}} if config.category == "cars"
+                          else {"archetypes": dict(zip(CHAIR_ARCHETYPES, ARCHETYPE_WEIGHTS, strict=True))}),
+        "styles": {split: {k: dict(sorted(v.items())) for k, v in per.items()} for split, per in styles.items()},
+    }

@@ -1,0 +1,110 @@
+"""Samplers: bins, determinism, inverse-CDF histograms against the pdf, Gaussian moments."""
+
+import math
+
+import pytest
+import torch
+
+from depthnerf.render.samplers import (
+    gap_bins,
+    gaussian_samples,
+    sample_pdf,
+    stratified_samples,
+    uniform_bin_edges,
+)
+
+
+def _bounds(r=6):
+    near = torch.linspace(0.5, 1.0, r)[None]
+    return near, near + torch.linspace(1.0, 2.0, r)[None]
+
+
+def test_stratified_one_sample_per_bin_and_deterministic_at_eval():
+    near, far = _bounds()
+    n = 64
+    edges = uniform_bin_edges(near, far, n)
+    for random in (True, False):
+        t = stratified_samples(near, far, n, random=random, generator=torch.Generator().manual_seed(3))
+        assert t.shape == (1, 6, n)
+        assert torch.all(t >= edges[..., :-1] - 1e-6) and torch.all(t <= edges[..., 1:] + 1e-6)
+    a = stratified_samples(near, far, n, random=False)
+    b = stratified_samples(near, far, n, random=False)
+    assert torch.equal(a, b)
+    assert torch.allclose(a, 0.5 * (edges[..., :-1] + edges[..., 1:]), atol=1e-6)  # midpoints
+    r1 = stratified_samples(near, far, n, random=True, generator=torch.Generator().manual_seed(5))
+    r2 = stratified_samples(near, far, n, random=True, generator=torch.Generator().manual_seed(5))
+    r3 = stratified_samples(near, far, n, random=True, generator=torch.Generator().manual_seed(6))
+    assert torch.equal(r1, r2) and not torch.equal(r1, r3)
+    # jitter is uniform within the bin: fractional positions over many rays have mean 1/2, variance 1/12
+    near_big, far_big = torch.zeros(1, 4000), torch.ones(1, 4000)
+    frac = stratified_samples(near_big, far_big, 8, random=True, generator=torch.Generator().manual_seed(0)) * 8
+    frac = frac - torch.arange(8)
+    assert abs(frac.mean().item() - 0.5) < 0.01 and abs(frac.var().item() - 1 / 12) < 0.005
+
+
+def test_importance_samples_concentrate_on_delta_weights():
+    near, far = torch.zeros(1, 100), torch.ones(1, 100)
+    k, n_bins = 37, 64
+    weights = torch.zeros(1, 100, n_bins)
+    weights[..., k] = 1.0
+    edges = uniform_bin_edges(near, far, n_bins)
+    for random in (True, False):
+        t = sample_pdf(edges, weights, 16, random=random, generator=torch.Generator().manual_seed(0))
+        inside = (t >= k / n_bins) & (t <= (k + 1) / n_bins)
+        assert inside.float().mean() > 0.9
+
+
+def test_importance_histogram_matches_pdf():
+    g = torch.Generator().manual_seed(1)
+    n_bins, n = 10, 200_000
+    weights = torch.rand(1, 1, n_bins, generator=g) ** 2
+    edges = torch.sort(torch.rand(1, 1, n_bins + 1, generator=g), dim=-1).values * 2 + 1
+    t = sample_pdf(edges, weights, n, random=True, generator=g, epsilon=0.0)
+    pdf = (weights / weights.sum())[0, 0]
+    idx = torch.searchsorted(edges[0, 0].contiguous(), t[0, 0].contiguous(), right=True) - 1
+    freq = torch.bincount(idx.clamp(0, n_bins - 1), minlength=n_bins).double() / n
+    tol = 5 * torch.sqrt(pdf * (1 - pdf) / n) + 1e-4
+    assert torch.all((freq - pdf).abs() < tol), (freq, pdf)
+    # uniform inside a bin: positions within the heaviest bin have the uniform mean and variance
+    kb = int(pdf.argmax())
+    lo, hi = edges[0, 0, kb], edges[0, 0, kb + 1]
+    u = (t[0, 0][idx == kb] - lo) / (hi - lo)
+    assert abs(u.mean().item() - 0.5) < 0.01 and abs(u.var().item() - 1 / 12) < 0.005
+
+
+def test_importance_eval_is_deterministic_quantiles_and_skips_zero_width_bins():
+    edges = torch.tensor([[[0.0, 1.0, 1.0, 2.0]]])
+    weights = torch.tensor([[[1.0, 5.0, 1.0]]])  # the heavy bin has zero width
+    t = sample_pdf(edges, weights, 4, random=False, epsilon=0.0)
+    assert torch.equal(t, sample_pdf(edges, weights, 4, random=False, epsilon=0.0))
+    assert torch.allclose(t, torch.tensor([[[0.25, 0.75, 1.25, 1.75]]]))  # quantiles of the 2 unit bins
+
+
+def test_gaussian_samples_moments_and_clamp():
+    n = 100_000
+    center = torch.tensor([[1.3, 0.805]])
+    near, far = torch.full((1, 2), 0.8), torch.full((1, 2), 1.8)
+    t = gaussian_samples(center, near, far, n, 0.01, random=True, generator=torch.Generator().manual_seed(0))
+    free = t[0, 0]
+    assert abs(free.mean().item() - 1.3) < 4 * 0.01 / math.sqrt(n)
+    assert abs(free.std().item() - 0.01) < 0.01 * 0.02
+    assert t[0, 1].min() >= 0.8 and (t[0, 1] == 0.8).float().mean() > 0.2  # clamped to near
+    det = gaussian_samples(center, near, far, 16, 0.01, random=False)
+    assert torch.equal(det, gaussian_samples(center, near, far, 16, 0.01, random=False))
+    assert abs(det[0, 0].mean().item() - 1.3) < 1e-6
+    assert 0.008 < det[0, 0].std().item() < 0.0105  # normal quantiles: std a little under sigma
+
+
+def test_gaussian_samples_are_differentiable_in_center():
+    center = torch.tensor([[1.2]], requires_grad=True)
+    t = gaussian_samples(center, torch.full((1, 1), 0.8), torch.full((1, 1), 1.8), 8, 0.01, random=False)
+    t.sum().backward()
+    assert center.grad.item() == pytest.approx(8.0)
+
+
+def test_gap_bins_max_filter():
+    t = torch.tensor([[[1.0, 2.0, 3.0]]])
+    w = torch.tensor([[[0.1, 0.7, 0.2]]])
+    edges, masses = gap_bins(t, w, torch.tensor([[0.5]]), torch.tensor([[4.0]]))
+    assert torch.equal(edges, torch.tensor([[[0.5, 1.0, 2.0, 3.0, 4.0]]]))
+    assert torch.allclose(masses, torch.tensor([[[0.1, 0.7, 0.7, 0.2]]]))
