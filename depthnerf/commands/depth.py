@@ -1,0 +1,54 @@
+"""``depthnerf depth``: precompute monocular depth priors into the dataset's cache.
+
+``depthnerf depth --data DIR --estimator {bundled,depth-anything-v2} [--checkpoint HUB_ID_OR_DIR]
+[--splits train val test] [--category C] [--batch-size N] [--resolution R] [--device cpu]``
+
+Writes ``DIR/depth_priors/<estimator>-<hash12>-<res>/<category>_<split>/<object_id>.safetensors`` plus a
+``manifest.json`` (see :mod:`depthnerf.depth.cache`); resumable (finished objects are skipped), atomic writes.
+``oracle`` and ``none`` need no cache: the command says so and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from depthnerf.depth.estimators import CACHED_ESTIMATORS, ESTIMATORS
+from depthnerf.depth.precompute import PrecomputeConfig, precompute_priors
+
+DEFAULT_SPLITS = ("train", "val", "test")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
+    parser.add_argument("--estimator", choices=ESTIMATORS, required=True, help="depth estimator backend")
+    parser.add_argument("--checkpoint", default=None,
+                        help="hub id or local directory (depth-anything-v2), weights file (bundled); "
+                             "default: the backend's default")
+    parser.add_argument("--splits", nargs="+", choices=DEFAULT_SPLITS, default=None,
+                        help="splits to process (default: train val test, those that exist)")
+    parser.add_argument("--category", action="append", default=None,
+                        help="only this category (repeatable; default: every one found)")
+    parser.add_argument("--batch-size", type=int, default=16, help="images per estimator call (default 16)")
+    parser.add_argument("--resolution", type=int, default=None,
+                        help="image side to compute priors at (default: the dataset's own)")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.estimator not in CACHED_ESTIMATORS:
+        print(f"estimator '{args.estimator}' needs no cache "
+              f"({'computed from depth/ on the fly' if args.estimator == 'oracle' else 'no depth prior'})")
+        return 0
+    cfg = PrecomputeConfig(
+        data_root=args.data, estimator=args.estimator, checkpoint=args.checkpoint,
+        splits=tuple(args.splits or DEFAULT_SPLITS), categories=tuple(args.category) if args.category else None,
+        require_splits=args.splits is not None, batch_size=args.batch_size, resolution=args.resolution,
+        device=args.device, progress=not args.no_progress)
+    summary = precompute_priors(cfg)
+    for group in summary.missing_splits:
+        print(f"note: {group} does not exist under {args.data}, skipped")
+    print(f"{summary.cache_dir}: {summary.computed} objects computed ({summary.stale} were stale), "
+          f"{summary.skipped} already up to date")
+    return 0

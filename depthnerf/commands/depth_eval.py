@@ -1,0 +1,53 @@
+"""``depthnerf depth-eval``: affine-invariant accuracy of a depth estimator against ground-truth z-depth.
+
+``depthnerf depth-eval --data DIR [--split test] --estimator NAME [--checkpoint ...] [--category C]
+[--json PATH] [--max-objects N] [--max-views N]``
+
+Prints AbsRel and delta<1.25 after per-image least-squares scale-and-shift alignment in disparity space on the
+foreground (:mod:`depthnerf.depth.metrics`), overall and per category. ``--json`` writes
+``{"abs_rel", "delta1", "images", "objects", "source", "provenance", "per_category"}``. Uses the cache when a
+complete one exists (``--no-cache`` to always run the estimator).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from depthnerf.depth.estimators import ESTIMATORS
+from depthnerf.depth.evaluate import DepthEvalConfig, evaluate_depth
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
+    parser.add_argument("--split", choices=("train", "val", "test"), default="test", help="split (default test)")
+    parser.add_argument("--estimator", choices=ESTIMATORS, required=True, help="depth estimator backend")
+    parser.add_argument("--checkpoint", default=None, help="hub id / local directory / weights file")
+    parser.add_argument("--category", action="append", default=None, help="only this category (repeatable)")
+    parser.add_argument("--json", type=Path, default=None, help="write the scores as JSON to this file")
+    parser.add_argument("--max-objects", type=int, default=None, help="at most N objects per category")
+    parser.add_argument("--max-views", type=int, default=None, help="at most N evenly spaced views per object")
+    parser.add_argument("--batch-size", type=int, default=16, help="images per estimator call (default 16)")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--no-cache", action="store_true", help="always run the estimator, ignore any cache")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    cfg = DepthEvalConfig(
+        data_root=args.data, estimator=args.estimator, checkpoint=args.checkpoint, split=args.split,
+        categories=tuple(args.category) if args.category else None, max_objects=args.max_objects,
+        max_views=args.max_views, batch_size=args.batch_size, device=args.device, use_cache=not args.no_cache,
+        progress=not args.no_progress)
+    result = evaluate_depth(cfg)
+    print(f"{args.estimator} on {args.split} ({result.objects} objects, {result.images} images, "
+          f"predictions from {result.source}):")
+    print(f"  all      AbsRel {result.abs_rel:.4f}  delta<1.25 {result.delta1:.4f}")
+    for category, scores in sorted(result.per_category.items()):
+        print(f"  {category:8s} AbsRel {scores['abs_rel']:.4f}  delta<1.25 {scores['delta1']:.4f}  "
+              f"({scores['images']} images)")
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result.as_dict(), indent=2) + "\n")
+    return 0

@@ -1,0 +1,222 @@
+"""The ``bundled`` backend: the project's own small monocular depth network, shipped with the package.
+
+Network (:class:`BundledDepthNet`): a compact U-Net behind a space-to-depth stem. The input is pixel-unshuffled
+by ``unshuffle`` (default 4: 128 x 128 x 3 -> 32 x 32 x 48), so the U-Net runs at a quarter of the resolution;
+level ``k`` works at ``1 / (unshuffle * 2**k)`` of the input with ``widths[k]`` channels (strided 3x3
+convolution down, bilinear upsampling + skip concatenation up, BatchNorm + ReLU); the coarsest level also gets a
+global-context vector (average-pooled features through a linear layer, broadcast back), which lets the network
+reason about the whole object. The head predicts ``unshuffle**2`` sub-pixel values per location, pixel-shuffled
+back to full resolution: one channel of relative disparity (larger = closer, up to scale and shift), like every
+backend.
+
+Inference (:class:`BundledEstimator`): images are resized (bilinear, antialiased) so the longer side is
+``input_size`` and both sides are multiples of ``config.multiple``, run through the network, and the output is
+resized back to the image (bilinear). Weights are a safetensors file whose metadata holds the JSON of
+:class:`BundledNetConfig` (key ``config``) and free-form training notes; default
+``depthnerf/depth/weights/bundled_depth.safetensors`` (see ``MODEL_CARD.md`` there; trained by
+``scripts/train_bundled_depth.py`` on the synthetic benchmark's train split only). The weights hash is the
+SHA-256 of the file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from safetensors import SafetensorError
+from safetensors.torch import load_file, safe_open, save_file
+from torch import Tensor, nn
+
+from depthnerf.depth.estimators import PriorProvenance, sha256_files
+from depthnerf.errors import DepthnerfError
+
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "bundled_depth.safetensors"
+"""Where the shipped weights live inside the package."""
+
+LICENCE = "MIT (depthnerf; trained only on the procedurally generated synthetic benchmark)"
+"""Licence of the bundled weights."""
+
+
+@dataclass(frozen=True)
+class BundledNetConfig:
+    """Architecture of the bundled depth U-Net."""
+
+    widths: tuple[int, ...] = (24, 32, 48, 64, 128)
+    """Channels per level; level ``k`` works at ``1 / 2**k`` of the input resolution."""
+    input_size: int = 128
+    """Images are resized so their longer side has this many pixels before the network."""
+    context: bool = True
+    """Add a global-context vector (pooled coarsest features) at the coarsest level."""
+    unshuffle: int = 4
+    """Space-to-depth factor: the U-Net runs at ``1 / unshuffle`` of the input resolution on pixel-unshuffled
+    input and predicts ``unshuffle**2`` sub-pixels per location (pixel shuffle back to full resolution)."""
+
+    @property
+    def multiple(self) -> int:
+        """Network input sides must be multiples of this (``unshuffle * 2**(levels - 1)``)."""
+        return self.unshuffle * 2 ** (len(self.widths) - 1)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> BundledNetConfig:
+        raw = json.loads(text)
+        return cls(widths=tuple(int(w) for w in raw["widths"]), input_size=int(raw["input_size"]),
+                   context=bool(raw["context"]), unshuffle=int(raw["unshuffle"]))
+
+
+def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False),
+                         nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+
+
+class BundledDepthNet(nn.Module):
+    """Compact U-Net: ``[B, 3, H, W]`` in [0, 1] -> relative disparity ``[B, H, W]`` (sides multiples of
+    ``config.multiple``)."""
+
+    def __init__(self, config: BundledNetConfig) -> None:
+        super().__init__()
+        self.config = config
+        w = config.widths
+        self.register_buffer("mean", torch.tensor([0.5, 0.5, 0.5]).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor([0.25, 0.25, 0.25]).view(1, 3, 1, 1), persistent=False)
+        r = config.unshuffle
+        self.stem = nn.Sequential(nn.PixelUnshuffle(r), _conv_bn_relu(3 * r * r, w[0]), _conv_bn_relu(w[0], w[0]))
+        self.down = nn.ModuleList(
+            nn.Sequential(_conv_bn_relu(w[k - 1], w[k], stride=2), _conv_bn_relu(w[k], w[k]))
+            for k in range(1, len(w)))
+        self.context = nn.Linear(w[-1], w[-1]) if config.context else None
+        self.up = nn.ModuleList(
+            nn.Sequential(_conv_bn_relu(w[k] + w[k - 1], w[k - 1]), _conv_bn_relu(w[k - 1], w[k - 1]))
+            for k in range(len(w) - 1, 0, -1))
+        self.head = nn.Sequential(nn.Conv2d(w[0], r * r, 3, padding=1), nn.PixelShuffle(r))
+
+    def forward(self, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B H W"]:
+        m = self.config.multiple
+        if images.shape[-1] % m or images.shape[-2] % m:
+            raise ValueError(f"input sides {tuple(images.shape[-2:])} must be multiples of {m}")
+        x = self.stem((images - self.mean) / self.std)
+        skips = [x]
+        for block in self.down:
+            x = block(x)
+            skips.append(x)
+        if self.context is not None:
+            x = x + self.context(x.mean(dim=(2, 3)))[:, :, None, None]
+        for block, skip in zip(self.up, reversed(skips[:-1]), strict=True):
+            x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = block(torch.cat([x, skip], dim=1))
+        return self.head(x)[:, 0]
+
+
+def network_size(config: BundledNetConfig, height: int, width: int) -> tuple[int, int]:
+    """Network input size for an ``height x width`` image: longer side ``input_size``, multiples of
+    ``config.multiple``, aspect ratio kept as closely as that allows."""
+    scale = config.input_size / max(height, width)
+    m = config.multiple
+    return max(m, round(height * scale / m) * m), max(m, round(width * scale / m) * m)
+
+
+def save_bundled(net: BundledDepthNet, path: Path, notes: dict[str, str] | None = None) -> None:
+    """Write weights + config atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().float().cpu().contiguous() for k, v in net.state_dict().items()
+             if v.dtype.is_floating_point}
+    state.update({k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()
+                  if not v.dtype.is_floating_point})
+    metadata = {"config": net.config.to_json(), "format": "depthnerf-bundled-depth-v1", **(notes or {})}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    os.close(fd)
+    try:
+        save_file(state, tmp, metadata=metadata)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these files are shared data
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _weights_path(checkpoint: str | os.PathLike | None) -> Path:
+    path = Path(checkpoint).expanduser() if checkpoint else DEFAULT_WEIGHTS
+    if not path.is_file():
+        hint = " (reproduce with: python scripts/train_bundled_depth.py)" if path == DEFAULT_WEIGHTS else ""
+        raise DepthnerfError(f"{path}: bundled depth weights not found{hint}")
+    return path
+
+
+def load_bundled_net(checkpoint: str | os.PathLike | None = None) -> tuple[BundledDepthNet, dict[str, str]]:
+    """The network (eval mode, frozen) and the file's metadata; errors name the file."""
+    path = _weights_path(checkpoint)
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = dict(handle.metadata() or {})
+        state = load_file(str(path))
+        config = BundledNetConfig.from_json(metadata["config"])
+    except (SafetensorError, OSError) as err:
+        raise DepthnerfError(f"{path}: unreadable bundled depth weights ({err})") from None
+    except (KeyError, ValueError, TypeError):
+        raise DepthnerfError(f"{path}: bundled depth weights lack a valid 'config' metadata entry") from None
+    net = BundledDepthNet(config)
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as err:
+        first = str(err).splitlines()[0]
+        raise DepthnerfError(f"{path}: weights do not match the config in the file ({first})") from None
+    return net.eval().requires_grad_(False), metadata
+
+
+def bundled_provenance(checkpoint: str | os.PathLike | None = None) -> PriorProvenance:
+    """Provenance of the bundled weights (SHA-256 of the file) without building the network."""
+    path = _weights_path(checkpoint)
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            size = BundledNetConfig.from_json((handle.metadata() or {})["config"]).input_size
+    except (SafetensorError, OSError, KeyError, ValueError, TypeError):
+        raise DepthnerfError(f"{path}: unreadable bundled depth weights or missing 'config' metadata") from None
+    shown = None if checkpoint is None else str(path.resolve())
+    return PriorProvenance("bundled", shown, sha256_files([path], names=False), size, LICENCE)
+
+
+class BundledEstimator:
+    """The frozen bundled network behind the :class:`~depthnerf.depth.estimators.DepthEstimator` interface."""
+
+    name = "bundled"
+    needs_depth = False
+
+    def __init__(self, net: BundledDepthNet, provenance: PriorProvenance, device: str = "cpu") -> None:
+        self.net = net.eval().requires_grad_(False).to(device)
+        self._provenance = provenance
+        self.device = device
+
+    @property
+    def provenance(self) -> PriorProvenance:
+        return self._provenance
+
+    @classmethod
+    def load(cls, checkpoint: str | os.PathLike | None = None, device: str = "cpu") -> BundledEstimator:
+        """Load the shipped weights (or another file written by :func:`save_bundled`)."""
+        net, _ = load_bundled_net(checkpoint)
+        return cls(net, bundled_provenance(checkpoint), device)
+
+    @torch.inference_mode()
+    def predict(self, images: Float[Tensor, "B 3 H W"],
+                depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
+        """Relative disparity at the images' resolution (``depths`` is ignored)."""
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
+        height, width = images.shape[-2:]
+        size = network_size(self.net.config, height, width)
+        x = images.detach().float().clamp(0.0, 1.0).to(self.device)
+        if (height, width) != size:
+            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
+        disp = self.net(x)[:, None]
+        if (height, width) != size:
+            disp = F.interpolate(disp, size=(height, width), mode="bilinear", align_corners=False)
+        return disp[:, 0].float().cpu()

@@ -1,0 +1,261 @@
+"""The depth-prior cache: precomputed raw disparity per object, keyed by estimator, weights and resolution.
+
+Layout (written by ``depthnerf depth``, read by :class:`PriorStore`)::
+
+    <data>/depth_priors/<estimator>-<hash12>-<res>/manifest.json
+    <data>/depth_priors/<estimator>-<hash12>-<res>/<category>_<split>/<object_id>.safetensors
+
+``hash12`` is the first 12 hex digits of the estimator's weights hash (:class:`PriorProvenance`) and ``res`` the
+image side length the priors were computed at. Each object file holds one tensor ``disparity`` ``[V, H, W]``
+(float16; float32 if a value would overflow float16), the raw relative disparity of every view in the object's
+``view_names`` order, and string metadata: ``fingerprint``, ``weights_hash``, ``estimator``, ``resolution``,
+``views``. Files are written to a temporary name and renamed, so a crash never leaves a partial file.
+
+Stale detection: an object's *fingerprint* is the SHA-256 of the view names and the byte sizes of their RGB files
+plus the bytes of the first RGB file; a regenerated or edited dataset changes it, and loading then fails instead
+of silently reusing the old priors. A missing, partial, stale or other-estimator cache is a
+:class:`~depthnerf.errors.DepthnerfError` naming the exact ``depthnerf depth ...`` command that makes it.
+
+``oracle`` priors need no cache (computed from ``depth/`` on the fly) but are served through the same
+:class:`PriorStore` API; ``none`` has no store (:meth:`PriorStore.open` returns None).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from jaxtyping import Float
+from safetensors import SafetensorError
+from safetensors.torch import safe_open, save_file
+from torch import Tensor
+
+from depthnerf.depth.estimators import PriorProvenance, describe_estimator, oracle_disparity
+from depthnerf.errors import DepthnerfError
+
+CACHE_DIRNAME = "depth_priors"
+"""Folder under the dataset root that holds every cache."""
+
+FLOAT16_MAX = 65000.0
+"""Raw disparities with a larger magnitude are stored as float32 instead of float16."""
+
+
+def cache_dir(data_root: Path, provenance: PriorProvenance, resolution: int) -> Path:
+    """``<data>/depth_priors/<estimator>-<hash12>-<res>``."""
+    return Path(data_root) / CACHE_DIRNAME / f"{provenance.estimator}-{provenance.short_hash}-{resolution}"
+
+
+def object_path(root: Path, record: Any) -> Path:
+    """Cache file of one object inside a cache folder."""
+    return root / f"{record.category}_{record.split}" / f"{record.object_id}.safetensors"
+
+
+def depth_command(data_root: Path, estimator: str, checkpoint: str | None, resolution: int,
+                  category: str | None = None, split: str | None = None) -> str:
+    """The ``depthnerf depth ...`` command line that (re)makes a cache."""
+    parts = ["depthnerf depth", f"--data {data_root}", f"--estimator {estimator}"]
+    if checkpoint:
+        parts.append(f"--checkpoint {checkpoint}")
+    if category:
+        parts.append(f"--category {category}")
+    if split:
+        parts.append(f"--splits {split}")
+    parts.append(f"--resolution {resolution}")
+    return " ".join(parts)
+
+
+def object_fingerprint(record: Any) -> str:
+    """SHA-256 of the view names, their RGB file sizes and the first RGB file's bytes (see module docstring)."""
+    digest = hashlib.sha256()
+    for index, name in enumerate(record.view_names):
+        path = Path(record.rgb_path(index))
+        try:
+            size = path.stat().st_size
+        except OSError:
+            raise DepthnerfError(f"{path}: image file is missing") from None
+        digest.update(f"{name}:{size}\n".encode())
+    if record.view_names:
+        digest.update(Path(record.rgb_path(0)).read_bytes())
+    return digest.hexdigest()
+
+
+def write_object_priors(path: Path, disparity: Float[Tensor, "V H W"], metadata: dict[str, str]) -> None:
+    """Atomically write one object's raw disparity (temp file in the same folder + rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    disparity = disparity.detach().float().cpu()
+    if not torch.isfinite(disparity).all():
+        raise DepthnerfError(f"{path}: estimator produced non-finite disparity; refusing to cache it")
+    dtype = torch.float16 if disparity.abs().max() <= FLOAT16_MAX else torch.float32
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        save_file({"disparity": disparity.to(dtype).contiguous()}, tmp, metadata=metadata)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these files are shared data
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def read_object_metadata(path: Path) -> dict[str, str] | None:
+    """Metadata of a cached object file, or None if there is no such (readable) file."""
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            return dict(handle.metadata() or {})
+    except (SafetensorError, OSError):
+        return None
+
+
+def write_json_atomic(path: Path, payload: dict[str, Any]) -> None:
+    """Write JSON through a temporary file + rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(payload, indent=2, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+class PriorStore:
+    """Read access to one estimator's depth priors for a dataset (cached, or on the fly for ``oracle``).
+
+    Use :meth:`open`; ``load`` is cheap enough to call per sample in DataLoader workers (the store pickles).
+    """
+
+    def __init__(self, data_root: Path, provenance: PriorProvenance, resolution: int) -> None:
+        self.data_root = Path(data_root)
+        self.resolution = int(resolution)
+        self._provenance = provenance
+        self._verified: set[tuple[str, str, str]] = set()
+
+    @classmethod
+    def open(cls, data_root: str | os.PathLike, estimator: str, checkpoint: str | None = None,
+             resolution: int = 128) -> PriorStore | None:
+        """The store for ``estimator`` at ``resolution``; None for ``none``. Cached estimators need a
+        manifest made by ``depthnerf depth`` with the same weights and resolution (else a DepthnerfError)."""
+        provenance = describe_estimator(estimator, checkpoint)
+        if provenance is None:
+            return None
+        if estimator == "oracle":
+            return OraclePriorStore(Path(data_root), provenance, resolution)
+        return CachedPriorStore(Path(data_root), provenance, resolution, checkpoint)
+
+    @property
+    def provenance(self) -> dict[str, Any]:
+        """JSON-able provenance (estimator, checkpoint, weights hash, licence, resolution, cache folder)."""
+        return {**self._provenance.as_dict(), "resolution": self.resolution}
+
+    def load(self, record: Any, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+        """Raw relative disparity of the given views of one object (float32)."""
+        raise NotImplementedError
+
+    def check(self, records: Sequence[Any]) -> None:
+        """Fail early (one line naming the fix) if any of these objects has no valid prior."""
+        raise NotImplementedError
+
+    def _check_views(self, record: Any, views: Sequence[int], where: Path) -> list[int]:
+        views = [int(v) for v in views]
+        n = len(record.view_names)
+        bad = [v for v in views if not -n <= v < n]
+        if bad:
+            raise DepthnerfError(f"{where}: view index {bad[0]} out of range for {n} views")
+        return [v % n for v in views]
+
+
+class OraclePriorStore(PriorStore):
+    """``oracle``: ``1 / z`` on the foreground (0 on the background) from the dataset's ground-truth depth."""
+
+    def load(self, record: Any, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+        from depthnerf.data.srn import load_object
+
+        if not record.has_depth:
+            raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, none found")
+        views = self._check_views(record, views, Path(record.path))
+        obj = load_object(record, views, resolution=self.resolution, with_depth=True)
+        return oracle_disparity(obj.depths)
+
+    def check(self, records: Sequence[Any]) -> None:
+        for record in records:
+            if not record.has_depth:
+                raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, none found")
+
+
+class CachedPriorStore(PriorStore):
+    """Priors precomputed by ``depthnerf depth`` (see the module docstring)."""
+
+    def __init__(self, data_root: Path, provenance: PriorProvenance, resolution: int,
+                 checkpoint: str | None) -> None:
+        super().__init__(data_root, provenance, resolution)
+        self.checkpoint = checkpoint
+        self.root = cache_dir(self.data_root, provenance, self.resolution)
+        manifest_path = self.root / "manifest.json"
+        if not manifest_path.is_file():
+            raise DepthnerfError(self._missing_message())
+        try:
+            manifest = json.loads(manifest_path.read_text())
+            stored = manifest["provenance"]
+        except (OSError, ValueError, KeyError, TypeError):
+            raise DepthnerfError(f"{manifest_path}: unreadable cache manifest; rerun: {self.command()}") from None
+        if stored.get("weights_hash") != provenance.weights_hash or manifest.get("resolution") != self.resolution:
+            raise DepthnerfError(f"{manifest_path}: cache was made by other weights or resolution; "
+                                 f"rerun: {self.command()}")
+        self.manifest: dict[str, Any] = manifest
+
+    @property
+    def provenance(self) -> dict[str, Any]:
+        return {**super().provenance, "cache": str(self.root)}
+
+    def command(self, category: str | None = None, split: str | None = None) -> str:
+        """The command that (re)makes this cache (optionally for one category/split)."""
+        return depth_command(self.data_root, self._provenance.estimator, self.checkpoint, self.resolution,
+                             category, split)
+
+    def _missing_message(self) -> str:
+        prov = self._provenance
+        others = sorted(p.name for p in (self.data_root / CACHE_DIRNAME).glob("*") if p.is_dir())
+        found = f" (found only: {', '.join(others)})" if others else ""
+        return (f"{self.root}: no '{prov.estimator}' depth priors for weights {prov.short_hash} at "
+                f"{self.resolution} px{found}; run: {self.command()}")
+
+    def _verify(self, record: Any) -> Path:
+        key = (record.category, record.split, record.object_id)
+        path = object_path(self.root, record)
+        if key in self._verified:
+            return path
+        cmd = self.command(record.category, record.split)
+        meta = read_object_metadata(path)
+        if meta is None:
+            raise DepthnerfError(f"{path}: depth prior missing (cache incomplete); run: {cmd}")
+        if meta.get("weights_hash") != self._provenance.weights_hash or meta.get("resolution") != str(
+                self.resolution):
+            raise DepthnerfError(f"{path}: depth prior made by other weights or resolution; run: {cmd}")
+        if meta.get("fingerprint") != object_fingerprint(record):
+            raise DepthnerfError(f"{path}: depth prior is stale (the object's images changed since it was "
+                                 f"computed); run: {cmd}")
+        self._verified.add(key)
+        return path
+
+    def check(self, records: Sequence[Any]) -> None:
+        for record in records:
+            self._verify(record)
+
+    def load(self, record: Any, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+        path = self._verify(record)
+        views = self._check_views(record, views, path)
+        try:
+            with safe_open(str(path), framework="pt") as handle:
+                sliced = handle.get_slice("disparity")
+                if sliced.get_shape()[0] != len(record.view_names):
+                    raise DepthnerfError(f"{path}: holds {sliced.get_shape()[0]} views, the object has "
+                                         f"{len(record.view_names)}; run: {self.command(record.category, record.split)}")
+                if views and views == list(range(views[0], views[0] + len(views))):
+                    disparity = sliced[views[0]:views[-1] + 1]
+                else:
+                    disparity = handle.get_tensor("disparity")[views]
+        except (SafetensorError, OSError) as err:
+            raise DepthnerfError(f"{path}: unreadable depth prior ({err})") from None
+        return disparity.float()

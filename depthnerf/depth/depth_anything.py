@@ -1,0 +1,199 @@
+"""The ``depth-anything-v2`` backend: Depth Anything V2 through ``transformers``, frozen.
+
+Loading: ``checkpoint`` is a local directory (loaded with ``local_files_only=True``, never touching the network)
+or a Hugging Face hub id (default ``depth-anything/Depth-Anything-V2-Base-hf``, the paper's model), first looked
+up in the local Hugging Face cache, then on the hub; when neither works (offline) a
+:class:`~depthnerf.errors.DepthnerfError` says how to pass a local directory instead.
+
+Inference: the checkpoint's own image processor (``AutoImageProcessor``; for DA-V2: keep the aspect ratio, resize
+so the sides are multiples of the 14-pixel patch, ImageNet mean/std) prepares a batch of ``[0, 1]`` images; the
+model's ``predicted_depth`` (relative disparity: larger = closer) is resized back to the input's ``H x W`` with
+the processor's ``post_process_depth_estimation`` (bicubic).
+
+Weights hash: SHA-256 over ``*.safetensors`` plus ``config.json`` and ``preprocessor_config.json`` of a local
+directory (file names and bytes, sorted by name; the configs are included because they change the output), or of
+``"hub:<id>@<revision>"`` for a hub id.
+
+Licences: Depth-Anything-V2-Small is Apache-2.0; Depth-Anything-V2-Base and -Large are CC-BY-NC-4.0
+(non-commercial).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from depthnerf.depth.estimators import PriorProvenance, sha256_files
+from depthnerf.errors import DepthnerfError
+
+DEFAULT_CHECKPOINT = "depth-anything/Depth-Anything-V2-Base-hf"
+"""The paper's estimator (Depth Anything V2 Base, relative depth)."""
+
+DEFAULT_REVISION = "main"
+"""Hub revision used when a hub id is given."""
+
+HASHED_CONFIGS = ("config.json", "preprocessor_config.json")
+"""Non-weight files of a local checkpoint directory that enter the weights hash."""
+
+
+def licence_of(checkpoint: str) -> str:
+    """Licence text of a Depth Anything V2 checkpoint, judged from its name."""
+    low = checkpoint.lower()
+    if "small" in low:
+        return "Apache-2.0 (Depth-Anything-V2-Small)"
+    if "base" in low or "large" in low:
+        return "CC-BY-NC-4.0 (Depth-Anything-V2-Base/Large: non-commercial use only)"
+    return "unknown: see the checkpoint's model card"
+
+
+def _local_dir(checkpoint: str) -> Path | None:
+    """The directory if ``checkpoint`` names one; an error if it looks like a path that does not exist."""
+    path = Path(checkpoint).expanduser()
+    if path.is_dir():
+        return path
+    if path.exists():
+        raise DepthnerfError(f"{path}: a Depth Anything checkpoint must be a directory (save_pretrained layout)")
+    if checkpoint.startswith((".", "/", "~")) or checkpoint.count("/") != 1:
+        raise DepthnerfError(f"{checkpoint}: no such checkpoint directory (and not a hub id 'owner/name')")
+    return None
+
+
+def _hash_local_dir(path: Path) -> str:
+    weights = sorted(path.glob("*.safetensors"))
+    if not weights:
+        raise DepthnerfError(f"{path}: no *.safetensors weights in the checkpoint directory")
+    configs = [path / name for name in HASHED_CONFIGS if (path / name).is_file()]
+    return sha256_files(weights + configs)
+
+
+def depth_anything_provenance(checkpoint: str | None = None) -> PriorProvenance:
+    """Provenance (weights hash) of a DA-V2 checkpoint without loading the model."""
+    checkpoint = checkpoint or DEFAULT_CHECKPOINT
+    local = _local_dir(checkpoint)
+    if local is not None:
+        digest = _hash_local_dir(local.resolve())
+        size = _processor_size(local)
+        return PriorProvenance("depth-anything-v2", str(local.resolve()), digest, size, licence_of(checkpoint))
+    digest = hashlib.sha256(f"hub:{checkpoint}@{DEFAULT_REVISION}".encode()).hexdigest()
+    return PriorProvenance("depth-anything-v2", checkpoint, digest, 518, licence_of(checkpoint))
+
+
+def _processor_size(path: Path) -> int | None:
+    import json
+
+    try:
+        size = json.loads((path / "preprocessor_config.json").read_text()).get("size", {})
+    except (OSError, ValueError):
+        return None
+    if isinstance(size, dict):
+        return size.get("height") or size.get("shortest_edge")
+    return size if isinstance(size, int) else None
+
+
+def _hub_reachable(timeout: float = 5.0) -> bool:
+    """False when ``HF_HUB_OFFLINE`` is set or the hub's host does not answer a TCP connect within ``timeout``
+    seconds (saves the minutes of retries ``from_pretrained`` spends offline)."""
+    import socket
+    from urllib.parse import urlparse
+
+    from huggingface_hub import constants
+
+    if constants.HF_HUB_OFFLINE:
+        return False
+    url = urlparse(constants.ENDPOINT)
+    try:
+        socket.create_connection((url.hostname, url.port or (443 if url.scheme == "https" else 80)),
+                                 timeout=timeout).close()
+    except OSError:
+        return False
+    return True
+
+
+class DepthAnythingEstimator:
+    """Frozen Depth Anything V2 (any size) from ``transformers``; see the module docstring."""
+
+    name = "depth-anything-v2"
+    needs_depth = False
+
+    def __init__(self, model: torch.nn.Module, processor, provenance: PriorProvenance, device: str) -> None:
+        self.model = model.eval().requires_grad_(False).to(device)
+        self.processor = processor
+        self._provenance = provenance
+        self.device = device
+
+    @property
+    def provenance(self) -> PriorProvenance:
+        return self._provenance
+
+    @classmethod
+    def load(cls, checkpoint: str | None = None, device: str = "cpu") -> DepthAnythingEstimator:
+        """Load from a local directory or a hub id (see the module docstring)."""
+        from transformers import AutoImageProcessor, AutoModelForDepthEstimation
+
+        checkpoint = checkpoint or DEFAULT_CHECKPOINT
+        provenance = depth_anything_provenance(checkpoint)
+        local = _local_dir(checkpoint)
+        source = str(local) if local is not None else checkpoint
+        attempts = [True] if local is not None else [True, False]  # local files / HF cache first, then the hub
+        reason = ""
+        for local_only in attempts:
+            if not local_only and not _hub_reachable():
+                reason = "not in the local Hugging Face cache and the hub is unreachable"
+                break
+            try:
+                kwargs = {"local_files_only": local_only}
+                if local is None:
+                    kwargs["revision"] = DEFAULT_REVISION
+                processor = AutoImageProcessor.from_pretrained(source, **kwargs)
+                model = AutoModelForDepthEstimation.from_pretrained(source, **kwargs)
+                return cls(model, processor, provenance, device)
+            except (OSError, ValueError) as err:  # missing files / offline hub / wrong model type
+                reason = (str(err).strip().splitlines() or [type(err).__name__])[0].split(". ")[0]
+        if local is not None:
+            raise DepthnerfError(f"{local}: not a loadable Depth Anything checkpoint ({reason})")
+        raise DepthnerfError(
+            f"cannot load Depth Anything checkpoint '{checkpoint}' ({reason}); download it where there is "
+            f"internet (e.g. `hf download {checkpoint} --local-dir DIR`) and pass --checkpoint DIR")
+
+    @torch.inference_mode()
+    def predict(self, images: Float[Tensor, "B 3 H W"],
+                depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
+        """Relative disparity at the images' resolution (``depths`` is ignored)."""
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
+        height, width = images.shape[-2:]
+        batch = images.detach().float().clamp(0.0, 1.0).cpu()
+        inputs = self.processor(images=list(batch), return_tensors="pt", do_rescale=False)
+        outputs = self.model(pixel_values=inputs["pixel_values"].to(self.device))
+        outputs.predicted_depth = outputs.predicted_depth.float().cpu()
+        post = self.processor.post_process_depth_estimation(outputs, target_sizes=[(height, width)] * len(batch))
+        return torch.stack([item["predicted_depth"].reshape(height, width) for item in post])
+
+
+def make_tiny_checkpoint(folder: Path, image_size: int = 42, seed: int = 0) -> Path:
+    """Save a randomly initialised, tiny Depth Anything (Dinov2 backbone, 4 layers of width 16) and a DPT image
+    processor configured like the real DA-V2 checkpoints (keep aspect ratio, multiples of 14, ImageNet
+    normalisation) but at ``image_size`` to ``folder``. For tests and benchmarks of the real code path offline."""
+    from transformers import (
+        DepthAnythingConfig,
+        DepthAnythingForDepthEstimation,
+        Dinov2Config,
+        DPTImageProcessor,
+    )
+
+    torch.manual_seed(seed)
+    backbone = Dinov2Config(image_size=image_size, patch_size=14, hidden_size=16, num_hidden_layers=4,
+                            num_attention_heads=2, intermediate_size=32,
+                            out_features=["stage1", "stage2", "stage3", "stage4"], reshape_hidden_states=False)
+    config = DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=16,
+                                 neck_hidden_sizes=[8, 8, 16, 16], fusion_hidden_size=8, head_hidden_size=4)
+    DepthAnythingForDepthEstimation(config).save_pretrained(folder)
+    DPTImageProcessor(do_resize=True, size={"height": image_size, "width": image_size}, keep_aspect_ratio=True,
+                      ensure_multiple_of=14, resample=3, do_rescale=True, do_normalize=True,
+                      image_mean=[0.485, 0.456, 0.406], image_std=[0.229, 0.224, 0.225],
+                      do_pad=False).save_pretrained(folder)
+    return Path(folder)

@@ -1,0 +1,163 @@
+"""The monocular depth estimator interface, its provenance record, and the estimator registry.
+
+Convention (all backends): RGB images ``[B, 3, H, W]`` in [0, 1] in, *relative disparity* ``[B, H, W]`` out at
+the input's resolution: larger = closer, defined up to an unknown positive scale and a shift (see
+``depthnerf/data/cameras.py`` for z-depth vs disparity). The network input is made from it by
+:func:`depthnerf.depth.normalize.normalize_disparity`, identically for every backend.
+
+Backends (``ESTIMATORS``):
+
+``depth-anything-v2``
+    Depth Anything V2 through ``transformers`` (:mod:`depthnerf.depth.depth_anything`); checkpoint = hub id or
+    local directory, default ``depth-anything/Depth-Anything-V2-Base-hf`` (the paper's).
+``bundled``
+    The project's small U-Net shipped in ``depthnerf/depth/weights`` (:mod:`depthnerf.depth.bundled`); the
+    offline default.
+``oracle``
+    Ground truth: ``1 / z`` on the foreground and 0 on the background, from the dataset's ``depth/`` z-maps. It
+    needs the depths (``needs_depth``), so it cannot run on a bare photo.
+``none``
+    No prior at all (plain pixelNeRF): :func:`make_estimator` and :func:`describe_estimator` return ``None``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from depthnerf.errors import DepthnerfError
+
+ESTIMATORS = ("depth-anything-v2", "bundled", "oracle", "none")
+"""Every estimator name accepted by :func:`make_estimator` and the CLI."""
+
+CACHED_ESTIMATORS = ("depth-anything-v2", "bundled")
+"""Estimators whose priors are precomputed by ``depthnerf depth`` (``oracle`` is computed on the fly)."""
+
+
+@dataclass(frozen=True)
+class PriorProvenance:
+    """Where a depth prior came from: enough to key a cache and to record in a run folder."""
+
+    estimator: str
+    """Backend name (one of ``ESTIMATORS``)."""
+    checkpoint: str | None
+    """Hub id, local directory or weights file the backend was loaded from (None: the backend's default)."""
+    weights_hash: str
+    """Hex SHA-256 identifying the weights (file contents, or hub id + revision when not local)."""
+    input_resolution: int | None
+    """Side length the backend resizes images to internally (None: works at the image's own resolution)."""
+    licence: str
+    """Licence of the weights (for READMEs and run folders)."""
+
+    @property
+    def short_hash(self) -> str:
+        """The first 12 hex digits of :attr:`weights_hash` (used in cache folder names)."""
+        return self.weights_hash[:12]
+
+    def as_dict(self) -> dict[str, Any]:
+        """A JSON-able dict."""
+        return asdict(self)
+
+
+@runtime_checkable
+class DepthEstimator(Protocol):
+    """A frozen monocular depth estimator (see the module docstring for the disparity convention)."""
+
+    name: str
+    """Backend name."""
+    needs_depth: bool
+    """True only for ``oracle``: ``predict`` then requires ground-truth ``depths``."""
+
+    @property
+    def provenance(self) -> PriorProvenance:
+        """Backend, weights hash and resolution."""
+        ...
+
+    def predict(self, images: Float[Tensor, "B 3 H W"],
+                depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
+        """Relative disparity at the images' resolution (float32, on the CPU)."""
+        ...
+
+
+def oracle_disparity(depth: Float[Tensor, "*B H W"]) -> Float[Tensor, "*B H W"]:
+    """Ground-truth disparity: ``1 / z`` where ``z > 0`` (foreground), 0 on the background."""
+    depth = depth.float()
+    return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-12), torch.zeros_like(depth))
+
+
+class OracleEstimator:
+    """The ``oracle`` backend: disparity from ground-truth z-depth (images are ignored)."""
+
+    name = "oracle"
+    needs_depth = True
+
+    @property
+    def provenance(self) -> PriorProvenance:
+        return oracle_provenance()
+
+    def predict(self, images: Float[Tensor, "B 3 H W"],
+                depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
+        if depths is None:
+            raise DepthnerfError("the 'oracle' depth prior needs ground-truth depth maps (dataset depth/ folder)")
+        if depths.shape[0] != images.shape[0] or depths.shape[-2:] != images.shape[-2:]:
+            raise ValueError(f"depths {tuple(depths.shape)} do not match images {tuple(images.shape)}")
+        return oracle_disparity(depths)
+
+
+def oracle_provenance() -> PriorProvenance:
+    """Provenance of the oracle (its 'weights hash' is the hash of its definition string)."""
+    digest = hashlib.sha256(b"oracle: 1/z on foreground, 0 on background").hexdigest()
+    return PriorProvenance("oracle", None, digest, None, "n/a (ground truth)")
+
+
+def describe_estimator(name: str, checkpoint: str | None = None) -> PriorProvenance | None:
+    """Provenance of an estimator *without* loading its network (hashes the weights); None for ``none``."""
+    match name:
+        case "none":
+            return None
+        case "oracle":
+            return oracle_provenance()
+        case "bundled":
+            from depthnerf.depth.bundled import bundled_provenance
+
+            return bundled_provenance(checkpoint)
+        case "depth-anything-v2":
+            from depthnerf.depth.depth_anything import depth_anything_provenance
+
+            return depth_anything_provenance(checkpoint)
+    raise DepthnerfError(f"unknown depth estimator '{name}' (choose from {', '.join(ESTIMATORS)})")
+
+
+def make_estimator(name: str, checkpoint: str | None = None, device: str = "cpu") -> DepthEstimator | None:
+    """Load a frozen estimator by name (``checkpoint``: hub id / directory / weights file); None for ``none``."""
+    match name:
+        case "none":
+            return None
+        case "oracle":
+            return OracleEstimator()
+        case "bundled":
+            from depthnerf.depth.bundled import BundledEstimator
+
+            return BundledEstimator.load(checkpoint, device=device)
+        case "depth-anything-v2":
+            from depthnerf.depth.depth_anything import DepthAnythingEstimator
+
+            return DepthAnythingEstimator.load(checkpoint, device=device)
+    raise DepthnerfError(f"unknown depth estimator '{name}' (choose from {', '.join(ESTIMATORS)})")
+
+
+def sha256_files(paths: list, *, names: bool = True) -> str:
+    """SHA-256 over the given files in order (their base names too when ``names``), streamed in 1 MB chunks."""
+    digest = hashlib.sha256()
+    for path in paths:
+        if names:
+            digest.update(path.name.encode() + b"\0")
+        with open(path, "rb") as handle:
+            while chunk := handle.read(1 << 20):
+                digest.update(chunk)
+    return digest.hexdigest()

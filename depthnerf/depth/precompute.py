@@ -1,0 +1,175 @@
+"""Filling the depth-prior cache (what ``depthnerf depth`` runs); layout and keys in :mod:`depthnerf.depth.cache`.
+
+Every object of every requested ``<category>_<split>`` gets one file with the raw disparity of all its views at
+the requested resolution (default: the dataset's own). The run is resumable: an object whose file exists with
+the same weights hash, resolution and source fingerprint is skipped; a stale one is recomputed. The manifest
+records the provenance and, per ``<category>_<split>``, how many objects are done.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from depthnerf import __version__
+from depthnerf.depth.cache import (
+    cache_dir,
+    object_fingerprint,
+    object_path,
+    read_object_metadata,
+    write_json_atomic,
+    write_object_priors,
+)
+from depthnerf.depth.estimators import CACHED_ESTIMATORS, DepthEstimator, describe_estimator, make_estimator
+from depthnerf.errors import DepthnerfError
+
+
+@dataclass
+class PrecomputeConfig:
+    """What ``depthnerf depth`` computes."""
+
+    data_root: Path
+    """Dataset root (SRN layout)."""
+    estimator: str
+    """A cached estimator name (``depth-anything-v2`` or ``bundled``)."""
+    checkpoint: str | None = None
+    """Hub id / directory / weights file (None: the estimator's default)."""
+    splits: tuple[str, ...] = ("train", "val", "test")
+    """Splits to process."""
+    categories: tuple[str, ...] | None = None
+    """Categories to process (None: every category found under ``data_root``)."""
+    require_splits: bool = False
+    """A missing ``<category>_<split>`` folder is an error (else it is reported and skipped)."""
+    batch_size: int = 16
+    """Images per estimator call."""
+    resolution: int | None = None
+    """Image side to compute priors at (None: the dataset's own resolution)."""
+    device: str = "cpu"
+    """Torch device of the estimator."""
+    progress: bool = True
+    """Show a tqdm progress bar on stderr."""
+
+
+@dataclass
+class PrecomputeSummary:
+    """What a precompute run did."""
+
+    cache_dir: Path
+    """The cache folder written."""
+    computed: int = 0
+    """Objects computed in this run."""
+    skipped: int = 0
+    """Objects already up to date."""
+    stale: int = 0
+    """Objects recomputed because their cached file was stale or from other weights."""
+    missing_splits: list[str] = field(default_factory=list)
+    """``<category>_<split>`` folders that do not exist (skipped)."""
+
+
+def _records(cfg: PrecomputeConfig, summary_missing: list[str]) -> list:
+    from depthnerf.data.srn import discover_categories, index_split, split_dir
+
+    categories = list(cfg.categories) if cfg.categories else discover_categories(cfg.data_root)
+    if not categories:
+        raise DepthnerfError(f"{cfg.data_root}: no <category>_<split> folders found")
+    records = []
+    for category in categories:
+        for split in cfg.splits:
+            if not split_dir(cfg.data_root, category, split).is_dir():
+                if cfg.require_splits:
+                    raise DepthnerfError(f"{split_dir(cfg.data_root, category, split)}: split folder does not exist")
+                summary_missing.append(f"{category}_{split}")
+                continue
+            records.extend(index_split(cfg.data_root, category, split, check_files=False).objects)
+    if not records:
+        raise DepthnerfError(f"{cfg.data_root}: none of the requested splits exist ({', '.join(cfg.splits)})")
+    return records
+
+
+def _resolution(cfg: PrecomputeConfig, records: list) -> int:
+    if cfg.resolution is not None:
+        if cfg.resolution <= 0:
+            raise DepthnerfError(f"--resolution must be positive, got {cfg.resolution}")
+        return cfg.resolution
+    sizes = {(r.intrinsics.height, r.intrinsics.width) for r in records}
+    if len(sizes) > 1:
+        raise DepthnerfError(f"{cfg.data_root}: objects have different image sizes {sorted(sizes)}; "
+                             "pass --resolution")
+    return next(iter(sizes))[0]
+
+
+def predict_views(estimator: DepthEstimator, images: torch.Tensor, depths: torch.Tensor | None,
+                  batch_size: int) -> torch.Tensor:
+    """Run an estimator over ``[V, 3, H, W]`` images in batches; ``[V, H, W]`` float32 disparity."""
+    outs = []
+    for start in range(0, images.shape[0], batch_size):
+        stop = start + batch_size
+        outs.append(estimator.predict(images[start:stop], None if depths is None else depths[start:stop]))
+    return torch.cat(outs).float()
+
+
+def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
+    """Fill the cache for ``cfg`` (resumable; see the module docstring)."""
+    from depthnerf.data.srn import load_object
+
+    if cfg.estimator not in CACHED_ESTIMATORS:
+        raise DepthnerfError(f"estimator '{cfg.estimator}' is not cached (cached: {', '.join(CACHED_ESTIMATORS)})")
+    if cfg.batch_size <= 0:
+        raise DepthnerfError(f"--batch-size must be positive, got {cfg.batch_size}")
+    provenance = describe_estimator(cfg.estimator, cfg.checkpoint)
+    assert provenance is not None
+    missing: list[str] = []
+    records = _records(cfg, missing)
+    resolution = _resolution(cfg, records)
+    root = cache_dir(cfg.data_root, provenance, resolution)
+    summary = PrecomputeSummary(cache_dir=root, missing_splits=missing)
+    manifest_path = root / "manifest.json"
+    manifest = {"provenance": provenance.as_dict(), "resolution": resolution, "depthnerf": __version__,
+                "fingerprint": "sha256 of view names + RGB file sizes + first RGB file bytes", "splits": {}}
+    if manifest_path.is_file():
+        import json
+
+        try:
+            old = json.loads(manifest_path.read_text())
+        except (OSError, ValueError):
+            old = {}
+        if old.get("provenance", {}).get("weights_hash") not in (None, provenance.weights_hash):
+            raise DepthnerfError(f"{manifest_path}: folder holds priors of other weights; remove it first")
+        manifest["splits"] = dict(old.get("splits", {}))
+
+    estimator: DepthEstimator | None = None
+    done: dict[str, int] = {}
+    totals: dict[str, int] = {}
+    bar = tqdm(records, desc=f"depth priors ({cfg.estimator})", unit="obj", file=sys.stderr,
+               disable=not cfg.progress)
+    for record in bar:
+        group = f"{record.category}_{record.split}"
+        totals[group] = totals.get(group, 0) + 1
+        path = object_path(root, record)
+        fingerprint = object_fingerprint(record)
+        meta = read_object_metadata(path)
+        if meta is not None and (meta.get("fingerprint"), meta.get("weights_hash"), meta.get("resolution")) == (
+                fingerprint, provenance.weights_hash, str(resolution)):
+            summary.skipped += 1
+        else:
+            summary.stale += meta is not None
+            if estimator is None:  # loaded (and the manifest written) only once there is work to do
+                estimator = make_estimator(cfg.estimator, cfg.checkpoint, device=cfg.device)
+                write_json_atomic(manifest_path, manifest)
+            views = load_object(record, resolution=resolution)
+            disparity = predict_views(estimator, views.images, None, cfg.batch_size)
+            write_object_priors(path, disparity, {
+                "fingerprint": fingerprint, "weights_hash": provenance.weights_hash,
+                "estimator": provenance.estimator, "resolution": str(resolution),
+                "views": str(len(record.view_names)), "object_id": record.object_id})
+            summary.computed += 1
+        done[group] = done.get(group, 0) + 1
+        bar.set_postfix(computed=summary.computed, skipped=summary.skipped)
+    for group, count in totals.items():
+        manifest["splits"][group] = {"objects": count, "complete": done.get(group, 0) == count}
+    write_json_atomic(manifest_path, manifest)
+    return summary

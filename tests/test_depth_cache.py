@@ -1,0 +1,163 @@
+"""The prior cache (`depthnerf depth`), PriorStore loading and its errors, and `depthnerf depth-eval`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from fixtures_srn import first_object, make_srn_fixture
+
+from depthnerf.cli import main
+from depthnerf.data import srn_format
+from depthnerf.data.srn import index_split, load_object
+from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
+from depthnerf.depth.cache import PriorStore
+from depthnerf.depth.estimators import make_estimator, oracle_disparity
+from depthnerf.errors import DepthnerfError
+
+
+def _weights(path: Path, seed: int) -> str:
+    torch.manual_seed(seed)
+    save_bundled(BundledDepthNet(BundledNetConfig(widths=(4, 6, 8), input_size=16)), path)
+    return str(path)
+
+
+@pytest.fixture
+def data(tmp_path) -> Path:
+    return make_srn_fixture(tmp_path / "srn", splits={"train": 2, "test": 1}, views=3, size=16, with_depth=True)
+
+
+def _depth(data: Path, ckpt: str, *extra: str) -> int:
+    return main(["depth", "--data", str(data), "--estimator", "bundled", "--checkpoint", ckpt, "--no-progress",
+                 *extra])
+
+
+def test_precompute_then_load_matches_the_estimator_and_resumes(data, tmp_path, capsys):
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--batch-size", "2") == 0
+    assert "3 objects computed" in capsys.readouterr().out
+    store = PriorStore.open(data, "bundled", ckpt, resolution=16)
+    records = index_split(data, "cars", "train").objects + index_split(data, "cars", "test").objects
+    store.check(records)
+    est = make_estimator("bundled", ckpt)
+    for record in records:
+        expect = est.predict(load_object(record).images)
+        got = store.load(record, [2, 0])
+        assert got.shape == (2, 16, 16) and got.dtype == torch.float32
+        assert torch.allclose(got, expect[[2, 0]], rtol=2e-3, atol=1e-3)  # float16 storage
+        assert torch.allclose(store.load(record, [0, 1, 2]), expect, rtol=2e-3, atol=1e-3)
+    manifest = json.loads((store.root / "manifest.json").read_text())
+    assert manifest["provenance"]["weights_hash"] == est.provenance.weights_hash
+    assert manifest["splits"]["cars_train"] == {"objects": 2, "complete": True}
+    assert store.provenance["weights_hash"] == est.provenance.weights_hash and store.provenance["resolution"] == 16
+    # resumable: nothing to do the second time; a deleted object is recomputed alone
+    assert _depth(data, ckpt) == 0
+    assert "0 objects computed" in capsys.readouterr().out
+    next((store.root / "cars_train").glob("*.safetensors")).unlink()
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    assert "1 objects computed (0 were stale), 1 already up to date" in capsys.readouterr().out
+    with pytest.raises(DepthnerfError, match="view index 3 out of range"):
+        store.load(records[0], [3])
+
+
+def test_missing_partial_stale_and_other_weights_name_the_command(data, tmp_path, capsys):
+    ckpt_a, ckpt_b = _weights(tmp_path / "a.safetensors", 0), _weights(tmp_path / "b.safetensors", 1)
+    with pytest.raises(DepthnerfError) as err:  # nothing cached yet
+        PriorStore.open(data, "bundled", ckpt_a, resolution=16)
+    assert f"run: depthnerf depth --data {data} --estimator bundled --checkpoint {ckpt_a}" in str(err.value)
+    assert "\n" not in str(err.value)
+    assert _depth(data, ckpt_a, "--splits", "train") == 0
+    with pytest.raises(DepthnerfError, match=r"found only: bundled-[0-9a-f]{12}-16.*run: depthnerf depth"):
+        PriorStore.open(data, "bundled", ckpt_b, resolution=16)  # other weights
+    with pytest.raises(DepthnerfError, match="--resolution 8"):
+        PriorStore.open(data, "bundled", ckpt_a, resolution=8)  # other resolution
+    store = PriorStore.open(data, "bundled", ckpt_a, resolution=16)
+    test_record = index_split(data, "cars", "test").objects[0]
+    with pytest.raises(DepthnerfError, match="missing.*--category cars --splits test --resolution 16"):
+        store.load(test_record, [0])  # partial: test split never computed
+    # stale: regenerate one image of a train object -> fingerprint changes
+    record = index_split(data, "cars", "train").objects[0]
+    fresh = PriorStore.open(data, "bundled", ckpt_a, resolution=16)
+    img = np.zeros((16, 16, 3), dtype=np.uint8)
+    img[4:12, 4:12] = 90
+    srn_format.write_rgb(record.rgb_path(1), img)
+    with pytest.raises(DepthnerfError, match="stale.*run: depthnerf depth .*--splits train") as err:
+        fresh.load(record, [0])
+    assert str(record.object_id) in str(err.value)
+    # the CLI reports it as one line and exit status 2
+    assert main(["depth-eval", "--data", str(data), "--estimator", "bundled", "--checkpoint",
+                 str(tmp_path / "nope.safetensors"), "--no-progress"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+    # rerunning the command fixes the stale object (and only it)
+    assert _depth(data, ckpt_a, "--splits", "train") == 0
+    assert "1 objects computed (1 were stale)" in capsys.readouterr().out
+    PriorStore.open(data, "bundled", ckpt_a, resolution=16).load(record, [0])
+
+
+def test_oracle_and_none_stores(data):
+    assert PriorStore.open(data, "none") is None
+    store = PriorStore.open(data, "oracle", resolution=16)
+    record = index_split(data, "cars", "train").objects[1]
+    depth = load_object(record, [1, 2], with_depth=True).depths
+    got = store.load(record, [1, 2])
+    mask = depth > 0
+    assert mask.any() and torch.allclose(got[mask], 1 / depth[mask]) and (got[~mask] == 0).all()
+    assert torch.equal(got, oracle_disparity(depth))
+    assert store.load(record, [0]).shape == (1, 16, 16)
+    assert PriorStore.open(data, "oracle", resolution=8).load(record, [0]).shape == (1, 8, 8)
+    assert store.provenance["estimator"] == "oracle"
+    no_depth = make_srn_fixture(data.parent / "nodepth", splits={"train": 1})
+    bare = index_split(no_depth, "cars", "train").objects[0]
+    with pytest.raises(DepthnerfError, match="needs ground-truth depth"):
+        store.load(bare, [0])
+
+
+def test_depth_eval_oracle_is_perfect_and_cache_matches_direct(data, tmp_path, capsys):
+    out = tmp_path / "oracle.json"
+    assert main(["depth-eval", "--data", str(data), "--estimator", "oracle", "--json", str(out),
+                 "--no-progress", "--split", "train"]) == 0
+    scores = json.loads(out.read_text())
+    assert scores["abs_rel"] == pytest.approx(0.0, abs=1e-6) and scores["delta1"] == 1.0 and scores["images"] == 6
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    direct, cached = tmp_path / "direct.json", tmp_path / "cached.json"
+    args = ["depth-eval", "--data", str(data), "--estimator", "bundled", "--checkpoint", ckpt, "--no-progress",
+            "--max-views", "2"]
+    assert main([*args, "--json", str(direct)]) == 0
+    assert _depth(data, ckpt, "--splits", "test") == 0
+    assert main([*args, "--json", str(cached)]) == 0
+    a, b = json.loads(direct.read_text()), json.loads(cached.read_text())
+    assert (a["source"], b["source"]) == ("estimator", "cache") and a["images"] == b["images"] == 2
+    assert a["abs_rel"] == pytest.approx(b["abs_rel"], rel=2e-2, abs=1e-4)
+    assert 0 < a["abs_rel"] < 1 and 0 <= a["delta1"] <= 1
+    capsys.readouterr()
+    assert main(["depth", "--data", str(data), "--estimator", "oracle"]) == 0
+    assert "needs no cache" in capsys.readouterr().out
+
+
+def test_bad_inputs_are_one_line_errors(data, tmp_path, capsys):
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--splits", "val") == 2  # explicitly requested split does not exist
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "cars_val" in err and err.count("\n") == 1
+    broken = first_object(data, "cars", "test") / "rgb" / "000001.png"
+    broken.write_bytes(b"garbage")
+    assert _depth(data, ckpt, "--splits", "test") == 2
+    assert str(broken) in capsys.readouterr().err
+
+
+def test_depth_anything_cache_from_a_local_checkpoint(data, tmp_path, capsys):
+    from depthnerf.depth.depth_anything import make_tiny_checkpoint
+
+    ckpt = str(make_tiny_checkpoint(tmp_path / "tiny_da"))
+    assert main(["depth", "--data", str(data), "--estimator", "depth-anything-v2", "--checkpoint", ckpt,
+                 "--splits", "test", "--no-progress"]) == 0
+    store = PriorStore.open(data, "depth-anything-v2", ckpt, resolution=16)
+    assert store.root.name.startswith("depth-anything-v2-") and store.root.name.endswith("-16")
+    record = index_split(data, "cars", "test").objects[0]
+    expect = make_estimator("depth-anything-v2", ckpt).predict(load_object(record).images)
+    assert torch.allclose(store.load(record, [0, 1, 2]), expect, rtol=2e-3, atol=1e-3)
+    with pytest.raises(DepthnerfError, match="--estimator depth-anything-v2 --checkpoint .*--splits train"):
+        store.load(index_split(data, "cars", "train").objects[0], [0])
