@@ -1,0 +1,79 @@
+"""``depthnerf checkpoints``: list the checkpoints shipped inside the package, with their model-card summary.
+
+A shipped checkpoint is ``depthnerf/checkpoints/<name>.safetensors`` (written by training or
+``scripts/export_checkpoint.py``); ``--checkpoint <name>`` then works in ``eval`` and ``reconstruct``. Shown per
+checkpoint: name, preset, category, depth prior, training steps (all from the weights' metadata), and metrics when
+recorded: the metadata key ``metrics`` (a JSON object) or a model card ``<name>.json`` next to the weights with a
+``metrics`` object (keys such as ``psnr``, ``ssim``, plus free text under ``protocol``). A ``<name>.md`` model card
+is pointed to. Nothing is downloaded; with no checkpoint shipped the command says so and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from depthnerf.errors import DepthnerfError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="print the list as JSON")
+
+
+def _json_field(text: str | None, where: str) -> dict:
+    if text is None:
+        return {}
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        raise DepthnerfError(f"{where}: not valid JSON") from None
+    if not isinstance(value, dict):
+        raise DepthnerfError(f"{where}: expected a JSON object")
+    return value
+
+
+def describe(name: str, path: Path) -> dict:
+    """The model-card summary of one shipped checkpoint (metadata only, the weights are not loaded)."""
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = dict(f.metadata() or {})
+    except (SafetensorError, OSError) as err:
+        raise DepthnerfError(f"{path}: unreadable shipped checkpoint ({err})") from None
+    train = _json_field(meta.get("train_config"), f"{path} metadata 'train_config'")
+    metrics = _json_field(meta.get("metrics"), f"{path} metadata 'metrics'")
+    card_json, card_md = path.with_suffix(".json"), path.with_suffix(".md")
+    protocol = None
+    if card_json.is_file():
+        card = _json_field(card_json.read_text(), str(card_json))
+        metrics = {**metrics, **card.get("metrics", {})}
+        protocol = card.get("protocol")
+    return {"name": name, "path": str(path), "preset": train.get("preset", "unknown"),
+            "category": train.get("data", {}).get("category", "unknown"),
+            "depth_prior": train.get("prior", {}).get("estimator", "unknown"), "steps": int(meta.get("step", 0)),
+            "metrics": metrics or None, "protocol": protocol,
+            "model_card": str(card_md) if card_md.is_file() else (str(card_json) if card_json.is_file() else None)}
+
+
+def run(args: argparse.Namespace) -> int:
+    from depthnerf.eval import pretrained
+
+    shipped = pretrained.shipped_checkpoints()
+    rows = [describe(name, path) for name, path in shipped.items()]
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return 0
+    if not rows:
+        print(f"no checkpoints are shipped with this version of depthnerf ({pretrained.SHIPPED_DIR} holds no "
+              "*.safetensors). Train one with 'depthnerf train' and pass its run folder or a weights file to "
+              "--checkpoint.")
+        return 0
+    for r in rows:
+        metrics = ", ".join(f"{k} {v:.4g}" if isinstance(v, int | float) else f"{k} {v}"
+                            for k, v in (r["metrics"] or {}).items()) or "no metrics recorded"
+        print(f"{r['name']}: preset {r['preset']}, category {r['category']}, depth prior {r['depth_prior']}, "
+              f"{r['steps']} steps; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")
+              + (f"; card {r['model_card']}" if r["model_card"] else ""))
+    return 0

@@ -1,0 +1,90 @@
+"""``depthnerf eval``: evaluate a run or checkpoint by the SRN protocol (see :mod:`depthnerf.eval.protocol`).
+
+``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
+[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--save-renders]``
+
+Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
+with ``--run``, required with ``--checkpoint``), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
+defaults to the dataset the run was trained on. Targets are scored at the training resolution unless
+``--resolution`` says otherwise (``--resolution 128`` = the paper's protocol); the input view is always encoded at
+the training resolution, with the run's depth prior (its cache must exist for the split: ``depthnerf depth ...
+--splits test --resolution <training resolution>``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+from depthnerf.errors import DepthnerfError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--run", type=Path, help="run folder (uses checkpoints/best, else the latest checkpoint)")
+    src.add_argument("--checkpoint", help="weights file, checkpoint folder or shipped name (depthnerf checkpoints)")
+    p.add_argument("--data", type=Path, help="dataset root (default: the run's training data root)")
+    p.add_argument("--category", help="category folder prefix (default: the run's)")
+    p.add_argument("--split", default="test", choices=["train", "val", "test"], help="split (default test)")
+    p.add_argument("--out", type=Path, help="output folder (default RUN_DIR/eval/<split> with --run)")
+    p.add_argument("--views-stride", type=int, default=1, help="score every K-th target view (default 1: all)")
+    p.add_argument("--max-objects", type=int, help="only the first N objects (sorted by id)")
+    p.add_argument("--resolution", type=int,
+                   help="render/score resolution (default: the checkpoint's training resolution; 128 = paper)")
+    p.add_argument("--chunk", type=int, default=4096, help="rays per render pass (bounds memory; default 4096)")
+    p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction and Chamfer/F-score")
+    p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (default 128)")
+    p.add_argument("--fscore-tau", type=float, default=0.01, help="F-score threshold in GT diagonals (0.01)")
+    p.add_argument("--mesh-points", type=int, default=100_000, help="surface samples per mesh (default 100000)")
+    p.add_argument("--save-renders", action="store_true", help="write renders, meshes and renders.csv")
+    p.add_argument("--quantize", action="store_true",
+                   help="score 8-bit truncated renders (pixelNeRF calc_metrics.py) instead of float renders")
+    p.add_argument("--method", help="row label for depthnerf compare (default from the depth prior)")
+    p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
+    p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when available, else CPU; anything else as given."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        return torch.device(name)
+    except RuntimeError:
+        raise DepthnerfError(f"--device {name!r}: not a torch device (use auto, cpu or cuda)") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from depthnerf.eval.geometry_metrics import GeometryConfig
+    from depthnerf.eval.metrics import LpipsConfig
+    from depthnerf.eval.pretrained import load_pretrained
+    from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
+
+    out = args.out
+    if out is None:
+        if args.run is None:
+            raise DepthnerfError("--out OUT_DIR is required with --checkpoint")
+        out = args.run / "eval" / args.split
+    device = resolve_device(args.device)
+    pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
+    data = args.data or Path(pre.config.data.root)
+    cfg = ProtocolConfig(
+        split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
+        resolution=args.resolution, chunk=args.chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
+        geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
+        quantize=args.quantize, method=args.method, depth_checkpoint=args.depth_checkpoint,
+        lpips=LpipsConfig(trunk_path=args.lpips_trunk), progress=not args.no_progress)
+    result = evaluate_protocol(pre, data, out, cfg, device)
+    s = result.summary
+    lp = f"{s['lpips']:.4f}" if s["lpips"] is not None else s["lpips_status"]
+    geo = (f", Chamfer-L1 {s['chamfer_l1']:.4f}, F-score@{s['fscore_tau']} {s['fscore']:.3f}"
+           if s.get("chamfer_l1") is not None else f", mesh: {s['mesh_status']}")
+    print(f"{s['method']} / {s['category']}: PSNR {s['psnr']:.3f}, SSIM {s['ssim']:.4f}, LPIPS {lp}{geo} "
+          f"({s['objects']} objects, {s['views']} views, {s['timing']['total_s']:.1f} s)")
+    print(f"protocol: {s['protocol']}")
+    print(f"wrote {result.summary_path} and {result.per_object_path}")
+    return 0

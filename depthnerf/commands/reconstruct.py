@@ -1,0 +1,57 @@
+"""``depthnerf reconstruct IMAGE --checkpoint CKPT --out DIR``: one photo -> depth prior, novel views, turntable,
+depth maps, mesh and point cloud (a thin layer over :class:`depthnerf.eval.reconstruct.Reconstructor`).
+
+The photo should show one object, roughly centred, on a plain background; the mask is ``--mask``, else the
+alpha channel, else everything that differs from the border colour (rules, framing and camera defaults in
+:mod:`depthnerf.eval.reconstruct`; the output layout in :mod:`depthnerf.eval.exports`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from depthnerf.commands.evaluate import resolve_device
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("image", type=Path, help="input photo (RGB, RGBA or grayscale)")
+    p.add_argument("--checkpoint", required=True, help="weights file, checkpoint/run folder or shipped name")
+    p.add_argument("--out", type=Path, required=True, help="output folder (manifest.json lists every file)")
+    p.add_argument("--mask", type=Path, help="object mask, same size as the image (non-zero = object)")
+    p.add_argument("--views", type=int, default=36, help="novel views on the orbit (default 36)")
+    p.add_argument("--elevation", type=float, default=20.0, help="input camera elevation, degrees (default 20)")
+    p.add_argument("--radius", type=float, help="camera distance (default: the training category's)")
+    p.add_argument("--focal", type=float,
+                   help="focal length in pixels of a 128 px frame (default: the training category's, SRN 131.25)")
+    p.add_argument("--framing", choices=["auto", "keep"], default="auto",
+                   help="auto: crop around the object to the training fill; keep: only pad to square")
+    p.add_argument("--fill", type=float, help="object's longer side / frame side with --framing auto")
+    p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
+    p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (0 = no mesh)")
+    p.add_argument("--depth-estimator", choices=["bundled", "depth-anything-v2"],
+                   help="override the checkpoint's depth estimator (needed for checkpoints trained with oracle)")
+    p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
+    p.add_argument("--chunk", type=int, default=4096, help="rays per render pass (default 4096)")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from depthnerf.eval.reconstruct import ReconstructConfig, Reconstructor
+
+    device = resolve_device(args.device)
+    rec = Reconstructor.from_pretrained(args.checkpoint, device, depth_estimator=args.depth_estimator,
+                                        depth_checkpoint=args.depth_checkpoint)
+    cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
+                            framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
+                            mesh_resolution=args.mesh_resolution, chunk=args.chunk, progress=not args.no_progress)
+    result = rec.reconstruct(args.image, mask=args.mask, config=cfg)
+    manifest = rec.save(result, args.out)
+    for note in result.input.notes:
+        print(f"note: {note}")
+    mesh = manifest["mesh"]
+    print(f"wrote {len(manifest['files']['views'])} views, turntable, mesh ({mesh['faces']} faces"
+          f"{', empty' if mesh['empty'] else ''}), {manifest['point_cloud']['points']} points to {args.out} "
+          f"(manifest: {args.out / 'manifest.json'})")
+    return 0

@@ -1,0 +1,129 @@
+"""Writing a :class:`~depthnerf.eval.reconstruct.Reconstruction` to a folder, with a JSON manifest.
+
+Layout of ``OUT`` (every path in ``manifest.json`` is relative to ``OUT``)::
+
+    input.png, input_mask.png     the prepared input view (on white, at the training resolution) and its mask
+    depth_prior.png               the prior the encoder saw (depth-aware models): normalised disparity as 8-bit
+                                  grey, foreground [-4, 4] -> [64, 255] (brighter = nearer), background 0
+    views/view_NNN.png            the N orbit views (view 000 = the input camera)
+    depths/depth_NNN.png          rendered depth as 8-bit grey: 255 at z-near ... 0 at z-far (ray distance), 0
+                                  where opacity < 0.5; exact float ray distances and opacities in depths.npz
+    depths.npz                    ``depth`` [N, H, W] (ray distance), ``opacity`` [N, H, W], ``poses`` [N, 4, 4]
+                                  (camera-to-world, OpenCV axes), ``intrinsics`` (f, cx, cy, H, W)
+    turntable.gif                 the orbit views as an endless GIF (``TURNTABLE_FPS``)
+    turntable.mp4                 the same as H.264 when ``imageio-ffmpeg`` is installed (else the manifest says so)
+    mesh.ply, mesh.glb            vertex-coloured world-frame mesh (may be empty: ``mesh.empty`` in the manifest)
+    points.ply                    coloured world-frame point cloud
+    manifest.json                 all of the above + checkpoint, settings, notes and timings
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import imageio.v3 as iio
+import numpy as np
+import trimesh
+from PIL import Image
+
+from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.reconstruct import Reconstruction
+
+TURNTABLE_FPS = 12
+"""Frames per second of the turntable GIF / MP4."""
+
+
+def _u8(x: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def prior_image(prior: np.ndarray) -> np.ndarray:
+    """8-bit grey of a normalised prior: foreground [-4, 4] -> [64, 255], background (-5) -> 0."""
+    fg = prior > BACKGROUND_VALUE + 0.5
+    grey = 64.0 + (np.clip(prior, -FOREGROUND_CLAMP, FOREGROUND_CLAMP) + FOREGROUND_CLAMP) / (2 * FOREGROUND_CLAMP) * 191
+    return np.where(fg, np.round(grey), 0).astype(np.uint8)
+
+
+def depth_image(depth: np.ndarray, opacity: np.ndarray, near: float, far: float) -> np.ndarray:
+    """8-bit grey of a rendered depth map: 255 at ``near`` ... 0 at ``far``, 0 where opacity < 0.5."""
+    grey = _u8((far - depth) / (far - near))
+    return np.where(opacity >= 0.5, grey, 0).astype(np.uint8)
+
+
+def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[str, Any]) -> dict[str, Any]:
+    """Write every output of ``result`` into ``out_dir`` (layout in the module docstring); returns the manifest."""
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    try:
+        (out / "views").mkdir(parents=True, exist_ok=True)
+        (out / "depths").mkdir(exist_ok=True)
+    except OSError as err:
+        raise DepthnerfError(f"{out}: cannot create the output folder ({err.strerror or err})") from None
+    near, far = result.settings["z_range"]
+    files: dict[str, Any] = {}
+    Image.fromarray(_u8(result.input.image)).save(out / "input.png")
+    Image.fromarray(result.input.mask.astype(np.uint8) * 255).save(out / "input_mask.png")
+    files["input"], files["input_mask"] = "input.png", "input_mask.png"
+    if result.prior_normalized is not None:
+        Image.fromarray(prior_image(result.prior_normalized)).save(out / "depth_prior.png")
+        files["depth_prior"] = "depth_prior.png"
+    else:
+        files["depth_prior"] = None
+    frames = _u8(result.views)
+    files["views"], files["depths"] = [], []
+    for k, frame in enumerate(frames):
+        Image.fromarray(frame).save(out / "views" / f"view_{k:03d}.png")
+        Image.fromarray(depth_image(result.depths[k], result.opacity[k], near, far)).save(
+            out / "depths" / f"depth_{k:03d}.png")
+        files["views"].append(f"views/view_{k:03d}.png")
+        files["depths"].append(f"depths/depth_{k:03d}.png")
+    intr = result.intrinsics
+    np.savez_compressed(out / "depths.npz", depth=result.depths.astype(np.float32),
+                        opacity=result.opacity.astype(np.float32), poses=result.poses.astype(np.float32),
+                        intrinsics=np.array([intr.focal, intr.cx, intr.cy, intr.height, intr.width], np.float64))
+    files["depths_npz"] = "depths.npz"
+    iio.imwrite(out / "turntable.gif", frames, duration=round(1000 / TURNTABLE_FPS), loop=0)
+    files["turntable_gif"] = "turntable.gif"
+    if importlib.util.find_spec("imageio_ffmpeg") is not None:
+        iio.imwrite(out / "turntable.mp4", frames, fps=TURNTABLE_FPS, plugin="FFMPEG", macro_block_size=1)
+        files["turntable_mp4"], mp4_status = "turntable.mp4", "ok"
+    else:
+        files["turntable_mp4"] = None
+        mp4_status = "not written: imageio-ffmpeg is not installed (pip install 'depthnerf[video]')"
+    result.mesh.export(out / "mesh.ply")
+    result.mesh.export(out / "mesh.glb")
+    files["mesh_ply"], files["mesh_glb"] = "mesh.ply", "mesh.glb"
+    rgba = np.concatenate([_u8(result.point_colors), np.full((len(result.points), 1), 255, np.uint8)], axis=1)
+    if len(result.points):
+        trimesh.PointCloud(result.points, colors=rgba).export(out / "points.ply")
+    else:  # trimesh cannot write an empty cloud: the same header, no vertices
+        (out / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                                        "property float z\nproperty uchar red\nproperty uchar green\n"
+                                        "property uchar blue\nproperty uchar alpha\nend_header\n")
+    files["point_cloud"] = "points.ply"
+    empty = len(result.mesh.faces) == 0
+    manifest = {
+        **provenance,
+        "files": files,
+        "turntable_mp4_status": mp4_status,
+        "input": {"source_size": list(result.input.source_size), "notes": result.input.notes,
+                  "object_pixels": int(result.input.mask.sum())},
+        "settings": result.settings,
+        "intrinsics": {"focal": intr.focal, "cx": intr.cx, "cy": intr.cy, "height": intr.height,
+                       "width": intr.width},
+        "mesh": {"vertices": int(len(result.mesh.vertices)), "faces": int(len(result.mesh.faces)), "empty": empty,
+                 "note": ("the density never reached the marching-cubes level inside the input frustum"
+                          if empty else "world frame, vertex colours from the fine network")},
+        "point_cloud": {"points": int(len(result.points)),
+                        "rule": f"rendered depth of every view where opacity > {result.settings['point_opacity']}"},
+        "conventions": "world +z up, object at the origin, poses camera-to-world with OpenCV axes; depths are "
+                       "ray distances along unit directions",
+        "timings": {**result.timings, "save_s": time.perf_counter() - t0},
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    return manifest

@@ -1,0 +1,104 @@
+"""Cameras around an encoded object and what is rendered or queried from them (eval and reconstruction).
+
+Conventions of :mod:`depthnerf.data.cameras`: world +z up, object at the origin, camera-to-world poses with
+OpenCV axes, ``t`` = distance along unit ray directions. An orbit camera at azimuth ``a`` and elevation ``e``
+(degrees) sits at ``radius * (cos e cos a, cos e sin a, sin e)`` and looks at the origin with world +z as up
+(:func:`~depthnerf.data.cameras.look_at`). :func:`orbit_poses` starts at the input camera (view 0 reproduces the
+input view) and steps the azimuth by ``360 / N`` degrees at constant elevation and radius.
+
+Intrinsics of a reconstruction follow the SRN release: focal ``f`` in pixels of the category's release image size
+``S`` (128) with the principal point at ``(S/2, S/2)``, rescaled to the working resolution with
+:meth:`Intrinsics.resized` (so ``f * r / S`` and ``(S/2 + 0.5) r / S - 0.5`` at resolution ``r``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from jaxtyping import Bool, Float
+from torch import Tensor
+
+from depthnerf.data.cameras import Intrinsics, look_at, pixel_directions
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
+from depthnerf.render.views import ViewRenders, render_views
+from depthnerf.train.config import TrainConfig
+
+
+def orbit_eye(radius: float, elevation_deg: float, azimuth_deg: float) -> Float[Tensor, " 3"]:
+    """World position of an orbit camera (see the module docstring)."""
+    e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+    return radius * torch.tensor([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
+
+
+def orbit_poses(radius: float, elevation_deg: float, views: int, azimuth_deg: float = 0.0
+                ) -> Float[Tensor, "N 4 4"]:
+    """``views`` camera-to-world poses evenly spaced in azimuth, starting at ``azimuth_deg``."""
+    if views < 1:
+        raise DepthnerfError(f"--views must be >= 1, got {views}")
+    if not radius > 0 or not -89.0 <= elevation_deg <= 89.0:
+        raise DepthnerfError(f"camera radius must be > 0 and elevation within [-89, 89] degrees "
+                             f"(got {radius}, {elevation_deg})")
+    eyes = torch.stack([orbit_eye(radius, elevation_deg, azimuth_deg + 360.0 * k / views) for k in range(views)])
+    return look_at(eyes)
+
+
+def srn_intrinsics(focal: float, image_size: int, resolution: int) -> Intrinsics:
+    """Intrinsics of a square SRN-style camera (focal at ``image_size``, centred principal point) at
+    ``resolution``."""
+    if not focal > 0 or resolution < 1:
+        raise DepthnerfError(f"focal must be > 0 and resolution >= 1 (got {focal}, {resolution})")
+    base = Intrinsics(focal=focal, cx=image_size / 2, cy=image_size / 2, height=image_size, width=image_size)
+    return base.resized(resolution, resolution)
+
+
+def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"]
+                  ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
+    """``(density_fn, color_fn)`` of the fine network (the coarse one without a fine network) at world points
+    ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it."""
+    fn = model.field(enc, "fine")
+
+    def query(points: Tensor) -> tuple[Tensor, Tensor]:
+        dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
+        rgb, sigma = fn(points[None, :, None, :], dirs[None])
+        return rgb[0, :, 0], sigma[0, :, 0]
+
+    return (lambda p: query(p)[1]), (lambda p: query(p)[0])
+
+
+@torch.no_grad()
+def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, near: float,
+                 far: float, cfg: TrainConfig, chunk: int, device: torch.device | str,
+                 on_group: Callable[[int], None] | None = None) -> ViewRenders:
+    """Render N views of one encoded object (CPU float tensors), ``max(1, chunk // (H*W))`` views per call and
+    ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views."""
+    if cfg.render.guided.enabled:
+        raise DepthnerfError("the checkpoint's config enables render.guided (depth-guided sampling); evaluation and "
+                             "reconstruction render with the paper's sampler only")
+    if chunk < 1:
+        raise DepthnerfError(f"--chunk must be >= 1, got {chunk}")
+    coarse, fine = model.field(enc, "coarse"), (model.field(enc, "fine") if model.fine is not None else None)
+    group = max(1, chunk // (intr.height * intr.width))
+    parts = []
+    for start in range(0, len(poses), group):
+        res = render_views(coarse, fine, poses[start:start + group].to(device), intr, near, far, cfg.render,
+                           chunk=chunk)
+        parts.append(ViewRenders(rgb=res.rgb.float().cpu(), depth=res.depth.float().cpu(),
+                                 opacity=res.opacity.float().cpu()))
+        if on_group is not None:
+            on_group(len(res.rgb))
+    return ViewRenders(*(torch.cat([getattr(p, k) for p in parts]) for k in ("rgb", "depth", "opacity")))
+
+
+def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, depth: Float[Tensor, "N H W"],
+              keep: Bool[Tensor, "N H W"]) -> Float[np.ndarray, "P 3"]:
+    """World points ``o + t d`` of the kept pixels of N views, ``t`` = ray distance along unit directions."""
+    dirs_cam = pixel_directions(intr)  # [H W 3], unit
+    out = []
+    for pose, t, k in zip(poses, depth, keep, strict=True):
+        d = dirs_cam[k] @ pose[:3, :3].T
+        out.append((pose[:3, 3] + t[k][:, None] * d).numpy())
+    return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.float32)

@@ -1,0 +1,401 @@
+"""The SRN evaluation protocol (pixelNeRF's), as run by ``depthnerf eval``.
+
+Protocol
+    For every object of the split (sorted by id, the first ``max_objects``): view :data:`INPUT_VIEW` (64) is the
+    single input view and every other view is a target (250 for SRN's 251 views), optionally every ``stride``-th
+    of them in order (``targets = [v != input][::stride]``). Objects with at most 64 views (tiny fixtures) use
+    view 0 as input, and the protocol text says so. Each object is encoded ONCE (image features of the input view,
+    and its depth prior) and those features serve every target view and the mesh. Target views are rendered with
+    the checkpoint's renderer (deterministic sampling unless the checkpoint's ``render.sampler.eval_random``), in
+    groups of ``max(1, chunk // (H*W))`` views and ``chunk`` rays per pass, so memory is bounded by ``chunk``.
+    Metrics: :mod:`depthnerf.eval.metrics` (PSNR/SSIM as pixelNeRF, LPIPS only from local weights), per object the
+    mean over its targets, dataset the mean over objects.
+
+Resolution
+    ``resolution`` is the size targets are rendered and scored at; default the checkpoint's training resolution
+    (``data.resolution``: 64 for the CPU presets), ``--resolution 128`` gives the SRN protocol's 128x128 metrics.
+    The input view is always encoded at the training resolution, as the model saw images in training (its depth
+    prior cache is therefore the one at the training resolution, for the evaluated split). The summary records
+    the evaluated, input, training and dataset (native) resolutions.
+
+3D metrics (beyond the paper)
+    Marching cubes over :meth:`CameraGrid.from_frustum` of the input camera with the run's z-range, at the density
+    level of :mod:`depthnerf.eval.mesh` (20), densities from the fine network queried with the input camera's
+    ray direction through each point (:func:`depthnerf.eval.orbit.field_queries`); Chamfer-L1 / F-score against
+    the object's ``mesh.ply`` in the world frame, in units of the GT diagonal
+    (:mod:`depthnerf.eval.geometry_metrics`). Objects without ``mesh.ply`` get empty geometry cells; the means
+    are over objects that have one.
+
+An all-white object (the real SRN cars test set has one) has an empty mask: its prior is the background constant,
+its metrics stay finite (PSNR is capped at 100 dB), and a non-finite dataset metric is an error, never written.
+
+Outputs in ``OUT_DIR`` (overwritten): ``summary.json`` (what ``depthnerf compare`` reads, see
+:mod:`depthnerf.eval.table`), ``per_object.csv``, and with ``save_renders``: ``renders/<object_id>/<view>.png``,
+predicted meshes ``meshes/<object_id>.ply`` and ``renders.csv`` (``object_id,view,render_path,gt_path,psnr,ssim``;
+paths relative to ``OUT_DIR`` unless absolute). ``gt_path`` is the dataset's own image when targets are scored at
+its native resolution (read it with :func:`depthnerf.data.srn_format.read_rgb`, which composites alpha on
+white), else an 8-bit copy of the resized ground truth in ``gt/`` (then recomputed metrics differ by 8-bit
+quantisation of the ground truth as well as of the render). Renders are 8-bit PNGs (rounded; truncated with
+``quantize``), so metrics recomputed from them match within 8-bit quantisation.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from tqdm import tqdm
+
+from depthnerf.data import srn_format
+from depthnerf.data.srn import ObjectRecord, category_defaults, index_split, load_object
+from depthnerf.depth.cache import PriorStore
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.geometry_metrics import (
+    GeometryConfig,
+    GeometryMetrics,
+    geometry_metrics,
+    summarize_geometry,
+)
+from depthnerf.eval.mesh import DEFAULT_THRESHOLD, CameraGrid, MeshConfig, extract_mesh, load_mesh
+from depthnerf.eval.metrics import (
+    ImageMetricsConfig,
+    LpipsConfig,
+    LpipsMetric,
+    ObjectMetrics,
+    load_lpips,
+    lpips_status,
+    object_metrics,
+    summarize,
+)
+from depthnerf.eval.orbit import field_queries, render_poses
+from depthnerf.eval.pretrained import Pretrained
+from depthnerf.model.conditioning import source_views
+from depthnerf.train.config import TrainConfig
+
+INPUT_VIEW = 64
+"""The SRN protocol's input view."""
+SRN_VIEWS = 251
+"""Views per object of the SRN val/test sets."""
+
+
+@dataclass(frozen=True)
+class ProtocolConfig:
+    """What ``depthnerf eval`` evaluates and how."""
+
+    split: str = "test"
+    """Split folder suffix (``<category>_<split>``)."""
+    category: str | None = None
+    """Category folder prefix; None = the checkpoint's training category."""
+    views_stride: int = 1
+    """Score every K-th target view (1 = all 250)."""
+    max_objects: int | None = None
+    """Evaluate only the first N objects (sorted by id); None = all."""
+    resolution: int | None = None
+    """Render/score resolution; None = the checkpoint's training resolution (see the module docstring)."""
+    chunk: int = 4096
+    """Rays per render pass (bounds memory)."""
+    mesh: bool = True
+    """Extract a mesh per object and score it against ``mesh.ply`` when the object has one."""
+    mesh_resolution: int = 128
+    """Marching-cubes samples along the longest side of the frustum box."""
+    mesh_threshold: float = DEFAULT_THRESHOLD
+    """Density level of the extracted surface."""
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    """Chamfer / F-score settings."""
+    save_renders: bool = False
+    """Write rendered PNGs, predicted meshes and ``renders.csv``."""
+    quantize: bool = False
+    """Score 8-bit-truncated renders (pixelNeRF's calc_metrics.py path) instead of float renders (eval.py)."""
+    method: str | None = None
+    """Row label for ``depthnerf compare``; None = from the depth prior."""
+    depth_checkpoint: str | None = None
+    """Override of the depth estimator weights recorded in the checkpoint."""
+    lpips: LpipsConfig = field(default_factory=LpipsConfig)
+    """Where LPIPS weights are looked for (never downloaded)."""
+    progress: bool = True
+    """Progress bar over objects (stderr)."""
+
+
+@dataclass(frozen=True)
+class ProtocolViews:
+    """Input and target view indices of one object."""
+
+    input_view: int
+    """The view the model is conditioned on."""
+    targets: tuple[int, ...]
+    """Scored views, in index order."""
+    others: int
+    """Number of views other than the input (targets before the stride)."""
+
+
+@dataclass
+class ObjectResult:
+    """Everything measured on one object."""
+
+    record: ObjectRecord
+    """The object."""
+    views: ProtocolViews
+    """Which views were used."""
+    metrics: ObjectMetrics
+    """Image metrics."""
+    geometry: GeometryMetrics | None
+    """3D metrics; None without a GT mesh or with meshing off."""
+    seconds: dict[str, float]
+    """Wall-clock seconds of ``render`` (encode + render), ``metrics`` and ``mesh``."""
+
+
+@dataclass
+class EvalOutputs:
+    """What :func:`evaluate_protocol` wrote."""
+
+    summary: dict
+    """The content of ``summary.json``."""
+    summary_path: Path
+    """``OUT_DIR/summary.json``."""
+    per_object_path: Path
+    """``OUT_DIR/per_object.csv``."""
+    renders_path: Path | None
+    """``OUT_DIR/renders.csv`` (with ``save_renders``)."""
+
+
+def protocol_views(num_views: int, stride: int = 1) -> ProtocolViews:
+    """View 64 as input (view 0 with <= 64 views), every ``stride``-th other view as a target."""
+    if stride < 1:
+        raise DepthnerfError(f"--views-stride must be >= 1, got {stride}")
+    if num_views < 2:
+        raise DepthnerfError(f"an object needs at least 2 views (an input and a target), has {num_views}")
+    src = INPUT_VIEW if num_views > INPUT_VIEW else 0
+    others = [v for v in range(num_views) if v != src]
+    return ProtocolViews(input_view=src, targets=tuple(others[::stride]), others=len(others))
+
+
+def z_range(cfg: TrainConfig) -> tuple[float, float]:
+    """(near, far) ray distances of a run: its explicit values, else its category's (rule of ``train.loop``)."""
+    if cfg.data.z_near is not None and cfg.data.z_far is not None:
+        return cfg.data.z_near, cfg.data.z_far
+    d = category_defaults(cfg.data.category)
+    return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)
+
+
+def method_label(estimator: str) -> str:
+    """The default ``depthnerf compare`` row label of a depth prior."""
+    return "pixelNeRF (baseline)" if estimator == "none" else f"depth-aware ({estimator})"
+
+
+class _Evaluator:
+    """Per-object evaluation with the state shared across objects (model, prior store, LPIPS, settings)."""
+
+    def __init__(self, pre: Pretrained, cfg: ProtocolConfig, store: PriorStore | None, lpips: LpipsMetric | None,
+                 input_res: int, eval_res: int, out_dir: Path, device: torch.device) -> None:
+        self.pre, self.cfg, self.store, self.lpips = pre, cfg, store, lpips
+        self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
+        self.near, self.far = z_range(pre.config)
+        self.rows: list[dict] = []
+
+    @torch.no_grad()
+    def __call__(self, record: ObjectRecord) -> ObjectResult:
+        model, cfg = self.pre.model, self.cfg
+        views = protocol_views(record.num_views, cfg.views_stride)
+        t0 = time.perf_counter()
+        src = load_object(record, [views.input_view], resolution=self.input_res)
+        tgt = load_object(record, list(views.targets), resolution=self.eval_res)
+        disp = self.store.load(record, [views.input_view]) if self.store is not None else None
+        enc = model.encode(source_views(src, [0], disp, self.device))
+        preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.pre.config,
+                             cfg.chunk, self.device).rgb.numpy()
+        gts = tgt.images.permute(0, 2, 3, 1).numpy()
+        t1 = time.perf_counter()
+        metrics = object_metrics(record.object_id, preds, gts, ImageMetricsConfig(quantize_pred=cfg.quantize),
+                                 self.lpips)
+        t2 = time.perf_counter()
+        geometry, mesh = None, None
+        if cfg.mesh and record.mesh_path is not None:
+            gt_mesh = load_mesh(record.mesh_path)
+            density_fn, _ = field_queries(model, enc, src.poses[0, :3, 3].to(self.device))
+            grid = CameraGrid.from_frustum(src.poses[0], src.intrinsics, self.near, self.far)
+            mesh_cfg = MeshConfig(resolution=cfg.mesh_resolution, threshold=cfg.mesh_threshold)
+            mesh = extract_mesh(density_fn, grid, mesh_cfg, device=self.device)
+            geometry = geometry_metrics(mesh, gt_mesh, cfg.geometry)
+        t3 = time.perf_counter()
+        if cfg.save_renders:
+            self._save(record, views, preds, gts, metrics, mesh)
+        return ObjectResult(record=record, views=views, metrics=metrics, geometry=geometry,
+                            seconds={"render": t1 - t0, "metrics": t2 - t1, "mesh": t3 - t2})
+
+    def _save(self, record: ObjectRecord, views: ProtocolViews, preds: np.ndarray, gts: np.ndarray,
+              metrics: ObjectMetrics, mesh: trimesh.Trimesh | None) -> None:
+        native = (record.intrinsics.height, record.intrinsics.width) == gts.shape[1:3]
+        for k, view in enumerate(views.targets):
+            name = f"{record.view_names[view]}.png"
+            render_rel = Path("renders") / record.object_id / name
+            (self.out_dir / render_rel).parent.mkdir(parents=True, exist_ok=True)
+            pred = preds[k] if not self.cfg.quantize else np.floor(np.clip(preds[k], 0, 1) * 255).astype(np.uint8)
+            srn_format.write_rgb(self.out_dir / render_rel, pred)  # 8-bit PNG (truncated with --quantize)
+            if native:
+                gt_path = str(record.rgb_path(view).resolve())
+            else:
+                gt_rel = Path("gt") / record.object_id / name
+                (self.out_dir / gt_rel).parent.mkdir(parents=True, exist_ok=True)
+                srn_format.write_rgb(self.out_dir / gt_rel, gts[k])
+                gt_path = gt_rel.as_posix()
+            self.rows.append({"object_id": record.object_id, "view": view, "render_path": render_rel.as_posix(),
+                              "gt_path": gt_path, "psnr": repr(metrics.views[k].psnr),
+                              "ssim": repr(metrics.views[k].ssim)})
+        if mesh is not None:
+            (self.out_dir / "meshes").mkdir(exist_ok=True)
+            mesh.export(self.out_dir / "meshes" / f"{record.object_id}.ply")
+
+
+def _fmt(value: float | None) -> str:
+    return "" if value is None else repr(float(value))
+
+
+def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(columns))
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(path)
+
+
+PER_OBJECT_COLUMNS = ("object_id", "input_view", "views", "psnr", "ssim", "lpips", "chamfer_l1", "fscore",
+                      "accuracy", "completeness", "precision", "recall", "empty_mesh", "seconds")
+"""Columns of ``per_object.csv`` (empty cell = not measured)."""
+
+
+def _per_object_row(r: ObjectResult) -> dict:
+    g = r.geometry
+    return {"object_id": r.record.object_id, "input_view": r.views.input_view, "views": len(r.views.targets),
+            "psnr": _fmt(r.metrics.psnr), "ssim": _fmt(r.metrics.ssim), "lpips": _fmt(r.metrics.lpips),
+            **{k: _fmt(getattr(g, k)) if g is not None else ""
+               for k in ("chamfer_l1", "fscore", "accuracy", "completeness", "precision", "recall")},
+            "empty_mesh": "" if g is None else int(g.empty_prediction), "seconds": f"{sum(r.seconds.values()):.3f}"}
+
+
+def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: str, category: str, stride: int,
+                  eval_res: int, input_res: int, deterministic: bool) -> str:
+    """One line saying exactly which protocol ran."""
+    inputs = sorted({r.views.input_view for r in results})
+    others = sorted({r.views.others for r in results})
+    scored = sorted({len(r.views.targets) for r in results})
+    if inputs == [INPUT_VIEW]:
+        head = f"SRN protocol: input view {INPUT_VIEW}"
+    elif inputs == [0]:
+        head = f"SRN-style protocol: input view 0 (objects have <= {INPUT_VIEW} views; SRN uses view {INPUT_VIEW})"
+    else:
+        head = f"SRN protocol: input view {INPUT_VIEW} (view 0 for objects with <= {INPUT_VIEW} views)"
+    n_other = "/".join(map(str, others))
+    n_scored = "/".join(map(str, scored))
+    targets = (f"targets = all other {n_other} views" if stride == 1
+               else f"targets = all other {n_other} views with stride {stride} ({n_scored} views)")
+    res = f"{eval_res}x{eval_res}"
+    if input_res != eval_res:
+        res += f" (input view encoded at the training resolution {input_res}x{input_res})"
+    sampling = "deterministic sampling" if deterministic else "random sampling (render.sampler.eval_random)"
+    return (f"{head}, {targets}, {len(results)} of {total_objects} objects of {category}_{split}, {res}, "
+            f"{sampling}")
+
+
+def _data_card(root: Path, category: str) -> dict:
+    card_path = root / f"{category}_card.json"
+    card = None
+    if card_path.is_file():
+        try:
+            card = json.loads(card_path.read_text())
+        except (OSError, json.JSONDecodeError) as err:
+            raise DepthnerfError(f"{card_path}: unreadable dataset card ({err})") from None
+    return {"root": str(root.resolve()), "card_path": str(card_path.resolve()) if card else None, "card": card}
+
+
+def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: ProtocolConfig = ProtocolConfig(),
+                      device: torch.device | str = "cpu") -> EvalOutputs:
+    """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring)."""
+    t_start = time.perf_counter()
+    device = torch.device(device)
+    train = pre.config
+    data_root, out_dir = Path(data_root), Path(out_dir)
+    category = cfg.category or train.data.category
+    if cfg.views_stride < 1:
+        raise DepthnerfError(f"--views-stride must be >= 1, got {cfg.views_stride}")
+    if cfg.max_objects is not None and cfg.max_objects < 1:
+        raise DepthnerfError(f"--max-objects must be >= 1, got {cfg.max_objects}")
+    if cfg.chunk < 1 or cfg.mesh_resolution < 2:
+        raise DepthnerfError(f"--chunk must be >= 1 and --mesh-resolution >= 2 (got {cfg.chunk}, "
+                             f"{cfg.mesh_resolution})")
+    all_records = index_split(data_root, category, cfg.split, check_files=False).objects
+    records = all_records[: cfg.max_objects] if cfg.max_objects else all_records
+    input_res = train.data.resolution
+    eval_res = cfg.resolution or input_res
+    if eval_res < 8:
+        raise DepthnerfError(f"--resolution must be >= 8 (SSIM window 7), got {eval_res}")
+    estimator = train.prior.estimator
+    prior_ckpt = cfg.depth_checkpoint or train.prior.checkpoint
+    store = PriorStore.open(data_root, estimator, prior_ckpt, resolution=input_res)
+    if store is not None:
+        store.check(records)
+    lpips = load_lpips(cfg.lpips, device)
+    lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
+    out_dir.mkdir(parents=True, exist_ok=True)
+    evaluator = _Evaluator(pre, cfg, store, lpips, input_res, eval_res, out_dir, device)
+    results = []
+    for record in tqdm(records, desc="eval", unit="obj", file=sys.stderr, disable=not cfg.progress,
+                       dynamic_ncols=True):
+        results.append(evaluator(record))
+
+    summary = summarize([r.metrics for r in results], lp_reason)
+    geo = [r.geometry for r in results if r.geometry is not None]
+    if geo:
+        summary.update(summarize_geometry(geo, cfg.geometry))
+        summary["geometry_objects"] = len(geo)
+        summary["mesh_status"] = (f"ok: {len(geo)} of {len(results)} objects have mesh.ply; marching cubes at "
+                                  f"density {cfg.mesh_threshold} on a {cfg.mesh_resolution}-sample frustum grid")
+    else:
+        summary.update({"chamfer_l1": None, "fscore": None, "fscore_tau": None, "geometry_objects": 0})
+        summary["mesh_status"] = ("skipped (--no-mesh)" if not cfg.mesh
+                                  else f"skipped: none of the {len(results)} objects has mesh.ply")
+    native = sorted({(r.record.intrinsics.height, r.record.intrinsics.width) for r in results})
+    deterministic = not train.render.sampler.eval_random
+    total = time.perf_counter() - t_start
+    summary.update({
+        "protocol": protocol_text(results, len(all_records), cfg.split, category, cfg.views_stride, eval_res,
+                                  input_res, deterministic),
+        "method": cfg.method or method_label(estimator),
+        "category": category, "split": cfg.split, "preset": train.preset,
+        "depth_prior": estimator, "depth_prior_provenance": store.provenance if store is not None else None,
+        "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
+        "data_card": _data_card(data_root, category),
+        "resolution": eval_res, "input_resolution": input_res, "train_resolution": train.data.resolution,
+        "native_resolution": [list(s) for s in native],
+        "views_stride": cfg.views_stride, "max_objects": cfg.max_objects, "z_range": list(z_range(train)),
+        "metrics_path": "quantized 8-bit renders (calc_metrics.py)" if cfg.quantize else "float renders (eval.py)",
+        "timing": {"total_s": total, "per_object_s": total / len(results),
+                   **{f"{k}_s": float(sum(r.seconds[k] for r in results)) for k in ("render", "metrics", "mesh")},
+                   "device": str(device), "torch_threads": torch.get_num_threads()},
+    })
+    for key in ("psnr", "ssim", "lpips", "chamfer_l1", "fscore"):
+        value = summary.get(key)
+        if value is not None and not math.isfinite(value):
+            raise DepthnerfError(f"evaluation produced a non-finite {key} ({value}); refusing to write it")
+    per_object = out_dir / "per_object.csv"
+    _write_csv(per_object, PER_OBJECT_COLUMNS, [_per_object_row(r) for r in results])
+    renders = None
+    if cfg.save_renders:
+        renders = out_dir / "renders.csv"
+        _write_csv(renders, ("object_id", "view", "render_path", "gt_path", "psnr", "ssim"), evaluator.rows)
+        summary["renders_csv"] = renders.name
+    summary_path = out_dir / "summary.json"
+    tmp = summary_path.with_name(".summary.json.tmp")
+    tmp.write_text(json.dumps(summary, indent=1) + "\n")
+    tmp.replace(summary_path)
+    return EvalOutputs(summary=summary, summary_path=summary_path, per_object_path=per_object,
+                       renders_path=renders)

@@ -1,0 +1,171 @@
+"""Image (+ depth prior) encoder: a torchvision ResNet trunk and, for the depth-aware model, a depth encoder.
+
+Baseline (pixelNeRF, ``use_depth=False``)
+    Images in [0, 1] are scaled to [-1, 1] (pixelNeRF's ``Normalize(0.5, 0.5)``), then conv1 -> bn1 -> relu
+    (stage 0, H/2), max-pool (if ``use_first_pool``), layer1 (stage 1), layer2 (stage 2), layer3 (stage 3).
+    Every stage is upsampled to the stage-0 resolution with bilinear ``align_corners=True`` and the stages are
+    concatenated: 64 + 64 + 128 + 256 = 512 channels at H/2 x W/2.
+
+Depth-aware (the paper, ``use_depth=True``); everything else identical
+    * conv1 takes 4 channels: RGB in [-1, 1] and the normalised disparity prior (``depthnerf.depth.normalize``:
+      foreground in [-4, 4], larger = nearer, background -5) times ``prior_scale`` (0.25: foreground in [-1, 1]).
+      The 4th input channel's 7x7 kernels are initialised as the mean of the three RGB kernels (ImageNet weights
+      and random init alike): at init the prior acts like a grey image.
+    * a lightweight depth encoder on the (scaled) prior: conv3x3 stride 2 (1 -> depth_hidden) - BN - ReLU,
+      conv3x3 (depth_hidden -> depth_hidden) - BN - ReLU, conv3x3 (depth_hidden -> depth_channels) - BN - ReLU,
+      i.e. H/2 output (same grid as stage 0), receptive field 11x11 input pixels; 28,192 parameters for the
+      defaults 32/64. Its maps are concatenated after the trunk's: C = 512 + 64 = 576.
+
+Pretrained weights are optional and local only (``EncoderConfig.pretrained_path``): layer4/fc entries of a full
+torchvision state_dict are ignored, any other missing or mis-shaped entry is an error.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+import torchvision
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.config import EncoderConfig
+
+STAGE_NAMES = ("layer1", "layer2", "layer3")
+"""Trunk stages after conv1, in order."""
+
+
+class DepthEncoder(nn.Module):
+    """Three conv-BN-ReLU layers mapping a 1-channel prior to ``depth_channels`` maps at half resolution."""
+
+    def __init__(self, hidden: int, channels: int):
+        super().__init__()
+        layers: list[nn.Module] = []
+        widths = [(1, hidden, 2), (hidden, hidden, 1), (hidden, channels, 1)]
+        for c_in, c_out, stride in widths:
+            layers += [nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False),
+                       nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+        self.net = nn.Sequential(*layers)
+        for m in self.net:
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+
+    def forward(self, prior: Float[Tensor, "N 1 H W"]) -> Float[Tensor, "N Cd H2 W2"]:
+        return self.net(prior)
+
+
+class ResNetTrunk(nn.Module):
+    """conv1/bn1/maxpool/layer1..layer3 of a torchvision ResNet; parameter names match torchvision's."""
+
+    def __init__(self, cfg: EncoderConfig):
+        super().__init__()
+        full = getattr(torchvision.models, cfg.backbone)(weights=None)
+        self.conv1 = full.conv1
+        if cfg.use_depth:
+            self.conv1 = nn.Conv2d(4, 64, kernel_size=7, stride=2, padding=3, bias=False)
+            with torch.no_grad():
+                self.conv1.weight.copy_(expand_conv1(full.conv1.weight))
+        self.bn1, self.relu, self.maxpool = full.bn1, full.relu, full.maxpool
+        for name in STAGE_NAMES[: cfg.num_layers - 1]:
+            setattr(self, name, getattr(full, name))
+        self.num_layers = cfg.num_layers
+        self.use_first_pool = cfg.use_first_pool
+        self.use_depth = cfg.use_depth
+        self.backbone = cfg.backbone
+        del full  # layer4, avgpool and fc are dropped here: never part of the module or the optimiser
+
+    def forward(self, x: Float[Tensor, "N Cin H W"]) -> list[Tensor]:
+        x = self.relu(self.bn1(self.conv1(x)))
+        stages = [x]
+        if self.num_layers > 1 and self.use_first_pool:
+            x = self.maxpool(x)
+        for name in STAGE_NAMES[: self.num_layers - 1]:
+            x = getattr(self, name)(x)
+            stages.append(x)
+        return stages
+
+    def load_torchvision_state(self, state: dict[str, Tensor], source: str) -> None:
+        """Load a torchvision ResNet state_dict (ImageNet weights); conv1 is widened for the depth variant."""
+        own = self.state_dict()
+        used = {key.split(".")[0] for key in own}
+        extra = [k for k in state if k.split(".")[0] in used and k not in own and "num_batches" not in k]
+        if extra:
+            raise DepthnerfError(f"{source}: unexpected entry '{extra[0]}' for a {self.backbone} trunk "
+                                 "(wrong backbone?)")
+        picked = {}
+        for key, ref in own.items():
+            if key not in state:
+                raise DepthnerfError(f"{source}: pretrained weights lack '{key}' (not a torchvision ResNet?)")
+            value = state[key].to(ref.dtype)
+            if key == "conv1.weight" and self.use_depth and tuple(value.shape) == (64, 3, 7, 7):
+                value = expand_conv1(value)
+            if value.shape != ref.shape:
+                raise DepthnerfError(f"{source}: '{key}' has shape {tuple(value.shape)}, expected "
+                                     f"{tuple(ref.shape)} (wrong backbone?)")
+            picked[key] = value
+        self.load_state_dict(picked)
+
+
+def expand_conv1(weight: Float[Tensor, "64 3 7 7"]) -> Float[Tensor, "64 4 7 7"]:
+    """A 4-input-channel conv1 kernel: RGB kernels unchanged, the 4th = their mean over the RGB channels."""
+    return torch.cat([weight, weight.mean(dim=1, keepdim=True)], dim=1)
+
+
+def read_state_dict(path: str | Path) -> dict[str, Tensor]:
+    """Read a state_dict from ``.safetensors`` or (only with ``weights_only=True``) a ``.pth``/``.pt`` file."""
+    path = Path(path)
+    if not path.is_file():
+        raise DepthnerfError(f"{path}: pretrained encoder weights not found")
+    try:
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any reader failure is a bad file
+        raise DepthnerfError(f"{path}: cannot read weights ({type(err).__name__}: {str(err).splitlines()[0]})") \
+            from None
+    if not isinstance(state, dict) or not all(isinstance(v, Tensor) for v in state.values()):
+        raise DepthnerfError(f"{path}: not a flat state_dict of tensors")
+    return state
+
+
+class ImageEncoder(nn.Module):
+    """Encode source images (and priors) into pixel-aligned feature maps ``[N, C, Hf, Wf]`` (Hf = ceil(H'/2))."""
+
+    def __init__(self, cfg: EncoderConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.trunk = ResNetTrunk(cfg)
+        self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if cfg.use_depth else None
+        if cfg.pretrained_path is not None:
+            self.trunk.load_torchvision_state(read_state_dict(cfg.pretrained_path), cfg.pretrained_path)
+
+    @property
+    def latent_size(self) -> int:
+        """Feature channels C."""
+        return self.cfg.latent_size
+
+    def forward(self, images: Float[Tensor, "N 3 H W"],
+                prior: Float[Tensor, "N 1 H W"] | None = None) -> Float[Tensor, "N C Hf Wf"]:
+        x = images * 2.0 - 1.0
+        if self.cfg.use_depth:
+            if prior is None:
+                raise DepthnerfError("depth-aware model (encoder.use_depth=True) needs a depth prior, got None")
+            x = torch.cat([x, prior * self.cfg.prior_scale], dim=1)
+        if self.cfg.image_scale != 1.0:
+            up = self.cfg.image_scale > 1.0
+            x = F.interpolate(x, scale_factor=self.cfg.image_scale, mode="bilinear" if up else "area",
+                              align_corners=True if up else None, recompute_scale_factor=True)
+        stages = self.trunk(x)
+        size = stages[0].shape[-2:]
+        maps = [stages[0]] + [F.interpolate(s, size, mode="bilinear", align_corners=True) for s in stages[1:]]
+        if self.depth is not None:
+            d = self.depth(x[:, 3:4])
+            if d.shape[-2:] != size:
+                d = F.interpolate(d, size, mode="bilinear", align_corners=True)
+            maps.append(d)
+        return torch.cat(maps, dim=1)

@@ -1,0 +1,78 @@
+"""Pixel-aligned features: bring world points into each source camera, project, sample the feature maps.
+
+Conventions (see ``depthnerf.data.cameras``): ``w2c`` maps world to OpenCV camera coordinates; a camera point
+projects to ``u = f x / z + cx``, ``v = f y / z + cy`` with pixel (i, j) centred at (u, v) = (j, i).
+
+Feature-map indexing follows pixelNeRF exactly (its ``latent_scaling``): image coordinates (u, v) of an
+``H x W`` image map to the grid coordinate ``g = (u, v) * 2 * (Wf, Hf) / ((Wf - 1, Hf - 1) * (W, H)) - 1`` and are
+sampled bilinearly with ``align_corners=True`` and border padding; i.e. feature column ``u * Wf / W`` and row
+``v * Hf / H`` (so with ``Hf = H`` a point projecting to pixel (i, j) reads feature pixel (i, j) exactly).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from torch import Tensor
+
+
+def to_source_frames(points: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]
+                     ) -> tuple[Float[Tensor, "B V N 3"], Float[Tensor, "B V N 3"]]:
+    """World points in every source camera: ``(R x, R x + t)`` = (rotated only, full camera coordinates)."""
+    rot = w2c[:, :, :3, :3]
+    rotated = points[:, None] @ rot.transpose(-1, -2)
+    return rotated, rotated + w2c[:, :, None, :3, 3]
+
+
+def project_points(cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
+                   principal: Float[Tensor, "B 2"]) -> Float[Tensor, "B V N 2"]:
+    """Pixel coordinates (u, v) of camera-frame points; points with z <= 0 go far outside (border features)."""
+    z = cam[..., 2:3].clamp_min(1e-6)
+    return cam[..., :2] / z * focal[:, None, None, None] + principal[:, None, None, :]
+
+
+def uv_to_grid(uv: Float[Tensor, "*B 2"], image_size: tuple[int, int],
+               feature_size: tuple[int, int]) -> Float[Tensor, "*B 2"]:
+    """pixelNeRF's ``latent_scaling``: image coordinates -> ``grid_sample`` coordinates in [-1, 1]."""
+    (h, w), (hf, wf) = image_size, feature_size
+    scale = uv.new_tensor([2.0 * wf / (max(wf - 1, 1) * w), 2.0 * hf / (max(hf - 1, 1) * h)])
+    return uv * scale - 1.0
+
+
+def sample_maps(maps: Float[Tensor, "BV Hf Wf C"], grid: Float[Tensor, "BV N 2"]) -> Float[Tensor, "BV N C"]:
+    """Bilinear samples of channels-last maps at grid points; ``grid_sample(align_corners=True,
+    padding_mode="border")`` semantics (coordinates clamped to the map), differentiable in maps and grid.
+
+    Implemented as one fused gather-weighted-sum (``embedding_bag`` over the 4 corner rows): with C contiguous
+    channels per pixel it reads whole rows, where ``grid_sample`` on a channels-first map makes 4 strided reads
+    per channel and point (measured ~4x faster forward and ~10x faster backward for C = 1536).
+    """
+    bv, hf, wf, c = maps.shape
+    n = grid.shape[1]
+    fx = ((torch.nan_to_num(grid[..., 0]) + 1.0) * (0.5 * (wf - 1))).clamp(0.0, wf - 1.0)
+    fy = ((torch.nan_to_num(grid[..., 1]) + 1.0) * (0.5 * (hf - 1))).clamp(0.0, hf - 1.0)
+    x0 = fx.detach().floor().clamp(max=max(wf - 2, 0))
+    y0 = fy.detach().floor().clamp(max=max(hf - 2, 0))
+    ax, ay = fx - x0, fy - y0
+    dx, dy = int(wf > 1), wf * int(hf > 1)
+    base = torch.arange(bv, device=maps.device)[:, None] * (hf * wf) + y0.long() * wf + x0.long()
+    index = torch.stack([base, base + dx, base + dy, base + dy + dx], dim=-1).reshape(bv * n, 4)
+    weight = torch.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], dim=-1).reshape(bv * n, 4)
+    out = F.embedding_bag(index, maps.reshape(bv * hf * wf, c), per_sample_weights=weight, mode="sum")
+    return out.reshape(bv, n, c)
+
+
+def pixel_aligned(maps: Float[Tensor, "B V Hf Wf C"], cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
+                  principal: Float[Tensor, "B 2"], image_size: tuple[int, int]) -> Float[Tensor, "B V N C"]:
+    """Features of each source view's (channels-last) map at the projection of each camera-frame point."""
+    b, v, hf, wf, c = maps.shape
+    grid = uv_to_grid(project_points(cam, focal, principal), image_size, (hf, wf))
+    out = sample_maps(maps.reshape(b * v, hf, wf, c), grid.reshape(b * v, -1, 2))
+    return out.reshape(b, v, -1, c)
+
+
+def rotate_dirs(dirs: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]) -> Float[Tensor, "B V N 3"]:
+    """Direction vectors expressed in every source camera's axes."""
+    return dirs[:, None] @ w2c[:, :, :3, :3].transpose(-1, -2)
+

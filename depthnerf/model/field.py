@@ -1,0 +1,125 @@
+"""The NeRF MLP of pixelNeRF (its ``ResnetFC``) and the positional encoding.
+
+Per point and source view, the input is ``[gamma(x), d]`` (42 dims by default): ``gamma`` = raw coordinates
+followed by ``sin(f_k x), cos(f_k x)`` for ``f_k = 1.5 * 2^k``, k = 0..5 (each a 3-vector, frequency-major:
+``x, sin f0 x, cos f0 x, sin f1 x, ...``), ``d`` the unit view direction in the source camera's axes.
+
+Network: ``lin_in`` (d_in -> d_hidden); ``n_blocks`` residual blocks ``x + fc_1(relu(fc_0(relu(x))))``; before
+block ``i < combine_layer`` the features enter as ``x += lin_z[i](z)``; just before block ``combine_layer`` the
+source views are averaged; ``lin_out(relu(x))`` -> 4 = (rgb logits, sigma). Colour = sigmoid, density = ReLU
+(applied by the caller). Initialisation as pixelNeRF: kaiming-normal (fan_in) weights and zero biases for
+lin_in, lin_z, lin_out and every fc_0; fc_1 weights and biases are zero, so each block starts as the identity
+(``FieldConfig.density_bias_init`` optionally replaces the init of lin_out's density row, see there).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from depthnerf.model.config import FieldConfig
+
+
+class PositionalEncoding(nn.Module):
+    """NeRF positional encoding with pixelNeRF's frequencies ``freq_factor * 2^k``."""
+
+    def __init__(self, num_freqs: int, freq_factor: float, include_input: bool):
+        super().__init__()
+        self.num_freqs, self.include_input = num_freqs, include_input
+        self.register_buffer("freqs", freq_factor * 2.0 ** torch.arange(num_freqs, dtype=torch.float32),
+                             persistent=False)
+
+    @property
+    def d_out(self) -> int:
+        """Output width for 3-D input."""
+        return 6 * self.num_freqs + (3 if self.include_input else 0)
+
+    def forward(self, x: Float[Tensor, "*N 3"]) -> Float[Tensor, "*N D"]:
+        scaled = x[..., None, :] * self.freqs[:, None]  # [*N, F, 3]
+        enc = torch.stack([torch.sin(scaled), torch.cos(scaled)], dim=-2).flatten(-3)  # [*N, F*2*3]
+        return torch.cat([x, enc], dim=-1) if self.include_input else enc
+
+
+def _kaiming(layer: nn.Linear) -> nn.Linear:
+    nn.init.kaiming_normal_(layer.weight, a=0, mode="fan_in")
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class ResidualBlock(nn.Module):
+    """``x + fc_1(relu(fc_0(relu(x))))`` with fc_1 zero-initialised (pixelNeRF's ResnetBlockFC)."""
+
+    def __init__(self, width: int):
+        super().__init__()
+        self.fc_0 = _kaiming(nn.Linear(width, width))
+        self.fc_1 = nn.Linear(width, width)
+        nn.init.zeros_(self.fc_1.weight)
+        nn.init.zeros_(self.fc_1.bias)
+
+    def forward(self, x: Float[Tensor, "N D"]) -> Float[Tensor, "N D"]:
+        h = F.relu(self.fc_0(F.relu(x)))
+        return torch.addmm(x + self.fc_1.bias, h, self.fc_1.weight.t())
+
+    def forward_(self, x: Float[Tensor, "N D"]) -> Float[Tensor, "N D"]:
+        """Inference only (no autograd): same result, updates ``x`` in place with fewer memory passes. Under
+        bf16 autocast the linears run in bf16 while the residual stream ``x`` stays fp32."""
+        h = F.linear(x.clamp_min(0.0), self.fc_0.weight, self.fc_0.bias).relu_()
+        if h.dtype == x.dtype:
+            return x.addmm_(h, self.fc_1.weight.t()).add_(self.fc_1.bias)
+        return x.add_(F.linear(h, self.fc_1.weight)).add_(self.fc_1.bias)
+
+
+class ResidualField(nn.Module):
+    """pixelNeRF's ResnetFC conditioned on ``d_latent`` pixel-aligned feature channels."""
+
+    def __init__(self, cfg: FieldConfig, d_latent: int):
+        super().__init__()
+        self.cfg = cfg
+        self.encoding = PositionalEncoding(cfg.num_freqs, cfg.freq_factor, cfg.include_input)
+        self.lin_in = _kaiming(nn.Linear(cfg.d_in, cfg.d_hidden))
+        self.blocks = nn.ModuleList([ResidualBlock(cfg.d_hidden) for _ in range(cfg.n_blocks)])
+        self.n_lin_z = min(cfg.combine_layer, cfg.n_blocks)
+        self.lin_z = nn.ModuleList([_kaiming(nn.Linear(d_latent, cfg.d_hidden)) for _ in range(self.n_lin_z)])
+        self.lin_out = _kaiming(nn.Linear(cfg.d_hidden, 4))
+        if cfg.density_bias_init is not None:
+            with torch.no_grad():
+                self.lin_out.weight[3].zero_()
+                self.lin_out.bias[3] = cfg.density_bias_init
+
+    def latent_map(self, maps: Float[Tensor, "N C Hf Wf"]) -> Float[Tensor, "N Hf Wf Z"]:
+        """All ``lin_z`` applied to every feature pixel, channels-last: ``Z = n_lin_z * d_hidden`` channels."""
+        n, c, hf, wf = maps.shape
+        weight = torch.cat([lin.weight for lin in self.lin_z]) if self.n_lin_z else maps.new_zeros(0, c)
+        bias = torch.cat([lin.bias for lin in self.lin_z]) if self.n_lin_z else maps.new_zeros(0)
+        out = torch.matmul(maps.reshape(n, c, hf * wf).transpose(1, 2), weight.t()) + bias
+        return out.reshape(n, hf, wf, -1)
+
+    def inputs(self, points: Float[Tensor, "*N 3"], dirs: Float[Tensor, "*N 3"] | None) -> Float[Tensor, "*N Din"]:
+        """MLP input ``[gamma(points), dirs]`` (dirs dropped when ``use_viewdirs`` is off)."""
+        enc = self.encoding(points)
+        return torch.cat([enc, dirs], dim=-1) if self.cfg.use_viewdirs else enc
+
+    def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"], *,
+                projected: bool) -> Float[Tensor, "B N 4"]:
+        """Raw outputs (rgb logits, sigma pre-activation). ``latent`` is either the sampled features
+        (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z)."""
+        b, v, n, _ = inputs.shape
+        d = self.cfg.d_hidden
+        x = self.lin_in(inputs.reshape(b * v * n, -1))
+        z = latent.reshape(b * v * n, -1)
+        z_parts = z.split(d, dim=1) if projected else None  # split's backward is one cat, not zero-fill + add
+        inplace = not torch.is_grad_enabled()
+        if inplace:
+            x = x.to(inputs.dtype)  # the residual stream stays fp32 under autocast
+        for i, block in enumerate(self.blocks):
+            if i == self.cfg.combine_layer and v > 1:
+                x = x.reshape(b, v, n, d).mean(dim=1).reshape(b * n, d)
+            if i < self.n_lin_z:
+                zi = z_parts[i] if z_parts is not None else self.lin_z[i](z)
+                x = x.add_(zi) if inplace else x + zi
+            x = block.forward_(x) if inplace else block(x)
+        if self.cfg.combine_layer == self.cfg.n_blocks and v > 1:
+            x = x.reshape(b, v, n, d).mean(dim=1).reshape(b * n, d)
+        return self.lin_out(F.relu(x)).reshape(b, n, 4)

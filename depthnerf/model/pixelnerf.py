@@ -1,0 +1,151 @@
+"""The (depth-aware) pixelNeRF module: ``encode`` source views, then query coarse/fine fields.
+
+``encode`` returns an :class:`EncodedViews` bundle and stores nothing on the module (unlike pixelNeRF's
+``encoder.latent`` buffers), so several encodings can be rendered interleaved. ``field(enc, which)`` returns a
+:data:`FieldFn` closure over that bundle, which is what ``depthnerf.render.render_rays`` calls.
+
+Per query point and source view (conventions of ``depthnerf.data.cameras``): the point is brought into the source
+camera (OpenCV axes), projected with the source intrinsics, the view's feature map is sampled there
+(``depthnerf.model.features``), the point's coordinates (rotated into the source camera axes, pixelNeRF's
+``normalize_z``) are positionally encoded and the view direction is rotated into the source camera axes. The MLP
+averages over the V source views at its combine layer (pixelNeRF's multi-view mean pooling).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from depthnerf.data.cameras import invert_pose
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.config import PixelNeRFConfig
+from depthnerf.model.encoder import ImageEncoder
+from depthnerf.model.features import pixel_aligned, rotate_dirs, to_source_frames
+from depthnerf.model.field import ResidualField
+
+FieldFn = Callable[[Float[Tensor, "B R S 3"], Float[Tensor, "B R 3"]],
+                   tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]]
+"""(world points, unit world view directions) -> (rgb in [0, 1], density >= 0)."""
+
+
+@dataclass
+class SourceViews:
+    """The conditioning views of B objects, V views each."""
+
+    images: Float[Tensor, "B V 3 H W"]
+    """RGB in [0, 1]."""
+    poses: Float[Tensor, "B V 4 4"]
+    """Camera-to-world, OpenCV axes."""
+    focal: Float[Tensor, " B"]
+    """Focal length in pixels (one per object, shared by its views)."""
+    principal: Float[Tensor, "B 2"]
+    """Principal point (cx, cy) in pixels."""
+    prior: Float[Tensor, "B V 1 H W"] | None = None
+    """Normalised disparity prior (``depthnerf.depth.normalize.normalize_disparity``: foreground in [-4, 4],
+    larger = nearer, background -5); required iff the encoder uses depth, ignored otherwise."""
+
+
+@dataclass
+class EncodedViews:
+    """Everything the fields need about the source views; produced by :meth:`PixelNeRF.encode`."""
+
+    features: Float[Tensor, "B V C Hf Wf"]
+    """Pixel-aligned feature maps (C = 512, + depth channels for the depth-aware model)."""
+    w2c: Float[Tensor, "B V 4 4"]
+    """World-to-camera transforms (OpenCV axes)."""
+    focal: Float[Tensor, " B"]
+    """Focal length in pixels."""
+    principal: Float[Tensor, "B 2"]
+    """Principal point (cx, cy) in pixels."""
+    image_size: tuple[int, int]
+    """(H, W) of the source images, the frame in which (u, v) are measured."""
+
+
+def _check_sources(src: SourceViews, use_depth: bool) -> None:
+    images = src.images
+    if images.ndim != 5 or images.shape[2] != 3:
+        raise DepthnerfError(f"SourceViews.images must be [B, V, 3, H, W], got {list(images.shape)}")
+    b, v, _, h, w = images.shape
+    expected = {"poses": (src.poses, (b, v, 4, 4)), "focal": (src.focal, (b,)), "principal": (src.principal, (b, 2))}
+    if use_depth:
+        if src.prior is None:
+            raise DepthnerfError("SourceViews.prior is None but the depth-aware model (encoder.use_depth) needs it")
+        expected["prior"] = (src.prior, (b, v, 1, h, w))
+    for name, (tensor, shape) in expected.items():
+        if tuple(tensor.shape) != shape:
+            raise DepthnerfError(f"SourceViews.{name} must have shape {list(shape)}, got {list(tensor.shape)}")
+
+
+class PixelNeRF(nn.Module):
+    """Encoder + coarse MLP + fine MLP; the baseline and the depth-aware model differ only in ``encoder.use_depth``."""
+
+    def __init__(self, cfg: PixelNeRFConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = ImageEncoder(cfg.encoder)
+        self.coarse = ResidualField(cfg.coarse, cfg.encoder.latent_size)
+        self.fine = ResidualField(cfg.fine, cfg.encoder.latent_size) if cfg.fine is not None else None
+
+    def encode(self, src: SourceViews) -> EncodedViews:
+        """Feature maps of all source views; nothing is stored on the module."""
+        _check_sources(src, self.cfg.encoder.use_depth)
+        b, v, _, h, w = src.images.shape
+        prior = src.prior.reshape(b * v, 1, h, w) if self.cfg.encoder.use_depth else None
+        feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior)
+        return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
+                            focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),
+                            image_size=(h, w))
+
+    def network(self, which: Literal["coarse", "fine"]) -> ResidualField:
+        """The MLP used for a pass (the coarse one for "fine" when there is no separate fine network)."""
+        if which not in ("coarse", "fine"):
+            raise ValueError(f"which must be 'coarse' or 'fine', got {which!r}")
+        return self.fine if which == "fine" and self.fine is not None else self.coarse
+
+    def field(self, enc: EncodedViews, which: Literal["coarse", "fine"]) -> FieldFn:
+        """The radiance field of one network conditioned on ``enc`` (a closure; no module state).
+
+        With ``lin_z_on_map`` the network's feature linears are applied to the maps here, once per call.
+        """
+        mlp = self.network(which)
+        b, v, c, hf, wf = enc.features.shape
+        if mlp.cfg.lin_z_on_map:
+            maps = mlp.latent_map(enc.features.reshape(b * v, c, hf, wf)).reshape(b, v, hf, wf, -1)
+        else:
+            maps = enc.features.permute(0, 1, 3, 4, 2).contiguous()  # channels-last for row gathers
+        chunk = mlp.cfg.chunk_points
+
+        def run(points: Tensor, dirs: Tensor) -> Tensor:
+            rotated, cam = to_source_frames(points, enc.w2c)
+            coords = rotated if mlp.cfg.point_frame == "rotated" else cam
+            dirs_src = rotate_dirs(dirs, enc.w2c) if mlp.cfg.use_viewdirs else None
+            latent = pixel_aligned(maps, cam, enc.focal, enc.principal, enc.image_size)
+            return mlp(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map)
+
+        def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]
+                     ) -> tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]:
+            nb, r, s, _ = points.shape
+            if nb != b or tuple(dirs.shape) != (nb, r, 3):
+                raise DepthnerfError(f"field query: points {list(points.shape)} / dirs {list(dirs.shape)} do not "
+                                     f"match {b} encoded objects")
+            pts = points.reshape(b, r * s, 3)
+            dirs_pp = dirs[:, :, None, :].expand(b, r, s, 3).reshape(b, r * s, 3)
+            if torch.is_grad_enabled() or r * s <= chunk:
+                raw = run(pts, dirs_pp)
+            else:
+                raw = torch.cat([run(pts[:, i:i + chunk], dirs_pp[:, i:i + chunk])
+                                 for i in range(0, r * s, chunk)], dim=1)
+            raw = raw.to(points.dtype)  # under bf16 autocast the MLP runs in bf16; the renderer gets fp32
+            return torch.sigmoid(raw[..., :3]).reshape(b, r, s, 3), F.relu(raw[..., 3]).reshape(b, r, s)
+
+        return field_fn
+
+    def fields(self, enc: EncodedViews) -> tuple[FieldFn, FieldFn]:
+        """``(coarse, fine)`` fields for ``render_rays``."""
+        return self.field(enc, "coarse"), self.field(enc, "fine")

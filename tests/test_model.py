@@ -1,0 +1,359 @@
+"""Model tests: projection + pixel-aligned sampling, positional encoding, brute-force reference of the whole field
+(multi-view mean pooling), the lin_z-on-map optimisation, statelessness, baseline vs depth-aware."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from depthnerf.data.cameras import look_at, project, world_to_camera
+from depthnerf.model import EncodedViews, EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConfig, SourceViews
+from depthnerf.model.features import pixel_aligned, project_points, to_source_frames, uv_to_grid
+from depthnerf.model.field import PositionalEncoding
+
+SMALL_FIELD = FieldConfig(d_hidden=32, chunk_points=7)
+
+
+def small_config(use_depth: bool = False, **field_kw) -> PixelNeRFConfig:
+    field = FieldConfig(**{**SMALL_FIELD.__dict__, **field_kw})
+    return PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", use_depth=use_depth), coarse=field, fine=field)
+
+
+def randomize(model: torch.nn.Module, seed: int = 0) -> torch.nn.Module:
+    """Non-trivial weights everywhere (pixelNeRF zero-inits fc_1, which would hide bugs in the blocks)."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            if name.startswith("coarse") or name.startswith("fine"):
+                p.copy_(torch.randn(p.shape, generator=gen) / math.sqrt(p.shape[-1]))
+    return model.eval()
+
+
+def sources(b: int = 2, v: int = 1, size: int = 32, seed: int = 0, prior: bool = False) -> SourceViews:
+    gen = torch.Generator().manual_seed(seed)
+    az = torch.rand(b, v, generator=gen) * 2 * math.pi
+    eye = torch.stack([1.3 * torch.cos(az), 1.3 * torch.sin(az), 0.3 + 0.4 * torch.rand(b, v, generator=gen)], -1)
+    focal = torch.full((b,), size * 131.25 / 128)
+    principal = torch.full((b, 2), (size - 1) / 2)
+    return SourceViews(images=torch.rand(b, v, 3, size, size, generator=gen), poses=look_at(eye), focal=focal,
+                       principal=principal,
+                       prior=torch.rand(b, v, 1, size, size, generator=gen) if prior else None)
+
+
+def query(b: int = 2, r: int = 5, s: int = 4, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    pts = (torch.rand(b, r, s, 3, generator=gen) - 0.5) * 0.8
+    dirs = torch.nn.functional.normalize(torch.randn(b, r, 3, generator=gen), dim=-1)
+    return pts, dirs
+
+
+# --- projection and pixel-aligned sampling ----------------------------------------------------------------------
+
+def test_known_point_projects_to_its_pixel_and_samples_its_feature():
+    h = w = 16
+    focal, cx, cy = 20.0, 7.5, 7.5
+    c2w = look_at(torch.tensor([[0.3, -1.2, 0.5]]))  # [1 4 4]
+    i, j, z = 3, 11, 1.1  # pixel centre (u, v) = (j, i) at z-depth 1.1
+    x_cam = torch.tensor([(j - cx) / focal * z, (i - cy) / focal * z, z])
+    world = c2w[0, :3, :3] @ x_cam + c2w[0, :3, 3]
+    w2c = torch.linalg.inv(c2w)[:, None]  # [B=1 V=1 4 4]
+    rotated, cam = to_source_frames(world[None, None], w2c)
+    torch.testing.assert_close(cam[0, 0, 0], x_cam, atol=1e-5, rtol=0)
+    torch.testing.assert_close(cam[0, 0], world_to_camera(world[None], c2w[0]), atol=1e-5, rtol=0)
+    torch.testing.assert_close(rotated[0, 0, 0], c2w[0, :3, :3].T @ world, atol=1e-5, rtol=0)
+    uv = project_points(cam, torch.tensor([focal]), torch.tensor([[cx, cy]]))
+    torch.testing.assert_close(uv[0, 0, 0], torch.tensor([float(j), float(i)]), atol=1e-4, rtol=0)
+    torch.testing.assert_close(uv[0, 0], project(cam[0, 0], focal, (cx, cy)), atol=1e-5, rtol=0)
+    # A full-resolution map whose pixel (r, c) stores (c, r): sampling returns the pixel coordinates.
+    rows, cols = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                                indexing="ij")
+    coord_map = torch.stack([cols, rows], -1)[None, None]  # [1 1 H W 2] channels-last
+    feat = pixel_aligned(coord_map, cam, torch.tensor([focal]), torch.tensor([[cx, cy]]), (h, w))
+    torch.testing.assert_close(feat[0, 0, 0], torch.tensor([float(j), float(i)]), atol=1e-4, rtol=0)
+
+
+def test_latent_scaling_matches_pixelnerf_formula():
+    """pixelNeRF: scale = (Wf, Hf) / (Wf - 1, Hf - 1) * 2; grid = uv * scale / (W, H) - 1 (align_corners=True),
+    i.e. feature column u * Wf / W; a half-resolution map storing its own pixel coordinates returns those."""
+    h, w, hf, wf = 32, 24, 16, 12
+    gen = torch.Generator().manual_seed(0)
+    uv = torch.rand(1, 1, 50, 2, generator=gen) * torch.tensor([w - 2.0, h - 2.0])  # inside the image
+    expected_grid = uv * (torch.tensor([wf, hf]) / torch.tensor([wf - 1.0, hf - 1.0]) * 2) / torch.tensor([w, h]) - 1
+    torch.testing.assert_close(uv_to_grid(uv, (h, w), (hf, wf)), expected_grid)
+    rows, cols = torch.meshgrid(torch.arange(hf, dtype=torch.float32), torch.arange(wf, dtype=torch.float32),
+                                indexing="ij")
+    coord_map = torch.stack([cols, rows], -1)[None, None]
+    # camera points that project exactly to uv with f = 10, c = (0, 0), z = 2
+    cam = torch.cat([uv / 10 * 2, torch.full_like(uv[..., :1], 2.0)], dim=-1)
+    feat = pixel_aligned(coord_map, cam, torch.tensor([10.0]), torch.zeros(1, 2), (h, w))
+    torch.testing.assert_close(feat, uv * torch.tensor([wf / w, hf / h]), atol=1e-4, rtol=0)
+    # border padding: far outside the image reads the edge features
+    far_cam = torch.tensor([[[[-50.0, 500.0, 1.0]]]])
+    edge = pixel_aligned(coord_map, far_cam, torch.tensor([10.0]), torch.zeros(1, 2), (h, w))
+    torch.testing.assert_close(edge[0, 0, 0], torch.tensor([0.0, hf - 1.0]))
+
+
+@pytest.mark.parametrize("size", [(5, 7), (1, 4)])
+def test_row_gather_sampling_equals_grid_sample(size):
+    """The fused gather equals torch's grid_sample (bilinear, align_corners=True, border), values and gradients."""
+    import torch.nn.functional as F
+
+    from depthnerf.model.features import sample_maps
+
+    hf, wf = size
+    gen = torch.Generator().manual_seed(0)
+    maps = torch.randn(3, 6, hf, wf, generator=gen, dtype=torch.float64, requires_grad=True)
+    grid = ((torch.rand(3, 40, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 1.3).requires_grad_(True)
+    ref = F.grid_sample(maps, grid[:, :, None], mode="bilinear", padding_mode="border", align_corners=True)
+    ref = ref[..., 0].transpose(1, 2)
+    out = sample_maps(maps.permute(0, 2, 3, 1), grid)
+    torch.testing.assert_close(out, ref)
+    up = torch.randn(ref.shape, generator=gen, dtype=torch.float64)
+    g_ref = torch.autograd.grad((ref * up).sum(), (maps, grid))
+    g_out = torch.autograd.grad((out * up).sum(), (maps, grid))
+    torch.testing.assert_close(g_out[0], g_ref[0])
+    inside = (grid.abs() < 1).all(-1, keepdim=True).expand_as(grid)  # grid_sample's gradient at the clamp edge
+    torch.testing.assert_close(g_out[1][inside], g_ref[1][inside])   # is a convention; compare inside only
+    assert (~inside).any() and inside.any()
+
+
+def test_positional_encoding_closed_form():
+    pe = PositionalEncoding(num_freqs=6, freq_factor=1.5, include_input=True)
+    assert pe.d_out == 39 and FieldConfig().d_in == 42
+    x = torch.tensor([[0.1, -0.7, 0.33], [1.0, 0.0, -2.0]])
+    out = pe(x)
+    assert out.shape == (2, 39)
+    for n in range(2):
+        expected = list(x[n])
+        for k in range(6):
+            f = 1.5 * 2.0 ** k
+            expected += [math.sin(f * float(c)) for c in x[n]] + [math.cos(f * float(c)) for c in x[n]]
+        torch.testing.assert_close(out[n], torch.tensor(expected), atol=1e-5, rtol=0)
+
+
+# --- brute-force reference of the whole field -------------------------------------------------------------------
+
+def bilinear_border(fmap: torch.Tensor, fx: float, fy: float) -> torch.Tensor:
+    """Reference bilinear lookup at continuous feature pixel (fx, fy) with coordinates clamped to the map."""
+    _, hf, wf = fmap.shape
+    fx, fy = min(max(fx, 0.0), wf - 1.0), min(max(fy, 0.0), hf - 1.0)
+    x0, y0 = min(int(math.floor(fx)), wf - 2), min(int(math.floor(fy)), hf - 2)
+    ax, ay = fx - x0, fy - y0
+    return ((1 - ax) * (1 - ay) * fmap[:, y0, x0] + ax * (1 - ay) * fmap[:, y0, x0 + 1]
+            + (1 - ax) * ay * fmap[:, y0 + 1, x0] + ax * ay * fmap[:, y0 + 1, x0 + 1])
+
+
+def reference_field(model: PixelNeRF, enc: EncodedViews, src: SourceViews, which: str, pts, dirs):
+    """Point-by-point, view-by-view evaluation written from the pixelNeRF description."""
+    mlp = model.network(which)
+    b, v, _, hf, wf = enc.features.shape
+    h, w = enc.image_size
+    rgb = torch.zeros(*pts.shape)
+    sigma = torch.zeros(pts.shape[:-1])
+    for bi in range(b):
+        for ri in range(pts.shape[1]):
+            for si in range(pts.shape[2]):
+                hidden = []
+                for vi in range(v):
+                    c2w = src.poses[bi, vi]
+                    cam = world_to_camera(pts[bi, ri, si][None], c2w)[0]
+                    u, vv = project(cam[None], float(src.focal[bi]), tuple(src.principal[bi].tolist()))[0]
+                    feat = bilinear_border(enc.features[bi, vi], float(u) * wf / w, float(vv) * hf / h)
+                    rot = c2w[:3, :3].T
+                    x_in = torch.cat([mlp.encoding(rot @ pts[bi, ri, si]), rot @ dirs[bi, ri]])
+                    x = mlp.lin_in(x_in)
+                    for k in range(mlp.cfg.combine_layer):
+                        x = x + mlp.lin_z[k](feat)
+                        blk = mlp.blocks[k]
+                        x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
+                    hidden.append(x)
+                x = torch.stack(hidden).mean(0)
+                for blk in mlp.blocks[mlp.cfg.combine_layer:]:
+                    x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
+                out = mlp.lin_out(torch.relu(x))
+                rgb[bi, ri, si] = torch.sigmoid(out[:3])
+                sigma[bi, ri, si] = torch.relu(out[3])
+    return rgb, sigma
+
+
+@pytest.mark.parametrize("views", [1, 2])
+def test_field_matches_bruteforce_reference(views):
+    torch.manual_seed(0)
+    model = randomize(PixelNeRF(small_config()))
+    src = sources(b=2, v=views)
+    pts, dirs = query(b=2, r=3, s=4)
+    pts[0, 0, 0] = torch.tensor([5.0, -4.0, 3.0])  # projects outside the image: border features
+    with torch.no_grad():
+        enc = model.encode(src)
+        for which in ("coarse", "fine"):
+            rgb, sigma = model.field(enc, which)(pts, dirs)
+            ref_rgb, ref_sigma = reference_field(model, enc, src, which, pts, dirs)
+            torch.testing.assert_close(rgb, ref_rgb, atol=1e-5, rtol=1e-4)
+            torch.testing.assert_close(sigma, ref_sigma, atol=1e-5, rtol=1e-4)
+    assert (sigma > 0).any() and (rgb.std() > 1e-3)  # not a degenerate comparison
+
+
+def test_multiview_pools_views():
+    torch.manual_seed(0)
+    model = randomize(PixelNeRF(small_config()))
+    two = sources(b=1, v=2, seed=3)
+    pts, dirs = query(b=1)
+    with torch.no_grad():
+        out2 = model.field(model.encode(two), "coarse")(pts, dirs)
+        firsts = [SourceViews(two.images[:, k:k + 1], two.poses[:, k:k + 1], two.focal, two.principal)
+                  for k in range(2)]
+        out1 = [model.field(model.encode(s), "coarse")(pts, dirs) for s in firsts]
+        dup = SourceViews(two.images[:, :1].repeat(1, 2, 1, 1, 1), two.poses[:, :1].repeat(1, 2, 1, 1),
+                          two.focal, two.principal)
+        out_dup = model.field(model.encode(dup), "coarse")(pts, dirs)
+    torch.testing.assert_close(out_dup[0], out1[0][0], atol=1e-5, rtol=1e-4)  # mean of identical views
+    assert (out2[0] - out1[0][0]).abs().max() > 1e-3 and (out2[0] - out1[1][0]).abs().max() > 1e-3
+
+
+# --- lin_z on the map ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("views", [1, 2])
+def test_lin_z_on_map_equals_per_point(views):
+    torch.manual_seed(0)
+    per_point = randomize(PixelNeRF(small_config(lin_z_on_map=False)), seed=5)
+    on_map = PixelNeRF(small_config(lin_z_on_map=True))
+    on_map.load_state_dict(per_point.state_dict())
+    on_map.eval()
+    src = sources(b=2, v=views, seed=2)
+    pts, dirs = query(b=2, r=6, s=5)
+    pts[1, 2] *= 8.0  # some points outside the image (border padding keeps the identity exact)
+    results = []
+    for model in (per_point, on_map):
+        model.zero_grad()
+        rgb, sigma = model.field(model.encode(src), "coarse")(pts, dirs)
+        (rgb.square().sum() + sigma.sum()).backward()
+        results.append((rgb, sigma, {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}))
+    torch.testing.assert_close(results[1][0], results[0][0], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(results[1][1], results[0][1], atol=1e-5, rtol=1e-5)
+    assert results[0][2].keys() == results[1][2].keys()
+    for name, grad in results[0][2].items():
+        torch.testing.assert_close(results[1][2][name], grad, atol=1e-4, rtol=1e-3, msg=name)
+    with torch.no_grad():  # chunked inference path (chunk_points=7 < 30 points) agrees too
+        rgb_c, sigma_c = on_map.field(on_map.encode(src), "coarse")(pts, dirs)
+    torch.testing.assert_close(rgb_c, results[0][0], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(sigma_c, results[0][1], atol=1e-5, rtol=1e-5)
+
+
+# --- statelessness ------------------------------------------------------------------------------------------------
+
+def test_encode_is_stateless_and_encodings_interleave():
+    torch.manual_seed(0)
+    model = randomize(PixelNeRF(small_config()))
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    pts, dirs = query(b=1)
+    with torch.no_grad():
+        enc_a, enc_b = model.encode(sources(b=1, seed=10)), model.encode(sources(b=1, seed=11))
+        assert isinstance(enc_a, EncodedViews) and enc_a.features.shape[:3] == (1, 1, 256 + 128 + 64 + 64)
+        fa, fb = model.field(enc_a, "fine"), model.field(enc_b, "fine")
+        a1, b1, a2 = fa(pts, dirs), fb(pts, dirs), fa(pts, dirs)
+        fresh = PixelNeRF(small_config())
+        fresh.load_state_dict(model.state_dict())
+        a_fresh = fresh.eval().field(fresh.encode(sources(b=1, seed=10)), "fine")(pts, dirs)
+    torch.testing.assert_close(a1[0], a2[0], rtol=0, atol=0)
+    torch.testing.assert_close(a1[0], a_fresh[0], rtol=0, atol=0)
+    assert (a1[0] - b1[0]).abs().max() > 1e-3
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
+    assert not [n for n, _ in model.named_buffers() if "latent" in n]
+
+
+# --- baseline vs depth-aware --------------------------------------------------------------------------------------
+
+def test_depth_variant_differs_only_in_encoder_input():
+    base, deep = PixelNeRF(small_config(False)), PixelNeRF(small_config(True))
+    shapes_b = {n: tuple(p.shape) for n, p in base.named_parameters()}
+    shapes_d = {n: tuple(p.shape) for n, p in deep.named_parameters()}
+    extra = sorted(set(shapes_d) - set(shapes_b))
+    assert not set(shapes_b) - set(shapes_d)
+    assert extra and all(n.startswith("encoder.depth.") for n in extra)
+    cd = deep.cfg.encoder.depth_channels
+    differ = {n for n in shapes_b if shapes_b[n] != shapes_d[n]}
+    assert differ == {"encoder.trunk.conv1.weight"} | {f"{net}.lin_z.{k}.weight" for net in ("coarse", "fine")
+                                                       for k in range(3)}
+    assert shapes_b["encoder.trunk.conv1.weight"] == (64, 3, 7, 7)
+    assert shapes_d["encoder.trunk.conv1.weight"] == (64, 4, 7, 7)
+    assert shapes_d["coarse.lin_z.0.weight"][1] == shapes_b["coarse.lin_z.0.weight"][1] + cd == 512 + cd
+    n_depth = sum(p.numel() for n, p in deep.named_parameters() if n.startswith("encoder.depth."))
+    assert n_depth == 1 * 32 * 9 + 32 * 32 * 9 + 32 * cd * 9 + 2 * (32 + 32 + cd)
+    # random-init conv1: the 4th input channel is the mean of the RGB kernels
+    w = deep.encoder.trunk.conv1.weight
+    torch.testing.assert_close(w[:, 3], w[:, :3].mean(1))
+
+
+def test_depth_model_with_ablated_depth_inputs_equals_baseline():
+    """Copy the baseline's weights into the depth model, zero the prior's conv1 kernel and the lin_z columns of the
+    depth features: whatever the prior, the depth model computes exactly the baseline's function."""
+    torch.manual_seed(0)
+    base = randomize(PixelNeRF(small_config(False)))
+    deep = PixelNeRF(small_config(True)).eval()
+    state = deep.state_dict()
+    for name, value in base.state_dict().items():
+        if name == "encoder.trunk.conv1.weight":
+            value = torch.cat([value, torch.zeros_like(value[:, :1])], dim=1)
+        elif ".lin_z." in name and name.endswith("weight"):
+            value = torch.cat([value, torch.zeros(value.shape[0], state[name].shape[1] - value.shape[1])], dim=1)
+        state[name] = value
+    deep.load_state_dict(state)
+    src = sources(b=2, v=1, prior=True)
+    pts, dirs = query(b=2)
+    with torch.no_grad():
+        out_b = base.field(base.encode(src), "coarse")(pts, dirs)
+        out_d = deep.field(deep.encode(src), "coarse")(pts, dirs)
+        src.prior = 1.0 - src.prior
+        out_d2 = deep.field(deep.encode(src), "coarse")(pts, dirs)
+    for a, b, c in zip(out_b, out_d, out_d2, strict=True):
+        torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(c, a, atol=1e-5, rtol=1e-5)
+
+
+def test_depth_model_requires_prior():
+    from depthnerf.errors import DepthnerfError
+
+    model = PixelNeRF(small_config(True)).eval()
+    with pytest.raises(DepthnerfError, match="prior"):
+        model.encode(sources(b=1, prior=False))
+
+
+# --- optional pretrained trunk weights ----------------------------------------------------------------------------
+
+class _NotATensor:
+    pass
+
+
+def test_pretrained_weights_load_from_local_files(tmp_path):
+    import torchvision
+    from safetensors.torch import save_file
+
+    from depthnerf.errors import DepthnerfError
+    from depthnerf.model.encoder import ImageEncoder
+
+    torch.manual_seed(3)
+    state = {k: v.contiguous() for k, v in torchvision.models.resnet34(weights=None).state_dict().items()}
+    save_file(state, str(tmp_path / "r34.safetensors"))
+    torch.save(state, tmp_path / "r34.pth")
+    base = ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "r34.safetensors")))
+    for key, value in base.trunk.state_dict().items():
+        assert torch.equal(value, state[key]), key
+    assert not any(k.startswith(("layer4", "fc")) for k in base.state_dict())
+    deep = ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "r34.pth"), use_depth=True))
+    w = deep.trunk.conv1.weight
+    assert torch.equal(w[:, :3], state["conv1.weight"])
+    torch.testing.assert_close(w[:, 3], state["conv1.weight"].mean(1))
+    assert torch.equal(deep.trunk.layer3[5].conv2.weight, state["layer3.5.conv2.weight"])
+
+    with pytest.raises(DepthnerfError, match="wrong backbone"):  # resnet34 weights into a resnet18 trunk
+        ImageEncoder(EncoderConfig(backbone="resnet18", pretrained_path=str(tmp_path / "r34.pth")))
+    (tmp_path / "junk.safetensors").write_bytes(b"not a safetensors file")
+    with pytest.raises(DepthnerfError, match="junk.safetensors"):
+        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "junk.safetensors")))
+    torch.save({"conv1.weight": _NotATensor()}, tmp_path / "pickled.pth")  # needs unpickling: refused
+    with pytest.raises(DepthnerfError, match="pickled.pth"):
+        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "pickled.pth")))
+    with pytest.raises(DepthnerfError, match="not found"):
+        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "missing.pth")))

@@ -1,0 +1,212 @@
+"""``Reconstructor`` / ``depthnerf reconstruct``: photo preparation rules, outputs against closed forms, bad input.
+
+One tiny depth-aware model (random ``bundled`` depth weights) is trained for one step through the real CLI;
+derived checkpoints are written with the training checkpoint writer: a *constant field* (every ray renders the
+constant colour at the first sample, every grid point has the constant density, so views, depths, points and the
+mesh have closed forms), an ``oracle``-prior one and a baseline one.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+import trimesh
+from fixtures_srn import make_srn_fixture
+from PIL import Image
+
+from depthnerf.cli import main
+from depthnerf.data.cameras import world_to_camera
+from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
+from depthnerf.depth.normalize import BACKGROUND_VALUE
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.mesh import CameraGrid
+from depthnerf.eval.orbit import srn_intrinsics
+from depthnerf.eval.pretrained import load_pretrained
+from depthnerf.eval.reconstruct import FILL, ReconstructConfig, Reconstructor, prepare_photo
+from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.train import checkpoint as ckpt
+from depthnerf.train.config import with_prior
+from depthnerf.train.overrides import to_dict
+
+COLOR = (0.2, 0.6, 0.8)
+TINY = ["--max-steps", "1", "--log.val_every", "0", "--data.resolution", "32", "--data.num_workers", "0",
+        "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--model.encoder.backbone", "resnet18",
+        "--schedule.objects_phase1", "1", "--schedule.rays_per_object", "32", "--render.sampler.n_coarse", "16",
+        "--render.sampler.n_importance", "8", "--render.sampler.n_gaussian", "4", "--no-progress"]
+
+
+def _save(dst: Path, model: PixelNeRF, cfg) -> Path:
+    ckpt.save_weights(dst, model, to_dict(cfg.model), step=1, extra={"train_config": json.dumps(to_dict(cfg))})
+    return dst
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory) -> dict[str, Path]:
+    tmp = tmp_path_factory.mktemp("recon")
+    root = make_srn_fixture(tmp / "data", "cars", {"train": 2}, views=4, size=32, with_mask=True)
+    torch.manual_seed(0)
+    weights = tmp / "bundled.safetensors"
+    save_bundled(BundledDepthNet(BundledNetConfig(widths=(8, 8, 8), input_size=32, unshuffle=1)), weights)
+    assert main(["depth", "--data", str(root), "--estimator", "bundled", "--checkpoint", str(weights),
+                 "--splits", "train", "--no-progress"]) == 0
+    assert main(["train", "--depth", "bundled", "--depth-checkpoint", str(weights), "--data", str(root),
+                 "--out", str(tmp / "run"), *TINY]) == 0
+    pre = load_pretrained(tmp / "run")
+    logits = [math.log(c / (1 - c)) for c in COLOR]
+    for net in (pre.model.coarse, pre.model.fine):
+        net.lin_out.weight.data.zero_()
+        net.lin_out.bias.data = torch.tensor([*logits, 1e4])
+    base_cfg = with_prior(pre.config, "none")
+    return {"tmp": tmp, "weights": weights, "run": tmp / "run",
+            "constant": _save(tmp / "constant.safetensors", pre.model, pre.config),
+            "oracle": _save(tmp / "oracle.safetensors", pre.model, with_prior(pre.config, "oracle")),
+            "baseline": _save(tmp / "baseline.safetensors", PixelNeRF(base_cfg.model), base_cfg)}
+
+
+def disc_photo(h: int = 150, w: int = 200, center=(110, 70), radius: int = 40, bg=(40, 90, 160)) -> np.ndarray:
+    img = np.empty((h, w, 3), np.uint8)
+    img[:] = bg
+    yy, xx = np.mgrid[:h, :w]
+    img[(xx - center[0]) ** 2 + (yy - center[1]) ** 2 < radius**2] = (200, 50, 50)
+    return img
+
+
+def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
+    rows, cols = np.where(mask.any(1))[0], np.where(mask.any(0))[0]
+    return cols[0], rows[0], cols[-1], rows[-1]
+
+
+def test_framing_centres_the_object_at_the_training_fill():
+    prep = prepare_photo(disc_photo(), None, 64, "auto", FILL["cars"])
+    x0, y0, x1, y1 = _bbox(prep.mask)
+    side = max(x1 - x0 + 1, y1 - y0 + 1)
+    assert abs(side / 64 - FILL["cars"]) <= 2 / 64  # mask = any coverage: at most a pixel wider on each side
+    assert abs((x0 + x1) / 2 - 31.5) <= 1 and abs((y0 + y1) / 2 - 31.5) <= 1
+    assert np.allclose(prep.image[~prep.mask], 1.0, atol=1e-6)  # the blue background became white
+    assert np.allclose(prep.image[32, 32], np.array([200, 50, 50]) / 255, atol=1e-6)
+    assert any("border colour [40, 90, 160]" in n for n in prep.notes)
+    keep = prepare_photo(disc_photo(64, 64, (32, 32), 10), None, 32, "keep", 0.5)
+    assert _bbox(keep.mask) == (11, 11, 20, 20)  # only resampled by 1/2: 20 px disc -> 10 px
+
+
+def test_mask_sources_alpha_given_grayscale():
+    rgba = np.zeros((40, 40, 4), np.uint8)
+    rgba[10:30, 5:25] = (0, 200, 0, 255)  # transparent black elsewhere: alpha decides, not colour
+    prep = prepare_photo(Image.fromarray(rgba, "RGBA"), None, 32, "keep")
+    assert "mask: alpha > 0.5" in prep.notes and _bbox(prep.mask) == (4, 8, 19, 23)
+    assert np.allclose(prep.image[~prep.mask], 1.0, atol=1e-6)
+    mask = np.zeros((40, 40), np.uint8)
+    mask[0:8, 0:8] = 255
+    given = prepare_photo(disc_photo(40, 40, (20, 20), 8), mask, 40, "keep")
+    assert "mask: given (value > 127 of 255 = object)" in given.notes and _bbox(given.mask) == (0, 0, 7, 7)
+    grey = prepare_photo(Image.fromarray(disc_photo(40, 40, (20, 20), 8)[..., 0]), None, 40, "keep")
+    assert "grayscale image: replicated to RGB" in grey.notes
+    assert np.all(grey.image[..., 0] == grey.image[..., 2])
+
+
+def test_bad_photos(tmp_path):
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    cases = [(tmp_path / "missing.png", "image file not found"), (tmp_path / "junk.png", "unreadable image"),
+             (np.zeros((1, 1, 3), np.uint8), "image is 1x1 px; at least 16"),
+             (np.zeros((15, 40, 3), np.uint8), "image is 40x15 px"),
+             (np.full((40, 40, 3), 90, np.uint8), "no object found"),
+             (np.zeros((4, 4, 5), np.uint8), "expected an H x W")]
+    for image, text in cases:
+        with pytest.raises(DepthnerfError, match=text.replace("(", r"\(")) as info:
+            prepare_photo(image, None, 32)
+        assert "\n" not in str(info.value)
+    with pytest.raises(DepthnerfError, match="mask is 10x10 but the image is 40x40"):
+        prepare_photo(disc_photo(40, 40, (20, 20), 8), np.ones((10, 10), np.uint8), 32)
+
+
+def test_huge_image_is_downscaled_first():
+    im = Image.new("RGB", (8000, 8000), (255, 255, 255))
+    im.paste((10, 10, 10), (3000, 3500, 5000, 4500))
+    prep = prepare_photo(im, None, 32, "auto", 0.5)
+    assert "downscaled from 8000x8000 to 1024x1024 (box filter) first" in prep.notes
+    x0, y0, x1, y1 = _bbox(prep.mask)
+    assert abs((x1 - x0 + 1) - 16) <= 2 and abs((y1 - y0 + 1) - 8) <= 2  # 2:1 box, longer side = half the frame
+
+
+def test_constant_field_reconstruction_matches_closed_forms(models):
+    rec = Reconstructor.from_pretrained(models["constant"])
+    cfg = ReconstructConfig(views=4, elevation=30.0, mesh_resolution=10)
+    res = rec.reconstruct(disc_photo(), config=cfg)
+    assert np.abs(res.views - np.array(COLOR)).max() < 1e-4 and res.opacity.min() > 1 - 1e-4
+    assert res.depths.min() >= 0.8 and res.depths.max() <= 0.8 + 1.0 / 16  # first coarse bin of [0.8, 1.8]
+    eyes = res.poses[:, :3, 3]
+    assert np.allclose(np.linalg.norm(eyes, axis=1), 1.3, atol=1e-5)  # cars radius
+    assert np.allclose(eyes[:, 2], 1.3 * math.sin(math.radians(30)), atol=1e-5)
+    assert np.allclose(eyes[0], [1.3 * math.cos(math.radians(30)), 0, 1.3 * math.sin(math.radians(30))], atol=1e-5)
+    assert np.allclose(np.arctan2(eyes[:, 1], eyes[:, 0]), np.radians([0, 90, 180, -90]), atol=1e-5)
+    assert len(res.points) == 4 * 32 * 32  # every pixel is opaque; points are view-major
+    dist = np.linalg.norm(res.points.reshape(4, -1, 3) - eyes[:, None], axis=-1)
+    assert np.all((dist >= 0.8 - 1e-4) & (dist <= 0.8 + 1.0 / 16 + 1e-4))
+    assert np.allclose(res.point_colors, COLOR, atol=1e-4)
+    assert np.all(res.mesh.visual.vertex_colors[:, :3] == np.round(np.array(COLOR) * 255))
+    grid = CameraGrid.from_frustum(torch.from_numpy(res.poses[0]), srn_intrinsics(131.25, 128, 32), 0.8, 1.8)
+    cam = world_to_camera(torch.as_tensor(res.mesh.vertices, dtype=torch.float32), torch.from_numpy(res.poses[0]))
+    step = grid.layout(10)[1]
+    assert np.all(cam.min(0).values.numpy() <= np.array(grid.lo) + 1e-4)
+    assert np.all(cam.max(0).values.numpy() <= np.array(grid.hi) + 2 * step)
+    assert res.prior_normalized is not None and res.depth_prior is not None
+    assert np.all(res.prior_normalized[~res.input.mask] == BACKGROUND_VALUE)
+    assert res.settings["depth_estimator"] == "bundled" and res.settings["fill"] == FILL["cars"]
+
+
+def test_cli_writes_every_listed_output(models, tmp_path, capsys):
+    photo, mask = tmp_path / "photo.png", tmp_path / "mask.png"
+    Image.fromarray(disc_photo()).save(photo)
+    Image.fromarray((disc_photo()[..., 0] == 200).astype(np.uint8) * 255).save(mask)
+    out = tmp_path / "out"
+    assert main(["reconstruct", str(photo), "--checkpoint", str(models["run"]), "--out", str(out), "--views", "3",
+                 "--mask", str(mask), "--mesh-resolution", "8", "--no-progress"]) == 0
+    assert "wrote 3 views" in capsys.readouterr().out
+    manifest = json.loads((out / "manifest.json").read_text())
+    files = manifest["files"]
+    listed = [v for k, v in files.items() if isinstance(v, str)] + files["views"] + files["depths"]
+    assert all((out / p).is_file() for p in listed) and files["depth_prior"] == "depth_prior.png"
+    assert iio.imread(out / files["turntable_gif"]).shape == (3, 32, 32, 3)
+    if files["turntable_mp4"] is None:
+        assert "imageio-ffmpeg is not installed" in manifest["turntable_mp4_status"]
+    header = (out / "points.ply").read_bytes().split(b"end_header")[0].decode()
+    assert f"element vertex {manifest['point_cloud']['points']}\n" in header and "property uchar red" in header
+    trimesh.load(out / "mesh.glb")
+    with np.load(out / "depths.npz", allow_pickle=False) as d:
+        assert d["depth"].shape == (3, 32, 32) and d["poses"].shape == (3, 4, 4)
+    assert manifest["checkpoint_sha256"] and manifest["settings"]["views"] == 3
+    assert "mask: given (value > 127 of 255 = object)" in manifest["input"]["notes"]
+
+
+def test_baseline_has_no_prior_and_other_resolution(models, tmp_path, monkeypatch):
+    rec = Reconstructor.from_pretrained(models["baseline"])
+    res = rec.reconstruct(disc_photo(), views=2, config=ReconstructConfig(mesh_resolution=0, render_resolution=16))
+    assert res.depth_prior is None and res.views.shape == (2, 16, 16, 3) and len(res.mesh.faces) == 0
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg"
+                        else find_spec(name, *a))
+    manifest = rec.save(res, tmp_path / "b")
+    assert manifest["files"]["depth_prior"] is None and manifest["mesh"]["empty"]
+    assert manifest["files"]["turntable_mp4"] is None and not (tmp_path / "b" / "turntable.mp4").exists()
+    assert "imageio-ffmpeg is not installed" in manifest["turntable_mp4_status"]
+
+
+def test_bad_checkpoints(models, tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("hello")
+    cases = [(tmp_path / "notes.txt", "not a readable safetensors checkpoint"),
+             (models["weights"], "not a depthnerf checkpoint"),
+             (models["oracle"], "use --depth-estimator bundled")]
+    for path, text in cases:
+        assert main(["reconstruct", "photo.png", "--checkpoint", str(path), "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err
+        assert text in err and err.count("\n") == 1
+    rec = Reconstructor.from_pretrained(models["oracle"], depth_estimator="bundled",
+                                        depth_checkpoint=str(models["weights"]))
+    assert rec.estimator is not None and rec.estimator.name == "bundled"
