@@ -208,7 +208,7 @@ def case_iter(args, setting: Setting) -> None:
     torch.manual_seed(0)
     b = setting.objects
     src, target_poses, intr = scene(setting, b)
-    model = PixelNeRF(setting.model_config()).train()
+    model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point)).train()
     rcfg = setting.render_config()
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     gen = torch.Generator().manual_seed(0)
@@ -246,7 +246,7 @@ def case_iter(args, setting: Setting) -> None:
 def case_view(args, setting: Setting) -> None:
     torch.manual_seed(0)
     src, target_poses, intr_full = scene(setting, 1)
-    model = PixelNeRF(setting.model_config(chunk=args.chunk)).eval()
+    model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point, chunk=args.chunk)).eval()
     rcfg = setting.render_config()
     with torch.no_grad():
         enc = model.encode(src)
@@ -259,7 +259,7 @@ def case_view(args, setting: Setting) -> None:
                     return render_image(model.field(enc, "coarse"), model.field(enc, "fine"), rays, rcfg,
                                         chunk=args.render_chunk)
             t = best_time(render, max(1, args.repeat // 2), args.clock, warmup=0)
-            print(f"view  {res}x{res} {label}: {t * 1e3:10,.0f} ms per view ({res * res / t:,.0f} rays/s)")
+            print(f"view  {res}x{res} {label} lin_z {'per point' if args.lin_z_per_point else 'on map'}: {t * 1e3:10,.0f} ms per view ({res * res / t:,.0f} rays/s)")
 
 
 CASES = {"peak": case_peak, "mlp": case_mlp, "field": case_field, "encoder": case_encoder, "iter": case_iter,
@@ -286,6 +286,7 @@ def main() -> None:
     parser.add_argument("--clock", choices=["wall", "cpu"], default="wall",
                         help="wall time, or process CPU time (use with --threads 1 on a shared machine)")
     parser.add_argument("--train-bf16", action="store_true", help="iter case: forward under bf16 autocast")
+    parser.add_argument("--lin-z-per-point", action="store_true", help="iter/view: lin_z per point (pixelNeRF)")
     parser.add_argument("--points", type=int, default=16384, help="points for the mlp/field cases")
     parser.add_argument("--view-sizes", type=int, nargs="+", default=[64, 128])
     parser.add_argument("--render-chunk", type=int, default=4096, help="rays per render_image chunk")

@@ -162,7 +162,8 @@ def reference_field(model: PixelNeRF, enc: EncodedViews, src: SourceViews, which
                     u, vv = project(cam[None], float(src.focal[bi]), tuple(src.principal[bi].tolist()))[0]
                     feat = bilinear_border(enc.features[bi, vi], float(u) * wf / w, float(vv) * hf / h)
                     rot = c2w[:3, :3].T
-                    x_in = torch.cat([mlp.encoding(rot @ pts[bi, ri, si]), rot @ dirs[bi, ri]])
+                    coords = rot @ pts[bi, ri, si] if mlp.cfg.point_frame == "rotated" else cam
+                    x_in = torch.cat([mlp.encoding(coords), rot @ dirs[bi, ri]])
                     x = mlp.lin_in(x_in)
                     for k in range(mlp.cfg.combine_layer):
                         x = x + mlp.lin_z[k](feat)
@@ -178,16 +179,20 @@ def reference_field(model: PixelNeRF, enc: EncodedViews, src: SourceViews, which
     return rgb, sigma
 
 
-@pytest.mark.parametrize("views", [1, 2])
-def test_field_matches_bruteforce_reference(views):
+@pytest.mark.parametrize(("views", "image_scale", "frame"), [(1, 1.0, "rotated"), (2, 1.0, "rotated"),
+                                                            (1, 0.5, "camera")])
+def test_field_matches_bruteforce_reference(views, image_scale, frame):
     torch.manual_seed(0)
-    model = randomize(PixelNeRF(small_config()))
-    src = sources(b=2, v=views)
+    cfg = small_config(point_frame=frame)
+    cfg.encoder.image_scale = image_scale
+    model = randomize(PixelNeRF(cfg))
+    src = sources(b=2, v=views, size=48)
     pts, dirs = query(b=2, r=3, s=4)
     pts[0, 0, 0] = torch.tensor([5.0, -4.0, 3.0])  # projects outside the image: border features
     with torch.no_grad():
         enc = model.encode(src)
         for which in ("coarse", "fine"):
+            assert enc.features.shape[-2:] == (int(24 * image_scale), int(24 * image_scale))
             rgb, sigma = model.field(enc, which)(pts, dirs)
             ref_rgb, ref_sigma = reference_field(model, enc, src, which, pts, dirs)
             torch.testing.assert_close(rgb, ref_rgb, atol=1e-5, rtol=1e-4)

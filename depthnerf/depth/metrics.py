@@ -39,21 +39,26 @@ class DepthScores:
     """False for images without any foreground (their scores are 0 and must be ignored)."""
 
 
-def fit_scale_shift(pred: Float[Tensor, "N P"], target: Float[Tensor, "N P"], mask: Bool[Tensor, "N P"]
-                    ) -> tuple[Float[Tensor, " N"], Float[Tensor, " N"]]:
-    """Per-row least-squares ``(a, b)`` with ``a * pred + b ~ target`` on ``mask`` (differentiable, float64 inside)."""
-    w = mask.to(torch.float64)
-    p, t = pred.to(torch.float64) * w, target.to(torch.float64) * w
-    n = w.sum(-1)
-    sp, st = p.sum(-1), t.sum(-1)
-    spp, spt = (p * p).sum(-1), (p * t).sum(-1)
-    det = n * spp - sp * sp
-    # relative test so a (numerically) constant prediction falls back to the mean instead of blowing up
-    ok = det > 1e-12 * (n * spp).clamp_min(1e-300)
-    safe_det = torch.where(ok, det, torch.ones_like(det))
-    a = torch.where(ok, (n * spt - sp * st) / safe_det, torch.zeros_like(det))
-    b = torch.where(ok, (spp * st - sp * spt) / safe_det, st / n.clamp_min(1))
-    return a.to(pred.dtype), b.to(pred.dtype)
+def fit_scale_shift(x: Float[Tensor, "B N"], y: Float[Tensor, "B N"], mask: Bool[Tensor, "B N"],
+                    eps: float = 1e-12) -> tuple[Float[Tensor, " B"], Float[Tensor, " B"]]:
+    """Per-row least squares ``min_{s,b} sum_mask (s x + b - y)^2`` in closed form (differentiable).
+
+    ``s = cov(x, y) / var(x)``, ``b = mean(y) - s mean(x)`` over the masked entries (masked-out entries may hold
+    anything, even inf/NaN). A row with constant ``x`` gets ``s = 0``, ``b = mean(y)``; an empty row ``s = b = 0``.
+    Computed in float64 (cheap for ``B x N``; the centred moments lose precision in float32), returned in
+    ``y``'s dtype.
+    """
+    out_dtype = y.dtype
+    x, y = x.double(), y.double()
+    m = mask.to(x.dtype)
+    xs = torch.where(mask, x, torch.zeros_like(x))
+    ys = torch.where(mask, y, torch.zeros_like(y))
+    n = m.sum(-1).clamp_min(1.0)
+    mx, my = xs.sum(-1) / n, ys.sum(-1) / n
+    dx, dy = (xs - mx[:, None]) * m, (ys - my[:, None]) * m
+    var, cov = (dx * dx).sum(-1) / n, (dx * dy).sum(-1) / n
+    s = torch.where(var > eps, cov / var.clamp_min(eps), torch.zeros_like(cov))
+    return s.to(out_dtype), (my - s * mx).to(out_dtype)
 
 
 def align_disparity(pred: Float[Tensor, "N H W"], target: Float[Tensor, "N H W"],

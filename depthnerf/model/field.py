@@ -60,7 +60,7 @@ class ResidualBlock(nn.Module):
 
     def forward(self, x: Float[Tensor, "N D"]) -> Float[Tensor, "N D"]:
         h = F.relu(self.fc_0(F.relu(x)))
-        return torch.addmm(x + self.fc_1.bias, h, self.fc_1.weight.t())
+        return x + self.fc_1(h)  # the residual sum stays in x's dtype (fp32) under bf16 autocast
 
     def forward_(self, x: Float[Tensor, "N D"]) -> Float[Tensor, "N D"]:
         """Inference only (no autograd): same result, updates ``x`` in place with fewer memory passes. Under

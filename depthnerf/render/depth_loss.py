@@ -14,30 +14,10 @@ import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
 
+from depthnerf.depth.metrics import fit_scale_shift
+
 MIN_PIXELS = 3
 """Images with fewer foreground rays than this have no meaningful affine fit and contribute nothing."""
-
-
-def fit_scale_shift(x: Float[Tensor, "B N"], y: Float[Tensor, "B N"], mask: Bool[Tensor, "B N"],
-                    eps: float = 1e-12) -> tuple[Float[Tensor, " B"], Float[Tensor, " B"]]:
-    """Per-row least squares ``min_{s,b} sum_mask (s x + b - y)^2`` in closed form (differentiable).
-
-    ``s = cov(x, y) / var(x)``, ``b = mean(y) - s mean(x)`` over the masked entries (masked-out entries may hold
-    anything, even inf/NaN). A row with constant ``x`` gets ``s = 0``, ``b = mean(y)``; an empty row ``s = b = 0``.
-    Computed in float64 (cheap for ``B x N``; the centred moments lose precision in float32), returned in
-    ``y``'s dtype.
-    """
-    out_dtype = y.dtype
-    x, y = x.double(), y.double()
-    m = mask.to(x.dtype)
-    xs = torch.where(mask, x, torch.zeros_like(x))
-    ys = torch.where(mask, y, torch.zeros_like(y))
-    n = m.sum(-1).clamp_min(1.0)
-    mx, my = xs.sum(-1) / n, ys.sum(-1) / n
-    dx, dy = (xs - mx[:, None]) * m, (ys - my[:, None]) * m
-    var, cov = (dx * dx).sum(-1) / n, (dx * dy).sum(-1) / n
-    s = torch.where(var > eps, cov / var.clamp_min(eps), torch.zeros_like(cov))
-    return s.to(out_dtype), (my - s * mx).to(out_dtype)
 
 
 def ssi_depth_loss(depth: Float[Tensor, "B R"], prior_disp: Float[Tensor, "B R"], mask: Bool[Tensor, "B R"], *,

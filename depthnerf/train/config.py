@@ -142,9 +142,9 @@ def _cpu(category: str) -> TrainConfig:
         prior=PriorConfig(estimator="bundled"),
         model=PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet34"), coarse=small_field, fine=small_field),
         render=RenderConfig(sampler=SamplerConfig(n_coarse=32, n_importance=16, n_gaussian=8)),
-        schedule=ScheduleConfig(max_steps=6000, bbox_steps=1500, objects_phase1=4, objects_phase2=4,
+        schedule=ScheduleConfig(max_steps=2000, bbox_steps=500, objects_phase1=4, objects_phase2=4,
                                 rays_per_object=128, lr=1e-4 * 3, lr_decay=0.995),
-        log=LogConfig(log_every=25, val_every=500, val_objects=4, val_views=(0, 125, 200),
+        log=LogConfig(log_every=25, val_every=250, val_objects=4, val_views=(0, 125, 200),
                       checkpoint_every=250, keep_last=2, render_chunk=4096),
     )
 
