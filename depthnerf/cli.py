@@ -24,7 +24,6 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "compare": ("compare", "print a Table-1 style Markdown table from runs or eval summaries"),
     "reconstruct": ("reconstruct", "reconstruct one photo: depth, novel views, turntable, mesh"),
     "checkpoints": ("checkpoints", "list the shipped checkpoints"),
-    "demo": ("demo", "offline demo: synthesise unseen objects and reconstruct them from one view"),
 }
 
 

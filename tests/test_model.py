@@ -179,11 +179,11 @@ def reference_field(model: PixelNeRF, enc: EncodedViews, src: SourceViews, which
     return rgb, sigma
 
 
-@pytest.mark.parametrize(("views", "image_scale", "frame"), [(1, 1.0, "rotated"), (2, 1.0, "rotated"),
-                                                            (1, 0.5, "camera")])
-def test_field_matches_bruteforce_reference(views, image_scale, frame):
+@pytest.mark.parametrize(("views", "image_scale", "frame", "combine"),
+                         [(1, 1.0, "rotated", 3), (2, 1.0, "rotated", 3), (1, 0.5, "camera", 3), (2, 1.0, "rotated", 5)])
+def test_field_matches_bruteforce_reference(views, image_scale, frame, combine):
     torch.manual_seed(0)
-    cfg = small_config(point_frame=frame)
+    cfg = small_config(point_frame=frame, combine_layer=combine)
     cfg.encoder.image_scale = image_scale
     model = randomize(PixelNeRF(cfg))
     src = sources(b=2, v=views, size=48)

@@ -80,7 +80,7 @@ def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 
                              "reconstruction render with the paper's sampler only")
     if chunk < 1:
         raise DepthnerfError(f"--chunk must be >= 1, got {chunk}")
-    coarse, fine = model.field(enc, "coarse"), (model.field(enc, "fine") if model.fine is not None else None)
+    coarse, fine = model.field(enc, "coarse"), model.field(enc, "fine")
     group = max(1, chunk // (intr.height * intr.width))
     parts = []
     for start in range(0, len(poses), group):

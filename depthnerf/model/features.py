@@ -50,6 +50,8 @@ def sample_maps(maps: Float[Tensor, "BV Hf Wf C"], grid: Float[Tensor, "BV N 2"]
     """
     bv, hf, wf, c = maps.shape
     n = grid.shape[1]
+    if c == 0:  # a field without feature injection (combine_layer = 0)
+        return maps.new_zeros(bv, n, 0)
     fx = ((torch.nan_to_num(grid[..., 0]) + 1.0) * (0.5 * (wf - 1))).clamp(0.0, wf - 1.0)
     fy = ((torch.nan_to_num(grid[..., 1]) + 1.0) * (0.5 * (hf - 1))).clamp(0.0, hf - 1.0)
     x0 = fx.detach().floor().clamp(max=max(wf - 2, 0))
@@ -69,7 +71,7 @@ def pixel_aligned(maps: Float[Tensor, "B V Hf Wf C"], cam: Float[Tensor, "B V N 
     b, v, hf, wf, c = maps.shape
     grid = uv_to_grid(project_points(cam, focal, principal), image_size, (hf, wf))
     out = sample_maps(maps.reshape(b * v, hf, wf, c), grid.reshape(b * v, -1, 2))
-    return out.reshape(b, v, -1, c)
+    return out.reshape(b, v, cam.shape[2], c)
 
 
 def rotate_dirs(dirs: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]) -> Float[Tensor, "B V N 3"]:

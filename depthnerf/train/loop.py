@@ -68,18 +68,17 @@ class ObjectLoss(torch.nn.Module):
         src = SourceViews(images=item.src_images, poses=item.src_poses, focal=item.focal,
                           principal=item.principal, prior=item.src_prior)
         enc = self.model.encode(src)
-        fine_fn = self.model.field(enc, "fine") if self.model.fine is not None else None
+        fine_fn = self.model.field(enc, "fine")  # the coarse MLP when there is no separate fine one (pixelNeRF)
         rays = RayBundle(item.ray_origins, item.ray_dirs, torch.full_like(item.ray_origins[..., 0], near),
                          torch.full_like(item.ray_origins[..., 0], far))
         out = render_rays(self.model.field(enc, "coarse"), fine_fn, rays, self.render_cfg, train=True,
                           generator=generator)
         coarse = torch.mean((out.coarse.rgb - item.target_rgb) ** 2)
-        fine = torch.mean((out.fine.rgb - item.target_rgb) ** 2) if out.fine is not None else coarse * 0
+        fine = torch.mean((out.fine.rgb - item.target_rgb) ** 2)
         total = coarse + fine
         depth = total * 0
         if self.depth_weight > 0 and item.target_prior is not None:
-            res = out.fine if out.fine is not None else out.coarse
-            depth = ssi_depth_loss(res.normalized_depth(), item.target_prior, item.target_fg,
+            depth = ssi_depth_loss(out.fine.normalized_depth(), item.target_prior, item.target_fg,
                                    dirs_cam_z=item.target_cos)
             total = total + self.depth_weight * depth
         return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth)
@@ -197,7 +196,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             means /= info.world
         if info.is_main and (step % cfg.log.log_every == 0 or step == s.max_steps):
             now = time.perf_counter()
-            psnr = -10.0 * math.log10(max(float(means[2] if model.fine is not None else means[1]), 1e-10))
+            psnr = -10.0 * math.log10(max(float(means[2]), 1e-10))
             values = {"loss": float(means[0]), "loss_coarse": float(means[1]), "loss_fine": float(means[2]),
                       "loss_depth": float(means[3]), "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
                       "rays_per_s": rays_since / max(now - t_last, 1e-9)}

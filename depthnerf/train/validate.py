@@ -51,7 +51,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStor
             obj = load_object(record, [src, *targets], resolution=resolution)
             disp = store.load(record, [src]) if store is not None else None
             enc = model.encode(source_views(obj, [0], disp, device))
-            out = render_views(model.field(enc, "coarse"), model.field(enc, "fine") if model.fine else None,
+            out = render_views(model.field(enc, "coarse"), model.field(enc, "fine"),
                                obj.poses[1:].to(device), obj.intrinsics, near, far, render_cfg, chunk=chunk)
             preds = out.rgb.cpu().numpy()
             gts = obj.images[1:].permute(0, 2, 3, 1).numpy()
