@@ -24,9 +24,8 @@ from depthnerf.data.srn import category_defaults
 from depthnerf.eval.mesh import CameraGrid, MeshConfig, extract_mesh
 from depthnerf.eval.metrics import object_metrics
 from depthnerf.eval.orbit import field_queries, orbit_poses, render_poses, srn_intrinsics
-from depthnerf.eval.protocol import z_range
 from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
-from depthnerf.train.config import preset
+from depthnerf.train.config import preset, z_range
 
 
 def main() -> None:

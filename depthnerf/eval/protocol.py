@@ -56,7 +56,7 @@ import trimesh
 from tqdm import tqdm
 
 from depthnerf.data import srn_format
-from depthnerf.data.srn import ObjectRecord, category_defaults, index_split, load_object
+from depthnerf.data.srn import ObjectRecord, index_split, load_object
 from depthnerf.depth.cache import PriorStore
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
@@ -79,7 +79,7 @@ from depthnerf.eval.metrics import (
 from depthnerf.eval.orbit import field_queries, render_poses
 from depthnerf.eval.pretrained import Pretrained
 from depthnerf.model.conditioning import source_views
-from depthnerf.train.config import TrainConfig
+from depthnerf.train.config import z_range
 
 INPUT_VIEW = 64
 """The SRN protocol's input view."""
@@ -176,14 +176,6 @@ def protocol_views(num_views: int, stride: int = 1) -> ProtocolViews:
     src = INPUT_VIEW if num_views > INPUT_VIEW else 0
     others = [v for v in range(num_views) if v != src]
     return ProtocolViews(input_view=src, targets=tuple(others[::stride]), others=len(others))
-
-
-def z_range(cfg: TrainConfig) -> tuple[float, float]:
-    """(near, far) ray distances of a run: its explicit values, else its category's (rule of ``train.loop``)."""
-    if cfg.data.z_near is not None and cfg.data.z_far is not None:
-        return cfg.data.z_near, cfg.data.z_far
-    d = category_defaults(cfg.data.category)
-    return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)
 
 
 def method_label(estimator: str) -> str:

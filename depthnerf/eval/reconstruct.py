@@ -59,8 +59,8 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.eval.mesh import DEFAULT_THRESHOLD, CameraGrid, MeshConfig, extract_mesh
 from depthnerf.eval.orbit import field_queries, orbit_poses, render_poses, srn_intrinsics, unproject
 from depthnerf.eval.pretrained import Pretrained, load_pretrained
-from depthnerf.eval.protocol import z_range
 from depthnerf.model.conditioning import source_views
+from depthnerf.train.config import z_range
 
 MIN_SIDE = 16
 """Smallest accepted image side (pixels)."""

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
+from depthnerf.data.srn import category_defaults
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.render.config import RenderConfig, SamplerConfig
@@ -178,3 +179,11 @@ def from_dict_config(data: dict) -> TrainConfig:
     from depthnerf.train.overrides import from_dict
 
     return from_dict(TrainConfig, data, where="config.json")
+
+
+def z_range(cfg: TrainConfig) -> tuple[float, float]:
+    """(near, far) of the run: explicit config values, else the category's SRN values."""
+    if cfg.data.z_near is not None and cfg.data.z_far is not None:
+        return cfg.data.z_near, cfg.data.z_far
+    d = category_defaults(cfg.data.category)
+    return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)

@@ -23,7 +23,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from depthnerf.data.srn import category_defaults, index_split
+from depthnerf.data.srn import index_split
 from depthnerf.depth.cache import PriorStore
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
@@ -33,7 +33,7 @@ from depthnerf.render.pipeline import render_rays
 from depthnerf.render.rays import RayBundle
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, StepSampler, TrainBatch, collate, item_seed, step_keys
-from depthnerf.train.config import TrainConfig
+from depthnerf.train.config import TrainConfig, z_range
 from depthnerf.train.distributed import DistInfo, barrier
 from depthnerf.train.items import TrainItems
 from depthnerf.train.overrides import to_dict
@@ -91,14 +91,6 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
         return s.lr
     epochs = math.floor(plan.epoch(step) - plan.epoch(s.bbox_steps))
     return s.lr * s.lr_decay ** epochs
-
-
-def z_range(cfg: TrainConfig) -> tuple[float, float]:
-    """(near, far) of the run: explicit config values, else the category's SRN values."""
-    if cfg.data.z_near is not None and cfg.data.z_far is not None:
-        return cfg.data.z_near, cfg.data.z_far
-    d = category_defaults(cfg.data.category)
-    return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)
 
 
 def _write_run_files(run_dir: Path, cfg: TrainConfig, store: PriorStore | None, n_train: int) -> None:
