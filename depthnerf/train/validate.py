@@ -11,13 +11,11 @@ import torch
 from depthnerf.data.srn import ObjectRecord, load_object
 from depthnerf.depth.cache import PriorStore
 from depthnerf.eval.metrics import object_metrics
+from depthnerf.eval.protocol import protocol_views
 from depthnerf.model.conditioning import source_views
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.views import render_views
-
-INPUT_VIEW = 64
-"""The SRN protocol's input view (objects with fewer views use view 0)."""
 
 
 @dataclass
@@ -32,10 +30,6 @@ class ValidationResult:
     """source, target, render, depth (rendered, normalised to [0, 1]) and prior (if any) of the first object."""
 
 
-def input_view(record: ObjectRecord) -> int:
-    return INPUT_VIEW if record.num_views > INPUT_VIEW else 0
-
-
 @torch.no_grad()
 def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStore | None, views: Sequence[int],
              resolution: int, near: float, far: float, render_cfg: RenderConfig, chunk: int,
@@ -46,7 +40,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStor
     scores, images = [], {}
     try:
         for i, record in enumerate(records):
-            src = input_view(record)
+            src = protocol_views(record.num_views).input_view
             targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
             obj = load_object(record, [src, *targets], resolution=resolution)
             disp = store.load(record, [src]) if store is not None else None
