@@ -10,9 +10,13 @@ Modes
         multiplied by 0) so wall time scales with network evaluations as with a real pixelNeRF. The source prior
         is a relative disparity ``a / z + b`` with a smooth multiplicative error (``--prior-error``), normalised
         like the depth stage's priors, and aligned to metric depth against a cheap coarse render of the source.
-    checkpoint (``--checkpoint``): TODO, see :func:`checkpoint_subject`.
+    checkpoint (``--checkpoint SPEC --data ROOT``): a trained pixelNeRF on SRN-protocol objects, its own sampler
+        against depth-guided sampling at several sample budgets, metrics against ground truth; see
+        ``guided_checkpoint.py`` (beside this script) for exactly what is measured.
 
-Usage: ``python benchmarks/bench_guided_sampling.py [--res 64 --views 4 --mlp-width 128 --mlp-layers 4]``
+Usage: ``python benchmarks/bench_guided_sampling.py [--res 64 --views 4 --mlp-width 128 --mlp-layers 4]``, or
+``python benchmarks/bench_guided_sampling.py --checkpoint RUN --data ROOT [--category C --split test --objects N
+--views-stride K --budgets 8,16,24,32 --json OUT]``
 
 Wall times on a shared CPU are noisy; evaluations per ray are exact. A real pixelNeRF costs far more per sample
 than the default dummy MLP (ResNet-FC 512 wide), so its speed-up approaches the evaluation ratio.
@@ -28,14 +32,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from guided_checkpoint import run_checkpoint, source_depth, timed
 
 from depthnerf.data.cameras import Intrinsics, look_at
 from depthnerf.depth.normalize import normalize_disparity
+from depthnerf.errors import DepthnerfError
 from depthnerf.render.analytic import Sphere, SphereScene
 from depthnerf.render.config import GuideConfig, GuidedSamplerConfig, RenderConfig, SamplerConfig
-from depthnerf.render.guide import align_disparity_to_depth, build_depth_guide
+from depthnerf.render.guide import build_depth_guide
 from depthnerf.render.pipeline import FieldFn, render_image
-from depthnerf.render.rays import camera_z_of_directions, rays_from_camera
+from depthnerf.render.rays import rays_from_camera
 
 
 @dataclass
@@ -116,38 +122,12 @@ def analytic_subject(args: argparse.Namespace) -> Subject:
     return Subject(field, field, intr, near, far, src, normalize_disparity(disp, mask), mask, targets, reference)
 
 
-def checkpoint_subject(args: argparse.Namespace) -> Subject:
-    """TODO(lead): build a Subject from a trained checkpoint once a model loader exists. Steps:
-    load the PixelNeRF from ``args.checkpoint`` (safetensors + config), load one SRN test object
-    (``data.srn.load_object``), its source view 64 and the depth prior of view 64 (``depth.cache.PriorStore``),
-    encode the source view (``model.encode`` via ``model.conditioning.source_views``), and return the fields
-    ``model.field(enc, "coarse"/"fine")``, the source pose/prior/mask, the 250 target poses and
-    ``reference = lambda i: gt image i`` ([H*W 3]). Everything else in this script then applies unchanged.
-    """
-    raise SystemExit("checkpoint mode is not implemented yet (TODO in checkpoint_subject); run without "
-                     "--checkpoint for the analytic benchmark")
-
-
 def align_source(s: Subject, samples: int) -> tuple[torch.Tensor, float]:
     """Metric source z-depth: the prior aligned against a coarse-only render of the source view."""
     t0 = time.perf_counter()
-    rays = rays_from_camera(s.source_c2w, s.intr, s.near, s.far)
-    cheap = render_image(s.coarse, None, rays, RenderConfig(sampler=SamplerConfig(n_coarse=samples)),
-                         chunk=4096).coarse
-    shape = s.source_prior.shape
-    ref_z = (cheap.normalized_depth() * camera_z_of_directions(rays.directions, s.source_c2w)).reshape(shape)
-    fit = s.source_mask & (cheap.opacity > 0.9).reshape(shape)
-    return align_disparity_to_depth(s.source_prior, ref_z, fit), time.perf_counter() - t0
-
-
-def timed(fn: Callable, repeats: int):
-    """``fn()``'s result and its fastest wall time over ``repeats`` calls (the CPU may be shared)."""
-    best, out = float("inf"), None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, best
+    z = source_depth(s.coarse, s.source_c2w, s.intr, s.near, s.far, s.source_prior, s.source_mask, samples,
+                     RenderConfig())
+    return z, time.perf_counter() - t0
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -204,7 +184,14 @@ def run(s: Subject, args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--checkpoint", help="trained checkpoint (TODO: not implemented yet)")
+    p.add_argument("--checkpoint", help="checkpoint mode: a trained checkpoint (any spec depthnerf eval accepts)")
+    p.add_argument("--data", help="checkpoint mode: dataset root (SRN layout, with the checkpoint's prior cache)")
+    p.add_argument("--category", help="checkpoint mode: category (default: the checkpoint's)")
+    p.add_argument("--split", default="test", help="checkpoint mode: split")
+    p.add_argument("--objects", type=int, default=2, help="checkpoint mode: first N objects of the split")
+    p.add_argument("--views-stride", type=int, default=25, help="checkpoint mode: every K-th target view")
+    p.add_argument("--budgets", default="8,16,24,32", help="checkpoint mode: guided samples per occupied ray")
+    p.add_argument("--json", help="checkpoint mode: write the table as JSON here")
     p.add_argument("--res", type=int, default=64, help="image side in pixels (analytic mode)")
     p.add_argument("--views", type=int, default=4, help="number of target views (analytic mode)")
     p.add_argument("--beta", type=float, default=0.005, help="sphere surface softness (analytic mode)")
@@ -222,8 +209,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    subject = checkpoint_subject(args) if args.checkpoint else analytic_subject(args)
-    run(subject, args)
+    if args.checkpoint:
+        if not args.data:
+            p.error("--checkpoint needs --data")
+        try:
+            run_checkpoint(args)
+        except DepthnerfError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        return 0
+    if args.json:
+        p.error("--json is for checkpoint mode (--checkpoint)")
+    run(analytic_subject(args), args)
     return 0
 
 

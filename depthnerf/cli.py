@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "compare": ("compare", "print a Table-1 style Markdown table from runs or eval summaries"),
     "reconstruct": ("reconstruct", "reconstruct one photo: depth, novel views, turntable, mesh"),
     "checkpoints": ("checkpoints", "list the shipped checkpoints"),
+    "demo": ("demo", "one-command demo: synthesise an unseen car and chair, reconstruct each from one view"),
 }
 
 

@@ -4,7 +4,8 @@ A shipped checkpoint is ``depthnerf/checkpoints/<name>.safetensors`` (written by
 ``scripts/export_checkpoint.py``); ``--checkpoint <name>`` then works in ``eval`` and ``reconstruct``. Shown per
 checkpoint: name, preset, category, depth prior, training steps (all from the weights' metadata), and metrics when
 recorded: the metadata key ``metrics`` (a JSON object) or a model card ``<name>.json`` next to the weights with a
-``metrics`` object (keys such as ``psnr``, ``ssim``, plus free text under ``protocol``). A ``<name>.md`` model card
+``metrics`` object (keys such as ``psnr``, ``ssim``, plus free text under ``protocol``; ``null`` = not evaluated,
+as ``scripts/export_checkpoint.py`` writes it without ``--eval-summary``). A ``<name>.md`` model card
 is pointed to. Nothing is downloaded; with no checkpoint shipped the command says so and exits 0.
 """
 
@@ -48,7 +49,10 @@ def describe(name: str, path: Path) -> dict:
     protocol = None
     if card_json.is_file():
         card = _json_field(card_json.read_text(), str(card_json))
-        metrics = {**metrics, **card.get("metrics", {})}
+        card_metrics = card.get("metrics") or {}  # null = exported without an evaluation
+        if not isinstance(card_metrics, dict):
+            raise DepthnerfError(f"{card_json}: 'metrics' must be a JSON object or null")
+        metrics = {**metrics, **card_metrics}
         protocol = card.get("protocol")
     return {"name": name, "path": str(path), "preset": train.get("preset", "unknown"),
             "category": train.get("data", {}).get("category", "unknown"),

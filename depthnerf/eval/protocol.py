@@ -56,7 +56,7 @@ import trimesh
 from tqdm import tqdm
 
 from depthnerf.data import srn_format
-from depthnerf.data.srn import ObjectRecord, index_split, load_object
+from depthnerf.data.srn import ObjectRecord, ObjectViews, index_split, load_object
 from depthnerf.depth.cache import PriorStore
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
@@ -79,6 +79,7 @@ from depthnerf.eval.metrics import (
 from depthnerf.eval.orbit import field_queries, render_poses
 from depthnerf.eval.pretrained import Pretrained
 from depthnerf.model.conditioning import source_views
+from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
 from depthnerf.train.config import z_range
 
 INPUT_VIEW = 64
@@ -178,6 +179,43 @@ def protocol_views(num_views: int, stride: int = 1) -> ProtocolViews:
     return ProtocolViews(input_view=src, targets=tuple(others[::stride]), others=len(others))
 
 
+@dataclass
+class PreparedObject:
+    """One object as the protocol prepares it: the input view encoded once, the target views loaded."""
+
+    views: ProtocolViews
+    """Input and target view indices."""
+    source: ObjectViews
+    """The input view at the training resolution."""
+    targets: ObjectViews
+    """The target views at the evaluated resolution."""
+    prior: torch.Tensor | None
+    """[1 H W] raw depth prior of the input view (None for the baseline)."""
+    enc: EncodedViews
+    """The model's features of the input view (and its prior)."""
+
+
+def open_prior_store(pre: Pretrained, data_root: Path, records: Sequence[ObjectRecord],
+                     depth_checkpoint: str | None = None) -> PriorStore | None:
+    """The checkpoint's depth-prior store at its training resolution, checked for ``records``; None: no prior."""
+    store = PriorStore.open(data_root, pre.config.prior.estimator, depth_checkpoint or pre.config.prior.checkpoint,
+                            resolution=pre.config.data.resolution)
+    if store is not None:
+        store.check(records)
+    return store
+
+
+@torch.no_grad()
+def prepare_object(model: PixelNeRF, record: ObjectRecord, views: ProtocolViews, store: PriorStore | None,
+                   input_res: int, eval_res: int, device: torch.device) -> PreparedObject:
+    """Load the input view (and its prior) at ``input_res`` and encode it; load the targets at ``eval_res``."""
+    src = load_object(record, [views.input_view], resolution=input_res)
+    tgt = load_object(record, list(views.targets), resolution=eval_res)
+    disp = store.load(record, [views.input_view]) if store is not None else None
+    enc = model.encode(source_views(src, [0], disp, device))
+    return PreparedObject(views=views, source=src, targets=tgt, prior=disp, enc=enc)
+
+
 def method_label(estimator: str) -> str:
     """The default ``depthnerf compare`` row label of a depth prior."""
     return "pixelNeRF (baseline)" if estimator == "none" else f"depth-aware ({estimator})"
@@ -198,10 +236,8 @@ class _Evaluator:
         model, cfg = self.pre.model, self.cfg
         views = protocol_views(record.num_views, cfg.views_stride)
         t0 = time.perf_counter()
-        src = load_object(record, [views.input_view], resolution=self.input_res)
-        tgt = load_object(record, list(views.targets), resolution=self.eval_res)
-        disp = self.store.load(record, [views.input_view]) if self.store is not None else None
-        enc = model.encode(source_views(src, [0], disp, self.device))
+        obj = prepare_object(model, record, views, self.store, self.input_res, self.eval_res, self.device)
+        src, tgt, enc = obj.source, obj.targets, obj.enc
         preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.pre.config,
                              cfg.chunk, self.device).rgb.numpy()
         gts = tgt.images.permute(0, 2, 3, 1).numpy()
@@ -331,10 +367,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     if eval_res < 8:
         raise DepthnerfError(f"--resolution must be >= 8 (SSIM window 7), got {eval_res}")
     estimator = train.prior.estimator
-    prior_ckpt = cfg.depth_checkpoint or train.prior.checkpoint
-    store = PriorStore.open(data_root, estimator, prior_ckpt, resolution=input_res)
-    if store is not None:
-        store.check(records)
+    store = open_prior_store(pre, data_root, records, cfg.depth_checkpoint)
     lpips = load_lpips(cfg.lpips, device)
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
     out_dir.mkdir(parents=True, exist_ok=True)

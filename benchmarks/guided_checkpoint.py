@@ -1,0 +1,275 @@
+"""Checkpoint mode of ``bench_guided_sampling.py``: a trained pixelNeRF, its own sampler vs depth-guided sampling.
+
+For the first ``--objects`` objects of a split, each object is prepared exactly as ``depthnerf eval`` prepares it
+(:func:`depthnerf.eval.protocol.prepare_object`: input view 64 encoded once with the checkpoint's depth prior from
+the prior cache, targets = the other views with ``--views-stride``, all at the training resolution). The same
+target views are then rendered one at a time
+
+- with the checkpoint's own sampler (``render`` of its training config, e.g. 32 + 16 + 8): the reference row;
+- with depth-guided sampling (:mod:`depthnerf.render.guided`) at each ``--budgets`` total of samples per occupied
+  ray (:func:`guided_sampler` splits it), the guide built from the input view's prior aligned to metric depth
+  against a cheap coarse render of the input view (:func:`source_depth`; without a prior, that render's depth).
+
+Per setting: wall-clock ms per view (fastest of ``--repeats``, torch threads as the environment sets them; guided
+rows include building the guide per view and the alignment render once per object, amortised over that object's
+rendered views), nominal samples and measured network evaluations per ray, PSNR/SSIM against ground truth with
+:mod:`depthnerf.eval.metrics` (mean over views per object, then over objects, as the protocol), the PSNR change
+against the reference, the PSNR of the guided render against the reference render, and the speed-up. A setting
+meets issue 4's target when it is >= 3x faster than the reference at <= 0.1 dB PSNR loss.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.srn import index_split
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.metrics import object_metrics, psnr
+from depthnerf.eval.pretrained import load_pretrained
+from depthnerf.eval.protocol import PreparedObject, open_prior_store, prepare_object, protocol_views
+from depthnerf.render.config import GuideConfig, GuidedSamplerConfig, RenderConfig, SamplerConfig
+from depthnerf.render.guide import align_disparity_to_depth, build_depth_guide
+from depthnerf.render.pipeline import FieldFn, render_image
+from depthnerf.render.rays import camera_z_of_directions, rays_from_camera
+from depthnerf.render.views import render_views, view_rays
+from depthnerf.train.config import z_range
+
+TARGET_SPEEDUP = 3.0
+"""Issue 4: guided sampling must be at least this much faster than the reference sampler ..."""
+TARGET_MAX_LOSS_DB = 0.1
+"""... while losing at most this much PSNR."""
+
+
+class CountedField:
+    """A field wrapper counting the points it evaluates (network evaluations)."""
+
+    def __init__(self, fn: FieldFn):
+        self.fn, self.points = fn, 0
+
+    def __call__(self, pts: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
+        self.points += pts.shape[:-1].numel()
+        return self.fn(pts, dirs)
+
+
+def timed(fn: Callable, repeats: int):
+    """``fn()``'s result and its fastest wall time in seconds over ``repeats`` calls (the CPU may be shared)."""
+    best, out = float("inf"), None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return out, best
+
+
+def _split(total: int, weights: tuple[int, ...]) -> list[int]:
+    """``total`` split in proportion to ``weights`` (largest remainder; ties to the earlier entry)."""
+    shares = [total * w / sum(weights) for w in weights]
+    parts = [int(s) for s in shares]
+    order = sorted(range(len(shares)), key=lambda k: (parts[k] - shares[k], k))
+    for k in order[: total - sum(parts)]:
+        parts[k] += 1
+    return parts
+
+
+def guided_sampler(total: int, base: GuidedSamplerConfig) -> GuidedSamplerConfig:
+    """``base`` with ``total`` samples per occupied ray split 1:2:2:1 (uniform, window, importance, Gaussian, the
+    default 8:16:16:8's proportions) and ``total // 2`` per empty ray split 2:1 (the default 16:8's)."""
+    if total < 6:
+        raise DepthnerfError(f"--budgets: a guided budget needs >= 6 samples per ray, got {total}")
+    n_uniform, n_window, n_importance, n_gaussian = _split(total, (1, 2, 2, 1))
+    n_empty, n_empty_importance = _split(total // 2, (2, 1))
+    return dataclasses.replace(base, enabled=True, n_uniform=n_uniform, n_window=n_window,
+                               n_importance=n_importance, n_gaussian=n_gaussian, n_empty=n_empty,
+                               n_empty_importance=n_empty_importance)
+
+
+@torch.no_grad()
+def source_depth(coarse: FieldFn, c2w: Tensor, intr: Intrinsics, near: float, far: float, prior: Tensor | None,
+                 mask: Tensor, samples: int, render: RenderConfig, chunk: int = 4096) -> Tensor:
+    """[1 H W] metric z-depth of the source view for the guide: ``prior`` (relative disparity) aligned against a
+    ``samples``-sample coarse-only render of the source view on ``mask`` pixels the render sees as opaque (> 0.9);
+    without a prior, that render's own depth on ``mask`` pixels of opacity > 0.5 (0 elsewhere)."""
+    rays = rays_from_camera(c2w, intr, near, far)
+    cfg = dataclasses.replace(render, sampler=SamplerConfig(n_coarse=samples),
+                              guided=GuidedSamplerConfig(enabled=False))
+    cheap = render_image(coarse, None, rays, cfg, chunk=chunk).coarse
+    shape = mask.shape
+    ref_z = (cheap.normalized_depth() * camera_z_of_directions(rays.directions, c2w)).reshape(shape)
+    opacity = cheap.opacity.reshape(shape)
+    if prior is None:
+        return torch.where(mask & (opacity > 0.5), ref_z, torch.zeros_like(ref_z))
+    return align_disparity_to_depth(prior, ref_z, mask & (opacity > 0.9))
+
+
+@dataclass
+class Setting:
+    """One row of the table: a renderer configuration and what was measured with it."""
+
+    name: str
+    """``reference`` or ``guided-<budget>``."""
+    render: RenderConfig
+    """The renderer configuration."""
+    samples: str
+    """Nominal samples per ray (guided: occupied / empty rays)."""
+    seconds: float = 0.0
+    """Summed wall time of all rendered views (guided: plus the alignment renders)."""
+    views: int = 0
+    """Rendered views."""
+    points: int = 0
+    """Network evaluations."""
+    rays: int = 0
+    """Rendered rays."""
+    objects: list[dict] = field(default_factory=list)
+    """Per object: ``object_id``, ``psnr``, ``ssim``, ``psnr_vs_reference`` (None on the reference row)."""
+
+    @property
+    def guided(self) -> bool:
+        return self.render.guided.enabled
+
+
+def _settings(render: RenderConfig, budgets: list[int]) -> list[Setting]:
+    sc = render.sampler
+    rows = [Setting("reference", render, f"{sc.n_coarse}+{sc.n_importance}+{sc.n_gaussian}")]
+    for b in budgets:
+        g = guided_sampler(b, render.guided)
+        rows.append(Setting(f"guided-{b}", dataclasses.replace(render, guided=g),
+                            f"{g.n_uniform}+{g.n_window}+{g.n_importance}+{g.n_gaussian} / "
+                            f"{g.n_empty}+{g.n_empty_importance}"))
+    return rows
+
+
+def _bench_object(obj: PreparedObject, fields: tuple[CountedField, CountedField], settings: list[Setting],
+                  near: float, far: float, args: argparse.Namespace) -> float:
+    """Render the object's targets with every setting, accumulate into ``settings``; returns the alignment s."""
+    coarse, fine = fields
+    src, tgt = obj.source, obj.targets
+    src_mask = src.masks[:1]
+    depth, t_align = timed(lambda: source_depth(coarse, src.poses[:1], src.intrinsics, near, far, obj.prior,
+                                                src_mask, args.align_samples, settings[0].render, args.chunk), 1)
+    guide_cfg = GuideConfig(spread=args.spread)
+    gts = tgt.images.permute(0, 2, 3, 1).numpy()
+    ref_preds = None
+    for s in settings:
+        preds = []
+        for pose in tgt.poses:
+            c2w = pose[None]
+
+            def render(c2w=c2w, s=s):
+                guide = None
+                if s.guided:
+                    rays = view_rays(c2w, tgt.intrinsics, near, far)
+                    guide = build_depth_guide(src.poses[:1], src.intrinsics, depth, src_mask, rays, guide_cfg)
+                return render_views(coarse, fine, c2w, tgt.intrinsics, near, far, s.render, chunk=args.chunk,
+                                    guide=guide).rgb[0]
+
+            p0 = coarse.points + fine.points
+            rgb, seconds = timed(render, args.repeats)
+            s.points += (coarse.points + fine.points - p0) // max(1, args.repeats)
+            s.seconds += seconds
+            s.rays += tgt.intrinsics.height * tgt.intrinsics.width
+            s.views += 1
+            preds.append(rgb.float().cpu().numpy())
+        if s.guided:
+            s.seconds += t_align
+        preds = np.stack(preds)
+        ref_preds = preds if ref_preds is None else ref_preds
+        m = object_metrics(obj.targets.record.object_id, preds, gts)
+        vs_ref = None if preds is ref_preds else float(np.mean([psnr(p, r) for p, r in zip(preds, ref_preds,
+                                                                                          strict=True)]))
+        s.objects.append({"object_id": m.object_id, "psnr": m.psnr, "ssim": m.ssim, "psnr_vs_reference": vs_ref})
+    return t_align
+
+
+def _rows(settings: list[Setting]) -> list[dict]:
+    ref_ms = 1000 * settings[0].seconds / settings[0].views
+    ref_psnr = float(np.mean([o["psnr"] for o in settings[0].objects]))
+    rows = []
+    for s in settings:
+        ms = 1000 * s.seconds / s.views
+        mean = {k: float(np.mean([o[k] for o in s.objects])) if s.guided or k != "psnr_vs_reference" else None
+                for k in ("psnr", "ssim", "psnr_vs_reference")}
+        speedup = ref_ms / ms
+        rows.append({"name": s.name, "guided": s.guided, "samples_per_ray": s.samples,
+                     "evals_per_ray": s.points / s.rays, "ms_per_view": ms, "speedup": speedup, **mean,
+                     "psnr_delta": mean["psnr"] - ref_psnr,
+                     "meets_target": s.guided and speedup >= TARGET_SPEEDUP
+                     and ref_psnr - mean["psnr"] <= TARGET_MAX_LOSS_DB,
+                     "views": s.views, "per_object": s.objects})
+    return rows
+
+
+def run_checkpoint(args: argparse.Namespace) -> dict:
+    """Run the checkpoint benchmark (arguments of ``bench_guided_sampling.py``); print and return the table."""
+    pre = load_pretrained(args.checkpoint)
+    cfg = pre.config
+    if cfg.render.guided.enabled:
+        raise DepthnerfError(f"{pre.path}: the checkpoint's renderer is already depth-guided; the reference must be "
+                             "the paper's sampler")
+    if args.objects < 1 or args.views_stride < 1:
+        raise DepthnerfError(f"--objects and --views-stride must be >= 1 (got {args.objects}, {args.views_stride})")
+    budgets = [int(b) for b in str(args.budgets).split(",") if b.strip()]
+    data = Path(args.data)
+    category = args.category or cfg.data.category
+    records = index_split(data, category, args.split, check_files=False).objects[: args.objects]
+    store = open_prior_store(pre, data, records)
+    near, far = z_range(cfg)
+    res = cfg.data.resolution
+    settings = _settings(cfg.render, budgets)
+    align, device = [], torch.device("cpu")
+    for k, record in enumerate(records):
+        obj = prepare_object(pre.model, record, protocol_views(record.num_views, args.views_stride), store, res,
+                             res, device)
+        fields = CountedField(pre.model.field(obj.enc, "coarse")), CountedField(pre.model.field(obj.enc, "fine"))
+        if k == 0:  # warm-up (allocator, thread pools), not timed
+            render_views(*fields, obj.targets.poses[:1], obj.targets.intrinsics, near, far, cfg.render,
+                         chunk=args.chunk)
+        align.append(_bench_object(obj, fields, settings, near, far, args))
+    rows = _rows(settings)
+    meets = [r["name"] for r in rows if r["meets_target"]]
+    result = {
+        "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
+        "preset": cfg.preset, "depth_prior": cfg.prior.estimator,
+        "guide_depth": "prior aligned to a coarse render" if store is not None else "coarse render (no prior)",
+        "data": str(data.resolve()), "category": category, "split": args.split,
+        "objects": [r.object_id for r in records], "views_per_object": settings[0].views // len(records),
+        "views_stride": args.views_stride, "resolution": res, "z_range": [near, far],
+        "torch_threads": torch.get_num_threads(), "repeats": args.repeats, "align_samples": args.align_samples,
+        "align_ms_per_object": 1000 * float(np.mean(align)), "guide": dataclasses.asdict(GuideConfig(args.spread)),
+        "target": {"speedup": TARGET_SPEEDUP, "max_psnr_loss_db": TARGET_MAX_LOSS_DB},
+        "rows": rows, "meets_target": meets,
+    }
+    print_table(result)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def print_table(result: dict) -> None:
+    """The Markdown table of :func:`run_checkpoint` and the target verdict."""
+    print(f"{result['checkpoint']} (step {result['checkpoint_step']}, prior {result['depth_prior']}): "
+          f"{len(result['objects'])} {result['category']}_{result['split']} objects x "
+          f"{result['views_per_object']} views at {result['resolution']}px, {result['torch_threads']} torch "
+          f"threads; guide depth: {result['guide_depth']} (alignment {result['align_ms_per_object']:.0f} ms per "
+          "object, included in the guided rows)")
+    print("| setting | samples/ray | evals/ray | ms/view | speed-up | PSNR | SSIM | dPSNR vs ref | "
+          "PSNR guided vs ref render | meets |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for r in result["rows"]:
+        print(f"| {r['name']} | {r['samples_per_ray']} | {r['evals_per_ray']:.1f} | {r['ms_per_view']:.1f} | "
+              f"{r['speedup']:.2f}x | {r['psnr']:.3f} | {r['ssim']:.4f} | {r['psnr_delta']:+.3f} | "
+              f"{'-' if r['psnr_vs_reference'] is None else format(r['psnr_vs_reference'], '.2f')} | "
+              f"{'yes' if r['meets_target'] else 'no'} |")
+    verdict = ", ".join(result["meets_target"]) or "none"
+    print(f">= {TARGET_SPEEDUP:g}x faster at <= {TARGET_MAX_LOSS_DB:g} dB PSNR loss: {verdict}")

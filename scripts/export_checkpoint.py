@@ -1,0 +1,348 @@
+"""Export a training run's checkpoint as a shipped fp16 checkpoint with its model card.
+
+``python scripts/export_checkpoint.py --run RUN_DIR --name cpu-cars-depth
+[--eval-summary RUN_DIR/eval/test/summary.json] [--out depthnerf/checkpoints] [--command "the training command"]``
+
+Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where ``depthnerf checkpoints`` and
+``--checkpoint <name>`` find it):
+
+``<name>.safetensors``
+    The run's ``checkpoints/best`` (else its latest checkpoint; :func:`depthnerf.eval.pretrained.resolve_checkpoint`)
+    with floating tensors in float16 and integer buffers (BatchNorm ``num_batches_tracked``) unchanged, written
+    atomically by :func:`depthnerf.train.checkpoint.save_weights`. Metadata: the source's model ``config``,
+    ``train_config`` and ``step``, plus provenance ``source_sha256``, ``source_run``, ``source_file``,
+    ``dtype``, ``exported_by``. :func:`~depthnerf.eval.pretrained.load_pretrained` casts the weights back to fp32.
+``<name>.json``
+    Name, preset, depth estimator, category, resolution, step, SHA-256 and size of the fp16 file, the source, the
+    fp16 round-trip check, and with ``--eval-summary`` the metrics (``psnr``, ``ssim``, and ``lpips``,
+    ``chamfer_l1``, ``fscore`` when measured) and the protocol of that ``summary.json`` (keys of
+    :mod:`depthnerf.eval.table` / :mod:`depthnerf.eval.protocol`). ``depthnerf checkpoints`` prints them.
+``<name>.md``
+    The model card: what the model is, training data (from ``RUN/data_card.json``), preset and key settings,
+    metrics with their protocol, the reproduce commands, intended use, limitations and licence.
+
+Round-trip check (always run, the export fails when it does not hold): the source (fp32) and the exported (fp16,
+loaded back to fp32) models render the same :func:`probe_sources` input view from another camera at the training
+resolution; the largest absolute RGB difference must stay below :data:`FP16_TOLERANCE`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from depthnerf import __version__
+from depthnerf.data.srn import category_defaults
+from depthnerf.depth.cache import depth_command
+from depthnerf.depth.estimators import CACHED_ESTIMATORS
+from depthnerf.depth.normalize import normalize_disparity
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.metrics import psnr
+from depthnerf.eval.orbit import orbit_poses, render_poses, srn_intrinsics
+from depthnerf.eval.pretrained import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
+from depthnerf.eval.table import load_summary
+from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.train import checkpoint as ckpt
+from depthnerf.train.config import TrainConfig, z_range
+
+FP16_TOLERANCE = 0.02
+"""Largest accepted absolute RGB difference (in [0, 1], ~5 of 255 levels) between fp32 and fp16 renders."""
+FP16_MAX = 65504.0
+"""Largest finite float16 value: a weight beyond it cannot be exported."""
+NAME_PATTERN = re.compile(r"^[a-z0-9][a-z0-9._-]*$")
+"""Allowed checkpoint names (they become file names and ``--checkpoint`` values)."""
+LICENCE = "MIT (the depthnerf repository's licence, see pyproject.toml)"
+"""Licence of the exported weights."""
+METRIC_KEYS = ("psnr", "ssim", "lpips", "chamfer_l1", "fscore")
+"""Metrics copied from the eval summary (null ones are left out)."""
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """What :func:`export` wrote."""
+
+    weights: Path
+    """``<out>/<name>.safetensors``."""
+    card_json: Path
+    """``<out>/<name>.json``."""
+    card_md: Path
+    """``<out>/<name>.md``."""
+    card: dict
+    """The content of ``card_json``."""
+
+
+def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
+    """A procedural input view (a shaded disc on white, with a dome-shaped disparity prior) at the training
+    resolution and category camera, and a second camera pose 60 degrees around the object to render."""
+    res = cfg.data.resolution
+    cat = category_defaults(cfg.data.category)
+    poses = orbit_poses(cat.camera_radius, 20.0, 6)
+    intr = srn_intrinsics(cat.focal, cat.image_size, res)
+    yy, xx = torch.meshgrid(torch.arange(res, dtype=torch.float32), torch.arange(res, dtype=torch.float32),
+                            indexing="ij")
+    r = torch.sqrt((xx - res / 2) ** 2 + (yy - res / 2) ** 2) / res
+    mask = r < 0.3
+    disc = torch.stack([0.8 - r, 0.3 + r, torch.full_like(r, 0.5)])
+    image = torch.where(mask[None], disc, torch.ones_like(disc))
+    prior = None
+    if cfg.model.encoder.use_depth:
+        disparity = torch.where(mask, 1.0 - r, torch.zeros_like(r))
+        prior = normalize_disparity(disparity[None], mask[None])[None, :, None]
+    src = SourceViews(images=image[None, None], poses=poses[:1][None], focal=torch.tensor([intr.focal]),
+                      principal=torch.tensor([[intr.cx, intr.cy]]), prior=prior)
+    return src, poses[1:2]
+
+
+@torch.no_grad()
+def roundtrip_check(source: Pretrained, exported: Pretrained) -> dict:
+    """Render the probe view with both models; ``max_abs_rgb``, ``mean_abs_rgb`` and ``psnr_db`` of the pair."""
+    cfg = source.config
+    src, pose = probe_sources(cfg)
+    res = cfg.data.resolution
+    cat = category_defaults(cfg.data.category)
+    intr = srn_intrinsics(cat.focal, cat.image_size, res)
+    near, far = z_range(cfg)
+    rgbs = []
+    for pre in (source, exported):
+        enc = pre.model.encode(src)
+        rgbs.append(render_poses(pre.model, enc, pose, intr, near, far, cfg, 4096, "cpu").rgb[0].numpy())
+    diff = np.abs(rgbs[0] - rgbs[1])
+    return {"max_abs_rgb": float(diff.max()), "mean_abs_rgb": float(diff.mean()),
+            "psnr_db": psnr(rgbs[1], np.clip(rgbs[0], 0.0, 1.0)), "tolerance": FP16_TOLERANCE,
+            "input": "procedural disc view at the training resolution, rendered from 60 degrees around"}
+
+
+def _read_json(path: Path, what: str) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DepthnerfError(f"{path}: {what} not found") from None
+    except (OSError, json.JSONDecodeError) as err:
+        raise DepthnerfError(f"{path}: unreadable {what} ({err})") from None
+    if not isinstance(data, dict):
+        raise DepthnerfError(f"{path}: {what} must be a JSON object")
+    return data
+
+
+def read_eval_summary(path: Path, source_sha: str, exported_sha: str, cfg: TrainConfig) -> dict:
+    """The checked ``summary.json`` of an evaluation of this checkpoint (source or exported file)."""
+    load_summary(path)  # required keys and types (depthnerf.eval.table)
+    summary = _read_json(path, "eval summary")
+    if summary["checkpoint_sha256"] not in (source_sha, exported_sha):
+        raise DepthnerfError(f"{path}: evaluates checkpoint {summary['checkpoint_sha256'][:12]}, not the exported "
+                             f"one ({source_sha[:12]} before export, {exported_sha[:12]} after)")
+    if summary["category"] != cfg.data.category or summary["preset"] != cfg.preset:
+        raise DepthnerfError(f"{path}: summary is for {summary['preset']}/{summary['category']}, the checkpoint is "
+                             f"{cfg.preset}/{cfg.data.category}")
+    return summary
+
+
+def _eval_section(summary: dict, path: Path) -> dict:
+    keys = ("split", "objects", "views", "views_stride", "max_objects", "resolution", "input_resolution",
+            "method", "metrics_path", "aggregation", "lpips_status", "fscore_tau", "mesh_status",
+            "checkpoint_sha256")
+    return {"summary": str(path.resolve()), **{k: summary.get(k) for k in keys},
+            "data_root": (summary.get("data_card") or {}).get("root")}
+
+
+def eval_command(name: str, ev: dict, train_res: int) -> str:
+    """The ``depthnerf eval`` command that measures the card's metrics for a shipped checkpoint."""
+    parts = ["depthnerf eval", f"--checkpoint {name}", "--data $DATA", f"--split {ev['split']}",
+             f"--out eval/{name}", f"--views-stride {ev['views_stride']}"]
+    if ev.get("max_objects"):
+        parts.append(f"--max-objects {ev['max_objects']}")
+    if ev.get("resolution") and ev["resolution"] != train_res:
+        parts.append(f"--resolution {ev['resolution']}")
+    return " ".join(parts)
+
+
+def synth_command(dataset_card: dict | None, category: str) -> str:
+    """The ``depthnerf synth`` command of the training data (from the dataset card)."""
+    if not dataset_card:
+        return f"# dataset card missing: the {category} data's generation settings are unknown"
+    counts = dataset_card.get("counts", {})
+    return (f"depthnerf synth --category {category} --out $DATA --train-objects {counts.get('train')} "
+            f"--val-objects {counts.get('val')} --test-objects {counts.get('test')} --resolution "
+            f"{dataset_card.get('resolution')} --seed {dataset_card.get('seed')}")
+
+
+def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None) -> str:
+    """The Markdown model card ``<name>.md``."""
+    name, est, cat = card["name"], card["depth_estimator"], card["category"]
+    kind = "pixelNeRF baseline (RGB encoder only)" if est == "none" else f"depth-aware pixelNeRF ({est} depth prior)"
+    ds = data_card.get("dataset_card") or {}
+    m, f = cfg.model, cfg.model.coarse
+    s, r = cfg.schedule, cfg.render.sampler
+    lines = [f"# {name}", "",
+             f"A {kind} for single-image 3D reconstruction of **{cat}**, trained with the `{cfg.preset}` preset "
+             f"on the CPU at {cfg.data.resolution}x{cfg.data.resolution}. Trained and evaluated on the project's "
+             "**synthetic** SRN-format benchmark (`depthnerf synth`: procedural shapes, ray-traced) — **not** on "
+             "real ShapeNet; the numbers below are not comparable with the paper's Table 1.", "",
+             "| field | value |", "|---|---|",
+             f"| weights | `{name}.safetensors`, float16 ({card['size_bytes']:,} bytes), loaded as float32 |",
+             f"| sha256 | `{card['sha256']}` |",
+             f"| training steps | {card['step']} |",
+             f"| source | run `{card['source']['run']}`, `{card['source']['file']}` (sha256 "
+             f"`{card['source']['sha256'][:16]}...`) |",
+             f"| fp16 round trip | max abs RGB difference {card['fp16_check']['max_abs_rgb']:.2e} "
+             f"(PSNR {card['fp16_check']['psnr_db']:.1f} dB vs the fp32 weights) |", "",
+             "## Training data", "",
+             f"- {data_card.get('train_objects')} synthetic {cat} train objects (`{cat}_train`), images at "
+             f"{data_card.get('resolution')} px for training, generator `{ds.get('generator', 'unknown')}`, "
+             f"seed {ds.get('seed', 'unknown')}, {ds.get('protocol', {}).get('train_views', '?')} random "
+             "upper-hemisphere views per object (exact z-depth, masks and meshes exist for every view).",
+             f"- Dataset split sizes: {', '.join(f'{k} {v}' for k, v in ds.get('counts', {}).items()) or 'unknown'}"
+             "; no val/test object is used for training.",
+             f"- Depth prior: `{est}`" + (f" (weights sha256 `{str(prior.get('weights_hash'))[:16]}...`, "
+                                         f"licence {prior.get('licence')})" if prior and est != "none" else "")
+             + ".", "",
+             "## Model and preset", "",
+             f"- Encoder: {m.encoder.backbone} trunk, {m.encoder.num_layers} feature stages"
+             + (f", + 4th input channel and depth encoder ({m.encoder.depth_channels} channels)"
+                if m.encoder.use_depth else "") + ".",
+             f"- NeRF MLP: {f.n_blocks} residual blocks of width {f.d_hidden}; samples {r.n_coarse} coarse + "
+             f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(z_range(cfg))}.",
+             f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}, {s.objects_phase1}/{s.objects_phase2} objects x "
+             f"{s.rays_per_object} rays per step, bbox sampling for {s.bbox_steps} steps; seed {cfg.seed}.",
+             "- Full config: the `train_config` entry of the weights' metadata "
+             f"(`depthnerf train --preset {cfg.preset} --print-config` prints the preset).", "",
+             "## Evaluation", ""]
+    metrics, ev = card.get("metrics"), card.get("evaluation")
+    if metrics and ev:
+        heads = [k for k in METRIC_KEYS if k in metrics]
+        lines += ["| " + " | ".join(h.upper() if h != "chamfer_l1" else "Chamfer-L1" for h in heads) + " |",
+                  "|" + "---:|" * len(heads),
+                  "| " + " | ".join(f"{metrics[h]:.4f}" for h in heads) + " |", "",
+                  f"Protocol: {card['protocol']}.", "",
+                  f"- split `{ev['split']}`, {ev['objects']} objects, {ev['views']} scored views "
+                  f"(view stride {ev['views_stride']}), {ev['resolution']}x{ev['resolution']} px, "
+                  f"{ev['metrics_path']}; {ev['aggregation']}.",
+                  f"- LPIPS: {ev['lpips_status']}." + (f" Mesh: {ev['mesh_status']}." if ev.get("mesh_status") else "")]
+    else:
+        lines += ["Not evaluated at export time (no `--eval-summary`)."]
+    data_root = (ev or {}).get("data_root") or data_card.get("root", "data/synth")
+    reproduce = [f"DATA={data_root}", synth_command(ds, cat)]
+    if est in CACHED_ESTIMATORS:
+        reproduce.append(depth_command(Path("$DATA"), est, cfg.prior.checkpoint, cfg.data.resolution,
+                                       category=cat))
+    reproduce.append(card.get("command") or f"depthnerf train --preset {cfg.preset} --data $DATA --depth {est} "
+                     f"--out runs/{name}  # --command not given at export: check the config in the weights")
+    reproduce.append(f"python scripts/export_checkpoint.py --run runs/{card['source']['run']} --name {name}"
+                     + (" --eval-summary SUMMARY" if ev else ""))
+    if ev:
+        reproduce.append(eval_command(name, ev, cfg.data.resolution))
+    lines += ["", "## Reproduce", "", "```bash", *reproduce, "```", "",
+              "## Intended use", "",
+              f"Demonstrating and testing the depthnerf pipeline offline: `depthnerf demo`, `depthnerf eval "
+              f"--checkpoint {name}` on the synthetic benchmark, and `depthnerf reconstruct` on renders that look "
+              "like it (one object, centred, white background, SRN-like camera).", "",
+              "## Limitations", "",
+              "- Trained on procedural synthetic objects only: real photos (and real ShapeNet renders) are out of "
+              "distribution, expect poor reconstructions.",
+              f"- CPU preset: {cfg.data.resolution} px, a small MLP and few training steps; far below the paper's "
+              "GPU settings.",
+              "- Single object, centred, on white, camera at the category's SRN distance and focal length.",
+              ("- The bundled depth network only knows the synthetic benchmark; for photos retrain with "
+               "`depth-anything-v2`." if est == "bundled" else
+               "- The oracle prior needs ground-truth depth, which only synthetic data has." if est == "oracle"
+               else "- Baseline: no depth prior, the reference for the depth-aware model."), "",
+              "## Licence", "", f"{LICENCE}. Exported with depthnerf {__version__}.", ""]
+    return "\n".join(lines)
+
+
+def _check_fp16_range(pre: Pretrained) -> None:
+    for key, value in pre.model.state_dict().items():
+        if value.is_floating_point() and not bool((value.abs() <= FP16_MAX).all()):
+            raise DepthnerfError(f"{pre.path}: tensor {key} has values beyond the float16 range (|x| > {FP16_MAX:g}) "
+                                 "or non-finite values; cannot export as fp16")
+
+
+def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | None = None,
+           command: str | None = None) -> ExportResult:
+    """Export ``run``'s best (else latest) checkpoint as ``out/<name>.*`` (see the module docstring)."""
+    if not NAME_PATTERN.match(name):
+        raise DepthnerfError(f"--name {name!r}: use lower-case letters, digits, '.', '_' and '-' only")
+    run = Path(run)
+    if not (run / "checkpoints").is_dir():
+        raise DepthnerfError(f"{run}: not a run folder (no checkpoints/)")
+    data_card = _read_json(run / "data_card.json", "run data card")
+    prior = _read_json(run / "prior.json", "run prior record") if (run / "prior.json").is_file() else None
+    source_path = resolve_checkpoint(run)
+    _, meta = ckpt.read_weights(source_path)
+    source = load_pretrained(source_path)
+    _check_fp16_range(source)
+    cfg = source.config
+    out.mkdir(parents=True, exist_ok=True)
+    weights, staged = out / f"{name}.safetensors", out / f".{name}.export.safetensors"
+    extra = {"train_config": meta["train_config"], "source_sha256": source.sha256, "source_run": run.resolve().name,
+             "source_file": source_path.resolve().relative_to(run.resolve()).as_posix(), "dtype": "float16",
+             "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})"}
+    ckpt.save_weights(staged, source.model, ckpt.checkpoint_config(meta, source_path), step=source.step,
+                      dtype=torch.float16, extra=extra)
+    try:  # every check passes before the staged file takes the shipped name
+        exported = load_pretrained(staged)
+        check = roundtrip_check(source, exported)
+        if not check["max_abs_rgb"] <= FP16_TOLERANCE:
+            raise DepthnerfError(f"{weights}: fp16 weights render up to {check['max_abs_rgb']:.3g} away from the "
+                                 f"fp32 ones (tolerance {FP16_TOLERANCE}); not exported")
+        summary = None
+        if summary_path is not None:
+            summary = read_eval_summary(Path(summary_path), source.sha256, exported.sha256, cfg)
+    except BaseException:
+        staged.unlink(missing_ok=True)
+        raise
+    os.chmod(staged, 0o644)  # shared package data (the writer's temporary file may be private)
+    os.replace(staged, weights)
+    card = {"name": name, "preset": cfg.preset, "depth_estimator": cfg.prior.estimator,
+            "category": cfg.data.category, "resolution": cfg.data.resolution, "step": exported.step,
+            "sha256": exported.sha256, "size_bytes": weights.stat().st_size, "dtype": "float16",
+            "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},
+            "fp16_check": check, "command": command, "metrics": None, "protocol": None, "evaluation": None}
+    if summary is not None:
+        card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
+        card["protocol"] = summary["protocol"]
+        card["evaluation"] = _eval_section(summary, Path(summary_path))
+        card["eval_command"] = eval_command(name, card["evaluation"], cfg.data.resolution)
+    card_json, card_md = out / f"{name}.json", out / f"{name}.md"
+    card_json.write_text(json.dumps(card, indent=1) + "\n")
+    card_md.write_text(model_card(card, cfg, data_card, prior))
+    return ExportResult(weights=weights, card_json=card_json, card_md=card_md, card=card)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--run", type=Path, required=True, help="training run folder")
+    p.add_argument("--name", required=True, help="shipped name, e.g. cpu-cars-depth")
+    p.add_argument("--eval-summary", type=Path, help="summary.json of 'depthnerf eval' of this run's checkpoint")
+    p.add_argument("--out", type=Path, default=SHIPPED_DIR, help=f"output folder (default {SHIPPED_DIR})")
+    p.add_argument("--command", help="the command that produced the run (quoted; goes into the model card)")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    torch.set_grad_enabled(False)
+    try:
+        res = export(args.run, args.name, args.out, args.eval_summary, args.command)
+    except DepthnerfError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    c = res.card
+    metrics = ", ".join(f"{k} {v:.4f}" for k, v in (c["metrics"] or {}).items()) or "no metrics (no --eval-summary)"
+    print(f"exported {c['name']}: {c['preset']} / {c['depth_estimator']}, step {c['step']}, {c['size_bytes']:,} "
+          f"bytes fp16 (sha256 {c['sha256'][:12]}); fp16 vs fp32 max abs RGB {c['fp16_check']['max_abs_rgb']:.2e}; "
+          f"{metrics}")
+    print(f"wrote {res.weights}, {res.card_json}, {res.card_md}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

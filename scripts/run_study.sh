@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# The offline benchmark study of issue 7 (docs/RESULTS.md): synthetic SRN-protocol data -> bundled depth priors ->
+# 6 training runs (cars/chairs x baseline/bundled/oracle, equal steps and seed) -> SRN-protocol eval -> Table 1
+# -> figures. Every stage is resumable: rerunning the script skips finished work and resumes training runs from
+# their last checkpoint.
+#
+#   bash scripts/run_study.sh [STUDY_DIR]        (default: study/, git-ignored)
+#
+# Environment: STEPS (training steps, default: the preset's 2000), JOBS (runs in parallel, default 2, each with
+# one thread: on 2 cores, two 1-thread jobs beat one 2-thread job), STRIDE (eval view stride, default 25),
+# RUNS (which runs, default all six, e.g. "cars-none cars-bundled").
+set -euo pipefail
+STUDY=${1:-study}
+JOBS=${JOBS:-2}
+STRIDE=${STRIDE:-25}
+RUNS=${RUNS:-"cars-none cars-bundled chairs-none chairs-bundled cars-oracle chairs-oracle"}
+SEED=0
+export STUDY STRIDE SEED STEPS=${STEPS:-}
+export OMP_NUM_THREADS=1
+mkdir -p "$STUDY/logs"
+
+# 1. data: 300 train / 20 val / 50 test objects per category at 64 px (the CPU presets' resolution)
+for cat in cars chairs; do
+  depthnerf synth --category "$cat" --out "$STUDY/data" --train-objects 300 --val-objects 20 --test-objects 50 \
+    --resolution 64 --seed "$SEED" --workers "$JOBS" --quiet
+done
+# 2. bundled depth priors for every split (oracle priors need no cache: they come from the GT depth)
+depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
+
+# 3. + 4. train and evaluate each run
+one_run() {
+  local name=$1 cat=${1%%-*} prior=${1#*-}
+  local run="$STUDY/runs/$name" ev="$STUDY/eval/$name" log="$STUDY/logs/$name.log"
+  local steps=()
+  [ -n "$STEPS" ] && steps=(--max-steps "$STEPS")
+  if [ ! -f "$ev/summary.json" ]; then
+    local resume=()
+    [ -f "$run/config.json" ] && resume=(--resume)
+    depthnerf train --preset "cpu-$cat" --data "$STUDY/data" --depth "$prior" --seed "$SEED" --out "$run" \
+      "${steps[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
+    depthnerf eval --run "$run" --views-stride "$STRIDE" --save-renders --out "$ev" --no-progress >> "$log" 2>&1
+  fi
+  echo "$name done"
+}
+export -f one_run
+printf '%s\n' $RUNS | xargs -P "$JOBS" -I{} bash -c 'one_run {}'
+
+# 5. table and figures
+evals=()
+for name in chairs-none chairs-bundled chairs-oracle cars-none cars-bundled cars-oracle; do
+  [ -f "$STUDY/eval/$name/summary.json" ] && evals+=("$STUDY/eval/$name")
+done
+depthnerf compare "${evals[@]}" --reference paper --out "$STUDY/table.md"
+mkdir -p "$STUDY/figures"
+python scripts/plot_training_curves.py --runs "$STUDY"/runs/* --out "$STUDY/figures/training_curves.png"
+for cat in cars chairs; do
+  ce=()
+  for prior in none bundled oracle; do
+    [ -f "$STUDY/eval/$cat-$prior/summary.json" ] && ce+=("$STUDY/eval/$cat-$prior")
+  done
+  python scripts/qualitative_figure.py --evals "${ce[@]}" --data "$STUDY/data" --objects 4 \
+    --out "$STUDY/figures/qualitative_$cat.png"
+done
+cat "$STUDY/table.md"

@@ -1,0 +1,167 @@
+"""``scripts/export_checkpoint.py``: which checkpoint is exported, fp16 conversion, round trip, cards, listing.
+
+Runs are tiny random models written by the training checkpoint writer (``fixtures_checkpoints.tiny_run``):
+``best`` (step 5) and the latest (step 10) hold different weights, so picking the wrong one shows.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from fixtures_checkpoints import tiny_bundled, tiny_config, tiny_run
+from safetensors import safe_open
+
+from depthnerf.cli import main as cli_main
+from depthnerf.eval import pretrained
+from depthnerf.eval.pretrained import load_pretrained, sha256_file
+from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.train import checkpoint as ckpt
+
+SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "export_checkpoint.py"
+PROTOCOL = "SRN protocol: input view 64, targets = all other 250 views with stride 25 (10 views), 2 of 2 objects"
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("export_checkpoint", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def exporter():
+    return _script()
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> Path:
+    tmp = tmp_path_factory.mktemp("export")
+    weights = tiny_bundled(tmp / "bundled.safetensors")
+    return tiny_run(tmp / "cpu-cars-depth-run", tiny_config("cars", "bundled", weights))
+
+
+def _summary(path: Path, sha: str, **changes) -> Path:
+    data = {"psnr": 23.4567, "ssim": 0.91234, "lpips": None, "chamfer_l1": 0.0456, "fscore": 0.5,
+            "fscore_tau": 0.01, "objects": 2, "views": 20, "checkpoint_sha256": sha, "preset": "cpu-cars",
+            "category": "cars", "depth_prior": "bundled", "method": "depth-aware (bundled)", "protocol": PROTOCOL,
+            "split": "test", "views_stride": 25, "max_objects": 2, "resolution": 16, "input_resolution": 16,
+            "metrics_path": "float renders (eval.py)", "lpips_status": "unavailable: test",
+            "aggregation": "mean over objects", "data_card": {"root": "/data/synth"}, **changes}
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_exports_best_as_fp16_with_metadata(exporter, run, tmp_path):
+    best = run / "checkpoints" / "best" / "model.safetensors"
+    res = exporter.export(run, "cpu-cars-depth", tmp_path, command="depthnerf train --preset cpu-cars --x 1")
+    src_tensors, src_meta = ckpt.read_weights(best)
+    tensors, meta = ckpt.read_weights(res.weights)
+    assert set(tensors) == set(src_tensors)
+    changed = 0
+    for key, value in tensors.items():
+        ref = src_tensors[key]
+        if ref.is_floating_point():
+            assert value.dtype == torch.float16, key
+            # fp16 rounding: relative error <= 2^-11 (plus the subnormal step near zero)
+            assert torch.all((value.float() - ref).abs() <= ref.abs() * 2.0**-11 + 2.0**-24), key
+            changed += int(not torch.equal(value.float(), ref))
+        else:
+            assert value.dtype == ref.dtype and torch.equal(value, ref), key
+    assert changed > 0
+    assert int(tensors["encoder.trunk.bn1.num_batches_tracked"]) == 1234
+    for key in ("format", "config", "train_config", "step"):
+        assert meta[key] == src_meta[key], key
+    assert meta["step"] == "5"  # best, not the latest (step 10)
+    assert meta["source_sha256"] == sha256_file(best) and meta["source_run"] == run.name
+    assert meta["source_file"] == "checkpoints/best/model.safetensors" and meta["dtype"] == "float16"
+    assert res.weights.stat().st_size < 0.6 * best.stat().st_size
+    assert not list(tmp_path.glob(".*"))  # no staged file left
+    assert res.weights.stat().st_mode & 0o777 == 0o644
+
+
+def test_roundtrip_within_fp16_tolerance(exporter, run, tmp_path):
+    res = exporter.export(run, "cpu-cars-depth", tmp_path)
+    src, out = load_pretrained(run), load_pretrained(res.weights)
+    assert src.step == out.step == 5
+    assert all(v.dtype == torch.float32 for v in out.model.state_dict().values() if v.is_floating_point())
+    torch.manual_seed(0)
+    sources = SourceViews(images=torch.rand(1, 1, 3, 16, 16), poses=torch.eye(4)[None, None],
+                          focal=torch.tensor([16.4]), principal=torch.tensor([[8.0, 8.0]]),
+                          prior=torch.rand(1, 1, 1, 16, 16) * 8 - 4)
+    sources.poses[0, 0, 2, 3] = -1.3
+    points = torch.rand(1, 64, 4, 3) - 0.5
+    dirs = torch.nn.functional.normalize(torch.rand(1, 64, 3) - 0.5, dim=-1)
+    outs = []
+    with torch.no_grad():
+        for pre in (src, out):
+            rgb, sigma = pre.model.field(pre.model.encode(sources), "fine")(points, dirs)
+            outs.append((rgb, sigma))
+    assert torch.allclose(outs[0][0], outs[1][0], atol=2e-3) and not torch.equal(outs[0][0], outs[1][0])
+    assert torch.allclose(outs[0][1], outs[1][1], atol=2e-3, rtol=2e-3)
+    check = res.card["fp16_check"]
+    assert 0 < check["max_abs_rgb"] <= exporter.FP16_TOLERANCE
+
+
+def test_cards_from_eval_summary(exporter, run, tmp_path):
+    best_sha = sha256_file(run / "checkpoints" / "best" / "model.safetensors")
+    summary = _summary(tmp_path / "summary.json", best_sha)
+    command = "depthnerf train --preset cpu-cars --data data/synth --depth bundled --out runs/cpu-cars-depth"
+    res = exporter.export(run, "cpu-cars-depth", tmp_path / "ship", summary, command)
+    card = json.loads(res.card_json.read_text())
+    assert card["name"] == "cpu-cars-depth" and card["preset"] == "cpu-cars" and card["category"] == "cars"
+    assert card["depth_estimator"] == "bundled" and card["step"] == 5 and card["dtype"] == "float16"
+    assert card["sha256"] == sha256_file(res.weights) and card["size_bytes"] == res.weights.stat().st_size
+    assert card["metrics"] == {"psnr": 23.4567, "ssim": 0.91234, "chamfer_l1": 0.0456, "fscore": 0.5}
+    assert card["protocol"] == PROTOCOL
+    assert card["evaluation"]["views_stride"] == 25 and card["evaluation"]["objects"] == 2
+    assert "--views-stride 25" in card["eval_command"] and "--max-objects 2" in card["eval_command"]
+    md = res.card_md.read_text()
+    for text in ("# cpu-cars-depth", "depth-aware pixelNeRF", "**synthetic**", "**not** on real ShapeNet",
+                 "3 synthetic cars train objects", "seed 0", "cpu-cars", "23.4567", "0.9123", PROTOCOL,
+                 "split `test`, 2 objects, 20 scored views (view stride 25), 16x16 px", command,
+                 card["eval_command"], "depthnerf synth --category cars --out $DATA --train-objects 3",
+                 "## Intended use", "## Limitations", "MIT", card["sha256"]):
+        assert text in md, text
+
+
+def test_refuses_summary_of_another_checkpoint(exporter, run, tmp_path):
+    summary = _summary(tmp_path / "summary.json", "0" * 64)
+    with pytest.raises(exporter.DepthnerfError, match="evaluates checkpoint 000000000000"):
+        exporter.export(run, "cpu-cars-depth", tmp_path / "ship", summary)
+    assert not list((tmp_path / "ship").iterdir())  # nothing shipped, no staged file left
+    assert exporter.main(["--run", str(run), "--name", "Bad Name", "--out", str(tmp_path / "ship")]) == 2
+
+
+def test_latest_without_best(exporter, tmp_path):
+    run = tiny_run(tmp_path / "run", tiny_config("chairs", "none"), steps=(3, 8), best=None)
+    res = exporter.export(run, "cpu-chairs-baseline", tmp_path / "ship")
+    with safe_open(str(res.weights), framework="pt") as f:
+        meta = f.metadata()
+    assert meta["step"] == "8" and meta["source_file"] == "checkpoints/step_00000008/model.safetensors"
+    assert res.card["metrics"] is None and "Not evaluated" in res.card_md.read_text()
+    assert "pixelNeRF baseline" in res.card_md.read_text()
+
+
+def test_checkpoints_command_lists_card_metrics(exporter, run, tmp_path, monkeypatch, capsys):
+    best_sha = sha256_file(run / "checkpoints" / "best" / "model.safetensors")
+    ship = tmp_path / "ship"
+    exporter.export(run, "cpu-cars-depth", ship, _summary(tmp_path / "summary.json", best_sha))
+    exporter.export(tiny_run(tmp_path / "run2", tiny_config("chairs", "none"), best=None), "cpu-chairs-baseline", ship)
+    monkeypatch.setattr(pretrained, "SHIPPED_DIR", ship)
+    assert cli_main(["checkpoints"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith("cpu-cars-depth: preset cpu-cars, category cars, depth prior bundled, 5 steps; "
+                               "psnr 23.46, ssim 0.9123, chamfer_l1 0.0456, fscore 0.5")
+    assert PROTOCOL in lines[0] and "cpu-cars-depth.md" in lines[0]
+    assert "cpu-chairs-baseline: preset cpu-chairs" in lines[1] and "no metrics recorded" in lines[1]
+    assert cli_main(["checkpoints", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert rows[0]["metrics"]["psnr"] == 23.4567 and rows[1]["metrics"] is None
+    assert load_pretrained("cpu-cars-depth").step == 5  # the shipped name resolves
