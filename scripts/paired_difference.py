@@ -1,0 +1,111 @@
+"""Paired per-object differences between evaluations of the same test objects (docs/RESULTS.md).
+
+A mean PSNR over 50 objects moves by a few tenths of a dB with the choice of objects; two methods scored on the
+SAME objects are compared far more precisely by the per-object differences. For each ``--method`` eval folder
+against the ``--baseline`` one (both written by ``depthnerf eval``; their ``per_object.csv`` files must list the
+same objects and views), this prints, per metric, the mean difference (method - baseline), its standard error
+``std(d, ddof=1) / sqrt(n)``, a 95% interval ``mean +- t_{0.975, n-1} * SE`` and how many objects the method wins.
+
+    python scripts/paired_difference.py --baseline study/eval/cars-none \
+        --method study/eval/cars-bundled study/eval/cars-oracle [--json OUT.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from scipy import stats
+
+METRICS: dict[str, bool] = {"psnr": True, "ssim": True, "chamfer_l1": False, "fscore": True}
+"""Metric column of per_object.csv -> whether higher is better."""
+
+
+@dataclass
+class PairedStat:
+    """One metric of one method against the baseline, over the objects both scored."""
+
+    method: str
+    metric: str
+    n: int
+    baseline_mean: float
+    method_mean: float
+    mean_diff: float
+    std_err: float
+    ci95_low: float
+    ci95_high: float
+    wins: int
+
+
+def read_per_object(folder: Path) -> dict[str, dict[str, str]]:
+    """Rows of ``folder/per_object.csv`` keyed by object id (an error names the file if it is missing)."""
+    path = folder / "per_object.csv"
+    if not path.is_file():
+        raise SystemExit(f"error: {path}: missing (run depthnerf eval with --out {folder})")
+    with open(path, newline="") as f:
+        return {row["object_id"]: row for row in csv.DictReader(f)}
+
+
+def method_name(folder: Path) -> str:
+    """The method label recorded in the eval summary, else the folder name."""
+    summary = folder / "summary.json"
+    if summary.is_file():
+        return str(json.loads(summary.read_text()).get("method", folder.name))
+    return folder.name
+
+
+def paired(baseline: Path, method: Path) -> list[PairedStat]:
+    """Paired statistics of ``method`` against ``baseline`` for every metric both have."""
+    base, other = read_per_object(baseline), read_per_object(method)
+    if set(base) != set(other):
+        raise SystemExit(f"error: {method}/per_object.csv: objects differ from {baseline}/per_object.csv")
+    for oid in base:
+        if base[oid]["views"] != other[oid]["views"]:
+            raise SystemExit(f"error: {method}/per_object.csv: object {oid} was scored on other views than in "
+                             f"{baseline}")
+    out = []
+    for metric, higher in METRICS.items():
+        ids = [o for o in sorted(base) if base[o].get(metric) and other[o].get(metric)]
+        if len(ids) < 2:
+            continue
+        b = [float(base[o][metric]) for o in ids]
+        m = [float(other[o][metric]) for o in ids]
+        d = [x - y for x, y in zip(m, b, strict=True)]
+        n = len(d)
+        mean = sum(d) / n
+        se = math.sqrt(sum((x - mean) ** 2 for x in d) / (n - 1) / n)
+        half = float(stats.t.ppf(0.975, n - 1)) * se
+        wins = sum(1 for x in d if (x > 0 if higher else x < 0))
+        out.append(PairedStat(method=method_name(method), metric=metric, n=n, baseline_mean=sum(b) / n,
+                              method_mean=sum(m) / n, mean_diff=mean, std_err=se, ci95_low=mean - half,
+                              ci95_high=mean + half, wins=wins))
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--baseline", type=Path, required=True, help="eval folder of the baseline")
+    parser.add_argument("--method", type=Path, nargs="+", required=True, help="eval folders to compare")
+    parser.add_argument("--json", type=Path, help="also write the rows as JSON")
+    args = parser.parse_args(argv)
+    rows = [s for folder in args.method for s in paired(args.baseline, folder)]
+    print(f"paired against {method_name(args.baseline)} ({args.baseline})")
+    print("| method | metric | objects | baseline | method | difference | 95% interval | wins |")
+    print("|---|---|---|---|---|---|---|---|")
+    for s in rows:
+        dec = 2 if s.metric == "psnr" else 4
+        print(f"| {s.method} | {s.metric} | {s.n} | {s.baseline_mean:.{dec}f} | {s.method_mean:.{dec}f} | "
+              f"{s.mean_diff:+.{dec}f} +- {s.std_err:.{dec}f} | [{s.ci95_low:+.{dec}f}, {s.ci95_high:+.{dec}f}] | "
+              f"{s.wins}/{s.n} |")
+    if args.json:
+        args.json.write_text(json.dumps([asdict(s) for s in rows], indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
