@@ -1,7 +1,8 @@
 """``depthnerf eval``: evaluate a run or checkpoint by the SRN protocol (see :mod:`depthnerf.eval.protocol`).
 
 ``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
-[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--save-renders]``
+[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--mesh-threshold auto|X]
+[--save-renders]``
 
 Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
 with ``--run``, required with ``--checkpoint``), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
@@ -36,6 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int, default=4096, help="rays per render pass (bounds memory; default 4096)")
     p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction and Chamfer/F-score")
     p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (default 128)")
+    p.add_argument("--mesh-threshold", default="auto",
+                   help="marching-cubes density level: a number, or auto (default: half the median peak density "
+                        "along the opaque input rays)")
     p.add_argument("--fscore-tau", type=float, default=0.01, help="F-score threshold in GT diagonals (0.01)")
     p.add_argument("--mesh-points", type=int, default=100_000, help="surface samples per mesh (default 100000)")
     p.add_argument("--save-renders", action="store_true", help="write renders, meshes and renders.csv")
@@ -60,6 +64,7 @@ def resolve_device(name: str) -> torch.device:
 
 def run(args: argparse.Namespace) -> int:
     from depthnerf.eval.geometry_metrics import GeometryConfig
+    from depthnerf.eval.mesh import parse_level
     from depthnerf.eval.metrics import LpipsConfig
     from depthnerf.eval.pretrained import load_pretrained
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
@@ -75,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
         resolution=args.resolution, chunk=args.chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
+        mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         quantize=args.quantize, method=args.method, depth_checkpoint=args.depth_checkpoint,
         lpips=LpipsConfig(trunk_path=args.lpips_trunk), progress=not args.no_progress)

@@ -29,6 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fill", type=float, help="object's longer side / frame side with --framing auto")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (0 = no mesh)")
+    p.add_argument("--mesh-threshold", default="auto",
+                   help="marching-cubes density level: a number, or auto (default: half the median peak density "
+                        "along the opaque input rays)")
     p.add_argument("--depth-estimator", choices=["bundled", "depth-anything-v2"],
                    help="override the checkpoint's depth estimator (needed for checkpoints trained with oracle)")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
@@ -38,6 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from depthnerf.eval.mesh import parse_level
     from depthnerf.eval.reconstruct import ReconstructConfig, Reconstructor
 
     device = resolve_device(args.device)
@@ -45,7 +49,8 @@ def run(args: argparse.Namespace) -> int:
                                         depth_checkpoint=args.depth_checkpoint)
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
-                            mesh_resolution=args.mesh_resolution, chunk=args.chunk, progress=not args.no_progress)
+                            mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
+                            chunk=args.chunk, progress=not args.no_progress)
     result = rec.reconstruct(args.image, mask=args.mask, config=cfg)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:

@@ -47,7 +47,7 @@ from depthnerf.depth.estimators import CACHED_ESTIMATORS, make_estimator
 from depthnerf.depth.precompute import predict_views
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.exports import save_reconstruction
-from depthnerf.eval.mesh import CameraGrid, MeshConfig, extract_mesh
+from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, source_mesh
 from depthnerf.eval.metrics import object_metrics
 from depthnerf.eval.orbit import field_queries, orbit_poses, render_poses, unproject
 from depthnerf.eval.pretrained import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
@@ -214,11 +214,11 @@ def turntable_and_mesh(pre: Pretrained, src: ObjectViews, disp: torch.Tensor | N
     times = {"turntable_s": time.perf_counter() - t}
     on_stage(1)
     t = time.perf_counter()
-    mesh = trimesh.Trimesh()
+    mesh, level = trimesh.Trimesh(), None
     if cfg.mesh:
         density_fn, color_fn = field_queries(model, enc, eye.to(device))
-        grid = CameraGrid.from_frustum(src.poses[0], src.intrinsics, near, far)
-        mesh = extract_mesh(density_fn, grid, MeshConfig(resolution=cfg.mesh_resolution), color_fn, device)
+        mesh, level = source_mesh(density_fn, src.poses[0], src.intrinsics, near, far,
+                                  MeshConfig(cfg.mesh_resolution, AUTO_LEVEL), color_fn, device)
     times["mesh_s"] = time.perf_counter() - t
     on_stage(1)
     keep = orbit.opacity > POINT_OPACITY
@@ -228,7 +228,8 @@ def turntable_and_mesh(pre: Pretrained, src: ObjectViews, disp: torch.Tensor | N
                 "render_resolution": res, "views": cfg.turntable_views, "z_range": [near, far],
                 "category": train.data.category,
                 "depth_estimator": train.prior.estimator if disp is not None else "none",
-                "mesh_resolution": cfg.mesh_resolution if cfg.mesh else 0, "point_opacity": POINT_OPACITY}
+                "mesh_resolution": cfg.mesh_resolution if cfg.mesh else 0, "point_opacity": POINT_OPACITY,
+                "mesh_level": level and level.level, "mesh_level_rule": level and level.describe()}
     return Reconstruction(
         input=prepared, depth_prior=None if disp is None else disp[0].numpy(),
         prior_normalized=None if prior is None else prior[0, 0, 0].cpu().numpy(),

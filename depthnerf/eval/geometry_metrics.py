@@ -11,6 +11,16 @@ Sampling
     seed, so results are deterministic and identical meshes give exactly Chamfer 0 and F-score 1. Nearest
     neighbours by ``scipy.spatial.cKDTree``.
 
+Ground truth of a dataset object (:func:`object_geometry`)
+    The synthetic ``mesh.ply`` files contain interior faces (parts are unions of closed primitives), which no view
+    sees and no image-based method can recover; sampling them inflates completeness and Chamfer. So when the
+    object has depth maps (``depth/NNNNNN.npz``, camera z-depth, 0 = background), the GT samples are the
+    **visible surface**: every object pixel of ALL its views back-projected (``x_cam = z * ((u - cx)/f, (v - cy)/f,
+    1)``, ``x_world = R x_cam + t``, :mod:`depthnerf.data.cameras`), evenly subsampled to ``n_points``
+    (:func:`visible_surface_points`). Without depth maps the samples come from ``mesh.ply``. The normalising
+    diagonal is ``mesh.ply``'s either way; ``GeometryMetrics.ground_truth`` and ``summary.json`` ``geometry_gt``
+    say which GT was used. The predicted side is always the marching-cubes mesh's surface samples.
+
 Definitions (Occupancy Networks / Tatarchenko et al. 2019 conventions)
     accuracy = mean over predicted samples of the distance to the nearest GT sample;
     completeness = the same from GT samples to predicted samples;
@@ -26,15 +36,20 @@ recall = F-score = 0, and ``empty_prediction = True``.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import trimesh
 from jaxtyping import Float
 from scipy.spatial import cKDTree
 
+from depthnerf.data import srn_format
+from depthnerf.data.cameras import Intrinsics, pixel_directions
+from depthnerf.data.srn import ObjectRecord
 from depthnerf.errors import DepthnerfError
+from depthnerf.eval.mesh import load_mesh
 
 
 @dataclass(frozen=True)
@@ -73,6 +88,8 @@ class GeometryMetrics:
     """World length of one distance unit (the GT diagonal when normalised, else 1)."""
     empty_prediction: bool
     """True when the predicted mesh had no surface (worst-case values above)."""
+    ground_truth: str = "mesh.ply"
+    """Where the GT samples came from (``mesh.ply`` or ``visible surface from N depth maps``)."""
 
 
 def sample_surface(mesh: trimesh.Trimesh, n_points: int, seed: int) -> Float[np.ndarray, "N 3"]:
@@ -91,9 +108,10 @@ def _is_empty(mesh: trimesh.Trimesh) -> bool:
     return len(mesh.faces) == 0 or not mesh.area > 0
 
 
-def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh,
-                     config: GeometryConfig = GeometryConfig()) -> GeometryMetrics:
-    """Chamfer-L1, F-score and their parts (see the module docstring for the definitions)."""
+def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: GeometryConfig = GeometryConfig(),
+                     gt_points: Float[np.ndarray, "M 3"] | None = None) -> GeometryMetrics:
+    """Chamfer-L1, F-score and their parts (see the module docstring for the definitions); ``gt_points`` (world
+    frame) replace the samples of ``gt``, which then only gives the normalising diagonal."""
     if _is_empty(gt):
         raise DepthnerfError("ground-truth mesh has no surface (no faces or zero area)")
     if config.n_points < 1 or not config.tau > 0:
@@ -104,13 +122,59 @@ def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh,
         worst = diagonal / scale
         return GeometryMetrics(worst, worst, worst, 0.0, 0.0, 0.0, config.tau, scale, True)
     pred_pts = sample_surface(pred, config.n_points, config.seed) / scale
-    gt_pts = sample_surface(gt, config.n_points, config.seed) / scale
+    gt_pts = (sample_surface(gt, config.n_points, config.seed) if gt_points is None
+              else np.asarray(gt_points, dtype=np.float64)) / scale
     to_gt, to_pred = nearest_distances(pred_pts, gt_pts), nearest_distances(gt_pts, pred_pts)
     accuracy, completeness = float(to_gt.mean()), float(to_pred.mean())
     precision, recall = float((to_gt < config.tau).mean()), float((to_pred < config.tau).mean())
     fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return GeometryMetrics((accuracy + completeness) / 2, accuracy, completeness, precision, recall, fscore,
                            config.tau, scale, False)
+
+
+def backproject_depth(depth: Float[np.ndarray, "H W"], c2w: Float[np.ndarray, "4 4"],
+                      intr: Intrinsics) -> Float[np.ndarray, "P 3"]:
+    """World points of the pixels of a z-depth map with depth > 0 (camera ``c2w``, OpenCV axes)."""
+    rays = pixel_directions(intr, normalize=False).numpy().astype(np.float64)  # camera frame, z = 1
+    keep = depth > 0
+    cam = rays[keep] * depth[keep, None].astype(np.float64)
+    c2w = np.asarray(c2w, dtype=np.float64)
+    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def visible_surface_points(record: ObjectRecord, n_points: int) -> Float[np.ndarray, "N 3"] | None:
+    """The back-projected depth maps of all views of ``record``, evenly subsampled to at most ``n_points``;
+    None when the object has no depth maps."""
+    if not record.has_depth:
+        return None
+    intr = record.intrinsics
+    parts = []
+    for view in range(record.num_views):
+        depth = srn_format.read_depth(record.depth_path(view))
+        if depth.shape != (intr.height, intr.width):
+            raise DepthnerfError(f"{record.depth_path(view)}: depth map is {depth.shape[1]}x{depth.shape[0]} but "
+                                 f"intrinsics.txt says {intr.width}x{intr.height}")
+        parts.append(backproject_depth(depth, srn_format.read_pose(record.pose_path(view)), intr))
+    points = np.concatenate(parts)
+    if len(points) == 0:
+        raise DepthnerfError(f"{record.path}: every depth map is empty (no object pixel)")
+    if len(points) > n_points:
+        points = points[np.linspace(0, len(points) - 1, n_points).round().astype(np.int64)]
+    return points
+
+
+def object_geometry(pred: trimesh.Trimesh, record: ObjectRecord,
+                    config: GeometryConfig = GeometryConfig()) -> GeometryMetrics:
+    """``pred`` scored against the GT of a dataset object with ``mesh.ply``: its visible surface from the depth
+    maps when it has them, else ``mesh.ply`` (module docstring)."""
+    if record.mesh_path is None:
+        raise DepthnerfError(f"{record.path}: no mesh.ply to score against")
+    gt = load_mesh(record.mesh_path)
+    points = visible_surface_points(record, config.n_points)
+    metrics = geometry_metrics(pred, gt, config, points)
+    if points is None:
+        return metrics
+    return replace(metrics, ground_truth=f"visible surface from {record.num_views} depth maps")
 
 
 def chamfer_l1(pred: trimesh.Trimesh, gt: trimesh.Trimesh, n_points: int = 100_000, seed: int = 0,
@@ -133,5 +197,8 @@ def summarize_geometry(results: Sequence[GeometryMetrics], config: GeometryConfi
     means = {k: float(np.mean([asdict(r)[k] for r in results]))
              for k in ("chamfer_l1", "accuracy", "completeness", "precision", "recall", "fscore")}
     units = "ground-truth bounding-box diagonals" if config.normalize else "world units"
+    sources = Counter(r.ground_truth for r in results)
+    gt = (next(iter(sources)) if len(sources) == 1
+          else "; ".join(f"{name} ({n} objects)" for name, n in sorted(sources.items())))
     return {**means, "fscore_tau": config.tau, "geometry_units": units, "geometry_points": config.n_points,
-            "empty_predictions": sum(r.empty_prediction for r in results)}
+            "empty_predictions": sum(r.empty_prediction for r in results), "geometry_gt": gt}

@@ -19,12 +19,11 @@ Resolution
     the evaluated, input, training and dataset (native) resolutions.
 
 3D metrics (beyond the paper)
-    Marching cubes over :meth:`CameraGrid.from_frustum` of the input camera with the run's z-range, at the density
-    level of :mod:`depthnerf.eval.mesh` (20), densities from the fine network queried with the input camera's
-    ray direction through each point (:func:`depthnerf.eval.orbit.field_queries`); Chamfer-L1 / F-score against
-    the object's ``mesh.ply`` in the world frame, in units of the GT diagonal
-    (:mod:`depthnerf.eval.geometry_metrics`). Objects without ``mesh.ply`` get empty geometry cells; the means
-    are over objects that have one.
+    :func:`~depthnerf.eval.mesh.source_mesh` over the input camera's frustum and the run's z-range, at the auto
+    level unless fixed (``mesh_level`` per object), densities of the fine network seen along the input rays
+    (:func:`~depthnerf.eval.orbit.field_queries`); Chamfer-L1 / F-score against the visible surface of the depth
+    maps, else ``mesh.ply`` (``geometry_gt``), in ``mesh.ply`` diagonals (:mod:`depthnerf.eval.geometry_metrics`).
+    Objects without ``mesh.ply`` get empty geometry cells; the means are over objects that have one.
 
 An all-white object (the real SRN cars test set has one) has an empty mask: its prior is the background constant,
 its metrics stay finite (PSNR is capped at 100 dB), and a non-finite dataset metric is an error, never written.
@@ -62,10 +61,10 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
     GeometryConfig,
     GeometryMetrics,
-    geometry_metrics,
+    object_geometry,
     summarize_geometry,
 )
-from depthnerf.eval.mesh import DEFAULT_THRESHOLD, CameraGrid, MeshConfig, extract_mesh, load_mesh
+from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, levels_text, source_mesh
 from depthnerf.eval.metrics import (
     ImageMetricsConfig,
     LpipsConfig,
@@ -108,8 +107,8 @@ class ProtocolConfig:
     """Extract a mesh per object and score it against ``mesh.ply`` when the object has one."""
     mesh_resolution: int = 128
     """Marching-cubes samples along the longest side of the frustum box."""
-    mesh_threshold: float = DEFAULT_THRESHOLD
-    """Density level of the extracted surface."""
+    mesh_threshold: float | str = AUTO_LEVEL
+    """Density level of the extracted surface, or ``"auto"`` (per object, see :mod:`depthnerf.eval.mesh`)."""
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     """Chamfer / F-score settings."""
     save_renders: bool = False
@@ -150,6 +149,8 @@ class ObjectResult:
     """Image metrics."""
     geometry: GeometryMetrics | None
     """3D metrics; None without a GT mesh or with meshing off."""
+    mesh_level: MeshLevel | None
+    """The density level the mesh was extracted at (None without a mesh)."""
     seconds: dict[str, float]
     """Wall-clock seconds of ``render`` (encode + render), ``metrics`` and ``mesh``."""
 
@@ -245,18 +246,16 @@ class _Evaluator:
         metrics = object_metrics(record.object_id, preds, gts, ImageMetricsConfig(quantize_pred=cfg.quantize),
                                  self.lpips)
         t2 = time.perf_counter()
-        geometry, mesh = None, None
+        geometry, mesh, level = None, None, None
         if cfg.mesh and record.mesh_path is not None:
-            gt_mesh = load_mesh(record.mesh_path)
             density_fn, _ = field_queries(model, enc, src.poses[0, :3, 3].to(self.device))
-            grid = CameraGrid.from_frustum(src.poses[0], src.intrinsics, self.near, self.far)
-            mesh_cfg = MeshConfig(resolution=cfg.mesh_resolution, threshold=cfg.mesh_threshold)
-            mesh = extract_mesh(density_fn, grid, mesh_cfg, device=self.device)
-            geometry = geometry_metrics(mesh, gt_mesh, cfg.geometry)
+            mesh, level = source_mesh(density_fn, src.poses[0], src.intrinsics, self.near, self.far,
+                                      MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), device=self.device)
+            geometry = object_geometry(mesh, record, cfg.geometry)
         t3 = time.perf_counter()
         if cfg.save_renders:
             self._save(record, views, preds, gts, metrics, mesh)
-        return ObjectResult(record=record, views=views, metrics=metrics, geometry=geometry,
+        return ObjectResult(record=record, views=views, metrics=metrics, geometry=geometry, mesh_level=level,
                             seconds={"render": t1 - t0, "metrics": t2 - t1, "mesh": t3 - t2})
 
     def _save(self, record: ObjectRecord, views: ProtocolViews, preds: np.ndarray, gts: np.ndarray,
@@ -297,7 +296,7 @@ def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> None
 
 
 PER_OBJECT_COLUMNS = ("object_id", "input_view", "views", "psnr", "ssim", "lpips", "chamfer_l1", "fscore",
-                      "accuracy", "completeness", "precision", "recall", "empty_mesh", "seconds")
+                      "accuracy", "completeness", "precision", "recall", "empty_mesh", "mesh_level", "seconds")
 """Columns of ``per_object.csv`` (empty cell = not measured)."""
 
 
@@ -307,7 +306,8 @@ def _per_object_row(r: ObjectResult) -> dict:
             "psnr": _fmt(r.metrics.psnr), "ssim": _fmt(r.metrics.ssim), "lpips": _fmt(r.metrics.lpips),
             **{k: _fmt(getattr(g, k)) if g is not None else ""
                for k in ("chamfer_l1", "fscore", "accuracy", "completeness", "precision", "recall")},
-            "empty_mesh": "" if g is None else int(g.empty_prediction), "seconds": f"{sum(r.seconds.values()):.3f}"}
+            "empty_mesh": "" if g is None else int(g.empty_prediction), "seconds": f"{sum(r.seconds.values()):.3f}",
+            "mesh_level": _fmt(r.mesh_level.level if r.mesh_level else None)}
 
 
 def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: str, category: str, stride: int,
@@ -382,8 +382,8 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     if geo:
         summary.update(summarize_geometry(geo, cfg.geometry))
         summary["geometry_objects"] = len(geo)
-        summary["mesh_status"] = (f"ok: {len(geo)} of {len(results)} objects have mesh.ply; marching cubes at "
-                                  f"density {cfg.mesh_threshold} on a {cfg.mesh_resolution}-sample frustum grid")
+        summary["mesh_status"] = (f"ok: {len(geo)} of {len(results)} objects have mesh.ply; "
+                                  + levels_text([r.mesh_level for r in results if r.mesh_level], cfg.mesh_resolution))
     else:
         summary.update({"chamfer_l1": None, "fscore": None, "fscore_tau": None, "geometry_objects": 0})
         summary["mesh_status"] = ("skipped (--no-mesh)" if not cfg.mesh

@@ -29,7 +29,7 @@ Depth prior (depth-aware checkpoints)
 Outputs
     N views on the orbit through the input camera (rendered at ``render_resolution``, default the training one),
     their depth (ray distance, opacity-normalised) and opacity, a mesh (marching cubes over the input camera's
-    frustum box with the run's z-range, :mod:`depthnerf.eval.mesh` level 20) with vertex colours = the fine
+    frustum box with the run's z-range, at the auto level of :mod:`depthnerf.eval.mesh` unless fixed) with vertex colours = the fine
     network's rgb at each vertex seen along the input camera's ray through it, and a point cloud = the rendered
     depth of every orbit view unprojected where opacity > :data:`POINT_OPACITY` (at most ``max_points`` points,
     an even subsample). :meth:`Reconstructor.save` writes them (:mod:`depthnerf.eval.exports`).
@@ -56,7 +56,7 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import ObjectRecord, ObjectViews, category_defaults, mask_bboxes
 from depthnerf.depth.estimators import make_estimator
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.mesh import DEFAULT_THRESHOLD, CameraGrid, MeshConfig, extract_mesh
+from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, source_mesh
 from depthnerf.eval.orbit import field_queries, orbit_poses, render_poses, srn_intrinsics, unproject
 from depthnerf.eval.pretrained import Pretrained, load_pretrained
 from depthnerf.model.conditioning import source_views
@@ -101,8 +101,8 @@ class ReconstructConfig:
     """Side of the rendered views; None = the training resolution."""
     mesh_resolution: int = 128
     """Marching-cubes samples along the frustum box's longest side (0 = no mesh)."""
-    mesh_threshold: float = DEFAULT_THRESHOLD
-    """Density level of the mesh surface."""
+    mesh_threshold: float | str = AUTO_LEVEL
+    """Density level of the mesh surface, or ``"auto"`` (see :mod:`depthnerf.eval.mesh`)."""
     max_points: int = 200_000
     """Largest point-cloud size."""
     chunk: int = 4096
@@ -373,12 +373,11 @@ class Reconstructor:
         out = render_poses(model, enc, poses, render_intr, near, far, train, cfg.chunk, self.device, bar.update)
         times["render_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        mesh = trimesh.Trimesh()
+        mesh, level = trimesh.Trimesh(), None
         if cfg.mesh_resolution > 0:
             density_fn, color_fn = field_queries(model, enc, poses[0, :3, 3].to(self.device))
-            grid = CameraGrid.from_frustum(poses[0], intr, near, far)
-            mesh = extract_mesh(density_fn, grid, MeshConfig(resolution=cfg.mesh_resolution,
-                                                            threshold=cfg.mesh_threshold), color_fn, self.device)
+            mesh, level = source_mesh(density_fn, poses[0], intr, near, far,
+                                      MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), color_fn, self.device)
         bar.update(1)
         bar.close()
         times["mesh_s"] = time.perf_counter() - t
@@ -393,7 +392,8 @@ class Reconstructor:
                     "framing": cfg.framing, "fill": fill, "category": train.data.category,
                     "depth_estimator": self.estimator_name if self.estimator is not None else "none",
                     "depth_checkpoint": self.estimator_checkpoint, "mesh_resolution": cfg.mesh_resolution,
-                    "mesh_threshold": cfg.mesh_threshold, "point_opacity": POINT_OPACITY,
+                    "mesh_threshold": cfg.mesh_threshold, "mesh_level": level and level.level,
+                    "mesh_level_rule": level and level.describe(), "point_opacity": POINT_OPACITY,
                     "mesh_colors": "fine-network rgb at each vertex seen along the input camera's ray"}
         prior_n = src.prior[0, 0, 0].cpu().numpy() if src.prior is not None else None
         return Reconstruction(

@@ -1,0 +1,143 @@
+"""The auto marching-cubes level (half the median peak density over opaque input rays) and the visible-surface
+ground truth (back-projected depth maps), both against closed forms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from depthnerf.data import srn_format
+from depthnerf.data.cameras import Intrinsics, camera_rays, look_at
+from depthnerf.data.srn import ObjectRecord
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.geometry_metrics import (
+    GeometryConfig,
+    backproject_depth,
+    object_geometry,
+    summarize_geometry,
+    visible_surface_points,
+)
+from depthnerf.eval.mesh import (
+    DEFAULT_THRESHOLD,
+    MeshConfig,
+    auto_level,
+    levels_text,
+    parse_level,
+    source_mesh,
+)
+
+INTR = Intrinsics(focal=24.0, cx=7.5, cy=7.5, height=16, width=16)
+NEAR, FAR = 1.0, 3.0
+RADIUS = 0.5
+
+
+def _camera(azimuth: float = 0.3, elevation: float = 0.4) -> torch.Tensor:
+    eye = 2.0 * torch.tensor([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                              np.sin(elevation)], dtype=torch.float32)
+    return look_at(eye)
+
+
+def ball(amplitude: float, softness: float = 0.0):
+    """Density ``amplitude`` inside radius RADIUS; a logistic edge of width ``softness`` (0 = a hard step)."""
+    def density(p: torch.Tensor) -> torch.Tensor:
+        r = p.norm(dim=-1)
+        if softness == 0:
+            return torch.where(r < RADIUS, torch.tensor(amplitude), torch.tensor(0.0))
+        return amplitude * torch.sigmoid((RADIUS - r) / softness)
+    return density
+
+
+def test_auto_level_is_half_the_density_of_a_constant_ball():
+    level = auto_level(ball(7.0), _camera(), INTR, NEAR, FAR)
+    assert level.rule == "auto" and level.level == pytest.approx(3.5, rel=1e-6)
+    assert 0 < level.opaque_rays < level.rays == 8 * 8  # every 2nd row and column of 16x16; the ball covers part
+    assert auto_level(ball(700.0), _camera(), INTR, NEAR, FAR).level == pytest.approx(350.0, rel=1e-6)  # scale-free
+
+
+def test_soft_ball_auto_mesh_sits_at_the_half_maximum_radius():
+    density, c2w = ball(5.0, softness=0.02), _camera()
+    level = auto_level(density, c2w, INTR, NEAR, FAR)
+    assert level.level == pytest.approx(2.5, rel=0.01)  # median peak = 5 sigmoid(>~10) ~ 5
+    fixed, fixed_level = source_mesh(density, c2w, INTR, NEAR, FAR, MeshConfig(48, DEFAULT_THRESHOLD))
+    assert len(fixed.faces) == 0 and fixed_level.rule == "fixed"  # soft field: the old fixed level finds nothing
+    mesh, used = source_mesh(density, c2w, INTR, NEAR, FAR, MeshConfig(48, "auto"))
+    assert used == level and len(mesh.faces) > 0
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    assert np.abs(radii - RADIUS).max() < 0.01  # sigmoid(0) = 1/2: the half-maximum surface is the sphere r = 0.5
+    assert used.describe().startswith(f"auto level {level.level:.4g} = 0.5 x median peak density over {level.opaque_rays} of 64")
+    assert f"median {level.level:.4g}" in levels_text([used], 48)
+
+
+def test_auto_level_falls_back_without_opaque_rays():
+    level = auto_level(lambda p: torch.full((len(p),), 0.1), _camera(), INTR, NEAR, FAR)  # opacity 1 - e^-0.2
+    assert (level.level, level.rule, level.opaque_rays) == (DEFAULT_THRESHOLD, "fallback", 0)
+    assert "fell back to density 20" in level.describe()
+    assert "1 object(s) without an opaque ray" in levels_text([level], 32)
+
+
+def test_parse_level():
+    assert parse_level("auto") == "auto" and parse_level(" AUTO ") == "auto" and parse_level("12.5") == 12.5
+    for bad in ("twenty", "-1", "0", "nan"):
+        with pytest.raises(DepthnerfError, match="--mesh-threshold"):
+            parse_level(bad)
+    with pytest.raises(DepthnerfError, match="mesh level must be a number or 'auto'"):
+        source_mesh(ball(1.0), _camera(), INTR, NEAR, FAR, MeshConfig(8, "half"))
+
+
+def sphere_depth(c2w: torch.Tensor, intr: Intrinsics, radius: float) -> np.ndarray:
+    """Closed-form camera z-depth of a sphere at the origin (0 where the ray misses it)."""
+    origins, dirs = camera_rays(c2w, intr)
+    o, d = origins.double().numpy(), dirs.double().numpy()
+    b = (o * d).sum(-1)
+    disc = b**2 - ((o * o).sum(-1) - radius**2)
+    t = -b - np.sqrt(np.clip(disc, 0, None))
+    cos = d @ c2w[:3, 2].double().numpy()  # camera +z axis in the world: z = t cos(theta)
+    return np.where(disc > 0, t * cos, 0.0).astype(np.float32)
+
+
+def test_backprojected_depth_lies_on_the_sphere():
+    c2w = _camera(1.1, 0.2)
+    depth = sphere_depth(c2w, INTR, RADIUS)
+    assert 0 < (depth > 0).sum() < depth.size
+    points = backproject_depth(depth, c2w.numpy(), INTR)
+    assert len(points) == (depth > 0).sum()
+    assert np.abs(np.linalg.norm(points, axis=1) - RADIUS).max() < 1e-5
+    assert (points @ c2w[:3, 3].double().numpy() > 0).all()  # only the side facing the camera
+
+
+def _sphere_object(root: Path, views: int, intr: Intrinsics) -> ObjectRecord:
+    srn_format.write_intrinsics(root / "intrinsics.txt", intr)
+    for k in range(views):
+        c2w = _camera(2 * np.pi * k / views, 0.3)
+        srn_format.write_pose(root / "pose" / f"{k:06d}.txt", c2w.numpy())
+        srn_format.write_depth(root / "depth" / f"{k:06d}.npz", sphere_depth(c2w, intr, RADIUS))
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS)
+    inner = trimesh.creation.icosphere(subdivisions=2, radius=RADIUS / 2)  # an interior part no view sees
+    trimesh.util.concatenate([mesh, inner]).export(root / "mesh.ply")
+    return ObjectRecord(category="cars", split="test", object_id="sphere", path=root,
+                        view_names=tuple(f"{k:06d}" for k in range(views)), intrinsics=intr, has_depth=True,
+                        has_mask=False, mesh_path=root / "mesh.ply")
+
+
+def test_visible_surface_ground_truth(tmp_path):
+    (tmp_path / "pose").mkdir()
+    (tmp_path / "depth").mkdir()
+    record = _sphere_object(tmp_path, 4, Intrinsics(focal=96.0, cx=31.5, cy=31.5, height=64, width=64))
+    points = visible_surface_points(record, n_points=300)
+    assert points.shape == (300, 3) and np.abs(np.linalg.norm(points, axis=1) - RADIUS).max() < 1e-5
+    pred = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS)  # = the outer (visible) surface
+    cfg = GeometryConfig(n_points=20_000, tau=0.01)
+    m = object_geometry(pred, record, cfg)
+    assert m.ground_truth == "visible surface from 4 depth maps"
+    assert m.completeness < 0.004 and m.recall > 0.99  # every visible GT point is on the prediction
+    mesh_only = object_geometry(pred, ObjectRecord(**{**record.__dict__, "has_depth": False}), cfg)
+    assert mesh_only.ground_truth == "mesh.ply"
+    # the interior sphere (1/5 of the GT area, 0.25 / sqrt(3) diagonals inside) is counted as missed
+    assert mesh_only.completeness > 0.02 and mesh_only.recall < 0.85
+    assert summarize_geometry([m, m], cfg)["geometry_gt"] == "visible surface from 4 depth maps"
+    assert summarize_geometry([m, mesh_only], cfg)["geometry_gt"] == (
+        "mesh.ply (1 objects); visible surface from 4 depth maps (1 objects)")
