@@ -228,14 +228,15 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
                   f"- LPIPS: {ev['lpips_status']}." + (f" Mesh: {ev['mesh_status']}." if ev.get("mesh_status") else "")]
     else:
         lines += ["Not evaluated at export time (no `--eval-summary`)."]
-    data_root = (ev or {}).get("data_root") or data_card.get("root", "data/synth")
+    data_root = card.get("data_root") or (ev or {}).get("data_root") or data_card.get("root", "data/synth")
     reproduce = [f"DATA={data_root}", synth_command(ds, cat)]
     if est in CACHED_ESTIMATORS:
         reproduce.append(depth_command(Path("$DATA"), est, cfg.prior.checkpoint, cfg.data.resolution,
                                        category=cat))
     reproduce.append(card.get("command") or f"depthnerf train --preset {cfg.preset} --data $DATA --depth {est} "
                      f"--out runs/{name}  # --command not given at export: check the config in the weights")
-    reproduce.append(f"python scripts/export_checkpoint.py --run runs/{card['source']['run']} --name {name}"
+    reproduce.append(f"python scripts/export_checkpoint.py --run {card.get('run_path') or 'runs/' + card['source']['run']} "
+                     f"--name {name}"
                      + (" --eval-summary SUMMARY" if ev else ""))
     if ev:
         reproduce.append(eval_command(name, ev, cfg.data.resolution))
@@ -266,7 +267,7 @@ def _check_fp16_range(pre: Pretrained) -> None:
 
 
 def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | None = None,
-           command: str | None = None) -> ExportResult:
+           command: str | None = None, data_root: str | None = None) -> ExportResult:
     """Export ``run``'s best (else latest) checkpoint as ``out/<name>.*`` (see the module docstring)."""
     if not NAME_PATTERN.match(name):
         raise DepthnerfError(f"--name {name!r}: use lower-case letters, digits, '.', '_' and '-' only")
@@ -305,7 +306,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
             "category": cfg.data.category, "resolution": cfg.data.resolution, "step": exported.step,
             "sha256": exported.sha256, "size_bytes": weights.stat().st_size, "dtype": "float16",
             "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},
-            "fp16_check": check, "command": command, "metrics": None, "protocol": None, "evaluation": None}
+            "fp16_check": check, "command": command, "data_root": data_root, "run_path": run.as_posix(),
+            "metrics": None, "protocol": None, "evaluation": None}
     if summary is not None:
         card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
         card["protocol"] = summary["protocol"]
@@ -324,6 +326,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--eval-summary", type=Path, help="summary.json of 'depthnerf eval' of this run's checkpoint")
     p.add_argument("--out", type=Path, default=SHIPPED_DIR, help=f"output folder (default {SHIPPED_DIR})")
     p.add_argument("--command", help="the command that produced the run (quoted; goes into the model card)")
+    p.add_argument("--data-root", help="dataset root as the card's reproduce commands should name it (default: the "
+                   "absolute path the evaluation used)")
     return p.parse_args(argv)
 
 
@@ -331,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     torch.set_grad_enabled(False)
     try:
-        res = export(args.run, args.name, args.out, args.eval_summary, args.command)
+        res = export(args.run, args.name, args.out, args.eval_summary, args.command, args.data_root)
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

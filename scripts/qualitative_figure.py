@@ -14,7 +14,7 @@ One row per object: the first ``--objects`` objects (in the first eval's order) 
 model saw), the depth prior of that view for every depth-aware prior among the evals (read through
 :class:`~depthnerf.depth.cache.PriorStore` opened with the estimator, weights and resolution the summary records,
 so a stale or missing cache is an error; colour-mapped between the 1st and 99th percentiles of its values on
-the object's mask, bright = near),
+the object's mask, bright = near, background white as the model sees a constant there),
 the ground-truth target (the eval's ``gt_path``), then each eval's render of that target with its per-view PSNR
 from ``renders.csv`` under it. The target is ``--view`` (it must have been rendered by every eval; with
 ``--views-stride K`` only every K-th view was), else the first view every eval rendered for that object.
@@ -187,13 +187,18 @@ def prior_source(store: PriorStore, record: ObjectRecord) -> str:
 
 def colorize(disparity: np.ndarray, mask: np.ndarray | None = None, cmap: str = PRIOR_CMAP) -> np.ndarray:
     """``H x W`` relative disparity -> ``H x W x 3`` colours; limits at the 1st / 99th percentiles of the pixels
-    in ``mask`` (the object, when it has any pixel; else the whole image), values beyond them clipped."""
+    in ``mask`` (the object, when it has any pixel; else the whole image), values beyond them clipped; pixels
+    outside ``mask`` are white, because the model never sees the estimator's background values (the prior is
+    set to a constant there, :func:`depthnerf.depth.normalize.normalize_disparity`)."""
     from matplotlib import colormaps
 
     pixels = disparity[mask] if mask is not None and mask.any() else disparity
     lo, hi = np.percentile(pixels, [1.0, 99.0])
     scaled = np.clip((disparity - lo) / max(float(hi - lo), 1e-12), 0.0, 1.0)
-    return colormaps[cmap](scaled)[..., :3].astype(np.float32)
+    rgb = colormaps[cmap](scaled)[..., :3].astype(np.float32)
+    if mask is not None and mask.any():
+        rgb[~mask.astype(bool)] = 1.0
+    return rgb
 
 
 def _record_index(data_root: Path, ev: EvalDir) -> dict[str, ObjectRecord]:
