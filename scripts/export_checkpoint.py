@@ -333,9 +333,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    torch.set_grad_enabled(False)
     try:
-        res = export(args.run, args.name, args.out, args.eval_summary, args.command, args.data_root)
+        with torch.no_grad():  # scoped: main() also runs inside test processes
+            res = export(args.run, args.name, args.out, args.eval_summary, args.command, args.data_root)
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
