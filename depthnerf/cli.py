@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from depthnerf import __version__
@@ -46,8 +47,16 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     return parser
 
 
+OMP_WAIT_POLICY = "PASSIVE"
+"""OpenMP wait policy set for the CLI unless the environment sets one. With the default (spinning) policy, torch's
+OpenMP threads stall badly whenever another process holds one of the cores (measured on 2 cores: a 64x64 view
+took 27 s instead of 1.8 s next to a busy process; docs/presets.md). PASSIVE threads sleep instead of spinning.
+It must be set before torch is imported, which the subcommand modules do."""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
     parser = build_parser(argv)
     args, extra = parser.parse_known_args(argv)
     if args.command is None:
