@@ -29,6 +29,7 @@ depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
 
 # 3. + 4. train and evaluate each run
 one_run() {
+  set -euo pipefail  # not inherited through xargs: a failed training must not be evaluated
   local name=$1 cat=${1%%-*} prior=${1#*-}
   local run="$STUDY/runs/$name" ev="$STUDY/eval/$name" log="$STUDY/logs/$name.log"
   local steps=()
@@ -60,5 +61,14 @@ for cat in cars chairs; do
   done
   python scripts/qualitative_figure.py --evals "${ce[@]}" --data "$STUDY/data" --objects 4 \
     --out "$STUDY/figures/qualitative_$cat.png"
+done
+for cat in cars chairs; do
+  others=()
+  for prior in bundled oracle; do
+    [ -f "$STUDY/eval/$cat-$prior/summary.json" ] && others+=("$STUDY/eval/$cat-$prior")
+  done
+  [ -f "$STUDY/eval/$cat-none/summary.json" ] && [ ${#others[@]} -gt 0 ] && \
+    python scripts/paired_difference.py --baseline "$STUDY/eval/$cat-none" --method "${others[@]}" \
+      --json "$STUDY/paired_$cat.json" | tee "$STUDY/paired_$cat.md"
 done
 cat "$STUDY/table.md"
