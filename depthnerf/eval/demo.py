@@ -47,9 +47,9 @@ from depthnerf.depth.estimators import CACHED_ESTIMATORS, make_estimator
 from depthnerf.depth.precompute import predict_views
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.exports import save_reconstruction
-from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, source_mesh
+from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig
 from depthnerf.eval.metrics import object_metrics
-from depthnerf.eval.orbit import field_queries, orbit_poses, render_poses, unproject
+from depthnerf.eval.orbit import input_camera_mesh, orbit_points, orbit_poses, render_poses
 from depthnerf.eval.pretrained import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
 from depthnerf.eval.protocol import ProtocolViews, protocol_views
 from depthnerf.eval.reconstruct import POINT_OPACITY, PreparedImage, Reconstruction
@@ -216,12 +216,11 @@ def turntable_and_mesh(pre: Pretrained, src: ObjectViews, disp: torch.Tensor | N
     t = time.perf_counter()
     mesh, level = trimesh.Trimesh(), None
     if cfg.mesh:
-        density_fn, color_fn = field_queries(model, enc, eye.to(device))
-        mesh, level = source_mesh(density_fn, src.poses[0], src.intrinsics, near, far,
-                                  MeshConfig(cfg.mesh_resolution, AUTO_LEVEL), color_fn, device)
+        mesh, level = input_camera_mesh(model, enc, src.poses[0], src.intrinsics, near, far,
+                                        MeshConfig(cfg.mesh_resolution, AUTO_LEVEL), device)
     times["mesh_s"] = time.perf_counter() - t
     on_stage(1)
-    keep = orbit.opacity > POINT_OPACITY
+    points, point_colors = orbit_points(orbit, poses, src.intrinsics, POINT_OPACITY, max_points=None)
     prepared = PreparedImage(image=src.images[0].permute(1, 2, 0).numpy(), mask=src.masks[0].numpy(),
                              notes=notes, source_size=(res, res))
     settings = {"radius": radius, "elevation": elevation, "azimuth": azimuth, "resolution": res,
@@ -234,8 +233,8 @@ def turntable_and_mesh(pre: Pretrained, src: ObjectViews, disp: torch.Tensor | N
         input=prepared, depth_prior=None if disp is None else disp[0].numpy(),
         prior_normalized=None if prior is None else prior[0, 0, 0].cpu().numpy(),
         poses=poses.numpy(), intrinsics=src.intrinsics, views=orbit.rgb.numpy(), depths=orbit.depth.numpy(),
-        opacity=orbit.opacity.numpy(), mesh=mesh, points=unproject(poses, src.intrinsics, orbit.depth, keep),
-        point_colors=orbit.rgb[keep].numpy(), settings=settings, timings=times)
+        opacity=orbit.opacity.numpy(), mesh=mesh, points=points,
+        point_colors=point_colors, settings=settings, timings=times)
 
 
 @torch.no_grad()

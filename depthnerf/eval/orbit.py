@@ -18,11 +18,13 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+import trimesh
 from jaxtyping import Bool, Float
 from torch import Tensor
 
 from depthnerf.data.cameras import Intrinsics, look_at, pixel_directions
 from depthnerf.errors import DepthnerfError
+from depthnerf.eval.mesh import MeshConfig, MeshLevel, source_mesh
 from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
 from depthnerf.render.views import ViewRenders, render_views
 from depthnerf.train.config import TrainConfig
@@ -102,3 +104,25 @@ def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, depth: Float[Tens
         d = dirs_cam[k] @ pose[:3, :3].T
         out.append((pose[:3, 3] + t[k][:, None] * d).numpy())
     return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.float32)
+
+
+def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,
+                      far: float, config: MeshConfig, device: torch.device | str, colored: bool = True
+                      ) -> tuple[trimesh.Trimesh, MeshLevel]:
+    """The mesh over the input camera's frustum box (fine network density, each point seen along the input
+    camera's ray through it), with the network's colour at each vertex when ``colored``."""
+    density_fn, color_fn = field_queries(model, enc, c2w[:3, 3].to(device))
+    return source_mesh(density_fn, c2w, intr, near, far, config, color_fn if colored else None, device)
+
+
+def orbit_points(renders: ViewRenders, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, min_opacity: float,
+                 max_points: int | None) -> tuple[Float[np.ndarray, "P 3"], Float[np.ndarray, "P 3"]]:
+    """Point cloud of rendered views: depth unprojected where opacity > ``min_opacity``, with the rendered colours;
+    an even subsample of at most ``max_points`` points (None: all)."""
+    keep = renders.opacity > min_opacity
+    points = unproject(poses, intr, renders.depth, keep)
+    colors = renders.rgb[keep].numpy()
+    if max_points is not None and len(points) > max_points:
+        idx = np.linspace(0, len(points) - 1, max_points).round().astype(np.int64)
+        points, colors = points[idx], colors[idx]
+    return points, colors

@@ -64,7 +64,7 @@ from depthnerf.eval.geometry_metrics import (
     object_geometry,
     summarize_geometry,
 )
-from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, levels_text, source_mesh
+from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, levels_text
 from depthnerf.eval.metrics import (
     ImageMetricsConfig,
     LpipsConfig,
@@ -75,7 +75,7 @@ from depthnerf.eval.metrics import (
     object_metrics,
     summarize,
 )
-from depthnerf.eval.orbit import field_queries, render_poses
+from depthnerf.eval.orbit import input_camera_mesh, render_poses
 from depthnerf.eval.pretrained import Pretrained
 from depthnerf.model.conditioning import source_views
 from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
@@ -248,9 +248,9 @@ class _Evaluator:
         t2 = time.perf_counter()
         geometry, mesh, level = None, None, None
         if cfg.mesh and record.mesh_path is not None:
-            density_fn, _ = field_queries(model, enc, src.poses[0, :3, 3].to(self.device))
-            mesh, level = source_mesh(density_fn, src.poses[0], src.intrinsics, self.near, self.far,
-                                      MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), device=self.device)
+            mesh, level = input_camera_mesh(model, enc, src.poses[0], src.intrinsics, self.near, self.far,
+                                            MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device,
+                                            colored=False)
             geometry = object_geometry(mesh, record, cfg.geometry)
         t3 = time.perf_counter()
         if cfg.save_renders:

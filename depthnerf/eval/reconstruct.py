@@ -56,8 +56,14 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import ObjectRecord, ObjectViews, category_defaults, mask_bboxes
 from depthnerf.depth.estimators import make_estimator
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, source_mesh
-from depthnerf.eval.orbit import field_queries, orbit_poses, render_poses, srn_intrinsics, unproject
+from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig
+from depthnerf.eval.orbit import (
+    input_camera_mesh,
+    orbit_points,
+    orbit_poses,
+    render_poses,
+    srn_intrinsics,
+)
 from depthnerf.eval.pretrained import Pretrained, load_pretrained
 from depthnerf.model.conditioning import source_views
 from depthnerf.train.config import z_range
@@ -375,18 +381,12 @@ class Reconstructor:
         t = time.perf_counter()
         mesh, level = trimesh.Trimesh(), None
         if cfg.mesh_resolution > 0:
-            density_fn, color_fn = field_queries(model, enc, poses[0, :3, 3].to(self.device))
-            mesh, level = source_mesh(density_fn, poses[0], intr, near, far,
-                                      MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), color_fn, self.device)
+            mesh, level = input_camera_mesh(model, enc, poses[0], intr, near, far,
+                                            MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device)
         bar.update(1)
         bar.close()
         times["mesh_s"] = time.perf_counter() - t
-        keep = out.opacity > POINT_OPACITY
-        points = unproject(poses, render_intr, out.depth, keep)
-        colors = out.rgb[keep].numpy()
-        if len(points) > cfg.max_points:
-            idx = np.linspace(0, len(points) - 1, cfg.max_points).round().astype(np.int64)
-            points, colors = points[idx], colors[idx]
+        points, colors = orbit_points(out, poses, render_intr, POINT_OPACITY, cfg.max_points)
         settings = {"radius": radius, "elevation": cfg.elevation, "focal": focal, "focal_frame": image_size,
                     "resolution": res, "render_resolution": render_res, "views": views, "z_range": [near, far],
                     "framing": cfg.framing, "fill": fill, "category": train.data.category,
