@@ -20,6 +20,7 @@ import time
 import numpy as np
 import torch
 
+from depthnerf.cpu_runtime import keep_freed_memory
 from depthnerf.data.srn import category_defaults
 from depthnerf.eval.mesh import CameraGrid, MeshConfig, extract_mesh
 from depthnerf.eval.metrics import object_metrics
@@ -38,6 +39,7 @@ def main() -> None:
     parser.add_argument("--chunk", type=int, default=4096)
     parser.add_argument("--threads", type=int, help="torch threads (default: torch's choice)")
     args = parser.parse_args()
+    keep_freed_memory()  # as the depthnerf CLI does (depthnerf.cpu_runtime)
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.checkpoint:

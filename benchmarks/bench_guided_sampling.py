@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import torch
 from guided_checkpoint import run_checkpoint, source_depth, timed
 
+from depthnerf.cpu_runtime import keep_freed_memory
 from depthnerf.data.cameras import Intrinsics, look_at
 from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.errors import DepthnerfError
@@ -191,6 +192,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", type=int, default=2, help="checkpoint mode: first N objects of the split")
     p.add_argument("--views-stride", type=int, default=25, help="checkpoint mode: every K-th target view")
     p.add_argument("--budgets", default="8,16,24,32", help="checkpoint mode: guided samples per occupied ray")
+    p.add_argument("--reference-samples", metavar="C,I,G",
+                   help="checkpoint mode: reference sampler counts (coarse, importance, Gaussian), e.g. the paper's "
+                        "64,16,16 (default: the checkpoint's own sampler)")
+    p.add_argument("--plain-samplers", metavar="'C,I,G ...'",
+                   help="checkpoint mode: extra unguided rows with these sampler counts (space-separated)")
+    p.add_argument("--align-min-opacity", type=float, default=0.5,
+                   help="checkpoint mode: source pixels at least this opaque in the alignment render anchor the prior")
     p.add_argument("--json", help="checkpoint mode: write the table as JSON here")
     p.add_argument("--res", type=int, default=64, help="image side in pixels (analytic mode)")
     p.add_argument("--views", type=int, default=4, help="number of target views (analytic mode)")
@@ -206,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--model-psnr", type=float, default=23.0,
                    help="analytic mode: PSNR of a typical model vs ground truth, for the worst-case loss bound")
     args = p.parse_args(argv)
+    keep_freed_memory()  # as the depthnerf CLI does (depthnerf.cpu_runtime)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     torch.manual_seed(0)

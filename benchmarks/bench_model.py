@@ -12,8 +12,11 @@ Cases (each runs in a fresh subprocess so its peak RSS, ``ru_maxrss``, is its ow
 - ``view``   a novel view rendered with ``render_image`` (no grad), fp32 and bf16 autocast.
 
 Settings (``--setting``): ``paper`` (ResNet34, d_hidden 512, 64/16/16 samples, 128x128, 4 objects x 128 rays),
-``ref-small`` (the same with d_hidden 128 and 32/8/8 samples: the reference's reduced run), and CPU candidates
+``ref-small`` (the same with d_hidden 128 and 32/16/8 samples: the reference's reduced run), and CPU candidates
 ``cpu-64-d128`` / ``cpu-64-d256`` (64x64 images, 32/16/8 samples), ``cpu-64-r18`` (ResNet18, d_hidden 128).
+
+Each case runs with glibc malloc tuned as the CLI runs (``depthnerf.cpu_runtime.keep_freed_memory``);
+``--glibc-malloc-default`` measures without it.
 
 Usage: ``python benchmarks/bench_model.py --setting paper --cases peak mlp field iter view``.
 """
@@ -31,6 +34,7 @@ from dataclasses import dataclass
 
 import torch
 
+from depthnerf.cpu_runtime import keep_freed_memory
 from depthnerf.data.cameras import Intrinsics, look_at
 from depthnerf.model import EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConfig, SourceViews
 from depthnerf.model.field import ResidualField
@@ -76,7 +80,7 @@ class Setting:
 SETTINGS = {
     "paper": Setting(128, "resnet34", 512, (64, 16, 16)),
     "paper-depth": Setting(128, "resnet34", 512, (64, 16, 16), use_depth=True),
-    "ref-small": Setting(128, "resnet34", 128, (32, 8, 8)),
+    "ref-small": Setting(128, "resnet34", 128, (32, 16, 8)),
     "cpu-64-d128": Setting(64, "resnet34", 128, (32, 16, 8)),
     "cpu-64-d256": Setting(64, "resnet34", 256, (32, 16, 8)),
     "cpu-64-r18": Setting(64, "resnet18", 128, (32, 16, 8)),
@@ -267,6 +271,7 @@ CASES = {"peak": case_peak, "mlp": case_mlp, "field": case_field, "encoder": cas
 
 
 def _run_case(name: str, args, setting: Setting) -> None:
+    tuned = False if args.glibc_malloc_default else keep_freed_memory()
     torch.set_num_threads(args.threads)
     if name == "peak":
         case_peak(args)
@@ -274,7 +279,7 @@ def _run_case(name: str, args, setting: Setting) -> None:
         CASES[name](args, setting)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"      [{name}: peak RSS {rss:,.0f} MiB, {torch.get_num_threads()} threads, "
-          f"load avg {os.getloadavg()[0]:.1f}]", flush=True)
+          f"load avg {os.getloadavg()[0]:.1f}, malloc {'tuned' if tuned else 'default'}]", flush=True)
 
 
 def main() -> None:
@@ -290,6 +295,8 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=16384, help="points for the mlp/field cases")
     parser.add_argument("--view-sizes", type=int, nargs="+", default=[64, 128])
     parser.add_argument("--render-chunk", type=int, default=4096, help="rays per render_image chunk")
+    parser.add_argument("--glibc-malloc-default", action="store_true",
+                        help="leave glibc malloc at its defaults (see depthnerf.cpu_runtime) to measure the difference")
     parser.add_argument("--chunk", type=int, default=FieldConfig.chunk_points, help="FieldConfig.chunk_points (views)")
     args = parser.parse_args()
     setting = SETTINGS[args.setting]

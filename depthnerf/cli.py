@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 
 from depthnerf import __version__
+from depthnerf.cpu_runtime import configure_process
 from depthnerf.errors import DepthnerfError
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -47,16 +47,9 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     return parser
 
 
-OMP_WAIT_POLICY = "PASSIVE"
-"""OpenMP wait policy set for the CLI unless the environment sets one. With the default (spinning) policy, torch's
-OpenMP threads stall badly whenever another process holds one of the cores (measured on 2 cores: a 64x64 view
-took 27 s instead of 1.8 s next to a busy process; docs/presets.md). PASSIVE threads sleep instead of spinning.
-It must be set before torch is imported, which the subcommand modules do."""
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    os.environ.setdefault("OMP_WAIT_POLICY", OMP_WAIT_POLICY)
+    configure_process()  # OpenMP wait policy (before torch is imported) and glibc malloc; see cpu_runtime
     parser = build_parser(argv)
     args, extra = parser.parse_known_args(argv)
     if args.command is None:

@@ -20,9 +20,9 @@ import torch
 import trimesh
 
 from depthnerf.data.srn import index_split
+from depthnerf.eval.objects import cached_prior, open_prior_store, prepare_object, protocol_views
 from depthnerf.eval.orbit import field_queries
 from depthnerf.eval.pretrained import load_pretrained
-from depthnerf.eval.protocol import open_prior_store, prepare_object, protocol_views
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
             if not mesh_path.is_file():
                 print(f"error: {mesh_path}: missing (run depthnerf eval --save-renders)", file=sys.stderr)
                 return 2
-            obj = prepare_object(pre.model, rec, protocol_views(rec.num_views, 25), store, res, res,
+            obj = prepare_object(pre.model, rec, protocol_views(rec.num_views, 25), cached_prior(store), res, res,
                                  torch.device("cpu"))
             _, color_fn = field_queries(pre.model, obj.enc, obj.source.poses[0, :3, 3])
             parts = sorted(trimesh.load(mesh_path).split(only_watertight=False), key=lambda m: -len(m.vertices))

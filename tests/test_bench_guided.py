@@ -105,3 +105,25 @@ def test_guided_budget_split(bench):
         assert g.n_empty + g.n_empty_importance == total // 2
     with pytest.raises(DepthnerfError):
         guided_sampler(5, GuidedSamplerConfig())
+
+
+def test_reference_samples_override(bench, tmp_path):
+    """``--reference-samples C,I,G`` renders the reference row with that sampler on the same network, and
+    ``--plain-samplers`` adds unguided rows: network evaluations per ray are C + (C + I + G); guided rows report
+    which fraction of rays the guide covered; a malformed value is a one-line error, exit 2."""
+    root = make_srn_fixture(tmp_path / "data", "cars", {"test": 1}, views=66, size=16, with_depth=True,
+                            with_mask=True)
+    weights = tiny_checkpoint(tmp_path / "tiny.safetensors")
+    out = tmp_path / "bench.json"
+    common = ["--checkpoint", str(weights), "--data", str(root), "--objects", "1", "--views-stride", "40",
+              "--budgets", "6", "--repeats", "1"]
+    assert bench.main([*common, "--reference-samples", "8,4,4", "--plain-samplers", "4,2,2", "--json",
+                       str(out)]) == 0
+    result = json.loads(out.read_text())
+    ref, plain, guided = result["rows"]
+    assert result["reference_sampler"] == ref["samples_per_ray"] == "8+4+4"
+    assert ref["evals_per_ray"] == 8 + (8 + 4 + 4) and ref["guide_valid_fraction"] is None
+    assert plain["name"] == "plain-4+2+2" and plain["evals_per_ray"] == 4 + (4 + 2 + 2)
+    assert not plain["guided"] and not plain["meets_target"] and 0 < plain["psnr_vs_reference"] <= 100
+    assert 0 <= guided["guide_valid_fraction"] <= guided["guide_occupied_fraction"] <= 1
+    assert bench.main([*common, "--reference-samples", "64,16"]) == 2

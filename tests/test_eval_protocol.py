@@ -28,8 +28,8 @@ from depthnerf.data.srn import index_split, load_object
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.mesh import CameraGrid
+from depthnerf.eval.objects import protocol_views
 from depthnerf.eval.pretrained import load_pretrained
-from depthnerf.eval.protocol import protocol_views
 from depthnerf.eval.table import load_summary, markdown_table
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.overrides import to_dict
@@ -149,7 +149,7 @@ def test_eval_baseline_outputs_are_consistent(setup):
 
 
 def ckpt_sha(path: str) -> str:
-    from depthnerf.eval.pretrained import sha256_file
+    from depthnerf.files import sha256_file
 
     return sha256_file(Path(path))
 

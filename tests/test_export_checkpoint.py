@@ -18,7 +18,8 @@ from safetensors import safe_open
 
 from depthnerf.cli import main as cli_main
 from depthnerf.eval import pretrained
-from depthnerf.eval.pretrained import load_pretrained, sha256_file
+from depthnerf.eval.pretrained import load_pretrained
+from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import SourceViews
 from depthnerf.train import checkpoint as ckpt
 

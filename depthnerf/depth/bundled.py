@@ -33,8 +33,9 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, safe_open, save_file
 from torch import Tensor, nn
 
-from depthnerf.depth.estimators import PriorProvenance, sha256_files
+from depthnerf.depth.estimators import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import sha256_files
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "bundled_depth.safetensors"
 """Where the shipped weights live inside the package."""
@@ -184,20 +185,11 @@ def bundled_provenance(checkpoint: str | os.PathLike | None = None) -> PriorProv
     return PriorProvenance("bundled", shown, sha256_files([path], names=False), size, LICENCE)
 
 
-class BundledEstimator:
-    """The frozen bundled network behind the :class:`~depthnerf.depth.estimators.DepthEstimator` interface."""
+class BundledEstimator(FrozenNetworkEstimator):
+    """The frozen bundled network (``network``) behind the :class:`~depthnerf.depth.estimators.DepthEstimator`
+    interface."""
 
     name = "bundled"
-    needs_depth = False
-
-    def __init__(self, net: BundledDepthNet, provenance: PriorProvenance, device: str = "cpu") -> None:
-        self.net = net.eval().requires_grad_(False).to(device)
-        self._provenance = provenance
-        self.device = device
-
-    @property
-    def provenance(self) -> PriorProvenance:
-        return self._provenance
 
     @classmethod
     def load(cls, checkpoint: str | os.PathLike | None = None, device: str = "cpu") -> BundledEstimator:
@@ -209,14 +201,12 @@ class BundledEstimator:
     def predict(self, images: Float[Tensor, "B 3 H W"],
                 depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
         """Relative disparity at the images' resolution (``depths`` is ignored)."""
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
-        height, width = images.shape[-2:]
-        size = network_size(self.net.config, height, width)
+        height, width = self.image_size(images)
+        size = network_size(self.network.config, height, width)
         x = images.detach().float().clamp(0.0, 1.0).to(self.device)
         if (height, width) != size:
             x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
-        disp = self.net(x)[:, None]
+        disp = self.network(x)[:, None]
         if (height, width) != size:
             disp = F.interpolate(disp, size=(height, width), mode="bilinear", align_corners=False)
         return disp[:, 0].float().cpu()

@@ -112,14 +112,6 @@ def read_object_metadata(path: Path) -> dict[str, str] | None:
         return None
 
 
-def write_json_atomic(path: Path, payload: dict[str, Any]) -> None:
-    """Write JSON through a temporary file + rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(payload, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-
-
 class PriorStore:
     """Read access to one estimator's depth priors for a dataset (cached, or on the fly for ``oracle``).
 

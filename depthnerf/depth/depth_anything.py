@@ -27,8 +27,9 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from depthnerf.depth.estimators import PriorProvenance, sha256_files
+from depthnerf.depth.estimators import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import sha256_files
 
 DEFAULT_CHECKPOINT = "depth-anything/Depth-Anything-V2-Base-hf"
 """The paper's estimator (Depth Anything V2 Base, relative depth)."""
@@ -113,21 +114,15 @@ def _hub_reachable(timeout: float = 5.0) -> bool:
     return True
 
 
-class DepthAnythingEstimator:
-    """Frozen Depth Anything V2 (any size) from ``transformers``; see the module docstring."""
+class DepthAnythingEstimator(FrozenNetworkEstimator):
+    """Frozen Depth Anything V2 (any size) from ``transformers`` (``network``, with its image ``processor``);
+    see the module docstring."""
 
     name = "depth-anything-v2"
-    needs_depth = False
 
-    def __init__(self, model: torch.nn.Module, processor, provenance: PriorProvenance, device: str) -> None:
-        self.model = model.eval().requires_grad_(False).to(device)
+    def __init__(self, network: torch.nn.Module, processor, provenance: PriorProvenance, device: str) -> None:
+        super().__init__(network, provenance, device)
         self.processor = processor
-        self._provenance = provenance
-        self.device = device
-
-    @property
-    def provenance(self) -> PriorProvenance:
-        return self._provenance
 
     @classmethod
     def load(cls, checkpoint: str | None = None, device: str = "cpu") -> DepthAnythingEstimator:
@@ -163,12 +158,10 @@ class DepthAnythingEstimator:
     def predict(self, images: Float[Tensor, "B 3 H W"],
                 depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
         """Relative disparity at the images' resolution (``depths`` is ignored)."""
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
-        height, width = images.shape[-2:]
+        height, width = self.image_size(images)
         batch = images.detach().float().clamp(0.0, 1.0).cpu()
         inputs = self.processor(images=list(batch), return_tensors="pt", do_rescale=False)
-        outputs = self.model(pixel_values=inputs["pixel_values"].to(self.device))
+        outputs = self.network(pixel_values=inputs["pixel_values"].to(self.device))
         outputs.predicted_depth = outputs.predicted_depth.float().cpu()
         post = self.processor.post_process_depth_estimation(outputs, target_sizes=[(height, width)] * len(batch))
         return torch.stack([item["predicted_depth"].reshape(height, width) for item in post])

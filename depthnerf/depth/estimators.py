@@ -84,6 +84,29 @@ class DepthEstimator(Protocol):
         ...
 
 
+class FrozenNetworkEstimator:
+    """What the network backends share: a frozen module on a device, its provenance and the input check."""
+
+    name: str
+    needs_depth = False
+
+    def __init__(self, network: torch.nn.Module, provenance: PriorProvenance, device: str = "cpu") -> None:
+        self.network = network.eval().requires_grad_(False).to(device)
+        self._provenance = provenance
+        self.device = device
+
+    @property
+    def provenance(self) -> PriorProvenance:
+        return self._provenance
+
+    @staticmethod
+    def image_size(images: Float[Tensor, "B 3 H W"]) -> tuple[int, int]:
+        """(H, W) of a ``[B, 3, H, W]`` batch; ``ValueError`` for any other shape."""
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
+        return int(images.shape[-2]), int(images.shape[-1])
+
+
 def oracle_disparity(depth: Float[Tensor, "*B H W"]) -> Float[Tensor, "*B H W"]:
     """Ground-truth disparity: ``1 / z`` where ``z > 0`` (foreground), 0 on the background."""
     depth = depth.float()
@@ -149,15 +172,3 @@ def make_estimator(name: str, checkpoint: str | None = None, device: str = "cpu"
 
             return DepthAnythingEstimator.load(checkpoint, device=device)
     raise DepthnerfError(f"unknown depth estimator '{name}' (choose from {', '.join(ESTIMATORS)})")
-
-
-def sha256_files(paths: list, *, names: bool = True) -> str:
-    """SHA-256 over the given files in order (their base names too when ``names``), streamed in 1 MB chunks."""
-    digest = hashlib.sha256()
-    for path in paths:
-        if names:
-            digest.update(path.name.encode() + b"\0")
-        with open(path, "rb") as handle:
-            while chunk := handle.read(1 << 20):
-                digest.update(chunk)
-    return digest.hexdigest()

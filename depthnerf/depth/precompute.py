@@ -21,11 +21,11 @@ from depthnerf.depth.cache import (
     object_fingerprint,
     object_path,
     read_object_metadata,
-    write_json_atomic,
     write_object_priors,
 )
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, DepthEstimator, describe_estimator, make_estimator
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_json_atomic
 
 
 @dataclass

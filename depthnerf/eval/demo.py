@@ -41,7 +41,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from depthnerf.data import srn_format
-from depthnerf.data.srn import ObjectViews, index_split, load_object
+from depthnerf.data.srn import ObjectViews, index_split
 from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_status
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, make_estimator
 from depthnerf.depth.precompute import predict_views
@@ -49,11 +49,10 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.eval.exports import save_reconstruction
 from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig
 from depthnerf.eval.metrics import object_metrics
+from depthnerf.eval.objects import ProtocolViews, prepare_object, protocol_views
 from depthnerf.eval.orbit import input_camera_mesh, orbit_points, orbit_poses, render_poses
 from depthnerf.eval.pretrained import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
-from depthnerf.eval.protocol import ProtocolViews, protocol_views
 from depthnerf.eval.reconstruct import POINT_OPACITY, PreparedImage, Reconstruction
-from depthnerf.model.conditioning import source_views
 from depthnerf.model.pixelnerf import EncodedViews
 from depthnerf.train.config import z_range
 
@@ -252,22 +251,20 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     bar.update(1)
     t = time.perf_counter()
     views = protocol_views(record.num_views, cfg.views_stride)
-    src = load_object(record, [views.input_view], resolution=res, with_depth=train.prior.estimator == "oracle")
-    tgt = load_object(record, list(views.targets), resolution=res)
     notes: list[str] = [f"object {record.object_id}: depthnerf synth --category {category} --seed {cfg.seed} "
                         f"--test-objects 1 --resolution {res} (test split, never used for training)"]
-    disp = depth_prior(pre, src, notes)
+    obj = prepare_object(model, record, views, lambda views_: depth_prior(pre, views_, notes), res, res, device,
+                         source_depth=train.prior.estimator == "oracle")
+    src, tgt, disp, enc = obj.source, obj.targets, obj.prior, obj.enc
     if not cfg.mesh:
         notes.append("--no-mesh: no mesh extracted (mesh.ply and mesh.glb are empty)")
-    sources = source_views(src, [0], disp, device)
-    enc = model.encode(sources)
     near, far = z_range(train)
     preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, near, far, train, cfg.chunk, device).rgb.numpy()
     gts = tgt.images.permute(0, 2, 3, 1).numpy()
     metrics = object_metrics(record.object_id, preds, gts)
     times["reconstruct_s"] = time.perf_counter() - t
     bar.update(1)
-    result = turntable_and_mesh(pre, src, disp, sources.prior, enc, cfg, notes, device, bar.update)
+    result = turntable_and_mesh(pre, src, disp, obj.inputs.prior, enc, cfg, notes, device, bar.update)
     bar.close()
     result.timings = {**times, **result.timings}
     t = time.perf_counter()

@@ -13,13 +13,13 @@ exactly and loaded strictly (a mismatch is an error naming the file, never a par
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import sha256_file
 from depthnerf.model.config import PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.train import checkpoint as ckpt
@@ -55,14 +55,6 @@ def resolve_checkpoint(spec: str | Path) -> Path:
         raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")
     names = ", ".join(shipped) or "none shipped"
     raise DepthnerfError(f"{spec}: not a checkpoint file, checkpoint folder, run folder or shipped name ({names})")
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 @dataclass

@@ -55,7 +55,7 @@ import trimesh
 from tqdm import tqdm
 
 from depthnerf.data import srn_format
-from depthnerf.data.srn import ObjectRecord, ObjectViews, index_split, load_object
+from depthnerf.data.srn import ObjectRecord, index_split
 from depthnerf.depth.cache import PriorStore
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
@@ -75,16 +75,17 @@ from depthnerf.eval.metrics import (
     object_metrics,
     summarize,
 )
+from depthnerf.eval.objects import (
+    INPUT_VIEW,
+    ProtocolViews,
+    cached_prior,
+    open_prior_store,
+    prepare_object,
+    protocol_views,
+)
 from depthnerf.eval.orbit import input_camera_mesh, render_poses
 from depthnerf.eval.pretrained import Pretrained
-from depthnerf.model.conditioning import source_views
-from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
 from depthnerf.train.config import z_range
-
-INPUT_VIEW = 64
-"""The SRN protocol's input view."""
-SRN_VIEWS = 251
-"""Views per object of the SRN val/test sets."""
 
 
 @dataclass(frozen=True)
@@ -125,18 +126,6 @@ class ProtocolConfig:
     """Progress bar over objects (stderr)."""
 
 
-@dataclass(frozen=True)
-class ProtocolViews:
-    """Input and target view indices of one object."""
-
-    input_view: int
-    """The view the model is conditioned on."""
-    targets: tuple[int, ...]
-    """Scored views, in index order."""
-    others: int
-    """Number of views other than the input (targets before the stride)."""
-
-
 @dataclass
 class ObjectResult:
     """Everything measured on one object."""
@@ -169,54 +158,6 @@ class EvalOutputs:
     """``OUT_DIR/renders.csv`` (with ``save_renders``)."""
 
 
-def protocol_views(num_views: int, stride: int = 1) -> ProtocolViews:
-    """View 64 as input (view 0 with <= 64 views), every ``stride``-th other view as a target."""
-    if stride < 1:
-        raise DepthnerfError(f"--views-stride must be >= 1, got {stride}")
-    if num_views < 2:
-        raise DepthnerfError(f"an object needs at least 2 views (an input and a target), has {num_views}")
-    src = INPUT_VIEW if num_views > INPUT_VIEW else 0
-    others = [v for v in range(num_views) if v != src]
-    return ProtocolViews(input_view=src, targets=tuple(others[::stride]), others=len(others))
-
-
-@dataclass
-class PreparedObject:
-    """One object as the protocol prepares it: the input view encoded once, the target views loaded."""
-
-    views: ProtocolViews
-    """Input and target view indices."""
-    source: ObjectViews
-    """The input view at the training resolution."""
-    targets: ObjectViews
-    """The target views at the evaluated resolution."""
-    prior: torch.Tensor | None
-    """[1 H W] raw depth prior of the input view (None for the baseline)."""
-    enc: EncodedViews
-    """The model's features of the input view (and its prior)."""
-
-
-def open_prior_store(pre: Pretrained, data_root: Path, records: Sequence[ObjectRecord],
-                     depth_checkpoint: str | None = None) -> PriorStore | None:
-    """The checkpoint's depth-prior store at its training resolution, checked for ``records``; None: no prior."""
-    store = PriorStore.open(data_root, pre.config.prior.estimator, depth_checkpoint or pre.config.prior.checkpoint,
-                            resolution=pre.config.data.resolution)
-    if store is not None:
-        store.check(records)
-    return store
-
-
-@torch.no_grad()
-def prepare_object(model: PixelNeRF, record: ObjectRecord, views: ProtocolViews, store: PriorStore | None,
-                   input_res: int, eval_res: int, device: torch.device) -> PreparedObject:
-    """Load the input view (and its prior) at ``input_res`` and encode it; load the targets at ``eval_res``."""
-    src = load_object(record, [views.input_view], resolution=input_res)
-    tgt = load_object(record, list(views.targets), resolution=eval_res)
-    disp = store.load(record, [views.input_view]) if store is not None else None
-    enc = model.encode(source_views(src, [0], disp, device))
-    return PreparedObject(views=views, source=src, targets=tgt, prior=disp, enc=enc)
-
-
 def method_label(estimator: str) -> str:
     """The default ``depthnerf compare`` row label of a depth prior."""
     return "pixelNeRF (baseline)" if estimator == "none" else f"depth-aware ({estimator})"
@@ -237,7 +178,8 @@ class _Evaluator:
         model, cfg = self.pre.model, self.cfg
         views = protocol_views(record.num_views, cfg.views_stride)
         t0 = time.perf_counter()
-        obj = prepare_object(model, record, views, self.store, self.input_res, self.eval_res, self.device)
+        obj = prepare_object(model, record, views, cached_prior(self.store), self.input_res, self.eval_res,
+                             self.device)
         src, tgt, enc = obj.source, obj.targets, obj.enc
         preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.pre.config,
                              cfg.chunk, self.device).rgb.numpy()

@@ -28,6 +28,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_text_atomic
 
 FORMAT = "depthnerf-checkpoint-1"
 """Format tag stored in every weights file's metadata."""
@@ -39,15 +40,6 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
-
-
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], step: int = 0,
@@ -165,14 +157,14 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
     with open(tmp / "optimizer.safetensors", "rb") as f:
         os.fsync(f.fileno())
     payload = {"step": state.step, "best_psnr": state.best_psnr, "extra": state.extra, "optimizer": opt_info}
-    _write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1))
+    write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1))
     _fsync_dir(tmp)
     final = ckpt_root / name
     if final.exists():
         shutil.rmtree(final)
     os.replace(tmp, final)
     _fsync_dir(ckpt_root)
-    _write_text_atomic(ckpt_root / "latest", name + "\n")
+    write_text_atomic(ckpt_root / "latest", name + "\n")
     steps = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())
     for old in steps[:-keep_last] if keep_last > 0 else []:
         shutil.rmtree(old, ignore_errors=True)

@@ -11,7 +11,7 @@ import torch
 from depthnerf.data.srn import ObjectRecord, load_object
 from depthnerf.depth.cache import PriorStore
 from depthnerf.eval.metrics import object_metrics
-from depthnerf.eval.protocol import protocol_views
+from depthnerf.eval.objects import protocol_views
 from depthnerf.model.conditioning import source_views
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.render.config import RenderConfig

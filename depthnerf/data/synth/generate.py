@@ -21,7 +21,6 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
-import os
 import shutil
 import zlib
 from collections import Counter
@@ -47,6 +46,7 @@ from depthnerf.data.synth.chairs import (
 from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
 from depthnerf.data.synth.views import ViewConfig, hemisphere_eyes, poses_from_eyes, spiral_eyes
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_json_atomic
 
 GENERATOR_VERSION = "depthnerf-synth-1"
 """Version of the generator as a whole (renderer, protocol, file layout)."""
@@ -174,12 +174,6 @@ def _read_marker(path: Path) -> dict | None:
         raise DepthnerfError(f"{path}: unreadable completion marker ({err}); delete the object folder") from None
 
 
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-
-
 def job_status(job: ObjectJob) -> str:
     """``done`` (valid marker), ``partial`` (folder without marker) or ``missing``."""
     marker = _read_marker(job.folder / MARKER)
@@ -230,7 +224,7 @@ def generate_object(job: ObjectJob) -> dict:
               "faces": int(len(mesh.faces)), "bbox_min": [round(float(x), 6) for x in lo],
               "bbox_max": [round(float(x), 6) for x in hi], "depth_min": round(z_min, 6), "depth_max": round(z_max, 6),
               "mask_coverage_mean": round(float(np.mean(coverage)), 6)}
-    _write_json_atomic(folder / MARKER, marker)
+    write_json_atomic(folder / MARKER, marker)
     return marker
 
 
@@ -285,7 +279,7 @@ def generate(config: SynthConfig) -> dict:
     except OSError as err:  # disk full, permissions, ...
         raise DepthnerfError(f"{err.filename or out}: cannot write ({err.strerror or err})") from None
     card = build_card(config, spec, [_read_marker(j.folder / MARKER) for j in jobs])
-    _write_json_atomic(out / f"{config.category}_card.json", card)
+    write_json_atomic(out / f"{config.category}_card.json", card)
     return card
 
 

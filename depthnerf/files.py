@@ -1,0 +1,55 @@
+"""Crash-safe file writes and content hashes shared by the data, depth-cache, training and checkpoint code.
+
+A write goes to a temporary file in the destination folder (so the rename stays on one file system), is flushed
+and fsynced, then renamed over the destination with ``os.replace``: a reader sees the old file or the new one,
+never a torn one, and a crash leaves at most a stray ``.NAME.PID.tmp`` file behind.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+
+def temporary_sibling(path: Path) -> Path:
+    """The temporary name used for an atomic write of ``path`` (hidden, unique per process)."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically and durably (temporary sibling, fsync, rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_sibling(path)
+    with open(tmp, "w") as handle:
+        handle.write(text)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(tmp, path)
+
+
+def write_json_atomic(path: Path, payload: dict[str, Any]) -> None:
+    """:func:`write_text_atomic` of ``payload`` as indented JSON with sorted keys and a final newline."""
+    write_text_atomic(path, json.dumps(payload, indent=2, sort_keys=True) + "\n")
+
+
+def sha256_files(paths: Iterable[Path], *, names: bool = True) -> str:
+    """SHA-256 over the given files in order (each base name first, NUL-terminated, when ``names``), streamed."""
+    digest = hashlib.sha256()
+    for path in paths:
+        path = Path(path)
+        if names:
+            digest.update(path.name.encode() + b"\0")
+        with open(path, "rb") as handle:
+            while chunk := handle.read(1 << 20):
+                digest.update(chunk)
+    return digest.hexdigest()
+
+
+def sha256_file(path: Path) -> str:
+    """SHA-256 of one file's bytes (``sha256sum``'s digest)."""
+    return sha256_files([path], names=False)
