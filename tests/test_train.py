@@ -20,7 +20,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, sample_pixels, step_keys
 from depthnerf.train.config import preset, with_prior
-from depthnerf.train.loop import learning_rate
+from depthnerf.train.loop import background_opacity_loss, learning_rate
 from depthnerf.train.run_log import read_metrics
 
 TINY = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
@@ -106,6 +106,25 @@ def test_checkpoint_refuses_other_model_config(tmp_path):
 
 
 # ---------------------------------------------------------------- end to end
+
+
+def test_background_opacity_loss_closed_form():
+    opacity = torch.tensor([[0.5, 1.0, 0.2], [0.3, 0.0, 0.9]])
+    fg = torch.tensor([[True, False, False], [True, True, False]])
+    assert float(background_opacity_loss(opacity, fg)) == pytest.approx((1.0 + 0.04 + 0.81) / 3)
+    assert float(background_opacity_loss(opacity, torch.ones_like(fg))) == 0.0  # no background ray: no loss
+
+
+def test_background_opacity_term_enters_the_training_loss(data, tmp_path):
+    """With ``--schedule.background_opacity_weight W`` the logged loss is coarse + fine + W * background (and the
+    background term is logged, positive at initialisation); off by default (logged as 0)."""
+    run = tmp_path / "bg"
+    cli("train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--out", str(run),
+        "--max-steps", "2", "--log.val_every", "0", "--schedule.background_opacity_weight", "0.5", *TINY)
+    for m in (m for m in read_metrics(run) if "loss" in m):
+        assert m["loss_background"] > 0
+        assert m["loss"] == pytest.approx(m["loss_coarse"] + m["loss_fine"] + 0.5 * m["loss_background"], rel=1e-6)
+    assert preset("cpu-cars").schedule.background_opacity_weight == 0.0
 
 
 def test_train_run_folder_determinism_and_refusal_to_overwrite(data, tmp_path):

@@ -78,6 +78,10 @@ class ScheduleConfig:
     """Exponential learning-rate decay per epoch of phase 2 (1.0 = constant)."""
     depth_loss_weight: float = 0.0
     """Weight of the scale/shift-invariant depth loss against the target view's prior (beyond the paper; 0 = off)."""
+    background_opacity_weight: float = 0.0
+    """Weight of :func:`~depthnerf.train.loop.background_opacity_loss` on coarse and fine opacity of background
+    target rays (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
+    colour loss; this term penalises it (the white floaters of docs/RESULTS.md)."""
 
 
 @dataclass

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from jaxtyping import Bool, Float
+from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
@@ -53,16 +55,27 @@ class LossTerms:
     """MSE of the fine colour (0 without a fine pass)."""
     depth: torch.Tensor
     """Scale/shift-invariant depth loss (0 when off)."""
+    background: torch.Tensor
+    """Background-opacity loss, coarse + fine (0 when off)."""
+
+
+def background_opacity_loss(opacity: Float[Tensor, "B R"], foreground: Bool[Tensor, "B R"]) -> Float[Tensor, ""]:
+    """Mean squared opacity over the rays whose target pixel is background (0 when there is none):
+    ``sum_r [not fg_r] * opacity_r^2 / max(1, #background rays)``."""
+    background = ~foreground
+    return (opacity.square() * background).sum() / background.sum().clamp_min(1)
 
 
 class ObjectLoss(torch.nn.Module):
     """Encode one object's source view, render its target rays, return the losses (DDP wraps this module)."""
 
-    def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float) -> None:
+    def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float,
+                 background_weight: float = 0.0) -> None:
         super().__init__()
         self.model = model
         self.render_cfg = render_cfg
         self.depth_weight = depth_weight
+        self.background_weight = background_weight
 
     def forward(self, item: TrainBatch, near: float, far: float, generator: torch.Generator) -> LossTerms:
         src = SourceViews(images=item.src_images, poses=item.src_poses, focal=item.focal,
@@ -81,7 +94,12 @@ class ObjectLoss(torch.nn.Module):
             depth = ssi_depth_loss(out.fine.normalized_depth(), item.target_prior, item.target_fg,
                                    dirs_cam_z=item.target_cos)
             total = total + self.depth_weight * depth
-        return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth)
+        background = total * 0
+        if self.background_weight > 0:
+            background = (background_opacity_loss(out.coarse.opacity, item.target_fg)
+                          + background_opacity_loss(out.fine.opacity, item.target_fg))
+            total = total + self.background_weight * background
+        return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth, background=background)
 
 
 def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
@@ -144,7 +162,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         _write_run_files(run_dir, cfg, store, len(records))
     barrier(info)
 
-    loss_module = ObjectLoss(model, cfg.render, cfg.schedule.depth_loss_weight)
+    loss_module = ObjectLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight)
     runner = DistributedDataParallel(loss_module) if info.world > 1 else loss_module
     s = cfg.schedule
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
@@ -169,15 +187,15 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         batch = batch.to(info.device)
         keys = step_keys(plan, step, info.rank, info.world)
         optimizer.zero_grad(set_to_none=True)
-        sums = torch.zeros(4, dtype=torch.float64)
+        sums = torch.zeros(5, dtype=torch.float64)
         for k, key in enumerate(keys):
             gen = torch.Generator(info.device).manual_seed(item_seed(key.seed, step, 1))
             sync = contextlib.nullcontext() if (info.world == 1 or k == len(keys) - 1) else runner.no_sync()
             with sync, amp:
                 terms = runner(batch.item(k), near, far, gen)
                 (terms.total / len(keys)).backward()
-            sums += torch.tensor([float(t.detach()) for t in (terms.total, terms.coarse, terms.fine, terms.depth)],
-                                 dtype=torch.float64)
+            sums += torch.tensor([float(t.detach()) for t in (terms.total, terms.coarse, terms.fine, terms.depth,
+                                                              terms.background)], dtype=torch.float64)
         optimizer.step()
         step += 1
         rays_since += len(keys) * s.rays_per_object * info.world
@@ -190,7 +208,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             now = time.perf_counter()
             psnr = -10.0 * math.log10(max(float(means[2]), 1e-10))
             values = {"loss": float(means[0]), "loss_coarse": float(means[1]), "loss_fine": float(means[2]),
-                      "loss_depth": float(means[3]), "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
+                      "loss_depth": float(means[3]), "loss_background": float(means[4]), "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
                       "rays_per_s": rays_since / max(now - t_last, 1e-9)}
             log.log(step, values)
             bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")
