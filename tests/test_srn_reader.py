@@ -24,7 +24,14 @@ from fixtures_srn import (
 from PIL import Image
 
 from depthnerf.data import srn, srn_format
-from depthnerf.data.cameras import Intrinsics, pixel_directions, project, world_to_camera
+from depthnerf.data.cameras import (
+    Intrinsics,
+    backproject,
+    look_at,
+    pixel_directions,
+    project,
+    world_to_camera,
+)
 from depthnerf.errors import DepthnerfError
 
 
@@ -295,3 +302,21 @@ def test_synth_output_and_its_real_srn_spelling_load_identically(tmp_path: Path)
     for name in ("images", "poses", "masks", "bboxes", "depths", "view_indices"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert a.masks.any() and (a.images < 1).any() and (a.images == 1).any()
+
+
+@pytest.mark.parametrize("ray_distance", [False, True])
+def test_backproject_inverts_projection(ray_distance: bool):
+    """Back-projected pixels project back to their own pixel centres at the given z-depth / ray distance (to the
+    float32 precision of the pixel directions)."""
+    intr = Intrinsics(focal=30.0, cx=11.5, cy=7.5, height=16, width=24)
+    c2w = look_at(torch.tensor([1.1, -0.7, 0.6])).double()
+    gen = torch.Generator().manual_seed(3)
+    depth = 0.5 + torch.rand(16, 24, generator=gen, dtype=torch.float64)
+    keep = torch.rand(16, 24, generator=gen) > 0.3
+    points = backproject(depth, c2w, intr, keep, ray_distance=ray_distance)
+    cam = world_to_camera(points[None], c2w)[0]
+    uv = project(cam[None], intr.focal, (intr.cx, intr.cy))[0]
+    rows, cols = torch.nonzero(keep, as_tuple=True)
+    assert torch.allclose(uv[:, 0], cols.double(), atol=1e-4) and torch.allclose(uv[:, 1], rows.double(), atol=1e-4)
+    measured = cam.norm(dim=-1) if ray_distance else cam[:, 2]
+    assert torch.allclose(measured, depth[keep], atol=1e-6)

@@ -34,7 +34,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from torch import Tensor
 
 
@@ -134,6 +134,19 @@ def camera_rays(c2w: Float[Tensor, "4 4"], intr: Intrinsics) -> tuple[Float[Tens
     dirs = pixel_directions(intr) @ c2w[:3, :3].T
     origins = c2w[:3, 3].expand_as(dirs)
     return origins, dirs
+
+
+def backproject(depth: Float[Tensor, "H W"], c2w: Float[Tensor, "4 4"], intr: Intrinsics,
+                keep: Bool[Tensor, "H W"], *, ray_distance: bool = False) -> Float[Tensor, "P 3"]:
+    """World points of the ``keep`` pixels of a depth map seen from camera ``c2w``, in ``depth``'s dtype.
+
+    ``depth`` is z-depth (``ray_distance=False``: camera point = ``z * (x/z, y/z, 1)``) or the distance along unit
+    ray directions (``ray_distance=True``: camera point = ``t * d / |d|``, the renderer's ``t``).
+    """
+    dirs = pixel_directions(intr, normalize=ray_distance).to(depth.dtype)
+    cam = dirs[keep] * depth[keep][:, None]
+    c2w = c2w.to(depth.dtype)
+    return cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
 def ray_distance_to_z(t: Tensor, dirs_cam_z: Tensor) -> Tensor:

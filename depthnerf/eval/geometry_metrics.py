@@ -41,12 +41,13 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
+import torch
 import trimesh
 from jaxtyping import Float
 from scipy.spatial import cKDTree
 
 from depthnerf.data import srn_format
-from depthnerf.data.cameras import Intrinsics, pixel_directions
+from depthnerf.data.cameras import Intrinsics, backproject
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.mesh import load_mesh
@@ -134,12 +135,9 @@ def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: Geometr
 
 def backproject_depth(depth: Float[np.ndarray, "H W"], c2w: Float[np.ndarray, "4 4"],
                       intr: Intrinsics) -> Float[np.ndarray, "P 3"]:
-    """World points of the pixels of a z-depth map with depth > 0 (camera ``c2w``, OpenCV axes)."""
-    rays = pixel_directions(intr, normalize=False).numpy().astype(np.float64)  # camera frame, z = 1
-    keep = depth > 0
-    cam = rays[keep] * depth[keep, None].astype(np.float64)
-    c2w = np.asarray(c2w, dtype=np.float64)
-    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+    """World points (float64) of the pixels of a z-depth map with depth > 0 (camera ``c2w``, OpenCV axes)."""
+    z = torch.from_numpy(np.asarray(depth, dtype=np.float64))
+    return backproject(z, torch.as_tensor(np.asarray(c2w), dtype=torch.float64), intr, z > 0).numpy()
 
 
 def visible_surface_points(record: ObjectRecord, n_points: int) -> Float[np.ndarray, "N 3"] | None:

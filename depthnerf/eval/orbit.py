@@ -22,7 +22,7 @@ import trimesh
 from jaxtyping import Bool, Float
 from torch import Tensor
 
-from depthnerf.data.cameras import Intrinsics, look_at, pixel_directions
+from depthnerf.data.cameras import Intrinsics, backproject, look_at
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.mesh import MeshConfig, MeshLevel, source_mesh
 from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
@@ -98,11 +98,8 @@ def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 
 def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, depth: Float[Tensor, "N H W"],
               keep: Bool[Tensor, "N H W"]) -> Float[np.ndarray, "P 3"]:
     """World points ``o + t d`` of the kept pixels of N views, ``t`` = ray distance along unit directions."""
-    dirs_cam = pixel_directions(intr)  # [H W 3], unit
-    out = []
-    for pose, t, k in zip(poses, depth, keep, strict=True):
-        d = dirs_cam[k] @ pose[:3, :3].T
-        out.append((pose[:3, 3] + t[k][:, None] * d).numpy())
+    out = [backproject(t, pose, intr, k, ray_distance=True).numpy() for pose, t, k in zip(poses, depth, keep,
+                                                                                           strict=True)]
     return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.float32)
 
 
