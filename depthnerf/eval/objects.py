@@ -27,7 +27,6 @@ SRN_VIEWS = 251
 """Views per object of the SRN val/test sets."""
 
 
-
 @dataclass(frozen=True)
 class ProtocolViews:
     """Input and target view indices of one object."""

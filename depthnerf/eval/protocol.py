@@ -41,6 +41,7 @@ quantisation of the ground truth as well as of the render). Renders are 8-bit PN
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import sys
@@ -85,6 +86,7 @@ from depthnerf.eval.objects import (
 )
 from depthnerf.eval.orbit import input_camera_mesh, render_poses
 from depthnerf.eval.pretrained import Pretrained
+from depthnerf.files import write_text_atomic
 from depthnerf.train.config import z_range
 
 
@@ -229,12 +231,11 @@ def _fmt(value: float | None) -> str:
 
 
 def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(columns))
-        writer.writeheader()
-        writer.writerows(rows)
-    tmp.replace(path)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=list(columns))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text_atomic(path, text.getvalue())
 
 
 PER_OBJECT_COLUMNS = ("object_id", "input_view", "views", "psnr", "ssim", "lpips", "chamfer_l1", "fscore",

@@ -28,7 +28,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_text_atomic
+from depthnerf.files import temporary_sibling, write_text_atomic
 
 FORMAT = "depthnerf-checkpoint-1"
 """Format tag stored in every weights file's metadata."""
@@ -49,7 +49,7 @@ def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], st
                for k, v in module.state_dict().items()}
     meta = {"format": FORMAT, "config": json.dumps(config, sort_keys=True), "step": str(step), **(extra or {})}
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = temporary_sibling(path)
     save_file(tensors, str(tmp), metadata=meta)
     with open(tmp, "rb") as f:
         os.fsync(f.fileno())

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from depthnerf.files import write_text_atomic
 
 
 def _clean(value: Any) -> Any:
@@ -44,9 +45,7 @@ class RunLog:
                     keep.append(line)
             except json.JSONDecodeError:
                 break  # a line cut by a kill: everything after it is also after the checkpoint
-        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
-        tmp.write_text("".join(k + "\n" for k in keep))
-        os.replace(tmp, self.path)
+        write_text_atomic(self.path, "".join(k + "\n" for k in keep))
 
     def log(self, step: int, values: dict[str, float], prefix: str = "train") -> None:
         """Append one JSON line and the matching TensorBoard scalars."""
