@@ -3,9 +3,9 @@
     python benchmarks/bench_eval.py [--preset cpu-cars] [--checkpoint PATH] [--views 250] [--resolution R]
                                     [--mesh-resolution 128] [--chunk 4096] [--threads N]
 
-Uses the same functions as ``depthnerf eval`` (:func:`depthnerf.eval.orbit.render_poses`,
-:func:`depthnerf.eval.metrics.object_metrics`, :func:`depthnerf.eval.orbit.field_queries` +
-:func:`depthnerf.eval.mesh.extract_mesh`). Without ``--checkpoint`` the model is built from the preset's config
+Uses the same functions as ``depthnerf eval`` (:func:`depthnerf.reconstruct.orbit.render_poses`,
+:func:`depthnerf.eval.metrics.object_metrics`, :func:`depthnerf.reconstruct.orbit.field_queries` +
+:func:`depthnerf.render.mesh.extract_mesh`). Without ``--checkpoint`` the model is built from the preset's config
 with random weights (timing does not depend on the weights; the depth-aware preset is used, whose encoder also
 takes the prior). The object is synthetic: a grey input image with a random prior, target cameras on SRN-like
 orbits. Prints one line per stage: encode once, render N views (and rays/s), PSNR+SSIM over N views, mesh
@@ -22,10 +22,11 @@ import torch
 
 from depthnerf.cpu_runtime import keep_freed_memory
 from depthnerf.data.srn import category_defaults
-from depthnerf.eval.mesh import CameraGrid, MeshConfig, extract_mesh
 from depthnerf.eval.metrics import object_metrics
-from depthnerf.eval.orbit import field_queries, orbit_poses, render_poses, srn_intrinsics
 from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
+from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
+from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, field_queries
+from depthnerf.render.views import render_poses
 from depthnerf.train.config import preset, z_range
 
 
@@ -72,7 +73,7 @@ def main() -> None:
         enc = model.encode(src)
         t_enc = time.perf_counter() - t
         t = time.perf_counter()
-        out = render_poses(model, enc, poses, intr, near, far, cfg, args.chunk, "cpu")
+        out = render_poses(model, enc, poses, intr, near, far, cfg.render, args.chunk, "cpu")
         t_render = time.perf_counter() - t
     rays = args.views * res * res
     print(f"encode once: {t_enc:.3f} s")

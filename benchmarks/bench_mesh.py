@@ -20,7 +20,7 @@ from skimage.measure import marching_cubes
 
 from depthnerf.data.cameras import Intrinsics, look_at
 from depthnerf.eval.geometry_metrics import GeometryConfig, geometry_metrics
-from depthnerf.eval.mesh import CameraGrid, MeshConfig, extract_mesh, sample_density
+from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, sample_density
 
 
 def best_of(repeats: int, fn) -> tuple[float, object]:

@@ -2,8 +2,37 @@
 
 Pipeline (one straight line, one sub-package per stage):
 ``data`` (SRN reader, synthetic generator) -> ``depth`` (monocular priors, cache) -> ``model`` (encoder,
-field, pixelNeRF) -> ``render`` (samplers, volume rendering) -> ``train`` -> ``eval`` (metrics, protocol,
-mesh, reconstruction) -> ``cli``.
+field, pixelNeRF) -> ``render`` (samplers, volume rendering, meshes) -> ``train`` | ``eval`` (SRN protocol,
+metrics) | ``reconstruct`` (one photo in) -> ``commands`` (the CLI).
+
+Public API (imported lazily, so ``import depthnerf`` stays cheap)::
+
+    from depthnerf import Reconstructor
+    rec = Reconstructor.from_pretrained("cpu-cars-depth")
+    result = rec.reconstruct("car.png")
+    rec.save(result, "out/")
 """
 
+from __future__ import annotations
+
+from typing import Any
+
 __version__ = "0.1.0"
+
+_PUBLIC = {
+    "Reconstructor": "depthnerf.reconstruct.reconstructor",
+    "ReconstructConfig": "depthnerf.reconstruct.reconstructor",
+    "Reconstruction": "depthnerf.reconstruct.reconstructor",
+    "prepare_photo": "depthnerf.reconstruct.photo",
+}
+
+__all__ = [*_PUBLIC, "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    """Lazy access to the public API (PEP 562)."""
+    if name in _PUBLIC:
+        import importlib
+
+        return getattr(importlib.import_module(_PUBLIC[name]), name)
+    raise AttributeError(f"module 'depthnerf' has no attribute {name!r}")

@@ -46,10 +46,11 @@ from depthnerf.depth.estimators import CACHED_ESTIMATORS
 from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import psnr
-from depthnerf.eval.orbit import orbit_poses, render_poses, srn_intrinsics
 from depthnerf.eval.pretrained import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
 from depthnerf.eval.table import load_summary
 from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
+from depthnerf.render.views import render_poses
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import TrainConfig, z_range
 
@@ -113,7 +114,7 @@ def roundtrip_check(source: Pretrained, exported: Pretrained) -> dict:
     rgbs = []
     for pre in (source, exported):
         enc = pre.model.encode(src)
-        rgbs.append(render_poses(pre.model, enc, pose, intr, near, far, cfg, 4096, "cpu").rgb[0].numpy())
+        rgbs.append(render_poses(pre.model, enc, pose, intr, near, far, cfg.render, 4096, "cpu").rgb[0].numpy())
     diff = np.abs(rgbs[0] - rgbs[1])
     return {"max_abs_rgb": float(diff.max()), "mean_abs_rgb": float(diff.mean()),
             "psnr_db": psnr(rgbs[1], np.clip(rgbs[0], 0.0, 1.0)), "tolerance": FP16_TOLERANCE,

@@ -21,8 +21,8 @@ import trimesh
 
 from depthnerf.data.srn import index_split
 from depthnerf.eval.objects import cached_prior, open_prior_store, prepare_object, protocol_views
-from depthnerf.eval.orbit import field_queries
 from depthnerf.eval.pretrained import load_pretrained
+from depthnerf.render.mesh import field_queries
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -27,10 +27,10 @@ from depthnerf.data.cameras import world_to_camera
 from depthnerf.data.srn import index_split, load_object
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.mesh import CameraGrid
 from depthnerf.eval.objects import protocol_views
 from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.eval.table import load_summary, markdown_table
+from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.overrides import to_dict
 

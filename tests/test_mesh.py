@@ -21,7 +21,7 @@ from depthnerf.eval.geometry_metrics import (
     sample_surface,
     summarize_geometry,
 )
-from depthnerf.eval.mesh import CameraGrid, MeshConfig, extract_mesh, load_mesh, sample_density
+from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, load_mesh, sample_density
 
 INTR = Intrinsics(focal=131.25, cx=63.5, cy=63.5, height=128, width=128)  # SRN cars at 128x128
 C2W = look_at(torch.tensor([1.1, -0.5, 0.6]))

@@ -21,7 +21,7 @@ from depthnerf.eval.geometry_metrics import (
     summarize_geometry,
     visible_surface_points,
 )
-from depthnerf.eval.mesh import (
+from depthnerf.render.mesh import (
     DEFAULT_THRESHOLD,
     MeshConfig,
     auto_level,

@@ -26,11 +26,12 @@ from depthnerf.data.cameras import world_to_camera
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.mesh import CameraGrid
-from depthnerf.eval.orbit import srn_intrinsics
 from depthnerf.eval.pretrained import load_pretrained
-from depthnerf.eval.reconstruct import FILL, ReconstructConfig, Reconstructor, prepare_photo
 from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.reconstruct.orbit import srn_intrinsics
+from depthnerf.reconstruct.photo import FILL, prepare_photo
+from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import with_prior
 from depthnerf.train.overrides import to_dict

@@ -64,10 +64,10 @@ def resolve_device(name: str) -> torch.device:
 
 def run(args: argparse.Namespace) -> int:
     from depthnerf.eval.geometry_metrics import GeometryConfig
-    from depthnerf.eval.mesh import parse_level
     from depthnerf.eval.metrics import LpipsConfig
     from depthnerf.eval.pretrained import load_pretrained
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
+    from depthnerf.render.mesh import parse_level
 
     out = args.out
     if out is None:

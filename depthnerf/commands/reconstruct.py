@@ -1,9 +1,9 @@
 """``depthnerf reconstruct IMAGE --checkpoint CKPT --out DIR``: one photo -> depth prior, novel views, turntable,
-depth maps, mesh and point cloud (a thin layer over :class:`depthnerf.eval.reconstruct.Reconstructor`).
+depth maps, mesh and point cloud (a thin layer over :class:`depthnerf.reconstruct.reconstructor.Reconstructor`).
 
 The photo should show one object, roughly centred, on a plain background; the mask is ``--mask``, else the
 alpha channel, else everything that differs from the border colour (rules, framing and camera defaults in
-:mod:`depthnerf.eval.reconstruct`; the output layout in :mod:`depthnerf.eval.exports`).
+:mod:`depthnerf.reconstruct.reconstructor`; the output layout in :mod:`depthnerf.reconstruct.exports`).
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from depthnerf.eval.mesh import parse_level
-    from depthnerf.eval.reconstruct import ReconstructConfig, Reconstructor
+    from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+    from depthnerf.render.mesh import parse_level
 
     device = resolve_device(args.device)
     rec = Reconstructor.from_pretrained(args.checkpoint, device, depth_estimator=args.depth_estimator,

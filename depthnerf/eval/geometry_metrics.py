@@ -50,7 +50,7 @@ from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics, backproject
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.mesh import load_mesh
+from depthnerf.render.mesh import load_mesh
 
 
 @dataclass(frozen=True)

@@ -19,9 +19,9 @@ Resolution
     the evaluated, input, training and dataset (native) resolutions.
 
 3D metrics (beyond the paper)
-    :func:`~depthnerf.eval.mesh.source_mesh` over the input camera's frustum and the run's z-range, at the auto
+    :func:`~depthnerf.render.mesh.source_mesh` over the input camera's frustum and the run's z-range, at the auto
     level unless fixed (``mesh_level`` per object), densities of the fine network seen along the input rays
-    (:func:`~depthnerf.eval.orbit.field_queries`); Chamfer-L1 / F-score against the visible surface of the depth
+    (:func:`~depthnerf.reconstruct.orbit.field_queries`); Chamfer-L1 / F-score against the visible surface of the depth
     maps, else ``mesh.ply`` (``geometry_gt``), in ``mesh.ply`` diagonals (:mod:`depthnerf.eval.geometry_metrics`).
     Objects without ``mesh.ply`` get empty geometry cells; the means are over objects that have one.
 
@@ -65,7 +65,6 @@ from depthnerf.eval.geometry_metrics import (
     object_geometry,
     summarize_geometry,
 )
-from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, levels_text
 from depthnerf.eval.metrics import (
     ImageMetricsConfig,
     LpipsConfig,
@@ -84,9 +83,10 @@ from depthnerf.eval.objects import (
     prepare_object,
     protocol_views,
 )
-from depthnerf.eval.orbit import input_camera_mesh, render_poses
 from depthnerf.eval.pretrained import Pretrained
 from depthnerf.files import write_text_atomic
+from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, input_camera_mesh, levels_text
+from depthnerf.render.views import render_poses
 from depthnerf.train.config import z_range
 
 
@@ -111,7 +111,7 @@ class ProtocolConfig:
     mesh_resolution: int = 128
     """Marching-cubes samples along the longest side of the frustum box."""
     mesh_threshold: float | str = AUTO_LEVEL
-    """Density level of the extracted surface, or ``"auto"`` (per object, see :mod:`depthnerf.eval.mesh`)."""
+    """Density level of the extracted surface, or ``"auto"`` (per object, see :mod:`depthnerf.render.mesh`)."""
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     """Chamfer / F-score settings."""
     save_renders: bool = False
@@ -183,7 +183,7 @@ class _Evaluator:
         obj = prepare_object(model, record, views, cached_prior(self.store), self.input_res, self.eval_res,
                              self.device)
         src, tgt, enc = obj.source, obj.targets, obj.enc
-        preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.pre.config,
+        preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.pre.config.render,
                              cfg.chunk, self.device).rgb.numpy()
         gts = tgt.images.permute(0, 2, 3, 1).numpy()
         t1 = time.perf_counter()

@@ -7,6 +7,7 @@ bounded by ``chunk`` whatever N and the image size are.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -14,6 +15,8 @@ from jaxtyping import Float
 from torch import Tensor
 
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.guide import DepthGuide
 from depthnerf.render.pipeline import FieldFn, render_image
@@ -51,3 +54,27 @@ def render_views(coarse: FieldFn, fine: FieldFn | None, c2w: Float[Tensor, "N 4 
     depth = torch.where(opacity > 1e-4, res.depth.reshape(n, h, w) / opacity.clamp_min(1e-4),
                         torch.full_like(opacity, far))
     return ViewRenders(rgb=res.rgb.reshape(n, h, w, 3).clamp(0, 1), depth=depth, opacity=opacity)
+
+
+@torch.no_grad()
+def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, near: float,
+                 far: float, cfg: RenderConfig, chunk: int, device: torch.device | str,
+                 on_group: Callable[[int], None] | None = None) -> ViewRenders:
+    """Render N views of one encoded object (CPU float tensors), ``max(1, chunk // (H*W))`` views per call and
+    ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views."""
+    if cfg.guided.enabled:
+        raise DepthnerfError("the checkpoint's config enables render.guided (depth-guided sampling); evaluation and "
+                             "reconstruction render with the paper's sampler only")
+    if chunk < 1:
+        raise DepthnerfError(f"--chunk must be >= 1, got {chunk}")
+    coarse, fine = model.field(enc, "coarse"), model.field(enc, "fine")
+    group = max(1, chunk // (intr.height * intr.width))
+    parts = []
+    for start in range(0, len(poses), group):
+        res = render_views(coarse, fine, poses[start:start + group].to(device), intr, near, far, cfg,
+                           chunk=chunk)
+        parts.append(ViewRenders(rgb=res.rgb.float().cpu(), depth=res.depth.float().cpu(),
+                                 opacity=res.opacity.float().cpu()))
+        if on_group is not None:
+            on_group(len(res.rgb))
+    return ViewRenders(*(torch.cat([getattr(p, k) for p in parts]) for k in ("rgb", "depth", "opacity")))

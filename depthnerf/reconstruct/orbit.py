@@ -1,4 +1,4 @@
-"""Cameras around an encoded object and what is rendered or queried from them (eval and reconstruction).
+"""Orbit cameras around a reconstructed object and the point cloud of its rendered views.
 
 Conventions of :mod:`depthnerf.data.cameras`: world +z up, object at the origin, camera-to-world poses with
 OpenCV axes, ``t`` = distance along unit ray directions. An orbit camera at azimuth ``a`` and elevation ``e``
@@ -14,20 +14,15 @@ Intrinsics of a reconstruction follow the SRN release: focal ``f`` in pixels of 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
 import torch
-import trimesh
 from jaxtyping import Bool, Float
 from torch import Tensor
 
 from depthnerf.data.cameras import Intrinsics, backproject, look_at
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.mesh import MeshConfig, MeshLevel, source_mesh
-from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
-from depthnerf.render.views import ViewRenders, render_views
-from depthnerf.train.config import TrainConfig
+from depthnerf.render.views import ViewRenders
 
 
 def orbit_eye(radius: float, elevation_deg: float, azimuth_deg: float) -> Float[Tensor, " 3"]:
@@ -57,59 +52,12 @@ def srn_intrinsics(focal: float, image_size: int, resolution: int) -> Intrinsics
     return base.resized(resolution, resolution)
 
 
-def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"]
-                  ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
-    """``(density_fn, color_fn)`` of the fine network (the coarse one without a fine network) at world points
-    ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it."""
-    fn = model.field(enc, "fine")
-
-    def query(points: Tensor) -> tuple[Tensor, Tensor]:
-        dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
-        rgb, sigma = fn(points[None, :, None, :], dirs[None])
-        return rgb[0, :, 0], sigma[0, :, 0]
-
-    return (lambda p: query(p)[1]), (lambda p: query(p)[0])
-
-
-@torch.no_grad()
-def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, near: float,
-                 far: float, cfg: TrainConfig, chunk: int, device: torch.device | str,
-                 on_group: Callable[[int], None] | None = None) -> ViewRenders:
-    """Render N views of one encoded object (CPU float tensors), ``max(1, chunk // (H*W))`` views per call and
-    ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views."""
-    if cfg.render.guided.enabled:
-        raise DepthnerfError("the checkpoint's config enables render.guided (depth-guided sampling); evaluation and "
-                             "reconstruction render with the paper's sampler only")
-    if chunk < 1:
-        raise DepthnerfError(f"--chunk must be >= 1, got {chunk}")
-    coarse, fine = model.field(enc, "coarse"), model.field(enc, "fine")
-    group = max(1, chunk // (intr.height * intr.width))
-    parts = []
-    for start in range(0, len(poses), group):
-        res = render_views(coarse, fine, poses[start:start + group].to(device), intr, near, far, cfg.render,
-                           chunk=chunk)
-        parts.append(ViewRenders(rgb=res.rgb.float().cpu(), depth=res.depth.float().cpu(),
-                                 opacity=res.opacity.float().cpu()))
-        if on_group is not None:
-            on_group(len(res.rgb))
-    return ViewRenders(*(torch.cat([getattr(p, k) for p in parts]) for k in ("rgb", "depth", "opacity")))
-
-
 def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, depth: Float[Tensor, "N H W"],
               keep: Bool[Tensor, "N H W"]) -> Float[np.ndarray, "P 3"]:
     """World points ``o + t d`` of the kept pixels of N views, ``t`` = ray distance along unit directions."""
     out = [backproject(t, pose, intr, k, ray_distance=True).numpy() for pose, t, k in zip(poses, depth, keep,
                                                                                            strict=True)]
     return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.float32)
-
-
-def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,
-                      far: float, config: MeshConfig, device: torch.device | str, colored: bool = True
-                      ) -> tuple[trimesh.Trimesh, MeshLevel]:
-    """The mesh over the input camera's frustum box (fine network density, each point seen along the input
-    camera's ray through it), with the network's colour at each vertex when ``colored``."""
-    density_fn, color_fn = field_queries(model, enc, c2w[:3, 3].to(device))
-    return source_mesh(density_fn, c2w, intr, near, far, config, color_fn if colored else None, device)
 
 
 def orbit_points(renders: ViewRenders, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, min_opacity: float,

@@ -50,6 +50,7 @@ from torch import Tensor
 
 from depthnerf.data.cameras import Intrinsics, camera_rays
 from depthnerf.errors import DepthnerfError
+from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
 
 DEFAULT_THRESHOLD = 20.0
 """Fallback density level when no input ray is opaque (see the module docstring)."""
@@ -309,3 +310,26 @@ def load_mesh(path: Path) -> trimesh.Trimesh:
     if not np.isfinite(mesh.vertices).all():
         raise DepthnerfError(f"{path}: mesh has non-finite vertices")
     return mesh
+
+
+def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"]
+                  ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
+    """``(density_fn, color_fn)`` of the fine network (the coarse one without a fine network) at world points
+    ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it."""
+    fn = model.field(enc, "fine")
+
+    def query(points: Tensor) -> tuple[Tensor, Tensor]:
+        dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
+        rgb, sigma = fn(points[None, :, None, :], dirs[None])
+        return rgb[0, :, 0], sigma[0, :, 0]
+
+    return (lambda p: query(p)[1]), (lambda p: query(p)[0])
+
+
+def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,
+                      far: float, config: MeshConfig, device: torch.device | str, colored: bool = True
+                      ) -> tuple[trimesh.Trimesh, MeshLevel]:
+    """The mesh over the input camera's frustum box (fine network density, each point seen along the input
+    camera's ray through it), with the network's colour at each vertex when ``colored``."""
+    density_fn, color_fn = field_queries(model, enc, c2w[:3, 3].to(device))
+    return source_mesh(density_fn, c2w, intr, near, far, config, color_fn if colored else None, device)

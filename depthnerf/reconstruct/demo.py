@@ -14,7 +14,7 @@ Reconstruction and scores
     view (as ``depthnerf depth`` computes the cache, stored as float16 there and here); an ``oracle`` checkpoint
     gets the synthetic ground-truth depth of the input view, which only synthetic data has (reported in notes).
 Outputs per category in ``OUT/<category>/``
-    Everything :func:`depthnerf.eval.exports.save_reconstruction` writes (``input.png``, ``depth_prior.png``, the
+    Everything :func:`depthnerf.reconstruct.exports.save_reconstruction` writes (``input.png``, ``depth_prior.png``, the
     turntable frames in ``views/`` and ``turntable.gif``, ``depths/``, ``mesh.ply``/``mesh.glb`` of marching cubes
     over the input camera's frustum, ``points.ply``, ``manifest.json``); the turntable orbits the object at the
     input camera's distance and elevation, starting at the input camera. Plus ``novel_views/pred_NNNNNN.png`` and
@@ -46,14 +46,16 @@ from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, make_estimator
 from depthnerf.depth.precompute import predict_views
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.exports import save_reconstruction
-from depthnerf.eval.mesh import AUTO_LEVEL, MeshConfig
 from depthnerf.eval.metrics import object_metrics
 from depthnerf.eval.objects import ProtocolViews, prepare_object, protocol_views
-from depthnerf.eval.orbit import input_camera_mesh, orbit_points, orbit_poses, render_poses
 from depthnerf.eval.pretrained import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
-from depthnerf.eval.reconstruct import POINT_OPACITY, PreparedImage, Reconstruction
 from depthnerf.model.pixelnerf import EncodedViews
+from depthnerf.reconstruct.exports import save_reconstruction
+from depthnerf.reconstruct.orbit import orbit_points, orbit_poses
+from depthnerf.reconstruct.photo import PreparedImage
+from depthnerf.reconstruct.reconstructor import POINT_OPACITY, Reconstruction
+from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, input_camera_mesh
+from depthnerf.render.views import render_poses
 from depthnerf.train.config import z_range
 
 DEMO_SEED = 2718
@@ -209,7 +211,7 @@ def turntable_and_mesh(pre: Pretrained, src: ObjectViews, disp: torch.Tensor | N
     elevation = math.degrees(math.asin(float(eye[2]) / radius))
     azimuth = math.degrees(math.atan2(float(eye[1]), float(eye[0])))
     poses = orbit_poses(radius, elevation, cfg.turntable_views, azimuth)
-    orbit = render_poses(model, enc, poses, src.intrinsics, near, far, train, cfg.chunk, device)
+    orbit = render_poses(model, enc, poses, src.intrinsics, near, far, train.render, cfg.chunk, device)
     times = {"turntable_s": time.perf_counter() - t}
     on_stage(1)
     t = time.perf_counter()
@@ -259,7 +261,7 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     if not cfg.mesh:
         notes.append("--no-mesh: no mesh extracted (mesh.ply and mesh.glb are empty)")
     near, far = z_range(train)
-    preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, near, far, train, cfg.chunk, device).rgb.numpy()
+    preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, near, far, train.render, cfg.chunk, device).rgb.numpy()
     gts = tgt.images.permute(0, 2, 3, 1).numpy()
     metrics = object_metrics(record.object_id, preds, gts)
     times["reconstruct_s"] = time.perf_counter() - t

@@ -1,4 +1,4 @@
-"""Writing a :class:`~depthnerf.eval.reconstruct.Reconstruction` to a folder, with a JSON manifest.
+"""Writing a :class:`~depthnerf.reconstruct.reconstructor.Reconstruction` to a folder, with a JSON manifest.
 
 Layout of ``OUT`` (every path in ``manifest.json`` is relative to ``OUT``)::
 
@@ -32,7 +32,7 @@ from PIL import Image
 
 from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.reconstruct import Reconstruction
+from depthnerf.reconstruct.reconstructor import Reconstruction
 
 TURNTABLE_FPS = 12
 """Frames per second of the turntable GIF / MP4."""
