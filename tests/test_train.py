@@ -6,10 +6,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -148,24 +148,83 @@ def test_train_run_folder_determinism_and_refusal_to_overwrite(data, tmp_path):
     assert again.returncode == 2 and "--resume" in again.stderr
 
 
-def test_sigkill_then_resume_reproduces_the_uninterrupted_curve(data, tmp_path):
-    args = ["train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--max-steps", "12",
-            "--checkpoint-every", "3", "--log.val_every", "0", *TINY]
-    full = tmp_path / "full"
-    cli(*args, "--out", str(full))
-    killed = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-m", "depthnerf", *args, "--out", str(killed)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 300
-    while time.time() < deadline and not (killed / "checkpoints" / "step_00000006").is_dir():
-        time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    done = ckpt.latest_checkpoint(killed / "checkpoints")
-    assert done is not None and 6 <= int(done.name.split("_")[1]) < 12, "kill landed outside the run"
-    cli(*args, "--out", str(killed), "--resume")
-    assert losses(killed) == pytest.approx(losses(full), rel=1e-6, abs=1e-9)
-    assert sorted(losses(killed)) == list(range(1, 13))
+def final_weights(run: Path) -> dict[str, torch.Tensor]:
+    return ckpt.read_weights(ckpt.latest_checkpoint(run / "checkpoints") / "model.safetensors")[0]
+
+
+CRASH_ARGS = ["train", "--preset", "cpu-cars", "--depth", "none", "--max-steps", "6", "--checkpoint-every", "2",
+              "--log.val_every", "0", "--log.keep_last", "1", *TINY]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(data, tmp_path_factory) -> Path:
+    run = tmp_path_factory.mktemp("full") / "run"
+    cli(*CRASH_ARGS, "--data", str(data), "--out", str(run))
+    return run
+
+
+@pytest.mark.parametrize("stage", [s for s in ckpt.CRASH_STAGES if not s.startswith("best")])
+def test_kill_at_every_stage_of_a_checkpoint_write_then_resume_is_exact(data, uninterrupted, tmp_path, stage):
+    """SIGKILL (through the checkpoint writer's test hook) at each stage of the step-4 checkpoint write, then
+    ``--resume``: the loss curve and the final weights equal the uninterrupted run's bit for bit (CPU)."""
+    run = tmp_path / "killed"
+    killed = cli(*CRASH_ARGS, "--data", str(data), "--out", str(run), check=False,
+                 env={"DEPTHNERF_CRASH_AT": f"{stage}@4"})
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
+    done = ckpt.latest_checkpoint(run / "checkpoints")
+    expected = 2 if stage in ("weights", "optimizer", "state") else 4  # the step-4 folder is complete once renamed
+    assert done is not None and done.name == f"step_{expected:08d}"
+    resumed = cli(*CRASH_ARGS, "--data", str(data), "--out", str(run), "--resume")
+    assert f"resumed from step {expected} (" in resumed.stderr
+    assert losses(run) == losses(uninterrupted)
+    assert sorted(losses(run)) == list(range(1, 7))
+    ref = final_weights(uninterrupted)
+    got = final_weights(run)
+    assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
+
+
+def test_resume_says_what_it_did_and_refuses_contradicting_flags(data, tmp_path, monkeypatch):
+    run = tmp_path / "r"
+    base = ["train", "--preset", "cpu-cars", "--depth", "none", "--log.val_every", "0", *TINY]
+    started = cli(*base, "--data", str(data), "--out", str(run), "--max-steps", "2", "--resume")
+    assert f"started a new run in {run} (no checkpoint found)" in started.stderr
+    assert json.loads(started.stdout.strip().splitlines()[-1])["best_val_psnr"] is None  # strict JSON, no -Infinity
+    refused = cli(*base, "--data", str(data), "--out", str(run), "--max-steps", "3", "--resume", "--depth",
+                  "bundled", check=False)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1
+    assert "contradict" in refused.stderr and "prior.estimator" in refused.stderr
+    other = cli(*base, "--data", str(data), "--out", str(run), "--max-steps", "3", "--resume",
+                "--schedule.lr", "0.5", check=False)
+    assert other.returncode == 2 and "schedule.lr" in other.stderr
+    resumed = cli(*base, "--data", str(data), "--out", str(run), "--max-steps", "3", "--resume")
+    assert f"resumed from step 2 ({run / 'checkpoints' / 'step_00000002'})" in resumed.stderr
+
+
+def test_relative_data_run_resumes_from_another_directory(data, tmp_path):
+    """A run started with a relative --data stores the resolved path; an explicit --data on resume wins (moved
+    data), and stderr says so."""
+    run = tmp_path / "rel"
+    args = ["train", "--preset", "cpu-cars", "--depth", "none", "--log.val_every", "0", *TINY]
+    proc = subprocess.run([sys.executable, "-m", "depthnerf", *args, "--data", data.name, "--out", str(run),
+                           "--max-steps", "2"], cwd=data.parent, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads((run / "config.json").read_text())["data"]["root"] == str(data.resolve())
+    moved = tmp_path / "moved_data"
+    shutil.copytree(data, moved)
+    config = json.loads((run / "config.json").read_text())
+    config["data"]["root"] = data.name  # as runs written before paths were stored resolved
+    (run / "config.json").write_text(json.dumps(config))
+    again = cli(*args, "--data", str(moved), "--out", str(run), "--max-steps", "3", "--resume")
+    assert "resumed from step 2" in again.stderr and f"--data {moved}" in again.stderr
+    assert losses(run).keys() == {1, 2, 3}
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_device_cuda_without_a_gpu_is_one_line(data, tmp_path):
+    proc = cli("train", "--preset", "cpu-cars", "--data", str(data), "--out", str(tmp_path / "x"),
+               "--device", "cuda", *TINY, check=False)
+    assert proc.returncode == 2 and proc.stderr.startswith("error: --device cuda: no CUDA GPU")
+    assert proc.stderr.count("\n") == 1
 
 
 @pytest.mark.slow

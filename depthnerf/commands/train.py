@@ -3,6 +3,11 @@
 Any config field can be overridden with ``--section.field VALUE`` (e.g. ``--model.coarse.d_hidden 256``,
 ``--schedule.lr 2e-4``); ``--print-config`` prints the resolved config as JSON and exits. Multi-GPU / multi-node:
 launch the same command with ``torchrun --nproc_per_node=N -m depthnerf train ...``.
+
+``--resume`` continues the run in ``--out`` from its last checkpoint, or starts it if there is none (a cluster
+that preempts jobs reissues the same command); one line on stderr says which. On resume the run's own
+``config.json`` is used: flags that agree with it are accepted, flags that change what is trained are refused
+(see :data:`CHANGEABLE_ON_RESUME` for what may change), and ``--data`` may point at the same data moved elsewhere.
 """
 
 from __future__ import annotations
@@ -10,7 +15,9 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
+from typing import Any
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import PRESETS, TrainConfig, from_dict_config, preset, with_prior
@@ -18,10 +25,19 @@ from depthnerf.train.overrides import apply_overrides, to_dict
 
 ACCEPTS_OVERRIDES = True
 
+CHANGEABLE_ON_RESUME = ("schedule.max_steps", "data.root", "data.num_workers", "log.checkpoint_every",
+                        "log.keep_last", "log.log_every")
+"""Config fields a ``--resume`` may change: where the data lives and how long/how observably to train, never
+what is trained (the batches, model, prior and schedule of the steps already taken)."""
+
+DEFAULT_PRESET = "cpu-cars"
+"""Preset used when ``--preset`` is not given on a new run."""
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", default="cpu-cars", choices=sorted(PRESETS), help="named preset (default cpu-cars)")
-    p.add_argument("--data", help="dataset root (SRN layout); default: the preset's")
+    p.add_argument("--preset", choices=sorted(PRESETS), help=f"named preset (default {DEFAULT_PRESET})")
+    p.add_argument("--data", help="dataset root (SRN layout); default: the preset's; stored resolved to an "
+                                  "absolute path; on --resume it may point at the run's data moved elsewhere")
     p.add_argument("--out", help="run folder (config, metrics.jsonl, TensorBoard events, checkpoints/)")
     p.add_argument("--depth", choices=["none", "bundled", "oracle", "depth-anything-v2"],
                    help="depth prior: none = pixelNeRF baseline; default: the preset's")
@@ -29,28 +45,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, help="total optimisation steps")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     p.add_argument("--seed", type=int, help="run seed")
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
-    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its last checkpoint (or start it when it has none; "
+                        "stderr says which); flags contradicting the run's config are refused")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
+    p.add_argument("--deterministic", action="store_true",
+                   help="deterministic algorithms (exact resume and same-seed runs on CUDA too; slower there)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def resolve_config(args: argparse.Namespace) -> TrainConfig:
-    """Preset -> --depth -> named flags -> --section.field overrides; or the run's own config on --resume."""
-    if args.resume and args.out and (Path(args.out) / "config.json").is_file():
-        path = Path(args.out) / "config.json"
-        try:
-            cfg = from_dict_config(json.loads(path.read_text()))
-        except (OSError, json.JSONDecodeError) as err:
-            raise DepthnerfError(f"{path}: unreadable run config ({err})") from None
-        if args.max_steps is not None:
-            cfg = dataclasses.replace(cfg, schedule=dataclasses.replace(cfg.schedule, max_steps=args.max_steps))
-        return cfg
-    cfg = preset(args.preset)
+def _apply_flags(cfg: TrainConfig, args: argparse.Namespace) -> TrainConfig:
+    """--depth -> named flags -> --section.field overrides, on top of ``cfg``."""
     if args.depth is not None or args.depth_checkpoint is not None:
-        cfg = with_prior(cfg, args.depth or cfg.prior.estimator, args.depth_checkpoint)
+        cfg = with_prior(cfg, args.depth or cfg.prior.estimator,
+                         args.depth_checkpoint if args.depth_checkpoint is not None else
+                         (cfg.prior.checkpoint if args.depth in (None, cfg.prior.estimator) else None))
     if args.data is not None:
-        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=args.data))
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(Path(args.data).resolve())))
     if args.seed is not None:
         cfg = dataclasses.replace(cfg, seed=args.seed)
     sched, log = cfg.schedule, cfg.log
@@ -60,6 +72,52 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
         log = dataclasses.replace(log, checkpoint_every=args.checkpoint_every)
     cfg = dataclasses.replace(cfg, schedule=sched, log=log)
     return apply_overrides(cfg, args.overrides)
+
+
+def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def config_changes(old: TrainConfig, new: TrainConfig) -> dict[str, tuple[Any, Any]]:
+    """Dotted config paths whose values differ: ``{path: (old, new)}``."""
+    a, b = _flatten(json.loads(json.dumps(to_dict(old)))), _flatten(json.loads(json.dumps(to_dict(new))))
+    return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
+
+
+def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
+    try:
+        stored = from_dict_config(json.loads(path.read_text()))
+    except (OSError, json.JSONDecodeError) as err:
+        raise DepthnerfError(f"{path}: unreadable run config ({err})") from None
+    if args.preset is not None and args.preset != stored.preset:
+        raise DepthnerfError(f"--resume: {path} is a {stored.preset} run, not --preset {args.preset}; drop the "
+                             "flag or choose another --out")
+    cfg = _apply_flags(stored, args)
+    changes = config_changes(stored, cfg)
+    refused = {k: v for k, v in changes.items() if k not in CHANGEABLE_ON_RESUME}
+    if refused:
+        said = ", ".join(f"{k} {json.dumps(o)} -> {json.dumps(n)}" for k, (o, n) in list(refused.items())[:4])
+        raise DepthnerfError(f"--resume: the flags contradict the run's config {path} ({said}); drop them to "
+                             "resume, or choose another --out for a new run")
+    if "data.root" in changes:
+        old, new = changes["data.root"]
+        print(f"resume: reading the data from --data {new} (the run's config said {old})", file=sys.stderr)
+    return cfg
+
+
+def resolve_config(args: argparse.Namespace) -> TrainConfig:
+    """Preset -> --depth -> named flags -> --section.field overrides; or the run's own config on --resume."""
+    if args.resume and args.out and (Path(args.out) / "config.json").is_file():
+        return _resume_config(args, Path(args.out) / "config.json")
+    cfg = _apply_flags(preset(args.preset or DEFAULT_PRESET), args)
+    root = Path(cfg.data.root)
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root.resolve())))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,11 +130,11 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.train.distributed import setup, teardown
     from depthnerf.train.loop import train
 
-    info = setup(args.device)
+    info = setup(args.device, deterministic=args.deterministic)
     try:
         result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress)
     finally:
         teardown(info)
     if info.is_main:
-        print(json.dumps(result))
+        print(json.dumps(result, allow_nan=False))
     return 0

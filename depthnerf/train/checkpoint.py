@@ -12,13 +12,19 @@ Layout of a run's ``checkpoints/`` folder::
 A checkpoint directory only appears under its final name once every file in it is written and fsynced, so a
 process killed at any moment leaves either the previous state or the new one, never a half-written checkpoint.
 Nothing here unpickles: tensors go through safetensors, everything else through JSON.
+
+Crash test hook: with ``DEPTHNERF_CRASH_AT=STAGE@STEP`` in the environment the process SIGKILLs itself at
+``STAGE`` of the checkpoint write of step ``STEP`` (one of :data:`CRASH_STAGES`), so a test can kill training at
+every point of a write deterministically instead of racing a timer (``tests/test_train.py``).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,6 +38,19 @@ from depthnerf.files import temporary_sibling, write_text_atomic
 
 FORMAT = "depthnerf-checkpoint-1"
 """Format tag stored in every weights file's metadata."""
+
+
+CRASH_STAGES = ("weights", "optimizer", "state", "renamed", "latest", "pruned", "best-copied", "best-moved")
+"""Points of a checkpoint write where ``DEPTHNERF_CRASH_AT`` can kill the process: after the weights / optimizer /
+state files of the temporary folder are written, after the folder is renamed into place, after the ``latest``
+pointer is updated, after old checkpoints are pruned; for ``best``: after its temporary copy, after the old
+``best`` was moved aside (before the new one takes its place)."""
+
+
+def crash_point(stage: str, step: int) -> None:
+    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``stage@step`` (test hook; a no-op otherwise)."""
+    if os.environ.get("DEPTHNERF_CRASH_AT") == f"{stage}@{step}":
+        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -152,22 +171,29 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
     tmp.mkdir()
     extra = {"train_config": json.dumps(train_config, sort_keys=True)} if train_config is not None else None
     save_weights(tmp / "model.safetensors", model, model_config, step=state.step, extra=extra)
+    crash_point("weights", state.step)
     opt_tensors, opt_info = _optimizer_to_files(optimizer)
     save_file(opt_tensors, str(tmp / "optimizer.safetensors"))
     with open(tmp / "optimizer.safetensors", "rb") as f:
         os.fsync(f.fileno())
-    payload = {"step": state.step, "best_psnr": state.best_psnr, "extra": state.extra, "optimizer": opt_info}
-    write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1))
+    crash_point("optimizer", state.step)
+    best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
+    payload = {"step": state.step, "best_psnr": best, "extra": state.extra, "optimizer": opt_info}
+    write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1, allow_nan=False))
     _fsync_dir(tmp)
+    crash_point("state", state.step)
     final = ckpt_root / name
     if final.exists():
         shutil.rmtree(final)
     os.replace(tmp, final)
     _fsync_dir(ckpt_root)
+    crash_point("renamed", state.step)
     write_text_atomic(ckpt_root / "latest", name + "\n")
+    crash_point("latest", state.step)
     steps = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())
     for old in steps[:-keep_last] if keep_last > 0 else []:
         shutil.rmtree(old, ignore_errors=True)
+    crash_point("pruned", state.step)
     return final
 
 
@@ -176,22 +202,34 @@ def mark_best(ckpt_root: Path, ckpt_dir: Path) -> None:
     tmp = ckpt_root / f".best.{os.getpid()}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(ckpt_dir, tmp)
+    step = int(ckpt_dir.name.split("_")[-1]) if ckpt_dir.name.startswith("step_") else -1
+    crash_point("best-copied", step)
     old = ckpt_root / f".best.{os.getpid()}.old"
     if (ckpt_root / "best").exists():
         os.replace(ckpt_root / "best", old)
+    crash_point("best-moved", step)
     os.replace(tmp, ckpt_root / "best")
     shutil.rmtree(old, ignore_errors=True)
 
 
 def latest_checkpoint(ckpt_root: Path) -> Path | None:
-    """The newest complete checkpoint directory, or None when there is none."""
-    pointer = Path(ckpt_root) / "latest"
-    if not pointer.is_file():
-        return None
-    path = Path(ckpt_root) / pointer.read_text().strip()
-    if not (path / "state.json").is_file():
-        raise DepthnerfError(f"{pointer}: points at {path.name}, which is incomplete or missing")
-    return path
+    """The newest complete checkpoint directory, or None when there is none.
+
+    That is the one ``latest`` names, or a newer ``step_*`` folder if a process was killed between renaming it
+    into place (it is complete by then) and updating the pointer.
+    """
+    ckpt_root = Path(ckpt_root)
+    pointer = ckpt_root / "latest"
+    named = None
+    if pointer.is_file():
+        named = ckpt_root / pointer.read_text().strip()
+        if not (named / "state.json").is_file():
+            raise DepthnerfError(f"{pointer}: points at {named.name}, which is incomplete or missing")
+    complete = sorted(p for p in ckpt_root.glob("step_*") if (p / "state.json").is_file())
+    newest = complete[-1] if complete else None
+    if named is None or (newest is not None and newest.name > named.name):
+        return newest
+    return named
 
 
 def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None,
@@ -215,4 +253,6 @@ def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.opt
         except (SafetensorError, OSError) as err:
             raise DepthnerfError(f"{ckpt_dir / 'optimizer.safetensors'}: unreadable optimizer state ({err})") from None
         _optimizer_from_files(optimizer, opt_tensors, payload["optimizer"])
-    return TrainingState(step=int(payload["step"]), best_psnr=float(payload["best_psnr"]), extra=payload["extra"])
+    best = payload["best_psnr"]
+    return TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best),
+                         extra=payload["extra"])

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
+from depthnerf.errors import DepthnerfError
+
 
 @dataclass(frozen=True)
 class DistInfo:
@@ -29,13 +31,42 @@ class DistInfo:
         return self.rank == 0
 
 
-def setup(device: str = "auto") -> DistInfo:
+def make_deterministic() -> None:
+    """Deterministic algorithms everywhere (``--deterministic``): cuBLAS's fixed workspace (set before CUDA is
+    initialised), ``torch.use_deterministic_algorithms(True)`` and no cuDNN autotuning. The model then gathers
+    features and resizes maps with deterministic kernels (``depthnerf.model.features``), which it checks with
+    ``torch.are_deterministic_algorithms_enabled()``."""
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.use_deterministic_algorithms(True)
+    torch.backends.cudnn.benchmark = False
+    torch.backends.cudnn.deterministic = True
+
+
+def pick_device(device: str, local_rank: int = 0) -> torch.device:
+    """``auto`` (CUDA if available), ``cpu``, ``cuda`` or ``cuda:N``; a CUDA request without a GPU is a one-line
+    :class:`DepthnerfError`."""
+    if device not in ("auto", "cpu", "cuda") and not (device.startswith("cuda:") and device[5:].isdigit()):
+        raise DepthnerfError(f"--device {device!r}: choose auto, cpu, cuda or cuda:N")
+    if device == "cpu" or (device == "auto" and not torch.cuda.is_available()):
+        return torch.device("cpu")
+    if not torch.cuda.is_available():
+        raise DepthnerfError(f"--device {device}: no CUDA GPU is available to this process "
+                             "(torch.cuda.is_available() is False); use --device cpu")
+    index = int(device[5:]) if device.startswith("cuda:") else local_rank
+    if index >= torch.cuda.device_count():
+        raise DepthnerfError(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) are visible")
+    return torch.device(f"cuda:{index}")
+
+
+def setup(device: str = "auto", deterministic: bool = False) -> DistInfo:
     """Initialise the process group if launched by torchrun, and pick this rank's device."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local = int(os.environ.get("LOCAL_RANK", "0"))
-    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
-    dev = torch.device(f"cuda:{local}") if use_cuda else torch.device("cpu")
+    if deterministic:
+        make_deterministic()
+    dev = pick_device(device, local)
+    use_cuda = dev.type == "cuda"
     if use_cuda:
         torch.cuda.set_device(dev)
     if world > 1 and not dist.is_initialized():

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -158,6 +159,10 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         state = ckpt.load_checkpoint(latest, model, optimizer, model_cfg)
     start = state.step
     if info.is_main:
+        print(f"resumed from step {start} ({latest})" if latest is not None else
+              f"started a new run in {run_dir} ({'no checkpoint found' if resume else 'new folder'})",
+              file=sys.stderr, flush=True)
+    if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         _write_run_files(run_dir, cfg, store, len(records))
     barrier(info)
@@ -232,4 +237,5 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     if log is not None:
         log.close()
     barrier(info)
-    return {"step": step, "best_val_psnr": best, "checkpoint": str(last_saved) if last_saved else None}
+    return {"step": step, "best_val_psnr": best if math.isfinite(best) else None,  # strict JSON: no -Infinity
+            "checkpoint": str(last_saved) if last_saved else None}
