@@ -25,8 +25,8 @@ from depthnerf.train.overrides import apply_overrides, to_dict
 
 ACCEPTS_OVERRIDES = True
 
-CHANGEABLE_ON_RESUME = ("schedule.max_steps", "data.root", "data.num_workers", "log.checkpoint_every",
-                        "log.keep_last", "log.log_every")
+CHANGEABLE_ON_RESUME = ("schedule.max_steps", "schedule.step_shape", "data.root", "data.num_workers",
+                        "log.checkpoint_every", "log.keep_last", "log.log_every")
 """Config fields a ``--resume`` may change: where the data lives and how long/how observably to train, never
 what is trained (the batches, model, prior and schedule of the steps already taken)."""
 

@@ -32,6 +32,8 @@ from torch import Tensor, nn
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig
+from depthnerf.model.features import resize_bilinear
+from depthnerf.model.norm import ObjectBatchNorm2d, object_groups
 
 STAGE_NAMES = ("layer1", "layer2", "layer3")
 """Trunk stages after conv1, in order."""
@@ -46,7 +48,7 @@ class DepthEncoder(nn.Module):
         widths = [(1, hidden, 2), (hidden, hidden, 1), (hidden, channels, 1)]
         for c_in, c_out, stride in widths:
             layers += [nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False),
-                       nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+                       ObjectBatchNorm2d(c_out), nn.ReLU(inplace=True)]
         self.net = nn.Sequential(*layers)
         for m in self.net:
             if isinstance(m, nn.Conv2d):
@@ -61,7 +63,7 @@ class ResNetTrunk(nn.Module):
 
     def __init__(self, cfg: EncoderConfig):
         super().__init__()
-        full = getattr(torchvision.models, cfg.backbone)(weights=None)
+        full = getattr(torchvision.models, cfg.backbone)(weights=None, norm_layer=ObjectBatchNorm2d)
         self.conv1 = full.conv1
         if cfg.use_depth:
             self.conv1 = nn.Conv2d(4, 64, kernel_size=7, stride=2, padding=3, bias=False)
@@ -149,8 +151,14 @@ class ImageEncoder(nn.Module):
         """Feature channels C."""
         return self.cfg.latent_size
 
-    def forward(self, images: Float[Tensor, "N 3 H W"],
-                prior: Float[Tensor, "N 1 H W"] | None = None) -> Float[Tensor, "N C Hf Wf"]:
+    def forward(self, images: Float[Tensor, "N 3 H W"], prior: Float[Tensor, "N 1 H W"] | None = None,
+                objects: int = 1) -> Float[Tensor, "N C Hf Wf"]:
+        """Feature maps of ``N = objects * V`` images; in training mode BatchNorm statistics are per object
+        (``depthnerf.model.norm``), so encoding B objects together equals encoding them one at a time."""
+        with object_groups(self, objects):
+            return self._forward(images, prior)
+
+    def _forward(self, images: Tensor, prior: Tensor | None) -> Tensor:
         x = images * 2.0 - 1.0
         if self.cfg.use_depth:
             if prior is None:
@@ -162,10 +170,10 @@ class ImageEncoder(nn.Module):
                               align_corners=True if up else None, recompute_scale_factor=True)
         stages = self.trunk(x)
         size = stages[0].shape[-2:]
-        maps = [stages[0]] + [F.interpolate(s, size, mode="bilinear", align_corners=True) for s in stages[1:]]
+        maps = [stages[0]] + [resize_bilinear(s, size) for s in stages[1:]]
         if self.depth is not None:
             d = self.depth(x[:, 3:4])
             if d.shape[-2:] != size:
-                d = F.interpolate(d, size, mode="bilinear", align_corners=True)
+                d = resize_bilinear(d, size)
             maps.append(d)
         return torch.cat(maps, dim=1)

@@ -7,13 +7,19 @@ Feature-map indexing follows pixelNeRF exactly (its ``latent_scaling``): image c
 ``H x W`` image map to the grid coordinate ``g = (u, v) * 2 * (Wf, Hf) / ((Wf - 1, Hf - 1) * (W, H)) - 1`` and are
 sampled bilinearly with ``align_corners=True`` and border padding; i.e. feature column ``u * Wf / W`` and row
 ``v * Hf / H`` (so with ``Hf = H`` a point projecting to pixel (i, j) reads feature pixel (i, j) exactly).
+
+Determinism: under ``torch.use_deterministic_algorithms(True)`` (``depthnerf train --deterministic``) the
+feature gather is written with index gathers (:func:`sample_maps_gather`, backward = sort-based
+``index_put`` accumulation) instead of the fused ``embedding_bag``, and the encoder's map resizing
+(:func:`resize_bilinear`) is two matrix products instead of ``interpolate``, whose CUDA backward uses atomics
+(``grid_sample``'s too). Both give the same values as the fast kernels up to float rounding (tests/test_model.py).
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 
 
@@ -52,17 +58,64 @@ def sample_maps(maps: Float[Tensor, "BV Hf Wf C"], grid: Float[Tensor, "BV N 2"]
     n = grid.shape[1]
     if c == 0:  # a field without feature injection (combine_layer = 0)
         return maps.new_zeros(bv, n, 0)
+    index, weight = _corners(grid, bv, hf, wf)
+    if torch.are_deterministic_algorithms_enabled():
+        return sample_maps_gather(maps, index, weight).reshape(bv, n, c)
+    out = F.embedding_bag(index, maps.reshape(bv * hf * wf, c), per_sample_weights=weight, mode="sum")
+    return out.reshape(bv, n, c)
+
+
+def _corners(grid: Float[Tensor, "BV N 2"], bv: int, hf: int, wf: int
+             ) -> tuple[Int[Tensor, "BVN 4"], Float[Tensor, "BVN 4"]]:
+    """Flat row indices of the 4 bilinear corners of every grid point in ``[BV*Hf*Wf]`` and their weights."""
+    n = grid.shape[1]
+    device = grid.device
     fx = ((torch.nan_to_num(grid[..., 0]) + 1.0) * (0.5 * (wf - 1))).clamp(0.0, wf - 1.0)
     fy = ((torch.nan_to_num(grid[..., 1]) + 1.0) * (0.5 * (hf - 1))).clamp(0.0, hf - 1.0)
     x0 = fx.detach().floor().clamp(max=max(wf - 2, 0))
     y0 = fy.detach().floor().clamp(max=max(hf - 2, 0))
     ax, ay = fx - x0, fy - y0
     dx, dy = int(wf > 1), wf * int(hf > 1)
-    base = torch.arange(bv, device=maps.device)[:, None] * (hf * wf) + y0.long() * wf + x0.long()
+    base = torch.arange(bv, device=device)[:, None] * (hf * wf) + y0.long() * wf + x0.long()
     index = torch.stack([base, base + dx, base + dy, base + dy + dx], dim=-1).reshape(bv * n, 4)
     weight = torch.stack([(1 - ax) * (1 - ay), ax * (1 - ay), (1 - ax) * ay, ax * ay], dim=-1).reshape(bv * n, 4)
-    out = F.embedding_bag(index, maps.reshape(bv * hf * wf, c), per_sample_weights=weight, mode="sum")
-    return out.reshape(bv, n, c)
+    return index, weight
+
+
+def sample_maps_gather(maps: Float[Tensor, "BV Hf Wf C"], index: Int[Tensor, "M 4"],
+                       weight: Float[Tensor, "M 4"]) -> Float[Tensor, "M C"]:
+    """The weighted 4-corner sum of :func:`sample_maps` with plain index gathers: deterministic backward
+    (``index_put`` accumulation), at the cost of materialising the ``[M, 4, C]`` corner rows."""
+    c = maps.shape[-1]
+    rows = maps.reshape(-1, c)[index.reshape(-1)].reshape(*index.shape, c)
+    return (rows * weight[..., None].to(rows.dtype)).sum(1)
+
+
+def _interp_matrix(n_out: int, n_in: int, device: torch.device) -> Float[Tensor, "O I"]:
+    """Rows of bilinear (``align_corners=True``) interpolation weights from ``n_in`` to ``n_out`` samples."""
+    src = torch.arange(n_out, device=device, dtype=torch.float32) * ((n_in - 1) / max(n_out - 1, 1))
+    lo = src.floor().clamp(max=max(n_in - 2, 0))
+    frac = (src - lo) if n_in > 1 else torch.zeros_like(src)
+    lo = lo.long()
+    hi = (lo + 1).clamp(max=n_in - 1)
+    eye = torch.eye(n_in, device=device)
+    return (1.0 - frac)[:, None] * eye[lo] + frac[:, None] * eye[hi]
+
+
+def resize_bilinear(x: Float[Tensor, "N C H W"], size: tuple[int, int] | torch.Size) -> Float[Tensor, "N C Ho Wo"]:
+    """``F.interpolate(x, size, mode="bilinear", align_corners=True)``; under deterministic algorithms the same
+    map as two matrix products ``A_h x A_w^T`` (deterministic forward and backward on CUDA)."""
+    ho, wo = int(size[0]), int(size[1])
+    if not torch.are_deterministic_algorithms_enabled():
+        return F.interpolate(x, (ho, wo), mode="bilinear", align_corners=True)
+    return resize_bilinear_matmul(x, (ho, wo))
+
+
+def resize_bilinear_matmul(x: Float[Tensor, "N C H W"], size: tuple[int, int]) -> Float[Tensor, "N C Ho Wo"]:
+    """Bilinear ``align_corners=True`` resizing as ``A_h @ x @ A_w^T`` (see :func:`resize_bilinear`)."""
+    a_h = _interp_matrix(size[0], x.shape[-2], x.device).to(x.dtype)
+    a_w = _interp_matrix(size[1], x.shape[-1], x.device).to(x.dtype)
+    return torch.matmul(torch.matmul(a_h, x), a_w.t())
 
 
 def pixel_aligned(maps: Float[Tensor, "B V Hf Wf C"], cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],

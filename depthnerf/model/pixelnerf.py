@@ -104,7 +104,7 @@ class PixelNeRF(nn.Module):
         _check_sources(src, self.cfg.encoder.use_depth)
         b, v, _, h, w = src.images.shape
         prior = src.prior.reshape(b * v, 1, h, w) if self.cfg.encoder.use_depth else None
-        feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior)
+        feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior, objects=b)
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),
                             image_size=(h, w))

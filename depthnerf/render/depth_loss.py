@@ -38,6 +38,17 @@ def ssi_depth_loss(depth: Float[Tensor, "B R"], prior_disp: Float[Tensor, "B R"]
     gradient is orthogonal to ``{p, 1}``: the part of the rendered geometry the prior agrees with is never
     pushed towards flat. Pass the opacity-normalised depth if low-opacity rays should not blow up ``1 / z``.
     """
+    per_image, usable = ssi_depth_loss_per_image(depth, prior_disp, mask, dirs_cam_z=dirs_cam_z,
+                                                 min_depth=min_depth)
+    # mean over the usable images, 0 (with a graph) when there is none; no host sync
+    return per_image.sum() / usable.sum().clamp_min(1).to(per_image.dtype)
+
+
+def ssi_depth_loss_per_image(depth: Float[Tensor, "B R"], prior_disp: Float[Tensor, "B R"],
+                             mask: Bool[Tensor, "B R"], *, dirs_cam_z: Float[Tensor, "B R"] | None = None,
+                             min_depth: float = 1e-2) -> tuple[Float[Tensor, " B"], Bool[Tensor, " B"]]:
+    """The loss of :func:`ssi_depth_loss` per image (row), 0 for images with fewer than :data:`MIN_PIXELS`
+    foreground rays, and which images are usable."""
     if not (depth.shape == prior_disp.shape == mask.shape):
         raise ValueError(f"ssi_depth_loss: shapes differ: depth {tuple(depth.shape)}, prior "
                          f"{tuple(prior_disp.shape)}, mask {tuple(mask.shape)}")
@@ -50,6 +61,4 @@ def ssi_depth_loss(depth: Float[Tensor, "B R"], prior_disp: Float[Tensor, "B R"]
     count = mask.sum(-1)
     per_image = (res * res).sum(-1) / count.clamp_min(1).to(res.dtype)
     usable = count >= MIN_PIXELS
-    if not bool(usable.any()):
-        return (res * 0.0).sum()
-    return per_image[usable].mean()
+    return torch.where(usable, per_image, torch.zeros_like(per_image)), usable

@@ -14,6 +14,7 @@ from torch import Tensor
 
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.guide import DepthGuide
+from depthnerf.render.noise import Generators
 from depthnerf.render.passes import (
     FieldFn,
     RenderOutput,
@@ -30,7 +31,7 @@ from depthnerf.render.volume import RenderResult, composite
 
 
 def guided_first_samples(rays: RayBundle, guide: DepthGuide, n_uniform: int, n_window: int, *, random: bool,
-                         generator: torch.Generator | None = None) -> Float[Tensor, "B R S"]:
+                         generator: Generators = None) -> Float[Tensor, "B R S"]:
     """Pass-1 samples of occupied rays, sorted, ``S = n_uniform + n_window``: ``n_uniform`` stratified over
     [near, far] and ``n_window`` stratified over the guide's window (:meth:`DepthGuide.window`)."""
     lo, hi = guide.window(rays.near, rays.far)
@@ -42,7 +43,7 @@ def guided_first_samples(rays: RayBundle, guide: DepthGuide, n_uniform: int, n_w
 
 def _two_pass(net1: FieldFn, net2: FieldFn, reuse: bool, rays: RayBundle, t1: Tensor, n_importance: int,
               n_gaussian: int, cfg: RenderConfig, train: bool, random: bool,
-              generator: torch.Generator | None) -> tuple[RenderResult, RenderResult]:
+              generator: Generators) -> tuple[RenderResult, RenderResult]:
     gc = cfg.guided
     rgb1, sigma1 = evaluate_field(net1, rays, t1)
     sigma1 = add_sigma_noise(sigma1, cfg.sigma_noise_std, train, generator)
@@ -81,7 +82,7 @@ def _gather_rays(rays: RayBundle, idx: Tensor) -> RayBundle:
 
 
 def render_guided(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: RenderConfig, *, train: bool,
-                  generator: torch.Generator | None, guide: DepthGuide) -> RenderOutput:
+                  generator: Generators, guide: DepthGuide) -> RenderOutput:
     """Depth-guided render of ``B x R`` rays; ``coarse`` = pass 1, ``fine`` = pass 2 (both always present)."""
     gc = cfg.guided
     random = train or cfg.sampler.eval_random

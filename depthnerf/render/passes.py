@@ -12,6 +12,7 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from depthnerf.render.noise import Generators, normal
 from depthnerf.render.rays import RayBundle
 from depthnerf.render.volume import RenderResult
 
@@ -45,11 +46,11 @@ def evaluate_field(field: FieldFn, rays: RayBundle, t: Float[Tensor, "B R S"]
     return rgb, sigma
 
 
-def add_sigma_noise(sigma: Tensor, std: float, train: bool, generator: torch.Generator | None) -> Tensor:
+def add_sigma_noise(sigma: Tensor, std: float, train: bool, generator: Generators) -> Tensor:
     """``sigma + std * N(0, 1)`` in training when ``std > 0`` (pixelNeRF ``noise_std``), else ``sigma``."""
     if not train or std <= 0:
         return sigma
-    return sigma + std * torch.randn(sigma.shape, generator=generator, dtype=sigma.dtype, device=sigma.device)
+    return sigma + std * normal(tuple(sigma.shape), generator, dtype=sigma.dtype, device=sigma.device)
 
 
 def sorted_union(t: Tensor, *values: Tensor) -> tuple[Tensor, ...]:

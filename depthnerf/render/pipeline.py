@@ -22,6 +22,7 @@ import torch
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.guide import DepthGuide
 from depthnerf.render.guided import render_guided
+from depthnerf.render.noise import Generators
 from depthnerf.render.passes import FieldFn, RenderOutput, add_sigma_noise, cat_results, evaluate_field
 from depthnerf.render.rays import RayBundle
 from depthnerf.render.samplers import gaussian_samples, sample_pdf, stratified_samples, uniform_bin_edges
@@ -31,7 +32,7 @@ __all__ = ["FieldFn", "RenderOutput", "render_image", "render_rays"]
 
 
 def _render_paper(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: RenderConfig, train: bool,
-                  generator: torch.Generator | None) -> RenderOutput:
+                  generator: Generators) -> RenderOutput:
     sc = cfg.sampler
     random = train or sc.eval_random
     t_c = stratified_samples(rays.near, rays.far, sc.n_coarse, random=random, generator=generator)
@@ -57,7 +58,7 @@ def _render_paper(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: R
 
 
 def render_rays(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: RenderConfig, *, train: bool,
-                generator: torch.Generator | None = None, guide: DepthGuide | None = None) -> RenderOutput:
+                generator: Generators = None, guide: DepthGuide | None = None) -> RenderOutput:
     """Render ``B x R`` rays with the paper's sampler, or the depth-guided one if ``cfg.guided.enabled``.
 
     ``train`` switches random sampling and sigma noise on; ``generator`` makes the draws reproducible. A
@@ -77,7 +78,7 @@ def render_rays(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: Ren
 
 @torch.no_grad()
 def render_image(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: RenderConfig, *, chunk: int,
-                 generator: torch.Generator | None = None, guide: DepthGuide | None = None) -> RenderOutput:
+                 generator: Generators = None, guide: DepthGuide | None = None) -> RenderOutput:
     """Evaluation render of many rays (e.g. ``R = H * W``) in chunks of ``chunk`` rays per batch element.
 
     No gradients, ``train=False``; identical to one ``render_rays`` call over all rays when sampling is

@@ -21,23 +21,25 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from depthnerf.render.noise import Generators, normal, uniform
 
-def _quantiles(shape: tuple[int, ...], n: int, *, random: bool, generator: torch.Generator | None,
+
+def _quantiles(shape: tuple[int, ...], n: int, *, random: bool, generator: Generators,
                like: Tensor) -> Tensor:
     """Uniform [0, 1) variates of shape ``(*shape, n)``, or the quantiles ``(k + 0.5) / n`` broadcast."""
     if random:
-        return torch.rand(*shape, n, generator=generator, dtype=like.dtype, device=like.device)
+        return uniform((*shape, n), generator, dtype=like.dtype, device=like.device)
     mid = (torch.arange(n, dtype=like.dtype, device=like.device) + 0.5) / n
     return mid.expand(*shape, n)
 
 
 def stratified_samples(near: Float[Tensor, "*N"], far: Float[Tensor, "*N"], n: int, *, random: bool,
-                       generator: torch.Generator | None = None, eval_offset: float = 0.5) -> Float[Tensor, "*N n"]:
+                       generator: Generators = None, eval_offset: float = 0.5) -> Float[Tensor, "*N n"]:
     """One sample per equal bin of ``[near, far]``: bin ``k`` is ``[near + k h, near + (k+1) h]``, ``h = (far -
     near) / n``; uniform inside the bin if ``random``, else at fraction ``eval_offset`` of it (0.5: the midpoint,
     the mean of the random sample). Sorted along the last axis."""
     if random:
-        frac = torch.rand(*near.shape, n, generator=generator, dtype=near.dtype, device=near.device)
+        frac = uniform((*near.shape, n), generator, dtype=near.dtype, device=near.device)
     else:
         frac = torch.full((n,), eval_offset, dtype=near.dtype, device=near.device)
     s = (torch.arange(n, dtype=near.dtype, device=near.device) + frac) / n
@@ -67,7 +69,7 @@ def gap_bins(t: Float[Tensor, "*N S"], weights: Float[Tensor, "*N S"], near: Flo
 
 
 def sample_pdf(edges: Float[Tensor, "*N K+1"], weights: Float[Tensor, "*N K"], n: int, *, random: bool,
-               generator: torch.Generator | None = None, epsilon: float = 1e-5) -> Float[Tensor, "*N n"]:
+               generator: Generators = None, epsilon: float = 1e-5) -> Float[Tensor, "*N n"]:
     """Inverse-CDF samples of the piecewise-constant pdf with mass ``w_k + epsilon`` on bin ``[e_k, e_{k+1}]``
     (zero-width bins get no mass, so samples never pile up on duplicate edges).
 
@@ -90,11 +92,11 @@ def sample_pdf(edges: Float[Tensor, "*N K+1"], weights: Float[Tensor, "*N K"], n
 
 
 def gaussian_samples(center: Float[Tensor, "*N"], near: Float[Tensor, "*N"], far: Float[Tensor, "*N"], n: int,
-                     std: float, *, random: bool, generator: torch.Generator | None = None) -> Float[Tensor, "*N n"]:
+                     std: float, *, random: bool, generator: Generators = None) -> Float[Tensor, "*N n"]:
     """``center + std * eps`` clamped to ``[near, far]``; ``eps ~ N(0, 1)`` if ``random`` else the normal
     quantiles ``Phi^-1((k + 0.5) / n)``. Differentiable in ``center`` (pixelNeRF does not detach it)."""
     if random:
-        eps = torch.randn(*center.shape, n, generator=generator, dtype=center.dtype, device=center.device)
+        eps = normal((*center.shape, n), generator, dtype=center.dtype, device=center.device)
     else:
         q = (torch.arange(n, dtype=torch.float64, device=center.device) + 0.5) / n
         eps = torch.special.ndtri(q).to(center.dtype).expand(*center.shape, n)

@@ -150,6 +150,10 @@ class TrainBatch:
         """Object ``k`` of the batch, as a batch of one."""
         return TrainBatch(**{n: (None if v is None else v[k:k + 1]) for n, v in vars(self).items()})
 
+    def pin_memory(self) -> TrainBatch:
+        """Page-locked copy (the DataLoader calls this with ``pin_memory=True``: asynchronous host-to-GPU copies)."""
+        return TrainBatch(**{k: (v.pin_memory() if torch.is_tensor(v) else v) for k, v in vars(self).items()})
+
     def to(self, device: torch.device) -> TrainBatch:
         fields = {k: (v.to(device, non_blocking=True) if torch.is_tensor(v) else v) for k, v in vars(self).items()}
         return TrainBatch(**fields)

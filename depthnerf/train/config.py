@@ -78,6 +78,11 @@ class ScheduleConfig:
     """Exponential learning-rate decay per epoch of phase 2 (1.0 = constant)."""
     depth_loss_weight: float = 0.0
     """Weight of the scale/shift-invariant depth loss against the target view's prior (beyond the paper; 0 = off)."""
+    step_shape: Literal["batched", "per-object"] = "batched"
+    """How a step runs its objects: ``batched`` = all of a rank's objects through the encoder and the fields
+    together (one call each); ``per-object`` = one object at a time with gradients accumulated (the earlier
+    loop). Same per-object BatchNorm statistics and noise, so the same result up to float rounding
+    (``depthnerf.train.step``); a speed choice only."""
     background_opacity_weight: float = 0.0
     """Weight of :func:`~depthnerf.train.loop.background_opacity_loss` on coarse and fine opacity of background
     target rays (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no

@@ -1,12 +1,15 @@
 """The training loop: the paper's schedule, exact resume, rank-0 logging, PyTorch DDP across processes.
 
 Per step: the global batch of objects comes from :class:`~depthnerf.train.batching.BatchPlan` (a function of
-``(seed, step)``), each rank takes its contiguous share, and every object is encoded and rendered on its own with
-its own generator (so a rank's result does not depend on which other objects share its batch: the BatchNorm
-statistics are those of the object's source view, and 2 ranks x 2 objects equal 1 process x 4 objects). The loss is
-pixelNeRF's: mean squared error of the coarse plus the fine colour (plus the optional depth loss); gradients are
-accumulated over the rank's objects and averaged across ranks by DDP. BatchNorm running statistics (used only in
-eval mode) are not synchronised on CPU (SyncBatchNorm needs a GPU); DDP keeps rank 0's.
+``(seed, step)``), each rank takes its contiguous share, and :func:`~depthnerf.train.step.train_step` encodes and
+renders the rank's objects in one batch, each with its own BatchNorm statistics and generator (so a rank's result
+does not depend on which other objects share its batch: 2 ranks x 2 objects equal 1 process x 4 objects). The
+loss is pixelNeRF's: mean squared error of the coarse plus the fine colour (plus the optional depth loss);
+gradients are averaged across ranks by DDP. BatchNorm running statistics (used only in eval mode) are not
+synchronised on CPU (SyncBatchNorm needs a GPU); DDP keeps rank 0's.
+
+On CUDA: bf16 autocast, fused Adam, channels-last encoder, pinned host batches, and the loss terms stay on the
+device until a log step reads them (the only host synchronisation of the loop besides validation/checkpoints).
 """
 
 from __future__ import annotations
@@ -16,12 +19,9 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from jaxtyping import Bool, Float
-from torch import Tensor
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
@@ -29,78 +29,18 @@ from tqdm import tqdm
 from depthnerf.data.srn import index_split
 from depthnerf.depth.cache import PriorStore
 from depthnerf.errors import DepthnerfError
-from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
-from depthnerf.render.config import RenderConfig
-from depthnerf.render.depth_loss import ssi_depth_loss
-from depthnerf.render.pipeline import render_rays
-from depthnerf.render.rays import RayBundle
+from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.batching import BatchPlan, StepSampler, TrainBatch, collate, item_seed, step_keys
+from depthnerf.train.batching import BatchPlan, StepSampler, collate, step_keys
 from depthnerf.train.config import TrainConfig, z_range
 from depthnerf.train.distributed import DistInfo, barrier
 from depthnerf.train.items import TrainItems
 from depthnerf.train.overrides import to_dict
 from depthnerf.train.run_log import RunLog
+from depthnerf.train.step import BatchLoss, background_opacity_loss, train_step
 from depthnerf.train.validate import validate
 
-
-@dataclass
-class LossTerms:
-    """Losses of one object's rays."""
-
-    total: torch.Tensor
-    """What is back-propagated."""
-    coarse: torch.Tensor
-    """MSE of the coarse colour."""
-    fine: torch.Tensor
-    """MSE of the fine colour (0 without a fine pass)."""
-    depth: torch.Tensor
-    """Scale/shift-invariant depth loss (0 when off)."""
-    background: torch.Tensor
-    """Background-opacity loss, coarse + fine (0 when off)."""
-
-
-def background_opacity_loss(opacity: Float[Tensor, "B R"], foreground: Bool[Tensor, "B R"]) -> Float[Tensor, ""]:
-    """Mean squared opacity over the rays whose target pixel is background (0 when there is none):
-    ``sum_r [not fg_r] * opacity_r^2 / max(1, #background rays)``."""
-    background = ~foreground
-    return (opacity.square() * background).sum() / background.sum().clamp_min(1)
-
-
-class ObjectLoss(torch.nn.Module):
-    """Encode one object's source view, render its target rays, return the losses (DDP wraps this module)."""
-
-    def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float,
-                 background_weight: float = 0.0) -> None:
-        super().__init__()
-        self.model = model
-        self.render_cfg = render_cfg
-        self.depth_weight = depth_weight
-        self.background_weight = background_weight
-
-    def forward(self, item: TrainBatch, near: float, far: float, generator: torch.Generator) -> LossTerms:
-        src = SourceViews(images=item.src_images, poses=item.src_poses, focal=item.focal,
-                          principal=item.principal, prior=item.src_prior)
-        enc = self.model.encode(src)
-        fine_fn = self.model.field(enc, "fine")  # the coarse MLP when there is no separate fine one (pixelNeRF)
-        rays = RayBundle(item.ray_origins, item.ray_dirs, torch.full_like(item.ray_origins[..., 0], near),
-                         torch.full_like(item.ray_origins[..., 0], far))
-        out = render_rays(self.model.field(enc, "coarse"), fine_fn, rays, self.render_cfg, train=True,
-                          generator=generator)
-        coarse = torch.mean((out.coarse.rgb - item.target_rgb) ** 2)
-        fine = torch.mean((out.fine.rgb - item.target_rgb) ** 2)
-        total = coarse + fine
-        depth = total * 0
-        if self.depth_weight > 0 and item.target_prior is not None:
-            depth = ssi_depth_loss(out.fine.normalized_depth(), item.target_prior, item.target_fg,
-                                   dirs_cam_z=item.target_cos)
-            total = total + self.depth_weight * depth
-        background = total * 0
-        if self.background_weight > 0:
-            background = (background_opacity_loss(out.coarse.opacity, item.target_fg)
-                          + background_opacity_loss(out.fine.opacity, item.target_fg))
-            total = total + self.background_weight * background
-        return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth, background=background)
+__all__ = ["background_opacity_loss", "learning_rate", "train"]
 
 
 def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
@@ -152,7 +92,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     model = PixelNeRF(cfg.model).to(info.device)
     if info.device.type == "cuda":
         model.encoder.to(memory_format=torch.channels_last)
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr)
+    cuda = info.device.type == "cuda"
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr, fused=cuda or None)
     model_cfg = to_dict(cfg.model)
     state = ckpt.TrainingState(step=0, best_psnr=-math.inf, extra={})
     if latest is not None:
@@ -167,7 +108,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         _write_run_files(run_dir, cfg, store, len(records))
     barrier(info)
 
-    loss_module = ObjectLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight)
+    loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight)
     runner = DistributedDataParallel(loss_module) if info.world > 1 else loss_module
     s = cfg.schedule
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
@@ -175,13 +116,13 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     items = TrainItems(records, store, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0)
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
-                        collate_fn=collate, num_workers=cfg.data.num_workers,
+                        collate_fn=collate, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None)
     log = RunLog(run_dir, start) if info.is_main else None
     bar = tqdm(total=s.max_steps, initial=start, desc="train", unit="it", dynamic_ncols=True,
                disable=not (progress and info.is_main))
-    amp = (torch.autocast("cuda", dtype=torch.bfloat16) if info.device.type == "cuda"
-           else contextlib.nullcontext())
+    amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
+    per_object = s.step_shape == "per-object"
     model.train()
     step, best, last_saved = start, state.best_psnr, None
     t_last, rays_since = time.perf_counter(), 0
@@ -192,28 +133,22 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         batch = batch.to(info.device)
         keys = step_keys(plan, step, info.rank, info.world)
         optimizer.zero_grad(set_to_none=True)
-        sums = torch.zeros(5, dtype=torch.float64)
-        for k, key in enumerate(keys):
-            gen = torch.Generator(info.device).manual_seed(item_seed(key.seed, step, 1))
-            sync = contextlib.nullcontext() if (info.world == 1 or k == len(keys) - 1) else runner.no_sync()
-            with sync, amp:
-                terms = runner(batch.item(k), near, far, gen)
-                (terms.total / len(keys)).backward()
-            sums += torch.tensor([float(t.detach()) for t in (terms.total, terms.coarse, terms.fine, terms.depth,
-                                                              terms.background)], dtype=torch.float64)
+        terms = train_step(runner, batch, keys, step, near, far, info.device, amp=amp, per_object=per_object,
+                           distributed=info.world > 1)
         optimizer.step()
         step += 1
         rays_since += len(keys) * s.rays_per_object * info.world
         bar.update(1)
-        means = sums / len(keys)
-        if info.world > 1:
-            torch.distributed.all_reduce(means)
-            means /= info.world
-        if info.is_main and (step % cfg.log.log_every == 0 or step == s.max_steps):
+        log_now = step % cfg.log.log_every == 0 or step == s.max_steps
+        if log_now and info.world > 1:  # every rank reaches the same log steps
+            torch.distributed.all_reduce(terms)
+            terms /= info.world
+        if info.is_main and log_now:
+            total, coarse, fine, depth, background = terms.tolist()  # the one host sync per log interval
             now = time.perf_counter()
-            psnr = -10.0 * math.log10(max(float(means[2]), 1e-10))
-            values = {"loss": float(means[0]), "loss_coarse": float(means[1]), "loss_fine": float(means[2]),
-                      "loss_depth": float(means[3]), "loss_background": float(means[4]), "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
+            psnr = -10.0 * math.log10(max(fine, 1e-10))
+            values = {"loss": total, "loss_coarse": coarse, "loss_fine": fine, "loss_depth": depth,
+                      "loss_background": background, "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
                       "rays_per_s": rays_since / max(now - t_last, 1e-9)}
             log.log(step, values)
             bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")

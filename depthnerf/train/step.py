@@ -1,0 +1,136 @@
+"""One training step: the loss of a batch of objects and its gradient, with no host synchronisation.
+
+:class:`BatchLoss` encodes the source views of all B objects of a rank's batch in one encoder call and renders
+all their target rays in one ``render_rays`` call (one field evaluation per pass over ``B x R x S`` points, no
+point chunking), as pixelNeRF batches its objects. Two things keep the result a per-object one, independent of
+which objects share the batch (so 2 DDP ranks x 2 objects equal 1 process x 4 objects):
+
+* BatchNorm statistics are per object (``depthnerf.model.norm``);
+* each object's sample jitter and density noise come from its own generator (``depthnerf.render.noise``).
+
+The loss is pixelNeRF's: the mean over objects of the coarse + fine colour MSE (plus the optional depth and
+background-opacity terms, each per object then averaged). :func:`train_step` returns the loss terms as one
+device tensor; the loop reads it once per log interval. ``per_object=True`` runs the same module once per object
+(gradients accumulated), the shape the training loop used before; same result up to float rounding.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Bool, Float
+from torch import Tensor
+
+from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
+from depthnerf.render.config import RenderConfig
+from depthnerf.render.depth_loss import ssi_depth_loss_per_image
+from depthnerf.render.pipeline import render_rays
+from depthnerf.render.rays import RayBundle
+from depthnerf.train.batching import ItemKey, TrainBatch, item_seed
+
+TERMS = ("total", "coarse", "fine", "depth", "background")
+"""Order of the loss terms in :meth:`LossTerms.stacked` (and of the logged ``loss*`` values)."""
+
+
+@dataclass
+class LossTerms:
+    """Losses of a batch, each the mean over its objects of the per-object value."""
+
+    total: Tensor
+    """What is back-propagated."""
+    coarse: Tensor
+    """MSE of the coarse colour."""
+    fine: Tensor
+    """MSE of the fine colour (0 without a fine pass)."""
+    depth: Tensor
+    """Scale/shift-invariant depth loss (0 when off)."""
+    background: Tensor
+    """Background-opacity loss, coarse + fine (0 when off)."""
+
+    def stacked(self) -> Float[Tensor, " 5"]:
+        """The terms in :data:`TERMS` order, detached, fp32, on the device."""
+        return torch.stack([getattr(self, n).detach().float() for n in TERMS])
+
+
+def background_opacity_per_object(opacity: Float[Tensor, "B R"], foreground: Bool[Tensor, "B R"]
+                                  ) -> Float[Tensor, " B"]:
+    """Per object, mean squared opacity over the rays whose target pixel is background (0 when there is none)."""
+    background = ~foreground
+    return (opacity.square() * background).sum(-1) / background.sum(-1).clamp_min(1)
+
+
+def background_opacity_loss(opacity: Float[Tensor, "B R"], foreground: Bool[Tensor, "B R"]) -> Float[Tensor, ""]:
+    """Mean squared opacity over the rays whose target pixel is background (0 when there is none):
+    ``sum_r [not fg_r] * opacity_r^2 / max(1, #background rays)``."""
+    background = ~foreground
+    return (opacity.square() * background).sum() / background.sum().clamp_min(1)
+
+
+class BatchLoss(torch.nn.Module):
+    """Encode a batch's source views, render its target rays, return the losses (DDP wraps this module)."""
+
+    def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float,
+                 background_weight: float = 0.0) -> None:
+        super().__init__()
+        self.model = model
+        self.render_cfg = render_cfg
+        self.depth_weight = depth_weight
+        self.background_weight = background_weight
+
+    def forward(self, batch: TrainBatch, near: float, far: float,
+                generators: Sequence[torch.Generator]) -> LossTerms:
+        src = SourceViews(images=batch.src_images, poses=batch.src_poses, focal=batch.focal,
+                          principal=batch.principal, prior=batch.src_prior)
+        enc = self.model.encode(src)
+        fine_fn = self.model.field(enc, "fine")  # the coarse MLP when there is no separate fine one (pixelNeRF)
+        rays = RayBundle(batch.ray_origins, batch.ray_dirs, torch.full_like(batch.ray_origins[..., 0], near),
+                         torch.full_like(batch.ray_origins[..., 0], far))
+        out = render_rays(self.model.field(enc, "coarse"), fine_fn, rays, self.render_cfg, train=True,
+                          generator=list(generators))
+        coarse = torch.mean((out.coarse.rgb - batch.target_rgb) ** 2)  # equal rays per object: mean of means
+        fine = torch.mean((out.fine.rgb - batch.target_rgb) ** 2)
+        total = coarse + fine
+        depth = total * 0
+        if self.depth_weight > 0 and batch.target_prior is not None:
+            per_object, _ = ssi_depth_loss_per_image(out.fine.normalized_depth(), batch.target_prior,
+                                                     batch.target_fg, dirs_cam_z=batch.target_cos)
+            depth = per_object.mean()
+            total = total + self.depth_weight * depth
+        background = total * 0
+        if self.background_weight > 0:
+            background = (background_opacity_per_object(out.coarse.opacity, batch.target_fg)
+                          + background_opacity_per_object(out.fine.opacity, batch.target_fg)).mean()
+            total = total + self.background_weight * background
+        return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth, background=background)
+
+
+def object_generators(keys: Sequence[ItemKey], step: int, device: torch.device) -> list[torch.Generator]:
+    """Each object's renderer generator at ``step`` (a function of the item key alone)."""
+    return [torch.Generator(device).manual_seed(item_seed(key.seed, step, 1)) for key in keys]
+
+
+def train_step(runner: torch.nn.Module, batch: TrainBatch, keys: Sequence[ItemKey], step: int, near: float,
+               far: float, device: torch.device, *, amp: contextlib.AbstractContextManager | None = None,
+               per_object: bool = False, distributed: bool = False) -> Float[Tensor, " 5"]:
+    """Forward and backward of one step (gradients accumulate in the parameters; the caller zeroes them and
+    steps the optimiser). Returns the :data:`TERMS` on the device: no host synchronisation here."""
+    amp = amp if amp is not None else contextlib.nullcontext()
+    gens = object_generators(keys, step, device)
+    if not per_object:
+        with amp:
+            terms = runner(batch, near, far, gens)
+        terms.total.backward()
+        return terms.stacked()
+    sums = torch.zeros(len(TERMS), device=device)
+    for k in range(len(keys)):
+        last = k == len(keys) - 1
+        sync = runner.no_sync() if distributed and not last else contextlib.nullcontext()
+        with sync:
+            with amp:
+                terms = runner(batch.item(k), near, far, gens[k:k + 1])
+            (terms.total / len(keys)).backward()
+        sums += terms.stacked()
+    return sums / len(keys)

@@ -1,0 +1,218 @@
+"""The batched training step and its deterministic pieces against reference loops and torch's own kernels:
+per-object BatchNorm, the batched step vs one object at a time, a rank split, the deterministic feature gather
+and map resizing vs ``grid_sample`` / ``interpolate``; CUDA-only checks skip cleanly without a GPU."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from depthnerf.data.cameras import look_at
+from depthnerf.model import EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConfig
+from depthnerf.model.features import resize_bilinear_matmul, sample_maps
+from depthnerf.model.norm import ObjectBatchNorm2d, object_groups
+from depthnerf.render.config import RenderConfig, SamplerConfig
+from depthnerf.train.batching import ItemKey, TrainBatch
+from depthnerf.train.step import BatchLoss, train_step
+
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+
+
+@contextlib.contextmanager
+def deterministic():
+    before = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before)
+
+
+# --- deterministic feature gather and resizing -----------------------------------------------------------------
+
+@pytest.mark.parametrize("size", [(5, 7), (1, 4), (16, 16)])
+def test_deterministic_gather_equals_grid_sample(size):
+    """Under deterministic algorithms the feature gather (index gathers) equals grid_sample with the model's
+    convention (bilinear, align_corners=True, border padding): values and gradients, float32 tolerances."""
+    hf, wf = size
+    gen = torch.Generator().manual_seed(0)
+    maps = torch.randn(3, 6, hf, wf, generator=gen, requires_grad=True)
+    grid = ((torch.rand(3, 50, 2, generator=gen) * 2 - 1) * 1.3).requires_grad_(True)  # some beyond the border
+    ref = F.grid_sample(maps, grid[:, :, None], mode="bilinear", padding_mode="border", align_corners=True)
+    ref = ref[..., 0].transpose(1, 2)
+    with deterministic():
+        out = sample_maps(maps.permute(0, 2, 3, 1), grid)
+        up = torch.randn(ref.shape, generator=gen)
+        g_out = torch.autograd.grad((out * up).sum(), (maps, grid))
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6)
+    g_ref = torch.autograd.grad((ref * up).sum(), (maps, grid))
+    torch.testing.assert_close(g_out[0], g_ref[0], rtol=1e-5, atol=1e-5)
+    inside = (grid.abs() < 1).all(-1, keepdim=True).expand_as(grid)  # the clamp edge's gradient is a convention
+    torch.testing.assert_close(g_out[1][inside], g_ref[1][inside], rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("shapes", [((8, 8), (16, 16)), ((4, 4), (16, 16)), ((2, 3), (7, 5)), ((1, 1), (4, 4))])
+def test_matmul_resize_equals_interpolate(shapes):
+    (hi, wi), (ho, wo) = shapes
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 3, hi, wi, generator=gen, requires_grad=True)
+    ref = F.interpolate(x, (ho, wo), mode="bilinear", align_corners=True)
+    out = resize_bilinear_matmul(x, (ho, wo))
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-6)
+    up = torch.randn(ref.shape, generator=gen)
+    torch.testing.assert_close(torch.autograd.grad((out * up).sum(), x)[0],
+                               torch.autograd.grad((ref * up).sum(), x)[0], rtol=1e-5, atol=1e-5)
+
+
+# --- per-object BatchNorm ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("views", [1, 2])
+def test_object_batchnorm_equals_one_call_per_object(views):
+    """Grouped statistics equal BatchNorm run once per object: outputs, gradients, running statistics."""
+    gen = torch.Generator().manual_seed(2)
+    x = (torch.randn(3 * views, 4, 5, 6, generator=gen) * 2 + 1).requires_grad_(True)
+    grouped, plain = ObjectBatchNorm2d(4), torch.nn.BatchNorm2d(4)
+    with torch.no_grad():
+        for bn in (grouped, plain):
+            bn.weight.copy_(torch.tensor([1.0, 2.0, -0.5, 0.3]))
+            bn.bias.copy_(torch.tensor([0.1, 0.0, 0.2, -0.3]))
+    with object_groups(grouped, 3):
+        out = grouped(x)
+    assert grouped.groups == 1  # reset after the block
+    ref = torch.cat([plain(part) for part in x.split(views)])
+    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    up = torch.randn(out.shape, generator=gen)
+    g = torch.autograd.grad((out * up).sum(), [x, grouped.weight, grouped.bias])
+    g_ref = torch.autograd.grad((ref * up).sum(), [x, plain.weight, plain.bias])
+    for a, b in zip(g, g_ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(grouped.running_mean, plain.running_mean)
+    torch.testing.assert_close(grouped.running_var, plain.running_var)
+    assert int(grouped.num_batches_tracked) == int(plain.num_batches_tracked) == 3
+
+
+# --- the batched step ----------------------------------------------------------------------------------------------
+
+def tiny_setup(b: int, use_depth: bool = False, seed: int = 0, device: str = "cpu"):
+    field = FieldConfig(d_hidden=32, n_blocks=3, combine_layer=2, density_bias_init=0.5)
+    cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", use_depth=use_depth), coarse=field,
+                          fine=field)
+    torch.manual_seed(seed)
+    model = PixelNeRF(cfg).to(device).train()
+    gen = torch.Generator().manual_seed(seed + 1)
+    size, r = 32, 24
+    az = torch.rand(b, 1, generator=gen) * 2 * math.pi
+    eye = torch.stack([1.3 * torch.cos(az), 1.3 * torch.sin(az), 0.3 + 0.4 * torch.rand(b, 1, generator=gen)], -1)
+    origins = torch.randn(b, r, 3, generator=gen) * 0.1 + torch.tensor([1.2, 0.0, 0.3])
+    dirs = F.normalize(-origins + torch.randn(b, r, 3, generator=gen) * 0.1, dim=-1)
+    batch = TrainBatch(src_images=torch.rand(b, 1, 3, size, size, generator=gen), src_poses=look_at(eye),
+                       src_prior=torch.rand(b, 1, 1, size, size, generator=gen) if use_depth else None,
+                       focal=torch.full((b,), size * 1.0), principal=torch.full((b, 2), (size - 1) / 2),
+                       ray_origins=origins, ray_dirs=dirs, target_rgb=torch.rand(b, r, 3, generator=gen),
+                       target_prior=torch.rand(b, r, generator=gen), target_fg=torch.rand(b, r, generator=gen) > 0.4,
+                       target_cos=torch.rand(b, r, generator=gen) * 0.2 + 0.8)
+    keys = [ItemKey(k, 1000 + 17 * k, True) for k in range(b)]
+    render = RenderConfig(sampler=SamplerConfig(n_coarse=8, n_importance=4, n_gaussian=4))
+    return model, BatchLoss(model, render, depth_weight=0.1, background_weight=0.2), batch.to(device), keys
+
+
+def grads(model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    out = {n: p.grad.detach().clone() for n, p in model.named_parameters() if p.grad is not None}
+    model.zero_grad(set_to_none=True)
+    return out
+
+
+def assert_grads_close(a: dict, b: dict, rel: float) -> None:
+    """Every parameter's gradient agrees to ``rel`` in norm (``|a - b| <= rel |b|``): elementwise tolerances do
+    not fit gradients summed over thousands of rounding-affected terms (BatchNorm's backward cancels)."""
+    assert a.keys() == b.keys() and a
+    for k in a:
+        x, y = a[k].double().cpu(), b[k].double().cpu()
+        assert (x - y).norm() <= rel * y.norm() + 1e-12, (k, float((x - y).norm() / y.norm()))
+
+
+@pytest.mark.parametrize("use_depth", [False, True])
+def test_batched_step_equals_the_per_object_loop(use_depth):
+    """All objects through the encoder and fields at once give the per-object loop's loss terms and gradients
+    (BatchNorm statistics and noise are per object), up to float32 rounding."""
+    model, loss, batch, keys = tiny_setup(3, use_depth)
+    batched = train_step(loss, batch, keys, 5, 0.8, 1.8, torch.device("cpu"))
+    g_batched = grads(model)
+    looped = train_step(loss, batch, keys, 5, 0.8, 1.8, torch.device("cpu"), per_object=True)
+    g_looped = grads(model)
+    assert batched.shape == (5,) and (batched[3:] > 0).all()  # depth and background terms are on
+    torch.testing.assert_close(batched, looped, rtol=1e-5, atol=1e-7)
+    assert_grads_close(g_batched, g_looped, rel=1e-4)
+
+
+def test_rank_split_of_the_batched_step_equals_the_whole_batch():
+    """2 ranks x 2 objects (DDP averages their gradients) equal 1 process x 4 objects."""
+    model, loss, batch, keys = tiny_setup(4)
+    whole = train_step(loss, batch, keys, 2, 0.8, 1.8, torch.device("cpu"))
+    g_whole = grads(model)
+    parts, g_parts = [], []
+    for lo in (0, 2):
+        sub = TrainBatch(**{n: (None if v is None else v[lo:lo + 2]) for n, v in vars(batch).items()})
+        parts.append(train_step(loss, sub, keys[lo:lo + 2], 2, 0.8, 1.8, torch.device("cpu")))
+        g_parts.append(grads(model))
+    torch.testing.assert_close((parts[0] + parts[1]) / 2, whole, rtol=1e-5, atol=1e-7)
+    assert_grads_close({k: (g_parts[0][k] + g_parts[1][k]) / 2 for k in g_whole}, g_whole, rel=1e-4)
+
+
+def deterministic_loss(loss: BatchLoss, batch: TrainBatch) -> torch.Tensor:
+    """The step's colour loss with deterministic sampling (train=False), comparable across devices."""
+    from depthnerf.model.pixelnerf import SourceViews
+    from depthnerf.render.pipeline import render_rays
+    from depthnerf.render.rays import RayBundle
+
+    m = loss.model
+    enc = m.encode(SourceViews(batch.src_images, batch.src_poses, batch.focal, batch.principal, batch.src_prior))
+    near = torch.full_like(batch.ray_origins[..., 0], 0.8)
+    rays = RayBundle(batch.ray_origins, batch.ray_dirs, near, near + 1.0)
+    out = render_rays(m.field(enc, "coarse"), m.field(enc, "fine"), rays, loss.render_cfg, train=False)
+    return ((out.coarse.rgb - batch.target_rgb) ** 2).mean() + ((out.fine.rgb - batch.target_rgb) ** 2).mean()
+
+
+@CUDA
+def test_cuda_batched_model_matches_the_cpu_reference():
+    """The batched model and renderer on CUDA (fp32, TF32 off) equal the CPU one-object-at-a-time reference
+    within float32 tolerances: loss and gradients (sampling made deterministic, since CUDA and CPU generators
+    draw different numbers). The CUDA training step itself runs and stays finite under bf16 autocast."""
+    torch.backends.cuda.matmul.allow_tf32 = False
+    torch.backends.cudnn.allow_tf32 = False
+    model, loss, batch, keys = tiny_setup(3)
+    ref = sum(deterministic_loss(loss, TrainBatch(**{n: (None if v is None else v[k:k + 1])
+                                                     for n, v in vars(batch).items()})) for k in range(3)) / 3
+    ref.backward()
+    g_ref = grads(model)
+    model_c, loss_c, batch_c, _ = tiny_setup(3, device="cuda")
+    model_c.load_state_dict(model.state_dict())
+    out = deterministic_loss(loss_c, batch_c)
+    out.backward()
+    torch.testing.assert_close(out.cpu(), ref, rtol=1e-4, atol=1e-6)
+    assert_grads_close(grads(model_c), g_ref, rel=1e-3)
+    terms = train_step(loss_c, batch_c, keys, 1, 0.8, 1.8, torch.device("cuda"),
+                       amp=torch.autocast("cuda", dtype=torch.bfloat16))
+    assert terms.device.type == "cuda" and torch.isfinite(terms).all()
+
+
+@CUDA
+def test_cuda_deterministic_step_is_bitwise_repeatable():
+    """Under --deterministic's settings two identical CUDA steps give bit-identical losses and gradients."""
+    import os
+
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    results = []
+    with deterministic():
+        for _ in range(2):
+            model, loss, batch, keys = tiny_setup(3, device="cuda")
+            out = train_step(loss, batch, keys, 1, 0.8, 1.8, torch.device("cuda"),
+                             amp=torch.autocast("cuda", dtype=torch.bfloat16))
+            results.append((out, grads(model)))
+    assert torch.equal(results[0][0], results[1][0])
+    for k, v in results[0][1].items():
+        assert torch.equal(v, results[1][1][k]), k
