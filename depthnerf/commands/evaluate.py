@@ -34,7 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-objects", type=int, help="only the first N objects (sorted by id)")
     p.add_argument("--resolution", type=int,
                    help="render/score resolution (default: the checkpoint's training resolution; 128 = paper)")
-    p.add_argument("--chunk", type=int, default=4096, help="rays per render pass (bounds memory; default 4096)")
+    p.add_argument("--chunk", type=int,
+                   help="rays per render pass (bounds memory; default 4096 on CPU, 65536 on CUDA)")
     p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction and Chamfer/F-score")
     p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (default 128)")
     p.add_argument("--mesh-threshold", default="auto",
@@ -49,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--fp32", action="store_true", help="render in fp32 on CUDA too (default there: bf16 autocast)")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the field MLPs (opt-in; compile time is paid once per process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -57,9 +61,12 @@ def resolve_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
-        return torch.device(name)
+        device = torch.device(name)
     except RuntimeError:
         raise DepthnerfError(f"--device {name!r}: not a torch device (use auto, cpu or cuda)") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise DepthnerfError(f"--device {name}: no CUDA GPU is available to this process; use --device cpu")
+    return device
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.eval.pretrained import load_pretrained
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
     from depthnerf.render.mesh import parse_level
+    from depthnerf.render.precision import configure_inference
 
     out = args.out
     if out is None:
@@ -76,10 +84,11 @@ def run(args: argparse.Namespace) -> int:
         out = args.run / "eval" / args.split
     device = resolve_device(args.device)
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
+    policy = configure_inference(pre.model, device, fp32=args.fp32, compile=args.compile)
     data = args.data or Path(pre.config.data.root)
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
-        resolution=args.resolution, chunk=args.chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
+        resolution=args.resolution, chunk=args.chunk or policy.ray_chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         quantize=args.quantize, method=args.method, depth_checkpoint=args.depth_checkpoint,

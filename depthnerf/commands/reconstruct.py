@@ -35,22 +35,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-estimator", choices=["bundled", "depth-anything-v2"],
                    help="override the checkpoint's depth estimator (needed for checkpoints trained with oracle)")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
-    p.add_argument("--chunk", type=int, default=4096, help="rays per render pass (default 4096)")
+    p.add_argument("--chunk", type=int, help="rays per render pass (default 4096 on CPU, 65536 on CUDA)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--fp32", action="store_true", help="render in fp32 on CUDA too (default there: bf16 autocast)")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the field MLPs (opt-in; compile time is paid once per process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
     from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
     from depthnerf.render.mesh import parse_level
+    from depthnerf.render.precision import configure_inference
 
     device = resolve_device(args.device)
     rec = Reconstructor.from_pretrained(args.checkpoint, device, depth_estimator=args.depth_estimator,
                                         depth_checkpoint=args.depth_checkpoint)
+    policy = configure_inference(rec.pretrained.model, device, fp32=args.fp32, compile=args.compile)
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
-                            chunk=args.chunk, progress=not args.no_progress)
+                            chunk=args.chunk or policy.ray_chunk, progress=not args.no_progress)
     result = rec.reconstruct(args.image, mask=args.mask, config=cfg)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:

@@ -20,6 +20,7 @@ features and the returned rgb/sigma stay fp32. Training defaults to fp32.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
@@ -98,6 +99,11 @@ class PixelNeRF(nn.Module):
         self.encoder = ImageEncoder(cfg.encoder)
         self.coarse = ResidualField(cfg.coarse, cfg.encoder.latent_size)
         self.fine = ResidualField(cfg.fine, cfg.encoder.latent_size) if cfg.fine is not None else None
+        # Runtime inference settings (not part of the config or the weights; see depthnerf.render.precision):
+        self.inference_autocast: torch.dtype | None = None
+        """Without autograd, field queries run under ``torch.autocast(device, this dtype)`` (None: as called)."""
+        self.inference_chunk_points: int | None = None
+        """Without autograd, points per field chunk (None: the field config's ``chunk_points``)."""
 
     def encode(self, src: SourceViews) -> EncodedViews:
         """Feature maps of all source views; nothing is stored on the module."""
@@ -126,7 +132,8 @@ class PixelNeRF(nn.Module):
             maps = mlp.latent_map(enc.features.reshape(b * v, c, hf, wf)).reshape(b, v, hf, wf, -1)
         else:
             maps = enc.features.permute(0, 1, 3, 4, 2).contiguous()  # channels-last for row gathers
-        chunk = mlp.cfg.chunk_points
+        chunk = self.inference_chunk_points or mlp.cfg.chunk_points
+        amp_dtype = self.inference_autocast
 
         def run(points: Tensor, dirs: Tensor) -> Tensor:
             rotated, cam = to_source_frames(points, enc.w2c)
@@ -143,11 +150,15 @@ class PixelNeRF(nn.Module):
                                      f"match {b} encoded objects")
             pts = points.reshape(b, r * s, 3)
             dirs_pp = dirs[:, :, None, :].expand(b, r, s, 3).reshape(b, r * s, 3)
-            if torch.is_grad_enabled() or r * s <= chunk:
-                raw = run(pts, dirs_pp)
-            else:
-                raw = torch.cat([run(pts[:, i:i + chunk], dirs_pp[:, i:i + chunk])
-                                 for i in range(0, r * s, chunk)], dim=1)
+            grad = torch.is_grad_enabled()
+            amp = (torch.autocast(points.device.type, dtype=amp_dtype) if amp_dtype is not None and not grad
+                   else contextlib.nullcontext())
+            with amp:
+                if grad or r * s <= chunk:
+                    raw = run(pts, dirs_pp)
+                else:
+                    raw = torch.cat([run(pts[:, i:i + chunk], dirs_pp[:, i:i + chunk])
+                                     for i in range(0, r * s, chunk)], dim=1)
             raw = raw.to(points.dtype)  # under bf16 autocast the MLP runs in bf16; the renderer gets fp32
             return torch.sigmoid(raw[..., :3]).reshape(b, r, s, 3), F.relu(raw[..., 3]).reshape(b, r, s)
 

@@ -1,0 +1,68 @@
+"""Inference speed policy in one place: device -> autocast dtype, ray chunk, field point chunk, torch.compile.
+
+=================  ==========================  ============================================================
+setting            CPU (unchanged numerics)    CUDA
+=================  ==========================  ============================================================
+field precision    fp32                        bf16 autocast (linears in bf16; residual stream, features'
+                                               sampling weights and rgb/sigma fp32); ``--fp32`` turns it off
+rays per pass      4096 (``CPU_RAY_CHUNK``)    65536 (``CUDA_RAY_CHUNK``): 4 views of 128x128 per pass, so
+                                               the views of one object render in large batches
+field points       the config's chunk_points   1,048,576 per chunk (``CUDA_POINT_CHUNK``; bounds memory at
+                   (4096)                      about 8 KB per point for the paper's d_hidden 512)
+torch.compile      off                         off; ``--compile`` compiles the field MLPs (opt-in: not
+                                               measured yet, see docs/speed.md)
+=================  ==========================  ============================================================
+
+The CUDA values are sized from memory arithmetic, not measured (no GPU was available when they were set);
+docs/speed.md says which GPU figures are still open. ``depthnerf eval`` and ``depthnerf reconstruct`` call
+:func:`configure_inference` on the loaded model; an explicit ``--chunk`` wins over the default.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from depthnerf.model.pixelnerf import PixelNeRF
+
+CPU_RAY_CHUNK = 4096
+"""Rays per render pass on the CPU (the value every CPU figure in docs/speed.md was measured with)."""
+CUDA_RAY_CHUNK = 65536
+"""Rays per render pass on CUDA."""
+CUDA_POINT_CHUNK = 1 << 20
+"""Field points per chunk on CUDA at inference."""
+
+
+@dataclass(frozen=True)
+class InferencePolicy:
+    """How a model renders without autograd on a device."""
+
+    autocast: torch.dtype | None
+    """Autocast dtype of field queries (None = fp32)."""
+    ray_chunk: int
+    """Default rays per render pass."""
+    point_chunk: int | None
+    """Field points per chunk (None = the field config's ``chunk_points``)."""
+    compile: bool
+    """Field MLPs wrapped in ``torch.compile``."""
+
+
+def inference_policy(device: torch.device | str, *, fp32: bool = False, compile: bool = False) -> InferencePolicy:
+    """The policy for ``device`` (see the module table)."""
+    if torch.device(device).type == "cuda":
+        return InferencePolicy(autocast=None if fp32 else torch.bfloat16, ray_chunk=CUDA_RAY_CHUNK,
+                               point_chunk=CUDA_POINT_CHUNK, compile=compile)
+    return InferencePolicy(autocast=None, ray_chunk=CPU_RAY_CHUNK, point_chunk=None, compile=compile)
+
+
+def configure_inference(model: PixelNeRF, device: torch.device | str, *, fp32: bool = False,
+                        compile: bool = False) -> InferencePolicy:
+    """Apply :func:`inference_policy` to a loaded model (runtime settings only: weights and config unchanged)."""
+    policy = inference_policy(device, fp32=fp32, compile=compile)
+    model.inference_autocast = policy.autocast
+    model.inference_chunk_points = policy.point_chunk
+    if compile:
+        for mlp in {id(m): m for m in (model.coarse, model.fine) if m is not None}.values():
+            mlp.forward = torch.compile(mlp.forward, dynamic=True)
+    return policy

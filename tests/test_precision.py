@@ -1,0 +1,38 @@
+"""The inference policy (depthnerf.render.precision): CPU numerics untouched, CUDA defaults, and the field's
+autocast/point-chunk switches exercised on the CPU."""
+
+from __future__ import annotations
+
+import torch
+from test_model import query, randomize, small_config, sources
+
+from depthnerf.model import PixelNeRF
+from depthnerf.render.precision import CPU_RAY_CHUNK, CUDA_POINT_CHUNK, configure_inference, inference_policy
+
+
+def test_policy_per_device():
+    cpu = inference_policy("cpu")
+    assert cpu.autocast is None and cpu.ray_chunk == CPU_RAY_CHUNK == 4096 and cpu.point_chunk is None
+    cuda = inference_policy("cuda")
+    assert cuda.autocast == torch.bfloat16 and cuda.ray_chunk > cpu.ray_chunk and cuda.point_chunk == CUDA_POINT_CHUNK
+    assert inference_policy("cuda", fp32=True).autocast is None
+
+
+@torch.no_grad()
+def test_cpu_configuration_changes_no_bit_and_bf16_stays_close():
+    model = randomize(PixelNeRF(small_config()))
+    enc = model.encode(sources())
+    pts, dirs = query(r=9, s=5)
+    ref_rgb, ref_sigma = model.field(enc, "fine")(pts, dirs)
+    configure_inference(model, "cpu")
+    rgb, sigma = model.field(enc, "fine")(pts, dirs)
+    assert torch.equal(rgb, ref_rgb) and torch.equal(sigma, ref_sigma)
+    # the CUDA settings' logic, on the CPU: bf16 autocast and another point chunk (fp32 outputs, bf16 accuracy)
+    model.inference_autocast, model.inference_chunk_points = torch.bfloat16, 11
+    rgb, sigma = model.field(enc, "fine")(pts, dirs)
+    assert rgb.dtype == torch.float32 and sigma.dtype == torch.float32
+    torch.testing.assert_close(rgb, ref_rgb, rtol=0, atol=3e-2)
+    torch.testing.assert_close(sigma, ref_sigma, rtol=5e-2, atol=5e-2)
+    model.inference_autocast = None
+    rgb, _ = model.field(enc, "fine")(pts, dirs)  # other chunking, fp32: equal up to rounding
+    torch.testing.assert_close(rgb, ref_rgb, rtol=1e-5, atol=1e-6)
