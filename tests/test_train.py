@@ -219,6 +219,19 @@ def test_relative_data_run_resumes_from_another_directory(data, tmp_path):
     assert losses(run).keys() == {1, 2, 3}
 
 
+def test_deterministic_switch_runs_the_deterministic_kernels_and_agrees(data, tmp_path):
+    """--deterministic (index-gather features, matmul resizing, deterministic algorithms) trains, repeats itself
+    exactly, and agrees with the default kernels up to float32 rounding at the first step."""
+    args = ["train", "--preset", "cpu-cars", "--depth", "oracle", "--data", str(data), "--max-steps", "2",
+            "--log.val_every", "0", *TINY]
+    det = [tmp_path / "d1", tmp_path / "d2"]
+    for run in det:
+        cli(*args, "--out", str(run), "--deterministic")
+    cli(*args, "--out", str(tmp_path / "plain"))
+    assert losses(det[0]) == losses(det[1])
+    assert losses(det[0])[1] == pytest.approx(losses(tmp_path / "plain")[1], rel=1e-5)
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
 def test_device_cuda_without_a_gpu_is_one_line(data, tmp_path):
     proc = cli("train", "--preset", "cpu-cars", "--data", str(data), "--out", str(tmp_path / "x"),

@@ -1,0 +1,223 @@
+"""GPU speed of the paper preset (issue 12): prints figures, asserts nothing.
+
+On CUDA it prints: ms per training iteration (bf16 autocast, fused Adam, the batched step), CUDA kernel launches
+per step (``torch.profiler``), peak GPU memory, and ms per 128x128 novel view with the paper's sampler and with
+depth-guided sampling (a synthetic source depth builds the guide; the view's cost, not its accuracy).
+
+On a CPU-only machine it runs the same paper-preset training step on the CPU (fp32) and its LAST line reads
+``aten ops per training step: N``: the aten operators dispatched by one step (forward, backward, optimiser),
+counted with a ``TorchDispatchMode``, the proxy for CUDA kernel launches. ``--step-shape per-object`` counts the
+earlier one-object-at-a-time step; run against a checkout without ``depthnerf.train.step`` it counts that
+checkout's loop body (the "before" figure of docs/speed.md).
+
+    python benchmarks/bench_gpu.py                       # CUDA if available, else the CPU op count
+    python benchmarks/bench_gpu.py --device cpu --time   # also time the CPU step (~10 s per iteration)
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import statistics
+import time
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from depthnerf.data.cameras import Intrinsics, look_at
+from depthnerf.model import PixelNeRF
+from depthnerf.render.rays import rays_from_camera
+from depthnerf.train.batching import ItemKey, TrainBatch
+from depthnerf.train.config import preset, with_prior
+
+
+class CountOps(TorchDispatchMode):
+    """Counts every aten operator dispatched inside the block."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += 1
+        return func(*args, **(kwargs or {}))
+
+
+def synthetic_batch(b: int, rays: int, res: int, use_depth: bool, seed: int = 0) -> tuple[TrainBatch, Intrinsics]:
+    """Random source images on the SRN cars camera sphere and random target rays (timing only)."""
+    gen = torch.Generator().manual_seed(seed)
+    intr = Intrinsics(focal=131.25 * res / 128, cx=(res - 1) / 2, cy=(res - 1) / 2, height=res, width=res)
+    az = torch.rand(b, 2, generator=gen) * 2 * math.pi
+    eye = torch.stack([1.2 * torch.cos(az), 1.2 * torch.sin(az), torch.full_like(az, 0.5)], -1)
+    poses = look_at(eye)
+    all_rays = rays_from_camera(poses[:, 1], intr, 0.8, 1.8)
+    idx = torch.randint(0, all_rays.num_rays, (b, rays), generator=gen)
+    pick = [torch.gather(t, 1, idx[..., None].expand(-1, -1, 3)) for t in (all_rays.origins, all_rays.directions)]
+    batch = TrainBatch(src_images=torch.rand(b, 1, 3, res, res, generator=gen), src_poses=poses[:, :1],
+                       src_prior=torch.randn(b, 1, 1, res, res, generator=gen) if use_depth else None,
+                       focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
+                       ray_origins=pick[0], ray_dirs=pick[1], target_rgb=torch.rand(b, rays, 3, generator=gen),
+                       target_prior=None, target_fg=torch.rand(b, rays, generator=gen) > 0.5,
+                       target_cos=torch.ones(b, rays))
+    return batch, intr
+
+
+def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, step_shape: str):
+    """One optimisation step as the training loop runs it on ``device``."""
+    cuda = device.type == "cuda"
+    amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
+    keys = [ItemKey(k, 1000 + k, True) for k in range(batch.focal.shape[0])]
+    try:
+        from depthnerf.train.step import BatchLoss, train_step
+    except ImportError:  # a checkout from before the batched step: its loop body, verbatim in shape
+        return legacy_step(model, cfg, batch, device, keys)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4, fused=cuda or None)
+    loss = BatchLoss(model, cfg.render, 0.0, 0.0)
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        train_step(loss, batch, keys, 0, 0.8, 1.8, device, amp=amp, per_object=step_shape == "per-object")
+        opt.step()
+    return step
+
+
+def legacy_step(model, cfg, batch, device, keys):
+    from depthnerf.train.batching import item_seed
+    from depthnerf.train.loop import ObjectLoss  # noqa: F401 (exists only before the batched step)
+
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    runner = ObjectLoss(model, cfg.render, 0.0, 0.0)
+    amp = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else contextlib.nullcontext()
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        sums = torch.zeros(5, dtype=torch.float64)
+        for k, key in enumerate(keys):
+            gen = torch.Generator(device).manual_seed(item_seed(key.seed, 0, 1))
+            with amp:
+                terms = runner(batch.item(k), 0.8, 1.8, gen)
+                (terms.total / len(keys)).backward()
+            sums += torch.tensor([float(t.detach()) for t in (terms.total, terms.coarse, terms.fine, terms.depth,
+                                                              terms.background)], dtype=torch.float64)
+        opt.step()
+    return step
+
+
+def timed(fn, repeat: int, device: torch.device) -> list[float]:
+    out = []
+    for _ in range(repeat):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def cuda_launches(fn) -> int:
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    return sum(1 for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA)
+
+
+def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
+                 repeat: int) -> None:
+    import dataclasses
+
+    from depthnerf.model.pixelnerf import SourceViews
+    from depthnerf.render.precision import configure_inference
+    from depthnerf.render.views import render_poses, render_views, view_rays
+
+    model.eval()
+    policy = configure_inference(model, device)
+    src = SourceViews(batch.src_images[:1], batch.src_poses[:1], batch.focal[:1], batch.principal[:1],
+                      batch.src_prior[:1] if batch.src_prior is not None else None)
+    az = torch.linspace(0, 2 * math.pi, views + 1)[:-1]
+    poses = look_at(torch.stack([1.2 * torch.cos(az), 1.2 * torch.sin(az), torch.full_like(az, 0.5)], -1))
+    with torch.no_grad():
+        enc = model.encode(src)
+
+        def paper():
+            render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, policy.ray_chunk, device)
+        paper()
+        t = timed(paper, repeat, device)
+        print(f"view  paper sampler 64+16+16, {intr.height}x{intr.width}, {views} views per call, chunk "
+              f"{policy.ray_chunk}, {'bf16' if policy.autocast else 'fp32'}: {min(t) / views * 1e3:.1f} ms per view")
+        try:
+            from depthnerf.render.config import GuideConfig
+            from depthnerf.render.guide import build_depth_guide
+        except ImportError:
+            print("view  guided: N/A (no depth guide in this checkout)")
+            return
+        gcfg = dataclasses.replace(cfg.render, guided=dataclasses.replace(cfg.render.guided, enabled=True))
+        rays = view_rays(poses.to(device), intr, 0.8, 1.8)
+        depth = torch.full((1, intr.height, intr.width), 1.2, device=device)  # a synthetic source surface
+        mask = torch.zeros_like(depth, dtype=torch.bool)
+        mask[:, intr.height // 4: 3 * intr.height // 4, intr.width // 4: 3 * intr.width // 4] = True
+        guide = build_depth_guide(src.poses[:, 0].to(device), intr, depth, mask, rays, GuideConfig())
+        coarse, fine = model.field(enc, "coarse"), model.field(enc, "fine")
+
+        def guided():
+            render_views(coarse, fine, poses.to(device), intr, 0.8, 1.8, gcfg, chunk=policy.ray_chunk * views,
+                         guide=guide)
+        guided()
+        t = timed(guided, repeat, device)
+        print(f"view  guided sampler (synthetic guide, {guide.occupied.float().mean():.0%} rays occupied): "
+              f"{min(t) / views * 1e3:.1f} ms per view")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="auto", help="auto, cpu or cuda")
+    p.add_argument("--objects", type=int, default=4, help="objects per step (paper: 4)")
+    p.add_argument("--rays", type=int, default=128, help="rays per object (paper: 128)")
+    p.add_argument("--resolution", type=int, default=128)
+    p.add_argument("--depth", default="none", choices=["none", "bundled"], help="baseline or depth-aware encoder")
+    p.add_argument("--step-shape", default="batched", choices=["batched", "per-object"])
+    p.add_argument("--repeat", type=int, default=20, help="timed iterations on CUDA (CPU: with --time, 3)")
+    p.add_argument("--views", type=int, default=16, help="views per render call on CUDA")
+    p.add_argument("--time", action="store_true", help="on the CPU: also time the step (slow)")
+    p.add_argument("--no-views", action="store_true", help="CUDA: training figures only")
+    args = p.parse_args()
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if args.device == "auto" else args.device))
+    cfg = with_prior(preset("paper-cars"), args.depth)
+    torch.manual_seed(0)
+    model = PixelNeRF(cfg.model).to(device).train()
+    if device.type == "cuda":
+        model.encoder.to(memory_format=torch.channels_last)
+    batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, args.depth != "none")
+    batch = batch.to(device)
+    step = make_step(model, cfg, batch, device, args.step_shape)
+    step()  # warm-up (allocations, cuDNN/cuBLAS handles)
+    print(f"paper preset ({cfg.model.encoder.backbone}, d_hidden {cfg.model.coarse.d_hidden}, "
+          f"{cfg.render.sampler.n_coarse}+{cfg.render.sampler.n_importance}+{cfg.render.sampler.n_gaussian} "
+          f"samples), {args.objects} objects x {args.rays} rays, {args.resolution} px, {args.step_shape} step, "
+          f"device {device}")
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+        t = timed(step, args.repeat, device)
+        print(f"train iteration: {min(t) * 1e3:.1f} ms best, {statistics.median(t) * 1e3:.1f} ms median "
+              f"({args.repeat} iterations)")
+        print(f"CUDA kernel launches per training step: {cuda_launches(step)}")
+        print(f"peak GPU memory (training): {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB")
+        if not args.no_views:
+            view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4))
+        return
+    if args.time:
+        t = timed(step, 3, device)
+        print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
+    with CountOps() as counter:
+        step()
+    print(f"aten ops per training step: {counter.count}")
+
+
+if __name__ == "__main__":
+    main()
