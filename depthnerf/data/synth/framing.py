@@ -99,3 +99,17 @@ def checkpoint_framing(weights: Path, data_root: str | Path | None, category: st
             except (OSError, ValueError) as err:
                 raise DepthnerfError(f"{data_card}: unreadable dataset card ({err})") from None
     return DEFAULT_FRAMING, "default (no checkpoint card or dataset card found)"
+
+
+def dataset_pixel_center(root: str | Path, category: str) -> float:
+    """Pixel-centre convention a dataset states in its card (``<root>/<category>_card.json``,
+    ``camera.pixel_center``); 0.0 (integer-centred) when there is no card or the card predates the field."""
+    path = Path(root) / f"{category}_card.json"
+    if not path.is_file():
+        return 0.0
+    try:
+        card = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise DepthnerfError(f"{path}: unreadable dataset card ({err})") from None
+    camera = card.get("camera", {}) if isinstance(card, dict) else {}
+    return float(camera.get("pixel_center", 0.0)) if isinstance(camera, dict) else 0.0
