@@ -326,7 +326,7 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
     settings = manifest["settings"]
     timings = ", ".join(f"{k.removesuffix('_s')} {v:.1f} s" for k, v in manifest["timings"].items())
     prior = settings["depth_estimator"]
-    details = "\n".join([
+    details = "\n".join("- " + line for line in [
         f"**Input** {name}: " + "; ".join(manifest["input"]["notes"]),
         f"**Model** {Path(manifest['checkpoint']).name} (category {settings['category']}, "
         f"{settings['resolution']} px), depth prior **{prior}**"
@@ -336,8 +336,8 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
         f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else "")
         + f", {manifest['point_cloud']['points']} points",
         f"**Timings** {timings}",
-        "" if files.get("turntable_mp4") else f"**MP4** {manifest['turntable_mp4_status']}",
-    ]).strip()
+        *([] if files.get("turntable_mp4") else [f"**MP4** {manifest['turntable_mp4_status']}"]),
+    ])
     summary = (f"{settings['views']} views, mesh {manifest['mesh']['faces']} faces, "
                f"{manifest['point_cloud']['points']} points, depth prior {prior}")
     return RunOutputs(ok=True, message=summary, input_image=at("input"), input_mask=at("input_mask"),

@@ -42,6 +42,13 @@ RATIO_INFO = ("object's longer side / frame side (TripoSR's foreground ratio; Tr
               "model, these checkpoints were trained at cars 0.65, chairs 0.6)")
 
 
+CSS = """
+#prepared img, #prior-image img, #gif img { width: 100%; height: 100%; object-fit: contain;
+  image-rendering: pixelated; }
+"""
+"""The model works at 64 px: show its images scaled up to the boxes, pixels kept sharp."""
+
+
 def model_choices(config: AppConfig) -> list[tuple[str, str]]:
     """(label, checkpoint) pairs of the model menu."""
     by_name = {name: label for label, name in SHIPPED_MODELS.items()}
@@ -140,4 +147,4 @@ def serve(config: AppConfig) -> None:
     page = build_page(session)
     page.queue(default_concurrency_limit=1, max_size=64)
     page.launch(server_name=config.host, server_port=config.port, share=config.share, ssr_mode=False,
-                allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False)
+                allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS)
