@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import struct
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +67,20 @@ def bad_inputs(tmp: Path) -> dict[str, tuple[Path | None, str]]:
     }
 
 
+def png16(path: Path, pixels: np.ndarray) -> Path:
+    """A 16-bit PNG (grey, grey+alpha, RGB or RGBA by the channel count), written by hand: Pillow cannot."""
+    h, w, c = pixels.shape
+    raw = b"".join(b"\x00" + pixels[y].astype(">u2").tobytes() for y in range(h))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", w, h, 16, {1: 0, 2: 4, 3: 2, 4: 6}[c], 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw))
+                     + chunk(b"IEND", b""))
+    return path
+
+
 def accepted_inputs(tmp: Path) -> dict[str, tuple[Path, str]]:
     """Odd but usable images: name -> (file, a note the preview must show)."""
     car = Image.open(examples()[0])
@@ -79,6 +95,9 @@ def accepted_inputs(tmp: Path) -> dict[str, tuple[Path, str]]:
         "grayscale": (_write(tmp / "grey.jpg", rgb.convert("L")), "grayscale image: replicated to RGB"),
         "16-bit": (_write(tmp / "grey16.png", Image.fromarray(grey)), "grayscale image: replicated to RGB"),
         "rgba webp": (_write(tmp / "car.webp", car, lossless=True), "mask: alpha > 0.5"),
+        "16-bit rgb": (png16(tmp / "rgb16.png", np.asarray(rgb, dtype=np.uint16) * 257),
+                       "mask: pixels differing from the border colour [255, 255, 255]"),
+        "16-bit rgba": (png16(tmp / "rgba16.png", np.asarray(car, dtype=np.uint16) * 257), "mask: alpha > 0.5"),
     }
 
 
@@ -101,6 +120,9 @@ def test_request_checks(session, tmp_path):
         "error: foreground ratio must be within 0.05..1")
     out = session.run(RunRequest(example, "car", depth_prior="midas"))
     assert out.message.startswith("error: depth prior must be one of bundled, depth-anything-v2") and not out.ok
+    out = session.run(RunRequest(example, "car", depth_prior="depth-anything-v2",
+                                 depth_checkpoint=str(tmp_path / "no-da-weights")))
+    assert out.message.startswith("error: ") and "no-da-weights" in out.message and "\n" not in out.message
     out = session.run(RunRequest(example, "car", checkpoint_path=str(tmp_path / "nope.safetensors")))
     assert out.message.startswith("error: ") and "nope.safetensors" in out.message and "\n" not in out.message
 

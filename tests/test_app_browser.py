@@ -1,6 +1,6 @@
 """``depthnerf app`` in a real headless browser: Debian's Chromium driven by selenium through its chromedriver.
 
-The app runs in a subprocess on a free localhost port (2 orbit views and a 24-sample mesh to stay quick). One
+The app runs in a subprocess on a free localhost port (2 orbit views by default and a 24-sample mesh to stay quick). One
 tab uploads a non-image file and a photo on a cluttered background (one-line messages, the RGBA hint), then a
 bundled example and reconstructs it while a second tab asks for another reconstruction and must show its queue
 position; then the orbit video (a real MP4), the GIF, the 3D viewer and the three downloads must be on the page.
@@ -44,6 +44,7 @@ from selenium import webdriver  # noqa: E402
 from selenium.webdriver.chrome.options import Options  # noqa: E402
 from selenium.webdriver.chrome.service import Service  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.common.keys import Keys  # noqa: E402
 
 pytestmark = pytest.mark.slow
 
@@ -171,6 +172,11 @@ def test_page_in_headless_chromium(server, browser, tmp_path):
     upload(d, EXAMPLES / "chair_white.png")
     wait_for(lambda: status(d).startswith("ready: chair_white.png"), 60, "the second tab's preview")
     d.switch_to.window(tab_a)
+    views = d.find_element(By.CSS_SELECTOR, "#views input[type=number]")  # more views: tab B surely waits
+    views.clear()
+    views.send_keys("5", Keys.TAB)
+    wait_for(lambda: d.find_element(By.CSS_SELECTOR, "#views input[type=range]").get_attribute("value") == "5", 10,
+             "the views slider at 5")
     d.find_element(By.ID, "run").click()
     d.switch_to.window(tab_b)
     d.find_element(By.ID, "run").click()
@@ -182,7 +188,8 @@ def test_page_in_headless_chromium(server, browser, tmp_path):
     d.switch_to.window(tab_b)
     d.close()
     d.switch_to.window(tab_a)
-    assert status(d).startswith("done in ") and "2 views" in status(d), status(d)
+    wait_for(lambda: status(d).startswith(("done", "error")), 180, "the first tab's result")
+    assert status(d).startswith("done in ") and "5 views" in status(d), status(d)
 
     # outputs: video (an MP4), GIF, prepared input, depth prior, 3D viewer, three downloads
     video = wait_for(lambda: d.find_element(By.CSS_SELECTOR, "#video video").get_attribute("src"), 30, "the video")

@@ -38,6 +38,8 @@ from the one these models were trained with.
 CLUTTER_HINT = """**Cluttered background?** The border-colour mask only works on a plain background. Cut the object out
 (a PNG or WebP with a transparent background) and upload that RGBA image above."""
 
+MAX_UPLOAD = "100mb"
+"""Largest upload Gradio accepts (a 6000x4000 PNG is well below)."""
 RATIO_INFO = ("object's longer side / frame side (TripoSR's foreground ratio; TripoSR's 0.85 suits its own "
               "model, these checkpoints were trained at cars 0.65, chairs 0.6)")
 
@@ -147,4 +149,5 @@ def serve(config: AppConfig) -> None:
     page = build_page(session)
     page.queue(default_concurrency_limit=1, max_size=64)
     page.launch(server_name=config.host, server_port=config.port, share=config.share, ssr_mode=False,
-                allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS)
+                allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS,
+                max_file_size=MAX_UPLOAD)
