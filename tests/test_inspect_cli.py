@@ -127,7 +127,7 @@ def test_inspect_bad_optional_part_warns_and_strict_fails(tmp_path: Path, case: 
     train = json.loads(out_json.read_text())["splits"][0]
     assert train["unusable"] == {part: 1} and len(train["warnings"]) == 1 and str(path) in train["warnings"][0]
     assert train[f"objects_with_{part}"] == 1 and "warnings       1" in captured.out
-    assert "(1 more objects have it unusable, see warnings)" in captured.out
+    assert "(unusable in 1 more objects, see warnings)" in captured.out
     assert main(["inspect", "--data", str(root), "--strict"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {path}: ") and text in err[0]
@@ -143,3 +143,18 @@ def test_eval_reports_a_corrupt_unscored_view_up_front(tmp_path: Path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {bad}: unreadable image")
     assert not (out / "summary.json").exists()
+
+
+@pytest.mark.parametrize("command", [
+    ["train", "--out", "{tmp}/run", "--max-steps", "1"],
+    ["eval", "--checkpoint", "cpu-cars-baseline", "--out", "{tmp}/eval", "--split", "train", "--no-progress"],
+    ["depth", "--estimator", "bundled", "--splits", "train", "--no-progress"],
+])
+def test_strict_flag_of_train_eval_depth(tmp_path: Path, command: list[str], capsys):
+    root = make_srn_fixture(tmp_path / "data", with_depth=True, with_mask=True)
+    path, text = BAD_OPTIONAL_CASES["mask_size_vs_intrinsics"][1](root)
+    args = [a.format(tmp=tmp_path) for a in command] + ["--data", str(root), "--strict"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {path}: ") and text in err[0]
+    assert not (tmp_path / "run").exists() and not (tmp_path / "eval").exists()

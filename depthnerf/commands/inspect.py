@@ -70,7 +70,7 @@ def _part(count: int, total: int, unusable: int, formats: dict[str, int]) -> str
     text = _presence(count, total)
     if formats:
         text += f"  [{_formats(formats)}]"
-    return text + (f"  ({unusable} more objects have it unusable, see warnings)" if unusable else "")
+    return text + (f"  (unusable in {unusable} more objects, see warnings)" if unusable else "")
 
 
 def format_summary(s: SplitSummary) -> list[str]:

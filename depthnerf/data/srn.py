@@ -35,7 +35,7 @@ from __future__ import annotations
 import sys
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 
@@ -245,17 +245,6 @@ def index_object(path: Path, category: str, split: str, *, strict: bool = False,
                         ignored=srn_parts.extras(path))
 
 
-def _with_issues(record: ObjectRecord, issues: Sequence[PartIssue]) -> ObjectRecord:
-    """``record`` with ``issues`` added and the parts they disable turned off."""
-    if not issues:
-        return record
-    off = srn_parts.unusable_parts(issues)
-    depth = "depth" not in off
-    return replace(record, has_depth=record.has_depth and depth, depth_files=record.depth_files if depth else (),
-                   depth_scale=record.depth_scale if depth else None, has_mask=record.has_mask and "mask" not in off,
-                   mesh_path=None if "mesh" in off else record.mesh_path, issues=record.issues + tuple(issues))
-
-
 def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False, check_files: bool = True,
                 progress: bool = False, strict: bool = False) -> SplitIndex:
     """Index ``<root>/<category>_<split>``.
@@ -282,7 +271,7 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
             if check_files:
                 check = check_object(record, strict=strict)
                 index.checks[record.object_id] = check
-                record = _with_issues(record, check.issues)
+                record = srn_parts.with_issues(record, check.issues)
         except DepthnerfError as err:
             if not skip_bad:
                 raise

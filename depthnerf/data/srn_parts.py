@@ -21,7 +21,7 @@ import re
 import warnings
 from collections import Counter
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from depthnerf.data.srn_format import DEPTH_SCALE_FILE, DEPTH_SUFFIXES, EXR_UNSUPPORTED, read_depth_scale
@@ -187,6 +187,17 @@ def extras(obj: Path) -> tuple[str, ...]:
 def unusable_parts(issues: Iterable[PartIssue]) -> set[str]:
     """The parts that ``issues`` make unusable."""
     return {i.part for i in issues if i.disables}
+
+
+def with_issues(record, issues: Sequence[PartIssue]):
+    """An :class:`~depthnerf.data.srn.ObjectRecord` with ``issues`` added and the parts they disable turned off."""
+    if not issues:
+        return record
+    off = unusable_parts(issues)
+    depth = "depth" not in off
+    return replace(record, has_depth=record.has_depth and depth, depth_files=record.depth_files if depth else (),
+                   depth_scale=record.depth_scale if depth else None, has_mask=record.has_mask and "mask" not in off,
+                   mesh_path=None if "mesh" in off else record.mesh_path, issues=record.issues + tuple(issues))
 
 
 def warn_split(folder: Path, issues: Sequence[Sequence[PartIssue]], ignored: Counter[str]) -> None:
