@@ -83,3 +83,20 @@ def test_reconstruct_cli_exits_2_on_a_cluttered_photo(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.startswith(f"error: {photo}: the background is not a plain colour")
     assert err.count("\n") == 1 and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("name", ["astronaut", "chelsea", "coffee", "rocket"])
+def test_sample_photos_shipped_with_scikit_image_are_refused(name):
+    """The issue's case: a new user tries a sample photo from an installed package (these ship inside
+    scikit-image, nothing is downloaded): scenes, not objects on a plain background."""
+    import skimage.data
+
+    with pytest.raises(DepthnerfError, match="background is not a plain colour"):
+        prepare_photo(getattr(skimage.data, name)(), None, 64)
+
+
+def test_a_silhouette_on_white_from_scikit_image_passes():
+    import skimage.data
+
+    prep = prepare_photo(skimage.data.horse(), None, 64)  # a black horse on white: one object, plain background
+    assert 0.1 < prep.mask.mean() < 0.6
