@@ -210,3 +210,15 @@ def test_app_command_binds_localhost_without_share_and_queues_one_at_a_time(monk
     assert main(["app", "--share", "--host", "0.0.0.0", "--work-dir", str(tmp_path)]) == 0
     assert seen["share"] is True and seen["server_name"] == "0.0.0.0"
     assert main(["app", "--views", "40"]) == 2
+
+
+def test_a_busy_port_is_one_line(monkeypatch, tmp_path, capsys):
+    gr = pytest.importorskip("gradio", reason="gradio is not installed (pip install -e '.[app]')")
+
+    def busy(self, **kwargs):
+        raise OSError("Cannot find empty port in range: 7998-7998. You can specify a different port ...")
+
+    monkeypatch.setattr(gr.Blocks, "launch", busy)
+    assert main(["app", "--port", "7998", "--work-dir", str(tmp_path)]) == 2
+    assert capsys.readouterr().err == ("error: cannot serve on 127.0.0.1:7998 (Cannot find empty port in range: "
+                                       "7998-7998); pass another --port\n")

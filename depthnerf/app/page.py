@@ -8,6 +8,7 @@ public share link only with ``AppConfig.share``.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import gradio as gr
@@ -21,6 +22,7 @@ from depthnerf.app.logic import (
     RunRequest,
     examples,
 )
+from depthnerf.errors import DepthnerfError
 
 INTRO = """# depthnerf: one photo in, 3D out
 Upload a photo of **one object** (PNG, JPEG or WebP; RGB or RGBA, any size) or pick an example, then press
@@ -38,6 +40,8 @@ from the one these models were trained with.
 CLUTTER_HINT = """**Cluttered background?** The border-colour mask only works on a plain background. Cut the object out
 (a PNG or WebP with a transparent background) and upload that RGBA image above."""
 
+LOCAL = ("127.0.0.1", "localhost", "::1")
+"""Host names that only this machine can reach."""
 MAX_UPLOAD = "100mb"
 """Largest upload Gradio accepts (a 6000x4000 PNG is well below)."""
 RATIO_INFO = ("object's longer side / frame side (TripoSR's foreground ratio; TripoSR's 0.85 suits its own "
@@ -143,11 +147,21 @@ def build_page(session: AppSession) -> gr.Blocks:
 
 
 def serve(config: AppConfig) -> None:
-    """Build the page and serve it until interrupted."""
+    """Build the page and serve it until interrupted (a busy port is a one-line error)."""
     session = AppSession(config)
     print(f"depthnerf app: loading {config.checkpoints[0]} (runs are written to {session.work_dir})", flush=True)
     page = build_page(session)
     page.queue(default_concurrency_limit=1, max_size=64)
-    page.launch(server_name=config.host, server_port=config.port, share=config.share, ssr_mode=False,
-                allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS,
-                max_file_size=MAX_UPLOAD)
+    print(f"depthnerf app: serving http://{config.host}:{config.port}/"
+          + (" and a public share link" if config.share else " (this machine only)" if config.host in LOCAL else "")
+          + "; Ctrl+C stops it", flush=True)
+    try:
+        page.launch(server_name=config.host, server_port=config.port, share=config.share, ssr_mode=False,
+                    allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS,
+                    max_file_size=MAX_UPLOAD, quiet=True)
+    except OSError as err:
+        raise DepthnerfError(f"cannot serve on {config.host}:{config.port} ({' '.join(str(err).split('.')[:1])}); "
+                             "pass another --port") from None
+    finally:
+        if config.work_dir is None:  # our temporary folder
+            shutil.rmtree(session.work_dir, ignore_errors=True)
