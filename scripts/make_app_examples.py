@@ -1,8 +1,9 @@
 """Write the bundled example photos of ``depthnerf app`` (``depthnerf/app/examples/``) with ``depthnerf synth``.
 
-Objects: test object 0 of ``depthnerf synth --category C --seed 2718 --test-objects 1`` (the seed of
-``depthnerf demo``; the shipped checkpoints were trained on seed 0, so these objects were never seen), SRN test
-view 64 (about 23 degrees elevation, as the demo's input view), 128 px. The car is saved as an RGBA cut-out (alpha =
+Objects: test object 0 of ``depthnerf synth --category C --seed 2718 --test-objects 1 --framing legacy`` (the
+seed of ``depthnerf demo``; the shipped checkpoints were trained on seed 0, so these objects were never seen; the
+legacy framing is the one of their training data), test view 64 (about 23 degrees elevation, as the demo's input
+view), 128 px. The car is saved as an RGBA cut-out (alpha =
 the synthetic object mask), the chair as RGB on white, so the page shows both background-removal paths (alpha and
 border colour). Every pixel is synthesised by this package: no third-party images.
 
@@ -34,7 +35,7 @@ def main() -> int:
         for category, name in EXAMPLES.items():
             subprocess.run([sys.executable, "-m", "depthnerf", "synth", "--category", category, "--out", tmp,
                             "--train-objects", "0", "--val-objects", "0", "--test-objects", "1", "--seed",
-                            str(SEED), "--quiet"], check=True)
+                            str(SEED), "--framing", "legacy", "--quiet"], check=True)
             obj = Path(tmp) / f"{category}_test" / f"synth_{category}_test_000000"
             rgb = np.asarray(Image.open(obj / "rgb" / f"{VIEW:06d}.png").convert("RGB"))
             mask = np.asarray(Image.open(obj / "mask" / f"{VIEW:06d}.png").convert("L"))
