@@ -308,7 +308,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     if cfg.chunk < 1 or cfg.mesh_resolution < 2:
         raise DepthnerfError(f"--chunk must be >= 1 and --mesh-resolution >= 2 (got {cfg.chunk}, "
                              f"{cfg.mesh_resolution})")
-    all_records = index_split(data_root, category, cfg.split, check_files=False).objects
+    all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
     # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
     cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=dataset_pixel_center(data_root, category)))
     records = all_records[: cfg.max_objects] if cfg.max_objects else all_records
