@@ -2,14 +2,16 @@
 
 ``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
 [--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--mesh-threshold auto|X]
-[--save-renders]``
+[--save-renders] [--strict]``
 
 Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
 with ``--run``, required with ``--checkpoint``), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
 defaults to the dataset the run was trained on. Targets are scored at the training resolution unless
 ``--resolution`` says otherwise (``--resolution 128`` = the paper's protocol); the input view is always encoded at
 the training resolution, with the run's depth prior (its cache must exist for the split: ``depthnerf depth ...
---splits test --resolution <training resolution>``).
+--splits test --resolution <training resolution>``). Every file of the split is checked before anything is
+scored (as ``train`` does), so a corrupt image in a view that is not scored is still an error; ``--strict`` makes
+problems in the optional parts (depth, masks, meshes) errors too (see docs/data.md).
 """
 
 from __future__ import annotations
@@ -49,11 +51,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--method", help="row label for depthnerf compare (default from the depth prior)")
     p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
+    p.add_argument("--pixel-center", type=float,
+                   help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
+                        "data.pixel_center (measures what a convention mismatch costs)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--fp32", action="store_true", help="render in fp32 on CUDA too (default there: bf16 autocast)")
     p.add_argument("--compile", action="store_true",
                    help="torch.compile the field MLPs (opt-in; compile time is paid once per process)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--strict", action="store_true",
+                   help="a problem in an optional part of the data (depth/, mask/, mesh.ply) is an error")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -86,13 +93,18 @@ def run(args: argparse.Namespace) -> int:
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
     policy = configure_inference(pre.model, device, fp32=args.fp32, compile=args.compile)
     data = args.data or Path(pre.config.data.root)
+    if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too
+        from depthnerf.data.srn import index_split
+
+        index_split(data, args.category or pre.config.data.category, args.split, strict=True)
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
         resolution=args.resolution, chunk=args.chunk or policy.ray_chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         quantize=args.quantize, method=args.method, depth_checkpoint=args.depth_checkpoint,
-        lpips=LpipsConfig(trunk_path=args.lpips_trunk), progress=not args.no_progress)
+        lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
+        progress=not args.no_progress)
     result = evaluate_protocol(pre, data, out, cfg, device)
     s = result.summary
     lp = f"{s['lpips']:.4f}" if s["lpips"] is not None else s["lpips_status"]

@@ -92,11 +92,13 @@ def cached_prior(store: PriorStore | None) -> PriorFn:
 @torch.no_grad()
 def prepare_object(model: PixelNeRF, record: ObjectRecord, views: ProtocolViews, prior: PriorFn,
                    input_res: int, eval_res: int, device: torch.device, *,
-                   source_depth: bool = False) -> PreparedObject:
+                   source_depth: bool = False, pixel_center: float = 0.0) -> PreparedObject:
     """Load the input view at ``input_res`` (with its ground-truth depth when ``source_depth``), compute its
-    ``prior`` and encode both; load the targets at ``eval_res``."""
-    src = load_object(record, [views.input_view], resolution=input_res, with_depth=source_depth)
-    tgt = load_object(record, list(views.targets), resolution=eval_res)
+    ``prior`` and encode both; load the targets at ``eval_res``. ``pixel_center``: the data's pixel-centre
+    convention as the model reads it (the checkpoint's ``data.pixel_center``)."""
+    src = load_object(record, [views.input_view], resolution=input_res, with_depth=source_depth,
+                      pixel_center=pixel_center)
+    tgt = load_object(record, list(views.targets), resolution=eval_res, pixel_center=pixel_center)
     disp = prior(src)
     inputs = source_views(src, [0], disp, device)
     return PreparedObject(views=views, source=src, targets=tgt, prior=disp, inputs=inputs, enc=model.encode(inputs))

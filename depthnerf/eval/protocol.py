@@ -47,7 +47,7 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +57,7 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.srn import ObjectRecord, index_split
+from depthnerf.data.synth.framing import dataset_pixel_center
 from depthnerf.depth.cache import PriorStore
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
@@ -124,6 +125,9 @@ class ProtocolConfig:
     """Override of the depth estimator weights recorded in the checkpoint."""
     lpips: LpipsConfig = field(default_factory=LpipsConfig)
     """Where LPIPS weights are looked for (never downloaded)."""
+    pixel_center: float | None = None
+    """Pixel-centre convention the model reads the data with (see ``DataConfig.pixel_center``); None = the
+    checkpoint's trained value. Overriding it measures what a convention mismatch costs."""
     progress: bool = True
     """Progress bar over objects (stderr)."""
 
@@ -173,6 +177,7 @@ class _Evaluator:
         self.pre, self.cfg, self.store, self.lpips = pre, cfg, store, lpips
         self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
         self.near, self.far = z_range(pre.config)
+        self.pixel_center = pre.config.data.pixel_center if cfg.pixel_center is None else cfg.pixel_center
         self.rows: list[dict] = []
 
     @torch.no_grad()
@@ -181,7 +186,7 @@ class _Evaluator:
         views = protocol_views(record.num_views, cfg.views_stride)
         t0 = time.perf_counter()
         obj = prepare_object(model, record, views, cached_prior(self.store), self.input_res, self.eval_res,
-                             self.device)
+                             self.device, pixel_center=self.pixel_center)
         src, tgt, enc = obj.source, obj.targets, obj.enc
         preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.pre.config.render,
                              cfg.chunk, self.device).rgb.numpy()
@@ -303,7 +308,9 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     if cfg.chunk < 1 or cfg.mesh_resolution < 2:
         raise DepthnerfError(f"--chunk must be >= 1 and --mesh-resolution >= 2 (got {cfg.chunk}, "
                              f"{cfg.mesh_resolution})")
-    all_records = index_split(data_root, category, cfg.split, check_files=False).objects
+    all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
+    # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
+    cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=dataset_pixel_center(data_root, category)))
     records = all_records[: cfg.max_objects] if cfg.max_objects else all_records
     input_res = train.data.resolution
     eval_res = cfg.resolution or input_res
@@ -344,7 +351,9 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         "data_card": _data_card(data_root, category),
         "resolution": eval_res, "input_resolution": input_res, "train_resolution": train.data.resolution,
         "native_resolution": [list(s) for s in native],
-        "views_stride": cfg.views_stride, "max_objects": cfg.max_objects, "z_range": list(z_range(train)),
+        "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
+        "pixel_center": evaluator.pixel_center, "trained_pixel_center": train.data.pixel_center,
+        "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(z_range(train)),
         "metrics_path": "quantized 8-bit renders (calc_metrics.py)" if cfg.quantize else "float renders (eval.py)",
         "timing": {"total_s": total, "per_object_s": total / len(results),
                    **{f"{k}_s": float(sum(r.seconds[k] for r in results)) for k in ("render", "metrics", "mesh")},

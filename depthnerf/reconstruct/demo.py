@@ -42,6 +42,7 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.srn import ObjectViews, index_split
+from depthnerf.data.synth.framing import DEFAULT_FRAMING, checkpoint_framing
 from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_status
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, make_estimator
 from depthnerf.depth.precompute import predict_views
@@ -143,10 +144,11 @@ def load_checkpoint_for(category: str, spec: str) -> Pretrained:
     return pre
 
 
-def synthesize(category: str, root: Path, seed: int, resolution: int) -> ObjectJob:
-    """Test object 0 of ``seed`` at ``resolution`` with 251 views in ``root`` (reused when already there)."""
+def synthesize(category: str, root: Path, seed: int, resolution: int, framing: str = DEFAULT_FRAMING) -> ObjectJob:
+    """Test object 0 of ``seed`` at ``resolution`` with 251 views in ``root`` (reused when already there), framed
+    as ``framing`` (that of the checkpoint's training data: :func:`checkpoint_framing`)."""
     cfg = SynthConfig(category=category, out=root, train_objects=0, val_objects=0, test_objects=1,
-                      resolution=resolution, seed=seed, progress=False)
+                      resolution=resolution, seed=seed, progress=False, framing=framing)
     job = ObjectJob(cfg, "test", 0)
     try:
         job_status(job)
@@ -247,16 +249,18 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     res = train.data.resolution
     bar = tqdm(total=4, desc=f"demo {category}", unit="stage", file=sys.stderr, disable=not cfg.progress)
     t = time.perf_counter()
-    job = synthesize(category, cfg.out / "data", cfg.seed, res)
+    framing, framing_source = checkpoint_framing(pre.path, train.data.root, category)
+    job = synthesize(category, cfg.out / "data", cfg.seed, res, framing)
     record = next(r for r in index_split(cfg.out / "data", category, "test").objects if r.object_id == job.object_id)
     times["synth_s"] = time.perf_counter() - t
     bar.update(1)
     t = time.perf_counter()
     views = protocol_views(record.num_views, cfg.views_stride)
     notes: list[str] = [f"object {record.object_id}: depthnerf synth --category {category} --seed {cfg.seed} "
-                        f"--test-objects 1 --resolution {res} (test split, never used for training)"]
+                        f"--test-objects 1 --resolution {res} --framing {framing} (test split, never used for "
+                        f"training; framing from {framing_source})"]
     obj = prepare_object(model, record, views, lambda views_: depth_prior(pre, views_, notes), res, res, device,
-                         source_depth=train.prior.estimator == "oracle")
+                         source_depth=train.prior.estimator == "oracle", pixel_center=train.data.pixel_center)
     src, tgt, disp, enc = obj.source, obj.targets, obj.prior, obj.enc
     if not cfg.mesh:
         notes.append("--no-mesh: no mesh extracted (mesh.ply and mesh.glb are empty)")

@@ -157,9 +157,10 @@ class Reconstructor:
         prepared = prepare_photo(image, mask, res, cfg.framing, fill)
         times["prepare_s"] = time.perf_counter() - t
         poses = orbit_poses(radius, cfg.elevation, views)
-        intr = srn_intrinsics(focal, image_size, res)
+        pixel_center = train.data.pixel_center  # the photo's SRN-style intrinsics read as training read the data
+        intr = srn_intrinsics(focal, image_size, res, pixel_center)
         render_res = cfg.render_resolution or res
-        render_intr = srn_intrinsics(focal, image_size, render_res)
+        render_intr = srn_intrinsics(focal, image_size, render_res, pixel_center)
         near, far = z_range(train)
         bar = tqdm(total=views + 2, desc="reconstruct", unit="step", file=sys.stderr, disable=not cfg.progress)
         t = time.perf_counter()

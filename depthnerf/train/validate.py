@@ -33,7 +33,7 @@ class ValidationResult:
 @torch.no_grad()
 def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStore | None, views: Sequence[int],
              resolution: int, near: float, far: float, render_cfg: RenderConfig, chunk: int,
-             device: torch.device) -> ValidationResult:
+             device: torch.device, pixel_center: float = 0.0) -> ValidationResult:
     """Render ``views`` of each record from its input view and score them against the ground truth."""
     was_training = model.training
     model.eval()
@@ -42,7 +42,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStor
         for i, record in enumerate(records):
             src = protocol_views(record.num_views).input_view
             targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
-            obj = load_object(record, [src, *targets], resolution=resolution)
+            obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=pixel_center)
             disp = store.load(record, [src]) if store is not None else None
             enc = model.encode(source_views(obj, [0], disp, device))
             out = render_views(model.field(enc, "coarse"), model.field(enc, "fine"),
