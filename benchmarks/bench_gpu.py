@@ -4,9 +4,10 @@ On CUDA it prints: ms per training iteration (bf16 autocast, fused Adam, the bat
 per step (``torch.profiler``), peak GPU memory, and ms per 128x128 novel view with the paper's sampler and with
 depth-guided sampling (a synthetic source depth builds the guide; the view's cost, not its accuracy).
 
-On a CPU-only machine it runs the same paper-preset training step on the CPU (fp32) and its LAST line reads
+On a CPU-only machine it runs the same paper-preset training step on the CPU and its LAST line reads
 ``aten ops per training step: N``: the aten operators dispatched by one step (forward, backward, optimiser),
-counted with a ``TorchDispatchMode``, the proxy for CUDA kernel launches. ``--step-shape per-object`` counts the
+counted with a ``TorchDispatchMode`` while the step is composed as on CUDA (bf16 autocast, fused Adam; the
+legacy loop with torch's CUDA default, foreach Adam), the proxy for CUDA kernel launches. ``--step-shape per-object`` counts the
 earlier one-object-at-a-time step; run against a checkout without ``depthnerf.train.step`` it counts that
 checkout's loop body (the "before" figure of docs/speed.md).
 
@@ -63,15 +64,16 @@ def synthetic_batch(b: int, rays: int, res: int, use_depth: bool, seed: int = 0)
     return batch, intr
 
 
-def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, step_shape: str):
-    """One optimisation step as the training loop runs it on ``device``."""
-    cuda = device.type == "cuda"
-    amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
+def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, step_shape: str, as_cuda: bool):
+    """One optimisation step as the training loop runs it on ``device``; with ``as_cuda`` composed as on CUDA
+    (bf16 autocast, fused Adam) whatever the device: the CPU op-count proxy."""
+    cuda = device.type == "cuda" or as_cuda
+    amp = torch.autocast(device.type, dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
     keys = [ItemKey(k, 1000 + k, True) for k in range(batch.focal.shape[0])]
     try:
         from depthnerf.train.step import BatchLoss, train_step
     except ImportError:  # a checkout from before the batched step: its loop body, verbatim in shape
-        return legacy_step(model, cfg, batch, device, keys)
+        return legacy_step(model, cfg, batch, device, keys, amp, cuda)
     opt = torch.optim.Adam(model.parameters(), lr=1e-4, fused=cuda or None)
     loss = BatchLoss(model, cfg.render, 0.0, 0.0)
 
@@ -82,13 +84,12 @@ def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, st
     return step
 
 
-def legacy_step(model, cfg, batch, device, keys):
+def legacy_step(model, cfg, batch, device, keys, amp, cuda: bool):
     from depthnerf.train.batching import item_seed
-    from depthnerf.train.loop import ObjectLoss  # noqa: F401 (exists only before the batched step)
+    from depthnerf.train.loop import ObjectLoss  # exists only before the batched step
 
-    opt = torch.optim.Adam(model.parameters(), lr=1e-4)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-4, foreach=cuda or None)  # torch's default on CUDA: foreach
     runner = ObjectLoss(model, cfg.render, 0.0, 0.0)
-    amp = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" else contextlib.nullcontext()
 
     def step():
         opt.zero_grad(set_to_none=True)
@@ -101,6 +102,7 @@ def legacy_step(model, cfg, batch, device, keys):
             sums += torch.tensor([float(t.detach()) for t in (terms.total, terms.coarse, terms.fine, terms.depth,
                                                               terms.background)], dtype=torch.float64)
         opt.step()
+    step.shape = "legacy per-object (this checkout's loop body)"
     return step
 
 
@@ -195,11 +197,12 @@ def main() -> None:
         model.encoder.to(memory_format=torch.channels_last)
     batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, args.depth != "none")
     batch = batch.to(device)
-    step = make_step(model, cfg, batch, device, args.step_shape)
+    step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False)
+    shape = getattr(step, "shape", args.step_shape)
     step()  # warm-up (allocations, cuDNN/cuBLAS handles)
     print(f"paper preset ({cfg.model.encoder.backbone}, d_hidden {cfg.model.coarse.d_hidden}, "
           f"{cfg.render.sampler.n_coarse}+{cfg.render.sampler.n_importance}+{cfg.render.sampler.n_gaussian} "
-          f"samples), {args.objects} objects x {args.rays} rays, {args.resolution} px, {args.step_shape} step, "
+          f"samples), {args.objects} objects x {args.rays} rays, {args.resolution} px, {shape} step, "
           f"device {device}")
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats()
@@ -214,8 +217,11 @@ def main() -> None:
     if args.time:
         t = timed(step, 3, device)
         print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
+    proxy = make_step(model, cfg, batch, device, args.step_shape, as_cuda=True)  # composed as on CUDA
+    proxy()
     with CountOps() as counter:
-        step()
+        proxy()
+    print("counted: the step composed as on CUDA (bf16 autocast, fused Adam; the legacy loop: foreach Adam)")
     print(f"aten ops per training step: {counter.count}")
 
 
