@@ -187,6 +187,7 @@ def main() -> None:
     p.add_argument("--views", type=int, default=16, help="views per render call on CUDA")
     p.add_argument("--time", action="store_true", help="on the CPU: also time the step (slow)")
     p.add_argument("--no-views", action="store_true", help="CUDA: training figures only")
+    p.add_argument("--count-rays", type=int, default=8, help="CPU op count: rays per object (count is the same)")
     args = p.parse_args()
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
                           ("cpu" if args.device == "auto" else args.device))
@@ -199,7 +200,8 @@ def main() -> None:
     batch = batch.to(device)
     step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False)
     shape = getattr(step, "shape", args.step_shape)
-    step()  # warm-up (allocations, cuDNN/cuBLAS handles)
+    if device.type == "cuda":
+        step()  # warm-up (allocations, cuDNN/cuBLAS handles)
     print(f"paper preset ({cfg.model.encoder.backbone}, d_hidden {cfg.model.coarse.d_hidden}, "
           f"{cfg.render.sampler.n_coarse}+{cfg.render.sampler.n_importance}+{cfg.render.sampler.n_gaussian} "
           f"samples), {args.objects} objects x {args.rays} rays, {args.resolution} px, {shape} step, "
@@ -215,13 +217,18 @@ def main() -> None:
             view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4))
         return
     if args.time:
+        step()  # the untimed warm-up below is skipped without --time
         t = timed(step, 3, device)
         print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
-    proxy = make_step(model, cfg, batch, device, args.step_shape, as_cuda=True)  # composed as on CUDA
+    # the op sequence does not depend on the number of rays: count with few (bf16 matmuls are slow on CPUs
+    # without bf16 units)
+    small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, args.depth != "none")
+    proxy = make_step(model, cfg, small, device, args.step_shape, as_cuda=True)  # composed as on CUDA
     proxy()
     with CountOps() as counter:
         proxy()
-    print("counted: the step composed as on CUDA (bf16 autocast, fused Adam; the legacy loop: foreach Adam)")
+    print(f"counted: the step composed as on CUDA (bf16 autocast, fused Adam; the legacy loop: foreach Adam), "
+          f"{args.objects} objects x {args.count_rays} rays")
     print(f"aten ops per training step: {counter.count}")
 
 
