@@ -172,6 +172,8 @@ def test_a_run_collects_every_output(session):
     for _ in range(2):
         session.run(RunRequest(examples()[0], "car", views=1))
     assert len(list(session.work_dir.glob("run-*"))) == 2 and not run.exists()
+    later = AppSession(AppConfig(work_dir=session.work_dir))  # a reused work folder: new runs, never old names
+    assert later._new_run_dir().name > max(d.name for d in session.work_dir.glob("run-*"))
 
 
 def test_training_fill_is_the_checkpoints(session):

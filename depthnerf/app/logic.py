@@ -241,7 +241,8 @@ class AppSession:
         else:
             self.work_dir = Path(config.work_dir)
             self.work_dir.mkdir(parents=True, exist_ok=True)
-        self._runs = 0
+        numbers = [int(d.name[4:]) for d in self.work_dir.glob("run-*") if d.name[4:].isdigit()]
+        self._runs = max(numbers, default=0)  # a reused --work-dir continues its numbering
         self._lock = threading.Lock()
 
     def training_fill(self, model: str, checkpoint_path: str = "") -> float:
