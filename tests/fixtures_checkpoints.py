@@ -13,11 +13,11 @@ from pathlib import Path
 
 import torch
 
+from depthnerf.config_io import apply_overrides, to_dict
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import TrainConfig, preset, with_prior
-from depthnerf.train.overrides import apply_overrides, to_dict
 
 
 def tiny_bundled(path: Path, input_size: int = 16) -> Path:

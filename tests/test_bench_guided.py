@@ -15,6 +15,7 @@ import pytest
 import torch
 from fixtures_srn import make_srn_fixture
 
+from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
@@ -23,7 +24,6 @@ from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.render.config import GuidedSamplerConfig, RenderConfig, SamplerConfig
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import DataConfig, preset, with_prior
-from depthnerf.train.overrides import to_dict
 
 BENCH_DIR = Path(__file__).resolve().parent.parent / "benchmarks"
 

@@ -22,6 +22,7 @@ import trimesh
 from fixtures_srn import make_srn_fixture
 
 from depthnerf.cli import main
+from depthnerf.config_io import to_dict
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import world_to_camera
 from depthnerf.data.srn import index_split, load_object
@@ -32,7 +33,6 @@ from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.eval.table import load_summary, markdown_table
 from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.overrides import to_dict
 
 TINY = ["--max-steps", "1", "--log.val_every", "0", "--data.resolution", "32", "--data.num_workers", "0",
         "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--model.encoder.backbone", "resnet18",

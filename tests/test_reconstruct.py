@@ -22,6 +22,7 @@ from fixtures_srn import make_srn_fixture
 from PIL import Image
 
 from depthnerf.cli import main
+from depthnerf.config_io import to_dict
 from depthnerf.data.cameras import world_to_camera
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.depth.normalize import BACKGROUND_VALUE
@@ -34,7 +35,6 @@ from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
 from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import with_prior
-from depthnerf.train.overrides import to_dict
 
 COLOR = (0.2, 0.6, 0.8)
 TINY = ["--max-steps", "1", "--log.val_every", "0", "--data.resolution", "32", "--data.num_workers", "0",

@@ -12,9 +12,9 @@ import dataclasses
 import json
 from pathlib import Path
 
+from depthnerf.config_io import apply_overrides, to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import PRESETS, TrainConfig, from_dict_config, preset, with_prior
-from depthnerf.train.overrides import apply_overrides, to_dict
 
 ACCEPTS_OVERRIDES = True
 

@@ -18,13 +18,13 @@ from pathlib import Path
 
 import torch
 
+from depthnerf.config_io import from_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.config import PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import TrainConfig, from_dict_config
-from depthnerf.train.overrides import from_dict
 
 SHIPPED_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
 """Where the package's own checkpoints live."""

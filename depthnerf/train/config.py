@@ -180,7 +180,7 @@ def preset(name: str) -> TrainConfig:
 
 def from_dict_config(data: dict) -> TrainConfig:
     """A :class:`TrainConfig` from ``config.json`` (strict: unknown keys are an error)."""
-    from depthnerf.train.overrides import from_dict
+    from depthnerf.config_io import from_dict
 
     return from_dict(TrainConfig, data, where="config.json")
 

@@ -25,6 +25,7 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from depthnerf.config_io import to_dict
 from depthnerf.data.srn import index_split
 from depthnerf.depth.cache import PriorStore
 from depthnerf.errors import DepthnerfError
@@ -38,7 +39,6 @@ from depthnerf.train.batching import BatchPlan, StepSampler, TrainBatch, collate
 from depthnerf.train.config import TrainConfig, z_range
 from depthnerf.train.distributed import DistInfo, barrier
 from depthnerf.train.items import TrainItems
-from depthnerf.train.overrides import to_dict
 from depthnerf.train.run_log import RunLog
 from depthnerf.train.validate import validate
 
