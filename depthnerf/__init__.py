@@ -22,7 +22,7 @@ __version__ = "0.1.0"
 _PUBLIC = {
     "Reconstructor": "depthnerf.reconstruct.reconstructor",
     "ReconstructConfig": "depthnerf.reconstruct.reconstructor",
-    "Reconstruction": "depthnerf.reconstruct.reconstructor",
+    "Reconstruction": "depthnerf.reconstruct.result",
     "prepare_photo": "depthnerf.reconstruct.photo",
 }
 

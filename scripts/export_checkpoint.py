@@ -7,11 +7,11 @@ Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where `
 ``--checkpoint <name>`` find it):
 
 ``<name>.safetensors``
-    The run's ``checkpoints/best`` (else its latest checkpoint; :func:`depthnerf.eval.pretrained.resolve_checkpoint`)
+    The run's ``checkpoints/best`` (else its latest checkpoint; :func:`depthnerf.pretrained.load.resolve_checkpoint`)
     with floating tensors in float16 and integer buffers (BatchNorm ``num_batches_tracked``) unchanged, written
     atomically by :func:`depthnerf.train.checkpoint.save_weights`. Metadata: the source's model ``config``,
     ``train_config`` and ``step``, plus provenance ``source_sha256``, ``source_run``, ``source_file``,
-    ``dtype``, ``exported_by``. :func:`~depthnerf.eval.pretrained.load_pretrained` casts the weights back to fp32.
+    ``dtype``, ``exported_by``. :func:`~depthnerf.pretrained.load.load_pretrained` casts the weights back to fp32.
 ``<name>.json``
     Name, preset, depth estimator, category, resolution, step, SHA-256 and size of the fp16 file, the source, the
     fp16 round-trip check, and with ``--eval-summary`` the metrics (``psnr``, ``ssim``, and ``lpips``,
@@ -46,13 +46,14 @@ from depthnerf.depth.estimators import CACHED_ESTIMATORS
 from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import psnr
-from depthnerf.eval.pretrained import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
 from depthnerf.eval.table import load_summary
 from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
+from depthnerf.pretrained.spec import SPEC_KEY
 from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
 from depthnerf.render.views import render_poses
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.config import TrainConfig, z_range
+from depthnerf.train.config import TrainConfig, from_dict_config, z_range
 
 FP16_TOLERANCE = 0.02
 """Largest accepted absolute RGB difference (in [0, 1], ~5 of 255 levels) between fp32 and fp16 renders."""
@@ -94,7 +95,7 @@ def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
     disc = torch.stack([0.8 - r, 0.3 + r, torch.full_like(r, 0.5)])
     image = torch.where(mask[None], disc, torch.ones_like(disc))
     prior = None
-    if cfg.model.encoder.use_depth:
+    if cfg.prior.enabled:
         disparity = torch.where(mask, 1.0 - r, torch.zeros_like(r))
         prior = normalize_disparity(disparity[None], mask[None])[None, :, None]
     src = SourceViews(images=image[None, None], poses=poses[:1][None], focal=torch.tensor([intr.focal]),
@@ -105,7 +106,7 @@ def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
 @torch.no_grad()
 def roundtrip_check(source: Pretrained, exported: Pretrained) -> dict:
     """Render the probe view with both models; ``max_abs_rgb``, ``mean_abs_rgb`` and ``psnr_db`` of the pair."""
-    cfg = source.config
+    cfg = train_config(source)
     src, pose = probe_sources(cfg)
     res = cfg.data.resolution
     cat = category_defaults(cfg.data.category)
@@ -208,7 +209,7 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              "## Model and preset", "",
              f"- Encoder: {m.encoder.backbone} trunk, {m.encoder.num_layers} feature stages"
              + (f", + 4th input channel and depth encoder ({m.encoder.depth_channels} channels)"
-                if m.encoder.use_depth else "") + ".",
+                if cfg.prior.enabled else "") + ".",
              f"- NeRF MLP: {f.n_blocks} residual blocks of width {f.d_hidden}; samples {r.n_coarse} coarse + "
              f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(z_range(cfg))}.",
              f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}, {s.objects_phase1}/{s.objects_phase2} objects x "
@@ -260,6 +261,14 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
     return "\n".join(lines)
 
 
+def train_config(pre: Pretrained) -> TrainConfig:
+    """The training config stored beside a checkpoint's weights (``train_config`` metadata)."""
+    _, meta = ckpt.read_weights(pre.path)
+    if "train_config" not in meta:
+        raise DepthnerfError(f"{pre.path}: no training config in the checkpoint metadata")
+    return from_dict_config(json.loads(meta["train_config"]), where=f"{pre.path} train_config")
+
+
 def _check_fp16_range(pre: Pretrained) -> None:
     for key, value in pre.model.state_dict().items():
         if value.is_floating_point() and not bool((value.abs() <= FP16_MAX).all()):
@@ -281,12 +290,13 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     _, meta = ckpt.read_weights(source_path)
     source = load_pretrained(source_path)
     _check_fp16_range(source)
-    cfg = source.config
+    cfg = train_config(source)
     out.mkdir(parents=True, exist_ok=True)
     weights, staged = out / f"{name}.safetensors", out / f".{name}.export.safetensors"
     extra = {"train_config": meta["train_config"], "source_sha256": source.sha256, "source_run": run.resolve().name,
              "source_file": source_path.resolve().relative_to(run.resolve()).as_posix(), "dtype": "float16",
-             "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})"}
+             "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})",
+             SPEC_KEY: source.spec.to_json()}
     ckpt.save_weights(staged, source.model, ckpt.checkpoint_config(meta, source_path), step=source.step,
                       dtype=torch.float16, extra=extra)
     try:  # every check passes before the staged file takes the shipped name

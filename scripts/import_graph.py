@@ -3,8 +3,10 @@
     python scripts/import_graph.py            # summary; exit status 1 if any cycle or back-edge
     python scripts/import_graph.py --edges    # also list every stage-crossing edge
 
-Every ``import``/``from ... import`` of a ``depthnerf`` module anywhere in a file counts (top level, inside
-functions and under ``TYPE_CHECKING`` alike: a lazy import is still a dependency). Modules are grouped into
+Every ``import``/``from ... import`` of a ``depthnerf`` module anywhere in a file counts as a dependency (top
+level, inside functions and under ``TYPE_CHECKING`` alike: a lazy import is still a dependency) for the stage
+check; cycles are counted over runtime imports (everything but ``if TYPE_CHECKING:`` blocks), and cycles that
+exist only through annotation imports are listed separately. Modules are grouped into
 stages by their first package below ``depthnerf`` (:data:`STAGES`); an edge from a stage to a later one, or between
 the sibling stages ``train``, ``eval`` and ``reconstruct``, is a back-edge. Cycles are strongly connected
 components of the module graph (Tarjan).
@@ -22,9 +24,9 @@ ROOT = Path(__file__).resolve().parent.parent / "depthnerf"
 
 STAGES = {
     "": 0, "errors": 0, "files": 0, "config_io": 0, "cpu_runtime": 0,
-    "data": 1, "depth": 2, "model": 3, "render": 4, "pretrained": 5,
+    "bundles": 0, "data": 1, "depth": 2, "model": 3, "render": 4, "pretrained": 5,
     "train": 6, "eval": 6, "reconstruct": 6,
-    "commands": 7, "app": 7, "cli": 8, "__main__": 8,
+    "commands": 7, "app": 7, "demo": 7, "cli": 8, "__main__": 8,
 }
 """Stage of each top-level module/package of depthnerf: imports go from higher to lower (or equal) stages only;
 train, eval and reconstruct share a stage but never import each other."""
@@ -41,12 +43,26 @@ def module_name(path: Path) -> str:
     return ".".join(parts)
 
 
-def imports_of(path: Path, name: str) -> set[str]:
-    """depthnerf modules imported by the file ``path`` (module ``name``)."""
+def _type_checking(node: ast.AST) -> bool:
+    test = getattr(node, "test", None)
+    return isinstance(node, ast.If) and (
+        (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING")
+        or (isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"))
+
+
+def imports_of(path: Path, name: str, runtime_only: bool = False) -> set[str]:
+    """depthnerf modules imported by the file ``path`` (module ``name``); ``runtime_only`` skips imports under
+    ``if TYPE_CHECKING:`` (annotations only)."""
     tree = ast.parse(path.read_text(), str(path))
     package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
     found: set[str] = set()
-    for node in ast.walk(tree):
+    stack: list[ast.AST] = [tree]
+    while stack:
+        node = stack.pop()
+        if runtime_only and _type_checking(node):
+            stack.extend(node.orelse)  # type: ignore[attr-defined]
+            continue
+        stack.extend(ast.iter_child_nodes(node))
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names if a.name.split(".")[0] == "depthnerf")
         elif isinstance(node, ast.ImportFrom):
@@ -63,12 +79,12 @@ def imports_of(path: Path, name: str) -> set[str]:
     return found
 
 
-def build_graph(root: Path = ROOT) -> dict[str, set[str]]:
+def build_graph(root: Path = ROOT, runtime_only: bool = False) -> dict[str, set[str]]:
     """Module -> imported depthnerf modules (only names that are modules of the package)."""
     files = {module_name(p): p for p in root.rglob("*.py")}
     graph = {}
     for name, path in files.items():
-        graph[name] = {m for m in imports_of(path, name) if m in files and m != name}
+        graph[name] = {m for m in imports_of(path, name, runtime_only) if m in files and m != name}
     return graph
 
 
@@ -145,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     graph = build_graph()
     unknown = sorted({stage_of(m) for m in graph} - set(STAGES))
-    found_cycles, found_back = cycles(graph), back_edges(graph)
+    found_cycles, found_back = cycles(build_graph(runtime_only=True)), back_edges(graph)
+    annotation_cycles = [c for c in cycles(graph) if c not in found_cycles]
     stage_graph = sorted({(stage_of(s) or "depthnerf", stage_of(d) or "depthnerf")
                           for s, ds in graph.items() for d in ds if stage_of(s) != stage_of(d)})
     print(f"{len(graph)} modules, {sum(map(len, graph.values()))} import edges")
@@ -153,6 +170,10 @@ def main(argv: list[str] | None = None) -> int:
         print("stage edges: " + ", ".join(f"{a}->{b}" for a, b in stage_graph))
     print(f"import cycles: {len(found_cycles)}")
     for comp in found_cycles:
+        print("  cycle: " + " <-> ".join(comp))
+    print(f"annotation-only cycles (through `if TYPE_CHECKING:` imports; not a runtime cycle): "
+          f"{len(annotation_cycles)}")
+    for comp in annotation_cycles:
         print("  cycle: " + " <-> ".join(comp))
     print(f"back-edges against the chain: {len(found_back)}")
     for src, dst in found_back:

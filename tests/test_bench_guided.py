@@ -17,10 +17,10 @@ from fixtures_srn import make_srn_fixture
 
 from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.config import GuidedSamplerConfig, RenderConfig, SamplerConfig
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import DataConfig, preset, with_prior
@@ -47,12 +47,12 @@ def tiny_checkpoint(path: Path) -> Path:
     """A random depth-aware model (oracle prior) at 16x16 with a 6 + (6 + 4 + 2) sampler, saved as training does."""
     cfg = with_prior(preset("cpu-cars"), "oracle")
     small = FieldConfig(d_hidden=16, n_blocks=2, combine_layer=1, density_bias_init=5.0)
-    model_cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", num_layers=2, use_depth=True,
+    model_cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", num_layers=2,
                                                       depth_hidden=8, depth_channels=8), coarse=small, fine=small)
     cfg = dataclasses.replace(cfg, data=DataConfig(category="cars", resolution=16), model=model_cfg,
                               render=RenderConfig(sampler=SamplerConfig(n_coarse=6, n_importance=4, n_gaussian=2)))
     torch.manual_seed(0)
-    model = PixelNeRF(model_cfg)
+    model = PixelNeRF(model_cfg, use_depth=True)
     ckpt.save_weights(path, model, to_dict(model_cfg), step=7, extra={"train_config": json.dumps(to_dict(cfg))})
     return path
 

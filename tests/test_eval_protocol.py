@@ -25,12 +25,13 @@ from depthnerf.cli import main
 from depthnerf.config_io import to_dict
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import world_to_camera
+from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import index_split, load_object
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.objects import protocol_views
-from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.eval.table import load_summary, markdown_table
+from depthnerf.pretrained.load import load_pretrained
+from depthnerf.pretrained.spec import SPEC_KEY
 from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
 
@@ -56,8 +57,7 @@ def constant_field(src: Path, dst: Path, color=COLOR, sigma: float = 1e4) -> Pat
     for net in (pre.model.coarse, pre.model.fine):
         net.lin_out.weight.data.zero_()
         net.lin_out.bias.data = torch.tensor([*logits, sigma])
-    ckpt.save_weights(dst, pre.model, to_dict(pre.config.model), step=pre.step,
-                      extra={"train_config": json.dumps(to_dict(pre.config))})
+    ckpt.save_weights(dst, pre.model, to_dict(pre.spec.model), step=pre.step, extra={SPEC_KEY: pre.spec.to_json()})
     return dst
 
 

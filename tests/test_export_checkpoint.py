@@ -18,9 +18,9 @@ from safetensors import safe_open
 
 from depthnerf.cli import main as cli_main
 from depthnerf.eval import pretrained
-from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.pretrained.load import load_pretrained
 from depthnerf.train import checkpoint as ckpt
 
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "export_checkpoint.py"

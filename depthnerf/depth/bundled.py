@@ -32,7 +32,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, safe_open, save
 from torch import Tensor, nn
 
-from depthnerf.depth.estimators import FrozenNetworkEstimator, PriorProvenance
+from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_files, write_bytes_atomic
 

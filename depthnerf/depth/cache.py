@@ -35,7 +35,8 @@ from safetensors import SafetensorError
 from safetensors.torch import safe_open, save
 from torch import Tensor
 
-from depthnerf.depth.estimators import PriorProvenance, describe_estimator, oracle_disparity
+from depthnerf.depth.backend import PriorProvenance, oracle_disparity
+from depthnerf.depth.estimators import describe_estimator
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_bytes_atomic
 
@@ -59,9 +60,9 @@ def object_path(root: Path, record: Any) -> Path:
 def depth_command(data_root: Path, estimator: str, checkpoint: str | None, resolution: int,
                   category: str | None = None, split: str | None = None) -> str:
     """The ``depthnerf depth ...`` command line that (re)makes a cache."""
-    parts = ["depthnerf depth", f"--data {data_root}", f"--estimator {estimator}"]
+    parts = ["depthnerf depth", f"--data {data_root}", f"--depth {estimator}"]
     if checkpoint:
-        parts.append(f"--checkpoint {checkpoint}")
+        parts.append(f"--depth-checkpoint {checkpoint}")
     if category:
         parts.append(f"--category {category}")
     if split:
@@ -85,12 +86,27 @@ def object_fingerprint(record: Any) -> str:
     return digest.hexdigest()
 
 
+def storage_dtype(disparity: Float[Tensor, "V H W"]) -> torch.dtype:
+    """How the cache stores a disparity tensor: float16, or float32 if a value would overflow float16."""
+    return torch.float16 if disparity.abs().max() <= FLOAT16_MAX else torch.float32
+
+
+def as_cached(disparity: Float[Tensor, "V H W"]) -> Float[Tensor, "V H W"]:
+    """``disparity`` rounded exactly as the cache stores it (:func:`storage_dtype`), back in float32.
+
+    A live estimator's prior passed through here equals the prior ``depthnerf eval`` reads from the cache for
+    the same image, so the demo and the evaluation condition the model on the same numbers.
+    """
+    disparity = disparity.detach().float().cpu()
+    return disparity.to(storage_dtype(disparity)).float()
+
+
 def write_object_priors(path: Path, disparity: Float[Tensor, "V H W"], metadata: dict[str, str]) -> None:
     """Atomically write one object's raw disparity (:func:`depthnerf.files.write_bytes_atomic`)."""
     disparity = disparity.detach().float().cpu()
     if not torch.isfinite(disparity).all():
         raise DepthnerfError(f"{path}: estimator produced non-finite disparity; refusing to cache it")
-    dtype = torch.float16 if disparity.abs().max() <= FLOAT16_MAX else torch.float32
+    dtype = storage_dtype(disparity)
     write_bytes_atomic(path, save({"disparity": disparity.to(dtype).contiguous()}, metadata=metadata))
 
 

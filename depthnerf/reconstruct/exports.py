@@ -32,7 +32,7 @@ from PIL import Image
 
 from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP
 from depthnerf.errors import DepthnerfError
-from depthnerf.reconstruct.reconstructor import Reconstruction
+from depthnerf.reconstruct.result import Reconstruction
 
 TURNTABLE_FPS = 12
 """Frames per second of the turntable GIF / MP4."""
