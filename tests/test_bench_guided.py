@@ -127,3 +127,23 @@ def test_reference_samples_override(bench, tmp_path):
     assert not plain["guided"] and not plain["meets_target"] and 0 < plain["psnr_vs_reference"] <= 100
     assert 0 <= guided["guide_valid_fraction"] <= guided["guide_occupied_fraction"] <= 1
     assert bench.main([*common, "--reference-samples", "64,16"]) == 2
+
+
+def test_eval_guided_matches_the_benchmark_row(bench, tmp_path):
+    """``depthnerf eval --guided B`` and the benchmark's guided-B row run the same package code
+    (depthnerf.render.guidance): same prior alignment, same guide, same sampler, so the same PSNR."""
+    from depthnerf.render.guidance import GuidanceConfig
+
+    root = make_srn_fixture(tmp_path / "data", "cars", {"test": 2}, views=66, size=16, with_depth=True,
+                            with_mask=True)
+    weights = tiny_checkpoint(tmp_path / "tiny.safetensors")
+    out = tmp_path / "bench.json"
+    assert bench.main(["--checkpoint", str(weights), "--data", str(root), "--objects", "2", "--views-stride", "20",
+                       "--budgets", "12", "--repeats", "1", "--json", str(out)]) == 0
+    row = {r["name"]: r for r in json.loads(out.read_text())["rows"]}["guided-12"]
+    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False, guided=GuidanceConfig(12))
+    summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval", cfg).summary
+    assert summary["guided_sampling"]["budget"] == 12 and "guided sampling (12/ray)" in summary["method"]
+    assert row["psnr"] == pytest.approx(summary["psnr"], abs=1e-3)
+    for mine, theirs in zip(row["per_object"], summary["per_object"], strict=True):
+        assert mine["psnr"] == pytest.approx(theirs["psnr"], abs=1e-3)

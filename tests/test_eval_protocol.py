@@ -230,7 +230,7 @@ def test_eval_bad_input_is_one_line_error(setup, capsys, args, text):
 
 
 def test_checkpoints_lists_shipped_or_says_none(setup, capsys, monkeypatch, tmp_path):
-    from depthnerf.eval import pretrained
+    from depthnerf.pretrained import load as pretrained
 
     monkeypatch.setattr(pretrained, "SHIPPED_DIR", tmp_path / "empty")
     assert cli("checkpoints") == 0

@@ -17,9 +17,9 @@ from fixtures_checkpoints import tiny_bundled, tiny_config, tiny_run
 from safetensors import safe_open
 
 from depthnerf.cli import main as cli_main
-from depthnerf.eval import pretrained
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.pretrained import load as pretrained
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.train import checkpoint as ckpt
 

@@ -32,6 +32,7 @@ from depthnerf.pretrained.load import load_pretrained
 from depthnerf.reconstruct.orbit import srn_intrinsics
 from depthnerf.reconstruct.photo import FILL, prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+from depthnerf.render.guidance import GuidanceConfig
 from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import from_dict_config, with_prior
@@ -212,3 +213,23 @@ def test_bad_checkpoints(models, tmp_path, capsys):
     rec = Reconstructor.from_pretrained(models["oracle"], depth_estimator="bundled",
                                         depth_checkpoint=str(models["weights"]))
     assert rec.prior.kind == "live" and rec.prior.estimator.name == "bundled"
+
+
+def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys):
+    rec = Reconstructor.from_pretrained(models["constant"])
+    cfg = ReconstructConfig(views=2, mesh_resolution=0, guided=GuidanceConfig(budget=12))
+    res = rec.reconstruct(disc_photo(), config=cfg)
+    assert np.abs(res.views - np.array(COLOR)).max() < 1e-4 and res.opacity.min() > 1 - 1e-4
+    assert res.settings["guided_sampling"] == 12
+    plain = rec.reconstruct(disc_photo(), config=ReconstructConfig(views=2, mesh_resolution=0))
+    assert plain.settings["guided_sampling"] is None and np.allclose(plain.views, res.views, atol=1e-4)
+    (tmp_path / "photo.png").write_bytes(b"")
+    Image.fromarray(disc_photo()).save(tmp_path / "photo.png")
+    assert main(["reconstruct", str(tmp_path / "photo.png"), "--checkpoint", str(models["constant"]), "--out",
+                 str(tmp_path / "g"), "--views", "2", "--mesh-resolution", "0", "--guided", "--no-progress",
+                 "--depth-estimator", "bundled", "--depth-checkpoint", str(models["weights"])]) == 0
+    manifest = json.loads((tmp_path / "g" / "manifest.json").read_text())
+    assert manifest["settings"]["guided_sampling"] == 24 and manifest["settings"]["depth_estimator"] == "bundled"
+    assert main(["reconstruct", str(tmp_path / "photo.png"), "--checkpoint", str(models["constant"]), "--out",
+                 str(tmp_path / "h"), "--guided", "5"]) == 2
+    assert "--guided: a guided budget needs >= 6" in capsys.readouterr().err
