@@ -10,10 +10,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 from depthnerf import __version__
 from depthnerf.cpu_runtime import configure_process
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DataWarning, DepthnerfError, format_data_warning
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("synth", "generate the synthetic SRN-protocol benchmark (cars or chairs)"),
@@ -47,6 +48,18 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     return parser
 
 
+def _data_warning_printer(fallback):
+    """A ``warnings.showwarning`` that prints data warnings as one line ``warning: ...`` / ``note: ...`` on stderr
+    and hands any other warning to ``fallback``."""
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = format_data_warning(message, category)
+        if text is None:
+            fallback(message, category, filename, lineno, file, line)
+        else:
+            print(text, file=sys.stderr, flush=True)
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     configure_process()  # OpenMP wait policy (before torch is imported) and glibc malloc; see cpu_runtime
@@ -60,7 +73,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args.overrides = extra
     try:
-        return int(module.run(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", DataWarning)  # every object's warning, even when repeated in-process
+            warnings.showwarning = _data_warning_printer(warnings.showwarning)
+            return int(module.run(args) or 0)
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -28,7 +28,7 @@ def tile(split_dir: Path, view: int, with_depth: bool, columns: int, limit: int)
         rgb = srn_format.read_rgb(rgbs[min(view, len(rgbs) - 1)])
         if with_depth:
             depth_path = obj / "depth" / (rgbs[min(view, len(rgbs) - 1)].stem + ".npz")
-            depth = srn_format.read_depth(depth_path) if depth_path.exists() else np.zeros(rgb.shape[:2])
+            depth = srn_format.read_depth(depth_path, allow_empty=True) if depth_path.exists() else np.zeros(rgb.shape[:2])
             vis = np.zeros_like(depth)
             if (depth > 0).any():
                 lo, hi = depth[depth > 0].min(), depth[depth > 0].max()

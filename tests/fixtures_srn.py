@@ -247,24 +247,6 @@ def _image_size(root: Path) -> tuple[str, Path, str]:
     return "train", path, "is 20x20 but"
 
 
-def _mask_size(root: Path) -> tuple[str, Path, str]:
-    path = first_object(root) / "mask" / "000001.png"
-    srn_format.write_mask(path, np.ones((20, 20), dtype=bool))
-    return "train", path, "mask is 20x20 but"
-
-
-def _depth_size(root: Path) -> tuple[str, Path, str]:
-    path = first_object(root) / "depth" / "000001.npz"
-    srn_format.write_depth(path, np.ones((20, 20), dtype=np.float32))
-    return "train", path, "depth map"
-
-
-def _missing_depth_view(root: Path) -> tuple[str, Path, str]:
-    obj = first_object(root)
-    (obj / "depth" / "000001.npz").unlink()
-    return "train", obj, "rgb/000001.png has no depth/000001.npz"
-
-
 def _stray_file(root: Path) -> tuple[str, Path, str]:
     path = first_object(root) / "rgb" / "notes.txt"
     path.write_text("not an image\n")
@@ -285,11 +267,8 @@ BAD_INPUT_CASES = {
     "malformed_intrinsics": _malformed_intrinsics,
     "empty_split": _empty_split,
     "image_size_vs_intrinsics": _image_size,
-    "mask_size_vs_intrinsics": _mask_size,
-    "depth_size_vs_intrinsics": _depth_size,
-    "depth_view_missing": _missing_depth_view,
     "stray_file_in_rgb": _stray_file,
 }
-"""Ways to break a ``make_srn_fixture(..., with_depth=True, with_mask=True)`` folder. Each mutates the folder and
-returns ``(split, path, text)``: indexing that split must fail with a one-line message containing ``path`` and
-``text``."""
+"""Ways to break the *required* files of a ``make_srn_fixture(..., with_depth=True, with_mask=True)`` folder. Each
+mutates the folder and returns ``(split, path, text)``: indexing that split must fail with a one-line message
+containing ``path`` and ``text``, strict or not."""

@@ -1,4 +1,5 @@
-"""``depthnerf inspect``: summary, --json content, bad input through the CLI (exit 2, file named), --skip-bad."""
+"""``depthnerf inspect``: summary, --json content, bad input through the CLI (exit 2, file named), --skip-bad,
+third-party layouts (formats, warnings, --strict); ``depthnerf eval`` checks every file up front."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from fixtures_srn import BAD_INPUT_CASES, make_srn_fixture
+from fixtures_wild import BAD_OPTIONAL_CASES, to_third_party_style
 
 from depthnerf.cli import main
 
@@ -89,3 +91,70 @@ def test_inspect_as_a_process(tmp_path: Path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error: ") and "000001.png: image is 20x20 but" in proc.stderr
+
+
+def test_inspect_reports_what_a_third_party_layout_holds(tmp_path: Path, capsys):
+    root = make_srn_fixture(tmp_path, splits={"train": 4, "test": 1}, with_depth=True, with_mask=True, with_mesh=True)
+    to_third_party_style(root)
+    out_json = tmp_path / "s.json"
+    assert main(["inspect", "--data", str(root), "--json", str(out_json)]) == 0
+    captured = capsys.readouterr()
+    train, test = json.loads(out_json.read_text())["splits"]
+    assert train["objects"] == 4 and train["objects_with_depth"] == train["objects_with_mask"] == 4
+    assert train["rgb_formats"] == {"PNG 8-bit RGB": 12}
+    assert train["depth_formats"] == {".npy": 3, ".npz": 6, "16-bit PNG": 3}
+    assert train["mask_formats"] == {"PNG 1-bit grey": 3, "PNG 1-bit palette": 3, "PNG 16-bit grey": 3,
+                                     "PNG 8-bit RGBA": 3}
+    assert train["ignored"] == {"meta.json": 1, "normal/": 1, "render_log.txt": 1}
+    assert train["warnings"] == [] and train["unusable"] == {} and test["ignored"] == {}
+    assert test["depth_formats"] == {".npz": 3} and test["mask_formats"] == {"PNG 8-bit grey": 3}
+    assert "depth          all  [.npy (3 views), .npz (6 views), 16-bit PNG (3 views)]" in captured.out
+    assert "ignored        meta.json (1 objects), normal/ (1 objects)" in captured.out
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("note: ") and "render_log.txt (1)" in err[0]
+
+
+@pytest.mark.parametrize("case", ["depth_png_without_scale", "depth_nan_filled", "mask_truncated", "mesh_not_ply"])
+def test_inspect_bad_optional_part_warns_and_strict_fails(tmp_path: Path, case: str, capsys):
+    root = make_srn_fixture(tmp_path, with_depth=True, with_mask=True, with_mesh=True)
+    part, mutate = BAD_OPTIONAL_CASES[case]
+    path, text = mutate(root)
+    out_json = tmp_path / "s.json"
+    assert main(["inspect", "--data", str(root), "--json", str(out_json)]) == 0
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warning: {path}: ") and text in err[0]
+    train = json.loads(out_json.read_text())["splits"][0]
+    assert train["unusable"] == {part: 1} and len(train["warnings"]) == 1 and str(path) in train["warnings"][0]
+    assert train[f"objects_with_{part}"] == 1 and "warnings       1" in captured.out
+    assert "(unusable in 1 more objects, see warnings)" in captured.out
+    assert main(["inspect", "--data", str(root), "--strict"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {path}: ") and text in err[0]
+
+
+def test_eval_reports_a_corrupt_unscored_view_up_front(tmp_path: Path, capsys):
+    root = make_srn_fixture(tmp_path / "data", splits={"test": 1}, views=3)
+    bad = sorted((root / "cars_test").iterdir())[0] / "rgb" / "000002.png"
+    bad.write_bytes(bad.read_bytes()[:60])  # input view 0, scored view 1 (--views-stride 2): view 2 is not scored
+    out = tmp_path / "eval"
+    assert main(["eval", "--checkpoint", "cpu-cars-baseline", "--data", str(root), "--out", str(out),
+                 "--views-stride", "2", "--no-mesh", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {bad}: unreadable image")
+    assert not (out / "summary.json").exists()
+
+
+@pytest.mark.parametrize("command", [
+    ["train", "--out", "{tmp}/run", "--max-steps", "1"],
+    ["eval", "--checkpoint", "cpu-cars-baseline", "--out", "{tmp}/eval", "--split", "train", "--no-progress"],
+    ["depth", "--estimator", "bundled", "--splits", "train", "--no-progress"],
+])
+def test_strict_flag_of_train_eval_depth(tmp_path: Path, command: list[str], capsys):
+    root = make_srn_fixture(tmp_path / "data", with_depth=True, with_mask=True)
+    path, text = BAD_OPTIONAL_CASES["mask_size_vs_intrinsics"][1](root)
+    args = [a.format(tmp=tmp_path) for a in command] + ["--data", str(root), "--strict"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {path}: ") and text in err[0]
+    assert not (tmp_path / "run").exists() and not (tmp_path / "eval").exists()

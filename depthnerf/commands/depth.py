@@ -1,7 +1,7 @@
 """``depthnerf depth``: precompute monocular depth priors into the dataset's cache.
 
 ``depthnerf depth --data DIR --estimator {bundled,depth-anything-v2} [--checkpoint HUB_ID_OR_DIR]
-[--splits train val test] [--category C] [--batch-size N] [--resolution R] [--device cpu]``
+[--splits train val test] [--category C] [--batch-size N] [--resolution R] [--device cpu] [--strict]``
 
 Writes ``DIR/depth_priors/<estimator>-<hash12>-<res>/<category>_<split>/<object_id>.safetensors`` plus a
 ``manifest.json`` (see :mod:`depthnerf.depth.cache`); resumable (finished objects are skipped), atomic writes.
@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="image side to compute priors at (default: the dataset's own)")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--strict", action="store_true",
+                        help="check every file of the splits first; a problem in an optional part is an error too")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,6 +44,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"estimator '{args.estimator}' needs no cache "
               f"({'computed from depth/ on the fly' if args.estimator == 'oracle' else 'no depth prior'})")
         return 0
+    if args.strict:
+        from depthnerf.data.srn import discover_categories, index_split, split_dir
+
+        for category in args.category or discover_categories(args.data):
+            for split in args.splits or DEFAULT_SPLITS:
+                if args.splits or split_dir(args.data, category, split).is_dir():
+                    index_split(args.data, category, split, strict=True)
     cfg = PrecomputeConfig(
         data_root=args.data, estimator=args.estimator, checkpoint=args.checkpoint,
         splits=tuple(args.splits or DEFAULT_SPLITS), categories=tuple(args.category) if args.category else None,

@@ -2,14 +2,16 @@
 
 ``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
 [--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--mesh-threshold auto|X]
-[--save-renders]``
+[--save-renders] [--strict]``
 
 Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
 with ``--run``, required with ``--checkpoint``), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
 defaults to the dataset the run was trained on. Targets are scored at the training resolution unless
 ``--resolution`` says otherwise (``--resolution 128`` = the paper's protocol); the input view is always encoded at
 the training resolution, with the run's depth prior (its cache must exist for the split: ``depthnerf depth ...
---splits test --resolution <training resolution>``).
+--splits test --resolution <training resolution>``). Every file of the split is checked before anything is
+scored (as ``train`` does), so a corrupt image in a view that is not scored is still an error; ``--strict`` makes
+problems in the optional parts (depth, masks, meshes) errors too (see docs/data.md).
 """
 
 from __future__ import annotations
@@ -57,6 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--strict", action="store_true",
+                   help="a problem in an optional part of the data (depth/, mask/, mesh.ply) is an error")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -97,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
+    if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too
+        from depthnerf.data.srn import index_split
+
+        index_split(data, args.category or pre.spec.category, args.split, strict=True)
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
         resolution=args.resolution, chunk=args.chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,

@@ -2,8 +2,12 @@
 
 Every ``<category>_<split>`` folder under ``DIR`` (or only ``--category`` / ``--split``) is indexed with every
 pose read and checked and every PNG header opened and size-checked (:func:`depthnerf.data.srn.index_split`).
-The first bad file stops the run with ``error: <file>: <problem>`` (exit 2) unless ``--skip-bad``, which leaves
-bad objects out and lists them. A tqdm bar on stderr shows progress when stderr is a terminal.
+The first bad *required* file (intrinsics, rgb, pose) stops the run with ``error: <file>: <problem>`` (exit 2)
+unless ``--skip-bad``, which leaves bad objects out and lists them. A bad *optional* part (depth, mask, mesh) is
+not used for that object, with a ``warning: <file>: <problem>`` line on stderr (equal problems of a split grouped
+into one line); ``--strict`` makes it an error. Entries the layout does not know are ignored (one ``note:`` line
+per split). Accepted formats and rules: docs/data.md. A tqdm bar on stderr shows progress when stderr is a
+terminal.
 
 ``--json PATH`` writes the same summary as JSON::
 
@@ -12,8 +16,14 @@ bad objects out and lists them. A tqdm bar on stderr shows progress when stderr 
                  "resolution": [H, W] or null if mixed, "resolutions": [[H, W], ...],
                  "focal_min", "focal_max", "radius_min", "radius_max",
                  "has_depth", "has_mask", "has_mesh",                          # true if every object has it
-                 "objects_with_depth", "objects_with_mask", "objects_with_mesh",
-                 "skipped": ["<file>: <problem>", ...]}, ...]}
+                 "objects_with_depth", "objects_with_mask", "objects_with_mesh",     # usable ones
+                 "skipped": ["<file>: <problem>", ...],
+                 "rgb_formats": {"PNG 8-bit RGBA": views, ...},                     # counted over views
+                 "depth_formats": {".npz" | ".npy" | "16-bit PNG": views, ...},    # usable depth only
+                 "mask_formats": {"PNG 1-bit grey": views, ...},                   # usable masks only
+                 "unusable": {"depth" | "mask" | "mesh": objects, ...},   # had the part, cannot use it
+                 "warnings": ["<file>: <problem>; depth/ not used for this object", ...],
+                 "ignored": {"meta.json": objects, "normal/": objects, ...}}, ...]}
 
 Focal lengths are in pixels at the on-disk resolution; the camera radius is the norm of the pose translation.
 """
@@ -35,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
     parser.add_argument("--json", type=Path, default=None, help="also write the summary as JSON to this file")
     parser.add_argument("--skip-bad", action="store_true", help="leave out bad objects and list them, not fail")
+    parser.add_argument("--strict", action="store_true",
+                        help="a problem in an optional part (depth/, mask/, mesh.ply) is an error, not a warning")
     parser.add_argument("--category", default=None, help="only this category (default: every one found)")
     parser.add_argument("--split", choices=SPLITS, default=None, help="only this split (default: every one found)")
 
@@ -50,6 +62,17 @@ def _presence(count: int, total: int) -> str:
     return "all" if count == total else "none" if count == 0 else f"{count}/{total} objects"
 
 
+def _formats(counts: dict[str, int]) -> str:
+    return ", ".join(f"{name} ({n} views)" for name, n in counts.items())
+
+
+def _part(count: int, total: int, unusable: int, formats: dict[str, int]) -> str:
+    text = _presence(count, total)
+    if formats:
+        text += f"  [{_formats(formats)}]"
+    return text + (f"  (unusable in {unusable} more objects, see warnings)" if unusable else "")
+
+
 def format_summary(s: SplitSummary) -> list[str]:
     """The printed lines of one split's summary."""
     if s.resolution is not None:
@@ -63,10 +86,14 @@ def format_summary(s: SplitSummary) -> list[str]:
         f"  resolution     {res}",
         f"  focal          {_range(s.focal_min, s.focal_max, 3)}",
         f"  camera radius  {_range(s.radius_min, s.radius_max, 3)}",
-        f"  depth          {_presence(s.objects_with_depth, s.objects)}",
-        f"  mask           {_presence(s.objects_with_mask, s.objects)}",
-        f"  mesh           {_presence(s.objects_with_mesh, s.objects)}",
+        f"  rgb            {_formats(s.rgb_formats) or '?'}",
+        f"  depth          {_part(s.objects_with_depth, s.objects, s.unusable.get('depth', 0), s.depth_formats)}",
+        f"  mask           {_part(s.objects_with_mask, s.objects, s.unusable.get('mask', 0), s.mask_formats)}",
+        f"  mesh           {_part(s.objects_with_mesh, s.objects, s.unusable.get('mesh', 0), {})}",
+        f"  warnings       {len(s.warnings)}" + ("  (listed on stderr; every one in --json)" if s.warnings else ""),
     ]
+    if s.ignored:
+        lines.append("  ignored        " + ", ".join(f"{name} ({n} objects)" for name, n in s.ignored.items()))
     lines += [f"  skipped: {line}" for line in s.skipped]
     return lines
 
@@ -82,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
         if not splits:
             raise DepthnerfError(f"{root}: no {category}_<split> folders found")
         for split in splits:
-            index = index_split(root, category, split, skip_bad=args.skip_bad, check_files=True, progress=True)
+            index = index_split(root, category, split, skip_bad=args.skip_bad, check_files=True, progress=True,
+                                strict=args.strict)
             summary = summarize_split(index)
             print("\n".join(format_summary(summary)), flush=True)
             summaries.append(summary)

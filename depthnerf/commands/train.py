@@ -34,6 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--strict", action="store_true",
+                   help="a problem in an optional part of the data (depth/, mask/, mesh.ply) is an error")
 
 
 def resolve_config(args: argparse.Namespace) -> TrainConfig:
@@ -73,6 +75,13 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.eval.validation import validate
     from depthnerf.train.distributed import setup, teardown
     from depthnerf.train.loop import train
+
+    if args.strict:  # training checks every file itself (leniently); this makes optional parts strict too
+        from depthnerf.data.srn import index_split, split_dir
+
+        for split in ("train", "val"):
+            if split == "train" or split_dir(cfg.data.root, cfg.data.category, split).is_dir():
+                index_split(cfg.data.root, cfg.data.category, split, strict=True)
 
     info = setup(args.device)
     try:

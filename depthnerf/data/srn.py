@@ -3,7 +3,7 @@
 Layout (file formats in :mod:`depthnerf.data.srn_format`)::
 
     <root>/<category>_<split>/<object_id>/{intrinsics.txt, rgb/NNNNNN.png, pose/NNNNNN.txt}
-                                          [depth/NNNNNN.npz, mask/NNNNNN.png, mesh.ply]
+                                          [depth/NNNNNN.{npz,npy,png}, mask/NNNNNN.png, mesh.ply]
 
 with ``split`` in :data:`SPLITS`. SRN quirk: the public chairs train set sits one level deeper,
 ``chairs_train/chairs_2.0_train/<object_id>/``; :func:`split_dir` resolves ``<c>_<s>/<c>_2.0_<s>/`` for every
@@ -11,8 +11,11 @@ category and split. Every sub-folder of a split folder is an object (plain files
 
 Conventions, as in pixelNeRF's ``SRNDataset`` unless said otherwise:
 
-- Views are the sorted file stems of ``rgb/*.png``; ``pose/*.txt`` (and ``depth/*.npz``, ``mask/*.png`` when those
-  folders exist) must have exactly the same stems. A view index is a position in that sorted list.
+- Views are the sorted file stems of ``rgb/*.png``; ``pose/*.txt`` must have exactly the same stems (an error
+  otherwise, as for every problem with the required files). A view index is a position in that sorted list.
+- Optional parts (``depth/``, ``mask/``, ``mesh.ply``; formats and rules in :mod:`depthnerf.data.srn_parts`): by
+  default a problem in one makes that part unusable for that object, with a warning naming the file; with
+  ``strict=True`` it is an error. Other entries of an object folder are ignored.
 - Images are float ``[0, 1]``, alpha composited on white; 8- and 16-bit PNGs work (Pillow reads 16-bit *colour*
   PNGs at 8-bit precision, 16-bit grey at full precision).
 - Poses stay camera-to-world with OpenCV axes (no flip to OpenGL axes; see :mod:`depthnerf.data.cameras`).
@@ -30,6 +33,7 @@ Conventions, as in pixelNeRF's ``SRNDataset`` unless said otherwise:
 from __future__ import annotations
 
 import sys
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,8 +46,9 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 from tqdm import tqdm
 
-from depthnerf.data import srn_format
+from depthnerf.data import srn_format, srn_parts
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.srn_parts import PartIssue, PartReport
 from depthnerf.data.validate import ObjectCheck, check_object
 from depthnerf.errors import DepthnerfError
 
@@ -102,11 +107,19 @@ class ObjectRecord:
     intrinsics: Intrinsics
     """As written in ``intrinsics.txt`` (at the on-disk resolution)."""
     has_depth: bool
-    """``depth/`` holds a z-depth map for every view."""
+    """``depth/`` holds a usable z-depth map for every view (as far as the checks that ran can tell)."""
     has_mask: bool
-    """``mask/`` holds a mask for every view."""
+    """``mask/`` holds a usable mask for every view (as far as the checks that ran can tell)."""
     mesh_path: Path | None
-    """``mesh.ply`` when present."""
+    """``mesh.ply`` when present and usable."""
+    depth_files: tuple[str, ...] = ()
+    """File name in ``depth/`` of every view (empty: ``<stem>.npz``, the format this package writes)."""
+    depth_scale: float | None = None
+    """World units per unit of 16-bit PNG depth (from ``depth_scale.txt``); ``None`` when no view uses PNG."""
+    issues: tuple[PartIssue, ...] = ()
+    """Problems found in the optional parts (each part named by a disabling issue is off for this object)."""
+    ignored: tuple[str, ...] = ()
+    """Entries of the object folder that the layout does not know (ignored)."""
 
     @property
     def num_views(self) -> int:
@@ -122,8 +135,10 @@ class ObjectRecord:
         return self.path / "pose" / f"{self.view_names[view]}.txt"
 
     def depth_path(self, view: int) -> Path:
-        """``depth/<stem>.npz`` of view index ``view`` (exists only if ``has_depth``)."""
-        return self.path / "depth" / f"{self.view_names[view]}.npz"
+        """The depth file of view index ``view`` (exists only if ``has_depth``); read it with
+        ``srn_format.read_depth(path, record.depth_scale)`` (``allow_empty=True`` for views that show nothing)."""
+        name = self.depth_files[view] if self.depth_files else f"{self.view_names[view]}.npz"
+        return self.path / "depth" / name
 
     def mask_path(self, view: int) -> Path:
         """``mask/<stem>.png`` of view index ``view`` (exists only if ``has_mask``)."""
@@ -146,6 +161,11 @@ class SplitIndex:
     """One line (file and problem) per object skipped with ``skip_bad=True``."""
     checks: dict[str, ObjectCheck] = field(default_factory=dict)
     """Per ``object_id``: what the file checks measured (filled when indexed with ``check_files=True``)."""
+
+    @property
+    def issues(self) -> list[PartIssue]:
+        """Every problem found in the optional parts of the (valid) objects."""
+        return [issue for o in self.objects for issue in o.issues]
 
 
 def split_dir(root: Path, category: str, split: str) -> Path:
@@ -198,8 +218,14 @@ def _pair(obj: Path, names: list[str], folder: str, suffix: str) -> None:
                          f"that do not pair up by name (e.g. {example})")
 
 
-def index_object(path: Path, category: str, split: str) -> ObjectRecord:
-    """Index one object folder: read ``intrinsics.txt`` and pair the view files by name (no per-view reads)."""
+def index_object(path: Path, category: str, split: str, *, strict: bool = False, root: Path | None = None
+                 ) -> ObjectRecord:
+    """Index one object folder: read ``intrinsics.txt``, pair the view files by name (no per-view reads).
+
+    Required files raise :class:`DepthnerfError`; problems of the optional parts are kept in ``issues`` (and that
+    part is off), or raise with ``strict``. ``root``: the dataset root, up to which ``depth_scale.txt`` is looked
+    for (see :func:`~depthnerf.data.srn_parts.scale_dirs`).
+    """
     path = Path(path)
     intrinsics = srn_format.read_intrinsics(path / "intrinsics.txt")
     for folder in ("rgb", "pose"):
@@ -209,24 +235,25 @@ def index_object(path: Path, category: str, split: str) -> ObjectRecord:
     if not names:
         raise DepthnerfError(f"{path / 'rgb'}: no .png images")
     _pair(path, names, "pose", ".txt")
-    has_depth, has_mask = (path / "depth").is_dir(), (path / "mask").is_dir()
-    if has_depth:
-        _pair(path, names, "depth", ".npz")
-    if has_mask:
-        _pair(path, names, "mask", ".png")
-    mesh = path / "mesh.ply"
+    report = PartReport(strict)
+    depth_files, depth_scale = srn_parts.list_depth(path, names, report, srn_parts.scale_dirs(path, root))
+    has_mask = srn_parts.list_mask(path, names, report)
+    mesh = srn_parts.find_mesh(path, report)
     return ObjectRecord(category=category, split=split, object_id=path.name, path=path, view_names=tuple(names),
-                        intrinsics=intrinsics, has_depth=has_depth, has_mask=has_mask,
-                        mesh_path=mesh if mesh.is_file() else None)
+                        intrinsics=intrinsics, has_depth=bool(depth_files), has_mask=has_mask, mesh_path=mesh,
+                        depth_files=depth_files, depth_scale=depth_scale, issues=tuple(report.issues),
+                        ignored=srn_parts.extras(path))
 
 
 def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False, check_files: bool = True,
-                progress: bool = False) -> SplitIndex:
+                progress: bool = False, strict: bool = False) -> SplitIndex:
     """Index ``<root>/<category>_<split>``.
 
     Always: reads every ``intrinsics.txt`` and pairs view files by name. ``check_files``: also reads and checks
-    every pose and opens every image header (see :func:`~depthnerf.data.validate.check_object`). A bad object
-    raises :class:`DepthnerfError`, or with ``skip_bad`` is left out and listed in ``skipped``. A split without
+    every pose, opens every image header and reads every depth map (see
+    :func:`~depthnerf.data.validate.check_object`). A bad required file raises :class:`DepthnerfError`, or with
+    ``skip_bad`` its object is left out and listed in ``skipped``. A bad optional part is off for its object, with
+    a :class:`~depthnerf.errors.DataWarning` (grouped per split), or with ``strict`` an error. A split without
     usable objects is an error. ``progress`` shows a tqdm bar on stderr (when it is a terminal).
     """
     folder = split_dir(root, category, split)
@@ -240,9 +267,11 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
                disable=None if progress else True)
     for obj_dir in bar:
         try:
-            record = index_object(obj_dir, category, split)
+            record = index_object(obj_dir, category, split, strict=strict, root=root)
             if check_files:
-                index.checks[record.object_id] = check_object(record)
+                check = check_object(record, strict=strict)
+                index.checks[record.object_id] = check
+                record = srn_parts.with_issues(record, check.issues)
         except DepthnerfError as err:
             if not skip_bad:
                 raise
@@ -251,6 +280,7 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
         index.objects.append(record)
     if not index.objects:
         raise DepthnerfError(f"{folder}: no usable objects ({len(index.skipped)} skipped; first: {index.skipped[0]})")
+    srn_parts.warn_split(folder, [o.issues for o in index.objects], Counter(n for o in index.objects for n in o.ignored))
     return index
 
 
@@ -331,7 +361,7 @@ def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, res
     """
     indices = _view_indices(record, views)
     if with_depth and not record.has_depth:
-        raise DepthnerfError(f"{record.path}: no depth/ folder (ground-truth depth requested)")
+        raise DepthnerfError(f"{record.path}: no depth/ folder, or not a usable one (ground-truth depth requested)")
     images = [srn_format.read_rgb(record.rgb_path(v)) for v in indices]
     height, width = images[0].shape[:2]
     for v, img in zip(indices, images, strict=True):
@@ -348,7 +378,11 @@ def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, res
         masks = [srn_format.read_mask(record.mask_path(v)) for v in indices]
     else:
         masks = [srn_format.mask_from_white(img) for img in images]
-    depths = [srn_format.read_depth(record.depth_path(v)) for v in indices] if with_depth else None
+    depths = None
+    if with_depth:
+        depths = [srn_format.read_depth(record.depth_path(v), record.depth_scale, allow_empty=True) for v in indices]
+        for v, img, depth in zip(indices, images, depths, strict=True):
+            srn_format.check_empty_depth(record.depth_path(v), depth, record.rgb_path(v), img)
     for kind, arrays, path_of in (("mask", masks, record.mask_path), ("depth map", depths or [], record.depth_path)):
         for v, arr in zip(indices, arrays, strict=False):
             if arr.shape != (height, width):

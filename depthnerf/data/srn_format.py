@@ -5,11 +5,15 @@ One object folder ``<root>/<category>_<split>/<object_id>/`` holds::
     intrinsics.txt        4 lines: "f cx cy 0." / "0. 0. 0." / "1." / "H W"   (f, c in pixels of an H x W image)
     rgb/NNNNNN.png        RGB or RGBA, 8- or 16-bit; RGBA is composited on white
     pose/NNNNNN.txt       16 numbers, a 4x4 camera-to-world matrix, OpenCV camera axes (see ``cameras``)
-    depth/NNNNNN.npz      optional: float32 z-depth under key "depth", 0 where there is no surface (lossless)
-    mask/NNNNNN.png       optional: 8-bit, non-zero = object
+    depth/NNNNNN.npz      optional: float z-depth under key "depth", 0 where there is no surface (what we write)
+          NNNNNN.npy      optional: the same as one ``np.save`` array
+          NNNNNN.png      optional: 16-bit grey, z-depth = value * scale (scale from ``depth_scale.txt``)
+    mask/NNNNNN.png       optional: any PNG bit depth and mode, non-zero colour = object
     mesh.ply              optional: the ground-truth mesh in world coordinates
 
-Every reader raises :class:`~depthnerf.errors.DepthnerfError` with one line naming the file and the problem.
+EXR depth is refused (:data:`EXR_UNSUPPORTED`). Every reader raises :class:`~depthnerf.errors.DepthnerfError`
+with one line naming the file and the problem. Which files an object folder uses, and what happens when an
+optional one is bad, is :mod:`depthnerf.data.srn_parts`'s business.
 """
 
 from __future__ import annotations
@@ -118,19 +122,109 @@ def write_rgb(path: Path, img: np.ndarray) -> None:
     Image.fromarray(arr, mode="RGB").save(path)
 
 
-def read_depth(path: Path) -> np.ndarray:
-    """Read a float32 z-depth map (0 = no surface) from ``.npz`` (key ``depth``), without unpickling."""
+DEPTH_SUFFIXES = (".npz", ".npy", ".png")
+"""Depth file formats read, in order of preference when one view has files in several."""
+
+DEPTH_SCALE_FILE = "depth_scale.txt"
+"""Name of the file that gives 16-bit PNG depth its scale: one number, world units per PNG unit."""
+
+EXR_UNSUPPORTED = ("EXR depth is not supported: no kept library reads OpenEXR (Pillow has no EXR decoder, imageio "
+                   "needs a FreeImage binary it would download, OpenCV is not a dependency); convert it to .npy or .npz")
+"""Why ``.exr`` depth maps are refused (one line, used in errors and warnings)."""
+
+_PNG16_MODES = ("I;16", "I;16B", "I;16L", "I")
+
+
+def _depth_png(path: Path, png_scale: float | None) -> np.ndarray:
+    with Image.open(path) as im:
+        im.load()
+        mode = im.mode
+        arr = np.asarray(im)
+    if mode not in _PNG16_MODES:
+        raise DepthnerfError(f"{path}: PNG depth must be 16-bit grey, got mode {mode} (8-bit depth is too coarse; "
+                             "store 16-bit PNG, .npy or .npz)")
+    if png_scale is None:
+        raise DepthnerfError(f"{path}: 16-bit PNG depth needs a scale: write the world units per PNG unit (e.g. "
+                             f"0.001) into {DEPTH_SCALE_FILE} in the object, split or dataset folder")
+    return (arr.astype(np.float64) * png_scale).astype(np.float32)
+
+
+def read_depth(path: Path, png_scale: float | None = None, shape: tuple[int, int] | None = None,
+               allow_empty: bool = False) -> np.ndarray:
+    """Read and check a z-depth map (0 = no surface) as float32 ``H x W``.
+
+    ``.npz`` (key ``depth``) and ``.npy`` hold float arrays and are never unpickled; ``.png`` is 16-bit grey
+    times ``png_scale`` (world units per PNG unit). ``shape``: the expected ``(H, W)``. A map must be finite,
+    non-negative and, unless ``allow_empty``, not all zero (see :func:`check_depth`).
+    """
     path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        raise DepthnerfError(f"{path}: {EXR_UNSUPPORTED}")
+    if suffix not in DEPTH_SUFFIXES:
+        raise DepthnerfError(f"{path}: unknown depth format {suffix!r} (expected one of {', '.join(DEPTH_SUFFIXES)})")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            depth = np.asarray(data["depth"], dtype=np.float32)
+        if suffix == ".png":
+            depth = _depth_png(path, png_scale)
+        elif suffix == ".npy":
+            depth = np.load(path, allow_pickle=False)
+        else:
+            with np.load(path, allow_pickle=False) as data:
+                depth = data["depth"]
     except FileNotFoundError:
         raise DepthnerfError(f"{path}: depth file is missing") from None
-    except (OSError, ValueError, KeyError) as err:
+    except KeyError:
+        raise DepthnerfError(f"{path}: depth file has no 'depth' array") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable depth map ({err})") from None
-    if depth.ndim != 2 or not np.all(np.isfinite(depth)) or (depth < 0).any():
-        raise DepthnerfError(f"{path}: depth map must be a finite, non-negative H x W array")
-    return depth
+    return check_depth(path, depth, shape, allow_empty)
+
+
+def check_depth(path: Path, depth: np.ndarray, shape: tuple[int, int] | None = None,
+                allow_empty: bool = False) -> np.ndarray:
+    """``depth`` as float32 ``H x W`` (an ``H x W x 1`` array is squeezed), or an error naming ``path`` if it is
+    not a float array, has the wrong shape, holds NaN/inf or negative values, or is all zero (unless
+    ``allow_empty``: the caller checks that the view shows nothing, see :func:`check_empty_depth`)."""
+    depth = np.asarray(depth)
+    if depth.dtype.kind != "f":
+        raise DepthnerfError(f"{path}: depth map holds {depth.dtype} values, expected floats (integer depth: store "
+                             f"it as 16-bit PNG with {DEPTH_SCALE_FILE})")
+    if depth.ndim == 3 and depth.shape[-1] == 1:
+        depth = depth[..., 0]
+    if depth.ndim != 2 or (shape is not None and depth.shape != tuple(shape)):
+        want = f"{shape[0]}x{shape[1]} (intrinsics.txt)" if shape is not None else "H x W"
+        raise DepthnerfError(f"{path}: depth map has shape {depth.shape}, expected {want}")
+    bad = ~np.isfinite(depth)
+    if bad.any():
+        raise DepthnerfError(f"{path}: depth map holds NaN or inf ({int(bad.sum())} of {depth.size} pixels)")
+    if (depth < 0).any():
+        raise DepthnerfError(f"{path}: depth map holds negative values (min {float(depth.min()):g})")
+    if not allow_empty and not depth.any():
+        raise DepthnerfError(f"{path}: depth map is all zero (no surface)")
+    return depth.astype(np.float32)
+
+
+def check_empty_depth(path: Path, depth: np.ndarray, image_path: Path, image: np.ndarray) -> None:
+    """An all-zero depth map is valid only for a view whose image shows nothing (all white, pixelNeRF's rule);
+    otherwise it is a broken render: an error naming ``path``."""
+    if not depth.any() and mask_from_white(image).any():
+        raise DepthnerfError(f"{path}: depth map is all zero (no surface) but {image_path.parent.name}/"
+                             f"{image_path.name} shows an object")
+
+
+def read_depth_scale(path: Path) -> float:
+    """The number in a ``depth_scale.txt``: world units per 16-bit PNG depth unit (finite, > 0)."""
+    path = Path(path)
+    try:
+        text = path.read_text().split()
+        scale = float(text[0]) if len(text) == 1 else float("nan")
+    except OSError as err:
+        raise DepthnerfError(f"{path}: cannot read the depth scale ({err.strerror or err})") from None
+    except ValueError:
+        scale = float("nan")
+    if not np.isfinite(scale) or scale <= 0:
+        raise DepthnerfError(f"{path}: expected one positive number (world units per 16-bit PNG depth unit)")
+    return scale
 
 
 def write_depth(path: Path, depth: np.ndarray) -> None:
@@ -148,16 +242,29 @@ def write_depth(path: Path, depth: np.ndarray) -> None:
 
 
 def read_mask(path: Path) -> np.ndarray:
-    """Read a mask PNG as a boolean ``H x W`` array (non-zero = object)."""
+    """Read a mask PNG of any bit depth and mode as a boolean ``H x W`` array.
+
+    A pixel is object when its colour is non-zero (any channel; palette images by their palette colour); where
+    the image has alpha, a fully transparent pixel is background. (Pillow reads 16-bit *colour* PNGs at 8-bit
+    precision, so there a value below 256 reads as 0; 16-bit grey keeps full precision.)
+    """
     path = Path(path)
     try:
         with Image.open(path) as im:
-            arr = np.asarray(im.convert("L"))
+            im.load()
+            if im.mode in ("P", "PA", "CMYK", "YCbCr", "HSV"):
+                im = im.convert("RGBA")
+            bands = im.getbands()
+            arr = np.asarray(im)
     except FileNotFoundError:
         raise DepthnerfError(f"{path}: mask file is missing") from None
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable mask ({err})") from None
-    return arr > 0
+    if arr.ndim == 2:
+        return arr != 0
+    alpha = bands[-1] == "A"
+    mask = (arr[..., :-1] if alpha else arr).any(axis=-1)
+    return mask & (arr[..., -1] != 0) if alpha else mask
 
 
 def write_mask(path: Path, mask: np.ndarray) -> None:

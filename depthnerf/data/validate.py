@@ -2,9 +2,11 @@
 
 :func:`check_object` reads and checks **every** pose (16 finite numbers, a rigid transform) and opens every PNG
 header without decoding pixels (PIL ``verify``: the chunk structure and CRCs are checked, so truncated or
-corrupted files are caught, at ~1/5 of the cost of a decode). It also checks that every image, mask and depth map
-has the ``H x W`` that ``intrinsics.txt`` states (depth: from the ``.npy`` header inside the ``.npz``, no
-decompression of the array). Errors are :class:`~depthnerf.errors.DepthnerfError` with one line naming the file.
+corrupted files are caught, at ~1/5 of the cost of a decode). It checks that every image and mask has the
+``H x W`` that ``intrinsics.txt`` states, reads every depth map whole (shape, NaN/inf, negative, all zero), and
+reads the header of ``mesh.ply``. Bad required files raise :class:`~depthnerf.errors.DepthnerfError` with one line
+naming the file; a bad optional part is reported as a :class:`~depthnerf.data.srn_parts.PartIssue` (or raises,
+with ``strict``). It also counts the file formats it saw.
 
 The *camera radius* of a view is the norm of its pose translation (the distance of the camera from the world
 origin, where SRN objects are centred).
@@ -12,19 +14,24 @@ origin, where SRN objects are centred).
 
 from __future__ import annotations
 
-import zipfile
-from dataclasses import dataclass
+import re
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 from PIL import Image
 
-from depthnerf.data.srn_format import read_pose
+from depthnerf.data.srn_format import check_empty_depth, read_depth, read_pose, read_rgb
+from depthnerf.data.srn_parts import PART_LABELS, PartIssue, PartReport
 from depthnerf.errors import DepthnerfError
 
 if TYPE_CHECKING:
     from depthnerf.data.srn import ObjectRecord, SplitIndex
+
+PNG_COLOUR_TYPES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
+"""PNG ``IHDR`` colour types, as format names spell them."""
 
 
 @dataclass(frozen=True)
@@ -37,65 +44,113 @@ class ObjectCheck:
     """Smallest camera distance from the world origin over the object's views."""
     radius_max: float
     """Largest camera distance from the world origin over the object's views."""
+    rgb_formats: dict[str, int] = field(default_factory=dict)
+    """Views per image format (e.g. ``"PNG 8-bit RGBA"``)."""
+    mask_formats: dict[str, int] = field(default_factory=dict)
+    """Views per mask format (usable masks only)."""
+    depth_formats: dict[str, int] = field(default_factory=dict)
+    """Views per depth format (``.npz``, ``.npy``, ``16-bit PNG``; usable depth only)."""
+    issues: tuple[PartIssue, ...] = ()
+    """Problems found in the optional parts (the parts they name are off for the object)."""
 
 
-def image_size(path: Path, what: str = "image") -> tuple[int, int]:
-    """``(H, W)`` of an image file from its header; the whole file's structure is verified, pixels not decoded."""
+def _format_name(head: bytes, im: Image.Image) -> str:
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        return f"PNG {head[24]}-bit {PNG_COLOUR_TYPES.get(head[25], f'colour type {head[25]}')}"
+    return f"{im.format} {im.mode}"
+
+
+def image_header(path: Path, what: str = "image") -> tuple[tuple[int, int], str]:
+    """``(H, W)`` and format name (``"PNG 16-bit grey"``) of an image file from its header; the whole file's
+    structure is verified, pixels not decoded."""
     path = Path(path)
     try:
-        with Image.open(path) as im:
-            width, height = im.size
-            im.verify()
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+            fh.seek(0)
+            with Image.open(fh) as im:
+                width, height = im.size
+                name = _format_name(head, im)
+                im.verify()
     except FileNotFoundError:
         raise DepthnerfError(f"{path}: {what} file is missing") from None
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable {what} ({err})") from None
-    return height, width
+    return (height, width), name
 
 
-def depth_shape(path: Path) -> tuple[int, ...]:
-    """Shape of the ``depth`` array in a depth ``.npz`` from its ``.npy`` header (no decompression, no pickle)."""
+def image_size(path: Path, what: str = "image") -> tuple[int, int]:
+    """``(H, W)`` of an image file from its header (see :func:`image_header`)."""
+    return image_header(path, what)[0]
+
+
+def check_mesh_header(path: Path) -> None:
+    """Check that ``path`` starts like a PLY file with vertices (``ply``, ``element vertex N > 0``,
+    ``end_header``); the body is read when the mesh is used."""
     path = Path(path)
     try:
-        with zipfile.ZipFile(path) as archive, archive.open("depth.npy") as member:
-            version = np.lib.format.read_magic(member)
-            if version == (1, 0):
-                shape, _, dtype = np.lib.format.read_array_header_1_0(member)
-            else:
-                shape, _, dtype = np.lib.format.read_array_header_2_0(member)
-    except FileNotFoundError:
-        raise DepthnerfError(f"{path}: depth file is missing") from None
-    except KeyError:
-        raise DepthnerfError(f"{path}: depth file has no 'depth' array") from None
-    except (OSError, ValueError, zipfile.BadZipFile) as err:
-        raise DepthnerfError(f"{path}: unreadable depth map ({err})") from None
-    if dtype.hasobject:
-        raise DepthnerfError(f"{path}: depth map holds Python objects, expected a float array")
-    return tuple(shape)
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError as err:
+        raise DepthnerfError(f"{path}: cannot read mesh ({err.strerror or err})") from None
+    text = head.split(b"end_header")[0].decode("ascii", errors="replace")
+    vertices = re.search(r"^element vertex (\d+)", text, flags=re.MULTILINE)
+    if not head.startswith(b"ply") or b"end_header" not in head or not vertices or int(vertices.group(1)) == 0:
+        raise DepthnerfError(f"{path}: not a PLY mesh with vertices (bad or missing header)")
 
 
-def check_object(record: ObjectRecord) -> ObjectCheck:
-    """Read every pose and open every image/mask/depth header of ``record``; raise on the first bad file."""
+def _size_checked(path: Path, what: str, expected: tuple[int, int], intrinsics: Path) -> str:
+    size, name = image_header(path, what)
+    if size != expected:
+        raise DepthnerfError(f"{path}: {what} is {size[0]}x{size[1]} but {intrinsics} says {expected[0]}x{expected[1]}")
+    return name
+
+
+def _depth_format(name: str) -> str:
+    return "16-bit PNG" if name.endswith(".png") else Path(name).suffix
+
+
+def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
+    """Read every pose, open every image/mask header, read every depth map and the mesh header of ``record``.
+
+    A bad required file raises on the first one; a bad optional part is reported once (its first bad file) in
+    ``issues`` and not checked further, or raises with ``strict``.
+    """
     intr = record.intrinsics
     expected = (intr.height, intr.width)
+    intrinsics = record.path / "intrinsics.txt"
+    report = PartReport(strict)
     radii = []
+    rgb, masks, depths = Counter(), Counter(), Counter()
+    use_mask, use_depth = record.has_mask, record.has_depth
     for view in range(record.num_views):
         pose = read_pose(record.pose_path(view))
         radii.append(float(np.linalg.norm(pose[:3, 3])))
-        checks = [(record.rgb_path(view), "image")]
-        if record.has_mask:
-            checks.append((record.mask_path(view), "mask"))
-        for path, what in checks:
-            size = image_size(path, what)
-            if size != expected:
-                raise DepthnerfError(f"{path}: {what} is {size[0]}x{size[1]} but {record.path / 'intrinsics.txt'}"
-                                     f" says {expected[0]}x{expected[1]}")
-        if record.has_depth:
+        rgb[_size_checked(record.rgb_path(view), "image", expected, intrinsics)] += 1
+        if use_mask:
+            try:
+                masks[_size_checked(record.mask_path(view), "mask", expected, intrinsics)] += 1
+            except DepthnerfError as err:
+                report.add_error("mask", record.mask_path(view), err)
+                use_mask = False
+        if use_depth:
             path = record.depth_path(view)
-            shape = depth_shape(path)
-            if shape != expected:
-                raise DepthnerfError(f"{path}: depth map has shape {shape}, expected {expected} from intrinsics.txt")
-    return ObjectCheck(num_views=record.num_views, radius_min=min(radii), radius_max=max(radii))
+            try:
+                depth = read_depth(path, record.depth_scale, expected, allow_empty=True)
+                if not depth.any():
+                    check_empty_depth(path, depth, record.rgb_path(view), read_rgb(record.rgb_path(view)))
+                depths[_depth_format(path.name)] += 1
+            except DepthnerfError as err:
+                report.add_error("depth", path, err)
+                use_depth = False
+    if record.mesh_path is not None:
+        try:
+            check_mesh_header(record.mesh_path)
+        except DepthnerfError as err:
+            report.add_error("mesh", record.mesh_path, err)
+    return ObjectCheck(num_views=record.num_views, radius_min=min(radii), radius_max=max(radii),
+                       rgb_formats=dict(rgb), mask_formats=dict(masks) if use_mask else {},
+                       depth_formats=dict(depths) if use_depth else {}, issues=tuple(report.issues))
 
 
 @dataclass(frozen=True)
@@ -142,6 +197,18 @@ class SplitSummary:
     """Objects with ``mesh.ply``."""
     skipped: list[str]
     """One line per skipped object (file and problem); empty unless ``--skip-bad``."""
+    rgb_formats: dict[str, int] = field(default_factory=dict)
+    """Views per image format, e.g. ``{"PNG 8-bit RGBA": 251}`` (empty if the files were not checked)."""
+    depth_formats: dict[str, int] = field(default_factory=dict)
+    """Views per depth format (``.npz``, ``.npy``, ``16-bit PNG``) over the objects whose depth is usable."""
+    mask_formats: dict[str, int] = field(default_factory=dict)
+    """Views per mask format (e.g. ``PNG 1-bit grey``) over the objects whose masks are usable."""
+    unusable: dict[str, int] = field(default_factory=dict)
+    """Objects per optional part (``depth``, ``mask``, ``mesh``) that had the part but cannot use it."""
+    warnings: list[str] = field(default_factory=list)
+    """Every problem found in the optional parts, one line each (file and problem)."""
+    ignored: dict[str, int] = field(default_factory=dict)
+    """Entries of object folders the layout does not know (ignored), with the number of objects holding each."""
 
 
 def summarize_split(index: SplitIndex) -> SplitSummary:
@@ -165,5 +232,21 @@ def summarize_split(index: SplitIndex) -> SplitSummary:
         has_depth=n_depth == len(objs), has_mask=n_mask == len(objs), has_mesh=n_mesh == len(objs),
         objects_with_depth=n_depth, objects_with_mask=n_mask, objects_with_mesh=n_mesh,
         skipped=list(index.skipped),
+        rgb_formats=_sum_counts(c.rgb_formats for c in checks),
+        depth_formats=_sum_counts(index.checks[o.object_id].depth_formats for o in objs
+                                  if o.has_depth and o.object_id in index.checks),
+        mask_formats=_sum_counts(index.checks[o.object_id].mask_formats for o in objs
+                                 if o.has_mask and o.object_id in index.checks),
+        unusable={part: n for part in PART_LABELS
+                  if (n := sum(any(i.part == part and i.disables for i in o.issues) for o in objs))},
+        warnings=[issue.message for issue in index.issues],
+        ignored=dict(sorted(Counter(name for o in objs for name in o.ignored).items())),
     )
+
+
+def _sum_counts(counts) -> dict[str, int]:
+    total: Counter[str] = Counter()
+    for c in counts:
+        total.update(c)
+    return dict(sorted(total.items()))
 

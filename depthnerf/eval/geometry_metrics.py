@@ -148,7 +148,7 @@ def visible_surface_points(record: ObjectRecord, n_points: int) -> Float[np.ndar
     intr = record.intrinsics
     parts = []
     for view in range(record.num_views):
-        depth = srn_format.read_depth(record.depth_path(view))
+        depth = srn_format.read_depth(record.depth_path(view), record.depth_scale, allow_empty=True)
         if depth.shape != (intr.height, intr.width):
             raise DepthnerfError(f"{record.depth_path(view)}: depth map is {depth.shape[1]}x{depth.shape[0]} but "
                                  f"intrinsics.txt says {intr.width}x{intr.height}")

@@ -307,7 +307,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     if cfg.chunk < 1 or cfg.mesh_resolution < 2:
         raise DepthnerfError(f"--chunk must be >= 1 and --mesh-resolution >= 2 (got {cfg.chunk}, "
                              f"{cfg.mesh_resolution})")
-    all_records = index_split(data_root, category, cfg.split, check_files=False).objects
+    all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
     records = all_records[: cfg.max_objects] if cfg.max_objects else all_records
     input_res = spec.resolution
     eval_res = cfg.resolution or input_res
