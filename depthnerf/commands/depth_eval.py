@@ -17,6 +17,7 @@ from pathlib import Path
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.depth.evaluate import DepthEvalConfig, evaluate_depth
+from depthnerf.files import write_text_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,5 +52,5 @@ def run(args: argparse.Namespace) -> int:
               f"({scores['images']} images)")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result.as_dict(), indent=2) + "\n")
+        write_text_atomic(args.json, json.dumps(result.as_dict(), indent=2) + "\n")
     return 0

@@ -29,6 +29,7 @@ from depthnerf.config_io import to_dict
 from depthnerf.data.srn import index_split
 from depthnerf.depth.prior import PriorSource, open_prior
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.depth_loss import ssi_depth_loss
@@ -112,15 +113,15 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
 
 
 def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int) -> None:
-    (run_dir / "config.json").write_text(json.dumps(to_dict(cfg), indent=1) + "\n")
+    write_text_atomic(run_dir / "config.json", json.dumps(to_dict(cfg), indent=1) + "\n")
     prior = {"estimator": cfg.prior.estimator, **(prior_source.provenance or {})}
-    (run_dir / "prior.json").write_text(json.dumps(prior, indent=1, default=str) + "\n")
+    write_text_atomic(run_dir / "prior.json", json.dumps(prior, indent=1, default=str) + "\n")
     root = Path(cfg.data.root)
     card_path = root / f"{cfg.data.category}_card.json"
     card = json.loads(card_path.read_text()) if card_path.is_file() else None
     data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
                  "resolution": cfg.data.resolution, "dataset_card": card}
-    (run_dir / "data_card.json").write_text(json.dumps(data_card, indent=1) + "\n")
+    write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
 
 
 def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True,
