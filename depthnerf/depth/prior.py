@@ -132,8 +132,8 @@ class LivePrior(PriorSource):
         if self.estimator.needs_depth and depths is None:
             raise DepthnerfError("the 'oracle' depth prior needs ground-truth depth, which a photo does not have; "
                                  f"choose --depth {' or '.join(n for n in ESTIMATORS if estimator_entry(n).photo)}")
-        disp = self.estimator.predict(images, depths if self.estimator.needs_depth else None).float()
-        return as_cached(disp) if self.match_cache and estimator_entry(self.prior.estimator).cached else disp
+        disparity = self.estimator.predict(images, depths if self.estimator.needs_depth else None).float()
+        return as_cached(disparity) if self.match_cache and estimator_entry(self.prior.estimator).cached else disparity
 
     @property
     def provenance(self) -> dict[str, Any]:

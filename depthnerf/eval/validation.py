@@ -48,7 +48,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSour
             obj = load_object(record, [src, *targets], resolution=resolution)
             cond = condition(prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
                              where=DatasetViews(record, (src,)))
-            disp = cond.disparity
+            disparity = cond.disparity
             enc = model.encode(cond.inputs)
             out = render_views(model.field(enc, "coarse"), model.field(enc, "fine"),
                                obj.poses[1:].to(device), obj.intrinsics, near, far, render_cfg, chunk=chunk)
@@ -59,8 +59,8 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSour
                 depth = out.depth[0].cpu().numpy()
                 images = {"source": obj.images[0].permute(1, 2, 0).numpy(), "target": gts[0], "render": preds[0],
                           "depth": (far - depth) / (far - near)}
-                if disp is not None:
-                    d = disp[0].numpy()
+                if disparity is not None:
+                    d = disparity[0].numpy()
                     images["prior"] = (d - d.min()) / max(float(d.max() - d.min()), 1e-8)
     finally:
         model.train(was_training)

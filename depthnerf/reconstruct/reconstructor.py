@@ -220,7 +220,7 @@ class Reconstructor:
             prepared = PreparedImage(image=encoded.inputs.inputs.images[0, 0].permute(1, 2, 0).cpu().numpy(),
                                      mask=encoded.mask[0].numpy(), notes=[],
                                      source_size=(encoded.intr.height, encoded.intr.width))
-        disp, prior = encoded.inputs.disparity, encoded.inputs.inputs.prior
+        disparity, prior = encoded.inputs.disparity, encoded.inputs.inputs.prior
         settings = {"resolution": spec.resolution, "render_resolution": render_intr.height, "views": len(poses),
                     "z_range": [near, far], "category": spec.category,
                     "depth_estimator": self.prior_config.estimator, "depth_checkpoint": self.prior_config.checkpoint,
@@ -230,7 +230,7 @@ class Reconstructor:
                     "point_opacity": POINT_OPACITY,
                     "mesh_colors": "fine-network rgb at each vertex seen along the input camera's ray"}
         return Reconstruction(
-            input=prepared, depth_prior=None if disp is None else disp[0].numpy(),
+            input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
             prior_normalized=None if prior is None else prior[0, 0, 0].cpu().numpy(),
             poses=poses.numpy(), intrinsics=render_intr, views=out.rgb.numpy(), depths=out.depth.numpy(),
             opacity=out.opacity.numpy(), mesh=mesh, points=points.astype(np.float32),

@@ -48,8 +48,8 @@ class TrainItems(Dataset):
         src_prior = target_prior = None
         if self.prior.prior.enabled:
             views = [src, *targets] if self.target_priors else [src]
-            disp = self.prior.disparity(obj.images[: len(views)], where=DatasetViews(record, tuple(views)))
-            prior = prior_input(disp, obj.masks[: len(views)])  # [V 1 H W], as the conditioning stage makes it
+            disparity = self.prior.disparity(obj.images[: len(views)], where=DatasetViews(record, tuple(views)))
+            prior = prior_input(disparity, obj.masks[: len(views)])  # [V 1 H W], as the conditioning stage makes it
             src_prior = prior[None, :1]  # [1 1 1 H W]
             if self.target_priors:
                 target_prior = prior[tgt, 0][view, row, col][None]
