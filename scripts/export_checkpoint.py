@@ -53,7 +53,7 @@ from depthnerf.pretrained.spec import SPEC_KEY
 from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
 from depthnerf.render.views import render_poses
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.config import TrainConfig, from_dict_config, z_range
+from depthnerf.train.config import TrainConfig, from_dict_config, inference_spec
 
 FP16_TOLERANCE = 0.02
 """Largest accepted absolute RGB difference (in [0, 1], ~5 of 255 levels) between fp32 and fp16 renders."""
@@ -111,7 +111,7 @@ def roundtrip_check(source: Pretrained, exported: Pretrained) -> dict:
     res = cfg.data.resolution
     cat = category_defaults(cfg.data.category)
     intr = srn_intrinsics(cat.focal, cat.image_size, res)
-    near, far = z_range(cfg)
+    near, far = source.spec.z_range
     rgbs = []
     for pre in (source, exported):
         enc = pre.model.encode(src)
@@ -211,7 +211,7 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              + (f", + 4th input channel and depth encoder ({m.encoder.depth_channels} channels)"
                 if cfg.prior.enabled else "") + ".",
              f"- NeRF MLP: {f.n_blocks} residual blocks of width {f.d_hidden}; samples {r.n_coarse} coarse + "
-             f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(z_range(cfg))}.",
+             f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(inference_spec(cfg).z_range)}.",
              f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}, {s.objects_phase1}/{s.objects_phase2} objects x "
              f"{s.rays_per_object} rays per step, bbox sampling for {s.bbox_steps} steps; seed {cfg.seed}.",
              "- Full config: the `train_config` entry of the weights' metadata "

@@ -232,4 +232,4 @@ def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys
     assert manifest["settings"]["guided_sampling"] == 24 and manifest["settings"]["depth_estimator"] == "bundled"
     assert main(["reconstruct", str(tmp_path / "photo.png"), "--checkpoint", str(models["constant"]), "--out",
                  str(tmp_path / "h"), "--guided", "5"]) == 2
-    assert "--guided: a guided budget needs >= 6" in capsys.readouterr().err
+    assert "--guided 5: a guided budget needs >= 6" in capsys.readouterr().err

@@ -79,6 +79,8 @@ def guidance(budget: int | None, align_samples: int):
 
     if budget is None:
         return None
+    if budget < 6:
+        raise DepthnerfError(f"--guided {budget}: a guided budget needs >= 6 samples per ray")
     if align_samples < 1:
         raise DepthnerfError(f"--guided-align-samples must be >= 1, got {align_samples}")
     return GuidanceConfig(budget=budget, align_samples=align_samples)

@@ -62,7 +62,7 @@ def guided_sampler(total: int, base: GuidedSamplerConfig) -> GuidedSamplerConfig
     """``base`` with ``total`` samples per occupied ray split 1:2:2:1 (uniform, window, importance, Gaussian, the
     default 8:16:16:8's proportions) and ``total // 2`` per empty ray split 2:1 (the default 16:8's)."""
     if total < 6:
-        raise DepthnerfError(f"--guided: a guided budget needs >= 6 samples per ray, got {total}")
+        raise DepthnerfError(f"a guided sampling budget needs >= 6 samples per ray, got {total}")
     n_uniform, n_window, n_importance, n_gaussian = _split(total, (1, 2, 2, 1))
     n_empty, n_empty_importance = _split(total // 2, (2, 1))
     return dataclasses.replace(base, enabled=True, n_uniform=n_uniform, n_window=n_window,

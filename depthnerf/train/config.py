@@ -190,7 +190,8 @@ def from_dict_config(data: dict[str, Any], where: str = "config.json") -> TrainC
 
 
 def z_range(cfg: TrainConfig) -> tuple[float, float]:
-    """(near, far) of the run: explicit config values, else the category's SRN values."""
+    """(near, far) of the run: explicit config values, else the category's SRN values (read it from the
+    :class:`InferenceSpec` everywhere else)."""
     if cfg.data.z_near is not None and cfg.data.z_far is not None:
         return cfg.data.z_near, cfg.data.z_far
     d = category_defaults(cfg.data.category)
