@@ -27,6 +27,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reconstruct": ("reconstruct", "reconstruct one photo: depth, novel views, turntable, mesh"),
     "checkpoints": ("checkpoints", "list the shipped checkpoints"),
     "demo": ("demo", "one-command demo: synthesise an unseen car and chair, reconstruct each from one view"),
+    "app": ("app", "serve the local web page: one photo in, novel views, mesh and point cloud out (needs [app])"),
 }
 
 

@@ -47,6 +47,7 @@ from tqdm import tqdm
 from depthnerf.data import srn_format
 from depthnerf.data.protocol import ProtocolViews, protocol_views
 from depthnerf.data.srn import index_split, load_object
+from depthnerf.data.synth.framing import DEFAULT_FRAMING, checkpoint_framing
 from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_status
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics
@@ -143,10 +144,11 @@ def load_checkpoint_for(category: str, spec: str) -> Pretrained:
     return pre
 
 
-def synthesize(category: str, root: Path, seed: int, resolution: int) -> ObjectJob:
-    """Test object 0 of ``seed`` at ``resolution`` with 251 views in ``root`` (reused when already there)."""
+def synthesize(category: str, root: Path, seed: int, resolution: int, framing: str = DEFAULT_FRAMING) -> ObjectJob:
+    """Test object 0 of ``seed`` at ``resolution`` with 251 views in ``root`` (reused when already there), framed
+    as ``framing`` (that of the checkpoint's training data: :func:`checkpoint_framing`)."""
     cfg = SynthConfig(category=category, out=root, train_objects=0, val_objects=0, test_objects=1,
-                      resolution=resolution, seed=seed, progress=False)
+                      resolution=resolution, seed=seed, progress=False, framing=framing)
     job = ObjectJob(cfg, "test", 0)
     try:
         job_status(job)
@@ -200,17 +202,20 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     rec = Reconstructor(pre, device, photos=False, match_cache=True)
     bar = tqdm(total=4, desc=f"demo {category}", unit="stage", file=sys.stderr, disable=not cfg.progress)
     t = time.perf_counter()
-    job = synthesize(category, cfg.out / "data", cfg.seed, res)
+    framing, framing_source = checkpoint_framing(pre.path, pre.data_root, category)
+    job = synthesize(category, cfg.out / "data", cfg.seed, res, framing)
     record = next(r for r in index_split(cfg.out / "data", category, "test").objects if r.object_id == job.object_id)
     times["synth_s"] = time.perf_counter() - t
     bar.update(1)
     t = time.perf_counter()
     views = protocol_views(record.num_views, cfg.views_stride)
     notes: list[str] = [f"object {record.object_id}: depthnerf synth --category {category} --seed {cfg.seed} "
-                        f"--test-objects 1 --resolution {res} (test split, never used for training)", _prior_note(pre)]
+                        f"--test-objects 1 --resolution {res} --framing {framing} (test split, never used for "
+                        f"training; framing from {framing_source})", _prior_note(pre)]
     oracle = pre.spec.prior.estimator == "oracle"
-    src = load_object(record, [views.input_view], resolution=res, with_depth=oracle)
-    tgt = load_object(record, list(views.targets), resolution=res)
+    pixel_center = pre.spec.pixel_center
+    src = load_object(record, [views.input_view], resolution=res, with_depth=oracle, pixel_center=pixel_center)
+    tgt = load_object(record, list(views.targets), resolution=res, pixel_center=pixel_center)
     encoded = rec.encode_view(src.images[:1], src.masks[:1], src.poses[0], src.intrinsics,
                               depth=src.depths[:1] if oracle else None)
     if not cfg.mesh:

@@ -24,6 +24,12 @@ Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where `
 Round-trip check (always run, the export fails when it does not hold): the source (fp32) and the exported (fp16,
 loaded back to fp32) models render the same :func:`probe_sources` input view from another camera at the training
 resolution; the largest absolute RGB difference must stay below :data:`FP16_TOLERANCE`.
+
+Portable cards: paths in the cards are relative (to the repository root by default, ``--relative-to``), and the
+user's home directory in eval messages is written as ``~``, so a card says nothing about the machine that made
+it. The cards also record the training data's ``framing`` and ``generator`` (from the dataset card; ``legacy``
+for data of generator ``depthnerf-synth-1``), which ``depthnerf demo`` reads to synthesise matching objects.
+``scripts/fix_checkpoint_cards.py`` rewrites existing card pairs that way without touching the weights.
 """
 
 from __future__ import annotations
@@ -41,6 +47,7 @@ import torch
 
 from depthnerf import __version__
 from depthnerf.data.srn import category_defaults
+from depthnerf.data.synth.framing import card_framing
 from depthnerf.depth.cache import depth_command
 from depthnerf.depth.estimators import CACHED_ESTIMATORS
 from depthnerf.depth.normalize import normalize_disparity
@@ -65,6 +72,27 @@ LICENCE = "MIT (the depthnerf repository's licence, see pyproject.toml)"
 """Licence of the exported weights."""
 METRIC_KEYS = ("psnr", "ssim", "lpips", "chamfer_l1", "fscore")
 """Metrics copied from the eval summary (null ones are left out)."""
+REPO_ROOT = Path(__file__).resolve().parent.parent
+"""Default base of the relative paths written into cards."""
+
+
+def portable_path(path: str | Path | None, base: Path = REPO_ROOT) -> str | None:
+    """``path`` as a POSIX path relative to ``base`` when absolute (unchanged when already relative)."""
+    if path is None:
+        return None
+    p = Path(path)
+    if not p.is_absolute():
+        return p.as_posix()
+    return Path(os.path.relpath(p, base.resolve())).as_posix()
+
+
+def portable_text(text: str | None, base: Path = REPO_ROOT) -> str | None:
+    """Free text (eval status messages) with ``base`` written as ``.`` and the home directory as ``~``."""
+    if text is None:
+        return None
+    text = text.replace(str(base.resolve()) + "/", "")
+    home = str(Path.home())
+    return text.replace(home + "/", "~/") if home not in ("", "/") else text
 
 
 @dataclass(frozen=True)
@@ -147,12 +175,15 @@ def read_eval_summary(path: Path, source_sha: str, exported_sha: str, cfg: Train
     return summary
 
 
-def _eval_section(summary: dict, path: Path) -> dict:
+def _eval_section(summary: dict, path: Path, base: Path = REPO_ROOT) -> dict:
     keys = ("split", "objects", "views", "views_stride", "max_objects", "resolution", "input_resolution",
             "method", "metrics_path", "aggregation", "lpips_status", "fscore_tau", "mesh_status",
             "checkpoint_sha256")
-    return {"summary": str(path.resolve()), **{k: summary.get(k) for k in keys},
-            "data_root": (summary.get("data_card") or {}).get("root")}
+    section = {"summary": portable_path(path.resolve(), base), **{k: summary.get(k) for k in keys},
+               "data_root": portable_path((summary.get("data_card") or {}).get("root"), base)}
+    for key in ("lpips_status", "mesh_status"):
+        section[key] = portable_text(section[key], base)
+    return section
 
 
 def eval_command(name: str, ev: dict, train_res: int) -> str:
@@ -171,9 +202,11 @@ def synth_command(dataset_card: dict | None, category: str) -> str:
     if not dataset_card:
         return f"# dataset card missing: the {category} data's generation settings are unknown"
     counts = dataset_card.get("counts", {})
+    family = dataset_card.get("family", "standard")
     return (f"depthnerf synth --category {category} --out $DATA --train-objects {counts.get('train')} "
             f"--val-objects {counts.get('val')} --test-objects {counts.get('test')} --resolution "
-            f"{dataset_card.get('resolution')} --seed {dataset_card.get('seed')}")
+            f"{dataset_card.get('resolution')} --seed {dataset_card.get('seed')} --framing "
+            f"{card_framing(dataset_card)}" + (f" --family {family}" if family != "standard" else ""))
 
 
 def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None) -> str:
@@ -199,6 +232,8 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              "## Training data", "",
              f"- {data_card.get('train_objects')} synthetic {cat} train objects (`{cat}_train`), images at "
              f"{data_card.get('resolution')} px for training, generator `{ds.get('generator', 'unknown')}`, "
+             f"framing `{card.get('framing') or 'unknown'}` (docs/data.md), pixel centres read as "
+             f"`data.pixel_center` {cfg.data.pixel_center}, "
              f"seed {ds.get('seed', 'unknown')}, {ds.get('protocol', {}).get('train_views', '?')} random "
              "upper-hemisphere views per object (exact z-depth, masks and meshes exist for every view).",
              f"- Dataset split sizes: {', '.join(f'{k} {v}' for k, v in ds.get('counts', {}).items()) or 'unknown'}"
@@ -277,7 +312,7 @@ def _check_fp16_range(pre: Pretrained) -> None:
 
 
 def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | None = None,
-           command: str | None = None, data_root: str | None = None) -> ExportResult:
+           command: str | None = None, data_root: str | None = None, base: Path = REPO_ROOT) -> ExportResult:
     """Export ``run``'s best (else latest) checkpoint as ``out/<name>.*`` (see the module docstring)."""
     if not NAME_PATTERN.match(name):
         raise DepthnerfError(f"--name {name!r}: use lower-case letters, digits, '.', '_' and '-' only")
@@ -317,12 +352,16 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
             "category": cfg.data.category, "resolution": cfg.data.resolution, "step": exported.step,
             "sha256": exported.sha256, "size_bytes": weights.stat().st_size, "dtype": "float16",
             "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},
-            "fp16_check": check, "command": command, "data_root": data_root, "run_path": run.as_posix(),
-            "metrics": None, "protocol": None, "evaluation": None}
+            "fp16_check": check, "command": command, "data_root": portable_path(data_root, base),
+            "run_path": portable_path(run, base), "metrics": None, "protocol": None, "evaluation": None}
+    ds = data_card.get("dataset_card") or {}
+    if ds:
+        card.update(framing=card_framing(ds), generator=ds.get("generator"))
+    card["pixel_center"] = cfg.data.pixel_center
     if summary is not None:
         card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
         card["protocol"] = summary["protocol"]
-        card["evaluation"] = _eval_section(summary, Path(summary_path))
+        card["evaluation"] = _eval_section(summary, Path(summary_path), base)
         card["eval_command"] = eval_command(name, card["evaluation"], cfg.data.resolution)
     card_json, card_md = out / f"{name}.json", out / f"{name}.md"
     card_json.write_text(json.dumps(card, indent=1) + "\n")
@@ -338,7 +377,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=SHIPPED_DIR, help=f"output folder (default {SHIPPED_DIR})")
     p.add_argument("--command", help="the command that produced the run (quoted; goes into the model card)")
     p.add_argument("--data-root", help="dataset root as the card's reproduce commands should name it (default: the "
-                   "absolute path the evaluation used)")
+                   "path the evaluation used, relative to --relative-to)")
+    p.add_argument("--relative-to", type=Path, default=REPO_ROOT,
+                   help=f"base of the relative paths written into cards (default the repository, {REPO_ROOT})")
     return p.parse_args(argv)
 
 
@@ -346,7 +387,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         with torch.no_grad():  # scoped: main() also runs inside test processes
-            res = export(args.run, args.name, args.out, args.eval_summary, args.command, args.data_root)
+            res = export(args.run, args.name, args.out, args.eval_summary, args.command, args.data_root,
+                         args.relative_to)
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

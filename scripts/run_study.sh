@@ -8,21 +8,29 @@
 #
 # Environment: STEPS (training steps, default: the preset's 2000), JOBS (runs in parallel, default 2, each with
 # one thread: on 2 cores, two 1-thread jobs beat one 2-thread job), STRIDE (eval view stride, default 25),
-# RUNS (which runs, default all six, e.g. "cars-none cars-bundled").
+# RUNS (which runs, default all six, e.g. "cars-none cars-bundled"), FRAMING (synthetic benchmark framing,
+# default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
+# checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
+# 0.5 reads the SRN-framed renders exactly), GENERALISATION (1: also run scripts/generalisation_check.sh on
+# the checkpoints exported from this study: set CHECKPOINT_PREFIX to their name prefix; default 0).
+# The shipped cpu-* checkpoints were trained with FRAMING=legacy; re-running with the default framing and
+# re-exporting them (scripts/export_study_checkpoints.sh) moves them to the SRN framing.
 set -euo pipefail
 STUDY=${1:-study}
 JOBS=${JOBS:-2}
 STRIDE=${STRIDE:-25}
 RUNS=${RUNS:-"cars-none cars-bundled chairs-none chairs-bundled cars-oracle chairs-oracle"}
 SEED=0
-export STUDY STRIDE SEED STEPS=${STEPS:-}
+FRAMING=${FRAMING:-srn}
+PIXEL_CENTER=${PIXEL_CENTER:-0.0}
+export STUDY STRIDE SEED FRAMING PIXEL_CENTER STEPS=${STEPS:-}
 export OMP_NUM_THREADS=1
 mkdir -p "$STUDY/logs"
 
 # 1. data: 300 train / 20 val / 50 test objects per category at 64 px (the CPU presets' resolution)
 for cat in cars chairs; do
   depthnerf synth --category "$cat" --out "$STUDY/data" --train-objects 300 --val-objects 20 --test-objects 50 \
-    --resolution 64 --seed "$SEED" --workers "$JOBS" --quiet
+    --resolution 64 --seed "$SEED" --framing "$FRAMING" --workers "$JOBS" --quiet
 done
 # 2. bundled depth priors for every split (oracle priors need no cache: they come from the GT depth)
 depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
@@ -38,7 +46,7 @@ one_run() {
     local resume=()
     [ -f "$run/config.json" ] && resume=(--resume)
     depthnerf train --preset "cpu-$cat" --data "$STUDY/data" --depth "$prior" --seed "$SEED" --out "$run" \
-      "${steps[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
+      --data.pixel_center "$PIXEL_CENTER" "${steps[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
     depthnerf eval --run "$run" --views-stride "$STRIDE" --save-renders --out "$ev" --no-progress >> "$log" 2>&1
   fi
   echo "$name done"
@@ -72,3 +80,8 @@ for cat in cars chairs; do
       --json "$STUDY/paired_$cat.json" | tee "$STUDY/paired_$cat.md"
 done
 cat "$STUDY/table.md"
+
+# 6. optional: generalisation check (unseen seed and shape family) of checkpoints exported from this study
+if [ "${GENERALISATION:-0}" = 1 ]; then
+  FRAMING="$FRAMING" bash scripts/generalisation_check.sh "$STUDY/generalisation"
+fi

@@ -247,3 +247,22 @@ def test_checkpoints_lists_shipped_or_says_none(setup, capsys, monkeypatch, tmp_
     assert cli("checkpoints", "--json") == 0
     assert json.loads(capsys.readouterr().out)[0]["metrics"] == {"psnr": 12.5}
     assert load_pretrained("tiny-cars-depth").step == 1  # the name resolves in eval / reconstruct too
+
+
+def test_pixel_center_is_trained_recorded_and_overridable(setup):
+    """``--data.pixel_center`` reaches the checkpoint; eval uses the trained value unless ``--pixel-center``
+    overrides it (then other rays are rendered and scored), and the summary records both."""
+    run = setup["tmp"] / "centred"
+    assert cli("train", "--depth", "none", "--data", setup["root"], "--out", run, *TINY,
+               "--data.pixel_center", "0.5") == 0
+    assert load_pretrained(run).spec.pixel_center == 0.5
+    summaries = {}
+    for name, extra in (("trained", []), ("override", ["--pixel-center", "0"])):
+        out = setup["tmp"] / f"eval_centre_{name}"
+        assert cli("eval", "--run", run, "--views-stride", "33", "--max-objects", "1", "--no-mesh", "--out", out,
+                   "--no-progress", *extra) == 0
+        summaries[name] = json.loads((out / "summary.json").read_text())
+    assert summaries["trained"]["pixel_center"] == 0.5 and summaries["override"]["pixel_center"] == 0.0
+    assert summaries["trained"]["trained_pixel_center"] == summaries["override"]["trained_pixel_center"] == 0.5
+    assert summaries["trained"]["dataset_pixel_center"] == 0.0  # the fixture has no card: integer centres
+    assert summaries["trained"]["psnr"] != summaries["override"]["psnr"]

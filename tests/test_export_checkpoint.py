@@ -166,3 +166,56 @@ def test_checkpoints_command_lists_card_metrics(exporter, run, tmp_path, monkeyp
     rows = json.loads(capsys.readouterr().out)
     assert rows[0]["metrics"]["psnr"] == 23.4567 and rows[1]["metrics"] is None
     assert load_pretrained("cpu-cars-depth").step == 5  # the shipped name resolves
+
+
+def test_cards_hold_relative_paths(exporter, run, tmp_path):
+    """Paths the export sees absolute (summary, data root, run) land in the cards relative to the base; the home
+    directory in eval messages becomes ~."""
+    best_sha = sha256_file(run / "checkpoints" / "best" / "model.safetensors")
+    home = str(Path.home())
+    (tmp_path / "study" / "eval").mkdir(parents=True)
+    summary = _summary(tmp_path / "study" / "eval" / "summary.json", best_sha,
+                       data_card={"root": str(tmp_path / "study" / "data")},
+                       lpips_status=f"unavailable: not found ({home}/.cache/torch/vgg.pth)")
+    res = exporter.export(run.resolve(), "cpu-cars-depth", tmp_path / "ship", summary.resolve(), "cmd",
+                          data_root=str(tmp_path / "study" / "data"), base=tmp_path)
+    card = json.loads(res.card_json.read_text())
+    assert card["evaluation"]["summary"] == "study/eval/summary.json"
+    assert card["evaluation"]["data_root"] == card["data_root"] == "study/data"
+    assert not Path(card["run_path"]).is_absolute() and card["run_path"].endswith("cpu-cars-depth-run")
+    assert card["evaluation"]["lpips_status"] == "unavailable: not found (~/.cache/torch/vgg.pth)"
+    assert card["pixel_center"] == 0.0
+    text = res.card_json.read_text() + res.card_md.read_text()
+    assert str(tmp_path) not in text and home + "/" not in text
+
+
+def test_fix_cards_rewrites_paths_not_weights(exporter, run, tmp_path):
+    """scripts/fix_checkpoint_cards.py turns an old card's absolute paths relative, records the framing, and
+    leaves the weights byte-identical."""
+    best_sha = sha256_file(run / "checkpoints" / "best" / "model.safetensors")
+    res = exporter.export(run, "cpu-cars-depth", tmp_path / "ship", _summary(tmp_path / "s.json", best_sha), "cmd",
+                          data_root="study/data")
+    card = json.loads(res.card_json.read_text())
+    old_summary = "/work/study/eval/cars-bundled/summary.json"
+    card["evaluation"].update(summary=old_summary, data_root="/work/study/data")
+    for key in ("pixel_center", "framing", "generator"):  # a card written before these fields existed
+        del card[key]
+    res.card_json.write_text(json.dumps(card, indent=1))
+    md = res.card_md.read_text().replace(" --framing legacy", "").replace(
+        "framing `legacy` (docs/data.md), pixel centres read as `data.pixel_center` 0.0, ", "")
+    assert "framing" not in md
+    res.card_md.write_text(md + f"\nsee {old_summary}\n")
+    weights_sha = sha256_file(res.weights)
+    spec = importlib.util.spec_from_file_location("fix_checkpoint_cards", SCRIPT.parent / "fix_checkpoint_cards.py")
+    fixer = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fixer)
+    assert fixer.main([str(res.card_json), "--framing", "legacy", "--relative-to", "/work"]) == 0
+    fixed = json.loads(res.card_json.read_text())
+    assert fixed["evaluation"]["summary"] == "study/eval/cars-bundled/summary.json"
+    assert fixed["evaluation"]["data_root"] == "study/data"
+    assert fixed["framing"] == "legacy" and fixed["pixel_center"] == 0.0
+    assert fixed["generator"] == "depthnerf-synth-1/test"  # read from the model card
+    new_md = res.card_md.read_text()
+    assert "/work/" not in new_md and "see study/eval/cars-bundled/summary.json" in new_md
+    assert "generator `depthnerf-synth-1/test`, framing `legacy`" in new_md and "--seed 0 --framing legacy" in new_md
+    assert sha256_file(res.weights) == weights_sha

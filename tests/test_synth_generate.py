@@ -26,15 +26,21 @@ def _small(out: Path, category: str = "cars", **kw) -> SynthConfig:
     return SynthConfig(**base)
 
 
-@pytest.fixture(scope="module")
-def protocol_ds(tmp_path_factory) -> Path:
-    """One train (50 views) and one test (251 views) car at 64 px (the real view protocol) and a chair."""
-    out = tmp_path_factory.mktemp("synth_protocol")
+@pytest.fixture(scope="module", params=["srn", "legacy"])
+def protocol_ds(tmp_path_factory, request) -> Path:
+    """One train (50 views) and one test (251 views) car at 64 px (the real view protocol) and a chair, in each
+    framing."""
+    out = tmp_path_factory.mktemp(f"synth_protocol_{request.param}")
     generate(SynthConfig(category="cars", out=out, train_objects=1, val_objects=0, test_objects=1, resolution=64,
-                         seed=3, progress=False))
+                         seed=3, progress=False, framing=request.param))
     generate(SynthConfig(category="chairs", out=out, train_objects=1, val_objects=0, test_objects=0, resolution=48,
-                         views_train=6, seed=3, progress=False))
+                         views_train=6, seed=3, progress=False, framing=request.param))
     return out
+
+
+def _pixel_center(root: Path) -> float:
+    """The pixel-centre convention the dataset's card states (0.5 for the SRN framing, 0 for legacy)."""
+    return json.loads((root / "cars_card.json").read_text())["camera"]["pixel_center"]
 
 
 def _dilate(mask: np.ndarray, pixels: int) -> np.ndarray:
@@ -54,7 +60,8 @@ def test_srn_layout_and_readers(protocol_ds: Path) -> None:
     assert (protocol_ds / "chairs_train" / "synth_chairs_train_000000" / "mesh.ply").is_file()  # flat chairs_train
     intr = srn_format.read_intrinsics(test / "intrinsics.txt")
     assert (intr.height, intr.width) == (64, 64)
-    assert intr.focal == pytest.approx(131.25 / 2) and intr.cx == pytest.approx(31.75)
+    srn = _pixel_center(protocol_ds) == 0.5
+    assert intr.focal == pytest.approx(131.25 / 2) and intr.cx == intr.cy == pytest.approx(32.0 if srn else 31.75)
     for obj in (train, test):
         for name in _views(obj)[:: 25]:
             rgb = srn_format.read_rgb(obj / "rgb" / f"{name}.png")
@@ -74,7 +81,8 @@ def test_srn_layout_and_readers(protocol_ds: Path) -> None:
 
 
 def _load(obj: Path, name: str):
-    intr = srn_format.read_intrinsics(obj / "intrinsics.txt")
+    """Integer-centred intrinsics (the card's pixel centres applied), pose, depth and mask of one view."""
+    intr = srn_format.read_intrinsics(obj / "intrinsics.txt").with_pixel_center(_pixel_center(obj.parent.parent))
     return (intr, srn_format.read_pose(obj / "pose" / f"{name}.txt").astype(np.float64),
             srn_format.read_depth(obj / "depth" / f"{name}.npz"), srn_format.read_mask(obj / "mask" / f"{name}.png"))
 

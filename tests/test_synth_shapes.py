@@ -11,7 +11,8 @@ import trimesh
 from depthnerf.data.cameras import Intrinsics, pixel_directions
 from depthnerf.data.synth.cars import CAR_STYLES, build_car, sample_car
 from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, CHAIR_DIAGONAL, build_chair, sample_chair
-from depthnerf.data.synth.generate import SRN_INTRINSICS, category_spec
+from depthnerf.data.synth.framing import SRN_INTRINSICS
+from depthnerf.data.synth.generate import category_spec
 from depthnerf.data.synth.primitives import box, cylinder, loft, superellipsoid
 from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
 from depthnerf.data.synth.views import ViewConfig, eyes_from_angles, poses_from_eyes, spiral_eyes

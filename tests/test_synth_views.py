@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from depthnerf.data.cameras import Intrinsics, camera_rays
-from depthnerf.data.synth.generate import SRN_INTRINSICS, category_spec, object_poses, object_rngs
+from depthnerf.data.synth.framing import SRN_INTRINSICS
+from depthnerf.data.synth.generate import category_spec, object_poses, object_rngs
 from depthnerf.data.synth.raycast import PixelRays
 from depthnerf.data.synth.views import ViewConfig, hemisphere_eyes, poses_from_eyes, spiral_eyes
 

@@ -57,6 +57,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--guided-align-samples", type=int, default=32,
                    help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
+    p.add_argument("--pixel-center", type=float,
+                   help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
+                        "data.pixel_center (measures what a convention mismatch costs)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
@@ -114,7 +117,8 @@ def run(args: argparse.Namespace) -> int:
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         quantize=args.quantize, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
         guided=guidance(args.guided, args.guided_align_samples),
-        lpips=LpipsConfig(trunk_path=args.lpips_trunk), progress=not args.no_progress)
+        lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
+        progress=not args.no_progress)
     result = evaluate_protocol(pre, data, out, cfg, device)
     s = result.summary
     lp = f"{s['lpips']:.4f}" if s["lpips"] is not None else s["lpips_status"]

@@ -3,6 +3,8 @@
 Example: ``depthnerf synth --category cars --out data/synth --train-objects 20 --val-objects 5 --test-objects 5``
 writes ``data/synth/cars_{train,val,test}/<object_id>/...`` (SRN layout plus depth, masks and meshes) and
 ``data/synth/cars_card.json``. Re-running the same command resumes: finished objects are skipped.
+``--framing srn`` (default) frames objects as SRN's renderer does, ``--framing legacy`` as generator 1 (the shipped
+checkpoints' data); ``--family heldout`` draws car and chair styles the standard family never does.
 """
 
 from __future__ import annotations
@@ -10,7 +12,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from depthnerf.data.synth.generate import SynthConfig, generate
+from depthnerf.data.synth.framing import DEFAULT_FRAMING, FRAMINGS
+from depthnerf.data.synth.generate import FAMILIES, SynthConfig, generate
 from depthnerf.data.synth.raycast import RenderConfig
 
 
@@ -26,6 +29,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views-train", type=int, default=50, help="views per train object (SRN: 50)")
     parser.add_argument("--views-test", type=int, default=251, help="views per val/test object (SRN: 251)")
     parser.add_argument("--no-antialias", action="store_true", help="one ray per pixel for RGB too")
+    parser.add_argument("--framing", choices=sorted(FRAMINGS), default=DEFAULT_FRAMING,
+                        help="srn: frame objects as SRN's renderer (unit diagonal, SRN spiral with view 64 a side "
+                             "view, Blender pixel centres; generator depthnerf-synth-2, default); legacy: generator "
+                             "depthnerf-synth-1, the shipped cpu-* checkpoints' training data (docs/data.md)")
+    parser.add_argument("--family", choices=list(FAMILIES), default="standard",
+                        help="shape family: standard, or heldout (car/chair styles the standard family never "
+                             "draws, for generalisation checks)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -34,7 +44,8 @@ def run(args: argparse.Namespace) -> int:
         category=args.category, out=args.out, train_objects=args.train_objects, val_objects=args.val_objects,
         test_objects=args.test_objects, resolution=args.resolution, seed=args.seed, workers=args.workers,
         views_train=args.views_train, views_test=args.views_test,
-        render=RenderConfig(antialias=not args.no_antialias), progress=not args.quiet,
+        render=RenderConfig(antialias=not args.no_antialias), progress=not args.quiet, framing=args.framing,
+        family=args.family,
     )
     card = generate(config)
     counts = ", ".join(f"{k} {v}" for k, v in card["counts"].items())

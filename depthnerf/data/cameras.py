@@ -1,7 +1,9 @@
 """Camera conventions of depthnerf, stated once and followed everywhere.
 
 World frame
-    Right-handed, +z is world up (as in the SRN release, rendered in Blender), objects centred at the origin.
+    Right-handed, +z is world up, objects centred at the origin. (SRN's own pose files have +y up, ShapeNetCore
+    v2's up axis; nothing in the model depends on the world's up axis, and ``depthnerf synth`` maps SRN's framing
+    into this frame: docs/data.md.)
     Cameras look at the origin from a sphere of radius ~1.3 (cars) or ~2.0 (chairs), on the upper hemisphere.
 
 Camera frame (OpenCV axes, as stored in SRN ``pose/*.txt``)
@@ -16,6 +18,14 @@ Pixels
     (square pixels) and the principal point ``(cx, cy)``.
     Resizing by a factor ``s`` (new/old) maps ``f -> f * s`` and ``c -> (c + 0.5) * s - 0.5`` (exact for
     integer-centred pixels and area resampling).
+    Datasets state their own convention: Blender renders (SRN, ``depthnerf synth --framing srn``) put pixel
+    (i, j) at ``(j + 0.5, i + 0.5)`` in the coordinates of their ``intrinsics.txt``. A pixel-centre offset ``c`` is
+    exactly a principal-point shift ``(cx, cy) -> (cx - c, cy - c)`` in the integer-centred convention
+    (:meth:`Intrinsics.with_pixel_center`), applied once where a dataset's intrinsics are read, at the file's
+    resolution and before any resize; ray generation and feature projection then both use the shifted
+    intrinsics and stay consistent. The offset is the training config's ``data.pixel_center`` (default 0.0,
+    pixelNeRF's reading, half a pixel off SRN's renders; 0.5 reads them as rendered), stored in every run and
+    checkpoint; eval, reconstruct and the demo use the trained value.
 
 Depth
     *z-depth* is the camera-frame ``z`` of a surface point (what ``depth/`` folders and depth priors store).
@@ -65,6 +75,15 @@ class Intrinsics:
             height=height,
             width=width,
         )
+
+    def with_pixel_center(self, center: float) -> Intrinsics:
+        """The integer-centred intrinsics of an image whose pixel (row i, column j) has its centre at
+        ``(j + center, i + center)`` in these intrinsics' image coordinates: ``(cx, cy) -> (cx - c, cy - c)``
+        (``center`` 0.5: Blender/SRN renders; 0: pixelNeRF's reading). Apply before :meth:`resized`."""
+        if center == 0.0:
+            return self
+        return Intrinsics(focal=self.focal, cx=self.cx - center, cy=self.cy - center, height=self.height,
+                          width=self.width)
 
     def matrix(self) -> Float[Tensor, "3 3"]:
         """The 3x3 matrix ``K`` with ``[u, v, 1]^T ~ K @ x_cam``."""

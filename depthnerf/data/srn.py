@@ -351,13 +351,15 @@ def _resample(images: Float[Tensor, "V 3 H W"], masks: Bool[Tensor, "V H W"], de
 
 
 def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, resolution: int | None = None,
-                with_depth: bool = False, check_size: bool = True) -> ObjectViews:
+                with_depth: bool = False, check_size: bool = True, pixel_center: float = 0.0) -> ObjectViews:
     """Load views of one object (all by default) as tensors; see the module docstring for the conventions.
 
     ``resolution``: output height (width scales with it; SRN images are square), area resampling.
     ``with_depth``: also load ``depth/`` (an error if the object has none).
     ``check_size``: an image whose size differs from ``intrinsics.txt`` is an error; with ``False`` the
     intrinsics are instead rescaled to the decoded size (which must be a uniform rescale).
+    ``pixel_center``: the data's pixel (i, j) is centred at ``(j + c, i + c)`` in ``intrinsics.txt``'s coordinates;
+    the returned intrinsics are integer-centred (shifted by ``c`` at the file's resolution, then resized).
     """
     indices = _view_indices(record, views)
     if with_depth and not record.has_depth:
@@ -368,7 +370,7 @@ def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, res
         if img.shape[:2] != (height, width):
             raise DepthnerfError(f"{record.rgb_path(v)}: image is {img.shape[0]}x{img.shape[1]} but "
                                  f"{record.rgb_path(indices[0]).name} is {height}x{width}")
-    intr = record.intrinsics
+    intr = record.intrinsics.with_pixel_center(pixel_center)
     if (height, width) != (intr.height, intr.width):
         if check_size:
             raise DepthnerfError(f"{record.rgb_path(indices[0])}: image is {height}x{width} but "

@@ -65,6 +65,9 @@ class GeometryConfig:
     """Sampling seed (the same for both meshes)."""
     normalize: bool = True
     """Express distances in units of the GT bounding-box diagonal."""
+    depth_pixel_center: float = 0.0
+    """Pixel-centre convention of the dataset's depth maps (its card's ``camera.pixel_center``; 0.5 for
+    ``depthnerf synth --framing srn``), used to back-project them into the visible-surface ground truth."""
 
 
 @dataclass(frozen=True)
@@ -140,12 +143,13 @@ def backproject_depth(depth: Float[np.ndarray, "H W"], c2w: Float[np.ndarray, "4
     return backproject(z, torch.as_tensor(np.asarray(c2w), dtype=torch.float64), intr, z > 0).numpy()
 
 
-def visible_surface_points(record: ObjectRecord, n_points: int) -> Float[np.ndarray, "N 3"] | None:
-    """The back-projected depth maps of all views of ``record``, evenly subsampled to at most ``n_points``;
-    None when the object has no depth maps."""
+def visible_surface_points(record: ObjectRecord, n_points: int,
+                           pixel_center: float = 0.0) -> Float[np.ndarray, "N 3"] | None:
+    """The back-projected depth maps of all views of ``record`` (pixel (i, j) at ``(j + pixel_center,
+    i + pixel_center)``), evenly subsampled to at most ``n_points``; None when the object has no depth maps."""
     if not record.has_depth:
         return None
-    intr = record.intrinsics
+    intr = record.intrinsics.with_pixel_center(pixel_center)
     parts = []
     for view in range(record.num_views):
         depth = srn_format.read_depth(record.depth_path(view), record.depth_scale, allow_empty=True)
@@ -168,7 +172,7 @@ def object_geometry(pred: trimesh.Trimesh, record: ObjectRecord,
     if record.mesh_path is None:
         raise DepthnerfError(f"{record.path}: no mesh.ply to score against")
     gt = load_mesh(record.mesh_path)
-    points = visible_surface_points(record, config.n_points)
+    points = visible_surface_points(record, config.n_points, config.depth_pixel_center)
     metrics = geometry_metrics(pred, gt, config, points)
     if points is None:
         return metrics

@@ -48,7 +48,7 @@ import math
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +58,7 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.srn import ObjectRecord, index_split
+from depthnerf.data.synth.framing import dataset_pixel_center
 from depthnerf.depth.prior import PriorConfig, PriorSource
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
@@ -123,6 +124,9 @@ class ProtocolConfig:
     the checkpoint's own sampler."""
     lpips: LpipsConfig = field(default_factory=LpipsConfig)
     """Where LPIPS weights are looked for (never downloaded)."""
+    pixel_center: float | None = None
+    """Pixel-centre convention the model reads the data with (see ``DataConfig.pixel_center``); None = the
+    checkpoint's trained value. Overriding it measures what a convention mismatch costs."""
     progress: bool = True
     """Progress bar over objects (stderr)."""
 
@@ -173,6 +177,7 @@ class _Evaluator:
         self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
         self.near, self.far = pre.spec.z_range
         self.render = pre.spec.render if cfg.guided is None else guided_render(pre.spec.render, cfg.guided.budget)
+        self.pixel_center = pre.spec.pixel_center if cfg.pixel_center is None else cfg.pixel_center
         self.rows: list[dict] = []
 
     @torch.no_grad()
@@ -180,7 +185,8 @@ class _Evaluator:
         model, cfg = self.pre.model, self.cfg
         views = protocol_views(record.num_views, cfg.views_stride)
         t0 = time.perf_counter()
-        obj = prepare_object(model, record, views, self.prior, self.input_res, self.eval_res, self.device)
+        obj = prepare_object(model, record, views, self.prior, self.input_res, self.eval_res, self.device,
+                             pixel_center=self.pixel_center)
         src, tgt, enc = obj.source, obj.targets, obj.enc
         guide = None
         if cfg.guided is not None:
@@ -308,6 +314,8 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         raise DepthnerfError(f"--chunk must be >= 1 and --mesh-resolution >= 2 (got {cfg.chunk}, "
                              f"{cfg.mesh_resolution})")
     all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
+    # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
+    cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=dataset_pixel_center(data_root, category)))
     records = all_records[: cfg.max_objects] if cfg.max_objects else all_records
     input_res = spec.resolution
     eval_res = cfg.resolution or input_res
@@ -358,7 +366,9 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         "data_card": _data_card(data_root, category),
         "resolution": eval_res, "input_resolution": input_res, "train_resolution": spec.resolution,
         "native_resolution": [list(s) for s in native],
-        "views_stride": cfg.views_stride, "max_objects": cfg.max_objects, "z_range": list(spec.z_range),
+        "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
+        "pixel_center": evaluator.pixel_center, "trained_pixel_center": spec.pixel_center,
+        "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),
         "metrics_path": "quantized 8-bit renders (calc_metrics.py)" if cfg.quantize else "float renders (eval.py)",
         "timing": {"total_s": total, "per_object_s": total / len(results),
                    **{f"{k}_s": float(sum(r.seconds[k] for r in results)) for k in ("render", "metrics", "mesh")},

@@ -45,7 +45,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSour
         for i, record in enumerate(records):
             src = protocol_views(record.num_views).input_view
             targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
-            obj = load_object(record, [src, *targets], resolution=resolution)
+            obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=spec.pixel_center)
             cond = condition(prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
                              where=DatasetViews(record, (src,)))
             disparity = cond.disparity

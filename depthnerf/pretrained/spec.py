@@ -46,6 +46,9 @@ class InferenceSpec:
     """Near bound of the ray distance."""
     z_far: float
     """Far bound of the ray distance."""
+    pixel_center: float = 0.0
+    """Pixel-centre convention the model read its data with (``DataConfig.pixel_center``: pixel (i, j) centred at
+    ``(j + c, i + c)`` in ``intrinsics.txt``'s coordinates); 0.0 for checkpoints written before it existed."""
     prior_weights_hash: str | None = None
     """SHA-256 of the prior's weights at training time (None: no prior, or not recorded by older checkpoints)."""
     preset: str = "custom"
@@ -103,6 +106,7 @@ def spec_from_train_config(train: dict[str, Any], model: dict[str, Any], where: 
         prior = from_dict(PriorConfig, prior_d, where=f"{where} train_config.prior")
         category, resolution = str(data["category"]), int(data["resolution"])
         near, far = data.get("z_near"), data.get("z_far")
+        pixel_center = float(data.get("pixel_center", 0.0))
     except (KeyError, TypeError):
         raise DepthnerfError(f"{where}: training config lacks data.category/resolution or the prior") from None
     if near is None or far is None:
@@ -111,6 +115,7 @@ def spec_from_train_config(train: dict[str, Any], model: dict[str, Any], where: 
     return InferenceSpec(model=model_config_from_dict(model, prior.enabled, f"{where} model config"),
                          render=from_dict(RenderConfig, train.get("render", {}), where=f"{where} render"),
                          prior=prior, category=category, resolution=resolution, z_near=float(near), z_far=float(far),
+                         pixel_center=pixel_center,
                          preset=str(train.get("preset", "custom")))
 
 

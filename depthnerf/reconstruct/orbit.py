@@ -43,13 +43,14 @@ def orbit_poses(radius: float, elevation_deg: float, views: int, azimuth_deg: fl
     return look_at(eyes)
 
 
-def srn_intrinsics(focal: float, image_size: int, resolution: int) -> Intrinsics:
-    """Intrinsics of a square SRN-style camera (focal at ``image_size``, centred principal point) at
-    ``resolution``."""
+def srn_intrinsics(focal: float, image_size: int, resolution: int, pixel_center: float = 0.0) -> Intrinsics:
+    """Intrinsics of a square SRN-style camera (focal at ``image_size``, principal point ``image_size / 2`` as
+    SRN's files state it) at ``resolution``, read with the pixel-centre convention ``pixel_center`` (the model's
+    ``data.pixel_center``) before resizing."""
     if not focal > 0 or resolution < 1:
         raise DepthnerfError(f"focal must be > 0 and resolution >= 1 (got {focal}, {resolution})")
     base = Intrinsics(focal=focal, cx=image_size / 2, cy=image_size / 2, height=image_size, width=image_size)
-    return base.resized(resolution, resolution)
+    return base.with_pixel_center(pixel_center).resized(resolution, resolution)
 
 
 def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, depth: Float[Tensor, "N H W"],

@@ -8,6 +8,12 @@ Input photo (assumption: ONE object, roughly centred, on a plain background)
     of the image border (a ring ``max(1, 2%)`` of the shorter side wide) and object = pixels whose largest channel
     difference from it exceeds :data:`BACKGROUND_TOLERANCE` (0.1, i.e. ~26 of 255 levels). Background pixels are
     then set to white (alpha is composited on white), as in the SRN training images.
+Cluttered background (border-colour mask only)
+    A plain background makes the border ring nearly all background. When more than :data:`MAX_BORDER_OBJECT`
+    (35 %) of the ring's pixels differ from the border colour (a non-uniform border: texture, a scene, a
+    gradient), or the mask covers more than :data:`MAX_OBJECT_AREA` (90 %) of the image, the mask is not an
+    object but the scene: a :class:`~depthnerf.errors.DepthnerfError` asks for an RGBA cut-out or a mask instead
+    of reconstructing smears. (An object may touch the border: it then covers a minority of the ring.)
 Framing rule (``framing="auto"``)
     A square crop centred on the mask's bounding box, of side ``max(box width, box height) / fill``, padded with
     white where it leaves the image, then resampled to the model's training resolution (area averaging, bilinear
@@ -41,6 +47,10 @@ BACKGROUND_TOLERANCE = 0.1
 """Largest per-channel difference from the border colour that still counts as background (in [0, 1])."""
 ALPHA_THRESHOLD = 0.5
 """Alpha above this is object."""
+MAX_BORDER_OBJECT = 0.35
+"""Largest fraction of the border ring the border-colour mask may cover before the background counts as cluttered."""
+MAX_OBJECT_AREA = 0.9
+"""Largest fraction of the image the border-colour mask may cover before the background counts as cluttered."""
 FILL = {"cars": 0.65, "chairs": 0.6}
 """Fraction of the frame the object's longer bounding-box side takes in training images, per category."""
 DEFAULT_FILL = 0.62
@@ -159,9 +169,28 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
         out = np.abs(rgb - bg).max(axis=-1) > BACKGROUND_TOLERANCE
         notes.append(f"mask: pixels differing from the border colour {np.round(bg * 255).astype(int).tolist()} by "
                      f"more than {BACKGROUND_TOLERANCE}")
+        check_plain_background(out, ring, name)
     if not out.any():
         raise DepthnerfError(f"{name}: no object found (the mask is empty); pass a mask (--mask)")
     return out
+
+
+def border_ring(mask: np.ndarray, ring: int) -> np.ndarray:
+    """The values of ``mask`` in the border ring ``ring`` pixels wide (corners counted once)."""
+    inner = np.ones(mask.shape, dtype=bool)
+    inner[ring:-ring, ring:-ring] = False
+    return mask[inner]
+
+
+def check_plain_background(mask: np.ndarray, ring: int, name: str) -> None:
+    """Reject a border-colour mask that is the scene rather than an object (module docstring)."""
+    border = float(border_ring(mask, ring).mean())
+    area = float(mask.mean())
+    if border > MAX_BORDER_OBJECT or area > MAX_OBJECT_AREA:
+        raise DepthnerfError(
+            f"{name}: the background is not a plain colour (the border-colour mask covers {border:.0%} of the border "
+            f"and {area:.0%} of the image), so no object can be cut out; use an RGBA cut-out with a transparent "
+            "background or pass a mask (--mask)")
 
 
 def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, resolution: int, framing: str,

@@ -154,8 +154,9 @@ class Reconstructor:
         prepared = prepare_photo(image, mask, res, cfg.framing, fill)
         times["prepare_s"] = time.perf_counter() - t
         poses = orbit_poses(radius, cfg.elevation, views)
-        intr = srn_intrinsics(focal, image_size, res)
-        render_intr = srn_intrinsics(focal, image_size, cfg.render_resolution or res)
+        pixel_center = spec.pixel_center  # the photo's SRN-style intrinsics read as training read the data
+        intr = srn_intrinsics(focal, image_size, res, pixel_center)
+        render_intr = srn_intrinsics(focal, image_size, cfg.render_resolution or res, pixel_center)
         img_t = torch.from_numpy(prepared.image).permute(2, 0, 1)[None].contiguous()
         mask_t = torch.from_numpy(prepared.mask)[None]
         t = time.perf_counter()

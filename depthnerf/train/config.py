@@ -44,6 +44,12 @@ class DataConfig:
     """Near bound of the ray distance; None = the category's SRN value (cars 0.8, chairs 1.25)."""
     z_far: float | None = None
     """Far bound of the ray distance; None = the category's SRN value (cars 1.8, chairs 2.75)."""
+    pixel_center: float = 0.0
+    """Where the dataset's pixel (row i, column j) has its centre in the coordinates of its ``intrinsics.txt``:
+    ``(j + c, i + c)``. 0.0 = pixelNeRF's reading (every paper preset: faithful reproduction, half a pixel off
+    Blender/SRN renders); 0.5 = Blender's convention, exact for SRN and ``depthnerf synth --framing srn`` data.
+    Applied once where views are loaded (a principal-point shift, :meth:`Intrinsics.with_pixel_center`), so rays
+    and feature projection agree; eval, reconstruct and the demo use the value the checkpoint was trained with."""
     target_views: int = 0
     """Target views loaded per object and step (0 = all views but the source, as pixelNeRF)."""
     num_workers: int = 2
@@ -202,5 +208,5 @@ def inference_spec(cfg: TrainConfig, prior_weights_hash: str | None = None) -> I
     """What a checkpoint of this run stores so that evaluation and reconstruction never read the training config."""
     near, far = z_range(cfg)
     return InferenceSpec(model=cfg.model, render=cfg.render, prior=cfg.prior, category=cfg.data.category,
-                         resolution=cfg.data.resolution, z_near=near, z_far=far,
+                         resolution=cfg.data.resolution, z_near=near, z_far=far, pixel_center=cfg.data.pixel_center,
                          prior_weights_hash=prior_weights_hash, preset=cfg.preset)

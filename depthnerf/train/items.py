@@ -22,13 +22,14 @@ class TrainItems(Dataset):
     """``items[key]`` -> a :class:`TrainBatch` with B = 1 for the object and draws named by ``key``."""
 
     def __init__(self, records: Sequence[ObjectRecord], prior: PriorSource, *, resolution: int,
-                 target_views: int, rays_per_object: int, target_priors: bool) -> None:
+                 target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0) -> None:
         self.records = list(records)
         self.prior = prior
         self.resolution = resolution
         self.target_views = target_views
         self.rays = rays_per_object
         self.target_priors = target_priors
+        self.pixel_center = pixel_center
 
     def __len__(self) -> int:
         return len(self.records)
@@ -37,7 +38,7 @@ class TrainItems(Dataset):
         record = self.records[key.object_index]
         gen = torch.Generator().manual_seed(key.seed)
         src, targets = pick_views(record.num_views, self.target_views, gen)
-        obj = load_object(record, [src, *targets], resolution=self.resolution)
+        obj = load_object(record, [src, *targets], resolution=self.resolution, pixel_center=self.pixel_center)
         tgt = slice(1, None)
         view, row, col = sample_pixels(self.rays, (len(targets), *obj.masks.shape[1:]),
                                        obj.bboxes[tgt] if key.use_bbox else None, gen)

@@ -172,7 +172,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
                      objects_phase1=s.objects_phase1, objects_phase2=s.objects_phase2)
     items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
-                       rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0)
+                       rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
+                       pixel_center=cfg.data.pixel_center)
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate, num_workers=cfg.data.num_workers,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None)

@@ -24,7 +24,10 @@ from depthnerf.data.synth.primitives import Material, MeshBuilder, SynthMesh, lo
 CAR_REVISION = 2
 """Revision of the car grammar; bump whenever the same seed would give a different car (2: mirrors attached)."""
 CAR_STYLES = ("sedan", "hatchback", "wagon", "suv", "van", "pickup", "sports")
-"""Body styles, sampled uniformly."""
+"""Body styles of the standard family (training and test data), sampled uniformly."""
+HELDOUT_CAR_STYLES = ("microcar",)
+"""Body styles of the held-out family (``depthnerf synth --family heldout``): never in the standard family. A
+microcar is short and tall (height/length ~0.6 against 0.25-0.5), with a stub bonnet and an upright tail."""
 
 PAINTS = (
     ("white", (0.9, 0.9, 0.88)), ("black", (0.06, 0.06, 0.07)), ("silver", (0.68, 0.7, 0.72)),
@@ -57,6 +60,9 @@ _STYLE_RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "pickup": dict(width=(0.36, 0.4), wheel=(0.082, 0.094), sill=(0.07, 0.08), belt=(0.27, 0.3),
                    roof=(0.39, 0.43), hood=(0.25, 0.3), screen=(0.11, 0.14), roof_len=(0.12, 0.17),
                    rear_len=(0.0, 0.0), front_oh=(0.15, 0.18), rear_oh=(0.18, 0.23)),
+    "microcar": dict(width=(0.52, 0.58), wheel=(0.09, 0.1), sill=(0.06, 0.07), belt=(0.3, 0.34),
+                     roof=(0.56, 0.62), hood=(0.1, 0.14), screen=(0.15, 0.19), roof_len=(0.3, 0.38),
+                     rear_len=(0.02, 0.04), front_oh=(0.1, 0.12), rear_oh=(0.08, 0.1)),
     "sports": dict(width=(0.44, 0.49), wheel=(0.07, 0.08), sill=(0.032, 0.042), belt=(0.155, 0.175),
                    roof=(0.235, 0.265), hood=(0.33, 0.4), screen=(0.16, 0.2), roof_len=(0.08, 0.13),
                    rear_len=(0.18, 0.26), front_oh=(0.14, 0.17), rear_oh=(0.15, 0.19)),
@@ -91,9 +97,10 @@ class CarParams:
     """Van without rear side windows."""
 
 
-def sample_car(rng: np.random.Generator, style: str | None = None) -> CarParams:
-    """Draw a car; ``style`` forces a body style (default: uniform over :data:`CAR_STYLES`)."""
-    style = style or str(rng.choice(CAR_STYLES))
+def sample_car(rng: np.random.Generator, style: str | None = None, family: str = "standard") -> CarParams:
+    """Draw a car; ``style`` forces a body style (default: uniform over :data:`CAR_STYLES`, or over
+    :data:`HELDOUT_CAR_STYLES` for ``family="heldout"``)."""
+    style = style or str(rng.choice(CAR_STYLES if family == "standard" else HELDOUT_CAR_STYLES))
     dims = {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in _STYLE_RANGES[style].items()}
     name, base = PAINTS[int(rng.integers(len(PAINTS)))]
     albedo = tuple(float(np.clip(c + rng.uniform(-0.04, 0.04), 0.0, 1.0)) for c in base)
@@ -176,7 +183,7 @@ def layout(p: CarParams) -> CarLayout:
     screen_top = screen_base - d["screen"]
     roof_back = max(screen_top - d["roof_len"], -0.5 + d["rear_len"] + 0.01)
     glass_back = max(roof_back - d["rear_len"], -0.49)
-    if p.style in ("hatchback", "wagon", "suv", "van"):  # glasshouse runs to the tail
+    if p.style in ("hatchback", "wagon", "suv", "van", "microcar"):  # glasshouse runs to the tail
         glass_back = -0.5 + 0.012
         roof_back = glass_back + d["rear_len"]
     return CarLayout(p, axles, screen_base, screen_top, roof_back, glass_back, nose_radius=0.045)
@@ -259,7 +266,7 @@ def _add_glasshouse(b: MeshBuilder, lay: CarLayout, glass: Material, pillar: Mat
 
     # roof with side windows between pillars
     roof_len = lay.screen_top - lay.roof_back
-    n_pillars = {"wagon": 2, "suv": 2, "van": 2, "hatchback": 1, "sedan": 1}.get(p.style, 0)
+    n_pillars = {"wagon": 2, "suv": 2, "van": 2, "hatchback": 1, "sedan": 1, "microcar": 1}.get(p.style, 0)
     pillar_x = [lay.screen_top - roof_len * (i + 1) / (n_pillars + 1) for i in range(n_pillars)]
     if p.style == "van":
         pillar_x = [lay.screen_top - 0.14]

@@ -1,9 +1,10 @@
 """Procedural chairs: six archetypes combining leg, seat, back and arm types with varied materials.
 
 A chair is built with the floor at z = 0, the seat centred over the origin, its front towards +x and its left
-towards +y, then normalised by :meth:`MeshBuilder.build` to a bounding-box diagonal of :data:`CHAIR_DIAGONAL`
-centred at the origin, which makes chairs fill ~50-70% of the frame height at SRN's chair camera radius of 2.0
-(and keeps them inside pixelNeRF's chair z-range 1.25-2.75).
+towards +y, then normalised by :meth:`MeshBuilder.build` to a bounding-box diagonal centred at the origin: 1.0 as
+ShapeNet normalises its objects (the SRN framing), or :data:`CHAIR_DIAGONAL` = 1.35 in the legacy framing, which
+made chairs fill ~50-70% of the frame height at SRN's chair camera radius of 2.0. Both stay inside pixelNeRF's
+chair z-range 1.25-2.75.
 
 Archetypes pick compatible parts (a swivel base gets an office back, a lounge chair solid side panels...):
 
@@ -18,7 +19,10 @@ sled        sled / cantilever tubes   curved shell, solid, ladder               
 armchair    panel or short four       cushioned solid                              panel (solid sides)
 bar         tall four + foot ring     low ladder, solid or splat                   none
 pedestal    pedestal (tulip) base     curved shell                                 none or shell
+hybrid      swivel, pedestal or sled  slats, spindles, splat or ladder             none
 =========== ========================= ============================================ ======================
+
+``hybrid`` is the held-out family (``depthnerf synth --family heldout``), never drawn in the standard family.
 """
 
 from __future__ import annotations
@@ -37,9 +41,13 @@ CHAIR_ARCHETYPES = ("dining", "office", "sled", "armchair", "bar", "pedestal")
 """Chair archetypes."""
 ARCHETYPE_WEIGHTS = (0.3, 0.18, 0.12, 0.15, 0.1, 0.15)
 """Sampling probabilities of :data:`CHAIR_ARCHETYPES` (four-legged chairs dominate ShapeNet chairs)."""
+HELDOUT_ARCHETYPES = ("hybrid",)
+"""Archetypes of the held-out family (``depthnerf synth --family heldout``): a swivel, pedestal or sled base
+under a post-and-rail back (slats, spindles, splat or ladder): a leg/back mix the standard family never builds
+(there, post-and-rail backs stand on four legs; swivel bases carry office backs, pedestals shells)."""
 
 CHAIR_DIAGONAL = 1.35
-"""Bounding-box diagonal of a normalised chair (world units)."""
+"""Bounding-box diagonal of a normalised chair in the legacy framing (world units); the SRN framing uses 1.0."""
 
 WOODS = (("oak", (0.72, 0.55, 0.35)), ("walnut", (0.36, 0.23, 0.14)), ("cherry", (0.55, 0.29, 0.17)),
          ("beech", (0.82, 0.68, 0.5)), ("white lacquer", (0.88, 0.87, 0.84)), ("black lacquer", (0.1, 0.1, 0.1)))
@@ -128,9 +136,13 @@ def _materials(rng: np.random.Generator, archetype: str) -> tuple[Material, Mate
     return frame, seat, fabric_m, f"{fname}/{sname}/{fabric_name}"
 
 
-def sample_chair(rng: np.random.Generator, archetype: str | None = None) -> ChairParams:
-    """Draw a chair; ``archetype`` forces one (default: drawn with :data:`ARCHETYPE_WEIGHTS`)."""
-    a = archetype or str(rng.choice(CHAIR_ARCHETYPES, p=ARCHETYPE_WEIGHTS))
+def sample_chair(rng: np.random.Generator, archetype: str | None = None, family: str = "standard") -> ChairParams:
+    """Draw a chair; ``archetype`` forces one (default: drawn with :data:`ARCHETYPE_WEIGHTS`, or uniformly from
+    :data:`HELDOUT_ARCHETYPES` for ``family="heldout"``)."""
+    if family == "standard":
+        a = archetype or str(rng.choice(CHAIR_ARCHETYPES, p=ARCHETYPE_WEIGHTS))
+    else:
+        a = archetype or str(rng.choice(HELDOUT_ARCHETYPES))
     u = rng.uniform
     choice = lambda options, p=None: str(rng.choice(options, p=p))  # noqa: E731
     dims = dict(seat_h=u(0.43, 0.5), seat_w=u(0.42, 0.54), seat_d=u(0.4, 0.5), seat_t=u(0.025, 0.05),
@@ -165,6 +177,12 @@ def sample_chair(rng: np.random.Generator, archetype: str | None = None) -> Chai
                     splay=u(0.02, 0.06))
         opts["stretchers"] = 3
         seat_shape = choice(["rect", "round"])
+    elif a == "hybrid":  # held-out family
+        legs = choice(["swivel", "pedestal", "sled"])
+        back = choice(["slats", "spindles", "splat"] + (["ladder"] if legs != "sled" else []))
+        arms = "none"
+        opts["round_legs"] = 1
+        seat_shape = choice(["rounded", "round"])
     else:  # pedestal
         legs, back, arms = "pedestal", "shell", choice(["none", "shell"], [0.6, 0.4])
         dims.update(back_curve=u(0.5, 0.9), seat_w=u(0.44, 0.52))
@@ -174,14 +192,15 @@ def sample_chair(rng: np.random.Generator, archetype: str | None = None) -> Chai
                        cushion, finish)
 
 
-def build_chair(p: ChairParams) -> SynthMesh:
-    """Assemble the mesh of one chair, normalised to :data:`CHAIR_DIAGONAL` centred at the origin."""
+def build_chair(p: ChairParams, diagonal: float = CHAIR_DIAGONAL) -> SynthMesh:
+    """Assemble the mesh of one chair, normalised to a bounding-box ``diagonal`` (default: the legacy framing's
+    :data:`CHAIR_DIAGONAL`; the SRN framing's is 1.0) centred at the origin."""
     b = MeshBuilder()
     add_seat(b, p)
     add_legs(b, p)
     add_back(b, p)
     add_arms(b, p)
-    return b.build(diagonal=CHAIR_DIAGONAL)
+    return b.build(diagonal=diagonal)
 
 
 def chair_style_summary(p: ChairParams) -> dict[str, str]:

@@ -9,6 +9,12 @@ Layout written (SRN, see :mod:`depthnerf.data.srn_format`)::
 ``split`` is train (``views_train`` = 50 random upper-hemisphere views per object), val and test (``views_test``
 = 251 spiral views each; view 64 is the standard input view). Chairs' train split is flat (``chairs_train``).
 
+Framing (``framing``, :mod:`depthnerf.data.synth.framing`): ``srn`` (default, generator ``depthnerf-synth-2``)
+frames objects as SRN's renderer does (unit bounding-box diagonal, SRN's spiral with view 64 a side view, Blender
+pixel centres); ``legacy`` (``depthnerf-synth-1``) reproduces the first generator exactly (the shipped checkpoints'
+training data). Family (``family``): ``standard`` (the shape grammars' training mix) or ``heldout`` (car and chair
+styles the standard family never draws, for generalisation checks); the generator id gets ``-heldout``.
+
 Determinism: object ``k`` of ``split`` draws everything from ``SeedSequence(seed, spawn_key=(crc32(category),
 split, k))``, so files do not depend on ``--workers``, on the order of work or on resuming. Object ids are
 ``synth_<category>_<split>_<k:06d>``. Resume: ``.synth_done.json`` is written last (atomically) and lists the
@@ -33,36 +39,57 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics
-from depthnerf.data.synth.cars import CAR_REVISION, CAR_STYLES, build_car, car_style_summary, sample_car
+from depthnerf.data.synth.cars import (
+    CAR_REVISION,
+    CAR_STYLES,
+    HELDOUT_CAR_STYLES,
+    build_car,
+    car_style_summary,
+    sample_car,
+)
 from depthnerf.data.synth.chairs import (
     ARCHETYPE_WEIGHTS,
     CHAIR_ARCHETYPES,
-    CHAIR_DIAGONAL,
     CHAIR_REVISION,
+    HELDOUT_ARCHETYPES,
     build_chair,
     chair_style_summary,
     sample_chair,
 )
+from depthnerf.data.synth.framing import DEFAULT_FRAMING, Framing, get_framing
 from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
-from depthnerf.data.synth.views import ViewConfig, hemisphere_eyes, poses_from_eyes, spiral_eyes
+from depthnerf.data.synth.views import (
+    ViewConfig,
+    hemisphere_eyes,
+    poses_from_angles,
+    poses_from_eyes,
+    spiral_eyes,
+    srn_hemisphere_angles,
+    srn_spiral_angles,
+)
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_json_atomic
 
 GENERATOR_VERSION = "depthnerf-synth-1"
-"""Version of the generator as a whole (renderer, protocol, file layout)."""
+"""Version of the legacy generator (renderer, protocol, file layout); the SRN framing's is ``depthnerf-synth-2``
+(:data:`~depthnerf.data.synth.framing.FRAMINGS`)."""
+FAMILIES = ("standard", "heldout")
+"""Shape families: the grammars' training mix, and styles it never draws (generalisation checks)."""
 
 
-def generator_version(category: str) -> str:
-    """Generator version plus the category's shape-grammar revision: it changes whenever the files generated
-    for the same settings would change, so resuming never mixes objects of two revisions."""
+def generator_version(category: str, framing: str = DEFAULT_FRAMING, family: str = "standard") -> str:
+    """Generator version of the framing plus the category's shape-grammar revision (and ``-heldout`` for the
+    held-out family): it changes whenever the files generated for the same settings would change, so resuming
+    never mixes objects of two revisions. ``legacy``/``standard`` gives generator 1's ids unchanged."""
     revision = CAR_REVISION if category == "cars" else CHAIR_REVISION
-    return f"{GENERATOR_VERSION}/{category}-r{revision}"
+    suffix = "" if family == "standard" else f"-{family}"
+    return f"{get_framing(framing).generator}/{category}-r{revision}{suffix}"
+
+
 SPLITS = ("train", "val", "test")
 """Splits in seed order."""
 MARKER = ".synth_done.json"
 """Per-object completion marker (written last)."""
-SRN_INTRINSICS = Intrinsics(focal=131.25, cx=64.0, cy=64.0, height=128, width=128)
-"""SRN's intrinsics at 128 x 128 (as in its intrinsics files)."""
 
 
 @dataclass(frozen=True)
@@ -77,14 +104,17 @@ class CategorySpec:
     """pixelNeRF's far bound (ray distance)."""
     diagonal: float
     """Bounding-box diagonal of the normalised objects."""
+    framing: str = DEFAULT_FRAMING
+    """Framing the cameras follow (``srn`` or ``legacy``)."""
 
 
-def category_spec(category: str) -> CategorySpec:
-    """Camera radius, z-range and object size of ``cars`` or ``chairs``."""
+def category_spec(category: str, framing: str = DEFAULT_FRAMING) -> CategorySpec:
+    """Camera radius, z-range and object size of ``cars`` or ``chairs`` in ``framing``."""
+    fr = get_framing(framing)
     if category == "cars":
-        return CategorySpec(radius=1.3, z_near=0.8, z_far=1.8, diagonal=1.0)
+        return CategorySpec(radius=1.3, z_near=0.8, z_far=1.8, diagonal=1.0, framing=fr.name)
     if category == "chairs":
-        return CategorySpec(radius=2.0, z_near=1.25, z_far=2.75, diagonal=CHAIR_DIAGONAL)
+        return CategorySpec(radius=2.0, z_near=1.25, z_far=2.75, diagonal=fr.chair_diagonal, framing=fr.name)
     raise DepthnerfError(f"synth: unknown category {category!r} (expected cars or chairs)")
 
 
@@ -116,12 +146,20 @@ class SynthConfig:
     """Renderer settings."""
     progress: bool = True
     """Show a tqdm progress bar."""
+    framing: str = DEFAULT_FRAMING
+    """``srn`` (SRN's renderer: docs/data.md) or ``legacy`` (generator 1, the shipped checkpoints' data)."""
+    family: str = "standard"
+    """Shape family: ``standard`` or ``heldout`` (styles the standard family never draws)."""
 
     def counts(self) -> dict[str, int]:
         return {"train": self.train_objects, "val": self.val_objects, "test": self.test_objects}
 
+    def get_framing(self) -> Framing:
+        return get_framing(self.framing)
+
     def intrinsics(self) -> Intrinsics:
-        return SRN_INTRINSICS.resized(self.resolution, self.resolution)
+        """The intrinsics written to ``intrinsics.txt``."""
+        return self.get_framing().file_intrinsics(self.resolution)
 
 
 @dataclass(frozen=True)
@@ -147,7 +185,7 @@ class ObjectJob:
         """What must match for a finished object to be reused."""
         c = self.config
         views = c.views_train if self.split == "train" else c.views_test
-        return {"generator": generator_version(c.category), "seed": c.seed, "resolution": c.resolution, "views": views,
+        return {"generator": generator_version(c.category, c.framing, c.family), "seed": c.seed, "resolution": c.resolution, "views": views,
                 "antialias": c.render.antialias}
 
 
@@ -159,7 +197,11 @@ def object_rngs(seed: int, category: str, split: str, index: int) -> tuple[np.ra
 
 
 def object_poses(split: str, n_views: int, spec: CategorySpec, rng: np.random.Generator) -> np.ndarray:
-    """Camera-to-world poses of one object: random hemisphere (train) or the spiral (val/test)."""
+    """Camera-to-world poses of one object: random hemisphere (train) or the spiral (val/test), as the
+    spec's framing places them."""
+    if spec.framing != "legacy":
+        angles = srn_hemisphere_angles(n_views, rng) if split == "train" else srn_spiral_angles(n_views)
+        return poses_from_angles(spec.radius, *angles)
     vc = ViewConfig(radius=spec.radius)
     eyes = hemisphere_eyes(n_views, vc, rng) if split == "train" else spiral_eyes(n_views, vc)
     return poses_from_eyes(eyes)
@@ -188,14 +230,14 @@ def job_status(job: ObjectJob) -> str:
 def generate_object(job: ObjectJob) -> dict:
     """Build, render and write one object; returns its marker (also written as the object's last file)."""
     c = job.config
-    spec = category_spec(c.category)
+    spec = category_spec(c.category, c.framing)
     shape_rng, view_rng = object_rngs(c.seed, c.category, job.split, job.index)
     if c.category == "cars":
-        params = sample_car(shape_rng)
+        params = sample_car(shape_rng, family=c.family)
         mesh, summary = build_car(params), car_style_summary(params)
     else:
-        params = sample_chair(shape_rng)
-        mesh, summary = build_chair(params), chair_style_summary(params)
+        params = sample_chair(shape_rng, family=c.family)
+        mesh, summary = build_chair(params, spec.diagonal), chair_style_summary(params)
     n_views = job.settings()["views"]
     poses = object_poses(job.split, n_views, spec, view_rng)
     folder = job.folder
@@ -206,7 +248,7 @@ def generate_object(job: ObjectJob) -> dict:
     intr = c.intrinsics()
     srn_format.write_intrinsics(folder / "intrinsics.txt", intr)
     mesh.to_trimesh().export(folder / "mesh.ply")
-    caster, rays = Raycaster(mesh), PixelRays(intr)
+    caster, rays = Raycaster(mesh), PixelRays(c.get_framing().render_intrinsics(c.resolution))
     z_min, z_max, coverage = math.inf, 0.0, []
     for v, c2w in enumerate(poses):
         view = render_view(caster, c2w, rays, c.render)
@@ -263,7 +305,9 @@ def _run_jobs(config: SynthConfig, jobs: list[ObjectJob]) -> None:
 
 def generate(config: SynthConfig) -> dict:
     """Generate (or finish) a dataset; returns the dataset card (also written to ``<out>/<category>_card.json``)."""
-    spec = category_spec(config.category)
+    spec = category_spec(config.category, config.framing)
+    if config.family not in FAMILIES:
+        raise DepthnerfError(f"synth: unknown family {config.family!r} (expected one of {', '.join(FAMILIES)})")
     for name, n in config.counts().items():
         if n < 0:
             raise DepthnerfError(f"synth: --{name}-objects must be >= 0 (got {n})")
@@ -283,6 +327,16 @@ def generate(config: SynthConfig) -> dict:
     return card
 
 
+def _grammar(config: SynthConfig) -> dict:
+    """What the shape grammar draws from, for the card."""
+    if config.category == "cars":
+        styles = CAR_STYLES if config.family == "standard" else HELDOUT_CAR_STYLES
+        return {"styles": {s: round(1 / len(styles), 4) for s in styles}}
+    if config.family == "standard":
+        return {"archetypes": dict(zip(CHAIR_ARCHETYPES, ARCHETYPE_WEIGHTS, strict=True))}
+    return {"archetypes": {a: round(1 / len(HELDOUT_ARCHETYPES), 4) for a in HELDOUT_ARCHETYPES}}
+
+
 def build_card(config: SynthConfig, spec: CategorySpec, markers: list[dict]) -> dict:
     """The dataset card: generator, seed, counts, protocol, cameras, z-range, lighting and styles used."""
     intr = config.intrinsics()
@@ -292,23 +346,34 @@ def build_card(config: SynthConfig, spec: CategorySpec, markers: list[dict]) -> 
             if key != "finish":
                 styles.setdefault(m["split"], {}).setdefault(key, Counter())[value] += 1
     depth = [(m["depth_min"], m["depth_max"]) for m in markers if m["depth_max"] > 0]
-    vc = ViewConfig(radius=spec.radius)
-    return {
-        "generator": generator_version(config.category), "category": config.category, "seed": config.seed,
-        "counts": config.counts(), "resolution": config.resolution,
-        "layout": f"{config.category}_<split>/<object_id>/{{intrinsics.txt,rgb,pose,depth,mask,mesh.ply}}",
-        "protocol": {
-            "train_views": config.views_train,
+    fr = config.get_framing()
+    if fr.name == "legacy":
+        vc = ViewConfig(radius=spec.radius)
+        protocol = {
             "train_cameras": "uniform in area on the upper hemisphere (z = r*u, u ~ U(0, sin(max_elev)), "
                              "azimuth ~ U(0, 2pi))",
-            "test_views": config.views_test,
             "test_cameras": "Archimedean spiral, elevation 0 -> max_elev linear in the view index, azimuth step "
                             f"{vc.spiral_azimuth_span} rad over the spiral",
             "input_view": vc.input_view, "input_view_azimuth_deg": vc.input_azimuth_deg,
-            "max_elevation_deg": vc.max_elevation_deg,
-        },
+            "max_elevation_deg": vc.max_elevation_deg}
+    else:
+        protocol = {
+            "train_cameras": "uniform in area on the upper hemisphere (z = r*u, u ~ U(0, 1), azimuth ~ U(0, 2pi))",
+            "test_cameras": "SRN's Archimedean spiral (shapenet_renderer get_archimedean_spiral): elevation "
+                            "90 deg * k/(n-1), azimuth 20 rad * k/(n-1) + 20 rad - 90 deg from +x (front) "
+                            "towards +y (left)",
+            "input_view": 64, "input_view_azimuth_deg": 269.27, "max_elevation_deg": 90.0}
+    return {
+        "generator": generator_version(config.category, config.framing, config.family), "category": config.category,
+        "seed": config.seed, "framing": fr.name, "family": config.family,
+        "counts": config.counts(), "resolution": config.resolution,
+        "layout": f"{config.category}_<split>/<object_id>/{{intrinsics.txt,rgb,pose,depth,mask,mesh.ply}}",
+        "protocol": {"train_views": config.views_train, "test_views": config.views_test, **protocol},
         "camera": {"radius": spec.radius, "focal": intr.focal, "cx": intr.cx, "cy": intr.cy,
-                   "height": intr.height, "width": intr.width, "axes": "OpenCV camera-to-world, world +z up"},
+                   "height": intr.height, "width": intr.width, "axes": "OpenCV camera-to-world, world +z up",
+                   "pixel_center": fr.pixel_center,
+                   "pixel_center_meaning": "pixel (i, j) of every image is centred at (j + c, i + c) in these "
+                                           "intrinsics (train with --data.pixel_center c to read it exactly)"},
         "objects": {"bbox_diagonal": spec.diagonal, "centre": [0.0, 0.0, 0.0], "front": "+x", "up": "+z"},
         "z_range": {"near": spec.z_near, "far": spec.z_far, "kind": "ray distance (pixelNeRF bounds)",
                     "measured_z_depth_min": min((d[0] for d in depth), default=None),
@@ -318,7 +383,6 @@ def build_card(config: SynthConfig, spec: CategorySpec, markers: list[dict]) -> 
                                       "depth and mask from the centre ray only" if config.render.antialias
                       else "none", "background": config.render.background,
                       "lighting": asdict(config.render.lighting)},
-        "shape_grammar": ({"styles": {s: round(1 / len(CAR_STYLES), 4) for s in CAR_STYLES}} if config.category == "cars"
-                          else {"archetypes": dict(zip(CHAIR_ARCHETYPES, ARCHETYPE_WEIGHTS, strict=True))}),
+        "shape_grammar": _grammar(config),
         "styles": {split: {k: dict(sorted(v.items())) for k, v in per.items()} for split, per in styles.items()},
     }

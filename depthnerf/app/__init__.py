@@ -1,0 +1,1 @@
+"""``depthnerf app``: the local web page (Gradio) over :class:`~depthnerf.reconstruct.reconstructor.Reconstructor`."""

@@ -1,0 +1,346 @@
+"""What ``depthnerf app`` does, as plain functions (no Gradio here: the page in :mod:`depthnerf.app.page` only
+wires these to widgets, and tests call them without a browser).
+
+One request = one :class:`RunRequest` -> :meth:`AppSession.run` -> one :class:`RunOutputs`:
+
+1. the upload is checked (:func:`check_upload`: a PNG, JPEG or WebP file; everything else
+   :func:`depthnerf.reconstruct.photo.prepare_photo` checks: unreadable/truncated files, sides < 16 px, no
+   foreground, a cluttered background);
+2. the checkpoint is loaded once per (checkpoint, depth prior) and kept (:class:`ModelCache`);
+3. :meth:`Reconstructor.reconstruct <depthnerf.reconstruct.reconstructor.Reconstructor.reconstruct>` runs with
+   the page's settings and :meth:`~depthnerf.reconstruct.reconstructor.Reconstructor.save` writes its outputs
+   (the same code path as ``depthnerf reconstruct``; the app adds nothing to the pipeline);
+4. the written paths are collected: prepared input, depth prior, MP4 + GIF orbit, GLB for the viewer, and the
+   GLB, PLY mesh and PLY point cloud for download.
+
+Any :class:`~depthnerf.errors.DepthnerfError` becomes ``RunOutputs.message`` = ``error: <one line>`` (the upload's
+temporary path replaced by its file name); any other exception becomes ``internal error (<type>): <message>``
+with the traceback on the server's stderr. The server keeps serving either way.
+
+Foreground ratio
+    The page's "foreground ratio" is TripoSR's quantity: the object's longer bounding-box side over the side of
+    the square frame. It is exactly ``ReconstructConfig.fill`` (``framing="auto"``), so it is passed unchanged.
+    TripoSR's default 0.85 is the framing of TripoSR's own training renders; the shipped checkpoints were trained
+    at :data:`~depthnerf.reconstruct.photo.FILL` (cars 0.65, chairs 0.6), which is therefore the page's default
+    for each model (:meth:`AppSession.training_fill`).
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from depthnerf.errors import DepthnerfError
+
+EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
+"""Bundled example photos (``scripts/make_app_examples.py``)."""
+FORMATS = {"PNG": "PNG", "JPEG": "JPEG", "WEBP": "WebP"}
+"""Accepted upload formats (Pillow format name -> shown name)."""
+DEPTH_PRIORS = ("bundled", "depth-anything-v2")
+"""Depth priors the page offers."""
+SHIPPED_MODELS = {"car": "cpu-cars-depth", "chair": "cpu-chairs-depth"}
+"""Page label -> shipped depth-aware checkpoint per category."""
+ProgressFn = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class AppConfig:
+    """How ``depthnerf app`` serves the page."""
+
+    host: str = "127.0.0.1"
+    """Interface to bind (127.0.0.1: this machine only)."""
+    port: int = 7860
+    """TCP port."""
+    checkpoints: tuple[str, ...] = tuple(SHIPPED_MODELS.values())
+    """Checkpoints offered in the model menu (shipped names or local paths)."""
+    share: bool = False
+    """Ask Gradio for a public share link (off unless ``--share``)."""
+    views: int = 8
+    """Default number of orbit views (the slider's start value)."""
+    max_views: int = 36
+    """Largest number of orbit views the slider allows."""
+    mesh_resolution: int = 64
+    """Marching-cubes samples along the longest side of the mesh box (``ReconstructConfig.mesh_resolution``)."""
+    device: str = "cpu"
+    """Torch device of the models."""
+    work_dir: Path | None = None
+    """Where runs are written (None: a fresh temporary folder)."""
+    keep_runs: int = 16
+    """Run folders kept on disk; older ones are deleted."""
+    max_cached_models: int = 3
+    """Loaded (checkpoint, depth prior) pairs kept in memory."""
+    allow_checkpoint_paths: bool = True
+    """Offer the free "local checkpoint path" field (off when sharing publicly)."""
+
+
+@dataclass(frozen=True)
+class RunRequest:
+    """One reconstruction as the page asks for it."""
+
+    image: str | Path | None
+    """Path of the uploaded (or example) image; None = nothing uploaded."""
+    model: str
+    """A model-menu entry (shipped name or path; a page label of :data:`SHIPPED_MODELS` also works)."""
+    checkpoint_path: str = ""
+    """A local checkpoint path that overrides ``model`` when not empty."""
+    depth_prior: str = "bundled"
+    """One of :data:`DEPTH_PRIORS` (ignored by checkpoints without a depth prior)."""
+    depth_checkpoint: str = ""
+    """Weights of the depth prior: a Depth Anything V2 hub id or local directory ("" = its default)."""
+    foreground_ratio: float | None = None
+    """Object's longer side / frame side (``ReconstructConfig.fill``); None = the checkpoint's training fill."""
+    elevation: float = 20.0
+    """Input camera (and orbit) elevation, degrees."""
+    views: int = 8
+    """Orbit views."""
+
+
+@dataclass
+class RunOutputs:
+    """What one request produced (paths of files written by ``Reconstructor.save``)."""
+
+    ok: bool
+    """True when the reconstruction ran."""
+    message: str
+    """One line for the status box (``error: ...`` on failure)."""
+    input_image: Path | None = None
+    """The prepared input: masked, recentred, on white, at the model's resolution."""
+    input_mask: Path | None = None
+    """Its mask."""
+    depth_prior: Path | None = None
+    """The normalised depth prior the encoder saw (None for a model without a prior)."""
+    video: Path | None = None
+    """Orbit as MP4 (None when imageio-ffmpeg is missing)."""
+    gif: Path | None = None
+    """Orbit as GIF."""
+    viewer_glb: Path | None = None
+    """Mesh for the 3D viewer (y-up copy of mesh.glb; None when the mesh is empty)."""
+    downloads: list[Path] = field(default_factory=list)
+    """mesh.glb, mesh.ply, points.ply."""
+    seconds: float = 0.0
+    """Wall time of the request."""
+    details: str = ""
+    """Markdown: preprocessing notes, settings and timings."""
+
+
+def display_name(path: str | Path | None) -> str:
+    """The file name a user recognises (Gradio uploads live in temporary folders)."""
+    return Path(path).name if path else "image"
+
+
+def one_line(err: BaseException, image: str | Path | None) -> str:
+    """``error: ...`` for a DepthnerfError (temporary upload path -> file name), ``internal error ...`` else."""
+    text = " ".join(str(err).split())
+    if image:
+        text = text.replace(str(image), display_name(image))
+    if isinstance(err, DepthnerfError):
+        return f"error: {text}"
+    return f"internal error ({type(err).__name__}): {text}"
+
+
+def check_upload(image: str | Path | None) -> Path:
+    """The upload's path when it is a PNG, JPEG or WebP file; else a one-line DepthnerfError."""
+    if image is None or str(image) == "":
+        raise DepthnerfError("no image: upload a PNG, JPEG or WebP photo, or pick an example")
+    path = Path(image)
+    name = display_name(path)
+    if not path.is_file():
+        raise DepthnerfError(f"{name}: file not found")
+    try:
+        with Image.open(path) as im:
+            fmt = im.format
+    except (OSError, ValueError, Image.DecompressionBombError) as err:
+        raise DepthnerfError(f"{name}: not an image ({' '.join(str(err).split())})") from None
+    if fmt not in FORMATS:
+        raise DepthnerfError(f"{name}: {fmt} images are not supported; upload a PNG, JPEG or WebP")
+    return path
+
+
+def examples() -> list[Path]:
+    """The bundled example photos."""
+    return sorted(EXAMPLES_DIR.glob("*.png"))
+
+
+def resolve_model(request: RunRequest) -> str:
+    """Checkpoint spec of a request: the path field if filled in, else the menu entry (labels mapped)."""
+    spec = request.checkpoint_path.strip() or request.model
+    return SHIPPED_MODELS.get(spec, spec)
+
+
+class ModelCache:
+    """Loaded :class:`~depthnerf.reconstruct.reconstructor.Reconstructor` per (checkpoint, prior, prior weights),
+    least recently used first out."""
+
+    def __init__(self, device: str = "cpu", capacity: int = 3) -> None:
+        self.device = device
+        self.capacity = max(1, capacity)
+        self._models: OrderedDict[tuple[str, str, str], Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, checkpoint: str, depth_prior: str = "bundled", depth_checkpoint: str = ""):
+        """The Reconstructor (loaded on first use)."""
+        from depthnerf import Reconstructor
+
+        if depth_prior not in DEPTH_PRIORS:
+            raise DepthnerfError(f"depth prior must be one of {', '.join(DEPTH_PRIORS)}, got {depth_prior!r}")
+        key = (checkpoint, depth_prior, depth_checkpoint.strip())
+        with self._lock:
+            if key in self._models:
+                self._models.move_to_end(key)
+                return self._models[key]
+            rec = Reconstructor.from_pretrained(checkpoint, self.device, depth_estimator=depth_prior,
+                                                depth_checkpoint=key[2] or None)
+            self._models[key] = rec
+            while len(self._models) > self.capacity:
+                self._models.popitem(last=False)
+            return rec
+
+
+def model_category(rec) -> str:
+    """Training category of a loaded Reconstructor."""
+    return rec.pretrained.spec.category
+
+
+def model_resolution(rec) -> int:
+    """Training (input) resolution of a loaded Reconstructor."""
+    return rec.pretrained.spec.resolution
+
+
+def y_up_copy(glb: Path, dst: Path) -> Path | None:
+    """A copy of a world-frame (+z up) GLB rotated to glTF's +y up for the viewer; None if the mesh is empty."""
+    import trimesh
+
+    mesh = trimesh.load(glb, force="mesh")
+    if len(getattr(mesh, "faces", [])) == 0:
+        return None
+    mesh.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
+    mesh.export(dst)
+    return dst
+
+
+class AppSession:
+    """The app's state: its config, the model cache and the run folders."""
+
+    def __init__(self, config: AppConfig) -> None:
+        self.config = config
+        self.models = ModelCache(config.device, config.max_cached_models)
+        if config.work_dir is None:
+            self.work_dir = Path(tempfile.mkdtemp(prefix="depthnerf-app-"))
+        else:
+            self.work_dir = Path(config.work_dir)
+            self.work_dir.mkdir(parents=True, exist_ok=True)
+        self._runs = 0
+        self._lock = threading.Lock()
+
+    def training_fill(self, model: str, checkpoint_path: str = "") -> float:
+        """The fill (foreground ratio) the model was trained at (see the module docstring)."""
+        from depthnerf.reconstruct.photo import DEFAULT_FILL, FILL
+
+        rec = self.models.get(resolve_model(RunRequest(None, model, checkpoint_path)))
+        return FILL.get(model_category(rec), DEFAULT_FILL)
+
+    def preview(self, request: RunRequest) -> tuple[np.ndarray | None, str]:
+        """The preprocessing alone (mask, recentre, white background, resize): ``(image or None, message)``."""
+        from depthnerf import prepare_photo
+        from depthnerf.reconstruct.photo import DEFAULT_FILL, FILL
+
+        try:
+            path = check_upload(request.image)
+            rec = self.models.get(resolve_model(request))
+            fill = request.foreground_ratio or FILL.get(model_category(rec), DEFAULT_FILL)
+            prep = prepare_photo(path, None, model_resolution(rec), "auto", fill)
+        except Exception as err:  # noqa: BLE001 - every failure is one line on the page
+            if not isinstance(err, DepthnerfError):
+                traceback.print_exc(file=sys.stderr)
+            return None, one_line(err, request.image)
+        return (np.round(prep.image * 255).astype(np.uint8),
+                f"ready: {display_name(request.image)}, " + "; ".join(prep.notes))
+
+    def _new_run_dir(self) -> Path:
+        """A fresh run folder; the oldest beyond ``keep_runs`` are deleted."""
+        with self._lock:
+            self._runs += 1
+            run = self.work_dir / f"run-{self._runs:06d}"
+            runs = sorted(self.work_dir.glob("run-*"))
+        for stale in runs[: max(0, len(runs) - self.config.keep_runs + 1)]:
+            shutil.rmtree(stale, ignore_errors=True)
+        return run
+
+    def run(self, request: RunRequest, progress: ProgressFn | None = None) -> RunOutputs:
+        """Reconstruct one upload; never raises (failures are :attr:`RunOutputs.message`)."""
+        t0 = time.perf_counter()
+        try:
+            out = self._run(request, progress or (lambda frac, text: None))
+        except Exception as err:  # noqa: BLE001 - every failure is one line on the page
+            if not isinstance(err, DepthnerfError):
+                traceback.print_exc(file=sys.stderr)
+            return RunOutputs(ok=False, message=one_line(err, request.image), seconds=time.perf_counter() - t0)
+        out.seconds = time.perf_counter() - t0
+        out.message = f"done in {out.seconds:.1f} s: {out.message}"
+        return out
+
+    def _run(self, request: RunRequest, progress: ProgressFn) -> RunOutputs:
+        from depthnerf import ReconstructConfig
+
+        path = check_upload(request.image)
+        max_views = self.config.max_views
+        if not 1 <= int(request.views) <= max_views:
+            raise DepthnerfError(f"orbit views must be within 1..{max_views}, got {request.views}")
+        if request.foreground_ratio is not None and not 0.05 <= request.foreground_ratio <= 1.0:
+            raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {request.foreground_ratio}")
+        spec = resolve_model(request)
+        progress(0.0, f"loading {spec}")
+        rec = self.models.get(spec, request.depth_prior, request.depth_checkpoint)
+        progress(0.05, "reconstructing")
+        cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),
+                                fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
+                                progress=True)
+        result = rec.reconstruct(path, config=cfg)
+        progress(0.95, "writing outputs")
+        run_dir = self._new_run_dir()
+        manifest = rec.save(result, run_dir)
+        return collect_outputs(run_dir, manifest, display_name(path))
+
+
+def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOutputs:
+    """The page's outputs from a folder written by ``Reconstructor.save`` and its manifest."""
+    files = manifest["files"]
+
+    def at(key: str) -> Path | None:
+        return run_dir / files[key] if files.get(key) else None
+
+    glb = at("mesh_glb")
+    viewer = None if manifest["mesh"]["empty"] else y_up_copy(glb, run_dir / "viewer.glb")
+    settings = manifest["settings"]
+    timings = ", ".join(f"{k.removesuffix('_s')} {v:.1f} s" for k, v in manifest["timings"].items())
+    prior = settings["depth_estimator"]
+    details = "\n".join("- " + line for line in [
+        f"**Input** {name}: " + "; ".join(manifest["input"]["notes"]),
+        f"**Model** {Path(manifest['checkpoint']).name} (category {settings['category']}, "
+        f"{settings['resolution']} px), depth prior **{prior}**"
+        + (f" ({settings['depth_checkpoint']})" if prior != "none" and settings.get("depth_checkpoint") else ""),
+        f"**Camera** elevation {settings['elevation']:g} deg, radius {settings['radius']:g}, "
+        f"fill {settings['fill']:.2f}, {settings['views']} orbit views",
+        f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else "")
+        + f", {manifest['point_cloud']['points']} points",
+        f"**Timings** {timings}",
+        *([] if files.get("turntable_mp4") else [f"**MP4** {manifest['turntable_mp4_status']}"]),
+    ])
+    summary = (f"{settings['views']} views, mesh {manifest['mesh']['faces']} faces, "
+               f"{manifest['point_cloud']['points']} points, depth prior {prior}")
+    return RunOutputs(ok=True, message=summary, input_image=at("input"), input_mask=at("input_mask"),
+                      depth_prior=at("depth_prior"), video=at("turntable_mp4"), gif=at("turntable_gif"),
+                      viewer_glb=viewer, downloads=[p for p in (glb, at("mesh_ply"), at("point_cloud")) if p],
+                      details=details)

@@ -1,0 +1,167 @@
+"""The ``depthnerf app`` page: Gradio widgets wired to :mod:`depthnerf.app.logic` (which holds all behaviour).
+
+Imports Gradio (the ``[app]`` extra); nothing else in the package does. Requests go through Gradio's queue with
+one worker (``queue(default_concurrency_limit=1)``): one reconstruction at a time, and a second tab sees its
+place in the queue on its outputs. The server binds ``AppConfig.host`` (127.0.0.1 by default) and asks for a
+public share link only with ``AppConfig.share``.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import gradio as gr
+
+from depthnerf.app.logic import (
+    DEPTH_PRIORS,
+    SHIPPED_MODELS,
+    AppConfig,
+    AppSession,
+    RunOutputs,
+    RunRequest,
+    examples,
+)
+from depthnerf.errors import DepthnerfError
+
+INTRO = """# depthnerf: one photo in, 3D out
+Upload a photo of **one object** (PNG, JPEG or WebP; RGB or RGBA, any size) or pick an example, then press
+**Reconstruct**. The page removes the background (the alpha channel if the image has one, else everything that
+differs from the border colour), recentres the object at the foreground ratio, puts it on white and resizes it to
+the model's input; then a depth-aware pixelNeRF renders an orbit of novel views and extracts a mesh.
+
+**Honest note.** The shipped CPU models (`cpu-cars-depth`, `cpu-chairs-depth`) are small, were trained at 64 px on
+procedurally *synthesised* cars and chairs with the bundled depth network as their prior, and have never seen a
+real photo: expect coarse shapes, and better results on clean renders than on photographs. `depth-anything-v2`
+(when its weights are in the local Hugging Face cache, a local directory, or reachable) is a different prior
+from the one these models were trained with.
+"""
+
+CLUTTER_HINT = """**Cluttered background?** The border-colour mask only works on a plain background. Cut the object out
+(a PNG or WebP with a transparent background) and upload that RGBA image above."""
+
+LOCAL = ("127.0.0.1", "localhost", "::1")
+"""Host names that only this machine can reach."""
+MAX_UPLOAD = "100mb"
+"""Largest upload Gradio accepts (a 6000x4000 PNG is well below)."""
+RATIO_INFO = ("object's longer side / frame side (TripoSR's foreground ratio; TripoSR's 0.85 suits its own "
+              "model, these checkpoints were trained at cars 0.65, chairs 0.6)")
+
+
+CSS = """
+#prepared img, #prior-image img, #gif img { width: 100%; height: 100%; object-fit: contain;
+  image-rendering: pixelated; }
+"""
+"""The model works at 64 px: show its images scaled up to the boxes, pixels kept sharp."""
+
+
+def model_choices(config: AppConfig) -> list[tuple[str, str]]:
+    """(label, checkpoint) pairs of the model menu."""
+    by_name = {name: label for label, name in SHIPPED_MODELS.items()}
+    return [(f"{by_name[c]} ({c})" if c in by_name else c, c) for c in config.checkpoints]
+
+
+def _outputs(out: RunOutputs) -> tuple:
+    clutter = not out.ok and "background is not a plain colour" in out.message
+    return (out.message, None if out.input_image is None else str(out.input_image),
+            None if out.depth_prior is None else str(out.depth_prior),
+            None if out.video is None else str(out.video), None if out.gif is None else str(out.gif),
+            None if out.viewer_glb is None else str(out.viewer_glb), [str(p) for p in out.downloads] or None,
+            out.details, gr.Markdown(visible=clutter))
+
+
+def build_page(session: AppSession) -> gr.Blocks:
+    """The Blocks page over one :class:`AppSession`."""
+    config = session.config
+    choices = model_choices(config)
+    first = choices[0][1]
+    start_fill = session.training_fill(first)
+
+    def preview(image, model, ckpt_path, ratio):
+        img, message = session.preview(RunRequest(image, model, ckpt_path or "", foreground_ratio=ratio))
+        clutter = img is None and "background is not a plain colour" in message
+        return img, message, gr.Markdown(visible=clutter)
+
+    def fill_for(model, ckpt_path):
+        try:
+            return session.training_fill(model, ckpt_path or "")
+        except Exception:  # noqa: BLE001 - a bad path shows up (one line) when the user runs it
+            return gr.Slider()
+
+    def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views,
+                    progress=gr.Progress(track_tqdm=True)):  # noqa: B008 - Gradio's way to ask for a progress bar
+        request = RunRequest(image=image, model=model, checkpoint_path=ckpt_path or "", depth_prior=prior,
+                             depth_checkpoint=prior_ckpt or "", foreground_ratio=ratio, elevation=elevation,
+                             views=int(views))
+        return _outputs(session.run(request, lambda frac, text: progress(frac, desc=text)))
+
+    with gr.Blocks(title="depthnerf app", analytics_enabled=False) as page:
+        gr.Markdown(INTRO)
+        with gr.Row():
+            with gr.Column(scale=1):
+                upload = gr.File(label="Photo (PNG / JPEG / WebP; RGBA cut-outs welcome)", type="filepath",
+                                 elem_id="upload")
+                gr.Examples([[str(p)] for p in examples()], inputs=[upload],
+                            label="Examples (synthesised by depthnerf synth)")
+                clutter = gr.Markdown(CLUTTER_HINT, visible=False, elem_id="clutter-hint")
+                model = gr.Dropdown(choices, value=first, label="Model (category -> shipped checkpoint)",
+                                    elem_id="model")
+                ckpt_path = gr.Textbox(label="or a local checkpoint (weights file, checkpoint or run folder)",
+                                       placeholder="runs/cars/checkpoints/best", visible=config.allow_checkpoint_paths,
+                                       elem_id="checkpoint-path")
+                prior = gr.Radio(list(DEPTH_PRIORS), value="bundled", label="Depth prior", elem_id="prior")
+                prior_ckpt = gr.Textbox(label="Depth Anything V2 weights (hub id in the local cache, or a folder)",
+                                        placeholder="depth-anything/Depth-Anything-V2-Small-hf",
+                                        elem_id="prior-checkpoint")
+                ratio = gr.Slider(0.3, 1.0, value=start_fill, step=0.01, label="Foreground ratio", info=RATIO_INFO,
+                                  elem_id="ratio")
+                elevation = gr.Slider(-10, 60, value=20, step=1, label="Elevation (degrees)", elem_id="elevation")
+                views = gr.Slider(1, config.max_views, value=config.views, step=1, label="Orbit views",
+                                  elem_id="views")
+                run = gr.Button("Reconstruct", variant="primary", elem_id="run")
+            with gr.Column(scale=2):
+                status = gr.Textbox(label="Status", interactive=False, elem_id="status")
+                with gr.Row():
+                    prepared = gr.Image(label="Preprocessed input (what the model sees)", interactive=False,
+                                        elem_id="prepared", height=220)
+                    prior_img = gr.Image(label="Depth prior used (brighter = nearer)", interactive=False,
+                                         elem_id="prior-image", height=220)
+                with gr.Row():
+                    video = gr.Video(label="Orbit (MP4)", interactive=False, autoplay=True, loop=True,
+                                     elem_id="video", height=260)
+                    gif = gr.Image(label="Orbit (GIF)", interactive=False, elem_id="gif", height=260)
+                viewer = gr.Model3D(label="Mesh (drag to rotate)", clear_color=(1.0, 1.0, 1.0, 1.0),
+                                    elem_id="viewer", height=360)
+                downloads = gr.File(label="Downloads: mesh GLB, mesh PLY, point cloud PLY", file_count="multiple",
+                                    interactive=False, elem_id="downloads")
+                details = gr.Markdown(elem_id="details")
+
+        upload.change(preview, [upload, model, ckpt_path, ratio], [prepared, status, clutter], api_name="preview")
+        ratio.release(preview, [upload, model, ckpt_path, ratio], [prepared, status, clutter], api_visibility="private")
+        model.change(fill_for, [model, ckpt_path], [ratio], api_visibility="private")
+        ckpt_path.submit(fill_for, [model, ckpt_path], [ratio], api_visibility="private")
+        run.click(reconstruct, [upload, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views],
+                  [status, prepared, prior_img, video, gif, viewer, downloads, details, clutter],
+                  api_name="reconstruct", concurrency_limit=1, concurrency_id="reconstruct")
+    return page
+
+
+def serve(config: AppConfig) -> None:
+    """Build the page and serve it until interrupted (a busy port is a one-line error)."""
+    session = AppSession(config)
+    print(f"depthnerf app: loading {config.checkpoints[0]} (runs are written to {session.work_dir})", flush=True)
+    page = build_page(session)
+    page.queue(default_concurrency_limit=1, max_size=64)
+    print(f"depthnerf app: serving http://{config.host}:{config.port}/"
+          + (" and a public share link" if config.share else " (this machine only)" if config.host in LOCAL else "")
+          + "; Ctrl+C stops it", flush=True)
+    try:
+        page.launch(server_name=config.host, server_port=config.port, share=config.share, ssr_mode=False,
+                    allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS,
+                    max_file_size=MAX_UPLOAD, quiet=True)
+    except OSError as err:
+        raise DepthnerfError(f"cannot serve on {config.host}:{config.port} ({' '.join(str(err).split('.')[:1])}); "
+                             "pass another --port") from None
+    finally:
+        if config.work_dir is None:  # our temporary folder
+            shutil.rmtree(session.work_dir, ignore_errors=True)

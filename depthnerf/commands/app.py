@@ -1,0 +1,50 @@
+"""``depthnerf app [--host 127.0.0.1] [--port 7860] [--checkpoint NAME_OR_PATH ...] [--share]``: serve the local
+web page (Gradio) that turns one photo into novel views, a depth prior, a mesh and a point cloud through
+:class:`~depthnerf.reconstruct.reconstructor.Reconstructor` (page: :mod:`depthnerf.app.page`; behaviour:
+:mod:`depthnerf.app.logic`). Needs the optional extra ``pip install -e ".[app]"`` (gradio, imageio-ffmpeg);
+without gradio the command prints that hint and exits 2. Binds 127.0.0.1 unless ``--host`` says otherwise; a
+public share link only with ``--share``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+
+from depthnerf.errors import DepthnerfError
+
+INSTALL_HINT = "depthnerf app needs gradio, which is not installed: pip install -e \".[app]\" (or 'depthnerf[app]')"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=7860, help="TCP port (default 7860)")
+    p.add_argument("--checkpoint", nargs="+", action="extend", metavar="NAME_OR_PATH",
+                   help="checkpoints offered in the model menu (default: cpu-cars-depth cpu-chairs-depth)")
+    p.add_argument("--share", action="store_true", help="also create a public Gradio share link (off by default)")
+    p.add_argument("--views", type=int, default=8, help="default number of orbit views (default 8)")
+    p.add_argument("--max-views", type=int, default=36, help="largest number of orbit views (default 36)")
+    p.add_argument("--mesh-resolution", type=int, default=64,
+                   help="marching-cubes samples along the mesh box's longest side (default 64; 0 = no mesh)")
+    p.add_argument("--device", default="cpu", help="torch device of the models (default cpu)")
+    p.add_argument("--work-dir", type=Path, help="where runs are written (default: a temporary folder)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if importlib.util.find_spec("gradio") is None:
+        raise DepthnerfError(INSTALL_HINT)
+    from depthnerf.app.logic import SHIPPED_MODELS, AppConfig
+
+    if not 1 <= args.views <= args.max_views:
+        raise DepthnerfError(f"--views must be within 1..--max-views ({args.max_views}), got {args.views}")
+    if not 0 < args.port < 65536:
+        raise DepthnerfError(f"--port must be within 1..65535, got {args.port}")
+    config = AppConfig(host=args.host, port=args.port,
+                       checkpoints=tuple(args.checkpoint or SHIPPED_MODELS.values()), share=args.share,
+                       views=args.views, max_views=args.max_views, mesh_resolution=args.mesh_resolution,
+                       device=args.device, work_dir=args.work_dir, allow_checkpoint_paths=not args.share)
+    from depthnerf.app.page import serve
+
+    serve(config)
+    return 0

@@ -1,0 +1,115 @@
+"""How ``depthnerf synth`` frames its objects: ``srn`` (SRN's renderer, the default) or ``legacy`` (generator 1).
+
+========================= ============================================== ==========================================
+                          ``srn`` (``depthnerf-synth-2``)                ``legacy`` (``depthnerf-synth-1``)
+========================= ============================================== ==========================================
+object size               unit bounding-box diagonal (cars and chairs)    cars 1.0, chairs 1.35
+cameras                   SRN's spiral and upper hemisphere               spiral with view 64 at 65 deg from the front
+                          (view 64: the right side, 23 deg up)            (three-quarter), elevation capped at 89 deg
+``intrinsics.txt``        ``f = 131.25 R / 128``, ``c = R / 2`` (what    SRN's 128 px intrinsics resized as
+                          SRN's Blender renderer writes at ``R`` px)      integer-centred pixels (``c = 64.5 R/128 - 0.5``)
+ground-truth pixel (i, j) traced through ``(j + 0.5, i + 0.5)``         through ``(j, i)``
+========================= ============================================== ==========================================
+
+Facts and sources: docs/data.md ("Synthetic benchmark framing"). The shipped ``cpu-*`` checkpoints were trained on
+``legacy`` data; their cards say so (``"framing"``), and :func:`checkpoint_framing` reads it back so the demo
+synthesises objects framed as the checkpoint's training data.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from depthnerf.data.cameras import Intrinsics
+from depthnerf.errors import DepthnerfError
+
+
+@dataclass(frozen=True)
+class Framing:
+    """One framing of the synthetic benchmark."""
+
+    name: str
+    """``srn`` or ``legacy``."""
+    generator: str
+    """Generator version written into dataset cards and completion markers."""
+    chair_diagonal: float
+    """Bounding-box diagonal of a normalised chair (cars: always 1.0)."""
+    pixel_center: float
+    """Ground-truth pixel (row i, column j) is traced through ``(j + c, i + c)`` in the written intrinsics."""
+
+    def file_intrinsics(self, resolution: int) -> Intrinsics:
+        """The intrinsics written to ``intrinsics.txt`` at ``resolution`` x ``resolution`` pixels."""
+        if self.name == "legacy":
+            return SRN_INTRINSICS.resized(resolution, resolution)
+        return Intrinsics(focal=SRN_INTRINSICS.focal * resolution / SRN_INTRINSICS.width, cx=resolution / 2,
+                          cy=resolution / 2, height=resolution, width=resolution)
+
+    def render_intrinsics(self, resolution: int) -> Intrinsics:
+        """Integer-centred intrinsics of the rays the renderer traces (file intrinsics shifted by the centre)."""
+        return self.file_intrinsics(resolution).with_pixel_center(self.pixel_center)
+
+
+SRN_INTRINSICS = Intrinsics(focal=131.25, cx=64.0, cy=64.0, height=128, width=128)
+"""SRN's intrinsics at 128 x 128 (as in its intrinsics files: focal 525/512 * 128, principal point 128 / 2)."""
+FRAMINGS = {
+    "srn": Framing(name="srn", generator="depthnerf-synth-2", chair_diagonal=1.0, pixel_center=0.5),
+    "legacy": Framing(name="legacy", generator="depthnerf-synth-1", chair_diagonal=1.35, pixel_center=0.0),
+}
+"""The framings by name."""
+DEFAULT_FRAMING = "srn"
+"""Framing of ``depthnerf synth`` unless ``--framing`` says otherwise."""
+LEGACY_FRAMING = "legacy"
+"""Framing of datasets whose card predates the ``framing`` field (generator ``depthnerf-synth-1``)."""
+
+
+def get_framing(name: str) -> Framing:
+    """The framing called ``name`` (an error naming the choices otherwise)."""
+    if name not in FRAMINGS:
+        raise DepthnerfError(f"synth: unknown framing {name!r} (expected one of {', '.join(FRAMINGS)})")
+    return FRAMINGS[name]
+
+
+def card_framing(card: dict) -> str:
+    """Framing of a dataset card: its ``framing`` field, or ``legacy`` for cards written before it existed."""
+    return str(card.get("framing", LEGACY_FRAMING))
+
+
+def checkpoint_framing(weights: Path, data_root: str | Path | None, category: str) -> tuple[str, str]:
+    """Framing of the synthetic data a checkpoint was trained on, and where that was read.
+
+    Looked up in order: the checkpoint card next to the weights (``<name>.json``, field ``framing``, as
+    ``scripts/export_checkpoint.py`` writes it), then the training data's dataset card
+    (``<data_root>/<category>_card.json``), else the default framing.
+    """
+    card = Path(weights).with_suffix(".json")
+    if card.is_file():
+        try:
+            meta = json.loads(card.read_text())
+        except (OSError, ValueError) as err:
+            raise DepthnerfError(f"{card}: unreadable checkpoint card ({err})") from None
+        if isinstance(meta, dict) and "framing" in meta:
+            return get_framing(str(meta["framing"])).name, str(card)
+    if data_root is not None:
+        data_card = Path(data_root) / f"{category}_card.json"
+        if data_card.is_file():
+            try:
+                return get_framing(card_framing(json.loads(data_card.read_text()))).name, str(data_card)
+            except (OSError, ValueError) as err:
+                raise DepthnerfError(f"{data_card}: unreadable dataset card ({err})") from None
+    return DEFAULT_FRAMING, "default (no checkpoint card or dataset card found)"
+
+
+def dataset_pixel_center(root: str | Path, category: str) -> float:
+    """Pixel-centre convention a dataset states in its card (``<root>/<category>_card.json``,
+    ``camera.pixel_center``); 0.0 (integer-centred) when there is no card or the card predates the field."""
+    path = Path(root) / f"{category}_card.json"
+    if not path.is_file():
+        return 0.0
+    try:
+        card = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise DepthnerfError(f"{path}: unreadable dataset card ({err})") from None
+    camera = card.get("camera", {}) if isinstance(card, dict) else {}
+    return float(camera.get("pixel_center", 0.0)) if isinstance(camera, dict) else 0.0

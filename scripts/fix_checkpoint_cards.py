@@ -1,0 +1,92 @@
+"""Rewrite exported checkpoint cards (``<name>.json`` + ``<name>.md``) with portable paths and their data framing.
+
+``python scripts/fix_checkpoint_cards.py depthnerf/checkpoints/cpu-*.json --framing legacy --relative-to DIR``
+
+Absolute paths in the cards become relative to ``--relative-to`` (default: the repository), the home directory
+in eval messages becomes ``~`` (:func:`export_checkpoint.portable_path` / ``portable_text``, what
+``scripts/export_checkpoint.py`` now writes), and ``--framing`` records the training data's framing
+(``framing``, plus ``generator`` read from the model card) and ``--framing F`` in the card's ``depthnerf synth``
+command. The ``.safetensors`` weights are only read (for ``data.pixel_center``), never written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from export_checkpoint import REPO_ROOT, _read_json, portable_path, portable_text  # noqa: E402
+
+from depthnerf.data.synth.framing import FRAMINGS, get_framing  # noqa: E402
+from depthnerf.errors import DepthnerfError  # noqa: E402
+from depthnerf.train import checkpoint as ckpt  # noqa: E402
+
+
+def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT) -> dict:
+    """Rewrite an exported card pair (``card_json`` and the ``.md`` beside it) with portable paths (module
+    docstring) and, given ``framing``, the training data's framing; the weights are not touched."""
+    card_json, card_md = Path(card_json), Path(card_json).with_suffix(".md")
+    card = _read_json(card_json, "checkpoint card")
+    md = card_md.read_text() if card_md.is_file() else None
+    renames: dict[str, str] = {}
+
+    def _fix(section: dict, key: str, fn) -> None:
+        old = section.get(key)
+        if isinstance(old, str):
+            new = fn(old, base)
+            section[key] = new
+            if new != old:
+                renames[old] = new
+
+    for key in ("data_root", "run_path"):
+        _fix(card, key, portable_path)
+    ev = card.get("evaluation")
+    if isinstance(ev, dict):
+        for key in ("summary", "data_root"):
+            _fix(ev, key, portable_path)
+        for key in ("lpips_status", "mesh_status"):
+            _fix(ev, key, portable_text)
+    if framing is not None:
+        card["framing"] = get_framing(framing).name
+        found = re.search(r"generator `([^`]+)`", md or "")
+        if "generator" not in card and found:
+            card["generator"] = found.group(1)
+    weights = card_json.with_suffix(".safetensors")
+    if "pixel_center" not in card and weights.is_file():
+        _, meta = ckpt.read_weights(weights)
+        card["pixel_center"] = float(json.loads(meta["train_config"]).get("data", {}).get("pixel_center", 0.0))
+    card_json.write_text(json.dumps(card, indent=1) + "\n")
+    if md is not None:
+        for old, new in sorted(renames.items(), key=lambda kv: -len(kv[0])):
+            md = md.replace(old, new)
+        if framing is not None and "framing `" not in md:
+            md = re.sub(r"(generator `[^`]+`), ", rf"\1, framing `{card['framing']}` (docs/data.md), pixel centres "
+                        rf"read as `data.pixel_center` {card.get('pixel_center', 0.0)}, ", md, count=1)
+            md = "\n".join(line + f" --framing {card['framing']}" if line.startswith("depthnerf synth ")
+                           and "--framing" not in line else line for line in md.split("\n"))
+        card_md.write_text(md)
+    return card
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("cards", type=Path, nargs="+", help="card .json files (the .md beside each is rewritten too)")
+    p.add_argument("--framing", choices=sorted(FRAMINGS), help="framing of the data the checkpoints were trained on")
+    p.add_argument("--relative-to", type=Path, default=REPO_ROOT,
+                   help=f"base of the relative paths (default the repository, {REPO_ROOT})")
+    args = p.parse_args(argv)
+    try:
+        for path in args.cards:
+            fix_card(path, args.framing, args.relative_to)
+            print(f"rewrote {path} and {path.with_suffix('.md')}")
+    except DepthnerfError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
