@@ -56,7 +56,7 @@ from depthnerf.eval.metrics import psnr
 from depthnerf.eval.table import load_summary
 from depthnerf.model.pixelnerf import SourceViews
 from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
-from depthnerf.pretrained.spec import SPEC_KEY
+from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec
 from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
 from depthnerf.render.views import render_poses
 from depthnerf.train import checkpoint as ckpt
@@ -109,11 +109,11 @@ class ExportResult:
     """The content of ``card_json``."""
 
 
-def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
+def probe_sources(spec: InferenceSpec) -> tuple[SourceViews, torch.Tensor]:
     """A procedural input view (a shaded disc on white, with a dome-shaped disparity prior) at the training
     resolution and category camera, and a second camera pose 60 degrees around the object to render."""
-    res = cfg.data.resolution
-    cat = category_defaults(cfg.data.category)
+    res = spec.resolution
+    cat = category_defaults(spec.category)
     poses = orbit_poses(cat.camera_radius, 20.0, 6)
     intr = srn_intrinsics(cat.focal, cat.image_size, res)
     yy, xx = torch.meshgrid(torch.arange(res, dtype=torch.float32), torch.arange(res, dtype=torch.float32),
@@ -123,7 +123,7 @@ def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
     disc = torch.stack([0.8 - r, 0.3 + r, torch.full_like(r, 0.5)])
     image = torch.where(mask[None], disc, torch.ones_like(disc))
     prior = None
-    if cfg.prior.enabled:
+    if spec.use_depth:
         disparity = torch.where(mask, 1.0 - r, torch.zeros_like(r))
         prior = normalize_disparity(disparity[None], mask[None])[None, :, None]
     src = SourceViews(images=image[None, None], poses=poses[:1][None], focal=torch.tensor([intr.focal]),
@@ -134,16 +134,15 @@ def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
 @torch.no_grad()
 def roundtrip_check(source: Pretrained, exported: Pretrained) -> dict:
     """Render the probe view with both models; ``max_abs_rgb``, ``mean_abs_rgb`` and ``psnr_db`` of the pair."""
-    cfg = train_config(source)
-    src, pose = probe_sources(cfg)
-    res = cfg.data.resolution
-    cat = category_defaults(cfg.data.category)
-    intr = srn_intrinsics(cat.focal, cat.image_size, res)
-    near, far = source.spec.z_range
+    spec = source.spec
+    src, pose = probe_sources(spec)
+    cat = category_defaults(spec.category)
+    intr = srn_intrinsics(cat.focal, cat.image_size, spec.resolution)
+    near, far = spec.z_range
     rgbs = []
     for pre in (source, exported):
         enc = pre.model.encode(src)
-        rgbs.append(render_poses(pre.model, enc, pose, intr, near, far, cfg.render, 4096, "cpu").rgb[0].numpy())
+        rgbs.append(render_poses(pre.model, enc, pose, intr, near, far, spec.render, 4096, "cpu").rgb[0].numpy())
     diff = np.abs(rgbs[0] - rgbs[1])
     return {"max_abs_rgb": float(diff.max()), "mean_abs_rgb": float(diff.mean()),
             "psnr_db": psnr(rgbs[1], np.clip(rgbs[0], 0.0, 1.0)), "tolerance": FP16_TOLERANCE,
@@ -296,14 +295,6 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
     return "\n".join(lines)
 
 
-def train_config(pre: Pretrained) -> TrainConfig:
-    """The training config stored beside a checkpoint's weights (``train_config`` metadata)."""
-    _, meta = ckpt.read_weights(pre.path)
-    if "train_config" not in meta:
-        raise DepthnerfError(f"{pre.path}: no training config in the checkpoint metadata")
-    return from_dict_config(json.loads(meta["train_config"]), where=f"{pre.path} train_config")
-
-
 def _check_fp16_range(pre: Pretrained) -> None:
     for key, value in pre.model.state_dict().items():
         if value.is_floating_point() and not bool((value.abs() <= FP16_MAX).all()):
@@ -325,7 +316,7 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     _, meta = ckpt.read_weights(source_path)
     source = load_pretrained(source_path)
     _check_fp16_range(source)
-    cfg = train_config(source)
+    cfg = from_dict_config(json.loads(meta["train_config"]), where=f"{source_path} train_config")
     out.mkdir(parents=True, exist_ok=True)
     weights, staged = out / f"{name}.safetensors", out / f".{name}.export.safetensors"
     extra = {"train_config": meta["train_config"], "source_sha256": source.sha256, "source_run": run.resolve().name,
