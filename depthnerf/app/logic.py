@@ -210,12 +210,12 @@ class ModelCache:
 
 def model_category(rec) -> str:
     """Training category of a loaded Reconstructor."""
-    return rec.pretrained.config.data.category
+    return rec.pretrained.spec.category
 
 
 def model_resolution(rec) -> int:
     """Training (input) resolution of a loaded Reconstructor."""
-    return rec.pretrained.config.data.resolution
+    return rec.pretrained.spec.resolution
 
 
 def y_up_copy(glb: Path, dst: Path) -> Path | None:

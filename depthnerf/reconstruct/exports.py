@@ -32,7 +32,8 @@ from PIL import Image
 
 from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP
 from depthnerf.errors import DepthnerfError
-from depthnerf.reconstruct.reconstructor import Reconstruction
+from depthnerf.files import write_text_atomic
+from depthnerf.reconstruct.result import Reconstruction
 
 TURNTABLE_FPS = 12
 """Frames per second of the turntable GIF / MP4."""
@@ -102,9 +103,9 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
     if len(result.points):
         trimesh.PointCloud(result.points, colors=rgba).export(out / "points.ply")
     else:  # trimesh cannot write an empty cloud: the same header, no vertices
-        (out / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
-                                        "property float z\nproperty uchar red\nproperty uchar green\n"
-                                        "property uchar blue\nproperty uchar alpha\nend_header\n")
+        write_text_atomic(out / "points.ply", "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                          "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+                          "property uchar blue\nproperty uchar alpha\nend_header\n")
     files["point_cloud"] = "points.ply"
     empty = len(result.mesh.faces) == 0
     manifest = {
@@ -125,5 +126,5 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
                        "ray distances along unit directions",
         "timings": {**result.timings, "save_s": time.perf_counter() - t0},
     }
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=1) + "\n")
     return manifest
