@@ -181,7 +181,9 @@ def test_cli_writes_every_listed_output(models, tmp_path, capsys):
         assert "imageio-ffmpeg is not installed" in manifest["turntable_mp4_status"]
     header = (out / "points.ply").read_bytes().split(b"end_header")[0].decode()
     assert f"element vertex {manifest['point_cloud']['points']}\n" in header and "property uchar red" in header
-    trimesh.load(out / "mesh.glb")
+    ply, glb = trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(out / "mesh.glb", force="mesh")
+    x, y, z = np.asarray(ply.vertices, np.float64).T  # glTF is +y up: (x, y, z) -> (x, z, -y)
+    assert np.allclose(np.sort(np.asarray(glb.vertices), 0), np.sort(np.stack([x, z, -y], 1), 0), atol=1e-5)
     with np.load(out / "depths.npz", allow_pickle=False) as d:
         assert d["depth"].shape == (3, 32, 32) and d["poses"].shape == (3, 4, 4)
     assert manifest["checkpoint_sha256"] and manifest["settings"]["views"] == 3

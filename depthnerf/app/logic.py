@@ -126,7 +126,7 @@ class RunOutputs:
     gif: Path | None = None
     """Orbit as GIF."""
     viewer_glb: Path | None = None
-    """Mesh for the 3D viewer (y-up copy of mesh.glb; None when the mesh is empty)."""
+    """Mesh for the 3D viewer (mesh.glb, written +y up; None when the mesh is empty)."""
     downloads: list[Path] = field(default_factory=list)
     """mesh.glb, mesh.ply, points.ply."""
     seconds: float = 0.0
@@ -216,18 +216,6 @@ def model_category(rec) -> str:
 def model_resolution(rec) -> int:
     """Training (input) resolution of a loaded Reconstructor."""
     return rec.pretrained.spec.resolution
-
-
-def y_up_copy(glb: Path, dst: Path) -> Path | None:
-    """A copy of a world-frame (+z up) GLB rotated to glTF's +y up for the viewer; None if the mesh is empty."""
-    import trimesh
-
-    mesh = trimesh.load(glb, force="mesh")
-    if len(getattr(mesh, "faces", [])) == 0:
-        return None
-    mesh.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
-    mesh.export(dst)
-    return dst
 
 
 class AppSession:
@@ -323,7 +311,7 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
         return run_dir / files[key] if files.get(key) else None
 
     glb = at("mesh_glb")
-    viewer = None if manifest["mesh"]["empty"] else y_up_copy(glb, run_dir / "viewer.glb")
+    viewer = None if manifest["mesh"]["empty"] else glb  # mesh.glb is +y up, as glTF viewers expect
     settings = manifest["settings"]
     timings = ", ".join(f"{k.removesuffix('_s')} {v:.1f} s" for k, v in manifest["timings"].items())
     prior = settings["depth_estimator"]
