@@ -193,10 +193,15 @@ def main() -> None:
                           ("cpu" if args.device == "auto" else args.device))
     cfg = with_prior(preset("paper-cars"), args.depth)
     torch.manual_seed(0)
-    model = PixelNeRF(cfg.model).to(device).train()
+    use_depth = args.depth != "none"
+    try:
+        model = PixelNeRF(cfg.model, use_depth=use_depth)
+    except TypeError:  # checkouts from before the prior-derived switch (the "before" figure)
+        model = PixelNeRF(cfg.model)
+    model = model.to(device).train()
     if device.type == "cuda":
         model.encoder.to(memory_format=torch.channels_last)
-    batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, args.depth != "none")
+    batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, use_depth)
     batch = batch.to(device)
     step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False)
     shape = getattr(step, "shape", args.step_shape)
@@ -222,7 +227,7 @@ def main() -> None:
         print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
     # the op sequence does not depend on the number of rays: count with few (bf16 matmuls are slow on CPUs
     # without bf16 units)
-    small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, args.depth != "none")
+    small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, use_depth)
     proxy = make_step(model, cfg, small, device, args.step_shape, as_cuda=True)  # composed as on CUDA
     proxy()
     with CountOps() as counter:

@@ -20,7 +20,7 @@ def test_policy_per_device():
 
 @torch.no_grad()
 def test_cpu_configuration_changes_no_bit_and_bf16_stays_close():
-    model = randomize(PixelNeRF(small_config()))
+    model = randomize(PixelNeRF(small_config(), use_depth=False))
     enc = model.encode(sources())
     pts, dirs = query(r=9, s=5)
     ref_rgb, ref_sigma = model.field(enc, "fine")(pts, dirs)

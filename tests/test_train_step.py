@@ -99,10 +99,9 @@ def test_object_batchnorm_equals_one_call_per_object(views):
 
 def tiny_setup(b: int, use_depth: bool = False, seed: int = 0, device: str = "cpu"):
     field = FieldConfig(d_hidden=32, n_blocks=3, combine_layer=2, density_bias_init=0.5)
-    cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", use_depth=use_depth), coarse=field,
-                          fine=field)
+    cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18"), coarse=field, fine=field)
     torch.manual_seed(seed)
-    model = PixelNeRF(cfg).to(device).train()
+    model = PixelNeRF(cfg, use_depth=use_depth).to(device).train()
     gen = torch.Generator().manual_seed(seed + 1)
     size, r = 32, 24
     az = torch.rand(b, 1, generator=gen) * 2 * math.pi

@@ -19,9 +19,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from depthnerf.config_io import apply_overrides, to_dict
+from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
-from depthnerf.train.config import PRESETS, TrainConfig, from_dict_config, preset, with_prior
-from depthnerf.train.overrides import apply_overrides, to_dict
+from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
 
 ACCEPTS_OVERRIDES = True
 
@@ -39,7 +40,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", help="dataset root (SRN layout); default: the preset's; stored resolved to an "
                                   "absolute path; on --resume it may point at the run's data moved elsewhere")
     p.add_argument("--out", help="run folder (config, metrics.jsonl, TensorBoard events, checkpoints/)")
-    p.add_argument("--depth", choices=["none", "bundled", "oracle", "depth-anything-v2"],
+    p.add_argument("--depth", choices=ESTIMATORS,
                    help="depth prior: none = pixelNeRF baseline; default: the preset's")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id or local dir for depth-anything-v2)")
     p.add_argument("--max-steps", type=int, help="total optimisation steps")
@@ -94,7 +95,7 @@ def config_changes(old: TrainConfig, new: TrainConfig) -> dict[str, tuple[Any, A
 
 def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
     try:
-        stored = from_dict_config(json.loads(path.read_text()))
+        stored = from_dict_config(json.loads(path.read_text()), where=str(path))
     except (OSError, json.JSONDecodeError) as err:
         raise DepthnerfError(f"{path}: unreadable run config ({err})") from None
     if args.preset is not None and args.preset != stored.preset:
@@ -110,7 +111,7 @@ def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
     if "data.root" in changes:
         old, new = changes["data.root"]
         print(f"resume: reading the data from --data {new} (the run's config said {old})", file=sys.stderr)
-    return cfg
+    return check_config(cfg)
 
 
 def resolve_config(args: argparse.Namespace) -> TrainConfig:
@@ -119,7 +120,7 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
         return _resume_config(args, Path(args.out) / "config.json")
     cfg = _apply_flags(preset(args.preset or DEFAULT_PRESET), args)
     root = Path(cfg.data.root)
-    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root.resolve())))
+    return check_config(dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root.resolve()))))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -129,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise DepthnerfError("--out RUN_DIR is required to train")
+    from depthnerf.eval.validation import validate
     from depthnerf.train.distributed import setup, teardown
     from depthnerf.train.loop import train
 
@@ -141,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
 
     info = setup(args.device, deterministic=args.deterministic)
     try:
-        result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress)
+        result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress,
+                       validate=validate)
     finally:
         teardown(info)
     if info.is_main:
