@@ -38,7 +38,7 @@ def test_import_graph_is_the_stage_chain():
     graph = _graph_module()
     full = graph.build_graph()
     assert graph.back_edges(full) == []
-    assert graph.cycles(graph.build_graph(runtime_only=True)) == []
+    assert graph.cycles(full) == []  # annotation-only (`if TYPE_CHECKING:`) cycles count too
     assert not {graph.stage_of(m) for m in full} - set(graph.STAGES)
     # eval, reconstruct and train never import each other, and nothing below them imports them
     for module, deps in full.items():
@@ -61,6 +61,27 @@ def test_import_graph_script_exits_clean():
                          cwd=ROOT)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "import cycles: 0" in out.stdout and "back-edges against the chain: 0" in out.stdout
+    assert "annotation-only cycles (through `if TYPE_CHECKING:` imports): 0" in out.stdout
+
+
+def test_import_graph_script_fails_on_an_annotation_only_cycle(tmp_path, capsys):
+    graph = _graph_module()
+    pkg = tmp_path / "depthnerf"
+    (pkg / "data").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "data" / "__init__.py").write_text("")
+    (pkg / "data" / "a.py").write_text("from depthnerf.data.b import B\n\nA = B\n")
+    (pkg / "data" / "b.py").write_text("from typing import TYPE_CHECKING\n\nif TYPE_CHECKING:\n"
+                                       "    from depthnerf.data.a import A\n\nB = int\n")
+    assert graph.cycles(graph.build_graph(pkg, runtime_only=True)) == []
+    assert graph.cycles(graph.build_graph(pkg)) == [["depthnerf.data.a", "depthnerf.data.b"]]
+    assert graph.main(["--root", str(pkg)]) == 1
+    out = capsys.readouterr().out
+    assert "import cycles: 0" in out
+    assert "annotation-only cycles (through `if TYPE_CHECKING:` imports): 1" in out
+    assert "cycle: depthnerf.data.a <-> depthnerf.data.b" in out
+    (pkg / "data" / "b.py").write_text("B = int\n")  # the same package without the annotation import passes
+    assert graph.main(["--root", str(pkg)]) == 0
 
 
 def test_one_estimator_registry_feeds_every_flag():
