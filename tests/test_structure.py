@@ -84,6 +84,39 @@ def test_import_graph_script_fails_on_an_annotation_only_cycle(tmp_path, capsys)
     assert graph.main(["--root", str(pkg)]) == 0
 
 
+
+def _text_writes(tree) -> list[int]:
+    """Lines of ``x.write_text(...)``, ``x.write_bytes(...)``, ``json.dump(...)`` and ``open(..., "w"/"x")``: whole-file
+    writes. (Appending to a log, ``open(..., "a")``, is allowed: ``train/run_log.py`` drops a torn last line.)"""
+    import ast
+
+    lines = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        name = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+        mode = node.args[1] if len(node.args) > 1 else next((k.value for k in node.keywords if k.arg == "mode"), None)
+        opens_for_writing = (name == "open" and isinstance(mode, ast.Constant) and isinstance(mode.value, str)
+                             and set(mode.value) & set("wx"))
+        dumps = name == "dump" and isinstance(func, ast.Attribute) and getattr(func.value, "id", "") == "json"
+        if name in {"write_text", "write_bytes"} or dumps or opens_for_writing:
+            lines.append(node.lineno)
+    return lines
+
+
+def test_every_text_and_json_writer_goes_through_files_py():
+    import ast
+
+    assert _text_writes(ast.parse("p.write_text('x')\nopen(p, 'wb')\njson.dump(d, f)\nopen(p)\nopen(p, 'a')\n")) == [1, 2, 3]
+    found = {}
+    for path in sorted((ROOT / "depthnerf").rglob("*.py")):
+        if path.name == "files.py" and path.parent.name == "depthnerf":
+            continue
+        if lines := _text_writes(ast.parse(path.read_text(), str(path))):
+            found[str(path.relative_to(ROOT))] = lines
+    assert found == {}, "write these through depthnerf.files (write_text_atomic / write_json_atomic / ...)"
+
 def test_one_estimator_registry_feeds_every_flag():
     assert ESTIMATORS == ("depth-anything-v2", "bundled", "oracle", "none")
     assert CACHED_ESTIMATORS == ("depth-anything-v2", "bundled") and PHOTO_ESTIMATORS == CACHED_ESTIMATORS
