@@ -27,7 +27,7 @@ from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
 from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
 from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, field_queries
 from depthnerf.render.views import render_poses
-from depthnerf.train.config import preset, z_range
+from depthnerf.train.config import inference_spec, preset
 
 
 def main() -> None:
@@ -44,23 +44,24 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.checkpoint:
-        from depthnerf.eval.pretrained import load_pretrained
+        from depthnerf.pretrained.load import load_pretrained
 
         pre = load_pretrained(args.checkpoint)
-        model, cfg, label = pre.model, pre.config, args.checkpoint
+        model, spec, label = pre.model, pre.spec, args.checkpoint
     else:
-        cfg = preset(args.preset)
+        spec = inference_spec(preset(args.preset))
         torch.manual_seed(0)
-        model, label = PixelNeRF(cfg.model).eval(), f"{args.preset} (random weights)"
-    cat = category_defaults(cfg.data.category)
-    res_in, res = cfg.data.resolution, args.resolution or cfg.data.resolution
-    near, far = z_range(cfg)
+        model, label = PixelNeRF(spec.model, use_depth=spec.use_depth).eval(), f"{args.preset} (random weights)"
+    cfg = spec
+    cat = category_defaults(spec.category)
+    res_in, res = spec.resolution, args.resolution or spec.resolution
+    near, far = spec.z_range
     intr_in, intr = srn_intrinsics(cat.focal, cat.image_size, res_in), srn_intrinsics(cat.focal, cat.image_size, res)
     poses = torch.cat([orbit_poses(cat.camera_radius, e, -(-args.views // 3), 7.0 * k)
                        for k, e in enumerate((15.0, 30.0, 45.0))])[: args.views]
     src_pose = orbit_poses(cat.camera_radius, 30.0, 1)
     gen = torch.Generator().manual_seed(0)
-    prior = torch.randn(1, 1, 1, res_in, res_in, generator=gen) if cfg.model.encoder.use_depth else None
+    prior = torch.randn(1, 1, 1, res_in, res_in, generator=gen) if spec.use_depth else None
     src = SourceViews(images=torch.full((1, 1, 3, res_in, res_in), 0.5), poses=src_pose[None],
                       focal=torch.tensor([intr_in.focal]), principal=torch.tensor([[intr_in.cx, intr_in.cy]]),
                       prior=prior)

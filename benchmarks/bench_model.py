@@ -69,7 +69,7 @@ class Setting:
 
     def model_config(self, lin_z_on_map: bool = True, chunk: int = FieldConfig.chunk_points) -> PixelNeRFConfig:
         fc = FieldConfig(d_hidden=self.d_hidden, lin_z_on_map=lin_z_on_map, chunk_points=chunk)
-        return PixelNeRFConfig(encoder=EncoderConfig(backbone=self.backbone, use_depth=self.use_depth),
+        return PixelNeRFConfig(encoder=EncoderConfig(backbone=self.backbone),
                                coarse=fc, fine=fc)
 
     def render_config(self) -> RenderConfig:
@@ -174,7 +174,7 @@ def case_field(args, setting: Setting) -> None:
     cfg = setting.model_config()
     for on_map in (False, True):
         torch.manual_seed(0)
-        model = PixelNeRF(setting.model_config(lin_z_on_map=on_map))
+        model = PixelNeRF(setting.model_config(lin_z_on_map=on_map), use_depth=setting.use_depth)
 
         def train_step(model=model):
             enc = model.encode(src)
@@ -188,7 +188,8 @@ def case_field(args, setting: Setting) -> None:
             with torch.no_grad():
                 model.field(enc, "coarse")(pts, dirs)
         t_tr, t_in = best_time(train_step, args.repeat, args.clock), best_time(infer, args.repeat, args.clock)
-        flops = b * n_pts * mlp_flops(cfg.coarse.d_in, setting.d_hidden, 5, 3, cfg.encoder.latent_size, not on_map)
+        latent = cfg.encoder.latent_size(setting.use_depth)
+        flops = b * n_pts * mlp_flops(cfg.coarse.d_in, setting.d_hidden, 5, 3, latent, not on_map)
         print(f"field lin_z_on_map={on_map!s:5s}: train (encode+field fwd+bwd) {t_tr:6.2f} s "
               f"({b * n_pts / t_tr:8,.0f} pts/s); inference {t_in:6.2f} s ({b * n_pts / t_in:9,.0f} pts/s, "
               f"MLP-equivalent {flops / t_in / 1e9:5.1f} GFLOP/s)")
@@ -196,7 +197,7 @@ def case_field(args, setting: Setting) -> None:
 
 def case_encoder(args, setting: Setting) -> None:
     src, _, _ = scene(setting, setting.objects)
-    model = PixelNeRF(setting.model_config())
+    model = PixelNeRF(setting.model_config(), use_depth=setting.use_depth)
 
     def fwd_bwd():
         model.encode(src).features.sum().backward()
@@ -212,7 +213,8 @@ def case_iter(args, setting: Setting) -> None:
     torch.manual_seed(0)
     b = setting.objects
     src, target_poses, intr = scene(setting, b)
-    model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point)).train()
+    model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point),
+                      use_depth=setting.use_depth).train()
     rcfg = setting.render_config()
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     gen = torch.Generator().manual_seed(0)
@@ -250,7 +252,8 @@ def case_iter(args, setting: Setting) -> None:
 def case_view(args, setting: Setting) -> None:
     torch.manual_seed(0)
     src, target_poses, intr_full = scene(setting, 1)
-    model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point, chunk=args.chunk)).eval()
+    model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point, chunk=args.chunk),
+                      use_depth=setting.use_depth).eval()
     rcfg = setting.render_config()
     with torch.no_grad():
         enc = model.encode(src)

@@ -37,34 +37,23 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import index_split
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics, psnr
-from depthnerf.eval.objects import (
-    PreparedObject,
-    cached_prior,
-    open_prior_store,
-    prepare_object,
-    protocol_views,
-)
-from depthnerf.eval.pretrained import load_pretrained
-from depthnerf.render.config import GuideConfig, GuidedSamplerConfig, RenderConfig, SamplerConfig
-from depthnerf.render.guide import align_disparity_to_depth, build_depth_guide
-from depthnerf.render.pipeline import FieldFn, render_image
-from depthnerf.render.rays import camera_z_of_directions, rays_from_camera
+from depthnerf.eval.objects import PreparedObject, dataset_prior, prepare_object
+from depthnerf.pretrained.load import load_pretrained
+from depthnerf.render.config import GuideConfig, RenderConfig
+from depthnerf.render.guidance import ALIGN_MIN_OPACITY, SourceGuide, guided_sampler, source_depth
+from depthnerf.render.pipeline import FieldFn
 from depthnerf.render.views import render_views, view_rays
-from depthnerf.train.config import z_range
+
+__all__ = ["ALIGN_MIN_OPACITY", "guided_sampler", "source_depth", "run_checkpoint", "reference_render"]
 
 TARGET_SPEEDUP = 3.0
 """Issue 4: guided sampling must be at least this much faster than the reference sampler ..."""
 TARGET_MAX_LOSS_DB = 0.1
 """... while losing at most this much PSNR."""
-ALIGN_MIN_OPACITY = 0.5
-"""Source pixels whose cheap coarse render is at least this opaque anchor the prior's scale/shift fit. Soft
-CPU models rarely exceed 0.9 (a threshold of 0.9 left the guide empty on most objects)."""
-
-
 class CountedField:
     """A field wrapper counting the points it evaluates (network evaluations)."""
 
@@ -84,47 +73,6 @@ def timed(fn: Callable, repeats: int):
         out = fn()
         best = min(best, time.perf_counter() - t0)
     return out, best
-
-
-def _split(total: int, weights: tuple[int, ...]) -> list[int]:
-    """``total`` split in proportion to ``weights`` (largest remainder; ties to the earlier entry)."""
-    shares = [total * w / sum(weights) for w in weights]
-    parts = [int(s) for s in shares]
-    order = sorted(range(len(shares)), key=lambda k: (parts[k] - shares[k], k))
-    for k in order[: total - sum(parts)]:
-        parts[k] += 1
-    return parts
-
-
-def guided_sampler(total: int, base: GuidedSamplerConfig) -> GuidedSamplerConfig:
-    """``base`` with ``total`` samples per occupied ray split 1:2:2:1 (uniform, window, importance, Gaussian, the
-    default 8:16:16:8's proportions) and ``total // 2`` per empty ray split 2:1 (the default 16:8's)."""
-    if total < 6:
-        raise DepthnerfError(f"--budgets: a guided budget needs >= 6 samples per ray, got {total}")
-    n_uniform, n_window, n_importance, n_gaussian = _split(total, (1, 2, 2, 1))
-    n_empty, n_empty_importance = _split(total // 2, (2, 1))
-    return dataclasses.replace(base, enabled=True, n_uniform=n_uniform, n_window=n_window,
-                               n_importance=n_importance, n_gaussian=n_gaussian, n_empty=n_empty,
-                               n_empty_importance=n_empty_importance)
-
-
-@torch.no_grad()
-def source_depth(coarse: FieldFn, c2w: Tensor, intr: Intrinsics, near: float, far: float, prior: Tensor | None,
-                 mask: Tensor, samples: int, render: RenderConfig, chunk: int = 4096,
-                 min_opacity: float = ALIGN_MIN_OPACITY) -> Tensor:
-    """[1 H W] metric z-depth of the source view for the guide: ``prior`` (relative disparity) aligned against a
-    ``samples``-sample coarse-only render of the source view on ``mask`` pixels whose render opacity exceeds
-    ``min_opacity``; without a prior, that render's own depth on those pixels (0 elsewhere)."""
-    rays = rays_from_camera(c2w, intr, near, far)
-    cfg = dataclasses.replace(render, sampler=SamplerConfig(n_coarse=samples),
-                              guided=GuidedSamplerConfig(enabled=False))
-    cheap = render_image(coarse, None, rays, cfg, chunk=chunk).coarse
-    shape = mask.shape
-    ref_z = (cheap.normalized_depth() * camera_z_of_directions(rays.directions, c2w)).reshape(shape)
-    opacity = cheap.opacity.reshape(shape)
-    if prior is None:
-        return torch.where(mask & (opacity > min_opacity), ref_z, torch.zeros_like(ref_z))
-    return align_disparity_to_depth(prior, ref_z, mask & (opacity > min_opacity))
 
 
 @dataclass
@@ -198,7 +146,8 @@ def _bench_object(obj: PreparedObject, fields: tuple[CountedField, CountedField]
     depth, t_align = timed(lambda: source_depth(coarse, src.poses[:1], src.intrinsics, near, far, obj.prior,
                                                 src_mask, args.align_samples, settings[0].render, args.chunk,
                                                 args.align_min_opacity), 1)
-    guide_cfg = GuideConfig(spread=args.spread)
+    source_guide = SourceGuide(c2w=src.poses[:1], intr=src.intrinsics, depth=depth, mask=src_mask,
+                               cfg=GuideConfig(spread=args.spread))
     gts = tgt.images.permute(0, 2, 3, 1).numpy()
     ref_preds = None
     for s in settings:
@@ -210,7 +159,7 @@ def _bench_object(obj: PreparedObject, fields: tuple[CountedField, CountedField]
                 guide = None
                 if s.guided:
                     rays = view_rays(c2w, tgt.intrinsics, near, far)
-                    guide = build_depth_guide(src.poses[:1], src.intrinsics, depth, src_mask, rays, guide_cfg)
+                    guide = source_guide.guide(rays)
                 return render_views(coarse, fine, c2w, tgt.intrinsics, near, far, s.render, chunk=args.chunk,
                                     guide=guide).rgb[0], guide
 
@@ -259,7 +208,7 @@ def _rows(settings: list[Setting]) -> list[dict]:
 def run_checkpoint(args: argparse.Namespace) -> dict:
     """Run the checkpoint benchmark (arguments of ``bench_guided_sampling.py``); print and return the table."""
     pre = load_pretrained(args.checkpoint)
-    cfg = pre.config
+    cfg = pre.spec
     if cfg.render.guided.enabled:
         raise DepthnerfError(f"{pre.path}: the checkpoint's renderer is already depth-guided; the reference must be "
                              "the paper's sampler")
@@ -267,17 +216,17 @@ def run_checkpoint(args: argparse.Namespace) -> dict:
         raise DepthnerfError(f"--objects and --views-stride must be >= 1 (got {args.objects}, {args.views_stride})")
     budgets = [int(b) for b in str(args.budgets).split(",") if b.strip()]
     data = Path(args.data)
-    category = args.category or cfg.data.category
+    category = args.category or cfg.category
     records = index_split(data, category, args.split, check_files=False).objects[: args.objects]
-    store = open_prior_store(pre, data, records)
-    near, far = z_range(cfg)
-    res = cfg.data.resolution
+    prior = dataset_prior(cfg, data, records)
+    near, far = cfg.z_range
+    res = cfg.resolution
     plain = [c for c in str(args.plain_samplers or "").split() if c]
     settings = _settings(cfg.render, budgets, reference_render(cfg.render, args.reference_samples), plain)
     align, device = [], torch.device("cpu")
     for k, record in enumerate(records):
         obj = prepare_object(pre.model, record, protocol_views(record.num_views, args.views_stride),
-                             cached_prior(store), res, res, device)
+                             prior, res, res, device)
         fields = CountedField(pre.model.field(obj.enc, "coarse")), CountedField(pre.model.field(obj.enc, "fine"))
         if k == 0:  # warm-up (allocator, thread pools), not timed
             render_views(*fields, obj.targets.poses[:1], obj.targets.intrinsics, near, far, cfg.render,
@@ -288,7 +237,7 @@ def run_checkpoint(args: argparse.Namespace) -> dict:
     result = {
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
         "preset": cfg.preset, "depth_prior": cfg.prior.estimator,
-        "guide_depth": "prior aligned to a coarse render" if store is not None else "coarse render (no prior)",
+        "guide_depth": "prior aligned to a coarse render" if cfg.use_depth else "coarse render (no prior)",
         "data": str(data.resolve()), "category": category, "split": args.split,
         "objects": [r.object_id for r in records], "views_per_object": settings[0].views // len(records),
         "views_stride": args.views_stride, "resolution": res, "z_range": [near, far],

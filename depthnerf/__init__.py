@@ -1,9 +1,10 @@
 """depthnerf: depth-aware pixelNeRF for single-image 3D object reconstruction.
 
 Pipeline (one straight line, one sub-package per stage):
-``data`` (SRN reader, synthetic generator) -> ``depth`` (monocular priors, cache) -> ``model`` (encoder,
-field, pixelNeRF) -> ``render`` (samplers, volume rendering, meshes) -> ``train`` | ``eval`` (SRN protocol,
-metrics) | ``reconstruct`` (one photo in) -> ``commands`` (the CLI).
+``data`` (SRN reader, synthetic generator) -> ``depth`` (monocular priors, prior sources, cache) -> ``model``
+(conditioning, encoder, field, pixelNeRF) -> ``render`` (samplers, volume rendering, guided sampling, meshes) ->
+``pretrained`` (inference spec, weights, loading) -> ``train`` | ``eval`` (SRN protocol, metrics) |
+``reconstruct`` (one photo in) -> ``commands`` (the CLI) and ``demo``. See docs/architecture.md.
 
 Public API (imported lazily, so ``import depthnerf`` stays cheap)::
 
@@ -22,7 +23,7 @@ __version__ = "0.1.0"
 _PUBLIC = {
     "Reconstructor": "depthnerf.reconstruct.reconstructor",
     "ReconstructConfig": "depthnerf.reconstruct.reconstructor",
-    "Reconstruction": "depthnerf.reconstruct.reconstructor",
+    "Reconstruction": "depthnerf.reconstruct.result",
     "prepare_photo": "depthnerf.reconstruct.photo",
 }
 

@@ -32,6 +32,27 @@ def write_text_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> None:
+    """Write ``data`` to ``path`` atomically and durably (temporary sibling, fsync, rename) with permissions ``mode``.
+
+    Binary files (safetensors weights and depth priors) are serialised to bytes first
+    (``safetensors.torch.save``) and written through here, like the text writers.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_sibling(path)
+    try:
+        with open(tmp, "wb") as handle:
+            handle.write(data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
 def write_json_atomic(path: Path, payload: dict[str, Any]) -> None:
     """:func:`write_text_atomic` of ``payload`` as indented JSON with sorted keys and a final newline."""
     write_text_atomic(path, json.dumps(payload, indent=2, sort_keys=True) + "\n")

@@ -7,11 +7,11 @@ Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where `
 ``--checkpoint <name>`` find it):
 
 ``<name>.safetensors``
-    The run's ``checkpoints/best`` (else its latest checkpoint; :func:`depthnerf.eval.pretrained.resolve_checkpoint`)
+    The run's ``checkpoints/best`` (else its latest checkpoint; :func:`depthnerf.pretrained.load.resolve_checkpoint`)
     with floating tensors in float16 and integer buffers (BatchNorm ``num_batches_tracked``) unchanged, written
     atomically by :func:`depthnerf.train.checkpoint.save_weights`. Metadata: the source's model ``config``,
     ``train_config`` and ``step``, plus provenance ``source_sha256``, ``source_run``, ``source_file``,
-    ``dtype``, ``exported_by``. :func:`~depthnerf.eval.pretrained.load_pretrained` casts the weights back to fp32.
+    ``dtype``, ``exported_by``. :func:`~depthnerf.pretrained.load.load_pretrained` casts the weights back to fp32.
 ``<name>.json``
     Name, preset, depth estimator, category, resolution, step, SHA-256 and size of the fp16 file, the source, the
     fp16 round-trip check, and with ``--eval-summary`` the metrics (``psnr``, ``ssim``, and ``lpips``,
@@ -53,13 +53,14 @@ from depthnerf.depth.estimators import CACHED_ESTIMATORS
 from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import psnr
-from depthnerf.eval.pretrained import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
 from depthnerf.eval.table import load_summary
 from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
+from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec
 from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
 from depthnerf.render.views import render_poses
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.config import TrainConfig, z_range
+from depthnerf.train.config import TrainConfig, from_dict_config, inference_spec
 
 FP16_TOLERANCE = 0.02
 """Largest accepted absolute RGB difference (in [0, 1], ~5 of 255 levels) between fp32 and fp16 renders."""
@@ -108,11 +109,11 @@ class ExportResult:
     """The content of ``card_json``."""
 
 
-def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
+def probe_sources(spec: InferenceSpec) -> tuple[SourceViews, torch.Tensor]:
     """A procedural input view (a shaded disc on white, with a dome-shaped disparity prior) at the training
     resolution and category camera, and a second camera pose 60 degrees around the object to render."""
-    res = cfg.data.resolution
-    cat = category_defaults(cfg.data.category)
+    res = spec.resolution
+    cat = category_defaults(spec.category)
     poses = orbit_poses(cat.camera_radius, 20.0, 6)
     intr = srn_intrinsics(cat.focal, cat.image_size, res)
     yy, xx = torch.meshgrid(torch.arange(res, dtype=torch.float32), torch.arange(res, dtype=torch.float32),
@@ -122,7 +123,7 @@ def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
     disc = torch.stack([0.8 - r, 0.3 + r, torch.full_like(r, 0.5)])
     image = torch.where(mask[None], disc, torch.ones_like(disc))
     prior = None
-    if cfg.model.encoder.use_depth:
+    if spec.use_depth:
         disparity = torch.where(mask, 1.0 - r, torch.zeros_like(r))
         prior = normalize_disparity(disparity[None], mask[None])[None, :, None]
     src = SourceViews(images=image[None, None], poses=poses[:1][None], focal=torch.tensor([intr.focal]),
@@ -133,16 +134,15 @@ def probe_sources(cfg: TrainConfig) -> tuple[SourceViews, torch.Tensor]:
 @torch.no_grad()
 def roundtrip_check(source: Pretrained, exported: Pretrained) -> dict:
     """Render the probe view with both models; ``max_abs_rgb``, ``mean_abs_rgb`` and ``psnr_db`` of the pair."""
-    cfg = source.config
-    src, pose = probe_sources(cfg)
-    res = cfg.data.resolution
-    cat = category_defaults(cfg.data.category)
-    intr = srn_intrinsics(cat.focal, cat.image_size, res)
-    near, far = z_range(cfg)
+    spec = source.spec
+    src, pose = probe_sources(spec)
+    cat = category_defaults(spec.category)
+    intr = srn_intrinsics(cat.focal, cat.image_size, spec.resolution)
+    near, far = spec.z_range
     rgbs = []
     for pre in (source, exported):
         enc = pre.model.encode(src)
-        rgbs.append(render_poses(pre.model, enc, pose, intr, near, far, cfg.render, 4096, "cpu").rgb[0].numpy())
+        rgbs.append(render_poses(pre.model, enc, pose, intr, near, far, spec.render, 4096, "cpu").rgb[0].numpy())
     diff = np.abs(rgbs[0] - rgbs[1])
     return {"max_abs_rgb": float(diff.max()), "mean_abs_rgb": float(diff.mean()),
             "psnr_db": psnr(rgbs[1], np.clip(rgbs[0], 0.0, 1.0)), "tolerance": FP16_TOLERANCE,
@@ -243,9 +243,9 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              "## Model and preset", "",
              f"- Encoder: {m.encoder.backbone} trunk, {m.encoder.num_layers} feature stages"
              + (f", + 4th input channel and depth encoder ({m.encoder.depth_channels} channels)"
-                if m.encoder.use_depth else "") + ".",
+                if cfg.prior.enabled else "") + ".",
              f"- NeRF MLP: {f.n_blocks} residual blocks of width {f.d_hidden}; samples {r.n_coarse} coarse + "
-             f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(z_range(cfg))}.",
+             f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(inference_spec(cfg).z_range)}.",
              f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}, {s.objects_phase1}/{s.objects_phase2} objects x "
              f"{s.rays_per_object} rays per step, bbox sampling for {s.bbox_steps} steps; seed {cfg.seed}.",
              "- Full config: the `train_config` entry of the weights' metadata "
@@ -316,12 +316,13 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     _, meta = ckpt.read_weights(source_path)
     source = load_pretrained(source_path)
     _check_fp16_range(source)
-    cfg = source.config
+    cfg = from_dict_config(json.loads(meta["train_config"]), where=f"{source_path} train_config")
     out.mkdir(parents=True, exist_ok=True)
     weights, staged = out / f"{name}.safetensors", out / f".{name}.export.safetensors"
     extra = {"train_config": meta["train_config"], "source_sha256": source.sha256, "source_run": run.resolve().name,
              "source_file": source_path.resolve().relative_to(run.resolve()).as_posix(), "dtype": "float16",
-             "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})"}
+             "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})",
+             SPEC_KEY: source.spec.to_json()}
     ckpt.save_weights(staged, source.model, ckpt.checkpoint_config(meta, source_path), step=source.step,
                       dtype=torch.float16, extra=extra)
     try:  # every check passes before the staged file takes the shipped name

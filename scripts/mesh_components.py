@@ -20,8 +20,8 @@ import torch
 import trimesh
 
 from depthnerf.data.srn import index_split
-from depthnerf.eval.objects import cached_prior, open_prior_store, prepare_object, protocol_views
-from depthnerf.eval.pretrained import load_pretrained
+from depthnerf.eval.objects import dataset_prior, prepare_object, protocol_views
+from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.mesh import field_queries
 
 
@@ -36,15 +36,15 @@ def main(argv: list[str] | None = None) -> int:
     for run in args.runs:
         pre = load_pretrained(run)
         ev = (args.eval_root or run.resolve().parent.parent / "eval") / run.name
-        records = index_split(args.data, pre.config.data.category, "test").objects[: args.objects]
-        store = open_prior_store(pre, args.data, records)
-        res = pre.config.data.resolution
+        records = index_split(args.data, pre.spec.category, "test").objects[: args.objects]
+        prior = dataset_prior(pre.spec, args.data, records)
+        res = pre.spec.resolution
         for rec in records:
             mesh_path = ev / "meshes" / f"{rec.object_id}.ply"
             if not mesh_path.is_file():
                 print(f"error: {mesh_path}: missing (run depthnerf eval --save-renders)", file=sys.stderr)
                 return 2
-            obj = prepare_object(pre.model, rec, protocol_views(rec.num_views, 25), cached_prior(store), res, res,
+            obj = prepare_object(pre.model, rec, protocol_views(rec.num_views, 25), prior, res, res,
                                  torch.device("cpu"))
             _, color_fn = field_queries(pre.model, obj.enc, obj.source.poses[0, :3, 3])
             parts = sorted(trimesh.load(mesh_path).split(only_watertight=False), key=lambda m: -len(m.vertices))

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import torch
 
+from depthnerf.config_io import apply_overrides, to_dict
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import TrainConfig, preset, with_prior
-from depthnerf.train.overrides import apply_overrides, to_dict
 
 
 def tiny_bundled(path: Path, input_size: int = 16) -> Path:
@@ -42,7 +42,7 @@ def tiny_config(category: str, estimator: str, depth_weights: Path | None = None
 def tiny_model(cfg: TrainConfig, seed: int = 0) -> PixelNeRF:
     """A random model of ``cfg`` whose BatchNorm buffers are not the defaults (so a lost buffer shows)."""
     torch.manual_seed(seed)
-    model = PixelNeRF(cfg.model)
+    model = PixelNeRF(cfg.model, use_depth=cfg.prior.enabled)
     with torch.no_grad():
         for name, buf in model.named_buffers():
             if name.endswith("running_mean"):

@@ -25,7 +25,6 @@ from depthnerf.app.logic import (
     examples,
     one_line,
     resolve_model,
-    y_up_copy,
 )
 from depthnerf.cli import main
 from depthnerf.errors import DepthnerfError
@@ -137,16 +136,6 @@ def test_resolve_model_and_messages(tmp_path):
         check_upload(tmp_path / "missing.png")
 
 
-def test_y_up_copy_rotates_world_z_up_to_gltf_y_up(tmp_path):
-    mesh = trimesh.Trimesh(vertices=[[0.1, 0.2, 0.3], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], faces=[[0, 1, 2]])
-    mesh.export(tmp_path / "m.glb")
-    out = trimesh.load(y_up_copy(tmp_path / "m.glb", tmp_path / "v.glb"), force="mesh")
-    x, y, z = np.asarray(mesh.vertices).T
-    assert np.allclose(np.sort(np.asarray(out.vertices), 0), np.sort(np.stack([x, z, -y], 1), 0), atol=1e-6)
-    trimesh.Trimesh().export(tmp_path / "empty.glb")
-    assert y_up_copy(tmp_path / "empty.glb", tmp_path / "e.glb") is None
-
-
 def test_a_run_collects_every_output(session):
     calls = []
     out = session.run(RunRequest(examples()[0], "car", foreground_ratio=0.5, elevation=25, views=2),
@@ -165,13 +154,19 @@ def test_a_run_collects_every_output(session):
     assert all(p.is_file() and p.stat().st_size > 0 for p in [*out.downloads, out.gif, out.depth_prior])
     if importlib.util.find_spec("imageio_ffmpeg") is not None:
         assert out.video.name == "turntable.mp4" and out.video.read_bytes()[4:8] == b"ftyp"
-    assert out.viewer_glb is None or out.viewer_glb.name == "viewer.glb"
+    assert out.viewer_glb is not None and out.viewer_glb.name == "mesh.glb"
+    ply, glb = trimesh.load(run / "mesh.ply", force="mesh"), trimesh.load(out.viewer_glb, force="mesh")
+    x, y, z = np.asarray(ply.vertices, np.float64).T  # the viewer's GLB is glTF's +y up: (x, y, z) -> (x, z, -y)
+    assert len(ply.vertices) > 0 and np.allclose(np.sort(np.asarray(glb.vertices), 0),
+                                                 np.sort(np.stack([x, z, -y], 1), 0), atol=1e-5)
     assert "fill 0.50" in out.details and "depth prior **bundled**" in out.details
     assert calls[0][0] == 0.0 and [t for _, t in calls][-1] == "writing outputs"
     # keep_runs=2: older run folders are deleted as new ones come
     for _ in range(2):
         session.run(RunRequest(examples()[0], "car", views=1))
     assert len(list(session.work_dir.glob("run-*"))) == 2 and not run.exists()
+    later = AppSession(AppConfig(work_dir=session.work_dir))  # a reused work folder: new runs, never old names
+    assert later._new_run_dir().name > max(d.name for d in session.work_dir.glob("run-*"))
 
 
 def test_training_fill_is_the_checkpoints(session):

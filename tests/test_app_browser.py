@@ -201,7 +201,7 @@ def test_page_in_headless_chromium(server, browser, tmp_path):
         assert src.startswith("http") and src.endswith(name) and len(fetch(src)) > 100, (elem_id, src)
     assert wait_for(lambda: d.find_elements(By.CSS_SELECTOR, "#viewer canvas"), 30, "the 3D viewer canvas")
     glb = d.find_element(By.CSS_SELECTOR, "#viewer a[data-testid='model3d-download-link']").get_attribute("href")
-    assert glb.endswith("viewer.glb") and fetch(glb)[:4] == b"glTF"
+    assert glb.endswith("mesh.glb") and fetch(glb)[:4] == b"glTF"
     links = {a.get_attribute("href").rsplit("/", 1)[-1]: a.get_attribute("href")
              for a in d.find_elements(By.CSS_SELECTOR, "#downloads a[href]")}
     assert {"mesh.glb", "mesh.ply", "points.ply"} <= set(links), links

@@ -15,15 +15,15 @@ import pytest
 import torch
 from fixtures_srn import make_srn_fixture
 
+from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.config import GuidedSamplerConfig, RenderConfig, SamplerConfig
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import DataConfig, preset, with_prior
-from depthnerf.train.overrides import to_dict
 
 BENCH_DIR = Path(__file__).resolve().parent.parent / "benchmarks"
 
@@ -47,12 +47,12 @@ def tiny_checkpoint(path: Path) -> Path:
     """A random depth-aware model (oracle prior) at 16x16 with a 6 + (6 + 4 + 2) sampler, saved as training does."""
     cfg = with_prior(preset("cpu-cars"), "oracle")
     small = FieldConfig(d_hidden=16, n_blocks=2, combine_layer=1, density_bias_init=5.0)
-    model_cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", num_layers=2, use_depth=True,
+    model_cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", num_layers=2,
                                                       depth_hidden=8, depth_channels=8), coarse=small, fine=small)
     cfg = dataclasses.replace(cfg, data=DataConfig(category="cars", resolution=16), model=model_cfg,
                               render=RenderConfig(sampler=SamplerConfig(n_coarse=6, n_importance=4, n_gaussian=2)))
     torch.manual_seed(0)
-    model = PixelNeRF(model_cfg)
+    model = PixelNeRF(model_cfg, use_depth=True)
     ckpt.save_weights(path, model, to_dict(model_cfg), step=7, extra={"train_config": json.dumps(to_dict(cfg))})
     return path
 
@@ -127,3 +127,23 @@ def test_reference_samples_override(bench, tmp_path):
     assert not plain["guided"] and not plain["meets_target"] and 0 < plain["psnr_vs_reference"] <= 100
     assert 0 <= guided["guide_valid_fraction"] <= guided["guide_occupied_fraction"] <= 1
     assert bench.main([*common, "--reference-samples", "64,16"]) == 2
+
+
+def test_eval_guided_matches_the_benchmark_row(bench, tmp_path):
+    """``depthnerf eval --guided B`` and the benchmark's guided-B row run the same package code
+    (depthnerf.render.guidance): same prior alignment, same guide, same sampler, so the same PSNR."""
+    from depthnerf.render.guidance import GuidanceConfig
+
+    root = make_srn_fixture(tmp_path / "data", "cars", {"test": 2}, views=66, size=16, with_depth=True,
+                            with_mask=True)
+    weights = tiny_checkpoint(tmp_path / "tiny.safetensors")
+    out = tmp_path / "bench.json"
+    assert bench.main(["--checkpoint", str(weights), "--data", str(root), "--objects", "2", "--views-stride", "20",
+                       "--budgets", "12", "--repeats", "1", "--json", str(out)]) == 0
+    row = {r["name"]: r for r in json.loads(out.read_text())["rows"]}["guided-12"]
+    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False, guided=GuidanceConfig(12))
+    summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval", cfg).summary
+    assert summary["guided_sampling"]["budget"] == 12 and "guided sampling (12/ray)" in summary["method"]
+    assert row["psnr"] == pytest.approx(summary["psnr"], abs=1e-3)
+    for mine, theirs in zip(row["per_object"], summary["per_object"], strict=True):
+        assert mine["psnr"] == pytest.approx(theirs["psnr"], abs=1e-3)

@@ -21,8 +21,8 @@ from skimage.metrics import peak_signal_noise_ratio
 
 from depthnerf.cli import main
 from depthnerf.data import srn_format
+from depthnerf.demo import DEMO_SEED
 from depthnerf.eval.metrics import psnr, ssim
-from depthnerf.reconstruct.demo import DEMO_SEED
 
 ARGS = ["--views-stride", "50", "--turntable-views", "3", "--mesh-resolution", "12", "--no-progress"]
 

@@ -67,7 +67,7 @@ def test_missing_partial_stale_and_other_weights_name_the_command(data, tmp_path
     ckpt_a, ckpt_b = _weights(tmp_path / "a.safetensors", 0), _weights(tmp_path / "b.safetensors", 1)
     with pytest.raises(DepthnerfError) as err:  # nothing cached yet
         PriorStore.open(data, "bundled", ckpt_a, resolution=16)
-    assert f"run: depthnerf depth --data {data} --estimator bundled --checkpoint {ckpt_a}" in str(err.value)
+    assert f"run: depthnerf depth --data {data} --depth bundled --depth-checkpoint {ckpt_a}" in str(err.value)
     assert "\n" not in str(err.value)
     assert _depth(data, ckpt_a, "--splits", "train") == 0
     with pytest.raises(DepthnerfError, match=r"found only: bundled-[0-9a-f]{12}-16.*run: depthnerf depth"):
@@ -159,5 +159,5 @@ def test_depth_anything_cache_from_a_local_checkpoint(data, tmp_path, capsys):
     record = index_split(data, "cars", "test").objects[0]
     expect = make_estimator("depth-anything-v2", ckpt).predict(load_object(record).images)
     assert torch.allclose(store.load(record, [0, 1, 2]), expect, rtol=2e-3, atol=1e-3)
-    with pytest.raises(DepthnerfError, match="--estimator depth-anything-v2 --checkpoint .*--splits train"):
+    with pytest.raises(DepthnerfError, match="--depth depth-anything-v2 --depth-checkpoint .*--splits train"):
         store.load(index_split(data, "cars", "train").objects[0], [0])

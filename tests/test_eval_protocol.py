@@ -22,17 +22,18 @@ import trimesh
 from fixtures_srn import make_srn_fixture
 
 from depthnerf.cli import main
+from depthnerf.config_io import to_dict
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import world_to_camera
+from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import index_split, load_object
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.objects import protocol_views
-from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.eval.table import load_summary, markdown_table
+from depthnerf.pretrained.load import load_pretrained
+from depthnerf.pretrained.spec import SPEC_KEY
 from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.overrides import to_dict
 
 TINY = ["--max-steps", "1", "--log.val_every", "0", "--data.resolution", "32", "--data.num_workers", "0",
         "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--model.encoder.backbone", "resnet18",
@@ -56,8 +57,7 @@ def constant_field(src: Path, dst: Path, color=COLOR, sigma: float = 1e4) -> Pat
     for net in (pre.model.coarse, pre.model.fine):
         net.lin_out.weight.data.zero_()
         net.lin_out.bias.data = torch.tensor([*logits, sigma])
-    ckpt.save_weights(dst, pre.model, to_dict(pre.config.model), step=pre.step,
-                      extra={"train_config": json.dumps(to_dict(pre.config))})
+    ckpt.save_weights(dst, pre.model, to_dict(pre.spec.model), step=pre.step, extra={SPEC_KEY: pre.spec.to_json()})
     return dst
 
 
@@ -230,7 +230,7 @@ def test_eval_bad_input_is_one_line_error(setup, capsys, args, text):
 
 
 def test_checkpoints_lists_shipped_or_says_none(setup, capsys, monkeypatch, tmp_path):
-    from depthnerf.eval import pretrained
+    from depthnerf.pretrained import load as pretrained
 
     monkeypatch.setattr(pretrained, "SHIPPED_DIR", tmp_path / "empty")
     assert cli("checkpoints") == 0
@@ -255,7 +255,7 @@ def test_pixel_center_is_trained_recorded_and_overridable(setup):
     run = setup["tmp"] / "centred"
     assert cli("train", "--depth", "none", "--data", setup["root"], "--out", run, *TINY,
                "--data.pixel_center", "0.5") == 0
-    assert load_pretrained(run).config.data.pixel_center == 0.5
+    assert load_pretrained(run).spec.pixel_center == 0.5
     summaries = {}
     for name, extra in (("trained", []), ("override", ["--pixel-center", "0"])):
         out = setup["tmp"] / f"eval_centre_{name}"

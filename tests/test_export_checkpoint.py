@@ -17,10 +17,10 @@ from fixtures_checkpoints import tiny_bundled, tiny_config, tiny_run
 from safetensors import safe_open
 
 from depthnerf.cli import main as cli_main
-from depthnerf.eval import pretrained
-from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import SourceViews
+from depthnerf.pretrained import load as pretrained
+from depthnerf.pretrained.load import load_pretrained
 from depthnerf.train import checkpoint as ckpt
 
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "export_checkpoint.py"

@@ -22,19 +22,20 @@ from fixtures_srn import make_srn_fixture
 from PIL import Image
 
 from depthnerf.cli import main
+from depthnerf.config_io import to_dict
 from depthnerf.data.cameras import world_to_camera
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.pretrained import load_pretrained
 from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.pretrained.load import load_pretrained
 from depthnerf.reconstruct.orbit import srn_intrinsics
 from depthnerf.reconstruct.photo import FILL, prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+from depthnerf.render.guidance import GuidanceConfig
 from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.config import with_prior
-from depthnerf.train.overrides import to_dict
+from depthnerf.train.config import from_dict_config, with_prior
 
 COLOR = (0.2, 0.6, 0.8)
 TINY = ["--max-steps", "1", "--log.val_every", "0", "--data.resolution", "32", "--data.num_workers", "0",
@@ -64,11 +65,12 @@ def models(tmp_path_factory) -> dict[str, Path]:
     for net in (pre.model.coarse, pre.model.fine):
         net.lin_out.weight.data.zero_()
         net.lin_out.bias.data = torch.tensor([*logits, 1e4])
-    base_cfg = with_prior(pre.config, "none")
+    run_cfg = from_dict_config(json.loads((tmp / "run" / "config.json").read_text()))
+    base_cfg = with_prior(run_cfg, "none")
     return {"tmp": tmp, "weights": weights, "run": tmp / "run",
-            "constant": _save(tmp / "constant.safetensors", pre.model, pre.config),
-            "oracle": _save(tmp / "oracle.safetensors", pre.model, with_prior(pre.config, "oracle")),
-            "baseline": _save(tmp / "baseline.safetensors", PixelNeRF(base_cfg.model), base_cfg)}
+            "constant": _save(tmp / "constant.safetensors", pre.model, run_cfg),
+            "oracle": _save(tmp / "oracle.safetensors", pre.model, with_prior(run_cfg, "oracle")),
+            "baseline": _save(tmp / "baseline.safetensors", PixelNeRF(base_cfg.model, use_depth=False), base_cfg)}
 
 
 def disc_photo(h: int = 150, w: int = 200, center=(110, 70), radius: int = 40, bg=(40, 90, 160)) -> np.ndarray:
@@ -179,7 +181,9 @@ def test_cli_writes_every_listed_output(models, tmp_path, capsys):
         assert "imageio-ffmpeg is not installed" in manifest["turntable_mp4_status"]
     header = (out / "points.ply").read_bytes().split(b"end_header")[0].decode()
     assert f"element vertex {manifest['point_cloud']['points']}\n" in header and "property uchar red" in header
-    trimesh.load(out / "mesh.glb")
+    ply, glb = trimesh.load(out / "mesh.ply", force="mesh"), trimesh.load(out / "mesh.glb", force="mesh")
+    x, y, z = np.asarray(ply.vertices, np.float64).T  # glTF is +y up: (x, y, z) -> (x, z, -y)
+    assert np.allclose(np.sort(np.asarray(glb.vertices), 0), np.sort(np.stack([x, z, -y], 1), 0), atol=1e-5)
     with np.load(out / "depths.npz", allow_pickle=False) as d:
         assert d["depth"].shape == (3, 32, 32) and d["poses"].shape == (3, 4, 4)
     assert manifest["checkpoint_sha256"] and manifest["settings"]["views"] == 3
@@ -203,11 +207,31 @@ def test_bad_checkpoints(models, tmp_path, capsys):
     (tmp_path / "notes.txt").write_text("hello")
     cases = [(tmp_path / "notes.txt", "not a readable safetensors checkpoint"),
              (models["weights"], "not a depthnerf checkpoint"),
-             (models["oracle"], "use --depth-estimator bundled")]
+             (models["oracle"], "which a photo does not have; pass --depth ")]
     for path, text in cases:
         assert main(["reconstruct", "photo.png", "--checkpoint", str(path), "--out", str(tmp_path / "o")]) == 2
         err = capsys.readouterr().err
         assert text in err and err.count("\n") == 1
     rec = Reconstructor.from_pretrained(models["oracle"], depth_estimator="bundled",
                                         depth_checkpoint=str(models["weights"]))
-    assert rec.estimator is not None and rec.estimator.name == "bundled"
+    assert rec.prior.kind == "live" and rec.prior.estimator.name == "bundled"
+
+
+def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys):
+    rec = Reconstructor.from_pretrained(models["constant"])
+    cfg = ReconstructConfig(views=2, mesh_resolution=0, guided=GuidanceConfig(budget=12))
+    res = rec.reconstruct(disc_photo(), config=cfg)
+    assert np.abs(res.views - np.array(COLOR)).max() < 1e-4 and res.opacity.min() > 1 - 1e-4
+    assert res.settings["guided_sampling"] == 12
+    plain = rec.reconstruct(disc_photo(), config=ReconstructConfig(views=2, mesh_resolution=0))
+    assert plain.settings["guided_sampling"] is None and np.allclose(plain.views, res.views, atol=1e-4)
+    (tmp_path / "photo.png").write_bytes(b"")
+    Image.fromarray(disc_photo()).save(tmp_path / "photo.png")
+    assert main(["reconstruct", str(tmp_path / "photo.png"), "--checkpoint", str(models["constant"]), "--out",
+                 str(tmp_path / "g"), "--views", "2", "--mesh-resolution", "0", "--guided", "--no-progress",
+                 "--depth-estimator", "bundled", "--depth-checkpoint", str(models["weights"])]) == 0
+    manifest = json.loads((tmp_path / "g" / "manifest.json").read_text())
+    assert manifest["settings"]["guided_sampling"] == 24 and manifest["settings"]["depth_estimator"] == "bundled"
+    assert main(["reconstruct", str(tmp_path / "photo.png"), "--checkpoint", str(models["constant"]), "--out",
+                 str(tmp_path / "h"), "--guided", "5"]) == 2
+    assert "--guided 5: a guided budget needs >= 6" in capsys.readouterr().err

@@ -23,12 +23,12 @@ from fixtures_srn import make_srn_fixture
 from PIL import Image
 
 from depthnerf.cli import main as cli_main
+from depthnerf.config_io import to_dict
 from depthnerf.data import srn_format
 from depthnerf.data.srn import index_split
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import preset, with_prior
-from depthnerf.train.overrides import to_dict
 from depthnerf.train.run_log import RunLog
 
 SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"

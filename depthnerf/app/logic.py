@@ -126,7 +126,7 @@ class RunOutputs:
     gif: Path | None = None
     """Orbit as GIF."""
     viewer_glb: Path | None = None
-    """Mesh for the 3D viewer (y-up copy of mesh.glb; None when the mesh is empty)."""
+    """Mesh for the 3D viewer (mesh.glb, written +y up; None when the mesh is empty)."""
     downloads: list[Path] = field(default_factory=list)
     """mesh.glb, mesh.ply, points.ply."""
     seconds: float = 0.0
@@ -210,24 +210,12 @@ class ModelCache:
 
 def model_category(rec) -> str:
     """Training category of a loaded Reconstructor."""
-    return rec.pretrained.config.data.category
+    return rec.pretrained.spec.category
 
 
 def model_resolution(rec) -> int:
     """Training (input) resolution of a loaded Reconstructor."""
-    return rec.pretrained.config.data.resolution
-
-
-def y_up_copy(glb: Path, dst: Path) -> Path | None:
-    """A copy of a world-frame (+z up) GLB rotated to glTF's +y up for the viewer; None if the mesh is empty."""
-    import trimesh
-
-    mesh = trimesh.load(glb, force="mesh")
-    if len(getattr(mesh, "faces", [])) == 0:
-        return None
-    mesh.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))
-    mesh.export(dst)
-    return dst
+    return rec.pretrained.spec.resolution
 
 
 class AppSession:
@@ -241,7 +229,8 @@ class AppSession:
         else:
             self.work_dir = Path(config.work_dir)
             self.work_dir.mkdir(parents=True, exist_ok=True)
-        self._runs = 0
+        numbers = [int(d.name[4:]) for d in self.work_dir.glob("run-*") if d.name[4:].isdigit()]
+        self._runs = max(numbers, default=0)  # a reused --work-dir continues its numbering
         self._lock = threading.Lock()
 
     def training_fill(self, model: str, checkpoint_path: str = "") -> float:
@@ -322,7 +311,7 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
         return run_dir / files[key] if files.get(key) else None
 
     glb = at("mesh_glb")
-    viewer = None if manifest["mesh"]["empty"] else y_up_copy(glb, run_dir / "viewer.glb")
+    viewer = None if manifest["mesh"]["empty"] else glb  # mesh.glb is +y up, as glTF viewers expect
     settings = manifest["settings"]
     timings = ", ".join(f"{k.removesuffix('_s')} {v:.1f} s" for k, v in manifest["timings"].items())
     prior = settings["depth_estimator"]

@@ -78,6 +78,8 @@ def build_page(session: AppSession) -> gr.Blocks:
     start_fill = session.training_fill(first)
 
     def preview(image, model, ckpt_path, ratio):
+        if not image:  # the upload was cleared: nothing to complain about yet
+            return None, "upload a PNG, JPEG or WebP photo, or pick an example", gr.Markdown(visible=False)
         img, message = session.preview(RunRequest(image, model, ckpt_path or "", foreground_ratio=ratio))
         clutter = img is None and "background is not a plain colour" in message
         return img, message, gr.Markdown(visible=clutter)

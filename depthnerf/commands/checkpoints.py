@@ -62,7 +62,7 @@ def describe(name: str, path: Path) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from depthnerf.eval import pretrained
+    from depthnerf.pretrained import load as pretrained
 
     shipped = pretrained.shipped_checkpoints()
     rows = [describe(name, path) for name, path in shipped.items()]

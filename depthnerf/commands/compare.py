@@ -14,6 +14,7 @@ from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.table import find_summaries, load_summary, markdown_table
+from depthnerf.files import write_text_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -33,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out is not None:
         try:
             args.out.parent.mkdir(parents=True, exist_ok=True)
-            args.out.write_text(table)
+            write_text_atomic(args.out, table)
         except OSError as err:
             raise DepthnerfError(f"{args.out}: cannot write the table ({err.strerror or err})") from None
     return 0

@@ -1,11 +1,11 @@
 """``depthnerf demo [--out DIR]``: one-command demo, no data and no network needed.
 
 Synthesises one unseen car and one unseen chair (``depthnerf synth`` test object 0 of ``--seed``, default
-:data:`depthnerf.reconstruct.demo.DEMO_SEED`), reconstructs each from its view 64 with the shipped depth-aware
+:data:`depthnerf.demo.DEMO_SEED`), reconstructs each from its view 64 with the shipped depth-aware
 checkpoints (``--cars-checkpoint`` / ``--chairs-checkpoint``: any checkpoint spec), scores every
 ``--views-stride``-th true view by the SRN protocol with the metric code of ``depthnerf eval`` and writes input,
 depth prior, novel views vs truth, a turntable GIF, a mesh and ``OUT/demo.json`` (layout in
-:mod:`depthnerf.reconstruct.demo`). Prints a summary table, where the files are and its own wall time.
+:mod:`depthnerf.demo`). Prints a summary table, where the files are and its own wall time.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from depthnerf.commands.evaluate import resolve_device
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from depthnerf.reconstruct.demo import CATEGORIES, DEFAULT_CHECKPOINTS, DEMO_SEED
+    from depthnerf.demo import CATEGORIES, DEFAULT_CHECKPOINTS, DEMO_SEED
 
     p.add_argument("--out", type=Path, default=Path("demo_out"), help="output folder (default demo_out)")
     p.add_argument("--seed", type=int, default=DEMO_SEED,
@@ -50,7 +50,7 @@ def process_seconds() -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from depthnerf.reconstruct.demo import DemoConfig, run_demo
+    from depthnerf.demo import DemoConfig, run_demo
 
     t0 = time.perf_counter()
     cats = tuple(dict.fromkeys(args.categories))

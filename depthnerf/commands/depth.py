@@ -21,10 +21,11 @@ DEFAULT_SPLITS = ("train", "val", "test")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
-    parser.add_argument("--estimator", choices=ESTIMATORS, required=True, help="depth estimator backend")
-    parser.add_argument("--checkpoint", default=None,
-                        help="hub id or local directory (depth-anything-v2), weights file (bundled); "
-                             "default: the backend's default")
+    parser.add_argument("--depth", "--estimator", dest="estimator", choices=ESTIMATORS, required=True,
+                        help="depth prior (estimator) to cache (--estimator: same)")
+    parser.add_argument("--depth-checkpoint", "--checkpoint", dest="checkpoint", default=None,
+                        help="estimator weights: hub id or local directory (depth-anything-v2), weights file "
+                             "(bundled); default: the backend's default (--checkpoint: same)")
     parser.add_argument("--splits", nargs="+", choices=DEFAULT_SPLITS, default=None,
                         help="splits to process (default: train val test, those that exist)")
     parser.add_argument("--category", action="append", default=None,

@@ -17,13 +17,16 @@ from pathlib import Path
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.depth.evaluate import DepthEvalConfig, evaluate_depth
+from depthnerf.files import write_text_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
     parser.add_argument("--split", choices=("train", "val", "test"), default="test", help="split (default test)")
-    parser.add_argument("--estimator", choices=ESTIMATORS, required=True, help="depth estimator backend")
-    parser.add_argument("--checkpoint", default=None, help="hub id / local directory / weights file")
+    parser.add_argument("--depth", "--estimator", dest="estimator", choices=ESTIMATORS, required=True,
+                        help="depth prior (estimator) to score (--estimator: same)")
+    parser.add_argument("--depth-checkpoint", "--checkpoint", dest="checkpoint", default=None,
+                        help="estimator weights: hub id / local directory / weights file (--checkpoint: same)")
     parser.add_argument("--category", action="append", default=None, help="only this category (repeatable)")
     parser.add_argument("--json", type=Path, default=None, help="write the scores as JSON to this file")
     parser.add_argument("--max-objects", type=int, default=None, help="at most N objects per category")
@@ -49,5 +52,5 @@ def run(args: argparse.Namespace) -> int:
               f"({scores['images']} images)")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result.as_dict(), indent=2) + "\n")
+        write_text_atomic(args.json, json.dumps(result.as_dict(), indent=2) + "\n")
     return 0

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import torch
 
+from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
 
 
@@ -48,7 +49,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quantize", action="store_true",
                    help="score 8-bit truncated renders (pixelNeRF calc_metrics.py) instead of float renders")
     p.add_argument("--method", help="row label for depthnerf compare (default from the depth prior)")
+    p.add_argument("--depth", choices=ESTIMATORS,
+                   help="override the depth prior recorded in the checkpoint (its cache must exist)")
     p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
+    p.add_argument("--guided", type=int, nargs="?", const=24, metavar="BUDGET",
+                   help="render with depth-guided sampling, BUDGET samples per occupied ray (default 24)")
+    p.add_argument("--guided-align-samples", type=int, default=32,
+                   help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
     p.add_argument("--pixel-center", type=float,
                    help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
@@ -69,11 +76,24 @@ def resolve_device(name: str) -> torch.device:
         raise DepthnerfError(f"--device {name!r}: not a torch device (use auto, cpu or cuda)") from None
 
 
+def guidance(budget: int | None, align_samples: int):
+    """The ``--guided`` setting: None (the checkpoint's sampler) or a GuidanceConfig."""
+    from depthnerf.render.guidance import GuidanceConfig
+
+    if budget is None:
+        return None
+    if budget < 6:
+        raise DepthnerfError(f"--guided {budget}: a guided budget needs >= 6 samples per ray")
+    if align_samples < 1:
+        raise DepthnerfError(f"--guided-align-samples must be >= 1, got {align_samples}")
+    return GuidanceConfig(budget=budget, align_samples=align_samples)
+
+
 def run(args: argparse.Namespace) -> int:
     from depthnerf.eval.geometry_metrics import GeometryConfig
     from depthnerf.eval.metrics import LpipsConfig
-    from depthnerf.eval.pretrained import load_pretrained
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
+    from depthnerf.pretrained.load import load_pretrained
     from depthnerf.render.mesh import parse_level
 
     out = args.out
@@ -83,17 +103,20 @@ def run(args: argparse.Namespace) -> int:
         out = args.run / "eval" / args.split
     device = resolve_device(args.device)
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
-    data = args.data or Path(pre.config.data.root)
+    if args.data is None and pre.data_root is None:
+        raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
+    data = args.data or Path(pre.data_root)
     if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too
         from depthnerf.data.srn import index_split
 
-        index_split(data, args.category or pre.config.data.category, args.split, strict=True)
+        index_split(data, args.category or pre.spec.category, args.split, strict=True)
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
         resolution=args.resolution, chunk=args.chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
-        quantize=args.quantize, method=args.method, depth_checkpoint=args.depth_checkpoint,
+        quantize=args.quantize, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
+        guided=guidance(args.guided, args.guided_align_samples),
         lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
         progress=not args.no_progress)
     result = evaluate_protocol(pre, data, out, cfg, device)

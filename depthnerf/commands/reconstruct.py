@@ -11,12 +11,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from depthnerf.commands.evaluate import resolve_device
+from depthnerf.commands.evaluate import guidance, resolve_device
+from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("image", type=Path, help="input photo (RGB, RGBA or grayscale)")
-    p.add_argument("--checkpoint", required=True, help="weights file, checkpoint/run folder or shipped name")
+    p.add_argument("--checkpoint", required=True,
+                   help="model weights: weights file, checkpoint/run folder or shipped name")
     p.add_argument("--out", type=Path, required=True, help="output folder (manifest.json lists every file)")
     p.add_argument("--mask", type=Path, help="object mask, same size as the image (non-zero = object)")
     p.add_argument("--views", type=int, default=36, help="novel views on the orbit (default 36)")
@@ -32,9 +34,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-threshold", default="auto",
                    help="marching-cubes density level: a number, or auto (default: half the median peak density "
                         "along the opaque input rays)")
-    p.add_argument("--depth-estimator", choices=["bundled", "depth-anything-v2"],
-                   help="override the checkpoint's depth estimator (needed for checkpoints trained with oracle)")
+    p.add_argument("--depth", "--depth-estimator", dest="depth", choices=PHOTO_ESTIMATORS,
+                   help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
+                        "--depth-estimator: same)")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
+    p.add_argument("--guided", type=int, nargs="?", const=24, metavar="BUDGET",
+                   help="render with depth-guided sampling, BUDGET samples per occupied ray (default 24)")
+    p.add_argument("--guided-align-samples", type=int, default=32,
+                   help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
     p.add_argument("--chunk", type=int, default=4096, help="rays per render pass (default 4096)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -45,12 +52,13 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.render.mesh import parse_level
 
     device = resolve_device(args.device)
-    rec = Reconstructor.from_pretrained(args.checkpoint, device, depth_estimator=args.depth_estimator,
+    rec = Reconstructor.from_pretrained(args.checkpoint, device, depth_estimator=args.depth,
                                         depth_checkpoint=args.depth_checkpoint)
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
-                            chunk=args.chunk, progress=not args.no_progress)
+                            chunk=args.chunk, guided=guidance(args.guided, args.guided_align_samples),
+                            progress=not args.no_progress)
     result = rec.reconstruct(args.image, mask=args.mask, config=cfg)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:

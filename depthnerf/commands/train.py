@@ -12,9 +12,10 @@ import dataclasses
 import json
 from pathlib import Path
 
+from depthnerf.config_io import apply_overrides, to_dict
+from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
-from depthnerf.train.config import PRESETS, TrainConfig, from_dict_config, preset, with_prior
-from depthnerf.train.overrides import apply_overrides, to_dict
+from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
 
 ACCEPTS_OVERRIDES = True
 
@@ -23,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="cpu-cars", choices=sorted(PRESETS), help="named preset (default cpu-cars)")
     p.add_argument("--data", help="dataset root (SRN layout); default: the preset's")
     p.add_argument("--out", help="run folder (config, metrics.jsonl, TensorBoard events, checkpoints/)")
-    p.add_argument("--depth", choices=["none", "bundled", "oracle", "depth-anything-v2"],
+    p.add_argument("--depth", choices=ESTIMATORS,
                    help="depth prior: none = pixelNeRF baseline; default: the preset's")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id or local dir for depth-anything-v2)")
     p.add_argument("--max-steps", type=int, help="total optimisation steps")
@@ -42,12 +43,12 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
     if args.resume and args.out and (Path(args.out) / "config.json").is_file():
         path = Path(args.out) / "config.json"
         try:
-            cfg = from_dict_config(json.loads(path.read_text()))
+            cfg = from_dict_config(json.loads(path.read_text()), where=str(path))
         except (OSError, json.JSONDecodeError) as err:
             raise DepthnerfError(f"{path}: unreadable run config ({err})") from None
         if args.max_steps is not None:
             cfg = dataclasses.replace(cfg, schedule=dataclasses.replace(cfg.schedule, max_steps=args.max_steps))
-        return cfg
+        return check_config(cfg)
     cfg = preset(args.preset)
     if args.depth is not None or args.depth_checkpoint is not None:
         cfg = with_prior(cfg, args.depth or cfg.prior.estimator, args.depth_checkpoint)
@@ -61,7 +62,7 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
     if args.checkpoint_every is not None:
         log = dataclasses.replace(log, checkpoint_every=args.checkpoint_every)
     cfg = dataclasses.replace(cfg, schedule=sched, log=log)
-    return apply_overrides(cfg, args.overrides)
+    return check_config(apply_overrides(cfg, args.overrides))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise DepthnerfError("--out RUN_DIR is required to train")
+    from depthnerf.eval.validation import validate
     from depthnerf.train.distributed import setup, teardown
     from depthnerf.train.loop import train
 
@@ -83,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
 
     info = setup(args.device)
     try:
-        result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress)
+        result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress,
+                       validate=validate)
     finally:
         teardown(info)
     if info.is_main:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -30,12 +29,12 @@ import torch
 import torch.nn.functional as F
 from jaxtyping import Float
 from safetensors import SafetensorError
-from safetensors.torch import load_file, safe_open, save_file
+from safetensors.torch import load_file, safe_open, save
 from torch import Tensor, nn
 
-from depthnerf.depth.estimators import FrozenNetworkEstimator, PriorProvenance
+from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import sha256_files
+from depthnerf.files import sha256_files, write_bytes_atomic
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "bundled_depth.safetensors"
 """Where the shipped weights live inside the package."""
@@ -125,23 +124,13 @@ def network_size(config: BundledNetConfig, height: int, width: int) -> tuple[int
 
 
 def save_bundled(net: BundledDepthNet, path: Path, notes: dict[str, str] | None = None) -> None:
-    """Write weights + config atomically (temporary file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Write weights + config atomically (:func:`depthnerf.files.write_bytes_atomic`)."""
     state = {k: v.detach().float().cpu().contiguous() for k, v in net.state_dict().items()
              if v.dtype.is_floating_point}
     state.update({k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()
                   if not v.dtype.is_floating_point})
     metadata = {"config": net.config.to_json(), "format": "depthnerf-bundled-depth-v1", **(notes or {})}
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    os.close(fd)
-    try:
-        save_file(state, tmp, metadata=metadata)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these files are shared data
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_bytes_atomic(path, save(state, metadata=metadata))  # shared data: 0644
 
 
 def _weights_path(checkpoint: str | os.PathLike | None) -> Path:

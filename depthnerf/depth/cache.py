@@ -25,7 +25,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -33,11 +32,13 @@ from typing import Any
 import torch
 from jaxtyping import Float
 from safetensors import SafetensorError
-from safetensors.torch import safe_open, save_file
+from safetensors.torch import safe_open, save
 from torch import Tensor
 
-from depthnerf.depth.estimators import PriorProvenance, describe_estimator, oracle_disparity
+from depthnerf.depth.backend import PriorProvenance, oracle_disparity
+from depthnerf.depth.estimators import describe_estimator
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_bytes_atomic
 
 CACHE_DIRNAME = "depth_priors"
 """Folder under the dataset root that holds every cache."""
@@ -59,9 +60,9 @@ def object_path(root: Path, record: Any) -> Path:
 def depth_command(data_root: Path, estimator: str, checkpoint: str | None, resolution: int,
                   category: str | None = None, split: str | None = None) -> str:
     """The ``depthnerf depth ...`` command line that (re)makes a cache."""
-    parts = ["depthnerf depth", f"--data {data_root}", f"--estimator {estimator}"]
+    parts = ["depthnerf depth", f"--data {data_root}", f"--depth {estimator}"]
     if checkpoint:
-        parts.append(f"--checkpoint {checkpoint}")
+        parts.append(f"--depth-checkpoint {checkpoint}")
     if category:
         parts.append(f"--category {category}")
     if split:
@@ -85,22 +86,28 @@ def object_fingerprint(record: Any) -> str:
     return digest.hexdigest()
 
 
+def storage_dtype(disparity: Float[Tensor, "V H W"]) -> torch.dtype:
+    """How the cache stores a disparity tensor: float16, or float32 if a value would overflow float16."""
+    return torch.float16 if disparity.abs().max() <= FLOAT16_MAX else torch.float32
+
+
+def as_cached(disparity: Float[Tensor, "V H W"]) -> Float[Tensor, "V H W"]:
+    """``disparity`` rounded exactly as the cache stores it (:func:`storage_dtype`), back in float32.
+
+    A live estimator's prior passed through here equals the prior ``depthnerf eval`` reads from the cache for
+    the same image, so the demo and the evaluation condition the model on the same numbers.
+    """
+    disparity = disparity.detach().float().cpu()
+    return disparity.to(storage_dtype(disparity)).float()
+
+
 def write_object_priors(path: Path, disparity: Float[Tensor, "V H W"], metadata: dict[str, str]) -> None:
-    """Atomically write one object's raw disparity (temp file in the same folder + rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """Atomically write one object's raw disparity (:func:`depthnerf.files.write_bytes_atomic`)."""
     disparity = disparity.detach().float().cpu()
     if not torch.isfinite(disparity).all():
         raise DepthnerfError(f"{path}: estimator produced non-finite disparity; refusing to cache it")
-    dtype = torch.float16 if disparity.abs().max() <= FLOAT16_MAX else torch.float32
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        save_file({"disparity": disparity.to(dtype).contiguous()}, tmp, metadata=metadata)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; these files are shared data
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    dtype = storage_dtype(disparity)
+    write_bytes_atomic(path, save({"disparity": disparity.to(dtype).contiguous()}, metadata=metadata))
 
 
 def read_object_metadata(path: Path) -> dict[str, str] | None:

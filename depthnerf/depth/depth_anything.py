@@ -27,7 +27,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from depthnerf.depth.estimators import FrozenNetworkEstimator, PriorProvenance
+from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_files
 
@@ -152,7 +152,7 @@ class DepthAnythingEstimator(FrozenNetworkEstimator):
             raise DepthnerfError(f"{local}: not a loadable Depth Anything checkpoint ({reason})")
         raise DepthnerfError(
             f"cannot load Depth Anything checkpoint '{checkpoint}' ({reason}); download it where there is "
-            f"internet (e.g. `hf download {checkpoint} --local-dir DIR`) and pass --checkpoint DIR")
+            f"internet (e.g. `hf download {checkpoint} --local-dir DIR`) and pass --depth-checkpoint DIR")
 
     @torch.inference_mode()
     def predict(self, images: Float[Tensor, "B 3 H W"],

@@ -1,4 +1,4 @@
-"""The monocular depth estimator interface, its provenance record, and the estimator registry.
+"""The ONE registry of depth-prior names (``--depth`` / ``--estimator`` everywhere), and loading by name.
 
 Convention (all backends): RGB images ``[B, 3, H, W]`` in [0, 1] in, *relative disparity* ``[B, H, W]`` out at
 the input's resolution: larger = closer, defined up to an unknown positive scale and a shift (see
@@ -22,153 +22,75 @@ Backends (``ESTIMATORS``):
 
 from __future__ import annotations
 
-import hashlib
-from dataclasses import asdict, dataclass
-from typing import Any, Protocol, runtime_checkable
+from collections.abc import Callable
+from dataclasses import dataclass
 
-import torch
-from jaxtyping import Float
-from torch import Tensor
-
+from depthnerf.depth.backend import (
+    DepthEstimator,
+    FrozenNetworkEstimator,
+    OracleEstimator,
+    PriorProvenance,
+    oracle_disparity,
+    oracle_provenance,
+)
+from depthnerf.depth.bundled import BundledEstimator, bundled_provenance
+from depthnerf.depth.depth_anything import DepthAnythingEstimator, depth_anything_provenance
 from depthnerf.errors import DepthnerfError
 
-ESTIMATORS = ("depth-anything-v2", "bundled", "oracle", "none")
-"""Every estimator name accepted by :func:`make_estimator` and the CLI."""
-
-CACHED_ESTIMATORS = ("depth-anything-v2", "bundled")
-"""Estimators whose priors are precomputed by ``depthnerf depth`` (``oracle`` is computed on the fly)."""
+__all__ = ["ESTIMATORS", "CACHED_ESTIMATORS", "PHOTO_ESTIMATORS", "EstimatorEntry", "estimator_entry",
+           "describe_estimator", "make_estimator", "DepthEstimator", "FrozenNetworkEstimator", "OracleEstimator",
+           "PriorProvenance", "oracle_disparity", "oracle_provenance"]
 
 
 @dataclass(frozen=True)
-class PriorProvenance:
-    """Where a depth prior came from: enough to key a cache and to record in a run folder."""
-
-    estimator: str
-    """Backend name (one of ``ESTIMATORS``)."""
-    checkpoint: str | None
-    """Hub id, local directory or weights file the backend was loaded from (None: the backend's default)."""
-    weights_hash: str
-    """Hex SHA-256 identifying the weights (file contents, or hub id + revision when not local)."""
-    input_resolution: int | None
-    """Side length the backend resizes images to internally (None: works at the image's own resolution)."""
-    licence: str
-    """Licence of the weights (for READMEs and run folders)."""
-
-    @property
-    def short_hash(self) -> str:
-        """The first 12 hex digits of :attr:`weights_hash` (used in cache folder names)."""
-        return self.weights_hash[:12]
-
-    def as_dict(self) -> dict[str, Any]:
-        """A JSON-able dict."""
-        return asdict(self)
-
-
-@runtime_checkable
-class DepthEstimator(Protocol):
-    """A frozen monocular depth estimator (see the module docstring for the disparity convention)."""
+class EstimatorEntry:
+    """One depth-prior name and what it can do."""
 
     name: str
-    """Backend name."""
-    needs_depth: bool
-    """True only for ``oracle``: ``predict`` then requires ground-truth ``depths``."""
-
-    @property
-    def provenance(self) -> PriorProvenance:
-        """Backend, weights hash and resolution."""
-        ...
-
-    def predict(self, images: Float[Tensor, "B 3 H W"],
-                depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
-        """Relative disparity at the images' resolution (float32, on the CPU)."""
-        ...
+    """The name (``--depth NAME``)."""
+    cached: bool
+    """Priors are precomputed into the dataset's cache by ``depthnerf depth`` (else computed on the fly)."""
+    photo: bool
+    """Runs on a bare photo (``oracle`` needs ground-truth depth; ``none`` has nothing to run)."""
+    describe: Callable[[str | None], PriorProvenance | None]
+    """Provenance without loading the network (hashes the weights)."""
+    load: Callable[[str | None, str], DepthEstimator | None]
+    """``load(checkpoint, device)``: the frozen estimator."""
 
 
-class FrozenNetworkEstimator:
-    """What the network backends share: a frozen module on a device, its provenance and the input check."""
+_REGISTRY = (
+    EstimatorEntry("depth-anything-v2", cached=True, photo=True, describe=depth_anything_provenance,
+                   load=lambda ckpt, device: DepthAnythingEstimator.load(ckpt, device=device)),
+    EstimatorEntry("bundled", cached=True, photo=True, describe=bundled_provenance,
+                   load=lambda ckpt, device: BundledEstimator.load(ckpt, device=device)),
+    EstimatorEntry("oracle", cached=False, photo=False, describe=lambda ckpt: oracle_provenance(),
+                   load=lambda ckpt, device: OracleEstimator()),
+    EstimatorEntry("none", cached=False, photo=False, describe=lambda ckpt: None, load=lambda ckpt, device: None),
+)
 
-    name: str
-    needs_depth = False
+ESTIMATORS: tuple[str, ...] = tuple(e.name for e in _REGISTRY)
+"""Every depth-prior name accepted by :func:`make_estimator`, the configs and the CLI."""
 
-    def __init__(self, network: torch.nn.Module, provenance: PriorProvenance, device: str = "cpu") -> None:
-        self.network = network.eval().requires_grad_(False).to(device)
-        self._provenance = provenance
-        self.device = device
+CACHED_ESTIMATORS: tuple[str, ...] = tuple(e.name for e in _REGISTRY if e.cached)
+"""Estimators whose priors are precomputed by ``depthnerf depth`` (``oracle`` is computed on the fly)."""
 
-    @property
-    def provenance(self) -> PriorProvenance:
-        return self._provenance
-
-    @staticmethod
-    def image_size(images: Float[Tensor, "B 3 H W"]) -> tuple[int, int]:
-        """(H, W) of a ``[B, 3, H, W]`` batch; ``ValueError`` for any other shape."""
-        if images.ndim != 4 or images.shape[1] != 3:
-            raise ValueError(f"expected images [B, 3, H, W], got {tuple(images.shape)}")
-        return int(images.shape[-2]), int(images.shape[-1])
+PHOTO_ESTIMATORS: tuple[str, ...] = tuple(e.name for e in _REGISTRY if e.photo)
+"""Estimators that run on a bare photo (``depthnerf reconstruct --depth``)."""
 
 
-def oracle_disparity(depth: Float[Tensor, "*B H W"]) -> Float[Tensor, "*B H W"]:
-    """Ground-truth disparity: ``1 / z`` where ``z > 0`` (foreground), 0 on the background."""
-    depth = depth.float()
-    return torch.where(depth > 0, 1.0 / depth.clamp_min(1e-12), torch.zeros_like(depth))
-
-
-class OracleEstimator:
-    """The ``oracle`` backend: disparity from ground-truth z-depth (images are ignored)."""
-
-    name = "oracle"
-    needs_depth = True
-
-    @property
-    def provenance(self) -> PriorProvenance:
-        return oracle_provenance()
-
-    def predict(self, images: Float[Tensor, "B 3 H W"],
-                depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
-        if depths is None:
-            raise DepthnerfError("the 'oracle' depth prior needs ground-truth depth maps (dataset depth/ folder)")
-        if depths.shape[0] != images.shape[0] or depths.shape[-2:] != images.shape[-2:]:
-            raise ValueError(f"depths {tuple(depths.shape)} do not match images {tuple(images.shape)}")
-        return oracle_disparity(depths)
-
-
-def oracle_provenance() -> PriorProvenance:
-    """Provenance of the oracle (its 'weights hash' is the hash of its definition string)."""
-    digest = hashlib.sha256(b"oracle: 1/z on foreground, 0 on background").hexdigest()
-    return PriorProvenance("oracle", None, digest, None, "n/a (ground truth)")
+def estimator_entry(name: str) -> EstimatorEntry:
+    """The registry entry of ``name``; an unknown name is a one-line error listing the known ones."""
+    for entry in _REGISTRY:
+        if entry.name == name:
+            return entry
+    raise DepthnerfError(f"unknown depth estimator '{name}' (choose from {', '.join(ESTIMATORS)})")
 
 
 def describe_estimator(name: str, checkpoint: str | None = None) -> PriorProvenance | None:
     """Provenance of an estimator *without* loading its network (hashes the weights); None for ``none``."""
-    match name:
-        case "none":
-            return None
-        case "oracle":
-            return oracle_provenance()
-        case "bundled":
-            from depthnerf.depth.bundled import bundled_provenance
-
-            return bundled_provenance(checkpoint)
-        case "depth-anything-v2":
-            from depthnerf.depth.depth_anything import depth_anything_provenance
-
-            return depth_anything_provenance(checkpoint)
-    raise DepthnerfError(f"unknown depth estimator '{name}' (choose from {', '.join(ESTIMATORS)})")
+    return estimator_entry(name).describe(checkpoint)
 
 
 def make_estimator(name: str, checkpoint: str | None = None, device: str = "cpu") -> DepthEstimator | None:
     """Load a frozen estimator by name (``checkpoint``: hub id / directory / weights file); None for ``none``."""
-    match name:
-        case "none":
-            return None
-        case "oracle":
-            return OracleEstimator()
-        case "bundled":
-            from depthnerf.depth.bundled import BundledEstimator
-
-            return BundledEstimator.load(checkpoint, device=device)
-        case "depth-anything-v2":
-            from depthnerf.depth.depth_anything import DepthAnythingEstimator
-
-            return DepthAnythingEstimator.load(checkpoint, device=device)
-    raise DepthnerfError(f"unknown depth estimator '{name}' (choose from {', '.join(ESTIMATORS)})")
+    return estimator_entry(name).load(checkpoint, device)

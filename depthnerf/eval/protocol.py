@@ -41,6 +41,7 @@ quantisation of the ground truth as well as of the render). Renders are 8-bit PN
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -58,7 +59,7 @@ from tqdm import tqdm
 from depthnerf.data import srn_format
 from depthnerf.data.srn import ObjectRecord, index_split
 from depthnerf.data.synth.framing import dataset_pixel_center
-from depthnerf.depth.cache import PriorStore
+from depthnerf.depth.prior import PriorConfig, PriorSource
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
     GeometryConfig,
@@ -76,19 +77,12 @@ from depthnerf.eval.metrics import (
     object_metrics,
     summarize,
 )
-from depthnerf.eval.objects import (
-    INPUT_VIEW,
-    ProtocolViews,
-    cached_prior,
-    open_prior_store,
-    prepare_object,
-    protocol_views,
-)
-from depthnerf.eval.pretrained import Pretrained
+from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, dataset_prior, prepare_object, protocol_views
 from depthnerf.files import write_text_atomic
+from depthnerf.pretrained.load import Pretrained
+from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
 from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, input_camera_mesh, levels_text
 from depthnerf.render.views import render_poses
-from depthnerf.train.config import z_range
 
 
 @dataclass(frozen=True)
@@ -121,8 +115,13 @@ class ProtocolConfig:
     """Score 8-bit-truncated renders (pixelNeRF's calc_metrics.py path) instead of float renders (eval.py)."""
     method: str | None = None
     """Row label for ``depthnerf compare``; None = from the depth prior."""
+    depth: str | None = None
+    """Override of the depth prior recorded in the checkpoint (``--depth``; None: the checkpoint's)."""
     depth_checkpoint: str | None = None
-    """Override of the depth estimator weights recorded in the checkpoint."""
+    """Override of the depth estimator weights recorded in the checkpoint (``--depth-checkpoint``)."""
+    guided: GuidanceConfig | None = None
+    """Render targets with depth-guided sampling (``--guided BUDGET``, :mod:`depthnerf.render.guidance`); None:
+    the checkpoint's own sampler."""
     lpips: LpipsConfig = field(default_factory=LpipsConfig)
     """Where LPIPS weights are looked for (never downloaded)."""
     pixel_center: float | None = None
@@ -172,12 +171,13 @@ def method_label(estimator: str) -> str:
 class _Evaluator:
     """Per-object evaluation with the state shared across objects (model, prior store, LPIPS, settings)."""
 
-    def __init__(self, pre: Pretrained, cfg: ProtocolConfig, store: PriorStore | None, lpips: LpipsMetric | None,
+    def __init__(self, pre: Pretrained, cfg: ProtocolConfig, prior: PriorSource, lpips: LpipsMetric | None,
                  input_res: int, eval_res: int, out_dir: Path, device: torch.device) -> None:
-        self.pre, self.cfg, self.store, self.lpips = pre, cfg, store, lpips
+        self.pre, self.cfg, self.prior, self.lpips = pre, cfg, prior, lpips
         self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
-        self.near, self.far = z_range(pre.config)
-        self.pixel_center = pre.config.data.pixel_center if cfg.pixel_center is None else cfg.pixel_center
+        self.near, self.far = pre.spec.z_range
+        self.render = pre.spec.render if cfg.guided is None else guided_render(pre.spec.render, cfg.guided.budget)
+        self.pixel_center = pre.spec.pixel_center if cfg.pixel_center is None else cfg.pixel_center
         self.rows: list[dict] = []
 
     @torch.no_grad()
@@ -185,11 +185,16 @@ class _Evaluator:
         model, cfg = self.pre.model, self.cfg
         views = protocol_views(record.num_views, cfg.views_stride)
         t0 = time.perf_counter()
-        obj = prepare_object(model, record, views, cached_prior(self.store), self.input_res, self.eval_res,
-                             self.device, pixel_center=self.pixel_center)
+        obj = prepare_object(model, record, views, self.prior, self.input_res, self.eval_res, self.device,
+                             pixel_center=self.pixel_center)
         src, tgt, enc = obj.source, obj.targets, obj.enc
-        preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.pre.config.render,
-                             cfg.chunk, self.device).rgb.numpy()
+        guide = None
+        if cfg.guided is not None:
+            guide = make_source_guide(model.field(enc, "coarse"), src.poses[:1].to(self.device), src.intrinsics,
+                                      self.near, self.far, obj.prior, src.masks[:1].to(self.device),
+                                      self.pre.spec.render, cfg.guided, cfg.chunk)
+        preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.render,
+                             cfg.chunk, self.device, guide=guide).rgb.numpy()
         gts = tgt.images.permute(0, 2, 3, 1).numpy()
         t1 = time.perf_counter()
         metrics = object_metrics(record.object_id, preds, gts, ImageMetricsConfig(quantize_pred=cfg.quantize),
@@ -298,9 +303,9 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring)."""
     t_start = time.perf_counter()
     device = torch.device(device)
-    train = pre.config
+    spec = pre.spec
     data_root, out_dir = Path(data_root), Path(out_dir)
-    category = cfg.category or train.data.category
+    category = cfg.category or spec.category
     if cfg.views_stride < 1:
         raise DepthnerfError(f"--views-stride must be >= 1, got {cfg.views_stride}")
     if cfg.max_objects is not None and cfg.max_objects < 1:
@@ -312,16 +317,24 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
     cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=dataset_pixel_center(data_root, category)))
     records = all_records[: cfg.max_objects] if cfg.max_objects else all_records
-    input_res = train.data.resolution
+    input_res = spec.resolution
     eval_res = cfg.resolution or input_res
     if eval_res < 8:
         raise DepthnerfError(f"--resolution must be >= 8 (SSIM window 7), got {eval_res}")
-    estimator = train.prior.estimator
-    store = open_prior_store(pre, data_root, records, cfg.depth_checkpoint)
+    prior_cfg = spec.prior
+    if cfg.depth is not None or cfg.depth_checkpoint is not None:
+        estimator = cfg.depth or prior_cfg.estimator
+        if (estimator != "none") != prior_cfg.enabled:
+            raise DepthnerfError(f"--depth {estimator}: the checkpoint's model was trained "
+                                 f"{'with' if prior_cfg.enabled else 'without'} a depth prior")
+        prior_cfg = PriorConfig(estimator, cfg.depth_checkpoint if cfg.depth_checkpoint is not None else (
+            prior_cfg.checkpoint if estimator == prior_cfg.estimator else None))
+    estimator = prior_cfg.estimator
+    prior = dataset_prior(spec, data_root, records, prior_cfg)
     lpips = load_lpips(cfg.lpips, device)
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
     out_dir.mkdir(parents=True, exist_ok=True)
-    evaluator = _Evaluator(pre, cfg, store, lpips, input_res, eval_res, out_dir, device)
+    evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device)
     results = []
     for record in tqdm(records, desc="eval", unit="obj", file=sys.stderr, disable=not cfg.progress,
                        dynamic_ncols=True):
@@ -339,21 +352,23 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         summary["mesh_status"] = ("skipped (--no-mesh)" if not cfg.mesh
                                   else f"skipped: none of the {len(results)} objects has mesh.ply")
     native = sorted({(r.record.intrinsics.height, r.record.intrinsics.width) for r in results})
-    deterministic = not train.render.sampler.eval_random
+    deterministic = not spec.render.sampler.eval_random
     total = time.perf_counter() - t_start
     summary.update({
         "protocol": protocol_text(results, len(all_records), cfg.split, category, cfg.views_stride, eval_res,
                                   input_res, deterministic),
-        "method": cfg.method or method_label(estimator),
-        "category": category, "split": cfg.split, "preset": train.preset,
-        "depth_prior": estimator, "depth_prior_provenance": store.provenance if store is not None else None,
+        "method": cfg.method or method_label(estimator) + (
+            f" + guided sampling ({cfg.guided.budget}/ray)" if cfg.guided is not None else ""),
+        "guided_sampling": None if cfg.guided is None else dataclasses.asdict(cfg.guided),
+        "category": category, "split": cfg.split, "preset": spec.preset,
+        "depth_prior": estimator, "depth_prior_provenance": prior.provenance,
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
         "data_card": _data_card(data_root, category),
-        "resolution": eval_res, "input_resolution": input_res, "train_resolution": train.data.resolution,
+        "resolution": eval_res, "input_resolution": input_res, "train_resolution": spec.resolution,
         "native_resolution": [list(s) for s in native],
         "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
-        "pixel_center": evaluator.pixel_center, "trained_pixel_center": train.data.pixel_center,
-        "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(z_range(train)),
+        "pixel_center": evaluator.pixel_center, "trained_pixel_center": spec.pixel_center,
+        "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),
         "metrics_path": "quantized 8-bit renders (calc_metrics.py)" if cfg.quantize else "float renders (eval.py)",
         "timing": {"total_s": total, "per_object_s": total / len(results),
                    **{f"{k}_s": float(sum(r.seconds[k] for r in results)) for k in ("render", "metrics", "mesh")},
@@ -371,8 +386,6 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         _write_csv(renders, ("object_id", "view", "render_path", "gt_path", "psnr", "ssim"), evaluator.rows)
         summary["renders_csv"] = renders.name
     summary_path = out_dir / "summary.json"
-    tmp = summary_path.with_name(".summary.json.tmp")
-    tmp.write_text(json.dumps(summary, indent=1) + "\n")
-    tmp.replace(summary_path)
+    write_text_atomic(summary_path, json.dumps(summary, indent=1) + "\n")
     return EvalOutputs(summary=summary, summary_path=summary_path, per_object_path=per_object,
                        renders_path=renders)

@@ -1,31 +1,55 @@
-"""From loaded dataset views (and their depth prior) to the model's :class:`SourceViews` input.
+"""The conditioning stage: source images + masks + cameras (+ a prior source) -> the encoder's :class:`SourceViews`.
 
-Shared by training validation, SRN-protocol evaluation and reconstruction, so every caller normalises the prior
-the same way (``depthnerf.depth.normalize.normalize_disparity`` over the view's foreground mask).
+Every caller goes through here: training items, validation, ``depthnerf eval``, :class:`Reconstructor`, the demo
+and the benchmarks. The prior is the raw disparity a :class:`~depthnerf.depth.prior.PriorSource` serves,
+normalised over each view's foreground mask by :func:`prior_input` (``normalize_disparity``), so every path
+feeds the encoder the same numbers for the same view.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from torch import Tensor
 
+from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import ObjectViews
 from depthnerf.depth.normalize import normalize_disparity
+from depthnerf.depth.prior import DatasetViews, PriorSource
 from depthnerf.model.pixelnerf import SourceViews
 
 
-def source_views(obj: ObjectViews, indices: Sequence[int], disparity: Float[Tensor, "V H W"] | None,
-                 device: torch.device | str = "cpu") -> SourceViews:
-    """SourceViews (B = 1) from views ``indices`` of ``obj``; ``disparity`` is the raw prior of those views."""
-    idx = list(indices)
-    prior = None
-    if disparity is not None:
-        prior = normalize_disparity(disparity, obj.masks[idx])[None, :, None]
-    intr = obj.intrinsics
-    return SourceViews(images=obj.images[idx][None].to(device), poses=obj.poses[idx][None].to(device),
-                       focal=torch.tensor([intr.focal], device=device),
-                       principal=torch.tensor([[intr.cx, intr.cy]], device=device),
-                       prior=None if prior is None else prior.to(device))
+def prior_input(disparity: Float[Tensor, "V H W"], masks: Bool[Tensor, "V H W"]) -> Float[Tensor, "V 1 H W"]:
+    """The encoder's prior channel of V views: raw disparity normalised over each view's mask."""
+    return normalize_disparity(disparity, masks)[:, None]
+
+
+@dataclass
+class Conditioned:
+    """What the encoder gets (B = 1) and the raw prior it was made from."""
+
+    inputs: SourceViews
+    """Images, cameras and normalised prior of the source views, on the device."""
+    disparity: Float[Tensor, "V H W"] | None
+    """Raw relative disparity the prior source served (None: no prior)."""
+
+
+def condition(source: PriorSource, images: Float[Tensor, "V 3 H W"], masks: Bool[Tensor, "V H W"],
+              poses: Float[Tensor, "V 4 4"], intr: Intrinsics, device: torch.device | str = "cpu", *,
+              depths: Float[Tensor, "V H W"] | None = None, where: DatasetViews | None = None) -> Conditioned:
+    """The encoder input of V source views of one object (see the module docstring)."""
+    disparity = source.disparity(images, depths=depths, where=where)
+    prior = None if disparity is None else prior_input(disparity, masks)[None].to(device)
+    return Conditioned(
+        inputs=SourceViews(images=images[None].to(device), poses=poses[None].to(device),
+                           focal=torch.tensor([intr.focal], device=device),
+                           principal=torch.tensor([[intr.cx, intr.cy]], device=device), prior=prior),
+        disparity=disparity)
+
+
+def condition_views(source: PriorSource, obj: ObjectViews, device: torch.device | str = "cpu") -> Conditioned:
+    """:func:`condition` on loaded dataset views (all of ``obj``'s views are sources)."""
+    return condition(source, obj.images, obj.masks, obj.poses, obj.intrinsics, device, depths=obj.depths,
+                     where=DatasetViews(obj.record, tuple(int(v) for v in obj.view_indices.tolist())))

@@ -4,7 +4,8 @@ Defaults reproduce pixelNeRF's SRN configuration (``conf/default_mv.conf`` of sx
 with the first max-pool, conv1 + layer1..layer3 (512 feature channels), a 5-block residual MLP of width 512 with
 features injected before blocks 0-2 and views averaged at block 3, 6 positional-encoding frequencies
 ``1.5 * 2^k``, raw view directions, separate coarse and fine networks. The paper's method and the baseline
-differ by ONE switch, :attr:`EncoderConfig.use_depth`.
+differ by ONE switch, the depth prior (``use_depth`` below is derived from it:
+:attr:`depthnerf.depth.prior.PriorConfig.enabled`, never stored in a config).
 """
 
 from __future__ import annotations
@@ -36,17 +37,14 @@ class EncoderConfig:
     pretrained_path: str | None = None
     """Optional local torchvision ``resnetXX`` ImageNet state_dict (``.safetensors``, or ``.pth``/``.pt`` read with
     ``torch.load(weights_only=True)``). None = random initialisation (nothing is ever downloaded)."""
-    use_depth: bool = False
-    """THE switch of the paper: False = pixelNeRF baseline (RGB trunk); True = conv1 takes RGB + normalised
-    disparity prior (4 channels) and a lightweight depth encoder adds ``depth_channels`` feature channels."""
     prior_scale: float = 0.25
     """Factor applied to the prior before conv1 and the depth encoder. Priors are
     ``depthnerf.depth.normalize.normalize_disparity`` outputs (foreground in [-4, 4], background -5), so 0.25 puts
     the foreground in [-1, 1] like the images."""
     depth_hidden: int = 32
-    """Width of the first two conv layers of the depth encoder (used only when ``use_depth``)."""
+    """Width of the first two conv layers of the depth encoder (depth-aware models only)."""
     depth_channels: int = 64
-    """Output channels of the depth encoder, concatenated to the trunk features (used only when ``use_depth``)."""
+    """Output channels of the depth encoder, concatenated to the trunk features (depth-aware models only)."""
 
     def __post_init__(self) -> None:
         if self.backbone not in TRUNK_CHANNELS:
@@ -56,7 +54,7 @@ class EncoderConfig:
             raise DepthnerfError(f"model config: encoder.num_layers must be 1..4, got {self.num_layers}")
         if not self.image_scale > 0:
             raise DepthnerfError(f"model config: encoder.image_scale must be > 0, got {self.image_scale}")
-        if self.use_depth and (self.depth_channels < 1 or self.depth_hidden < 1):
+        if self.depth_channels < 1 or self.depth_hidden < 1:
             raise DepthnerfError("model config: encoder.depth_channels and depth_hidden must be >= 1")
 
     @property
@@ -64,10 +62,9 @@ class EncoderConfig:
         """Channels contributed by the ResNet trunk (512 for the default 4 stages)."""
         return sum(TRUNK_CHANNELS[self.backbone][: self.num_layers])
 
-    @property
-    def latent_size(self) -> int:
-        """Total feature channels C of the encoded maps: trunk + depth encoder (if enabled)."""
-        return self.trunk_channels + (self.depth_channels if self.use_depth else 0)
+    def latent_size(self, use_depth: bool) -> int:
+        """Total feature channels C of the encoded maps: trunk + depth encoder (for a depth-aware model)."""
+        return self.trunk_channels + (self.depth_channels if use_depth else 0)
 
 
 @dataclass

@@ -59,11 +59,11 @@ class DepthEncoder(nn.Module):
 class ResNetTrunk(nn.Module):
     """conv1/bn1/maxpool/layer1..layer3 of a torchvision ResNet; parameter names match torchvision's."""
 
-    def __init__(self, cfg: EncoderConfig):
+    def __init__(self, cfg: EncoderConfig, use_depth: bool):
         super().__init__()
         full = getattr(torchvision.models, cfg.backbone)(weights=None)
         self.conv1 = full.conv1
-        if cfg.use_depth:
+        if use_depth:
             self.conv1 = nn.Conv2d(4, 64, kernel_size=7, stride=2, padding=3, bias=False)
             with torch.no_grad():
                 self.conv1.weight.copy_(expand_conv1(full.conv1.weight))
@@ -72,7 +72,7 @@ class ResNetTrunk(nn.Module):
             setattr(self, name, getattr(full, name))
         self.num_layers = cfg.num_layers
         self.use_first_pool = cfg.use_first_pool
-        self.use_depth = cfg.use_depth
+        self.use_depth = use_depth
         self.backbone = cfg.backbone
         del full  # layer4, avgpool and fc are dropped here: never part of the module or the optimiser
 
@@ -136,25 +136,26 @@ def read_state_dict(path: str | Path) -> dict[str, Tensor]:
 class ImageEncoder(nn.Module):
     """Encode source images (and priors) into pixel-aligned feature maps ``[N, C, Hf, Wf]`` (Hf = ceil(H'/2))."""
 
-    def __init__(self, cfg: EncoderConfig):
+    def __init__(self, cfg: EncoderConfig, use_depth: bool):
         super().__init__()
         self.cfg = cfg
-        self.trunk = ResNetTrunk(cfg)
-        self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if cfg.use_depth else None
+        self.use_depth = use_depth
+        self.trunk = ResNetTrunk(cfg, use_depth)
+        self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if use_depth else None
         if cfg.pretrained_path is not None:
             self.trunk.load_torchvision_state(read_state_dict(cfg.pretrained_path), cfg.pretrained_path)
 
     @property
     def latent_size(self) -> int:
         """Feature channels C."""
-        return self.cfg.latent_size
+        return self.cfg.latent_size(self.use_depth)
 
     def forward(self, images: Float[Tensor, "N 3 H W"],
                 prior: Float[Tensor, "N 1 H W"] | None = None) -> Float[Tensor, "N C Hf Wf"]:
         x = images * 2.0 - 1.0
-        if self.cfg.use_depth:
+        if self.use_depth:
             if prior is None:
-                raise DepthnerfError("depth-aware model (encoder.use_depth=True) needs a depth prior, got None")
+                raise DepthnerfError("depth-aware model (a depth prior is configured) needs a depth prior, got None")
             x = torch.cat([x, prior * self.cfg.prior_scale], dim=1)
         if self.cfg.image_scale != 1.0:
             up = self.cfg.image_scale > 1.0

@@ -20,7 +20,6 @@ features and the returned rgb/sigma stay fp32. Training defaults to fp32.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -29,6 +28,7 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from depthnerf.bundles import FieldFn, TensorBundle
 from depthnerf.data.cameras import invert_pose
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import PixelNeRFConfig
@@ -36,13 +36,9 @@ from depthnerf.model.encoder import ImageEncoder
 from depthnerf.model.features import pixel_aligned, rotate_dirs, to_source_frames
 from depthnerf.model.field import ResidualField
 
-FieldFn = Callable[[Float[Tensor, "B R S 3"], Float[Tensor, "B R 3"]],
-                   tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]]
-"""(world points, unit world view directions) -> (rgb in [0, 1], density >= 0)."""
-
 
 @dataclass
-class SourceViews:
+class SourceViews(TensorBundle):
     """The conditioning views of B objects, V views each."""
 
     images: Float[Tensor, "B V 3 H W"]
@@ -59,7 +55,7 @@ class SourceViews:
 
 
 @dataclass
-class EncodedViews:
+class EncodedViews(TensorBundle):
     """Everything the fields need about the source views; produced by :meth:`PixelNeRF.encode`."""
 
     features: Float[Tensor, "B V C Hf Wf"]
@@ -82,7 +78,7 @@ def _check_sources(src: SourceViews, use_depth: bool) -> None:
     expected = {"poses": (src.poses, (b, v, 4, 4)), "focal": (src.focal, (b,)), "principal": (src.principal, (b, 2))}
     if use_depth:
         if src.prior is None:
-            raise DepthnerfError("SourceViews.prior is None but the depth-aware model (encoder.use_depth) needs it")
+            raise DepthnerfError("SourceViews.prior is None but the depth-aware model needs it")
         expected["prior"] = (src.prior, (b, v, 1, h, w))
     for name, (tensor, shape) in expected.items():
         if tuple(tensor.shape) != shape:
@@ -90,20 +86,26 @@ def _check_sources(src: SourceViews, use_depth: bool) -> None:
 
 
 class PixelNeRF(nn.Module):
-    """Encoder + coarse MLP + fine MLP; the baseline and the depth-aware model differ only in ``encoder.use_depth``."""
+    """Encoder + coarse MLP + fine MLP; the baseline and the depth-aware model differ only in ``use_depth``.
 
-    def __init__(self, cfg: PixelNeRFConfig):
+    ``use_depth`` is derived from the depth prior (:attr:`depthnerf.depth.prior.PriorConfig.enabled`): the
+    depth-aware model's encoder also takes the normalised prior.
+    """
+
+    def __init__(self, cfg: PixelNeRFConfig, *, use_depth: bool):
         super().__init__()
         self.cfg = cfg
-        self.encoder = ImageEncoder(cfg.encoder)
-        self.coarse = ResidualField(cfg.coarse, cfg.encoder.latent_size)
-        self.fine = ResidualField(cfg.fine, cfg.encoder.latent_size) if cfg.fine is not None else None
+        self.use_depth = bool(use_depth)
+        self.encoder = ImageEncoder(cfg.encoder, self.use_depth)
+        latent = cfg.encoder.latent_size(self.use_depth)
+        self.coarse = ResidualField(cfg.coarse, latent)
+        self.fine = ResidualField(cfg.fine, latent) if cfg.fine is not None else None
 
     def encode(self, src: SourceViews) -> EncodedViews:
         """Feature maps of all source views; nothing is stored on the module."""
-        _check_sources(src, self.cfg.encoder.use_depth)
+        _check_sources(src, self.use_depth)
         b, v, _, h, w = src.images.shape
-        prior = src.prior.reshape(b * v, 1, h, w) if self.cfg.encoder.use_depth else None
+        prior = src.prior.reshape(b * v, 1, h, w) if self.use_depth else None
         feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior)
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),

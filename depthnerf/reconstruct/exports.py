@@ -12,7 +12,10 @@ Layout of ``OUT`` (every path in ``manifest.json`` is relative to ``OUT``)::
                                   (camera-to-world, OpenCV axes), ``intrinsics`` (f, cx, cy, H, W)
     turntable.gif                 the orbit views as an endless GIF (``TURNTABLE_FPS``)
     turntable.mp4                 the same as H.264 when ``imageio-ffmpeg`` is installed (else the manifest says so)
-    mesh.ply, mesh.glb            vertex-coloured world-frame mesh (may be empty: ``mesh.empty`` in the manifest)
+    mesh.ply                      vertex-coloured world-frame mesh, +z up (may be empty: ``mesh.empty`` in the
+                                  manifest)
+    mesh.glb                      the same mesh in glTF's frame (+y up, :data:`GLTF_FROM_WORLD`), so any glTF
+                                  viewer shows it upright
     points.ply                    coloured world-frame point cloud
     manifest.json                 all of the above + checkpoint, settings, notes and timings
 """
@@ -32,10 +35,13 @@ from PIL import Image
 
 from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP
 from depthnerf.errors import DepthnerfError
-from depthnerf.reconstruct.reconstructor import Reconstruction
+from depthnerf.files import write_text_atomic
+from depthnerf.reconstruct.result import Reconstruction
 
 TURNTABLE_FPS = 12
 """Frames per second of the turntable GIF / MP4."""
+GLTF_FROM_WORLD = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
+"""World (+z up) to glTF (+y up): ``(x, y, z) -> (x, z, -y)``, a rotation of -90 degrees about +x."""
 
 
 def _u8(x: np.ndarray) -> np.ndarray:
@@ -96,15 +102,15 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
         files["turntable_mp4"] = None
         mp4_status = "not written: imageio-ffmpeg is not installed (pip install 'depthnerf[video]')"
     result.mesh.export(out / "mesh.ply")
-    result.mesh.export(out / "mesh.glb")
+    result.mesh.copy().apply_transform(GLTF_FROM_WORLD).export(out / "mesh.glb")
     files["mesh_ply"], files["mesh_glb"] = "mesh.ply", "mesh.glb"
     rgba = np.concatenate([_u8(result.point_colors), np.full((len(result.points), 1), 255, np.uint8)], axis=1)
     if len(result.points):
         trimesh.PointCloud(result.points, colors=rgba).export(out / "points.ply")
     else:  # trimesh cannot write an empty cloud: the same header, no vertices
-        (out / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
-                                        "property float z\nproperty uchar red\nproperty uchar green\n"
-                                        "property uchar blue\nproperty uchar alpha\nend_header\n")
+        write_text_atomic(out / "points.ply", "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                          "property float y\nproperty float z\nproperty uchar red\nproperty uchar green\n"
+                          "property uchar blue\nproperty uchar alpha\nend_header\n")
     files["point_cloud"] = "points.ply"
     empty = len(result.mesh.faces) == 0
     manifest = {
@@ -125,5 +131,5 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
                        "ray distances along unit directions",
         "timings": {**result.timings, "save_s": time.perf_counter() - t0},
     }
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    write_text_atomic(out / "manifest.json", json.dumps(manifest, indent=1) + "\n")
     return manifest

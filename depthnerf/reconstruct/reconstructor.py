@@ -8,9 +8,11 @@ Camera
     (:func:`~depthnerf.data.srn.category_defaults`), elevation 20 degrees; a category without defaults needs both
     ``radius`` and ``focal`` (then in pixels of a 128 px frame).
 Depth prior (depth-aware checkpoints)
-    The checkpoint's estimator (``make_estimator``) on the prepared image at the training resolution (as the cache
-    is computed), normalised over the mask by :func:`depthnerf.model.conditioning.source_views`, as in training.
-    ``oracle`` needs ground-truth depth, impossible for a photo: an error suggesting ``depth_estimator="bundled"``.
+    The checkpoint's estimator run live on the prepared image at the training resolution (a
+    :class:`~depthnerf.depth.prior.PriorSource`), normalised over the mask by the conditioning stage
+    (:func:`depthnerf.model.conditioning.condition`), as in training. ``oracle`` needs ground-truth depth,
+    impossible for a photo: an error suggesting ``--depth bundled``. ``ReconstructConfig.guided`` renders with
+    depth-guided sampling (:mod:`depthnerf.render.guidance`).
 Outputs
     N views on the orbit through the input camera (rendered at ``render_resolution``, default the training one),
     their depth (ray distance, opacity-normalised) and opacity, a mesh (marching cubes over the input camera's
@@ -24,27 +26,32 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import trimesh
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from tqdm import tqdm
 
 from depthnerf.data.cameras import Intrinsics
-from depthnerf.data.srn import ObjectRecord, ObjectViews, category_defaults, mask_bboxes
-from depthnerf.depth.estimators import make_estimator
+from depthnerf.data.srn import category_defaults
+from depthnerf.depth.estimators import PHOTO_ESTIMATORS
+from depthnerf.depth.prior import PriorConfig, open_prior
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.pretrained import Pretrained, load_pretrained
-from depthnerf.model.conditioning import source_views
+from depthnerf.model.conditioning import Conditioned, condition
+from depthnerf.model.pixelnerf import EncodedViews
+from depthnerf.pretrained.load import Pretrained, load_pretrained
+from depthnerf.reconstruct.exports import save_reconstruction
 from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsics
 from depthnerf.reconstruct.photo import DEFAULT_FILL, FILL, ImageLike, PreparedImage, prepare_photo
+from depthnerf.reconstruct.result import Reconstruction
+from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
 from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, input_camera_mesh
-from depthnerf.render.views import render_poses
-from depthnerf.train.config import z_range
+from depthnerf.render.views import ViewRenders, render_poses
 
 POINT_OPACITY = 0.5
 """Rendered pixels with more than this opacity go into the point cloud."""
@@ -72,65 +79,55 @@ class ReconstructConfig:
     """Marching-cubes samples along the frustum box's longest side (0 = no mesh)."""
     mesh_threshold: float | str = AUTO_LEVEL
     """Density level of the mesh surface, or ``"auto"`` (see :mod:`depthnerf.render.mesh`)."""
-    max_points: int = 200_000
-    """Largest point-cloud size."""
+    max_points: int | None = 200_000
+    """Largest point-cloud size (None: every point)."""
     chunk: int = 4096
     """Rays per render pass."""
+    guided: GuidanceConfig | None = None
+    """Render with depth-guided sampling (:mod:`depthnerf.render.guidance`); None: the checkpoint's sampler."""
     progress: bool = False
     """Show a progress bar (stderr)."""
 
 
 @dataclass
-class Reconstruction:
-    """Everything reconstructed from one photo (arrays on the CPU)."""
+class EncodedInput:
+    """One input view conditioned on its prior and encoded (what every rendering of the object starts from)."""
 
-    input: PreparedImage
-    """The prepared input view."""
-    depth_prior: Float[np.ndarray, "H W"] | None
-    """Raw relative disparity from the estimator (None for the baseline)."""
-    prior_normalized: Float[np.ndarray, "H W"] | None
-    """What the encoder saw: normalised disparity (foreground [-4, 4], background -5)."""
-    poses: Float[np.ndarray, "N 4 4"]
-    """Camera-to-world poses of the orbit views (OpenCV axes); pose 0 is the input camera."""
-    intrinsics: Intrinsics
-    """Intrinsics of the rendered views."""
-    views: Float[np.ndarray, "N H W 3"]
-    """Rendered RGB in [0, 1]."""
-    depths: Float[np.ndarray, "N H W"]
-    """Rendered ray distance of the visible surface (``far`` where nothing was hit)."""
-    opacity: Float[np.ndarray, "N H W"]
-    """Rendered opacity."""
-    mesh: trimesh.Trimesh
-    """World-frame mesh with vertex colours (empty when the density never reached the level or meshing was off)."""
-    points: Float[np.ndarray, "P 3"]
-    """World-frame point cloud."""
-    point_colors: Float[np.ndarray, "P 3"]
-    """Point colours in [0, 1]."""
-    settings: dict[str, Any]
-    """Camera, framing, depth prior and mesh settings actually used."""
-    timings: dict[str, float] = field(default_factory=dict)
-    """Seconds per stage."""
+    inputs: Conditioned
+    """The encoder's input and the raw prior."""
+    enc: EncodedViews
+    """The model's features of the view."""
+    pose: Float[torch.Tensor, "4 4"]
+    """Camera-to-world pose of the input view."""
+    intr: Intrinsics
+    """Intrinsics of the input view (the training resolution)."""
+    mask: Bool[torch.Tensor, "1 H W"]
+    """Foreground mask of the input view."""
 
 
 class Reconstructor:
     """A loaded checkpoint that turns one photo into novel views, depths, a mesh and a point cloud."""
 
     def __init__(self, pretrained: Pretrained, device: torch.device | str = "cpu", depth_estimator: str | None = None,
-                 depth_checkpoint: str | None = None) -> None:
+                 depth_checkpoint: str | None = None, *, photos: bool = True, match_cache: bool = False) -> None:
+        """``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
+        checkpoint's prior; ``photos``: inputs are photos without ground-truth depth (so the prior must be one
+        that runs on a photo); ``match_cache`` rounds the live prior as the dataset cache stores it
+        (:func:`depthnerf.depth.cache.as_cached`), so results equal ``depthnerf eval``'s on the same view."""
         self.pretrained = pretrained
         self.device = torch.device(device)
-        cfg = pretrained.config
-        self.estimator_name = depth_estimator or cfg.prior.estimator
-        if cfg.model.encoder.use_depth and self.estimator_name == "none":
-            raise DepthnerfError(f"{pretrained.path}: depth-aware checkpoint needs a depth estimator, not 'none'")
-        if self.estimator_name == "oracle" and cfg.model.encoder.use_depth:
-            raise DepthnerfError(f"{pretrained.path}: trained with the 'oracle' prior (ground-truth depth), which a "
-                                 "photo does not have; use --depth-estimator bundled (or depth-anything-v2)")
+        spec = pretrained.spec
+        name = depth_estimator or spec.prior.estimator
+        if spec.use_depth and name == "none":
+            raise DepthnerfError(f"{pretrained.path}: depth-aware checkpoint needs a depth prior; pass --depth "
+                                 f"{' or '.join(PHOTO_ESTIMATORS)}, not 'none'")
+        if photos and spec.use_depth and name not in PHOTO_ESTIMATORS:
+            raise DepthnerfError(f"{pretrained.path}: trained with the '{name}' prior (ground-truth depth), which a "
+                                 f"photo does not have; pass --depth {' or '.join(PHOTO_ESTIMATORS)}")
         ckpt = depth_checkpoint if depth_checkpoint is not None else (
-            cfg.prior.checkpoint if self.estimator_name == cfg.prior.estimator else None)
-        self.estimator_checkpoint = ckpt
-        self.estimator = make_estimator(self.estimator_name, ckpt, device=str(self.device)) \
-            if cfg.model.encoder.use_depth else None
+            spec.prior.checkpoint if name == spec.prior.estimator else None)
+        self.prior_config = PriorConfig(name, ckpt) if spec.use_depth else PriorConfig("none")
+        self.prior = open_prior(self.prior_config, device=str(self.device), match_cache=match_cache)
 
     @classmethod
     def from_pretrained(cls, path_or_name: str | Path, device: torch.device | str = "cpu",
@@ -144,72 +141,105 @@ class Reconstructor:
         """Reconstruct one photo (see the module docstring); ``views`` (default 36) overrides ``config.views``."""
         cfg = config or ReconstructConfig()
         views = cfg.views if views is None else views
-        train, model = self.pretrained.config, self.pretrained.model
+        spec = self.pretrained.spec
         times: dict[str, float] = {}
         t = time.perf_counter()
-        res = train.data.resolution
+        res = spec.resolution
         if cfg.radius is not None and cfg.focal is not None:
             radius, focal, image_size = cfg.radius, cfg.focal, RELEASE_SIZE
         else:
-            cat = category_defaults(train.data.category)  # unknown category: an error asking for both
+            cat = category_defaults(spec.category)  # unknown category: an error asking for both
             radius, focal, image_size = cfg.radius or cat.camera_radius, cfg.focal or cat.focal, cat.image_size
-        fill = cfg.fill if cfg.fill is not None else FILL.get(train.data.category, DEFAULT_FILL)
+        fill = cfg.fill if cfg.fill is not None else FILL.get(spec.category, DEFAULT_FILL)
         prepared = prepare_photo(image, mask, res, cfg.framing, fill)
         times["prepare_s"] = time.perf_counter() - t
         poses = orbit_poses(radius, cfg.elevation, views)
-        pixel_center = train.data.pixel_center  # the photo's SRN-style intrinsics read as training read the data
+        pixel_center = spec.pixel_center  # the photo's SRN-style intrinsics read as training read the data
         intr = srn_intrinsics(focal, image_size, res, pixel_center)
-        render_res = cfg.render_resolution or res
-        render_intr = srn_intrinsics(focal, image_size, render_res, pixel_center)
-        near, far = z_range(train)
-        bar = tqdm(total=views + 2, desc="reconstruct", unit="step", file=sys.stderr, disable=not cfg.progress)
-        t = time.perf_counter()
+        render_intr = srn_intrinsics(focal, image_size, cfg.render_resolution or res, pixel_center)
         img_t = torch.from_numpy(prepared.image).permute(2, 0, 1)[None].contiguous()
         mask_t = torch.from_numpy(prepared.mask)[None]
-        disp = None
-        if self.estimator is not None:
-            disp = self.estimator.predict(img_t).float()
-        record = ObjectRecord(category=train.data.category, split="photo", object_id="photo", path=Path("."),
-                              view_names=("input",), intrinsics=intr, has_depth=False, has_mask=True, mesh_path=None)
-        obj = ObjectViews(record=record, view_indices=torch.zeros(1, dtype=torch.long), images=img_t,
-                          poses=poses[:1], intrinsics=intr, masks=mask_t, bboxes=mask_bboxes(mask_t), depths=None)
-        src = source_views(obj, [0], disp, self.device)
-        enc = model.encode(src)
-        bar.update(1)
-        times["encode_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        out = render_poses(model, enc, poses, render_intr, near, far, train.render, cfg.chunk, self.device,
-                           bar.update)
+        encoded = self.encode_view(img_t, mask_t, poses[0], intr)
+        times["encode_s"] = time.perf_counter() - t
+        result = self.reconstruct_encoded(encoded, poses, render_intr, cfg, prepared)
+        result.timings = {**times, **result.timings}
+        result.settings = {"radius": radius, "elevation": cfg.elevation, "focal": focal, "focal_frame": image_size,
+                           "framing": cfg.framing, "fill": fill, **result.settings}
+        return result
+
+    @torch.no_grad()
+    def encode_view(self, image: Float[torch.Tensor, "1 3 H W"], mask: Bool[torch.Tensor, "1 H W"],
+                    pose: Float[torch.Tensor, "4 4"], intr: Intrinsics, *,
+                    depth: Float[torch.Tensor, "1 H W"] | None = None) -> EncodedInput:
+        """Condition one view on its prior (the conditioning stage) and encode it (``depth``: its ground-truth
+        z-depth, which only the ``oracle`` prior reads and only synthetic data has)."""
+        cond = condition(self.prior, image, mask, pose[None], intr, self.device, depths=depth)
+        return EncodedInput(inputs=cond, enc=self.pretrained.model.encode(cond.inputs), pose=pose, intr=intr,
+                            mask=mask)
+
+    def render(self, encoded: EncodedInput, poses: Float[torch.Tensor, "N 4 4"], intr: Intrinsics,
+               cfg: ReconstructConfig, on_group: Callable[[int], Any] | None = None) -> ViewRenders:
+        """Render ``poses`` of an encoded view at ``intr`` (depth-guided with ``cfg.guided``)."""
+        spec, model = self.pretrained.spec, self.pretrained.model
+        near, far = spec.z_range
+        render, guide = spec.render, None
+        if cfg.guided is not None:
+            render = guided_render(spec.render, cfg.guided.budget)
+            guide = make_source_guide(model.field(encoded.enc, "coarse"), encoded.pose[None].to(self.device),
+                                      encoded.intr, near, far, encoded.inputs.disparity,
+                                      encoded.mask.to(self.device), spec.render, cfg.guided, cfg.chunk)
+        return render_poses(model, encoded.enc, poses, intr, near, far, render, cfg.chunk, self.device, on_group,
+                            guide)
+
+    @torch.no_grad()
+    def reconstruct_encoded(self, encoded: EncodedInput, poses: Float[torch.Tensor, "N 4 4"],
+                            render_intr: Intrinsics, cfg: ReconstructConfig, prepared: PreparedImage | None = None,
+                            on_stage: Callable[[int], Any] | None = None) -> Reconstruction:
+        """The orbit ``poses`` rendered at ``render_intr``, the mesh of the input frustum and the point cloud."""
+        spec, model = self.pretrained.spec, self.pretrained.model
+        near, far = spec.z_range
+        times: dict[str, float] = {}
+        bar = tqdm(total=len(poses) + 1, desc="reconstruct", unit="step", file=sys.stderr, disable=not cfg.progress)
+        t = time.perf_counter()
+        out = self.render(encoded, poses, render_intr, cfg, bar.update)
         times["render_s"] = time.perf_counter() - t
+        if on_stage is not None:
+            on_stage(1)
         t = time.perf_counter()
         mesh, level = trimesh.Trimesh(), None
         if cfg.mesh_resolution > 0:
-            mesh, level = input_camera_mesh(model, enc, poses[0], intr, near, far,
+            mesh, level = input_camera_mesh(model, encoded.enc, encoded.pose, encoded.intr, near, far,
                                             MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device)
         bar.update(1)
         bar.close()
         times["mesh_s"] = time.perf_counter() - t
+        if on_stage is not None:
+            on_stage(1)
         points, colors = orbit_points(out, poses, render_intr, POINT_OPACITY, cfg.max_points)
-        settings = {"radius": radius, "elevation": cfg.elevation, "focal": focal, "focal_frame": image_size,
-                    "resolution": res, "render_resolution": render_res, "views": views, "z_range": [near, far],
-                    "framing": cfg.framing, "fill": fill, "category": train.data.category,
-                    "depth_estimator": self.estimator_name if self.estimator is not None else "none",
-                    "depth_checkpoint": self.estimator_checkpoint, "mesh_resolution": cfg.mesh_resolution,
-                    "mesh_threshold": cfg.mesh_threshold, "mesh_level": level and level.level,
-                    "mesh_level_rule": level and level.describe(), "point_opacity": POINT_OPACITY,
+        if prepared is None:
+            prepared = PreparedImage(image=encoded.inputs.inputs.images[0, 0].permute(1, 2, 0).cpu().numpy(),
+                                     mask=encoded.mask[0].numpy(), notes=[],
+                                     source_size=(encoded.intr.height, encoded.intr.width))
+        disparity, prior = encoded.inputs.disparity, encoded.inputs.inputs.prior
+        settings = {"resolution": spec.resolution, "render_resolution": render_intr.height, "views": len(poses),
+                    "z_range": [near, far], "category": spec.category,
+                    "depth_estimator": self.prior_config.estimator, "depth_checkpoint": self.prior_config.checkpoint,
+                    "guided_sampling": None if cfg.guided is None else cfg.guided.budget,
+                    "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
+                    "mesh_level": level and level.level, "mesh_level_rule": level and level.describe(),
+                    "point_opacity": POINT_OPACITY,
                     "mesh_colors": "fine-network rgb at each vertex seen along the input camera's ray"}
-        prior_n = src.prior[0, 0, 0].cpu().numpy() if src.prior is not None else None
         return Reconstruction(
-            input=prepared, depth_prior=None if disp is None else disp[0].numpy(), prior_normalized=prior_n,
+            input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
+            prior_normalized=None if prior is None else prior[0, 0, 0].cpu().numpy(),
             poses=poses.numpy(), intrinsics=render_intr, views=out.rgb.numpy(), depths=out.depth.numpy(),
             opacity=out.opacity.numpy(), mesh=mesh, points=points.astype(np.float32),
             point_colors=colors.astype(np.float32), settings=settings, timings=times)
 
     def save(self, result: Reconstruction, out_dir: str | Path) -> dict[str, Any]:
         """Write every output into ``out_dir`` and return the manifest (also ``out_dir/manifest.json``)."""
-        from depthnerf.reconstruct.exports import save_reconstruction
-
         pre = self.pretrained
         provenance = {"checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256,
-                      "checkpoint_step": pre.step, "preset": pre.config.preset}
+                      "checkpoint_step": pre.step, "preset": pre.spec.preset}
         return save_reconstruction(result, Path(out_dir), provenance)

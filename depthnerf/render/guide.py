@@ -29,9 +29,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Bool, Float
 from torch import Tensor
 
+from depthnerf.bundles import TensorBundle
 from depthnerf.data.cameras import Intrinsics, project, world_to_camera
 from depthnerf.render.config import GuideConfig
 from depthnerf.render.depth_loss import fit_scale_shift
@@ -40,7 +41,7 @@ from depthnerf.render.samplers import stratified_samples
 
 
 @dataclass
-class DepthGuide:
+class DepthGuide(TensorBundle):
     """Per-ray depth guesses for ``B x R`` target rays (classes in the module docstring).
 
     The depth-guided sampler's window is ``[min(t_enter, t_guess - spread), t_guess + spread]`` on ``valid``
@@ -59,16 +60,6 @@ class DepthGuide:
     """The ray may meet the object (True whenever ``valid``); False: the source view sees it as empty."""
     spread: Float[Tensor, "B R"]
     """Half-width of the window around a trusted ``t_guess`` (ray-distance units)."""
-
-    _FIELDS = ("t_guess", "t_enter", "valid", "occupied", "spread")
-
-    def slice(self, start: int, stop: int) -> DepthGuide:
-        """Guesses of rays ``start:stop`` of every batch element."""
-        return DepthGuide(*(getattr(self, n)[:, start:stop] for n in self._FIELDS))
-
-    def gather(self, idx: Int[Tensor, "B G"]) -> DepthGuide:
-        """Guesses of rays ``idx`` (per batch row)."""
-        return DepthGuide(*(torch.gather(getattr(self, n), 1, idx) for n in self._FIELDS))
 
     def window(self, near: Float[Tensor, "B R"], far: Float[Tensor, "B R"]
                ) -> tuple[Float[Tensor, "B R"], Float[Tensor, "B R"]]:

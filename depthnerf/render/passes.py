@@ -5,23 +5,19 @@ A pass evaluates a network at sample distances ``t`` along rays and composites t
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from depthnerf.bundles import FieldFn, TensorBundle
 from depthnerf.render.rays import RayBundle
 from depthnerf.render.volume import RenderResult
 
-FieldFn = Callable[[Float[Tensor, "B R S 3"], Float[Tensor, "B R 3"]],
-                   tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]]
-"""A radiance field: (world points, unit view directions) -> (rgb in [0, 1], sigma >= 0)."""
-
 
 @dataclass
-class RenderOutput:
+class RenderOutput(TensorBundle):
     """Results of both passes; ``fine`` is None when no fine network was given (paper path)."""
 
     coarse: RenderResult
@@ -64,8 +60,7 @@ def sorted_union(t: Tensor, *values: Tensor) -> tuple[Tensor, ...]:
 
 def cat_results(parts: list[RenderResult], dim: int = 1) -> RenderResult:
     """Concatenate results along the ray axis (``dim=1``)."""
-    return RenderResult(*(torch.cat([getattr(p, name) for p in parts], dim=dim)
-                          for name in ("rgb", "depth", "opacity", "weights", "t")))
+    return RenderResult.cat(parts, dim=dim)
 
 
 def group_indices(member: Bool[Tensor, "B R"]) -> tuple[Int[Tensor, "B G"], Bool[Tensor, "B G"]]:

@@ -13,11 +13,12 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from depthnerf.bundles import TensorBundle
 from depthnerf.data.cameras import Intrinsics, pixel_directions
 
 
 @dataclass
-class RayBundle:
+class RayBundle(TensorBundle):
     """``B`` batches (objects) of ``R`` rays each."""
 
     origins: Float[Tensor, "B R 3"]
@@ -33,11 +34,6 @@ class RayBundle:
     def num_rays(self) -> int:
         """``R``, the number of rays per batch element."""
         return self.origins.shape[1]
-
-    def slice(self, start: int, stop: int) -> RayBundle:
-        """Rays ``start:stop`` of every batch element."""
-        return RayBundle(self.origins[:, start:stop], self.directions[:, start:stop],
-                         self.near[:, start:stop], self.far[:, start:stop])
 
     def points(self, t: Float[Tensor, "B R S"]) -> Float[Tensor, "B R S 3"]:
         """World points ``o + t d`` at ray distances ``t``."""

@@ -14,17 +14,19 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from depthnerf.bundles import TensorBundle
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
 from depthnerf.render.config import RenderConfig
+from depthnerf.render.guidance import SourceGuide
 from depthnerf.render.guide import DepthGuide
 from depthnerf.render.pipeline import FieldFn, render_image
 from depthnerf.render.rays import RayBundle, rays_from_camera
 
 
 @dataclass
-class ViewRenders:
+class ViewRenders(TensorBundle):
     """Rendered images of N target views (the fine pass when there is one)."""
 
     rgb: Float[Tensor, "N H W 3"]
@@ -38,7 +40,7 @@ class ViewRenders:
 def view_rays(c2w: Float[Tensor, "N 4 4"], intr: Intrinsics, near: float, far: float) -> RayBundle:
     """All pixels of N cameras as one ``[1, N*H*W]`` bundle (view-major, then row-major pixels)."""
     rays = rays_from_camera(c2w, intr, near, far)  # [N, H*W]
-    return RayBundle(*(x.reshape(1, -1, *x.shape[2:]) for x in (rays.origins, rays.directions, rays.near, rays.far)))
+    return rays.map(lambda x: x.reshape(1, -1, *x.shape[2:]))
 
 
 @torch.no_grad()
@@ -59,22 +61,26 @@ def render_views(coarse: FieldFn, fine: FieldFn | None, c2w: Float[Tensor, "N 4 
 @torch.no_grad()
 def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, near: float,
                  far: float, cfg: RenderConfig, chunk: int, device: torch.device | str,
-                 on_group: Callable[[int], None] | None = None) -> ViewRenders:
+                 on_group: Callable[[int], None] | None = None, guide: SourceGuide | None = None) -> ViewRenders:
     """Render N views of one encoded object (CPU float tensors), ``max(1, chunk // (H*W))`` views per call and
-    ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views."""
-    if cfg.guided.enabled:
-        raise DepthnerfError("the checkpoint's config enables render.guided (depth-guided sampling); evaluation and "
-                             "reconstruction render with the paper's sampler only")
+    ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views.
+
+    With ``cfg.guided.enabled`` (depth-guided sampling, :mod:`depthnerf.render.guidance`) ``guide`` gives every
+    target ray its depth guess from the source view; a guided config without a guide is an error.
+    """
+    if cfg.guided.enabled and guide is None:
+        raise DepthnerfError("render.guided (depth-guided sampling) needs the source view's guide: use --guided "
+                             "with depthnerf eval/reconstruct rather than a guided render config")
     if chunk < 1:
         raise DepthnerfError(f"--chunk must be >= 1, got {chunk}")
     coarse, fine = model.field(enc, "coarse"), model.field(enc, "fine")
     group = max(1, chunk // (intr.height * intr.width))
     parts = []
     for start in range(0, len(poses), group):
-        res = render_views(coarse, fine, poses[start:start + group].to(device), intr, near, far, cfg,
-                           chunk=chunk)
-        parts.append(ViewRenders(rgb=res.rgb.float().cpu(), depth=res.depth.float().cpu(),
-                                 opacity=res.opacity.float().cpu()))
+        c2w = poses[start:start + group].to(device)
+        ray_guide = guide.guide(view_rays(c2w, intr, near, far)) if cfg.guided.enabled else None
+        res = render_views(coarse, fine, c2w, intr, near, far, cfg, chunk=chunk, guide=ray_guide)
+        parts.append(res.map(lambda x: x.float().cpu()))
         if on_group is not None:
             on_group(len(res.rgb))
-    return ViewRenders(*(torch.cat([getattr(p, k) for p in parts]) for k in ("rgb", "depth", "opacity")))
+    return ViewRenders.cat(parts)

@@ -25,9 +25,11 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from depthnerf.bundles import TensorBundle
+
 
 @dataclass
-class RenderResult:
+class RenderResult(TensorBundle):
     """Composited output of one pass (coarse or fine) for ``B x R`` rays with ``S`` samples each."""
 
     rgb: Float[Tensor, "B R 3"]

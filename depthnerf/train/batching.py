@@ -19,6 +19,8 @@ import torch
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
+from depthnerf.bundles import TensorBundle
+
 _MIX = 0x9E3779B97F4A7C15
 T = TypeVar("T")
 
@@ -120,7 +122,7 @@ def sample_pixels(num_rays: int, masks_shape: tuple[int, int, int], bboxes: Int[
 
 
 @dataclass
-class TrainBatch:
+class TrainBatch(TensorBundle):
     """One collated training batch (B objects of this rank)."""
 
     src_images: Float[Tensor, "B 1 3 H W"]
@@ -148,19 +150,12 @@ class TrainBatch:
 
     def item(self, k: int) -> TrainBatch:
         """Object ``k`` of the batch, as a batch of one."""
-        return TrainBatch(**{n: (None if v is None else v[k:k + 1]) for n, v in vars(self).items()})
-
-    def to(self, device: torch.device) -> TrainBatch:
-        fields = {k: (v.to(device, non_blocking=True) if torch.is_tensor(v) else v) for k, v in vars(self).items()}
-        return TrainBatch(**fields)
+        return self.slice(k, k + 1, dim=0)
 
 
 def collate(items: list[TrainBatch]) -> TrainBatch:
     """Stack per-object items (each with B = 1) into one batch."""
-    def cat(name: str):
-        vals = [getattr(i, name) for i in items]
-        return None if vals[0] is None else torch.cat(vals, dim=0)
-    return TrainBatch(**{name: cat(name) for name in vars(items[0])})
+    return TrainBatch.cat(items, dim=0)
 
 
 def step_keys(plan: BatchPlan, step: int, rank: int = 0, world: int = 1) -> list[ItemKey]:

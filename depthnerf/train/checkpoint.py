@@ -28,10 +28,16 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import temporary_sibling, write_text_atomic
-
-FORMAT = "depthnerf-checkpoint-1"
-"""Format tag stored in every weights file's metadata."""
+from depthnerf.files import write_text_atomic
+from depthnerf.pretrained.spec import SPEC_KEY
+from depthnerf.pretrained.weights import (  # noqa: F401 - re-exported for the run-folder code
+    FORMAT,
+    checkpoint_config,
+    latest_checkpoint,
+    load_state_strict,
+    read_weights,
+    save_weights,
+)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -40,65 +46,6 @@ def _fsync_dir(path: Path) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
-
-
-def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], step: int = 0,
-                 dtype: torch.dtype | None = None, extra: dict[str, str] | None = None) -> None:
-    """Write ``module``'s state dict as safetensors with its model config in the metadata (atomically)."""
-    tensors = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
-               for k, v in module.state_dict().items()}
-    meta = {"format": FORMAT, "config": json.dumps(config, sort_keys=True), "step": str(step), **(extra or {})}
-    path = Path(path)
-    tmp = temporary_sibling(path)
-    save_file(tensors, str(tmp), metadata=meta)
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Load a weights file written by :func:`save_weights`: ``(tensors, metadata)``; errors name the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise DepthnerfError(f"{path}: checkpoint weights file not found")
-    try:
-        from safetensors import safe_open
-
-        with safe_open(str(path), framework="pt") as f:
-            meta = dict(f.metadata() or {})
-        tensors = load_file(str(path))
-    except (SafetensorError, OSError, ValueError) as err:
-        raise DepthnerfError(f"{path}: not a readable safetensors checkpoint ({err})") from None
-    if meta.get("format") != FORMAT:
-        raise DepthnerfError(f"{path}: not a depthnerf checkpoint (format {meta.get('format')!r}, expected {FORMAT})")
-    return tensors, meta
-
-
-def checkpoint_config(meta: dict[str, str], path: Path) -> dict[str, Any]:
-    """The model config dict stored in a checkpoint's metadata."""
-    try:
-        return json.loads(meta["config"])
-    except (KeyError, json.JSONDecodeError):
-        raise DepthnerfError(f"{path}: checkpoint metadata has no valid model config") from None
-
-
-def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: Path) -> None:
-    """Load weights with every key and shape checked; a mismatch is a one-line error naming the file."""
-    own = module.state_dict()
-    missing = sorted(set(own) - set(tensors))
-    unexpected = sorted(set(tensors) - set(own))
-    shapes = [k for k in own if k in tensors and own[k].shape != tensors[k].shape]
-    if missing or unexpected or shapes:
-        parts = []
-        if missing:
-            parts.append(f"missing {len(missing)} tensors (e.g. {missing[0]})")
-        if unexpected:
-            parts.append(f"unexpected {len(unexpected)} tensors (e.g. {unexpected[0]})")
-        if shapes:
-            k = shapes[0]
-            parts.append(f"shape mismatch for {k}: file {tuple(tensors[k].shape)} vs model {tuple(own[k].shape)}")
-        raise DepthnerfError(f"{path}: checkpoint does not match the model config: {'; '.join(parts)}")
-    module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()}, strict=True)
 
 
 def _optimizer_to_files(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -138,11 +85,12 @@ class TrainingState:
 
 def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
                     model_config: dict[str, Any], state: TrainingState, keep_last: int = 3,
-                    train_config: dict[str, Any] | None = None) -> Path:
+                    train_config: dict[str, Any] | None = None, spec_json: str | None = None) -> Path:
     """Write ``ckpt_root/step_XXXXXXXX`` atomically, point ``latest`` at it, prune older ones (keep ``keep_last``).
 
     ``train_config`` (the run's whole config) goes into the weights' metadata too, so a weights file alone says
-    how to use it (z-range, resolution, depth prior).
+    how to use it (z-range, resolution, depth prior); ``spec_json`` is the run's inference spec
+    (:mod:`depthnerf.pretrained.spec`), what evaluation and reconstruction read.
     """
     ckpt_root = Path(ckpt_root)
     ckpt_root.mkdir(parents=True, exist_ok=True)
@@ -150,7 +98,9 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
     tmp = ckpt_root / f".{name}.{os.getpid()}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    extra = {"train_config": json.dumps(train_config, sort_keys=True)} if train_config is not None else None
+    extra = {"train_config": json.dumps(train_config, sort_keys=True)} if train_config is not None else {}
+    if spec_json is not None:
+        extra[SPEC_KEY] = spec_json
     save_weights(tmp / "model.safetensors", model, model_config, step=state.step, extra=extra)
     opt_tensors, opt_info = _optimizer_to_files(optimizer)
     save_file(opt_tensors, str(tmp / "optimizer.safetensors"))
@@ -183,23 +133,16 @@ def mark_best(ckpt_root: Path, ckpt_dir: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def latest_checkpoint(ckpt_root: Path) -> Path | None:
-    """The newest complete checkpoint directory, or None when there is none."""
-    pointer = Path(ckpt_root) / "latest"
-    if not pointer.is_file():
-        return None
-    path = Path(ckpt_root) / pointer.read_text().strip()
-    if not (path / "state.json").is_file():
-        raise DepthnerfError(f"{pointer}: points at {path.name}, which is incomplete or missing")
-    return path
-
-
 def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None,
                     model_config: dict[str, Any]) -> TrainingState:
     """Restore weights (strictly, after checking the stored model config) and optimizer; return the state."""
     ckpt_dir = Path(ckpt_dir)
     tensors, meta = read_weights(ckpt_dir / "model.safetensors")
     stored = checkpoint_config(meta, ckpt_dir / "model.safetensors")
+    encoder = stored.get("encoder")
+    if isinstance(encoder, dict) and encoder.get("use_depth", getattr(model, "use_depth", None)) == getattr(
+            model, "use_depth", None):  # legacy field, derived from the prior now (depthnerf.pretrained.spec)
+        encoder.pop("use_depth", None)
     if stored != json.loads(json.dumps(model_config)):
         diff = sorted(k for k in set(stored) | set(model_config) if stored.get(k) != model_config.get(k))
         raise DepthnerfError(f"{ckpt_dir}: checkpoint was trained with a different model config (differs in: "

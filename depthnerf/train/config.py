@@ -3,23 +3,26 @@
 One dataclass per component, a docstring under every field. The model and renderer get their own configs
 (:class:`~depthnerf.model.config.PixelNeRFConfig`, :class:`~depthnerf.render.config.RenderConfig`), never this tree.
 Presets are functions of the depth prior, because the paper's method and the baseline differ by one switch:
-``--depth none`` builds the pixelNeRF baseline (``encoder.use_depth = False``), any other estimator the
-depth-aware model.
+``--depth none`` builds the pixelNeRF baseline, any other estimator the depth-aware model (whether the encoder
+takes the prior is derived from ``prior``, :attr:`~depthnerf.depth.prior.PriorConfig.enabled`, never stored).
+:func:`check_config` rejects, when the config is built, settings no training path honours.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any
 
+from depthnerf.config_io import from_dict
 from depthnerf.data.srn import category_defaults
+from depthnerf.depth.prior import PriorConfig
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
+from depthnerf.pretrained.spec import InferenceSpec, model_config_from_dict
 from depthnerf.render.config import RenderConfig, SamplerConfig
-
-DepthPrior = Literal["none", "bundled", "oracle", "depth-anything-v2"]
 
 DENSITY_BIAS = 0.5
 """Initial bias of the density output in every preset: with randomly initialised encoders pixelNeRF's zero bias
@@ -51,17 +54,6 @@ class DataConfig:
     """Target views loaded per object and step (0 = all views but the source, as pixelNeRF)."""
     num_workers: int = 2
     """DataLoader worker processes (0 = load in the main process)."""
-
-
-@dataclass
-class PriorConfig:
-    """The frozen monocular depth prior fed to the depth-aware encoder."""
-
-    estimator: DepthPrior = "bundled"
-    """``none`` (pixelNeRF baseline), ``bundled`` (offline default), ``oracle`` (ground truth), or
-    ``depth-anything-v2`` (the paper's; needs a local checkpoint and a cache made by ``depthnerf depth``)."""
-    checkpoint: str | None = None
-    """Estimator weights (hub id or local directory) for ``depth-anything-v2``; a weights file for ``bundled``."""
 
 
 @dataclass
@@ -134,11 +126,15 @@ class TrainConfig:
 
 def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) -> TrainConfig:
     """Switch between the baseline (``none``) and the depth-aware model; the only difference is the encoder input."""
-    if estimator not in ("none", "bundled", "oracle", "depth-anything-v2"):
-        raise DepthnerfError(f"--depth {estimator!r}: choose none, bundled, oracle or depth-anything-v2")
-    encoder = dataclasses.replace(cfg.model.encoder, use_depth=estimator != "none")
-    return dataclasses.replace(cfg, prior=PriorConfig(estimator=estimator, checkpoint=checkpoint),  # type: ignore[arg-type]
-                               model=dataclasses.replace(cfg.model, encoder=encoder))
+    return dataclasses.replace(cfg, prior=PriorConfig(estimator=estimator, checkpoint=checkpoint))
+
+
+def check_config(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` if every setting in it is honoured by training, else a one-line :class:`DepthnerfError`."""
+    if cfg.render.guided.enabled:
+        raise DepthnerfError("--render.guided.enabled: depth-guided sampling is an inference-time renderer "
+                             "(depthnerf eval/reconstruct --guided); training renders with the paper's sampler")
+    return cfg
 
 
 def _paper(category: str) -> TrainConfig:
@@ -184,16 +180,33 @@ def preset(name: str) -> TrainConfig:
         raise DepthnerfError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
 
 
-def from_dict_config(data: dict) -> TrainConfig:
-    """A :class:`TrainConfig` from ``config.json`` (strict: unknown keys are an error)."""
-    from depthnerf.train.overrides import from_dict
+def from_dict_config(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
+    """A :class:`TrainConfig` from ``config.json`` (strict: unknown keys are an error).
 
-    return from_dict(TrainConfig, data, where="config.json")
+    Configs written before ``use_depth`` was derived hold ``model.encoder.use_depth``: accepted when it agrees
+    with ``prior`` and dropped (:func:`depthnerf.pretrained.spec.model_config_from_dict`).
+    """
+    data = copy.deepcopy(data)
+    prior = from_dict(PriorConfig, data.get("prior", {}), where=f"{where}.prior")
+    model = data.pop("model", None)
+    cfg = from_dict(TrainConfig, data, where=where)
+    if model is not None:
+        cfg.model = model_config_from_dict(model, prior.enabled, f"{where}.model")
+    return cfg
 
 
 def z_range(cfg: TrainConfig) -> tuple[float, float]:
-    """(near, far) of the run: explicit config values, else the category's SRN values."""
+    """(near, far) of the run: explicit config values, else the category's SRN values (read it from the
+    :class:`InferenceSpec` everywhere else)."""
     if cfg.data.z_near is not None and cfg.data.z_far is not None:
         return cfg.data.z_near, cfg.data.z_far
     d = category_defaults(cfg.data.category)
     return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)
+
+
+def inference_spec(cfg: TrainConfig, prior_weights_hash: str | None = None) -> InferenceSpec:
+    """What a checkpoint of this run stores so that evaluation and reconstruction never read the training config."""
+    near, far = z_range(cfg)
+    return InferenceSpec(model=cfg.model, render=cfg.render, prior=cfg.prior, category=cfg.data.category,
+                         resolution=cfg.data.resolution, z_near=near, z_far=far, pixel_center=cfg.data.pixel_center,
+                         prior_weights_hash=prior_weights_hash, preset=cfg.preset)

@@ -13,18 +13,18 @@ from torch.utils.data import Dataset
 
 from depthnerf.data.cameras import pixel_directions
 from depthnerf.data.srn import ObjectRecord, load_object
-from depthnerf.depth.cache import PriorStore
-from depthnerf.depth.normalize import normalize_disparity
+from depthnerf.depth.prior import DatasetViews, PriorSource
+from depthnerf.model.conditioning import prior_input
 from depthnerf.train.batching import ItemKey, TrainBatch, pick_views, sample_pixels
 
 
 class TrainItems(Dataset):
     """``items[key]`` -> a :class:`TrainBatch` with B = 1 for the object and draws named by ``key``."""
 
-    def __init__(self, records: Sequence[ObjectRecord], store: PriorStore | None, *, resolution: int,
+    def __init__(self, records: Sequence[ObjectRecord], prior: PriorSource, *, resolution: int,
                  target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0) -> None:
         self.records = list(records)
-        self.store = store
+        self.prior = prior
         self.resolution = resolution
         self.target_views = target_views
         self.rays = rays_per_object
@@ -47,13 +47,13 @@ class TrainItems(Dataset):
         dirs = torch.einsum("rij,rj->ri", rot, dirs_cam)
         origins = obj.poses[tgt][view, :3, 3]
         src_prior = target_prior = None
-        if self.store is not None:
+        if self.prior.prior.enabled:
             views = [src, *targets] if self.target_priors else [src]
-            disp = self.store.load(record, views)
-            normed = normalize_disparity(disp, obj.masks[: len(views)])
-            src_prior = normed[:1, None, None]  # [1 1 1 H W]
+            disparity = self.prior.disparity(obj.images[: len(views)], where=DatasetViews(record, tuple(views)))
+            prior = prior_input(disparity, obj.masks[: len(views)])  # [V 1 H W], as the conditioning stage makes it
+            src_prior = prior[None, :1]  # [1 1 1 H W]
             if self.target_priors:
-                target_prior = normed[tgt][view, row, col][None]
+                target_prior = prior[tgt, 0][view, row, col][None]
         intr = obj.intrinsics
         return TrainBatch(
             src_images=obj.images[:1, None], src_poses=obj.poses[:1, None], src_prior=src_prior,

@@ -25,9 +25,11 @@ from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from depthnerf.config_io import to_dict
 from depthnerf.data.srn import index_split
-from depthnerf.depth.cache import PriorStore
+from depthnerf.depth.prior import PriorSource, open_prior
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.depth_loss import ssi_depth_loss
@@ -35,12 +37,11 @@ from depthnerf.render.pipeline import render_rays
 from depthnerf.render.rays import RayBundle
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, StepSampler, TrainBatch, collate, item_seed, step_keys
-from depthnerf.train.config import TrainConfig, z_range
+from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.distributed import DistInfo, barrier
 from depthnerf.train.items import TrainItems
-from depthnerf.train.overrides import to_dict
 from depthnerf.train.run_log import RunLog
-from depthnerf.train.validate import validate
+from depthnerf.train.validator import Validator
 
 
 @dataclass
@@ -111,20 +112,25 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
     return s.lr * s.lr_decay ** epochs
 
 
-def _write_run_files(run_dir: Path, cfg: TrainConfig, store: PriorStore | None, n_train: int) -> None:
-    (run_dir / "config.json").write_text(json.dumps(to_dict(cfg), indent=1) + "\n")
-    prior = {"estimator": cfg.prior.estimator, **(store.provenance if store is not None else {})}
-    (run_dir / "prior.json").write_text(json.dumps(prior, indent=1, default=str) + "\n")
+def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int) -> None:
+    write_text_atomic(run_dir / "config.json", json.dumps(to_dict(cfg), indent=1) + "\n")
+    prior = {"estimator": cfg.prior.estimator, **(prior_source.provenance or {})}
+    write_text_atomic(run_dir / "prior.json", json.dumps(prior, indent=1, default=str) + "\n")
     root = Path(cfg.data.root)
     card_path = root / f"{cfg.data.category}_card.json"
     card = json.loads(card_path.read_text()) if card_path.is_file() else None
     data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
                  "resolution": cfg.data.resolution, "dataset_card": card}
-    (run_dir / "data_card.json").write_text(json.dumps(data_card, indent=1) + "\n")
+    write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
 
 
-def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True) -> dict:
-    """Train (or resume) a run in ``run_dir``; returns the final state as a dict."""
+def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True,
+          validate: Validator | None = None) -> dict:
+    """Train (or resume) a run in ``run_dir``; returns the final state as a dict.
+
+    ``validate`` scores the model on the val objects every ``log.val_every`` steps (``depthnerf train`` passes
+    :func:`depthnerf.eval.validation.validate`; None: no validation).
+    """
     run_dir = Path(run_dir)
     ckpt_root = run_dir / "checkpoints"
     latest = ckpt.latest_checkpoint(ckpt_root) if ckpt_root.exists() else None
@@ -133,22 +139,20 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
                              "continue it or choose another --out")
     root, cat = Path(cfg.data.root), cfg.data.category
     records = index_split(root, cat, "train").objects
-    store = PriorStore.open(root, cfg.prior.estimator, cfg.prior.checkpoint, resolution=cfg.data.resolution)
-    if store is not None:
-        store.check(records)
+    prior_source = open_prior(cfg.prior, data_root=root, resolution=cfg.data.resolution, records=records)
     val_records = []
-    if cfg.log.val_every > 0 and info.is_main:
+    if cfg.log.val_every > 0 and info.is_main and validate is not None:
         try:
             val_records = index_split(root, cat, "val").objects[: cfg.log.val_objects]
         except DepthnerfError as err:
             raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
                                  ) from None
-        if store is not None:
-            store.check(val_records)
-    near, far = z_range(cfg)
+        prior_source.check(val_records)
+    spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"))
+    near, far = spec.z_range
 
     torch.manual_seed(cfg.seed)
-    model = PixelNeRF(cfg.model).to(info.device)
+    model = PixelNeRF(cfg.model, use_depth=cfg.prior.enabled).to(info.device)
     if info.device.type == "cuda":
         model.encoder.to(memory_format=torch.channels_last)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr)
@@ -159,7 +163,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     start = state.step
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        _write_run_files(run_dir, cfg, store, len(records))
+        _write_run_files(run_dir, cfg, prior_source, len(records))
     barrier(info)
 
     loss_module = ObjectLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight)
@@ -167,7 +171,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     s = cfg.schedule
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
                      objects_phase1=s.objects_phase1, objects_phase2=s.objects_phase2)
-    items = TrainItems(records, store, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
+    items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
                        pixel_center=cfg.data.pixel_center)
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
@@ -185,7 +189,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         lr = learning_rate(cfg, plan, step)
         for group in optimizer.param_groups:
             group["lr"] = lr
-        batch = batch.to(info.device)
+        batch = batch.to(info.device, non_blocking=True)
         keys = step_keys(plan, step, info.rank, info.world)
         optimizer.zero_grad(set_to_none=True)
         sums = torch.zeros(5, dtype=torch.float64)
@@ -214,11 +218,11 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             log.log(step, values)
             bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")
             t_last, rays_since = now, 0
-        val_now = cfg.log.val_every > 0 and (step % cfg.log.val_every == 0 or step == s.max_steps)
+        val_now = validate is not None and cfg.log.val_every > 0 and (step % cfg.log.val_every == 0 or step == s.max_steps)
         improved = False
         if info.is_main and val_now:
-            res = validate(model, val_records, store, cfg.log.val_views, cfg.data.resolution, near, far,
-                           cfg.render, cfg.log.render_chunk, info.device, pixel_center=cfg.data.pixel_center)
+            res = validate(model, val_records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk,
+                           info.device)
             log.log(step, {"val_psnr": res.psnr, "val_ssim": res.ssim}, prefix="val")
             log.images(step, res.images)
             improved = res.psnr > best
@@ -226,7 +230,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         if info.is_main and (step % cfg.log.checkpoint_every == 0 or step == s.max_steps or improved):
             last_saved = ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg,
                                               ckpt.TrainingState(step=step, best_psnr=best, extra={}),
-                                              keep_last=cfg.log.keep_last, train_config=to_dict(cfg))
+                                              keep_last=cfg.log.keep_last, train_config=to_dict(cfg),
+                                              spec_json=spec.to_json())
             if improved:
                 ckpt.mark_best(ckpt_root, last_saved)
     bar.close()

@@ -7,12 +7,14 @@
 3. a checkpoint directory (``RUN/checkpoints/step_XXXXXXXX`` or ``.../best``);
 4. a run directory: its ``checkpoints/best`` if validation ran, else its latest checkpoint.
 
-The weights' metadata carries the model config and the run's whole training config, so the model is rebuilt
-exactly and loaded strictly (a mismatch is an error naming the file, never a partial load).
+The weights' metadata carries the inference spec (:mod:`depthnerf.pretrained.spec`; derived from the stored
+model and training configs for checkpoints written before specs existed), so the model is rebuilt exactly and
+loaded strictly (a mismatch is an error naming the file, never a partial load).
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,11 +22,9 @@ import torch
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
-from depthnerf.model.config import PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
-from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.config import TrainConfig, from_dict_config
-from depthnerf.train.overrides import from_dict
+from depthnerf.pretrained.spec import InferenceSpec, spec_from_metadata
+from depthnerf.pretrained.weights import latest_checkpoint, load_state_strict, read_weights
 
 SHIPPED_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
 """Where the package's own checkpoints live."""
@@ -49,7 +49,7 @@ def resolve_checkpoint(spec: str | Path) -> Path:
     if ckpt_root.is_dir():
         if (ckpt_root / "best" / "model.safetensors").is_file():
             return ckpt_root / "best" / "model.safetensors"
-        latest = ckpt.latest_checkpoint(ckpt_root)
+        latest = latest_checkpoint(ckpt_root)
         if latest is not None:
             return latest / "model.safetensors"
         raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")
@@ -63,32 +63,34 @@ class Pretrained:
 
     model: PixelNeRF
     """The network, in eval mode."""
-    config: TrainConfig
-    """The training config it came from (z-range, resolution, depth prior, renderer)."""
+    spec: InferenceSpec
+    """How to run it: model and render config, depth prior, z-range, resolution, category."""
     path: Path
     """The weights file."""
     sha256: str
     """SHA-256 of the weights file (provenance in eval summaries)."""
     step: int
     """Training steps behind these weights."""
+    data_root: str | None = None
+    """Dataset root the model was trained on (provenance; a default for ``depthnerf eval --data``)."""
 
 
 def load_pretrained(spec: str | Path, device: torch.device | str = "cpu") -> Pretrained:
     """Load a checkpoint spec into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
     path = resolve_checkpoint(spec)
-    tensors, meta = ckpt.read_weights(path)
-    model_cfg = from_dict(PixelNeRFConfig, ckpt.checkpoint_config(meta, path), where=f"{path} model config")
-    if "train_config" not in meta:
-        raise DepthnerfError(f"{path}: checkpoint has no training config in its metadata (not written by depthnerf "
-                             "train or scripts/export_checkpoint.py)")
-    import json
-
-    try:
-        train_cfg = from_dict_config(json.loads(meta["train_config"]))
-    except json.JSONDecodeError:
-        raise DepthnerfError(f"{path}: checkpoint's training config is not valid JSON") from None
-    model = PixelNeRF(model_cfg)
-    ckpt.load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
+    tensors, meta = read_weights(path)
+    inference = spec_from_metadata(meta, str(path))
+    model = PixelNeRF(inference.model, use_depth=inference.use_depth)
+    load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
     model.to(device).eval()
-    return Pretrained(model=model, config=train_cfg, path=path, sha256=sha256_file(path),
-                      step=int(meta.get("step", 0)))
+    return Pretrained(model=model, spec=inference, path=path, sha256=sha256_file(path),
+                      step=int(meta.get("step", 0)), data_root=_data_root(meta))
+
+
+def _data_root(meta: dict[str, str]) -> str | None:
+    """``data.root`` of the training config stored beside the weights (None when absent or unreadable)."""
+    try:
+        root = json.loads(meta["train_config"])["data"]["root"]
+    except (KeyError, TypeError, ValueError):
+        return None
+    return root if isinstance(root, str) else None

@@ -1,5 +1,8 @@
 """``depthnerf demo``: synthesise one unseen car and one unseen chair, reconstruct each from one view, score it.
 
+An application of :class:`~depthnerf.reconstruct.Reconstructor` (reconstruction) and :mod:`depthnerf.eval.metrics`
+(scores), so it sits above both stages, beside ``commands/``.
+
 Objects
     Per category, test object 0 of ``depthnerf synth --category C --seed S --test-objects 1`` (default seed
     :data:`DEMO_SEED`; the training data of the shipped checkpoints and the bundled depth network use seed 0 and
@@ -10,9 +13,11 @@ Reconstruction and scores
     Exactly the SRN protocol of ``depthnerf eval`` (:mod:`depthnerf.eval.protocol`): view 64 is the input, the
     targets are every ``views_stride``-th of the other 250 views (:func:`~depthnerf.eval.protocol.protocol_views`;
     stride 25 = 10 views), rendered at the training resolution and scored with :mod:`depthnerf.eval.metrics`
-    (float renders, per-object mean PSNR/SSIM). The depth prior is the checkpoint's own estimator run on the input
-    view (as ``depthnerf depth`` computes the cache, stored as float16 there and here); an ``oracle`` checkpoint
-    gets the synthetic ground-truth depth of the input view, which only synthetic data has (reported in notes).
+    (float renders, per-object mean PSNR/SSIM). The depth prior is the checkpoint's own estimator run live on the
+    input view by :class:`~depthnerf.reconstruct.Reconstructor` with ``match_cache=True``: rounded as the cache
+    stores it (:func:`depthnerf.depth.cache.as_cached`), so the model sees what ``depthnerf eval`` feeds it for the
+    same view; an ``oracle`` checkpoint gets the synthetic ground-truth depth of the input view, which only
+    synthetic data has (reported in notes).
 Outputs per category in ``OUT/<category>/``
     Everything :func:`depthnerf.reconstruct.exports.save_reconstruction` writes (``input.png``, ``depth_prior.png``, the
     turntable frames in ``views/`` and ``turntable.gif``, ``depths/``, ``mesh.ply``/``mesh.glb`` of marching cubes
@@ -29,35 +34,30 @@ import math
 import shutil
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import trimesh
 from PIL import Image
 from tqdm import tqdm
 
 from depthnerf.data import srn_format
-from depthnerf.data.srn import ObjectViews, index_split
+from depthnerf.data.protocol import ProtocolViews, protocol_views
+from depthnerf.data.srn import index_split, load_object
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, checkpoint_framing
 from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_status
-from depthnerf.depth.estimators import CACHED_ESTIMATORS, make_estimator
-from depthnerf.depth.precompute import predict_views
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics
-from depthnerf.eval.objects import ProtocolViews, prepare_object, protocol_views
-from depthnerf.eval.pretrained import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
-from depthnerf.model.pixelnerf import EncodedViews
+from depthnerf.files import write_text_atomic
+from depthnerf.pretrained.load import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
 from depthnerf.reconstruct.exports import save_reconstruction
-from depthnerf.reconstruct.orbit import orbit_points, orbit_poses
+from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
-from depthnerf.reconstruct.reconstructor import POINT_OPACITY, Reconstruction
-from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, input_camera_mesh
-from depthnerf.render.views import render_poses
-from depthnerf.train.config import z_range
+from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+from depthnerf.render.mesh import AUTO_LEVEL
 
 DEMO_SEED = 2718
 """``depthnerf synth --seed`` of the demo objects (training data: seed 0; bundled-depth evaluation: 1234)."""
@@ -139,8 +139,8 @@ def load_checkpoint_for(category: str, spec: str) -> Pretrained:
                                  f"--{category}-checkpoint RUN_DIR_OR_FILE from 'depthnerf train'") from None
         raise
     pre = load_pretrained(spec)
-    if pre.config.data.category != category:
-        raise DepthnerfError(f"{pre.path}: trained on {pre.config.data.category}, given as the {category} checkpoint")
+    if pre.spec.category != category:
+        raise DepthnerfError(f"{pre.path}: trained on {pre.spec.category}, given as the {category} checkpoint")
     return pre
 
 
@@ -156,24 +156,6 @@ def synthesize(category: str, root: Path, seed: int, resolution: int, framing: s
         shutil.rmtree(job.folder)
     generate(cfg)
     return job
-
-
-def depth_prior(pre: Pretrained, src: ObjectViews, notes: list[str]) -> torch.Tensor | None:
-    """Raw disparity of the input view from the checkpoint's estimator (None for a baseline)."""
-    cfg = pre.config
-    if not cfg.model.encoder.use_depth:
-        notes.append("baseline checkpoint: no depth prior")
-        return None
-    name = cfg.prior.estimator
-    estimator = make_estimator(name, cfg.prior.checkpoint)
-    disp = predict_views(estimator, src.images, src.depths, 1)
-    if name == "oracle":
-        notes.append("oracle checkpoint: the prior is the synthetic input view's ground-truth depth (1/z), "
-                     "which a real photo would not have")
-    elif name in CACHED_ESTIMATORS:
-        disp = disp.half().float()  # as stored in the depth-prior cache that 'depthnerf eval' reads
-        notes.append(f"depth prior: {name} estimator on the input view")
-    return disp
 
 
 def _strip(preds: np.ndarray, gts: np.ndarray, gap: int = 2) -> np.ndarray:
@@ -200,44 +182,14 @@ def _save_novel_views(out: Path, root: Path, names: Sequence[str], preds: np.nda
     return files
 
 
-def turntable_and_mesh(pre: Pretrained, src: ObjectViews, disp: torch.Tensor | None, prior: torch.Tensor | None,
-                       enc: EncodedViews, cfg: DemoConfig, notes: list[str], device: torch.device,
-                       on_stage: Callable[[int], Any]) -> Reconstruction:
-    """The turntable (an orbit at the input camera's distance and elevation, from the input camera on), its
-    depths and point cloud, and the mesh, as a :class:`Reconstruction` that :func:`save_reconstruction` writes."""
-    train, model = pre.config, pre.model
-    res, (near, far) = train.data.resolution, z_range(train)
-    t = time.perf_counter()
-    eye = src.poses[0, :3, 3]
-    radius = float(eye.norm())
-    elevation = math.degrees(math.asin(float(eye[2]) / radius))
-    azimuth = math.degrees(math.atan2(float(eye[1]), float(eye[0])))
-    poses = orbit_poses(radius, elevation, cfg.turntable_views, azimuth)
-    orbit = render_poses(model, enc, poses, src.intrinsics, near, far, train.render, cfg.chunk, device)
-    times = {"turntable_s": time.perf_counter() - t}
-    on_stage(1)
-    t = time.perf_counter()
-    mesh, level = trimesh.Trimesh(), None
-    if cfg.mesh:
-        mesh, level = input_camera_mesh(model, enc, src.poses[0], src.intrinsics, near, far,
-                                        MeshConfig(cfg.mesh_resolution, AUTO_LEVEL), device)
-    times["mesh_s"] = time.perf_counter() - t
-    on_stage(1)
-    points, point_colors = orbit_points(orbit, poses, src.intrinsics, POINT_OPACITY, max_points=None)
-    prepared = PreparedImage(image=src.images[0].permute(1, 2, 0).numpy(), mask=src.masks[0].numpy(),
-                             notes=notes, source_size=(res, res))
-    settings = {"radius": radius, "elevation": elevation, "azimuth": azimuth, "resolution": res,
-                "render_resolution": res, "views": cfg.turntable_views, "z_range": [near, far],
-                "category": train.data.category,
-                "depth_estimator": train.prior.estimator if disp is not None else "none",
-                "mesh_resolution": cfg.mesh_resolution if cfg.mesh else 0, "point_opacity": POINT_OPACITY,
-                "mesh_level": level and level.level, "mesh_level_rule": level and level.describe()}
-    return Reconstruction(
-        input=prepared, depth_prior=None if disp is None else disp[0].numpy(),
-        prior_normalized=None if prior is None else prior[0, 0, 0].cpu().numpy(),
-        poses=poses.numpy(), intrinsics=src.intrinsics, views=orbit.rgb.numpy(), depths=orbit.depth.numpy(),
-        opacity=orbit.opacity.numpy(), mesh=mesh, points=points,
-        point_colors=point_colors, settings=settings, timings=times)
+def _prior_note(pre: Pretrained) -> str:
+    name = pre.spec.prior.estimator
+    if name == "none":
+        return "baseline checkpoint: no depth prior"
+    if name == "oracle":
+        return ("oracle checkpoint: the prior is the synthetic input view's ground-truth depth (1/z), which a real "
+                "photo would not have")
+    return f"depth prior: {name} estimator on the input view"
 
 
 @torch.no_grad()
@@ -245,11 +197,12 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
                  ) -> CategoryResult:
     """Synthesise, reconstruct, score and save one category with a loaded checkpoint (module docstring)."""
     times: dict[str, float] = {}
-    train, model = pre.config, pre.model.to(device)
-    res = train.data.resolution
+    pre.model.to(device)
+    res = pre.spec.resolution
+    rec = Reconstructor(pre, device, photos=False, match_cache=True)
     bar = tqdm(total=4, desc=f"demo {category}", unit="stage", file=sys.stderr, disable=not cfg.progress)
     t = time.perf_counter()
-    framing, framing_source = checkpoint_framing(pre.path, train.data.root, category)
+    framing, framing_source = checkpoint_framing(pre.path, pre.data_root, category)
     job = synthesize(category, cfg.out / "data", cfg.seed, res, framing)
     record = next(r for r in index_split(cfg.out / "data", category, "test").objects if r.object_id == job.object_id)
     times["synth_s"] = time.perf_counter() - t
@@ -258,31 +211,43 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     views = protocol_views(record.num_views, cfg.views_stride)
     notes: list[str] = [f"object {record.object_id}: depthnerf synth --category {category} --seed {cfg.seed} "
                         f"--test-objects 1 --resolution {res} --framing {framing} (test split, never used for "
-                        f"training; framing from {framing_source})"]
-    obj = prepare_object(model, record, views, lambda views_: depth_prior(pre, views_, notes), res, res, device,
-                         source_depth=train.prior.estimator == "oracle", pixel_center=train.data.pixel_center)
-    src, tgt, disp, enc = obj.source, obj.targets, obj.prior, obj.enc
+                        f"training; framing from {framing_source})", _prior_note(pre)]
+    oracle = pre.spec.prior.estimator == "oracle"
+    pixel_center = pre.spec.pixel_center
+    src = load_object(record, [views.input_view], resolution=res, with_depth=oracle, pixel_center=pixel_center)
+    tgt = load_object(record, list(views.targets), resolution=res, pixel_center=pixel_center)
+    encoded = rec.encode_view(src.images[:1], src.masks[:1], src.poses[0], src.intrinsics,
+                              depth=src.depths[:1] if oracle else None)
     if not cfg.mesh:
         notes.append("--no-mesh: no mesh extracted (mesh.ply and mesh.glb are empty)")
-    near, far = z_range(train)
-    preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, near, far, train.render, cfg.chunk, device).rgb.numpy()
+    rcfg = ReconstructConfig(mesh_resolution=cfg.mesh_resolution if cfg.mesh else 0, mesh_threshold=AUTO_LEVEL,
+                             max_points=None, chunk=cfg.chunk)
+    preds = rec.render(encoded, tgt.poses, tgt.intrinsics, rcfg).rgb.numpy()
     gts = tgt.images.permute(0, 2, 3, 1).numpy()
     metrics = object_metrics(record.object_id, preds, gts)
     times["reconstruct_s"] = time.perf_counter() - t
     bar.update(1)
-    result = turntable_and_mesh(pre, src, disp, obj.inputs.prior, enc, cfg, notes, device, bar.update)
+    # the turntable: an orbit at the input camera's distance and elevation, from the input camera on
+    eye = src.poses[0, :3, 3]
+    radius = float(eye.norm())
+    elevation = math.degrees(math.asin(float(eye[2]) / radius))
+    azimuth = math.degrees(math.atan2(float(eye[1]), float(eye[0])))
+    prepared = PreparedImage(image=src.images[0].permute(1, 2, 0).numpy(), mask=src.masks[0].numpy(),
+                             notes=notes, source_size=(res, res))
+    turntable = orbit_poses(radius, elevation, cfg.turntable_views, azimuth)
+    result = rec.reconstruct_encoded(encoded, turntable, src.intrinsics, rcfg, prepared, on_stage=bar.update)
     bar.close()
-    result.timings = {**times, **result.timings}
+    result.settings = {"radius": radius, "elevation": elevation, "azimuth": azimuth, **result.settings}
     t = time.perf_counter()
     out = cfg.out / category
     provenance = {"checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
-                  "preset": train.preset}
+                  "preset": pre.spec.preset}
     manifest = save_reconstruction(result, out, provenance)
     files = {k: (None if v is None else [f"{category}/{x}" for x in v] if isinstance(v, list) else f"{category}/{v}")
              for k, v in manifest["files"].items() if k != "views" and k != "depths"}
     files.update({"turntable_frames": f"{category}/views", "manifest": f"{category}/manifest.json"})
     files["novel_views"] = _save_novel_views(out, cfg.out, [record.view_names[v] for v in views.targets], preds, gts)
-    times.update(result.timings)
+    times.update({"turntable_s": result.timings["render_s"], "mesh_s": result.timings["mesh_s"]})
     times["save_s"] = time.perf_counter() - t
     per_view = [{"view": v, "psnr": m.psnr, "ssim": m.ssim} for v, m in zip(views.targets, metrics.views, strict=True)]
     return CategoryResult(category=category, pretrained=pre, checkpoint_spec=spec, object_id=record.object_id,
@@ -294,8 +259,8 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
 def _category_json(r: CategoryResult) -> dict:
     pre = r.pretrained
     return {"checkpoint": r.checkpoint_spec, "checkpoint_path": str(pre.path.resolve()),
-            "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step, "preset": pre.config.preset,
-            "depth_prior": pre.config.prior.estimator, "object_id": r.object_id, "input_view": r.views.input_view,
+            "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step, "preset": pre.spec.preset,
+            "depth_prior": pre.spec.prior.estimator, "object_id": r.object_id, "input_view": r.views.input_view,
             "target_views": list(r.views.targets), "psnr": r.psnr, "ssim": r.ssim, "per_view": r.per_view,
             "notes": r.notes, "mesh_faces": r.mesh_faces,
             "seconds": {**r.seconds, "total_s": sum(r.seconds.values())}, "files": r.files}
@@ -329,5 +294,5 @@ def run_demo(cfg: DemoConfig, device: torch.device | str = "cpu") -> dict:
                          "PSNR/SSIM from depthnerf.eval.metrics on float renders"),
             "categories": {r.category: _category_json(r) for r in results},
             "seconds": total, "device": str(device), "torch_threads": torch.get_num_threads()}
-    (cfg.out / "demo.json").write_text(json.dumps(demo, indent=1) + "\n")
+    write_text_atomic(cfg.out / "demo.json", json.dumps(demo, indent=1) + "\n")
     return demo

@@ -1,4 +1,7 @@
-"""Validation during training: PSNR/SSIM on a few fixed val objects, rendered from the protocol's input view."""
+"""Validation during training: PSNR/SSIM on a few fixed val objects, rendered from the protocol's input view.
+
+``depthnerf train`` passes :func:`validate` to the training loop (:class:`depthnerf.train.validator.Validator`).
+"""
 
 from __future__ import annotations
 
@@ -8,13 +11,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import ObjectRecord, load_object
-from depthnerf.depth.cache import PriorStore
+from depthnerf.depth.prior import DatasetViews, PriorSource
 from depthnerf.eval.metrics import object_metrics
-from depthnerf.eval.objects import protocol_views
-from depthnerf.model.conditioning import source_views
+from depthnerf.model.conditioning import condition
 from depthnerf.model.pixelnerf import PixelNeRF
-from depthnerf.render.config import RenderConfig
+from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.render.views import render_views
 
 
@@ -31,20 +34,22 @@ class ValidationResult:
 
 
 @torch.no_grad()
-def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStore | None, views: Sequence[int],
-             resolution: int, near: float, far: float, render_cfg: RenderConfig, chunk: int,
-             device: torch.device, pixel_center: float = 0.0) -> ValidationResult:
+def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSource, views: Sequence[int],
+             spec: InferenceSpec, chunk: int, device: torch.device) -> ValidationResult:
     """Render ``views`` of each record from its input view and score them against the ground truth."""
     was_training = model.training
     model.eval()
     scores, images = [], {}
+    resolution, (near, far), render_cfg = spec.resolution, spec.z_range, spec.render
     try:
         for i, record in enumerate(records):
             src = protocol_views(record.num_views).input_view
             targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
-            obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=pixel_center)
-            disp = store.load(record, [src]) if store is not None else None
-            enc = model.encode(source_views(obj, [0], disp, device))
+            obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=spec.pixel_center)
+            cond = condition(prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
+                             where=DatasetViews(record, (src,)))
+            disparity = cond.disparity
+            enc = model.encode(cond.inputs)
             out = render_views(model.field(enc, "coarse"), model.field(enc, "fine"),
                                obj.poses[1:].to(device), obj.intrinsics, near, far, render_cfg, chunk=chunk)
             preds = out.rgb.cpu().numpy()
@@ -54,8 +59,8 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], store: PriorStor
                 depth = out.depth[0].cpu().numpy()
                 images = {"source": obj.images[0].permute(1, 2, 0).numpy(), "target": gts[0], "render": preds[0],
                           "depth": (far - depth) / (far - near)}
-                if disp is not None:
-                    d = disp[0].numpy()
+                if disparity is not None:
+                    d = disparity[0].numpy()
                     images["prior"] = (d - d.min()) / max(float(d.max() - d.min()), 1e-8)
     finally:
         model.train(was_training)

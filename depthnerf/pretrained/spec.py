@@ -1,0 +1,133 @@
+"""The inference spec: everything needed to run a trained model as it was trained, stored in every checkpoint.
+
+A checkpoint's weights metadata holds ``inference_spec`` (the JSON of :class:`InferenceSpec`). Checkpoints written
+before the spec existed (the shipped ``depthnerf/checkpoints/*.safetensors`` and older run folders) hold the
+model config (``config``) and the whole training config (``train_config``) instead; :func:`spec_from_metadata`
+derives the same spec from those, so both load alike.
+
+Legacy rule for ``use_depth``: older model configs stored ``encoder.use_depth`` beside the prior. It is accepted
+only when it agrees with the prior (``use_depth == prior.estimator != "none"``) and then dropped; a disagreement
+is an error naming the file. New configs never hold it: it is :attr:`PriorConfig.enabled`.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from depthnerf.config_io import from_dict, to_dict
+from depthnerf.data.srn import category_defaults
+from depthnerf.depth.prior import PriorConfig
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.config import PixelNeRFConfig
+from depthnerf.render.config import RenderConfig
+
+SPEC_KEY = "inference_spec"
+"""Weights-metadata key of the spec's JSON."""
+
+
+@dataclass
+class InferenceSpec:
+    """How to run a trained model: what the encoder sees, how rays are rendered, in which frame and range."""
+
+    model: PixelNeRFConfig
+    """The network (built with ``use_depth = prior.enabled``)."""
+    render: RenderConfig
+    """The renderer it was trained with (samples, noise, background)."""
+    prior: PriorConfig
+    """The depth prior its encoder takes (``none``: the pixelNeRF baseline)."""
+    category: str
+    """Object category it was trained on (picks camera defaults for photos)."""
+    resolution: int
+    """Training image size: source views (and their priors) are encoded at this size."""
+    z_near: float
+    """Near bound of the ray distance."""
+    z_far: float
+    """Far bound of the ray distance."""
+    pixel_center: float = 0.0
+    """Pixel-centre convention the model read its data with (``DataConfig.pixel_center``: pixel (i, j) centred at
+    ``(j + c, i + c)`` in ``intrinsics.txt``'s coordinates); 0.0 for checkpoints written before it existed."""
+    prior_weights_hash: str | None = None
+    """SHA-256 of the prior's weights at training time (None: no prior, or not recorded by older checkpoints)."""
+    preset: str = "custom"
+    """Training preset name (provenance)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+    """Conventions added later (e.g. a pixel-centre convention); unknown to older checkpoints (empty)."""
+
+    @property
+    def use_depth(self) -> bool:
+        """The model is depth-aware (derived from the prior)."""
+        return self.prior.enabled
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        """``(z_near, z_far)``."""
+        return self.z_near, self.z_far
+
+    def to_json(self) -> str:
+        """The JSON stored under :data:`SPEC_KEY`."""
+        return json.dumps(to_dict(self), sort_keys=True)
+
+
+def model_config_from_dict(data: dict[str, Any], use_depth: bool, where: str) -> PixelNeRFConfig:
+    """A model config from JSON, applying the legacy ``encoder.use_depth`` rule (module docstring)."""
+    data = copy.deepcopy(data)
+    encoder = data.get("encoder")
+    if isinstance(encoder, dict) and "use_depth" in encoder:
+        stored = encoder.pop("use_depth")
+        if bool(stored) != use_depth:
+            raise DepthnerfError(f"{where}: encoder.use_depth={stored} disagrees with the depth prior "
+                                 f"({'a prior' if use_depth else 'none'}); fix one of them")
+    return from_dict(PixelNeRFConfig, data, where=where)
+
+
+def spec_from_json(text: str, where: str) -> InferenceSpec:
+    """Parse :meth:`InferenceSpec.to_json` output (strict)."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError:
+        raise DepthnerfError(f"{where}: inference spec is not valid JSON") from None
+    if not isinstance(data, dict) or not isinstance(data.get("prior"), dict):
+        raise DepthnerfError(f"{where}: inference spec has no prior")
+    prior = from_dict(PriorConfig, data["prior"], where=f"{where} prior")
+    model = model_config_from_dict(data.get("model", {}), prior.enabled, f"{where} model")
+    rest = {k: v for k, v in data.items() if k not in ("model", "prior")}
+    spec = from_dict(InferenceSpec, {**rest, "model": {}, "prior": {}}, where=where)
+    spec.model, spec.prior = model, prior
+    return spec
+
+
+def spec_from_train_config(train: dict[str, Any], model: dict[str, Any], where: str) -> InferenceSpec:
+    """The spec of a checkpoint written before specs existed, from its training config and model config dicts."""
+    try:
+        data, prior_d = train["data"], train.get("prior", {"estimator": "none"})
+        prior = from_dict(PriorConfig, prior_d, where=f"{where} train_config.prior")
+        category, resolution = str(data["category"]), int(data["resolution"])
+        near, far = data.get("z_near"), data.get("z_far")
+        pixel_center = float(data.get("pixel_center", 0.0))
+    except (KeyError, TypeError):
+        raise DepthnerfError(f"{where}: training config lacks data.category/resolution or the prior") from None
+    if near is None or far is None:
+        defaults = category_defaults(category)
+        near, far = (near or defaults.z_near), (far or defaults.z_far)
+    return InferenceSpec(model=model_config_from_dict(model, prior.enabled, f"{where} model config"),
+                         render=from_dict(RenderConfig, train.get("render", {}), where=f"{where} render"),
+                         prior=prior, category=category, resolution=resolution, z_near=float(near), z_far=float(far),
+                         pixel_center=pixel_center,
+                         preset=str(train.get("preset", "custom")))
+
+
+def spec_from_metadata(meta: dict[str, str], where: str) -> InferenceSpec:
+    """The spec of a weights file: its own, else derived from an older checkpoint's configs (module docstring)."""
+    if SPEC_KEY in meta:
+        return spec_from_json(meta[SPEC_KEY], where)
+    if "train_config" not in meta:
+        raise DepthnerfError(f"{where}: checkpoint has neither an inference spec nor a training config in its "
+                             "metadata (not written by depthnerf train or scripts/export_checkpoint.py)")
+    try:
+        train, model = json.loads(meta["train_config"]), json.loads(meta["config"])
+    except (KeyError, json.JSONDecodeError):
+        raise DepthnerfError(f"{where}: checkpoint's training or model config is not valid JSON") from None
+    return spec_from_train_config(train, model, where)

@@ -1,0 +1,89 @@
+"""Model weights files: safetensors tensors + JSON metadata, written atomically, loaded strictly.
+
+Metadata of a weights file: ``format`` (:data:`FORMAT`), ``config`` (the model config JSON), ``step``,
+``inference_spec`` (:mod:`depthnerf.pretrained.spec`) and, from training, ``train_config`` (provenance).
+Nothing here unpickles.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save
+
+from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_bytes_atomic
+
+FORMAT = "depthnerf-checkpoint-1"
+"""Format tag stored in every weights file's metadata."""
+
+
+def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], step: int = 0,
+                 dtype: torch.dtype | None = None, extra: dict[str, str] | None = None) -> None:
+    """Write ``module``'s state dict as safetensors with its model config in the metadata (atomically)."""
+    tensors = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
+               for k, v in module.state_dict().items()}
+    meta = {"format": FORMAT, "config": json.dumps(config, sort_keys=True), "step": str(step), **(extra or {})}
+    write_bytes_atomic(Path(path), save(tensors, metadata=meta))
+
+
+def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """Load a weights file written by :func:`save_weights`: ``(tensors, metadata)``; errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise DepthnerfError(f"{path}: checkpoint weights file not found")
+    try:
+        from safetensors import safe_open
+
+        with safe_open(str(path), framework="pt") as f:
+            meta = dict(f.metadata() or {})
+        tensors = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as err:
+        raise DepthnerfError(f"{path}: not a readable safetensors checkpoint ({err})") from None
+    if meta.get("format") != FORMAT:
+        raise DepthnerfError(f"{path}: not a depthnerf checkpoint (format {meta.get('format')!r}, expected {FORMAT})")
+    return tensors, meta
+
+
+def checkpoint_config(meta: dict[str, str], path: Path) -> dict[str, Any]:
+    """The model config dict stored in a checkpoint's metadata."""
+    try:
+        return json.loads(meta["config"])
+    except (KeyError, json.JSONDecodeError):
+        raise DepthnerfError(f"{path}: checkpoint metadata has no valid model config") from None
+
+
+def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: Path) -> None:
+    """Load weights with every key and shape checked; a mismatch is a one-line error naming the file."""
+    own = module.state_dict()
+    missing = sorted(set(own) - set(tensors))
+    unexpected = sorted(set(tensors) - set(own))
+    shapes = [k for k in own if k in tensors and own[k].shape != tensors[k].shape]
+    if missing or unexpected or shapes:
+        parts = []
+        if missing:
+            parts.append(f"missing {len(missing)} tensors (e.g. {missing[0]})")
+        if unexpected:
+            parts.append(f"unexpected {len(unexpected)} tensors (e.g. {unexpected[0]})")
+        if shapes:
+            k = shapes[0]
+            parts.append(f"shape mismatch for {k}: file {tuple(tensors[k].shape)} vs model {tuple(own[k].shape)}")
+        raise DepthnerfError(f"{path}: checkpoint does not match the model config: {'; '.join(parts)}")
+    module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()}, strict=True)
+
+
+def latest_checkpoint(ckpt_root: Path) -> Path | None:
+    """The newest complete checkpoint directory, or None when there is none."""
+    pointer = Path(ckpt_root) / "latest"
+    if not pointer.is_file():
+        return None
+    path = Path(ckpt_root) / pointer.read_text().strip()
+    if not (path / "state.json").is_file():
+        raise DepthnerfError(f"{pointer}: points at {path.name}, which is incomplete or missing")
+    return path
+
+

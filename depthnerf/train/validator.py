@@ -1,0 +1,30 @@
+"""What the training loop needs from validation (structural types; the implementation is
+:func:`depthnerf.eval.validation.validate`, which ``depthnerf train`` passes in, so ``train`` never imports ``eval``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from depthnerf.depth.prior import PriorSource
+from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.pretrained.spec import InferenceSpec
+
+
+class ValidationScores(Protocol):
+    """Mean metrics over the validation objects and images of the first one for TensorBoard."""
+
+    psnr: float
+    ssim: float
+    images: dict[str, np.ndarray]
+
+
+class Validator(Protocol):
+    """``validate(model, records, prior, views, spec, chunk, device)``: render ``views`` of each record from its
+    input view (conditioned on ``prior``) and score them."""
+
+    def __call__(self, model: PixelNeRF, records: Sequence[Any], prior: PriorSource, views: Sequence[int],
+                 spec: InferenceSpec, chunk: int, device: torch.device) -> ValidationScores: ...

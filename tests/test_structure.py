@@ -1,0 +1,152 @@
+"""The package's structure: the import graph is the one-way stage chain, estimator names live in one registry,
+every checkpoint carries an inference spec (older ones derive it), and a training config that asks for
+something training does not do is rejected when it is built."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from depthnerf.cli import main
+from depthnerf.config_io import to_dict
+from depthnerf.depth.estimators import CACHED_ESTIMATORS, ESTIMATORS, PHOTO_ESTIMATORS, estimator_entry
+from depthnerf.depth.prior import PriorConfig
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.pretrained.load import load_pretrained, shipped_checkpoints
+from depthnerf.pretrained.spec import SPEC_KEY, model_config_from_dict, spec_from_json, spec_from_metadata
+from depthnerf.pretrained.weights import read_weights, save_weights
+from depthnerf.train.config import from_dict_config, inference_spec, preset, with_prior
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _graph_module():
+    spec = importlib.util.spec_from_file_location("import_graph", ROOT / "scripts" / "import_graph.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_import_graph_is_the_stage_chain():
+    graph = _graph_module()
+    full = graph.build_graph()
+    assert graph.back_edges(full) == []
+    assert graph.cycles(graph.build_graph(runtime_only=True)) == []
+    assert not {graph.stage_of(m) for m in full} - set(graph.STAGES)
+    # eval, reconstruct and train never import each other, and nothing below them imports them
+    for module, deps in full.items():
+        stage = graph.stage_of(module)
+        if stage in {"data", "depth", "model", "render", "pretrained"}:
+            assert not {graph.stage_of(d) for d in deps} & {"train", "eval", "reconstruct", "commands"}, module
+
+
+def test_cycle_finder_against_a_known_graph():
+    graph = _graph_module()
+    g = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": {"e2"}, "e2": set()}
+    assert graph.cycles(g) == [["a", "b", "c"]]
+    back = graph.back_edges({"depthnerf.data.x": {"depthnerf.render.y"}, "depthnerf.render.y": {"depthnerf.data.x"},
+                             "depthnerf.eval.z": {"depthnerf.train.w"}, "depthnerf.train.w": set()})
+    assert back == [("depthnerf.data.x", "depthnerf.render.y"), ("depthnerf.eval.z", "depthnerf.train.w")]
+
+
+def test_import_graph_script_exits_clean():
+    out = subprocess.run([sys.executable, str(ROOT / "scripts" / "import_graph.py")], capture_output=True, text=True,
+                         cwd=ROOT)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "import cycles: 0" in out.stdout and "back-edges against the chain: 0" in out.stdout
+
+
+def test_one_estimator_registry_feeds_every_flag():
+    assert ESTIMATORS == ("depth-anything-v2", "bundled", "oracle", "none")
+    assert CACHED_ESTIMATORS == ("depth-anything-v2", "bundled") and PHOTO_ESTIMATORS == CACHED_ESTIMATORS
+    assert estimator_entry("none").describe(None) is None
+    with pytest.raises(DepthnerfError, match="unknown depth estimator 'midas'"):
+        estimator_entry("midas")
+    with pytest.raises(DepthnerfError, match="--depth 'midas'"):
+        PriorConfig("midas")
+    assert not PriorConfig("none").enabled and all(PriorConfig(n).enabled for n in ESTIMATORS if n != "none")
+    import argparse
+
+    from depthnerf.commands import depth, depth_eval, evaluate, reconstruct, train
+    for module, flag, names in ((train, "--depth", ESTIMATORS), (evaluate, "--depth", ESTIMATORS),
+                                (depth, "--depth", ESTIMATORS), (depth_eval, "--estimator", ESTIMATORS),
+                                (reconstruct, "--depth-estimator", PHOTO_ESTIMATORS)):
+        parser = argparse.ArgumentParser()
+        module.add_arguments(parser)
+        action = next(a for a in parser._actions if flag in a.option_strings)
+        assert tuple(action.choices) == names, (module.__name__, flag)
+
+
+def test_spec_round_trip_and_use_depth_derived():
+    cfg = with_prior(preset("cpu-chairs"), "oracle")
+    spec = inference_spec(cfg, "ab" * 32)
+    again = spec_from_json(spec.to_json(), "x")
+    assert again == spec and again.use_depth and again.z_range == (1.25, 2.75) and again.resolution == 64
+    assert "use_depth" not in json.dumps(to_dict(cfg))  # stored once: the prior
+    assert inference_spec(with_prior(cfg, "none")).use_depth is False
+
+
+def test_legacy_use_depth_is_checked_then_dropped():
+    cfg = preset("cpu-cars")
+    legacy = to_dict(cfg)
+    legacy["model"]["encoder"]["use_depth"] = True  # as configs written before the prior road stored it
+    assert from_dict_config(legacy).model == cfg.model
+    legacy["model"]["encoder"]["use_depth"] = False
+    with pytest.raises(DepthnerfError, match="use_depth=False disagrees with the depth prior"):
+        from_dict_config(legacy)
+    with pytest.raises(DepthnerfError, match="disagrees"):
+        model_config_from_dict({"encoder": {"use_depth": True}}, use_depth=False, where="m")
+
+
+@pytest.mark.parametrize("name", sorted(shipped_checkpoints()))
+def test_shipped_checkpoints_derive_their_spec(name):
+    pre = load_pretrained(name)
+    meta = read_weights(pre.path)[1]
+    assert SPEC_KEY not in meta  # written before specs existed: derived from the stored configs
+    train = from_dict_config(json.loads(meta["train_config"]))
+    spec = pre.spec
+    assert spec.category == train.data.category and spec.resolution == train.data.resolution == 64
+    assert spec.prior == train.prior and spec.use_depth == name.endswith("-depth")
+    assert spec.render == train.render and spec.model == train.model and spec.preset == train.preset
+    assert spec.z_range == {"cars": (0.8, 1.8), "chairs": (1.25, 2.75)}[spec.category]
+
+
+def test_new_checkpoint_spec_wins_and_loads_the_same_model(tmp_path):
+    pre = load_pretrained("cpu-chairs-depth")
+    path = tmp_path / "spec_only.safetensors"
+    save_weights(path, pre.model, to_dict(pre.spec.model), step=3, extra={SPEC_KEY: pre.spec.to_json()})
+    again = load_pretrained(path)
+    assert again.spec == pre.spec and again.step == 3 and again.data_root is None
+    for (k, a), (_, b) in zip(pre.model.state_dict().items(), again.model.state_dict().items(), strict=True):
+        assert torch.equal(a, b), k
+    with pytest.raises(DepthnerfError, match="neither an inference spec nor a training config"):
+        spec_from_metadata({"config": "{}"}, "w")
+
+
+def test_training_rejects_guided_sampling_when_the_config_is_built(capsys):
+    assert main(["train", "--preset", "cpu-cars", "--print-config", "--render.guided.enabled", "true"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--render.guided.enabled" in err and "eval/reconstruct --guided" in err
+
+
+def test_model_needs_the_prior_exactly_when_depth_aware():
+    cfg = preset("cpu-cars").model
+    deep, base = PixelNeRF(cfg, use_depth=True), PixelNeRF(cfg, use_depth=False)
+    assert deep.encoder.trunk.conv1.in_channels == 4 and base.encoder.trunk.conv1.in_channels == 3
+    assert deep.coarse.cfg == base.coarse.cfg
+    assert cfg.encoder.latent_size(True) - cfg.encoder.latent_size(False) == cfg.encoder.depth_channels
+
+
+def test_top_level_public_api():
+    import depthnerf
+
+    assert depthnerf.Reconstructor.__module__ == "depthnerf.reconstruct.reconstructor"
+    assert depthnerf.Reconstruction.__module__ == "depthnerf.reconstruct.result"
+    assert set(depthnerf.__all__) >= {"Reconstructor", "ReconstructConfig", "Reconstruction", "prepare_photo"}
