@@ -42,6 +42,7 @@ from depthnerf.data.srn import index_split
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics, psnr
 from depthnerf.eval.objects import PreparedObject, dataset_prior, prepare_object
+from depthnerf.files import write_text_atomic
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.config import GuideConfig, RenderConfig
 from depthnerf.render.guidance import ALIGN_MIN_OPACITY, SourceGuide, guided_sampler, source_depth
@@ -249,8 +250,7 @@ def run_checkpoint(args: argparse.Namespace) -> dict:
     }
     print_table(result)
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(result, indent=1) + "\n")
+        write_text_atomic(Path(args.json), json.dumps(result, indent=1) + "\n")
     return result
 
 

@@ -54,6 +54,7 @@ from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import psnr
 from depthnerf.eval.table import load_summary
+from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import SourceViews
 from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
 from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec
@@ -355,8 +356,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
         card["evaluation"] = _eval_section(summary, Path(summary_path), base)
         card["eval_command"] = eval_command(name, card["evaluation"], cfg.data.resolution)
     card_json, card_md = out / f"{name}.json", out / f"{name}.md"
-    card_json.write_text(json.dumps(card, indent=1) + "\n")
-    card_md.write_text(model_card(card, cfg, data_card, prior))
+    write_text_atomic(card_json, json.dumps(card, indent=1) + "\n")
+    write_text_atomic(card_md, model_card(card, cfg, data_card, prior))
     return ExportResult(weights=weights, card_json=card_json, card_md=card_md, card=card)
 
 

@@ -22,6 +22,7 @@ from export_checkpoint import REPO_ROOT, _read_json, portable_path, portable_tex
 
 from depthnerf.data.synth.framing import FRAMINGS, get_framing  # noqa: E402
 from depthnerf.errors import DepthnerfError  # noqa: E402
+from depthnerf.files import write_text_atomic  # noqa: E402
 from depthnerf.train import checkpoint as ckpt  # noqa: E402
 
 
@@ -58,7 +59,7 @@ def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT
     if "pixel_center" not in card and weights.is_file():
         _, meta = ckpt.read_weights(weights)
         card["pixel_center"] = float(json.loads(meta["train_config"]).get("data", {}).get("pixel_center", 0.0))
-    card_json.write_text(json.dumps(card, indent=1) + "\n")
+    write_text_atomic(card_json, json.dumps(card, indent=1) + "\n")
     if md is not None:
         for old, new in sorted(renames.items(), key=lambda kv: -len(kv[0])):
             md = md.replace(old, new)
@@ -67,7 +68,7 @@ def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT
                         rf"read as `data.pixel_center` {card.get('pixel_center', 0.0)}, ", md, count=1)
             md = "\n".join(line + f" --framing {card['framing']}" if line.startswith("depthnerf synth ")
                            and "--framing" not in line else line for line in md.split("\n"))
-        card_md.write_text(md)
+        write_text_atomic(card_md, md)
     return card
 
 

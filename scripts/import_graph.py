@@ -2,14 +2,16 @@
 
     python scripts/import_graph.py            # summary; exit status 1 if any cycle or back-edge
     python scripts/import_graph.py --edges    # also list every stage-crossing edge
+    python scripts/import_graph.py --root DIR # check another copy of the package (DIR: a folder named depthnerf)
 
 Every ``import``/``from ... import`` of a ``depthnerf`` module anywhere in a file counts as a dependency (top
 level, inside functions and under ``TYPE_CHECKING`` alike: a lazy import is still a dependency) for the stage
-check; cycles are counted over runtime imports (everything but ``if TYPE_CHECKING:`` blocks), and cycles that
-exist only through annotation imports are listed separately. Modules are grouped into
-stages by their first package below ``depthnerf`` (:data:`STAGES`); an edge from a stage to a later one, or between
-the sibling stages ``train``, ``eval`` and ``reconstruct``, is a back-edge. Cycles are strongly connected
-components of the module graph (Tarjan).
+check and for cycles. Cycles through runtime imports (everything but ``if TYPE_CHECKING:`` blocks) and cycles that
+exist only through annotation imports are listed separately, and both fail the check (a type that two modules
+both need belongs in a module below both). Modules are grouped into stages by their first package below
+``depthnerf`` (:data:`STAGES`); an edge from a stage to a later one, or between the sibling stages ``train``,
+``eval`` and ``reconstruct``, is a back-edge. Cycles are strongly connected components of the module graph
+(Tarjan).
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ SIBLINGS = {"train", "eval", "reconstruct"}
 """Stages that must not import one another."""
 
 
-def module_name(path: Path) -> str:
-    rel = path.relative_to(ROOT.parent).with_suffix("")
+def module_name(path: Path, root: Path = ROOT) -> str:
+    rel = path.relative_to(root.parent).with_suffix("")
     parts = list(rel.parts)
     if parts[-1] == "__init__":
         parts.pop()
@@ -81,7 +83,7 @@ def imports_of(path: Path, name: str, runtime_only: bool = False) -> set[str]:
 
 def build_graph(root: Path = ROOT, runtime_only: bool = False) -> dict[str, set[str]]:
     """Module -> imported depthnerf modules (only names that are modules of the package)."""
-    files = {module_name(p): p for p in root.rglob("*.py")}
+    files = {module_name(p, root): p for p in root.rglob("*.py")}
     graph = {}
     for name, path in files.items():
         graph[name] = {m for m in imports_of(path, name, runtime_only) if m in files and m != name}
@@ -158,10 +160,11 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--edges", action="store_true", help="list every stage-crossing edge")
+    parser.add_argument("--root", type=Path, default=ROOT, help="the package folder to check (default: depthnerf/)")
     args = parser.parse_args(argv)
-    graph = build_graph()
+    graph = build_graph(args.root)
     unknown = sorted({stage_of(m) for m in graph} - set(STAGES))
-    found_cycles, found_back = cycles(build_graph(runtime_only=True)), back_edges(graph)
+    found_cycles, found_back = cycles(build_graph(args.root, runtime_only=True)), back_edges(graph)
     annotation_cycles = [c for c in cycles(graph) if c not in found_cycles]
     stage_graph = sorted({(stage_of(s) or "depthnerf", stage_of(d) or "depthnerf")
                           for s, ds in graph.items() for d in ds if stage_of(s) != stage_of(d)})
@@ -171,8 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"import cycles: {len(found_cycles)}")
     for comp in found_cycles:
         print("  cycle: " + " <-> ".join(comp))
-    print(f"annotation-only cycles (through `if TYPE_CHECKING:` imports; not a runtime cycle): "
-          f"{len(annotation_cycles)}")
+    print(f"annotation-only cycles (through `if TYPE_CHECKING:` imports): {len(annotation_cycles)}")
     for comp in annotation_cycles:
         print("  cycle: " + " <-> ".join(comp))
     print(f"back-edges against the chain: {len(found_back)}")
@@ -180,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {src} -> {dst}")
     if unknown:
         print(f"modules in no stage: {', '.join(unknown)}")
-    return 1 if found_cycles or found_back or unknown else 0
+    return 1 if found_cycles or annotation_cycles or found_back or unknown else 0
 
 
 if __name__ == "__main__":

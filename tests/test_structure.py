@@ -38,7 +38,7 @@ def test_import_graph_is_the_stage_chain():
     graph = _graph_module()
     full = graph.build_graph()
     assert graph.back_edges(full) == []
-    assert graph.cycles(graph.build_graph(runtime_only=True)) == []
+    assert graph.cycles(full) == []  # annotation-only (`if TYPE_CHECKING:`) cycles count too
     assert not {graph.stage_of(m) for m in full} - set(graph.STAGES)
     # eval, reconstruct and train never import each other, and nothing below them imports them
     for module, deps in full.items():
@@ -61,7 +61,61 @@ def test_import_graph_script_exits_clean():
                          cwd=ROOT)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "import cycles: 0" in out.stdout and "back-edges against the chain: 0" in out.stdout
+    assert "annotation-only cycles (through `if TYPE_CHECKING:` imports): 0" in out.stdout
 
+
+def test_import_graph_script_fails_on_an_annotation_only_cycle(tmp_path, capsys):
+    graph = _graph_module()
+    pkg = tmp_path / "depthnerf"
+    (pkg / "data").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "data" / "__init__.py").write_text("")
+    (pkg / "data" / "a.py").write_text("from depthnerf.data.b import B\n\nA = B\n")
+    (pkg / "data" / "b.py").write_text("from typing import TYPE_CHECKING\n\nif TYPE_CHECKING:\n"
+                                       "    from depthnerf.data.a import A\n\nB = int\n")
+    assert graph.cycles(graph.build_graph(pkg, runtime_only=True)) == []
+    assert graph.cycles(graph.build_graph(pkg)) == [["depthnerf.data.a", "depthnerf.data.b"]]
+    assert graph.main(["--root", str(pkg)]) == 1
+    out = capsys.readouterr().out
+    assert "import cycles: 0" in out
+    assert "annotation-only cycles (through `if TYPE_CHECKING:` imports): 1" in out
+    assert "cycle: depthnerf.data.a <-> depthnerf.data.b" in out
+    (pkg / "data" / "b.py").write_text("B = int\n")  # the same package without the annotation import passes
+    assert graph.main(["--root", str(pkg)]) == 0
+
+
+
+def _text_writes(tree) -> list[int]:
+    """Lines of ``x.write_text(...)``, ``x.write_bytes(...)``, ``json.dump(...)`` and ``open(..., "w"/"x")``: whole-file
+    writes. (Appending to a log, ``open(..., "a")``, is allowed: ``train/run_log.py`` drops a torn last line.)"""
+    import ast
+
+    lines = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        name = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+        mode = node.args[1] if len(node.args) > 1 else next((k.value for k in node.keywords if k.arg == "mode"), None)
+        opens_for_writing = (name == "open" and isinstance(mode, ast.Constant) and isinstance(mode.value, str)
+                             and set(mode.value) & set("wx"))
+        dumps = name == "dump" and isinstance(func, ast.Attribute) and getattr(func.value, "id", "") == "json"
+        if name in {"write_text", "write_bytes"} or dumps or opens_for_writing:
+            lines.append(node.lineno)
+    return lines
+
+
+def test_every_text_and_json_writer_goes_through_files_py():
+    import ast
+
+    assert _text_writes(ast.parse("p.write_text('x')\nopen(p, 'wb')\njson.dump(d, f)\nopen(p)\nopen(p, 'a')\n")) == [1, 2, 3]
+    found = {}
+    for path in sorted((ROOT / "depthnerf").rglob("*.py")):
+        if path.name == "files.py" and path.parent.name == "depthnerf":
+            continue
+        if lines := _text_writes(ast.parse(path.read_text(), str(path))):
+            found[str(path.relative_to(ROOT))] = lines
+    assert found == {}, "write these through depthnerf.files (write_text_atomic / write_json_atomic / ...)"
 
 def test_one_estimator_registry_feeds_every_flag():
     assert ESTIMATORS == ("depth-anything-v2", "bundled", "oracle", "none")

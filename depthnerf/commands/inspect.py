@@ -39,6 +39,7 @@ from pathlib import Path
 from depthnerf.data.srn import SPLITS, discover_categories, index_split, split_dir
 from depthnerf.data.validate import SplitSummary, summarize_split
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_text_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -117,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         payload = {"root": str(root), "splits": [dataclasses.asdict(s) for s in summaries]}
         try:
-            args.json.write_text(json.dumps(payload, indent=2) + "\n")
+            write_text_atomic(args.json, json.dumps(payload, indent=2) + "\n")
         except OSError as err:
             raise DepthnerfError(f"{args.json}: cannot write JSON summary ({err.strerror or err})") from None
         print(f"wrote {args.json}")

@@ -35,7 +35,7 @@ from __future__ import annotations
 import sys
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
@@ -48,12 +48,10 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format, srn_parts
 from depthnerf.data.cameras import Intrinsics
-from depthnerf.data.srn_parts import PartIssue, PartReport
-from depthnerf.data.validate import ObjectCheck, check_object
+from depthnerf.data.records import SPLITS, ObjectRecord, SplitIndex
+from depthnerf.data.srn_parts import PartReport
+from depthnerf.data.validate import check_object
 from depthnerf.errors import DepthnerfError
-
-SPLITS = ("train", "val", "test")
-"""The split names of an SRN release, as they appear in ``<category>_<split>`` folder names."""
 
 
 @dataclass(frozen=True)
@@ -88,84 +86,6 @@ def category_defaults(name: str) -> CategoryDefaults:
         raise DepthnerfError(
             f"unknown SRN category {name!r} (known: {known}); SRN-format data of other categories still loads, "
             "but its z-range (z_near, z_far) must be given explicitly") from None
-
-
-@dataclass(frozen=True)
-class ObjectRecord:
-    """Cheap index entry for one object folder: names and intrinsics, no pixels."""
-
-    category: str
-    """Category name (``cars``, ``chairs``, ...)."""
-    split: str
-    """One of :data:`SPLITS`."""
-    object_id: str
-    """Name of the object folder."""
-    path: Path
-    """The object folder."""
-    view_names: tuple[str, ...]
-    """File stems of the views, sorted (e.g. ``"000064"``)."""
-    intrinsics: Intrinsics
-    """As written in ``intrinsics.txt`` (at the on-disk resolution)."""
-    has_depth: bool
-    """``depth/`` holds a usable z-depth map for every view (as far as the checks that ran can tell)."""
-    has_mask: bool
-    """``mask/`` holds a usable mask for every view (as far as the checks that ran can tell)."""
-    mesh_path: Path | None
-    """``mesh.ply`` when present and usable."""
-    depth_files: tuple[str, ...] = ()
-    """File name in ``depth/`` of every view (empty: ``<stem>.npz``, the format this package writes)."""
-    depth_scale: float | None = None
-    """World units per unit of 16-bit PNG depth (from ``depth_scale.txt``); ``None`` when no view uses PNG."""
-    issues: tuple[PartIssue, ...] = ()
-    """Problems found in the optional parts (each part named by a disabling issue is off for this object)."""
-    ignored: tuple[str, ...] = ()
-    """Entries of the object folder that the layout does not know (ignored)."""
-
-    @property
-    def num_views(self) -> int:
-        """Number of views."""
-        return len(self.view_names)
-
-    def rgb_path(self, view: int) -> Path:
-        """``rgb/<stem>.png`` of view index ``view``."""
-        return self.path / "rgb" / f"{self.view_names[view]}.png"
-
-    def pose_path(self, view: int) -> Path:
-        """``pose/<stem>.txt`` of view index ``view``."""
-        return self.path / "pose" / f"{self.view_names[view]}.txt"
-
-    def depth_path(self, view: int) -> Path:
-        """The depth file of view index ``view`` (exists only if ``has_depth``); read it with
-        ``srn_format.read_depth(path, record.depth_scale)`` (``allow_empty=True`` for views that show nothing)."""
-        name = self.depth_files[view] if self.depth_files else f"{self.view_names[view]}.npz"
-        return self.path / "depth" / name
-
-    def mask_path(self, view: int) -> Path:
-        """``mask/<stem>.png`` of view index ``view`` (exists only if ``has_mask``)."""
-        return self.path / "mask" / f"{self.view_names[view]}.png"
-
-
-@dataclass
-class SplitIndex:
-    """All objects of one ``<category>_<split>`` folder."""
-
-    category: str
-    """Category name."""
-    split: str
-    """One of :data:`SPLITS`."""
-    path: Path
-    """The folder holding the object folders (after the chairs nesting quirk)."""
-    objects: list[ObjectRecord]
-    """Valid objects, sorted by ``object_id``."""
-    skipped: list[str]
-    """One line (file and problem) per object skipped with ``skip_bad=True``."""
-    checks: dict[str, ObjectCheck] = field(default_factory=dict)
-    """Per ``object_id``: what the file checks measured (filled when indexed with ``check_files=True``)."""
-
-    @property
-    def issues(self) -> list[PartIssue]:
-        """Every problem found in the optional parts of the (valid) objects."""
-        return [issue for o in self.objects for issue in o.issues]
 
 
 def split_dir(root: Path, category: str, split: str) -> Path:

@@ -14,6 +14,11 @@ One object folder ``<root>/<category>_<split>/<object_id>/`` holds::
 EXR depth is refused (:data:`EXR_UNSUPPORTED`). Every reader raises :class:`~depthnerf.errors.DepthnerfError`
 with one line naming the file and the problem. Which files an object folder uses, and what happens when an
 optional one is bad, is :mod:`depthnerf.data.srn_parts`'s business.
+
+The text writers (intrinsics, poses) write atomically through :mod:`depthnerf.files`. The image and depth writers
+write in place: a dataset generator marks a finished object by writing its own marker last
+(:mod:`depthnerf.data.synth.generate`), which is what makes a torn view file impossible to mistake for a
+finished one.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ from PIL import Image
 
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import write_text_atomic
 
 RIGID_TOL = 1e-3
 """Tolerance on ``R^T R = I``, ``det R = 1`` and the last row ``[0 0 0 1]`` of a pose."""
@@ -52,8 +58,8 @@ def read_intrinsics(path: Path) -> Intrinsics:
 
 
 def write_intrinsics(path: Path, intr: Intrinsics) -> None:
-    """Write ``intrinsics.txt`` in the SRN layout."""
-    Path(path).write_text(f"{intr.focal:.6f} {intr.cx:.6f} {intr.cy:.6f} 0.\n0. 0. 0.\n1.\n{intr.height} {intr.width}\n")
+    """Write ``intrinsics.txt`` in the SRN layout (atomically)."""
+    write_text_atomic(path, f"{intr.focal:.6f} {intr.cx:.6f} {intr.cy:.6f} 0.\n0. 0. 0.\n1.\n{intr.height} {intr.width}\n")
 
 
 def read_pose(path: Path) -> np.ndarray:
@@ -78,8 +84,8 @@ def read_pose(path: Path) -> np.ndarray:
 
 
 def write_pose(path: Path, c2w: np.ndarray) -> None:
-    """Write a 4x4 camera-to-world pose as 16 numbers on one line."""
-    Path(path).write_text(" ".join(f"{v:.8f}" for v in np.asarray(c2w, dtype=np.float64).reshape(-1)) + "\n")
+    """Write a 4x4 camera-to-world pose as 16 numbers on one line (atomically)."""
+    write_text_atomic(path, " ".join(f"{v:.8f}" for v in np.asarray(c2w, dtype=np.float64).reshape(-1)) + "\n")
 
 
 def read_rgb(path: Path) -> np.ndarray:

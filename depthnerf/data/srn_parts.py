@@ -190,7 +190,8 @@ def unusable_parts(issues: Iterable[PartIssue]) -> set[str]:
 
 
 def with_issues(record, issues: Sequence[PartIssue]):
-    """An :class:`~depthnerf.data.srn.ObjectRecord` with ``issues`` added and the parts they disable turned off."""
+    """An :class:`~depthnerf.data.records.ObjectRecord` with ``issues`` added and the parts they disable turned
+    off."""
     if not issues:
         return record
     off = unusable_parts(issues)

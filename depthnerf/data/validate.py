@@ -18,40 +18,17 @@ import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from PIL import Image
 
+from depthnerf.data.records import ObjectCheck, ObjectRecord, SplitIndex
 from depthnerf.data.srn_format import check_empty_depth, read_depth, read_pose, read_rgb
-from depthnerf.data.srn_parts import PART_LABELS, PartIssue, PartReport
+from depthnerf.data.srn_parts import PART_LABELS, PartReport
 from depthnerf.errors import DepthnerfError
-
-if TYPE_CHECKING:
-    from depthnerf.data.srn import ObjectRecord, SplitIndex
 
 PNG_COLOUR_TYPES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
 """PNG ``IHDR`` colour types, as format names spell them."""
-
-
-@dataclass(frozen=True)
-class ObjectCheck:
-    """What :func:`check_object` measured on one object while checking it."""
-
-    num_views: int
-    """Number of views (image/pose pairs)."""
-    radius_min: float
-    """Smallest camera distance from the world origin over the object's views."""
-    radius_max: float
-    """Largest camera distance from the world origin over the object's views."""
-    rgb_formats: dict[str, int] = field(default_factory=dict)
-    """Views per image format (e.g. ``"PNG 8-bit RGBA"``)."""
-    mask_formats: dict[str, int] = field(default_factory=dict)
-    """Views per mask format (usable masks only)."""
-    depth_formats: dict[str, int] = field(default_factory=dict)
-    """Views per depth format (``.npz``, ``.npy``, ``16-bit PNG``; usable depth only)."""
-    issues: tuple[PartIssue, ...] = ()
-    """Problems found in the optional parts (the parts they name are off for the object)."""
 
 
 def _format_name(head: bytes, im: Image.Image) -> str:

@@ -6,10 +6,9 @@ solids half-sunk into the body so no seams show.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
+from depthnerf.data.synth.car_layout import CarLayout
 from depthnerf.data.synth.primitives import (
     Material,
     MeshBuilder,
@@ -19,9 +18,6 @@ from depthnerf.data.synth.primitives import (
     lathe,
     superellipsoid,
 )
-
-if TYPE_CHECKING:
-    from depthnerf.data.synth.cars import CarLayout
 
 RUBBER = Material("rubber", (0.07, 0.07, 0.075), specular=0.05, shininess=10.0)
 HEADLIGHT = Material("light", (0.96, 0.95, 0.88), specular=0.8, shininess=80.0, reflect=0.2, emission=0.55)

@@ -7,10 +7,10 @@ local +z up the back, then tilted backwards by ``back_tilt`` about the y axis.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from depthnerf.data.synth.chair_params import ChairParams
 from depthnerf.data.synth.primitives import (
     Material,
     MeshBuilder,
@@ -25,9 +25,6 @@ from depthnerf.data.synth.primitives import (
     superellipse_outline,
     superellipsoid,
 )
-
-if TYPE_CHECKING:
-    from depthnerf.data.synth.chairs import ChairParams
 
 
 @dataclass
@@ -199,7 +196,7 @@ def _curved_panel(width: float, height: float, thick: float, curve: float, z0: f
 
 
 def add_back(b: MeshBuilder, p: ChairParams) -> None:
-    """The backrest, in one of the back types (see :class:`~depthnerf.data.synth.chairs.ChairParams`)."""
+    """The backrest, in one of the back types (see :class:`~depthnerf.data.synth.chair_params.ChairParams`)."""
     g, d = seat_geom(p), p.dims
     h, t = d["back_h"], d["leg_t"]
     wb = 2 * g.half_w

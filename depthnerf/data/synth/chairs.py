@@ -27,10 +27,9 @@ hybrid      swivel, pedestal or sled  slats, spindles, splat or ladder          
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from depthnerf.data.synth.chair_params import ChairParams
 from depthnerf.data.synth.chair_parts import add_arms, add_back, add_legs, add_seat
 from depthnerf.data.synth.primitives import Material, MeshBuilder, SynthMesh
 
@@ -64,36 +63,6 @@ FABRICS = (("grey", (0.5, 0.5, 0.52)), ("charcoal", (0.2, 0.2, 0.22)), ("beige",
            ("mustard", (0.78, 0.6, 0.15)), ("olive", (0.4, 0.42, 0.2)), ("cream", (0.9, 0.86, 0.76)),
            ("tan leather", (0.6, 0.38, 0.2)), ("black leather", (0.07, 0.07, 0.08)))
 """Upholstery colours."""
-
-
-@dataclass
-class ChairParams:
-    """Sampled structure, proportions and materials of one chair (nominal units, floor at z = 0)."""
-
-    archetype: str
-    """One of :data:`CHAIR_ARCHETYPES`."""
-    legs: str
-    """``four``, ``swivel``, ``sled``, ``pedestal`` or ``panel``."""
-    back: str
-    """``solid``, ``curved``, ``slats``, ``ladder``, ``spindles``, ``splat``, ``office``, ``shell`` or ``none``."""
-    arms: str
-    """``none``, ``posts``, ``office``, ``tube``, ``panel`` or ``shell``."""
-    seat_shape: str
-    """``rect``, ``rounded``, ``trapezoid`` or ``round``."""
-    dims: dict[str, float]
-    """Proportions: seat_h (top of seat), seat_w, seat_d, seat_t, back_h (above seat), back_tilt (rad), leg_t,
-    splay, back_curve, arm_h (above seat), cushion_t, panel_t."""
-    options: dict[str, int]
-    """Discrete options: n_slats, round_legs, tapered, stretchers (0 none, 1 H, 2 box, 3 ring), seat_cushion,
-    back_cushion, cantilever (sled), headrest (office), star_phase (degrees, swivel base)."""
-    frame: Material
-    """Legs, posts, rails."""
-    seat: Material
-    """Seat and solid back panel."""
-    cushion: Material
-    """Cushions and upholstery."""
-    finish: str
-    """Names of the frame/seat/cushion finishes, for the dataset card."""
 
 
 def _pick(rng: np.random.Generator, table: tuple) -> tuple:
