@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import statistics
 import time
@@ -27,7 +28,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from depthnerf.data.cameras import Intrinsics, look_at
-from depthnerf.model import PixelNeRF
+from depthnerf.model import PixelNeRF, SourceViews
 from depthnerf.render.rays import rays_from_camera
 from depthnerf.train.batching import ItemKey, TrainBatch
 from depthnerf.train.config import preset, with_prior
@@ -55,9 +56,14 @@ def synthetic_batch(b: int, rays: int, res: int, use_depth: bool, seed: int = 0)
     all_rays = rays_from_camera(poses[:, 1], intr, 0.8, 1.8)
     idx = torch.randint(0, all_rays.num_rays, (b, rays), generator=gen)
     pick = [torch.gather(t, 1, idx[..., None].expand(-1, -1, 3)) for t in (all_rays.origins, all_rays.directions)]
-    batch = TrainBatch(src_images=torch.rand(b, 1, 3, res, res, generator=gen), src_poses=poses[:, :1],
-                       src_prior=torch.randn(b, 1, 1, res, res, generator=gen) if use_depth else None,
-                       focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
+    src = dict(images=torch.rand(b, 1, 3, res, res, generator=gen), poses=poses[:, :1],
+               focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
+               prior=torch.randn(b, 1, 1, res, res, generator=gen) if use_depth else None)
+    if any(f.name == "source" for f in dataclasses.fields(TrainBatch)):
+        src = {"source": SourceViews(**src)}
+    else:  # a checkout from before TrainBatch carried the conditioning stage's SourceViews
+        src = {k if k in ("focal", "principal") else f"src_{k}": v for k, v in src.items()}
+    batch = TrainBatch(**src,
                        ray_origins=pick[0], ray_dirs=pick[1], target_rgb=torch.rand(b, rays, 3, generator=gen),
                        target_prior=None, target_fg=torch.rand(b, rays, generator=gen) > 0.5,
                        target_cos=torch.ones(b, rays))
@@ -69,7 +75,7 @@ def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, st
     (bf16 autocast, fused Adam) whatever the device: the CPU op-count proxy."""
     cuda = device.type == "cuda" or as_cuda
     amp = torch.autocast(device.type, dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
-    keys = [ItemKey(k, 1000 + k, True) for k in range(batch.focal.shape[0])]
+    keys = [ItemKey(k, 1000 + k, True) for k in range(batch.ray_origins.shape[0])]
     try:
         from depthnerf.train.step import BatchLoss, train_step
     except ImportError:  # a checkout from before the batched step: its loop body, verbatim in shape
@@ -131,16 +137,14 @@ def cuda_launches(fn) -> int:
 
 def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
                  repeat: int) -> None:
-    import dataclasses
-
-    from depthnerf.model.pixelnerf import SourceViews
     from depthnerf.render.precision import configure_inference
     from depthnerf.render.views import render_poses, render_views, view_rays
 
     model.eval()
     policy = configure_inference(model, device)
-    src = SourceViews(batch.src_images[:1], batch.src_poses[:1], batch.focal[:1], batch.principal[:1],
-                      batch.src_prior[:1] if batch.src_prior is not None else None)
+    src = batch.item(0).source if hasattr(batch, "source") else SourceViews(
+        batch.src_images[:1], batch.src_poses[:1], batch.focal[:1], batch.principal[:1],
+        batch.src_prior[:1] if batch.src_prior is not None else None)
     az = torch.linspace(0, 2 * math.pi, views + 1)[:-1]
     poses = look_at(torch.stack([1.2 * torch.cos(az), 1.2 * torch.sin(az), torch.full_like(az, 0.5)], -1))
     with torch.no_grad():

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from depthnerf.data.cameras import look_at
-from depthnerf.model import EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConfig
+from depthnerf.model import EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConfig, SourceViews
 from depthnerf.model.features import resize_bilinear_matmul, sample_maps
 from depthnerf.model.norm import ObjectBatchNorm2d, object_groups
 from depthnerf.render.config import RenderConfig, SamplerConfig
@@ -108,10 +108,10 @@ def tiny_setup(b: int, use_depth: bool = False, seed: int = 0, device: str = "cp
     eye = torch.stack([1.3 * torch.cos(az), 1.3 * torch.sin(az), 0.3 + 0.4 * torch.rand(b, 1, generator=gen)], -1)
     origins = torch.randn(b, r, 3, generator=gen) * 0.1 + torch.tensor([1.2, 0.0, 0.3])
     dirs = F.normalize(-origins + torch.randn(b, r, 3, generator=gen) * 0.1, dim=-1)
-    batch = TrainBatch(src_images=torch.rand(b, 1, 3, size, size, generator=gen), src_poses=look_at(eye),
-                       src_prior=torch.rand(b, 1, 1, size, size, generator=gen) if use_depth else None,
-                       focal=torch.full((b,), size * 1.0), principal=torch.full((b, 2), (size - 1) / 2),
-                       ray_origins=origins, ray_dirs=dirs, target_rgb=torch.rand(b, r, 3, generator=gen),
+    source = SourceViews(images=torch.rand(b, 1, 3, size, size, generator=gen), poses=look_at(eye),
+                         focal=torch.full((b,), size * 1.0), principal=torch.full((b, 2), (size - 1) / 2),
+                         prior=torch.rand(b, 1, 1, size, size, generator=gen) if use_depth else None)
+    batch = TrainBatch(source=source, ray_origins=origins, ray_dirs=dirs, target_rgb=torch.rand(b, r, 3, generator=gen),
                        target_prior=torch.rand(b, r, generator=gen), target_fg=torch.rand(b, r, generator=gen) > 0.4,
                        target_cos=torch.rand(b, r, generator=gen) * 0.2 + 0.8)
     keys = [ItemKey(k, 1000 + 17 * k, True) for k in range(b)]
@@ -155,7 +155,7 @@ def test_rank_split_of_the_batched_step_equals_the_whole_batch():
     g_whole = grads(model)
     parts, g_parts = [], []
     for lo in (0, 2):
-        sub = TrainBatch(**{n: (None if v is None else v[lo:lo + 2]) for n, v in vars(batch).items()})
+        sub = batch.slice(lo, lo + 2, dim=0)
         parts.append(train_step(loss, sub, keys[lo:lo + 2], 2, 0.8, 1.8, torch.device("cpu")))
         g_parts.append(grads(model))
     torch.testing.assert_close((parts[0] + parts[1]) / 2, whole, rtol=1e-5, atol=1e-7)
@@ -164,12 +164,11 @@ def test_rank_split_of_the_batched_step_equals_the_whole_batch():
 
 def deterministic_loss(loss: BatchLoss, batch: TrainBatch) -> torch.Tensor:
     """The step's colour loss with deterministic sampling (train=False), comparable across devices."""
-    from depthnerf.model.pixelnerf import SourceViews
     from depthnerf.render.pipeline import render_rays
     from depthnerf.render.rays import RayBundle
 
     m = loss.model
-    enc = m.encode(SourceViews(batch.src_images, batch.src_poses, batch.focal, batch.principal, batch.src_prior))
+    enc = m.encode(batch.source)
     near = torch.full_like(batch.ray_origins[..., 0], 0.8)
     rays = RayBundle(batch.ray_origins, batch.ray_dirs, near, near + 1.0)
     out = render_rays(m.field(enc, "coarse"), m.field(enc, "fine"), rays, loss.render_cfg, train=False)
@@ -184,8 +183,7 @@ def test_cuda_batched_model_matches_the_cpu_reference():
     torch.backends.cuda.matmul.allow_tf32 = False
     torch.backends.cudnn.allow_tf32 = False
     model, loss, batch, keys = tiny_setup(3)
-    ref = sum(deterministic_loss(loss, TrainBatch(**{n: (None if v is None else v[k:k + 1])
-                                                     for n, v in vars(batch).items()})) for k in range(3)) / 3
+    ref = sum(deterministic_loss(loss, batch.item(k)) for k in range(3)) / 3
     ref.backward()
     g_ref = grads(model)
     model_c, loss_c, batch_c, _ = tiny_setup(3, device="cuda")

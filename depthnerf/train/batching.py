@@ -20,6 +20,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from depthnerf.bundles import TensorBundle
+from depthnerf.model.pixelnerf import SourceViews
 
 _MIX = 0x9E3779B97F4A7C15
 T = TypeVar("T")
@@ -125,16 +126,9 @@ def sample_pixels(num_rays: int, masks_shape: tuple[int, int, int], bboxes: Int[
 class TrainBatch(TensorBundle):
     """One collated training batch (B objects of this rank)."""
 
-    src_images: Float[Tensor, "B 1 3 H W"]
-    """Source image per object, [0, 1]."""
-    src_poses: Float[Tensor, "B 1 4 4"]
-    """Source camera-to-world (OpenCV axes)."""
-    src_prior: Float[Tensor, "B 1 1 H W"] | None
-    """Normalised depth prior of the source view, or None for the baseline."""
-    focal: Float[Tensor, " B"]
-    """Focal length in pixels at the training resolution."""
-    principal: Float[Tensor, "B 2"]
-    """Principal point (cx, cy)."""
+    source: SourceViews
+    """The source view of each object (V = 1), as the conditioning stage makes it
+    (:func:`depthnerf.model.conditioning.condition`): image, camera and normalised prior (None for the baseline)."""
     ray_origins: Float[Tensor, "B R 3"]
     """World ray origins of the target rays."""
     ray_dirs: Float[Tensor, "B R 3"]

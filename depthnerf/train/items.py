@@ -1,4 +1,4 @@
-"""Building one training item (one object: source view, its prior, target rays) from an :class:`ItemKey`.
+"""Building one training item (one object: its conditioned source view, target rays) from an :class:`ItemKey`.
 
 Used as a map-style ``Dataset`` indexed by keys from :func:`depthnerf.train.batching.step_keys`, so DataLoader
 workers produce exactly what the main process would.
@@ -14,7 +14,7 @@ from torch.utils.data import Dataset
 from depthnerf.data.cameras import pixel_directions
 from depthnerf.data.srn import ObjectRecord, load_object
 from depthnerf.depth.prior import DatasetViews, PriorSource
-from depthnerf.model.conditioning import prior_input
+from depthnerf.model.conditioning import condition
 from depthnerf.train.batching import ItemKey, TrainBatch, pick_views, sample_pixels
 
 
@@ -46,19 +46,17 @@ class TrainItems(Dataset):
         rot = obj.poses[tgt][view, :3, :3]  # [R 3 3]
         dirs = torch.einsum("rij,rj->ri", rot, dirs_cam)
         origins = obj.poses[tgt][view, :3, 3]
-        src_prior = target_prior = None
-        if self.prior.prior.enabled:
-            views = [src, *targets] if self.target_priors else [src]
-            disparity = self.prior.disparity(obj.images[: len(views)], where=DatasetViews(record, tuple(views)))
-            prior = prior_input(disparity, obj.masks[: len(views)])  # [V 1 H W], as the conditioning stage makes it
-            src_prior = prior[None, :1]  # [1 1 1 H W]
-            if self.target_priors:
-                target_prior = prior[tgt, 0][view, row, col][None]
-        intr = obj.intrinsics
+        # the conditioning stage's own bundle (B = 1, V = 1); the target views' prior, made by the same stage,
+        # feeds the optional depth loss
+        source = condition(self.prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics,
+                           where=DatasetViews(record, (src,))).inputs
+        target_prior = None
+        if self.target_priors and source.prior is not None:
+            targets_in = condition(self.prior, obj.images[tgt], obj.masks[tgt], obj.poses[tgt], obj.intrinsics,
+                                   where=DatasetViews(record, tuple(targets))).inputs
+            target_prior = targets_in.prior[0, :, 0][view, row, col][None]
         return TrainBatch(
-            src_images=obj.images[:1, None], src_poses=obj.poses[:1, None], src_prior=src_prior,
-            focal=torch.tensor([intr.focal]), principal=torch.tensor([[intr.cx, intr.cy]]),
-            ray_origins=origins[None], ray_dirs=dirs[None],
+            source=source, ray_origins=origins[None], ray_dirs=dirs[None],
             target_rgb=obj.images[tgt][view, :, row, col][None], target_prior=target_prior,
             target_fg=obj.masks[tgt][view, row, col][None], target_cos=dirs_cam[:, 2][None],
         )

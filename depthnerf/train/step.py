@@ -24,7 +24,7 @@ import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
 
-from depthnerf.model.pixelnerf import PixelNeRF, SourceViews
+from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.depth_loss import ssi_depth_loss_per_image
 from depthnerf.render.pipeline import render_rays
@@ -82,9 +82,7 @@ class BatchLoss(torch.nn.Module):
 
     def forward(self, batch: TrainBatch, near: float, far: float,
                 generators: Sequence[torch.Generator]) -> LossTerms:
-        src = SourceViews(images=batch.src_images, poses=batch.src_poses, focal=batch.focal,
-                          principal=batch.principal, prior=batch.src_prior)
-        enc = self.model.encode(src)
+        enc = self.model.encode(batch.source)
         fine_fn = self.model.field(enc, "fine")  # the coarse MLP when there is no separate fine one (pixelNeRF)
         rays = RayBundle(batch.ray_origins, batch.ray_dirs, torch.full_like(batch.ray_origins[..., 0], near),
                          torch.full_like(batch.ray_origins[..., 0], far))
