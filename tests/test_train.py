@@ -20,8 +20,9 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, sample_pixels, step_keys
 from depthnerf.train.config import preset, with_prior
-from depthnerf.train.loop import background_opacity_loss, learning_rate
+from depthnerf.train.loop import learning_rate
 from depthnerf.train.run_log import read_metrics
+from depthnerf.train.step import background_opacity_per_object
 
 TINY = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
         "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--render.sampler.n_coarse", "8",
@@ -111,8 +112,9 @@ def test_checkpoint_refuses_other_model_config(tmp_path):
 def test_background_opacity_loss_closed_form():
     opacity = torch.tensor([[0.5, 1.0, 0.2], [0.3, 0.0, 0.9]])
     fg = torch.tensor([[True, False, False], [True, True, False]])
-    assert float(background_opacity_loss(opacity, fg)) == pytest.approx((1.0 + 0.04 + 0.81) / 3)
-    assert float(background_opacity_loss(opacity, torch.ones_like(fg))) == 0.0  # no background ray: no loss
+    per_object = background_opacity_per_object(opacity, fg)  # object 0: rays 1, 2; object 1: ray 2
+    assert per_object.tolist() == pytest.approx([(1.0 + 0.04) / 2, 0.81])
+    assert background_opacity_per_object(opacity, torch.ones_like(fg)).tolist() == [0.0, 0.0]  # no background ray
 
 
 def test_background_opacity_term_enters_the_training_loss(data, tmp_path):

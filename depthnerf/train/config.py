@@ -82,8 +82,8 @@ class ScheduleConfig:
     loop). Same per-object BatchNorm statistics and noise, so the same result up to float rounding
     (``depthnerf.train.step``); a speed choice only."""
     background_opacity_weight: float = 0.0
-    """Weight of :func:`~depthnerf.train.loop.background_opacity_loss` on coarse and fine opacity of background
-    target rays (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
+    """Weight of :func:`~depthnerf.train.step.background_opacity_per_object` on coarse and fine opacity of
+    background target rays, averaged over objects (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
     colour loss; this term penalises it (the white floaters of docs/RESULTS.md)."""
 
 

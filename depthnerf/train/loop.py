@@ -38,10 +38,10 @@ from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.distributed import DistInfo, barrier
 from depthnerf.train.items import TrainItems
 from depthnerf.train.run_log import RunLog
-from depthnerf.train.step import BatchLoss, background_opacity_loss, train_step
+from depthnerf.train.step import BatchLoss, train_step
 from depthnerf.train.validator import Validator
 
-__all__ = ["background_opacity_loss", "learning_rate", "train"]
+__all__ = ["learning_rate", "train"]
 
 
 def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:

@@ -57,16 +57,10 @@ class LossTerms:
 
 def background_opacity_per_object(opacity: Float[Tensor, "B R"], foreground: Bool[Tensor, "B R"]
                                   ) -> Float[Tensor, " B"]:
-    """Per object, mean squared opacity over the rays whose target pixel is background (0 when there is none)."""
+    """Per object, mean squared opacity over the rays whose target pixel is background (0 when there is none):
+    ``sum_r [not fg_r] * opacity_r^2 / max(1, #background rays)``; the loss term is its mean over objects."""
     background = ~foreground
     return (opacity.square() * background).sum(-1) / background.sum(-1).clamp_min(1)
-
-
-def background_opacity_loss(opacity: Float[Tensor, "B R"], foreground: Bool[Tensor, "B R"]) -> Float[Tensor, ""]:
-    """Mean squared opacity over the rays whose target pixel is background (0 when there is none):
-    ``sum_r [not fg_r] * opacity_r^2 / max(1, #background rays)``."""
-    background = ~foreground
-    return (opacity.square() * background).sum() / background.sum().clamp_min(1)
 
 
 class BatchLoss(torch.nn.Module):
