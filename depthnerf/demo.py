@@ -53,7 +53,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics
 from depthnerf.files import write_text_atomic
 from depthnerf.pretrained.load import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
-from depthnerf.reconstruct.exports import save_reconstruction
+from depthnerf.reconstruct.exports import save_reconstruction, to_u8
 from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
@@ -123,10 +123,6 @@ class CategoryResult:
     """Faces of the extracted mesh (None with ``mesh=False``)."""
 
 
-def _u8(x: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
 def load_checkpoint_for(category: str, spec: str) -> Pretrained:
     """Load the checkpoint given for ``category``; a missing one is a one-line error saying how to get it."""
     try:
@@ -164,8 +160,8 @@ def _strip(preds: np.ndarray, gts: np.ndarray, gap: int = 2) -> np.ndarray:
     out = np.full((2 * h + gap, n * w + (n - 1) * gap, 3), 160, np.uint8)
     for k in range(n):
         x = k * (w + gap)
-        out[:h, x:x + w] = _u8(preds[k])
-        out[h + gap:, x:x + w] = _u8(gts[k])
+        out[:h, x:x + w] = to_u8(preds[k])
+        out[h + gap:, x:x + w] = to_u8(gts[k])
     return out
 
 

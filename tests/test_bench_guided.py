@@ -57,14 +57,20 @@ def tiny_checkpoint(path: Path) -> Path:
     return path
 
 
-def test_checkpoint_mode_matches_eval_protocol(bench, tmp_path):
+def run_checkpoint_bench(bench, tmp_path: Path, budgets: str) -> tuple[Path, Path, dict]:
+    """A 2-object fixture with depth and masks, a tiny depth-aware checkpoint, and the benchmark's JSON on them
+    (every 20th view, one repeat): ``(data root, weights, result)``."""
     root = make_srn_fixture(tmp_path / "data", "cars", {"test": 2}, views=66, size=16, with_depth=True,
                             with_mask=True)
     weights = tiny_checkpoint(tmp_path / "tiny.safetensors")
     out = tmp_path / "bench.json"
     assert bench.main(["--checkpoint", str(weights), "--data", str(root), "--objects", "2", "--views-stride", "20",
-                       "--budgets", "6,12", "--repeats", "1", "--json", str(out)]) == 0
-    result = json.loads(out.read_text())
+                       "--budgets", budgets, "--repeats", "1", "--json", str(out)]) == 0
+    return root, weights, json.loads(out.read_text())
+
+
+def test_checkpoint_mode_matches_eval_protocol(bench, tmp_path):
+    root, weights, result = run_checkpoint_bench(bench, tmp_path, "6,12")
     rows = {r["name"]: r for r in result["rows"]}
     assert list(rows) == ["reference", "guided-6", "guided-12"]
     assert result["views_per_object"] == 4 and len(result["objects"]) == 2 and result["checkpoint_step"] == 7
@@ -134,13 +140,8 @@ def test_eval_guided_matches_the_benchmark_row(bench, tmp_path):
     (depthnerf.render.guidance): same prior alignment, same guide, same sampler, so the same PSNR."""
     from depthnerf.render.guidance import GuidanceConfig
 
-    root = make_srn_fixture(tmp_path / "data", "cars", {"test": 2}, views=66, size=16, with_depth=True,
-                            with_mask=True)
-    weights = tiny_checkpoint(tmp_path / "tiny.safetensors")
-    out = tmp_path / "bench.json"
-    assert bench.main(["--checkpoint", str(weights), "--data", str(root), "--objects", "2", "--views-stride", "20",
-                       "--budgets", "12", "--repeats", "1", "--json", str(out)]) == 0
-    row = {r["name"]: r for r in json.loads(out.read_text())["rows"]}["guided-12"]
+    root, weights, result = run_checkpoint_bench(bench, tmp_path, "12")
+    row = {r["name"]: r for r in result["rows"]}["guided-12"]
     cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False, guided=GuidanceConfig(12))
     summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval", cfg).summary
     assert summary["guided_sampling"]["budget"] == 12 and "guided sampling (12/ray)" in summary["method"]

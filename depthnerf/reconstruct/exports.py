@@ -44,7 +44,8 @@ GLTF_FROM_WORLD = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 
 """World (+z up) to glTF (+y up): ``(x, y, z) -> (x, z, -y)``, a rotation of -90 degrees about +x."""
 
 
-def _u8(x: np.ndarray) -> np.ndarray:
+def to_u8(x: np.ndarray) -> np.ndarray:
+    """Float image in [0, 1] (clipped) as 8-bit, rounded."""
     return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
@@ -57,7 +58,7 @@ def prior_image(prior: np.ndarray) -> np.ndarray:
 
 def depth_image(depth: np.ndarray, opacity: np.ndarray, near: float, far: float) -> np.ndarray:
     """8-bit grey of a rendered depth map: 255 at ``near`` ... 0 at ``far``, 0 where opacity < 0.5."""
-    grey = _u8((far - depth) / (far - near))
+    grey = to_u8((far - depth) / (far - near))
     return np.where(opacity >= 0.5, grey, 0).astype(np.uint8)
 
 
@@ -72,7 +73,7 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
         raise DepthnerfError(f"{out}: cannot create the output folder ({err.strerror or err})") from None
     near, far = result.settings["z_range"]
     files: dict[str, Any] = {}
-    Image.fromarray(_u8(result.input.image)).save(out / "input.png")
+    Image.fromarray(to_u8(result.input.image)).save(out / "input.png")
     Image.fromarray(result.input.mask.astype(np.uint8) * 255).save(out / "input_mask.png")
     files["input"], files["input_mask"] = "input.png", "input_mask.png"
     if result.prior_normalized is not None:
@@ -80,7 +81,7 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
         files["depth_prior"] = "depth_prior.png"
     else:
         files["depth_prior"] = None
-    frames = _u8(result.views)
+    frames = to_u8(result.views)
     files["views"], files["depths"] = [], []
     for k, frame in enumerate(frames):
         Image.fromarray(frame).save(out / "views" / f"view_{k:03d}.png")
@@ -104,7 +105,7 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
     result.mesh.export(out / "mesh.ply")
     result.mesh.copy().apply_transform(GLTF_FROM_WORLD).export(out / "mesh.glb")
     files["mesh_ply"], files["mesh_glb"] = "mesh.ply", "mesh.glb"
-    rgba = np.concatenate([_u8(result.point_colors), np.full((len(result.points), 1), 255, np.uint8)], axis=1)
+    rgba = np.concatenate([to_u8(result.point_colors), np.full((len(result.points), 1), 255, np.uint8)], axis=1)
     if len(result.points):
         trimesh.PointCloud(result.points, colors=rgba).export(out / "points.ply")
     else:  # trimesh cannot write an empty cloud: the same header, no vertices
