@@ -235,26 +235,27 @@ class AppSession:
 
     def training_fill(self, model: str, checkpoint_path: str = "") -> float:
         """The fill (foreground ratio) the model was trained at (see the module docstring)."""
-        from depthnerf.reconstruct.photo import DEFAULT_FILL, FILL
+        from depthnerf.reconstruct.photo import category_fill
 
         rec = self.models.get(resolve_model(RunRequest(None, model, checkpoint_path)))
-        return FILL.get(model_category(rec), DEFAULT_FILL)
+        return category_fill(model_category(rec))
 
     def preview(self, request: RunRequest) -> tuple[np.ndarray | None, str]:
         """The preprocessing alone (mask, recentre, white background, resize): ``(image or None, message)``."""
         from depthnerf import prepare_photo
-        from depthnerf.reconstruct.photo import DEFAULT_FILL, FILL
+        from depthnerf.reconstruct.exports import to_u8
+        from depthnerf.reconstruct.photo import category_fill
 
         try:
             path = check_upload(request.image)
             rec = self.models.get(resolve_model(request))
-            fill = request.foreground_ratio or FILL.get(model_category(rec), DEFAULT_FILL)
+            fill = request.foreground_ratio or category_fill(model_category(rec))
             prep = prepare_photo(path, None, model_resolution(rec), "auto", fill)
         except Exception as err:  # noqa: BLE001 - every failure is one line on the page
             if not isinstance(err, DepthnerfError):
                 traceback.print_exc(file=sys.stderr)
             return None, one_line(err, request.image)
-        return (np.round(prep.image * 255).astype(np.uint8),
+        return (to_u8(prep.image),
                 f"ready: {display_name(request.image)}, " + "; ".join(prep.notes))
 
     def _new_run_dir(self) -> Path:

@@ -228,6 +228,11 @@ def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, res
     return img_t[0].permute(1, 2, 0).numpy(), (cover[0, 0] > 0).numpy()
 
 
+def category_fill(category: str) -> float:
+    """The fill a model of ``category`` was trained at: :data:`FILL`, else :data:`DEFAULT_FILL`."""
+    return FILL.get(category, DEFAULT_FILL)
+
+
 def prepare_photo(image: ImageLike, mask: ImageLike | None, resolution: int, framing: str = "auto",
                   fill: float = DEFAULT_FILL) -> PreparedImage:
     """Read, mask and frame a photo for a model trained at ``resolution`` (module docstring)."""

@@ -47,7 +47,7 @@ from depthnerf.model.pixelnerf import EncodedViews
 from depthnerf.pretrained.load import Pretrained, load_pretrained
 from depthnerf.reconstruct.exports import save_reconstruction
 from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsics
-from depthnerf.reconstruct.photo import DEFAULT_FILL, FILL, ImageLike, PreparedImage, prepare_photo
+from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
 from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, input_camera_mesh
@@ -150,7 +150,7 @@ class Reconstructor:
         else:
             cat = category_defaults(spec.category)  # unknown category: an error asking for both
             radius, focal, image_size = cfg.radius or cat.camera_radius, cfg.focal or cat.focal, cat.image_size
-        fill = cfg.fill if cfg.fill is not None else FILL.get(spec.category, DEFAULT_FILL)
+        fill = cfg.fill if cfg.fill is not None else category_fill(spec.category)
         prepared = prepare_photo(image, mask, res, cfg.framing, fill)
         times["prepare_s"] = time.perf_counter() - t
         poses = orbit_poses(radius, cfg.elevation, views)
