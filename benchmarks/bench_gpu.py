@@ -22,9 +22,13 @@ import contextlib
 import dataclasses
 import math
 import statistics
+import sys
 import time
+from collections import Counter
 
 import torch
+from torch.nn.modules.module import register_module_forward_hook, register_module_forward_pre_hook
+from torch.optim.optimizer import register_optimizer_step_post_hook, register_optimizer_step_pre_hook
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from depthnerf.data.cameras import Intrinsics, look_at
@@ -35,15 +39,87 @@ from depthnerf.train.config import preset, with_prior
 
 
 class CountOps(TorchDispatchMode):
-    """Counts every aten operator dispatched inside the block."""
+    """Counts every aten operator dispatched inside the block; with ``breakdown`` also attributes each one to a
+    phase (forward, backward: inside the autograd engine, optimiser: inside ``Optimizer.step``), its aten name,
+    and where it came from (forward and optimiser: the innermost module and the innermost ``depthnerf`` frame;
+    backward: the autograd node running it)."""
 
-    def __init__(self) -> None:
+    def __init__(self, breakdown: bool = False, names: dict[int, str] | None = None) -> None:
+        """``names``: ``id(module)`` -> its qualified name in the model (for the by-module table)."""
         super().__init__()
         self.count = 0
+        self.breakdown = breakdown
+        self.names = names or {}
+        self.rows: list[tuple[str, str, str, str, str]] = []  # (phase, aten op, module class, module, source)
+        self._modules: list[str] = []
+        self._in_optimiser = False
+        self._hooks: list = []
+
+    def __enter__(self):
+        if self.breakdown:
+            def pre(module, args):
+                name = self.names.get(id(module), "?")
+                self._modules.append((type(module).__name__, ".".join(name.split(".")[:2])))
+
+            def post(module, args, out):
+                self._modules.pop()
+
+            def opt_flag(value):
+                def hook(*_):
+                    self._in_optimiser = value
+                return hook
+            self._hooks = [register_module_forward_pre_hook(pre), register_module_forward_hook(post),
+                           register_optimizer_step_pre_hook(opt_flag(True)),
+                           register_optimizer_step_post_hook(opt_flag(False))]
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        for h in self._hooks:
+            h.remove()
+        self._hooks = []
+        return super().__exit__(*exc)
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.count += 1
+        if self.breakdown:
+            self.rows.append(self._attribute(func))
         return func(*args, **(kwargs or {}))
+
+    def _attribute(self, func) -> tuple[str, str, str, str, str]:
+        op = func.overloadpacket.__name__
+        node = torch._C._current_autograd_node()
+        if node is not None:
+            return "backward", op, "-", "-", node.name()
+        phase = "optimiser" if self._in_optimiser else "forward"
+        frame, source = sys._getframe(2), "-"
+        while frame is not None:
+            path = frame.f_code.co_filename.replace("\\", "/")
+            if "/depthnerf/" in path and "/torch/" not in path:
+                source = f"{path.rsplit('/depthnerf/', 1)[1]}:{frame.f_code.co_name}"
+                break
+            frame = frame.f_back
+        cls, name = self._modules[-1] if self._modules else ("-", "-")
+        return phase, op, cls, name, source
+
+    def report(self, top: int) -> None:
+        """Print the count by phase, and within each phase by aten op and by origin."""
+        phases = Counter(r[0] for r in self.rows)
+        print("op count by phase: " + ", ".join(f"{k} {v}" for k, v in phases.items()) + f" (total {self.count})")
+        for phase in phases:
+            rows = [r for r in self.rows if r[0] == phase]
+            for title, key in (("aten op", 1), ("module class", 2), ("module", 3), ("source", 4)):
+                if phase == "backward" and title.startswith("module"):
+                    continue
+                if phase == "backward" and title == "source":
+                    title = "autograd node"
+                counts = Counter(r[key] for r in rows).most_common()
+                shown = counts[:top]
+                rest = sum(c for _, c in counts[top:])
+                print(f"-- {phase}, by {title} ({len(counts)} distinct)")
+                for name, c in shown:
+                    print(f"  {c:6d}  {name}")
+                if rest:
+                    print(f"  {rest:6d}  ({len(counts) - top} others)")
 
 
 def synthetic_batch(b: int, rays: int, res: int, use_depth: bool, seed: int = 0) -> tuple[TrainBatch, Intrinsics]:
@@ -192,6 +268,8 @@ def main() -> None:
     p.add_argument("--time", action="store_true", help="on the CPU: also time the step (slow)")
     p.add_argument("--no-views", action="store_true", help="CUDA: training figures only")
     p.add_argument("--count-rays", type=int, default=8, help="CPU op count: rays per object (count is the same)")
+    p.add_argument("--breakdown", type=int, nargs="?", const=25, default=0, metavar="TOP",
+                   help="CPU op count: also print it by phase, aten op, module and source (TOP rows each)")
     args = p.parse_args()
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
                           ("cpu" if args.device == "auto" else args.device))
@@ -234,8 +312,11 @@ def main() -> None:
     small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, use_depth)
     proxy = make_step(model, cfg, small, device, args.step_shape, as_cuda=True)  # composed as on CUDA
     proxy()
-    with CountOps() as counter:
+    names = {id(m): n or "model" for n, m in model.named_modules()}
+    with CountOps(breakdown=bool(args.breakdown), names=names) as counter:
         proxy()
+    if args.breakdown:
+        counter.report(args.breakdown)
     print(f"counted: the step composed as on CUDA (bf16 autocast, fused Adam; the legacy loop: foreach Adam), "
           f"{args.objects} objects x {args.count_rays} rays")
     print(f"aten ops per training step: {counter.count}")
