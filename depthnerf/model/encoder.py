@@ -142,6 +142,7 @@ class ImageEncoder(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.use_depth = use_depth
+        self._norm_index: dict = {}  # per-object BatchNorm's gather indices, kept between calls (norm.py)
         self.trunk = ResNetTrunk(cfg, use_depth)
         self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if use_depth else None
         if cfg.pretrained_path is not None:
@@ -156,7 +157,7 @@ class ImageEncoder(nn.Module):
                 objects: int = 1) -> Float[Tensor, "N C Hf Wf"]:
         """Feature maps of ``N = objects * V`` images; in training mode BatchNorm statistics are per object
         (``depthnerf.model.norm``), so encoding B objects together equals encoding them one at a time."""
-        with object_groups(self, objects):
+        with object_groups(self, objects, self._norm_index):
             return self._forward(images, prior)
 
     def _forward(self, images: Tensor, prior: Tensor | None) -> Tensor:
