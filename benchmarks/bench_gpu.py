@@ -37,6 +37,10 @@ from depthnerf.render.rays import rays_from_camera
 from depthnerf.train.batching import ItemKey, TrainBatch
 from depthnerf.train.config import preset, with_prior
 
+NO_KERNEL = {"_unsafe_view", "empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided",
+             "_record_function_enter_new", "_record_function_exit"}
+"""aten ops that launch no GPU kernel besides views (``OpOverload.is_view``): allocations, profiler markers."""
+
 
 class CountOps(TorchDispatchMode):
     """Counts every aten operator dispatched inside the block; with ``breakdown`` also attributes each one to a
@@ -48,9 +52,11 @@ class CountOps(TorchDispatchMode):
         """``names``: ``id(module)`` -> its qualified name in the model (for the by-module table)."""
         super().__init__()
         self.count = 0
+        self.no_kernel = 0
+        """Of ``count``: views and allocations (no kernel on a GPU)."""
         self.breakdown = breakdown
         self.names = names or {}
-        self.rows: list[tuple[str, str, str, str, str]] = []  # (phase, aten op, module class, module, source)
+        self.rows: list[tuple] = []  # (phase, aten op, module class, module, source, launches no kernel)
         self._modules: list[str] = []
         self._in_optimiser = False
         self._hooks: list = []
@@ -81,8 +87,10 @@ class CountOps(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.count += 1
+        free = bool(func.is_view or func.overloadpacket.__name__ in NO_KERNEL)
+        self.no_kernel += free
         if self.breakdown:
-            self.rows.append(self._attribute(func))
+            self.rows.append((*self._attribute(func), free))
         return func(*args, **(kwargs or {}))
 
     def _attribute(self, func) -> tuple[str, str, str, str, str]:
@@ -104,7 +112,9 @@ class CountOps(TorchDispatchMode):
     def report(self, top: int) -> None:
         """Print the count by phase, and within each phase by aten op and by origin."""
         phases = Counter(r[0] for r in self.rows)
-        print("op count by phase: " + ", ".join(f"{k} {v}" for k, v in phases.items()) + f" (total {self.count})")
+        views = Counter(r[0] for r in self.rows if r[5])
+        print("op count by phase: " + ", ".join(f"{k} {v} ({views[k]} without a kernel)" for k, v in phases.items())
+              + f" (total {self.count})")
         for phase in phases:
             rows = [r for r in self.rows if r[0] == phase]
             for title, key in (("aten op", 1), ("module class", 2), ("module", 3), ("source", 4)):
@@ -319,6 +329,7 @@ def main() -> None:
         counter.report(args.breakdown)
     print(f"counted: the step composed as on CUDA (bf16 autocast, fused Adam; the legacy loop: foreach Adam), "
           f"{args.objects} objects x {args.count_rays} rays")
+    print(f"of which views and allocations (no kernel on a GPU): {counter.no_kernel}")
     print(f"aten ops per training step: {counter.count}")
 
 
