@@ -25,9 +25,12 @@ from torch import Tensor
 
 def to_source_frames(points: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]
                      ) -> tuple[Float[Tensor, "B V N 3"], Float[Tensor, "B V N 3"]]:
-    """World points in every source camera: ``(R x, R x + t)`` = (rotated only, full camera coordinates)."""
+    """World points in every source camera: ``(R x, R x + t)`` = (rotated only, full camera coordinates).
+    Always in the inputs' precision: under bf16 autocast a matmul would round the coordinates to bf16 (about
+    1e-3 of the scene scale) before the positional encoding and the projection."""
     rot = w2c[:, :, :3, :3]
-    rotated = points[:, None] @ rot.transpose(-1, -2)
+    with torch.autocast(points.device.type, enabled=False):
+        rotated = points[:, None] @ rot.transpose(-1, -2)
     return rotated, rotated + w2c[:, :, None, :3, 3]
 
 
@@ -128,6 +131,8 @@ def pixel_aligned(maps: Float[Tensor, "B V Hf Wf C"], cam: Float[Tensor, "B V N 
 
 
 def rotate_dirs(dirs: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]) -> Float[Tensor, "B V N 3"]:
-    """Direction vectors expressed in every source camera's axes."""
-    return dirs[:, None] @ w2c[:, :, :3, :3].transpose(-1, -2)
+    """Direction vectors expressed in every source camera's axes (in the inputs' precision under autocast, as
+    :func:`to_source_frames`)."""
+    with torch.autocast(dirs.device.type, enabled=False):
+        return dirs[:, None] @ w2c[:, :, :3, :3].transpose(-1, -2)
 
