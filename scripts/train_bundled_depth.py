@@ -20,6 +20,9 @@ default seed 1234 != the training seed) and prints ``depthnerf depth-eval`` scor
 Reproduce the shipped weights (see ``depthnerf/depth/weights/MODEL_CARD.md`` for the exact command and numbers)::
 
     python scripts/train_bundled_depth.py --data data/bundled_depth --train-objects 150
+
+The shipped weights were trained on the legacy framing (``--framing legacy``, the default here, so the command
+above reproduces them); ``--framing srn --data data/bundled_depth_srn`` trains on the SRN-framed benchmark.
 """
 
 from __future__ import annotations
@@ -51,6 +54,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--data", type=Path, default=Path("data/bundled_depth"), help="synthetic train data folder")
     p.add_argument("--train-objects", type=int, default=150, help="train objects per category (default 150)")
     p.add_argument("--data-seed", type=int, default=0, help="depthnerf synth --seed for the train data")
+    p.add_argument("--framing", choices=("legacy", "srn"), default="legacy",
+                   help="depthnerf synth --framing of the train (and --eval-seed test) data; legacy (default) is "
+                        "the shipped weights' framing")
     p.add_argument("--synth-workers", type=int, default=2, help="depthnerf synth --workers")
     p.add_argument("--skip-synth", action="store_true", help="use the data in --data as it is (no synth call)")
     p.add_argument("--out", type=Path, default=DEFAULT_WEIGHTS, help="where to write the final weights")
@@ -73,10 +79,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def synth(category: str, out: Path, train: int, test: int, seed: int, workers: int) -> None:
+def synth(category: str, out: Path, train: int, test: int, seed: int, workers: int, framing: str) -> None:
     cmd = [sys.executable, "-m", "depthnerf", "synth", "--category", category, "--out", str(out),
            "--train-objects", str(train), "--val-objects", "0", "--test-objects", str(test), "--seed", str(seed),
-           "--workers", str(workers)]
+           "--workers", str(workers), "--framing", framing]
     print("+", " ".join(cmd[2:]), flush=True)
     subprocess.run(cmd, check=True)
 
@@ -86,7 +92,7 @@ def load_pack(args: argparse.Namespace) -> tuple[torch.Tensor, torch.Tensor]:
     from depthnerf.data.srn import index_split, load_object
 
     for category in CATEGORIES if not args.skip_synth else ():  # synth resumes: completes a partial run
-        synth(category, args.data, args.train_objects, 0, args.data_seed, args.synth_workers)
+        synth(category, args.data, args.train_objects, 0, args.data_seed, args.synth_workers, args.framing)
     records = [r for c in CATEGORIES for r in index_split(args.data, c, "train", check_files=False).objects]
     key = json.dumps(sorted(f"{r.category}/{r.object_id}/{r.num_views}" for r in records))
     pack = args.data / PACK_NAME
@@ -222,7 +228,7 @@ def train(args: argparse.Namespace) -> None:
     net.eval()
     notes = {
         "training_data": f"depthnerf synth train split, cars + chairs, {args.train_objects} objects each, "
-                         f"seed {args.data_seed}, {images.shape[0]} views",
+                         f"seed {args.data_seed}, framing {args.framing}, {images.shape[0]} views",
         "training": f"{step} steps x batch {args.batch_size}, AdamW lr {args.lr}, {elapsed / 60:.1f} min, "
                     f"final loss {running:.4f}",
         "command": "python " + " ".join([Path(sys.argv[0]).as_posix(), *sys.argv[1:]]),
@@ -235,9 +241,10 @@ def train(args: argparse.Namespace) -> None:
 def evaluate(args: argparse.Namespace) -> None:
     from depthnerf.depth.evaluate import DepthEvalConfig, evaluate_depth
 
-    test_root = args.data.parent / f"{args.data.name}_test_seed{args.eval_seed}"
+    suffix = "" if args.framing == "legacy" else f"_{args.framing}"
+    test_root = args.data.parent / f"{args.data.name}_test_seed{args.eval_seed}{suffix}"
     for category in CATEGORIES:
-        synth(category, test_root, 0, args.eval_objects, args.eval_seed, args.synth_workers)
+        synth(category, test_root, 0, args.eval_objects, args.eval_seed, args.synth_workers, args.framing)
     result = evaluate_depth(DepthEvalConfig(data_root=test_root, estimator="bundled", checkpoint=str(args.out),
                                             split="test", use_cache=False))
     print(json.dumps({k: v for k, v in result.as_dict().items() if k != "provenance"}, indent=2))

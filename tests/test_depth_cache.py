@@ -137,6 +137,27 @@ def test_depth_eval_oracle_is_perfect_and_cache_matches_direct(data, tmp_path, c
     assert "needs no cache" in capsys.readouterr().out
 
 
+def test_depth_eval_flat_reference_matches_a_brute_force_loop(data, tmp_path, capsys):
+    """The flat reference is a constant disparity aligned to the mean foreground disparity of each image."""
+    out = tmp_path / "oracle.json"
+    assert main(["depth-eval", "--data", str(data), "--estimator", "oracle", "--json", str(out),
+                 "--no-progress", "--split", "train"]) == 0
+    assert "flat " in capsys.readouterr().out
+    flat = json.loads(out.read_text())["flat_reference"]
+    rel, hits = [], []
+    for record in index_split(data, "cars", "train").objects:
+        depths = load_object(record, list(range(record.num_views)), with_depth=True).depths.double().numpy()
+        for z in depths:
+            fg = z[z > 0]
+            z_flat = 1.0 / np.mean(1.0 / fg)
+            rel.append(np.mean(np.abs(z_flat - fg) / fg))
+            hits.append(np.mean(np.maximum(z_flat / fg, fg / z_flat) < 1.25))
+    assert len(rel) == 6 and np.mean(rel) > 1e-3
+    assert flat["abs_rel"] == pytest.approx(np.mean(rel), rel=1e-5)
+    assert flat["delta1"] == pytest.approx(np.mean(hits), rel=1e-5)
+    assert flat["per_category"]["cars"]["abs_rel"] == pytest.approx(flat["abs_rel"])
+
+
 def test_bad_inputs_are_one_line_errors(data, tmp_path, capsys):
     ckpt = _weights(tmp_path / "a.safetensors", 0)
     assert _depth(data, ckpt, "--splits", "val") == 2  # explicitly requested split does not exist

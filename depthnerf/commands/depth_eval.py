@@ -5,7 +5,9 @@
 
 Prints AbsRel and delta<1.25 after per-image least-squares scale-and-shift alignment in disparity space on the
 foreground (:mod:`depthnerf.depth.metrics`), overall and per category. ``--json`` writes
-``{"abs_rel", "delta1", "images", "objects", "source", "provenance", "per_category"}``. Uses the cache when a
+``{"abs_rel", "delta1", "images", "objects", "source", "provenance", "per_category", "flat_reference"}``; the
+last line of the report (and ``flat_reference``) scores a constant prediction on the same images, the floor any
+estimator must beat. Uses the cache when a
 complete one exists (``--no-cache`` to always run the estimator).
 """
 
@@ -50,6 +52,9 @@ def run(args: argparse.Namespace) -> int:
     for category, scores in sorted(result.per_category.items()):
         print(f"  {category:8s} AbsRel {scores['abs_rel']:.4f}  delta<1.25 {scores['delta1']:.4f}  "
               f"({scores['images']} images)")
+    flat = result.flat_reference
+    print(f"  flat     AbsRel {flat['abs_rel']:.4f}  delta<1.25 {flat['delta1']:.4f}  "
+          "(a constant prediction on the same images: the floor to beat)")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         write_text_atomic(args.json, json.dumps(result.as_dict(), indent=2) + "\n")

@@ -4,6 +4,11 @@ Scores are AbsRel and delta<1.25 after per-image least-squares scale-and-shift a
 the ground-truth foreground (:mod:`depthnerf.depth.metrics`), averaged over images. Predictions come from the
 cache when a complete, up-to-date one exists for this estimator, weights and the dataset resolution, else the
 estimator runs directly (the result says which).
+
+Every result also carries the scores of a *flat* prediction (one constant disparity per image, which the
+alignment turns into the image's mean foreground disparity) on the same images: the floor an estimator must
+beat. On small objects far from the camera the flat prediction already scores well, so read an estimator's
+AbsRel against it.
 """
 
 from __future__ import annotations
@@ -69,10 +74,23 @@ class DepthEvalResult:
     """Estimator provenance."""
     per_category: dict[str, dict[str, float]] = field(default_factory=dict)
     """``{category: {"abs_rel", "delta1", "images"}}``."""
+    flat_reference: dict[str, Any] = field(default_factory=dict)
+    """Scores of a constant prediction on the same images: ``{"abs_rel", "delta1", "per_category"}``."""
 
     def as_dict(self) -> dict[str, Any]:
         return {"abs_rel": self.abs_rel, "delta1": self.delta1, "images": self.images, "objects": self.objects,
-                "source": self.source, "provenance": self.provenance, "per_category": self.per_category}
+                "source": self.source, "provenance": self.provenance, "per_category": self.per_category,
+                "flat_reference": self.flat_reference}
+
+
+def _summarise(per_cat: dict[str, list[torch.Tensor]]) -> tuple[torch.Tensor, dict[str, dict[str, float]]]:
+    """All scored rows ``(N, 2)`` (AbsRel, delta1) and the per-category means."""
+    per_category = {}
+    for category, rows in per_cat.items():
+        cat_rows = torch.cat(rows)
+        per_category[category] = {"abs_rel": float(cat_rows[:, 0].mean()), "delta1": float(cat_rows[:, 1].mean()),
+                                  "images": int(cat_rows.shape[0])}
+    return torch.cat([torch.cat(rows) for rows in per_cat.values()]), per_category
 
 
 def _view_subset(num_views: int, max_views: int | None) -> list[int]:
@@ -109,6 +127,7 @@ def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
             store = None
     estimator = None if store is not None else make_estimator(cfg.estimator, cfg.checkpoint, device=cfg.device)
     per_cat: dict[str, list[torch.Tensor]] = {}
+    flat_cat: dict[str, list[torch.Tensor]] = {}
     bar = tqdm(records, desc=f"depth-eval ({cfg.estimator})", unit="obj", file=sys.stderr,
                disable=not cfg.progress)
     for record in bar:
@@ -118,19 +137,18 @@ def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
             disparity = store.load(record, views)
         else:
             disparity = predict_views(estimator, obj.images, obj.depths, cfg.batch_size)
-        scores = affine_invariant_scores(disparity, obj.depths)
-        per_cat.setdefault(record.category, []).append(
-            torch.stack([scores.abs_rel, scores.delta1], dim=1)[scores.valid])
-    all_rows = torch.cat([torch.cat(rows) for rows in per_cat.values()])
+        for sink, pred in ((per_cat, disparity), (flat_cat, torch.ones_like(obj.depths))):
+            scores = affine_invariant_scores(pred, obj.depths)
+            sink.setdefault(record.category, []).append(
+                torch.stack([scores.abs_rel, scores.delta1], dim=1)[scores.valid])
+    all_rows, per_category = _summarise(per_cat)
     if all_rows.shape[0] == 0:
         raise DepthnerfError(f"{cfg.data_root}: no evaluated image has any foreground depth")
-    per_category = {}
-    for category, rows in per_cat.items():
-        cat_rows = torch.cat(rows)
-        per_category[category] = {"abs_rel": float(cat_rows[:, 0].mean()), "delta1": float(cat_rows[:, 1].mean()),
-                                  "images": int(cat_rows.shape[0])}
+    flat_rows, flat_per_category = _summarise(flat_cat)
+    flat = {"abs_rel": float(flat_rows[:, 0].mean()), "delta1": float(flat_rows[:, 1].mean()),
+            "per_category": {c: {k: v for k, v in d.items() if k != "images"} for c, d in flat_per_category.items()}}
     return DepthEvalResult(abs_rel=float(all_rows[:, 0].mean()), delta1=float(all_rows[:, 1].mean()),
                            images=int(all_rows.shape[0]), objects=len(records),
                            source="cache" if store is not None else "estimator",
                            provenance={**provenance.as_dict(), "resolution": resolution},
-                           per_category=per_category)
+                           per_category=per_category, flat_reference=flat)
