@@ -64,7 +64,7 @@ class CountOps(TorchDispatchMode):
     def __enter__(self):
         if self.breakdown:
             def pre(module, args):
-                name = self.names.get(id(module), "?")
+                name = self.names.get(id(module), type(module).__name__)  # e.g. the loss module around the model
                 self._modules.append((type(module).__name__, ".".join(name.split(".")[:2])))
 
             def post(module, args, out):
