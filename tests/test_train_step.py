@@ -95,6 +95,38 @@ def test_object_batchnorm_equals_one_call_per_object(views):
     assert int(grouped.num_batches_tracked) == int(plain.num_batches_tracked) == 3
 
 
+def test_object_batchnorm_block_folds_only_the_layers_that_ran_and_rejects_a_second_call():
+    """object_groups repeats and folds the statistics of all layers at once: a layer that does not run in the
+    block keeps its running statistics and count, one that runs equals BatchNorm once per object (with the
+    block's index cache reused), and a layer called twice in one block is an error, not a wrong fold."""
+    gen = torch.Generator().manual_seed(4)
+    net = torch.nn.Sequential(ObjectBatchNorm2d(3), ObjectBatchNorm2d(5), ObjectBatchNorm2d(3, momentum=0.3))
+    plain = [torch.nn.BatchNorm2d(3), torch.nn.BatchNorm2d(3, momentum=0.3)]
+    with torch.no_grad():
+        for m in [*net, *plain]:
+            m.running_mean.uniform_(-1, 1, generator=gen)
+            m.running_var.uniform_(0.5, 2, generator=gen)
+        for bn, ref in zip((net[0], net[2]), plain, strict=True):
+            ref.load_state_dict(bn.state_dict())
+    unused = {k: v.clone() for k, v in net[1].state_dict().items()}
+    cache: dict = {}
+    for _ in range(2):  # the second block reuses the cached indices
+        x = torch.randn(4, 3, 5, 5, generator=gen)
+        with object_groups(net, 2, cache):
+            out = (net[0](x), net[2](x))
+        refs = [torch.cat([bn(part) for part in x.split(2)]) for bn in plain]
+        for a, b in zip(out, refs, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    assert len(cache) == 2  # one index per momentum group
+    for bn, ref in zip((net[0], net[2]), plain, strict=True):
+        torch.testing.assert_close(bn.running_mean, ref.running_mean)
+        torch.testing.assert_close(bn.running_var, ref.running_var)
+        assert int(bn.num_batches_tracked) == int(ref.num_batches_tracked) == 4
+    assert all(torch.equal(v, net[1].state_dict()[k]) for k, v in unused.items())
+    with object_groups(net, 2), pytest.raises(RuntimeError, match="twice"):
+        net[0](net[0](x))
+
+
 # --- the batched step ----------------------------------------------------------------------------------------------
 
 def tiny_setup(b: int, use_depth: bool = False, seed: int = 0, device: str = "cpu"):

@@ -114,6 +114,8 @@ class _SharedRepeats:
         ``(1 - m) r0 + m s_k``; ``g`` successive updates give ``(1 - m)^g r0 + sum_k (1 - m)^(g - k) m s_k``."""
         g, m = self.groups, self.norms[0].momentum
         ran = [n.repeated is None for n in self.norms]
+        if not any(ran):
+            return
         slots = self.slots[self.back]  # [g, 2 * sum(C)]
         decay = (1.0 - m) ** torch.arange(g - 1, -1, -1, dtype=slots.dtype, device=slots.device)
         contrib = slots - (1.0 - m) * self.stats
