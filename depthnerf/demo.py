@@ -47,7 +47,7 @@ from tqdm import tqdm
 from depthnerf.data import srn_format
 from depthnerf.data.protocol import ProtocolViews, protocol_views
 from depthnerf.data.srn import index_split, load_object
-from depthnerf.data.synth.framing import DEFAULT_FRAMING, checkpoint_framing
+from depthnerf.data.synth.framing import DEFAULT_FRAMING
 from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_status
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics
@@ -142,7 +142,7 @@ def load_checkpoint_for(category: str, spec: str) -> Pretrained:
 
 def synthesize(category: str, root: Path, seed: int, resolution: int, framing: str = DEFAULT_FRAMING) -> ObjectJob:
     """Test object 0 of ``seed`` at ``resolution`` with 251 views in ``root`` (reused when already there), framed
-    as ``framing`` (that of the checkpoint's training data: :func:`checkpoint_framing`)."""
+    as ``framing`` (that of the checkpoint's training data: ``Reconstructor.framing``)."""
     cfg = SynthConfig(category=category, out=root, train_objects=0, val_objects=0, test_objects=1,
                       resolution=resolution, seed=seed, progress=False, framing=framing)
     job = ObjectJob(cfg, "test", 0)
@@ -198,7 +198,7 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     rec = Reconstructor(pre, device, photos=False, match_cache=True)
     bar = tqdm(total=4, desc=f"demo {category}", unit="stage", file=sys.stderr, disable=not cfg.progress)
     t = time.perf_counter()
-    framing, framing_source = checkpoint_framing(pre.path, pre.data_root, category)
+    framing, framing_source = rec.framing, rec.framing_source
     job = synthesize(category, cfg.out / "data", cfg.seed, res, framing)
     record = next(r for r in index_split(cfg.out / "data", category, "test").objects if r.object_id == job.object_id)
     times["synth_s"] = time.perf_counter() - t

@@ -11,19 +11,22 @@
 #
 # Environment: SEED (default 4242; training used 0, the bundled depth net's evaluation 1234, the demo 2718),
 # FAMILY (heldout: microcars and hybrid chairs, never in the training grammar; `standard` gives the reference on
-# the same seed), FRAMING (legacy: the framing the shipped checkpoints were trained on; use srn for checkpoints
-# trained on the SRN-framed benchmark), OBJECTS (20), STRIDE (25), CATEGORIES ("cars chairs"),
+# the same seed), FRAMING (default: the framing of <prefix>-<first category>-depth's training data, from its
+# card; the shipped checkpoints were moved from legacy to srn in session 5), OBJECTS (20), STRIDE (25), CATEGORIES ("cars chairs"),
 # CHECKPOINT_PREFIX (cpu: cpu-<cat>-{depth,baseline}), MESH (0: no Chamfer/F-score; 1: also geometry).
 # Resumable: data and finished evaluations (summary.json) are kept.
 set -euo pipefail
 OUT=${1:-study/generalisation}
 SEED=${SEED:-4242}
 FAMILY=${FAMILY:-heldout}
-FRAMING=${FRAMING:-legacy}
-OBJECTS=${OBJECTS:-20}
-STRIDE=${STRIDE:-25}
 CATEGORIES=${CATEGORIES:-cars chairs}
 PREFIX=${CHECKPOINT_PREFIX:-cpu}
+first_cat=${CATEGORIES%% *}
+FRAMING=${FRAMING:-$(python -c "from depthnerf.data.synth.framing import checkpoint_framing as f
+from depthnerf.pretrained.load import resolve_checkpoint as r
+print(f(r('$PREFIX-$first_cat-depth'), None, '$first_cat')[0])")}
+OBJECTS=${OBJECTS:-20}
+STRIDE=${STRIDE:-25}
 MESH=${MESH:-0}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 DATA="$OUT/data"

@@ -30,7 +30,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.reconstruct.orbit import srn_intrinsics
-from depthnerf.reconstruct.photo import FILL, prepare_photo
+from depthnerf.reconstruct.photo import category_fill, prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
 from depthnerf.render.guidance import GuidanceConfig
 from depthnerf.render.mesh import CameraGrid
@@ -87,10 +87,10 @@ def _bbox(mask: np.ndarray) -> tuple[int, int, int, int]:
 
 
 def test_framing_centres_the_object_at_the_training_fill():
-    prep = prepare_photo(disc_photo(), None, 64, "auto", FILL["cars"])
+    prep = prepare_photo(disc_photo(), None, 64, "auto", category_fill("cars"))
     x0, y0, x1, y1 = _bbox(prep.mask)
     side = max(x1 - x0 + 1, y1 - y0 + 1)
-    assert abs(side / 64 - FILL["cars"]) <= 2 / 64  # mask = any coverage: at most a pixel wider on each side
+    assert abs(side / 64 - category_fill("cars")) <= 2 / 64  # mask = any coverage: at most a pixel wider on each side
     assert abs((x0 + x1) / 2 - 31.5) <= 1 and abs((y0 + y1) / 2 - 31.5) <= 1
     assert np.allclose(prep.image[~prep.mask], 1.0, atol=1e-6)  # the blue background became white
     assert np.allclose(prep.image[32, 32], np.array([200, 50, 50]) / 255, atol=1e-6)
@@ -161,7 +161,7 @@ def test_constant_field_reconstruction_matches_closed_forms(models):
     assert np.all(cam.max(0).values.numpy() <= np.array(grid.hi) + 2 * step)
     assert res.prior_normalized is not None and res.depth_prior is not None
     assert np.all(res.prior_normalized[~res.input.mask] == BACKGROUND_VALUE)
-    assert res.settings["depth_estimator"] == "bundled" and res.settings["fill"] == FILL["cars"]
+    assert res.settings["depth_estimator"] == "bundled" and res.settings["fill"] == category_fill("cars", res.settings["training_framing"])
 
 
 def test_cli_writes_every_listed_output(models, tmp_path, capsys):

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from depthnerf.data import srn_format
-from depthnerf.data.cameras import Intrinsics, look_at, pixel_directions, project
+from depthnerf.data.cameras import Intrinsics, look_at, pixel_directions, project, world_to_camera
 from depthnerf.data.synth.cars import CAR_STYLES, HELDOUT_CAR_STYLES, build_car, sample_car
 from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, HELDOUT_ARCHETYPES, build_chair, sample_chair
 from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing, dataset_pixel_center, get_framing
@@ -250,3 +250,22 @@ def test_checkpoint_framing_lookup(tmp_path: Path) -> None:
     for card in sorted(shipped.glob("cpu-*.json")):
         assert checkpoint_framing(card.with_suffix(".safetensors"), None, "cars")[0] == "legacy", card
     assert set(FRAMINGS) == {"srn", "legacy"}
+
+
+@pytest.mark.parametrize("framing", sorted(FRAMINGS))
+@pytest.mark.parametrize("category", ["cars", "chairs"])
+def test_framing_fill_is_the_generators(framing: str, category: str) -> None:
+    """``Framing.fill`` (the photo framing of models trained on this data) is the median, over the train views of
+    6 objects, of the longer side of the silhouette's bounding box over the image side. The silhouette's box is
+    that of the projected mesh vertices, so this needs no rendering (``scripts/measure_fill.py`` renders masks)."""
+    spec, intr = category_spec(category, framing), get_framing(framing).file_intrinsics(128)
+    fills = []
+    for index in range(6):
+        shape_rng, view_rng = object_rngs(0, category, "train", index)
+        mesh = build_car(sample_car(shape_rng)) if category == "cars" else \
+            build_chair(sample_chair(shape_rng), spec.diagonal)
+        verts = torch.as_tensor(mesh.vertices, dtype=torch.float64)
+        for c2w in torch.as_tensor(object_poses("train", 50, spec, view_rng), dtype=torch.float64):
+            uv = project(world_to_camera(verts, c2w), intr.focal, (intr.cx, intr.cy))
+            fills.append(float((uv.amax(0) - uv.amin(0)).max()) / 128)
+    assert get_framing(framing).fill(category, 0.0) == pytest.approx(float(np.median(fills)), abs=0.02)

@@ -20,9 +20,9 @@ with the traceback on the server's stderr. The server keeps serving either way.
 Foreground ratio
     The page's "foreground ratio" is TripoSR's quantity: the object's longer bounding-box side over the side of
     the square frame. It is exactly ``ReconstructConfig.fill`` (``framing="auto"``), so it is passed unchanged.
-    TripoSR's default 0.85 is the framing of TripoSR's own training renders; the shipped checkpoints were trained
-    at :data:`~depthnerf.reconstruct.photo.FILL` (cars 0.65, chairs 0.6), which is therefore the page's default
-    for each model (:meth:`AppSession.training_fill`).
+    TripoSR's default 0.85 is the framing of TripoSR's own training renders; each checkpoint was trained at the
+    fill of its training data's framing (:attr:`~depthnerf.reconstruct.reconstructor.Reconstructor.default_fill`),
+    which is therefore the page's default for each model (:meth:`AppSession.training_fill`).
 """
 
 from __future__ import annotations
@@ -208,11 +208,6 @@ class ModelCache:
             return rec
 
 
-def model_category(rec) -> str:
-    """Training category of a loaded Reconstructor."""
-    return rec.pretrained.spec.category
-
-
 def model_resolution(rec) -> int:
     """Training (input) resolution of a loaded Reconstructor."""
     return rec.pretrained.spec.resolution
@@ -235,21 +230,17 @@ class AppSession:
 
     def training_fill(self, model: str, checkpoint_path: str = "") -> float:
         """The fill (foreground ratio) the model was trained at (see the module docstring)."""
-        from depthnerf.reconstruct.photo import category_fill
-
-        rec = self.models.get(resolve_model(RunRequest(None, model, checkpoint_path)))
-        return category_fill(model_category(rec))
+        return self.models.get(resolve_model(RunRequest(None, model, checkpoint_path))).default_fill
 
     def preview(self, request: RunRequest) -> tuple[np.ndarray | None, str]:
         """The preprocessing alone (mask, recentre, white background, resize): ``(image or None, message)``."""
         from depthnerf import prepare_photo
         from depthnerf.reconstruct.exports import to_u8
-        from depthnerf.reconstruct.photo import category_fill
 
         try:
             path = check_upload(request.image)
             rec = self.models.get(resolve_model(request))
-            fill = request.foreground_ratio or category_fill(model_category(rec))
+            fill = request.foreground_ratio or rec.default_fill
             prep = prepare_photo(path, None, model_resolution(rec), "auto", fill)
         except Exception as err:  # noqa: BLE001 - every failure is one line on the page
             if not isinstance(err, DepthnerfError):

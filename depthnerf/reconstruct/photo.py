@@ -18,8 +18,9 @@ Framing rule (``framing="auto"``)
     A square crop centred on the mask's bounding box, of side ``max(box width, box height) / fill``, padded with
     white where it leaves the image, then resampled to the model's training resolution (area averaging, bilinear
     when enlarging; mask = any area coverage, as :func:`depthnerf.data.srn.load_object` resizes masks). ``fill`` is the fraction of the
-    frame the object's longer box side takes in training images: :data:`FILL` per category (measured as the median
-    over 300 masks of 6 synthetic train objects per category at 128 px: cars 0.656, chairs 0.594), 0.62 otherwise.
+    frame the object's longer box side takes in training images: :func:`category_fill`, the fill of the synthetic
+    benchmark's framing the checkpoint was trained on (``Framing.fill`` in :mod:`depthnerf.data.synth.framing`,
+    measured by ``scripts/measure_fill.py``), :data:`DEFAULT_FILL` for other categories.
     ``framing="keep"`` only pads the image to a square (centred) and resamples it, for images already framed like
     the training data (e.g. an SRN view at the training camera).
 """
@@ -37,6 +38,7 @@ from jaxtyping import Bool, Float
 from PIL import Image
 
 from depthnerf.data.srn import mask_bboxes
+from depthnerf.data.synth.framing import DEFAULT_FRAMING, get_framing
 from depthnerf.errors import DepthnerfError
 
 MIN_SIDE = 16
@@ -51,8 +53,6 @@ MAX_BORDER_OBJECT = 0.35
 """Largest fraction of the border ring the border-colour mask may cover before the background counts as cluttered."""
 MAX_OBJECT_AREA = 0.9
 """Largest fraction of the image the border-colour mask may cover before the background counts as cluttered."""
-FILL = {"cars": 0.65, "chairs": 0.6}
-"""Fraction of the frame the object's longer bounding-box side takes in training images, per category."""
 DEFAULT_FILL = 0.62
 """``fill`` for other categories."""
 ImageLike = str | Path | np.ndarray | Image.Image
@@ -228,9 +228,9 @@ def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, res
     return img_t[0].permute(1, 2, 0).numpy(), (cover[0, 0] > 0).numpy()
 
 
-def category_fill(category: str) -> float:
-    """The fill a model of ``category`` was trained at: :data:`FILL`, else :data:`DEFAULT_FILL`."""
-    return FILL.get(category, DEFAULT_FILL)
+def category_fill(category: str, framing: str = DEFAULT_FRAMING) -> float:
+    """The fill a model of ``category`` trained on ``framing``'s data was trained at (else :data:`DEFAULT_FILL`)."""
+    return get_framing(framing).fill(category, DEFAULT_FILL)
 
 
 def prepare_photo(image: ImageLike, mask: ImageLike | None, resolution: int, framing: str = "auto",

@@ -39,6 +39,7 @@ from tqdm import tqdm
 
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import category_defaults
+from depthnerf.data.synth.framing import checkpoint_framing
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.depth.prior import PriorConfig, open_prior
 from depthnerf.errors import DepthnerfError
@@ -72,7 +73,8 @@ class ReconstructConfig:
     framing: str = "auto"
     """``auto`` (crop around the object to the training fill) or ``keep`` (pad to square only)."""
     fill: float | None = None
-    """Fraction of the frame the object's longer side takes with ``auto``; None = :data:`FILL` of the category."""
+    """Fraction of the frame the object's longer side takes with ``auto``; None = the model's training fill
+    (:attr:`Reconstructor.default_fill`)."""
     render_resolution: int | None = None
     """Side of the rendered views; None = the training resolution."""
     mesh_resolution: int = 128
@@ -128,6 +130,13 @@ class Reconstructor:
             spec.prior.checkpoint if name == spec.prior.estimator else None)
         self.prior_config = PriorConfig(name, ckpt) if spec.use_depth else PriorConfig("none")
         self.prior = open_prior(self.prior_config, device=str(self.device), match_cache=match_cache)
+        self.framing, self.framing_source = checkpoint_framing(pretrained.path, pretrained.data_root, spec.category)
+
+    @property
+    def default_fill(self) -> float:
+        """The fill the model was trained at (``ReconstructConfig.fill`` when it is None): that of the framing of
+        its training data (:func:`~depthnerf.data.synth.framing.checkpoint_framing`, :func:`category_fill`)."""
+        return category_fill(self.pretrained.spec.category, self.framing)
 
     @classmethod
     def from_pretrained(cls, path_or_name: str | Path, device: torch.device | str = "cpu",
@@ -150,7 +159,7 @@ class Reconstructor:
         else:
             cat = category_defaults(spec.category)  # unknown category: an error asking for both
             radius, focal, image_size = cfg.radius or cat.camera_radius, cfg.focal or cat.focal, cat.image_size
-        fill = cfg.fill if cfg.fill is not None else category_fill(spec.category)
+        fill = cfg.fill if cfg.fill is not None else self.default_fill
         prepared = prepare_photo(image, mask, res, cfg.framing, fill)
         times["prepare_s"] = time.perf_counter() - t
         poses = orbit_poses(radius, cfg.elevation, views)
@@ -165,7 +174,8 @@ class Reconstructor:
         result = self.reconstruct_encoded(encoded, poses, render_intr, cfg, prepared)
         result.timings = {**times, **result.timings}
         result.settings = {"radius": radius, "elevation": cfg.elevation, "focal": focal, "focal_frame": image_size,
-                           "framing": cfg.framing, "fill": fill, **result.settings}
+                           "framing": cfg.framing, "fill": fill,
+                           "training_framing": self.framing, **result.settings}
         return result
 
     @torch.no_grad()
