@@ -5,22 +5,27 @@
 #
 #   bash scripts/pixel_center_cost.sh [OUT_DIR]        (default: study/pixel_center, git-ignored)
 #
-# The shipped cpu-* checkpoints were trained on legacy-framed data (integer pixel centres, data.pixel_center 0.0),
-# so on legacy-framed test objects their trained reading is exact and `--pixel-center SHIFT` (0.5) reads every
-# image half a pixel off: exactly the error pixelNeRF's (j, i) makes on SRN's Blender renders, seen from the
-# other side. Output: OUT_DIR/paired_<checkpoint>.{md,json} (shifted - trained).
+# The checkpoints are evaluated on test objects framed as their training data, once with the pixel-centre reading
+# they were trained with (data.pixel_center, 0.0 for the shipped ones) and once with `--pixel-center SHIFT` (0.5):
+# every image, input and targets, read half a pixel off the reading the model learned. On legacy-framed data
+# (integer pixel centres) the trained reading is exact, so this is exactly the error pixelNeRF's (j, i) makes on
+# SRN's Blender renders, seen from the other side. Output: OUT_DIR/paired_<checkpoint>.{md,json} (shifted - trained).
 #
 # Environment: SEED (0: the study's own test objects, never used in training; object k is the same whatever the
-# split sizes), OBJECTS (20), STRIDE (25), FRAMING (legacy), SHIFT (0.5), CHECKPOINTS ("cpu-cars-depth
-# cpu-chairs-depth"; their category is the second dash-field).
+# split sizes), OBJECTS (20), STRIDE (25), FRAMING (default: the first checkpoint's training framing, from its
+# card; session 4 measured FRAMING=legacy with the legacy checkpoints of that time), SHIFT (0.5), CHECKPOINTS
+# ("cpu-cars-depth cpu-chairs-depth"; their category is the second dash-field).
 set -euo pipefail
 OUT=${1:-study/pixel_center}
 SEED=${SEED:-0}
 OBJECTS=${OBJECTS:-20}
 STRIDE=${STRIDE:-25}
-FRAMING=${FRAMING:-legacy}
 SHIFT=${SHIFT:-0.5}
 CHECKPOINTS=${CHECKPOINTS:-cpu-cars-depth cpu-chairs-depth}
+first_ck=${CHECKPOINTS%% *}
+FRAMING=${FRAMING:-$(python -c "from depthnerf.data.synth.framing import checkpoint_framing as f
+from depthnerf.pretrained.load import resolve_checkpoint as r
+print(f(r('$first_ck'), None, '$(echo "$first_ck" | cut -d- -f2)')[0])")}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 DATA="$OUT/data"
 

@@ -4,6 +4,7 @@ something training does not do is rejected when it is built."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import subprocess
@@ -161,9 +162,13 @@ def test_legacy_use_depth_is_checked_then_dropped():
 
 @pytest.mark.parametrize("name", sorted(shipped_checkpoints()))
 def test_shipped_checkpoints_derive_their_spec(name):
+    """The stored spec (checkpoints since session 5) equals the one derived from the training config, which is
+    how checkpoints written before specs existed are read."""
     pre = load_pretrained(name)
     meta = read_weights(pre.path)[1]
-    assert SPEC_KEY not in meta  # written before specs existed: derived from the stored configs
+    derived = spec_from_metadata({k: v for k, v in meta.items() if k != SPEC_KEY}, "w")
+    assert SPEC_KEY in meta and dataclasses.replace(derived, prior_weights_hash=pre.spec.prior_weights_hash) == pre.spec
+    assert (pre.spec.prior_weights_hash is not None) == name.endswith("-depth")  # only the stored spec has it
     train = from_dict_config(json.loads(meta["train_config"]))
     spec = pre.spec
     assert spec.category == train.data.category and spec.resolution == train.data.resolution == 64

@@ -3,8 +3,8 @@
 Example: ``depthnerf synth --category cars --out data/synth --train-objects 20 --val-objects 5 --test-objects 5``
 writes ``data/synth/cars_{train,val,test}/<object_id>/...`` (SRN layout plus depth, masks and meshes) and
 ``data/synth/cars_card.json``. Re-running the same command resumes: finished objects are skipped.
-``--framing srn`` (default) frames objects as SRN's renderer does, ``--framing legacy`` as generator 1 (the shipped
-checkpoints' data); ``--family heldout`` draws car and chair styles the standard family never does.
+``--framing srn`` (default) frames objects as SRN's renderer does, ``--framing legacy`` as generator 1 (the data of
+the checkpoints shipped before session 5); ``--family heldout`` draws car and chair styles the standard family never does.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-antialias", action="store_true", help="one ray per pixel for RGB too")
     parser.add_argument("--framing", choices=sorted(FRAMINGS), default=DEFAULT_FRAMING,
                         help="srn: frame objects as SRN's renderer (unit diagonal, SRN spiral with view 64 a side "
-                             "view, Blender pixel centres; generator depthnerf-synth-2, default); legacy: generator "
-                             "depthnerf-synth-1, the shipped cpu-* checkpoints' training data (docs/data.md)")
+                             "view, Blender pixel centres; generator depthnerf-synth-2, default; the shipped cpu-* "
+                             "checkpoints' training data); legacy: generator depthnerf-synth-1 (docs/data.md)")
     parser.add_argument("--family", choices=list(FAMILIES), default="standard",
                         help="shape family: standard, or heldout (car/chair styles the standard family never "
                              "draws, for generalisation checks)")

@@ -15,8 +15,8 @@ fill (median, train views) cars 0.66, chairs 0.43                        cars 0.
 Facts and sources: docs/data.md ("Synthetic benchmark framing"). The fill (the longer side of the object's box
 over the image side) is what a photo is framed to for a model trained on this data
 (:func:`depthnerf.reconstruct.photo.category_fill`). The shipped ``cpu-*`` checkpoints were trained on
-``legacy`` data; their cards say so (``"framing"``), and :func:`checkpoint_framing` reads it back so the demo
-synthesises objects framed as the checkpoint's training data.
+``srn`` data (``legacy`` before session 5); their cards say so (``"framing"``), and :func:`checkpoint_framing` reads
+it back so the demo synthesises objects framed as the checkpoint's training data.
 """
 
 from __future__ import annotations
