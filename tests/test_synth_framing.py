@@ -248,7 +248,7 @@ def test_checkpoint_framing_lookup(tmp_path: Path) -> None:
     assert framing == "srn" and source.endswith("ck.json")
     shipped = Path(__file__).resolve().parent.parent / "depthnerf" / "checkpoints"
     for card in sorted(shipped.glob("cpu-*.json")):
-        assert checkpoint_framing(card.with_suffix(".safetensors"), None, "cars")[0] == "legacy", card
+        assert checkpoint_framing(card.with_suffix(".safetensors"), None, "cars")[0] == "srn", card  # session 5
     assert set(FRAMINGS) == {"srn", "legacy"}
 
 
