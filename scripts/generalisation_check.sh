@@ -22,9 +22,7 @@ FAMILY=${FAMILY:-heldout}
 CATEGORIES=${CATEGORIES:-cars chairs}
 PREFIX=${CHECKPOINT_PREFIX:-cpu}
 first_cat=${CATEGORIES%% *}
-FRAMING=${FRAMING:-$(python -c "from depthnerf.data.synth.framing import checkpoint_framing as f
-from depthnerf.pretrained.load import resolve_checkpoint as r
-print(f(r('$PREFIX-$first_cat-depth'), None, '$first_cat')[0])")}
+FRAMING=${FRAMING:-$(python "$(dirname "$0")/checkpoint_framing.py" "$PREFIX-$first_cat-depth")}
 OBJECTS=${OBJECTS:-20}
 STRIDE=${STRIDE:-25}
 MESH=${MESH:-0}

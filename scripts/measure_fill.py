@@ -16,18 +16,19 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
+import torch
 
+from depthnerf.data.srn import mask_bboxes
+from depthnerf.data.srn_format import read_mask
 from depthnerf.data.synth.framing import FRAMINGS
 
 
-def mask_fill(path: Path) -> float | None:
-    """Longer side of the mask's bounding box over the image side (None for an empty mask)."""
-    m = np.asarray(Image.open(path).convert("L")) > 0
-    ys, xs = np.nonzero(m)
-    if ys.size == 0:
-        return None
-    return max(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1) / m.shape[0]
+def mask_fills(paths: list[Path]) -> np.ndarray:
+    """Longer side of each non-empty mask's bounding box over the image side."""
+    masks = [m for m in (read_mask(p) for p in paths) if m.any()]
+    boxes = mask_bboxes(torch.from_numpy(np.stack(masks))).numpy()  # [x0, y0, x1, y1], inclusive
+    sides = np.maximum(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]) + 1
+    return sides / masks[0].shape[0]
 
 
 def main() -> int:
@@ -42,8 +43,7 @@ def main() -> int:
                 subprocess.run([sys.executable, "-m", "depthnerf", "synth", "--category", category, "--out", str(root),
                                 "--train-objects", str(args.objects), "--val-objects", "0", "--test-objects", "0",
                                 "--resolution", str(args.resolution), "--framing", framing, "--quiet"], check=True)
-                fills = [f for p in sorted((root / f"{category}_train").glob("*/mask/*.png"))
-                         if (f := mask_fill(p)) is not None]
+                fills = mask_fills(sorted((root / f"{category}_train").glob("*/mask/*.png")))
                 table = FRAMINGS[framing].fill(category)
                 print(f"{framing:7s} {category:7s} median fill {np.median(fills):.3f} over {len(fills)} masks "
                       f"(10th-90th percentile {np.percentile(fills, 10):.3f}-{np.percentile(fills, 90):.3f}); "

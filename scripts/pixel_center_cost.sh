@@ -23,9 +23,7 @@ STRIDE=${STRIDE:-25}
 SHIFT=${SHIFT:-0.5}
 CHECKPOINTS=${CHECKPOINTS:-cpu-cars-depth cpu-chairs-depth}
 first_ck=${CHECKPOINTS%% *}
-FRAMING=${FRAMING:-$(python -c "from depthnerf.data.synth.framing import checkpoint_framing as f
-from depthnerf.pretrained.load import resolve_checkpoint as r
-print(f(r('$first_ck'), None, '$(echo "$first_ck" | cut -d- -f2)')[0])")}
+FRAMING=${FRAMING:-$(python "$(dirname "$0")/checkpoint_framing.py" "$first_ck")}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 DATA="$OUT/data"
 

@@ -22,7 +22,6 @@ from depthnerf.app.logic import (
     RunRequest,
     examples,
 )
-from depthnerf.data.synth.framing import get_framing
 from depthnerf.errors import DepthnerfError
 
 INTRO = """# depthnerf: one photo in, 3D out
@@ -46,8 +45,7 @@ LOCAL = ("127.0.0.1", "localhost", "::1")
 MAX_UPLOAD = "100mb"
 """Largest upload Gradio accepts (a 6000x4000 PNG is well below)."""
 RATIO_INFO = ("object's longer side / frame side (TripoSR's foreground ratio; TripoSR's 0.85 suits its own "
-              "model; the default is the fill of the chosen model's training data, for the shipped ones cars "
-              f"{get_framing('srn').fill('cars', 0.0)}, chairs {get_framing('srn').fill('chairs', 0.0)})")
+              "model; the default is the fill of the chosen model's training data)")
 
 
 CSS = """
