@@ -84,7 +84,8 @@ class ScheduleConfig:
     background_opacity_weight: float = 0.0
     """Weight of :func:`~depthnerf.train.step.background_opacity_per_object` on coarse and fine opacity of
     background target rays, averaged over objects (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
-    colour loss; this term penalises it (the white floaters of docs/RESULTS.md)."""
+    colour loss; this term penalises it (the white floaters of docs/RESULTS.md). The term is measured and logged
+    (``loss_background``) at every weight, 0 included."""
 
 
 @dataclass
