@@ -72,7 +72,9 @@ def test_matmul_resize_equals_interpolate(shapes):
 
 @pytest.mark.parametrize("views", [1, 2])
 def test_object_batchnorm_equals_one_call_per_object(views):
-    """Grouped statistics equal BatchNorm run once per object: outputs, gradients, running statistics."""
+    """Grouped statistics equal BatchNorm run once per object: outputs and input gradients bit for bit (the same
+    per-channel reductions), parameter gradients and running statistics up to float rounding (sums over the
+    objects in another order)."""
     gen = torch.Generator().manual_seed(2)
     x = (torch.randn(3 * views, 4, 5, 6, generator=gen) * 2 + 1).requires_grad_(True)
     grouped, plain = ObjectBatchNorm2d(4), torch.nn.BatchNorm2d(4)
@@ -80,51 +82,89 @@ def test_object_batchnorm_equals_one_call_per_object(views):
         for bn in (grouped, plain):
             bn.weight.copy_(torch.tensor([1.0, 2.0, -0.5, 0.3]))
             bn.bias.copy_(torch.tensor([0.1, 0.0, 0.2, -0.3]))
-    with object_groups(grouped, 3):
-        out = grouped(x)
-    assert grouped.groups == 1  # reset after the block
+    groups = object_groups(grouped, 3)
+    out = grouped(x, groups)
+    groups.fold()
     ref = torch.cat([plain(part) for part in x.split(views)])
-    torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    assert torch.equal(out, ref)
     up = torch.randn(out.shape, generator=gen)
     g = torch.autograd.grad((out * up).sum(), [x, grouped.weight, grouped.bias])
     g_ref = torch.autograd.grad((ref * up).sum(), [x, plain.weight, plain.bias])
-    for a, b in zip(g, g_ref, strict=True):
+    assert torch.equal(g[0], g_ref[0])
+    for a, b in zip(g[1:], g_ref[1:], strict=True):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(grouped.running_mean, plain.running_mean)
     torch.testing.assert_close(grouped.running_var, plain.running_var)
     assert int(grouped.num_batches_tracked) == int(plain.num_batches_tracked) == 3
+    assert torch.equal(grouped(x), plain(x)) and torch.equal(grouped(x, object_groups(grouped, 1)), plain(x))
 
 
-def test_object_batchnorm_block_folds_only_the_layers_that_ran_and_rejects_a_second_call():
-    """object_groups repeats and folds the statistics of all layers at once: a layer that does not run in the
-    block keeps its running statistics and count, one that runs equals BatchNorm once per object (with the
-    block's index cache reused), and a layer called twice in one block is an error, not a wrong fold."""
+def test_object_groups_plan_folds_every_layer_once_and_rejects_misuse():
+    """A plan shares the repeats of all its tracked layers (one per momentum value) and folds them at once,
+    equal to BatchNorm once per object, plan after plan; an untracked or evaluation-mode layer is not in the plan
+    and stays plain. A layer run twice with one plan, a planned layer that did not run, and a layer outside the
+    plan are errors, not a wrong fold."""
     gen = torch.Generator().manual_seed(4)
-    net = torch.nn.Sequential(ObjectBatchNorm2d(3), ObjectBatchNorm2d(5), ObjectBatchNorm2d(3, momentum=0.3))
-    plain = [torch.nn.BatchNorm2d(3), torch.nn.BatchNorm2d(3, momentum=0.3)]
+    net = torch.nn.ModuleList([ObjectBatchNorm2d(3), ObjectBatchNorm2d(5, momentum=0.3),
+                               ObjectBatchNorm2d(3, track_running_stats=False), ObjectBatchNorm2d(5),
+                               ObjectBatchNorm2d(4)])
+    plain = [torch.nn.BatchNorm2d(3), torch.nn.BatchNorm2d(5, momentum=0.3),
+             torch.nn.BatchNorm2d(3, track_running_stats=False), torch.nn.BatchNorm2d(5), torch.nn.BatchNorm2d(4)]
+    net[4].eval()
+    plain[4].eval()
     with torch.no_grad():
         for m in [*net, *plain]:
-            m.running_mean.uniform_(-1, 1, generator=gen)
-            m.running_var.uniform_(0.5, 2, generator=gen)
-        for bn, ref in zip((net[0], net[2]), plain, strict=True):
+            m.weight.uniform_(0.5, 2, generator=gen)
+            if m.running_mean is not None:
+                m.running_mean.uniform_(-1, 1, generator=gen)
+                m.running_var.uniform_(0.5, 2, generator=gen)
+        for bn, ref in zip(net, plain, strict=True):
             ref.load_state_dict(bn.state_dict())
-    unused = {k: v.clone() for k, v in net[1].state_dict().items()}
-    cache: dict = {}
-    for _ in range(2):  # the second block reuses the cached indices
-        x = torch.randn(4, 3, 5, 5, generator=gen)
-        with object_groups(net, 2, cache):
-            out = (net[0](x), net[2](x))
-        refs = [torch.cat([bn(part) for part in x.split(2)]) for bn in plain]
+    for _ in range(2):
+        xs = [torch.randn(4, m.num_features, 5, 5, generator=gen) for m in net]
+        groups = object_groups(net, 2)
+        assert [len(s.norms) for s in groups.shared] == [2, 1]  # the eval-mode and untracked layers: plain
+        out = [bn(x, groups) for bn, x in zip(net, xs, strict=True)]
+        groups.fold()
+        refs = [torch.cat([bn(part) for part in x.split(2)]) if bn.training else bn(x)
+                for bn, x in zip(plain, xs, strict=True)]
         for a, b in zip(out, refs, strict=True):
             torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
-    assert len(cache) == 2  # one index per momentum group
-    for bn, ref in zip((net[0], net[2]), plain, strict=True):
-        torch.testing.assert_close(bn.running_mean, ref.running_mean)
-        torch.testing.assert_close(bn.running_var, ref.running_var)
-        assert int(bn.num_batches_tracked) == int(ref.num_batches_tracked) == 4
-    assert all(torch.equal(v, net[1].state_dict()[k]) for k, v in unused.items())
-    with object_groups(net, 2), pytest.raises(RuntimeError, match="twice"):
-        net[0](net[0](x))
+    for bn, ref in zip(net, plain, strict=True):
+        for name, value in ref.state_dict().items():
+            torch.testing.assert_close(bn.state_dict()[name], value)
+    assert int(net[0].num_batches_tracked) == 4 and int(net[4].num_batches_tracked) == 0
+    x = xs[0]
+    groups = object_groups(net, 2)
+    net[0](x, groups)
+    with pytest.raises(RuntimeError, match="twice"):
+        net[0](x, groups)
+    with pytest.raises(RuntimeError, match="did not run"):
+        groups.fold()
+    with pytest.raises(RuntimeError, match="outside"):
+        ObjectBatchNorm2d(3)(x, groups)
+
+
+def test_encoder_walk_equals_torchvision_blocks():
+    """The trunk runs torchvision's BasicBlocks through ``basic_block`` (so the plan reaches every BatchNorm):
+    with plain BatchNorm it equals the blocks' own forward bit for bit, values and gradients."""
+    from depthnerf.model.encoder import ResNetTrunk
+
+    torch.manual_seed(0)
+    trunk = ResNetTrunk(EncoderConfig(backbone="resnet18"), False).eval()
+    x = torch.randn(2, 3, 32, 32, generator=torch.Generator().manual_seed(1), requires_grad=True)
+    walked = trunk(x)
+    refs = [trunk.relu(trunk.bn1(trunk.conv1(x)))]
+    ref = trunk.maxpool(refs[0])
+    for name in ("layer1", "layer2", "layer3"):
+        ref = getattr(trunk, name)(ref)
+        refs.append(ref)
+    for a, b in zip(walked, refs, strict=True):
+        assert torch.equal(a, b)
+    up = [torch.randn(r.shape) for r in refs]
+    g = torch.autograd.grad(sum((a * u).sum() for a, u in zip(walked, up, strict=True)), [x, *trunk.parameters()])
+    g_ref = torch.autograd.grad(sum((a * u).sum() for a, u in zip(refs, up, strict=True)), [x, *trunk.parameters()])
+    assert all(torch.equal(a, b) for a, b in zip(g, g_ref, strict=True))
 
 
 # --- the batched step ----------------------------------------------------------------------------------------------

@@ -29,11 +29,12 @@ import torch.nn.functional as F
 import torchvision
 from jaxtyping import Float
 from torch import Tensor, nn
+from torchvision.models.resnet import BasicBlock
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig
 from depthnerf.model.features import resize_bilinear
-from depthnerf.model.norm import ObjectBatchNorm2d, object_groups
+from depthnerf.model.norm import ObjectBatchNorm2d, ObjectGroups, object_groups
 
 STAGE_NAMES = ("layer1", "layer2", "layer3")
 """Trunk stages after conv1, in order."""
@@ -54,8 +55,26 @@ class DepthEncoder(nn.Module):
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
 
-    def forward(self, prior: Float[Tensor, "N 1 H W"]) -> Float[Tensor, "N Cd H2 W2"]:
-        return self.net(prior)
+    def forward(self, prior: Float[Tensor, "N 1 H W"], groups: ObjectGroups | None = None
+                ) -> Float[Tensor, "N Cd H2 W2"]:
+        """``groups``: the per-object BatchNorm plan of the encoder call (``depthnerf.model.norm``)."""
+        x = prior
+        for layer in self.net:
+            x = layer(x, groups) if isinstance(layer, ObjectBatchNorm2d) else layer(x)
+        return x
+
+
+def basic_block(block: BasicBlock, x: Tensor, groups: ObjectGroups | None) -> Tensor:
+    """torchvision's ``BasicBlock.forward`` (the same operators in the same order, in place where it is), with
+    ``groups`` given to its BatchNorm layers."""
+    identity = x
+    out = block.relu(block.bn1(block.conv1(x), groups))
+    out = block.bn2(block.conv2(out), groups)
+    if block.downsample is not None:
+        conv, norm = block.downsample
+        identity = norm(conv(x), groups)
+    out += identity
+    return block.relu(out)
 
 
 class ResNetTrunk(nn.Module):
@@ -72,19 +91,23 @@ class ResNetTrunk(nn.Module):
         self.bn1, self.relu, self.maxpool = full.bn1, full.relu, full.maxpool
         for name in STAGE_NAMES[: cfg.num_layers - 1]:
             setattr(self, name, getattr(full, name))
+            if not all(isinstance(block, BasicBlock) for block in getattr(full, name)):
+                raise DepthnerfError(f"encoder.backbone {cfg.backbone}: only BasicBlock ResNets are supported")
         self.num_layers = cfg.num_layers
         self.use_first_pool = cfg.use_first_pool
         self.use_depth = use_depth
         self.backbone = cfg.backbone
         del full  # layer4, avgpool and fc are dropped here: never part of the module or the optimiser
 
-    def forward(self, x: Float[Tensor, "N Cin H W"]) -> list[Tensor]:
-        x = self.relu(self.bn1(self.conv1(x)))
+    def forward(self, x: Float[Tensor, "N Cin H W"], groups: ObjectGroups | None = None) -> list[Tensor]:
+        """The feature stages; ``groups``: the per-object BatchNorm plan of the encoder call."""
+        x = self.relu(self.bn1(self.conv1(x), groups))
         stages = [x]
         if self.num_layers > 1 and self.use_first_pool:
             x = self.maxpool(x)
         for name in STAGE_NAMES[: self.num_layers - 1]:
-            x = getattr(self, name)(x)
+            for block in getattr(self, name):
+                x = basic_block(block, x, groups)
             stages.append(x)
         return stages
 
@@ -142,7 +165,6 @@ class ImageEncoder(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.use_depth = use_depth
-        self._norm_index: dict = {}  # per-object BatchNorm's gather indices, kept between calls (norm.py)
         self.trunk = ResNetTrunk(cfg, use_depth)
         self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if use_depth else None
         if cfg.pretrained_path is not None:
@@ -156,11 +178,14 @@ class ImageEncoder(nn.Module):
     def forward(self, images: Float[Tensor, "N 3 H W"], prior: Float[Tensor, "N 1 H W"] | None = None,
                 objects: int = 1) -> Float[Tensor, "N C Hf Wf"]:
         """Feature maps of ``N = objects * V`` images; in training mode BatchNorm statistics are per object
-        (``depthnerf.model.norm``), so encoding B objects together equals encoding them one at a time."""
-        with object_groups(self, objects, self._norm_index):
-            return self._forward(images, prior)
+        (``depthnerf.model.norm``: one plan per call, passed to every layer, folded at the end), so encoding B
+        objects together equals encoding them one at a time."""
+        groups = object_groups(self, objects)
+        feats = self._forward(images, prior, groups)
+        groups.fold()
+        return feats
 
-    def _forward(self, images: Tensor, prior: Tensor | None) -> Tensor:
+    def _forward(self, images: Tensor, prior: Tensor | None, groups: ObjectGroups) -> Tensor:
         x = images * 2.0 - 1.0
         if self.use_depth:
             if prior is None:
@@ -170,11 +195,11 @@ class ImageEncoder(nn.Module):
             up = self.cfg.image_scale > 1.0
             x = F.interpolate(x, scale_factor=self.cfg.image_scale, mode="bilinear" if up else "area",
                               align_corners=True if up else None, recompute_scale_factor=True)
-        stages = self.trunk(x)
+        stages = self.trunk(x, groups)
         size = stages[0].shape[-2:]
         maps = [stages[0]] + [resize_bilinear(s, size) for s in stages[1:]]
         if self.depth is not None:
-            d = self.depth(x[:, 3:4])
+            d = self.depth(x[:, 3:4], groups)
             if d.shape[-2:] != size:
                 d = resize_bilinear(d, size)
             maps.append(d)

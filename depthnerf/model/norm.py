@@ -7,53 +7,53 @@ source views with their own statistics (for one source view: that image's per-ch
 each object were encoded alone. That keeps a step's result independent of batch composition and rank count
 (2 ranks x 2 objects = 1 process x 4 objects, CPU and CUDA) while the encoder still runs once per step.
 
-:class:`ObjectBatchNorm2d` is a drop-in ``nn.BatchNorm2d`` (same parameters, buffers and state-dict keys). Its
-``groups`` attribute (set by :func:`object_groups` for the duration of one encoder call) splits the batch into
-``groups`` equal consecutive parts with their own statistics: one ``batch_norm`` call over the batch viewed as
-``[V, groups * C, H, W]``, with the affine parameters and running statistics repeated per object. The running
-statistics are updated as ``groups`` successive BatchNorm calls would update them (up to float rounding).
-Evaluation mode is plain BatchNorm.
+:class:`ObjectBatchNorm2d` is a drop-in ``nn.BatchNorm2d`` (same parameters, buffers and state-dict keys) whose
+forward takes the grouping as an argument: an :class:`ObjectGroups` plan, built by :func:`object_groups` once per
+encoder call and passed down through the encoder's forward (nothing is set on the layers). With a plan of
+``count`` objects, a training-mode layer splits its batch into ``count`` equal consecutive parts with their own
+statistics: one ``batch_norm`` call over the batch viewed as ``[V, count * C, H, W]``, with the affine parameters
+and running statistics repeated per object. After the encoder ran, :meth:`ObjectGroups.fold` updates the running
+statistics as ``count`` successive BatchNorm calls would (up to float rounding). Without a plan, with one object,
+or in evaluation mode the layer is plain BatchNorm.
 
-Few operators per layer (each one a kernel launch on a GPU): :func:`object_groups` repeats the affine
-parameters and running statistics of ALL the layers of the block at once (a concatenation and one gather
-each), and folds the per-object running statistics of all layers at the end of the block in one pass.
+Few operators per layer (each one a kernel launch on a GPU): the plan repeats the affine parameters and running
+statistics of ALL its layers at once (a concatenation and one gather each), and folds the per-object running
+statistics of all of them in one pass.
 """
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
+from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+Repeated = tuple[Tensor | None, Tensor | None, Tensor, Tensor]
+"""One layer's weight, bias, running mean and running variance repeated per object (``[count * C]`` each; the
+affine ones None when a layer of its plan is not affine)."""
 
 
 class ObjectBatchNorm2d(nn.BatchNorm2d):
     """``nn.BatchNorm2d`` whose training-mode statistics are per group of consecutive samples (per object)."""
 
-    groups: int = 1
-    """Number of objects in the current input batch (set by :func:`object_groups`)."""
-    repeated: tuple[Tensor, Tensor, Tensor, Tensor] | None = None
-    """Within :func:`object_groups`: weight, bias, running mean and running variance repeated per object
-    (``[groups * C]`` each; the running ones are updated in place by this layer's call, then folded)."""
-
-    def forward(self, x: Tensor) -> Tensor:
-        g = self.groups
-        if g <= 1 or not self.training:
+    def forward(self, x: Tensor, groups: ObjectGroups | None = None) -> Tensor:
+        """Normalise ``x`` (``[count * V, C, H, W]``); ``groups``: the plan of the encoder call (None: plain)."""
+        if groups is None or groups.count <= 1 or not self.training:
             return super().forward(x)
+        g = groups.count
         n, c, h, w = x.shape
         if n % g:
             raise ValueError(f"ObjectBatchNorm2d: batch of {n} does not split into {g} objects")
         v = n // g
         if self.momentum is None:  # cumulative averaging: g successive calls, exactly
             return torch.cat([super(ObjectBatchNorm2d, self).forward(part) for part in x.split(v)])
-        track = self.track_running_stats and self.running_mean is not None
-        repeated, self.repeated = self.repeated, None  # used: the running statistics are folded once per block
-        if track and repeated is None:
-            raise RuntimeError("ObjectBatchNorm2d: called twice in one object_groups block, or outside one")
-        weight, bias, running_mean, running_var = repeated if repeated is not None else (None,) * 4
-        if weight is None and self.affine:  # a layer outside the block's shared repeats
+        if self.track_running_stats and self.running_mean is not None:
+            weight, bias, running_mean, running_var = groups.take(self)
+        else:
+            weight, bias, running_mean, running_var = None, None, None, None
+        if weight is None and self.affine:  # a layer outside the plan's shared repeats
             weight, bias = self.weight.repeat(g), self.bias.repeat(g)
         # [g*v, C, H, W] -> [v, g*C, H, W]: BatchNorm over (v, H, W) for each (object, channel)
         if v == 1:
@@ -72,81 +72,97 @@ def _repeat_index(sizes: list[int], groups: int, device: torch.device) -> tuple[
     """For vectors of ``sizes`` concatenated into one: the gather index laying each vector out ``groups`` times
     in a row (``[groups * size]`` blocks, copy ``k`` at ``k * size``), and the index that reads such blocks back
     as ``[groups, sum(sizes)]`` (row ``k`` = copy ``k`` of every vector)."""
-    out: list[int] = []
-    back: list[list[int]] = [[] for _ in range(groups)]
-    start = 0
-    for size in sizes:
-        for k in range(groups):
-            back[k].extend(range(len(out), len(out) + size))
-            out.extend(range(start, start + size))
-        start += size
-    return torch.tensor(out, device=device), torch.tensor(back, device=device)
+    size = np.asarray(sizes, dtype=np.int64)
+    start = np.cumsum(size) - size  # of each vector in the input; its copies start at groups * start
+    block = np.repeat(np.arange(len(size)), groups * size)  # the vector of each output element
+    offset = np.arange(groups * int(size.sum())) - groups * start[block]  # k * size + c for copy k, element c
+    out = start[block] + offset % size[block]
+    element = np.arange(int(size.sum())) - np.repeat(start, size)  # c, for each input element
+    back = (np.repeat(groups * start, size) + element)[None] + np.arange(groups)[:, None] * np.repeat(size, size)
+    return torch.from_numpy(out).to(device), torch.from_numpy(back).to(device)
 
 
-class _SharedRepeats:
-    """The repeated parameters and running statistics of the tracked layers of one block (one momentum)."""
+class SharedRepeats:
+    """The repeated parameters and running statistics of the tracked layers of one plan with one momentum."""
 
-    def __init__(self, norms: list[ObjectBatchNorm2d], groups: int, cache: dict | None) -> None:
-        self.norms, self.groups = norms, groups
+    def __init__(self, norms: list[ObjectBatchNorm2d], groups: int) -> None:
+        self.norms = norms
+        """The layers (one momentum)."""
+        self.groups = groups
+        """Number of objects."""
         device = norms[0].running_mean.device
         sizes = [m.num_features for m in norms]
-        key = (tuple(sizes), groups, device)
-        cache = {} if cache is None else cache
-        if key not in cache:
-            cache[key] = _repeat_index(sizes + sizes, groups, device)  # [means, vars] and [weights, biases]
-        self.index, self.back = cache[key]
+        # one index serves [means, vars] and [weights, biases]: the gather into the repeated layout, and back
+        self.index, self.back = _repeat_index(sizes + sizes, groups, device)
         self.sizes = [groups * s for s in sizes]
+        """Repeated length of each layer's vectors."""
         with torch.no_grad():
             self.stats = torch.cat([m.running_mean for m in norms] + [m.running_var for m in norms])
-            self.slots = self.stats[self.index]  # updated in place by the layers' calls (through the views)
+            """Every layer's running means then running variances, before the call."""
+            self.slots = self.stats[self.index]
+            """The repeated running statistics, updated in place by the layers' calls (through views)."""
         stat_slots = self.slots.split(self.sizes + self.sizes)
         params: list = [None] * (2 * len(norms))
         if all(m.affine for m in norms):
             params = torch.cat([m.weight for m in norms] + [m.bias for m in norms])[self.index].split(
                 self.sizes + self.sizes)
         layers = len(norms)
-        for i, m in enumerate(norms):
-            m.repeated = (params[i], params[layers + i], stat_slots[i], stat_slots[layers + i])
+        self.pending: dict[ObjectBatchNorm2d, Repeated] = {
+            m: (params[i], params[layers + i], stat_slots[i], stat_slots[layers + i]) for i, m in enumerate(norms)}
+        """Each layer's repeated tensors until the layer takes them (once)."""
 
     @torch.no_grad()
     def fold(self) -> None:
         """Fold each layer's ``groups`` running-statistic slots into its buffers: slot ``k`` holds
         ``(1 - m) r0 + m s_k``; ``g`` successive updates give ``(1 - m)^g r0 + sum_k (1 - m)^(g - k) m s_k``."""
+        if self.pending:
+            raise RuntimeError(f"ObjectGroups: {len(self.pending)} planned layer(s) did not run before the fold")
         g, m = self.groups, self.norms[0].momentum
-        ran = [n.repeated is None for n in self.norms]
-        if not any(ran):
-            return
         slots = self.slots[self.back]  # [g, 2 * sum(C)]
         decay = (1.0 - m) ** torch.arange(g - 1, -1, -1, dtype=slots.dtype, device=slots.device)
         contrib = slots - (1.0 - m) * self.stats
         new = (self.stats * (1.0 - m) ** g + (decay[:, None] * contrib).sum(0)).split(
             [s // g for s in self.sizes] * 2)
-        layers = len(self.norms)
         buffers = [n.running_mean for n in self.norms] + [n.running_var for n in self.norms]
-        keep = [i for i in range(2 * layers) if ran[i % layers]]
-        torch._foreach_copy_([buffers[i] for i in keep], [new[i] for i in keep])
-        torch._foreach_add_([n.num_batches_tracked for n, r in zip(self.norms, ran, strict=True) if r], g)
+        torch._foreach_copy_(buffers, list(new))
+        torch._foreach_add_([n.num_batches_tracked for n in self.norms], g)
 
 
-@contextlib.contextmanager
-def object_groups(module: nn.Module, groups: int, cache: dict | None = None) -> Iterator[None]:
-    """Within the block, every :class:`ObjectBatchNorm2d` in ``module`` normalises ``groups`` objects apart
-    (each layer at most once per block); at its end the running statistics of the layers that ran are folded.
-    ``cache`` (a dict the caller keeps) holds the gather indices between blocks."""
-    norms = [m for m in module.modules() if isinstance(m, ObjectBatchNorm2d)]
-    shared: list[_SharedRepeats] = []
-    if groups > 1:
-        tracked = [m for m in norms if m.training and m.momentum is not None and m.track_running_stats
-                   and m.running_mean is not None]
-        for momentum in dict.fromkeys(m.momentum for m in tracked):
-            shared.append(_SharedRepeats([m for m in tracked if m.momentum == momentum], groups, cache))
-    for m in norms:
-        m.groups = groups
-    try:
-        yield
-        for s in shared:
+@dataclass
+class ObjectGroups:
+    """The per-object BatchNorm plan of one encoder call (:func:`object_groups`): given to every
+    :class:`ObjectBatchNorm2d` the call runs, each of which takes its repeated tensors once; :meth:`fold` after
+    the call updates the running statistics."""
+
+    count: int
+    """Objects in the batch: each is ``batch / count`` consecutive samples."""
+    shared: list[SharedRepeats]
+    """The repeated tensors of the plan's tracked training-mode layers, one entry per momentum value."""
+
+    def take(self, layer: ObjectBatchNorm2d) -> Repeated:
+        """``layer``'s repeated weight, bias, running mean and running variance (once per plan)."""
+        for s in self.shared:
+            if layer in s.pending:
+                return s.pending.pop(layer)
+            if any(layer is m for m in s.norms):
+                raise RuntimeError("ObjectBatchNorm2d: called twice with one ObjectGroups plan")
+        raise RuntimeError("ObjectBatchNorm2d: a training-mode layer outside its ObjectGroups plan")
+
+    def fold(self) -> None:
+        """Fold the per-object running statistics of the plan's layers into their buffers (every planned layer
+        must have run exactly once)."""
+        for s in self.shared:
             s.fold()
-    finally:
-        for m in norms:
-            m.groups = 1
-            m.repeated = None
+
+
+def object_groups(module: nn.Module, count: int) -> ObjectGroups:
+    """The plan for one call of ``module`` on a batch of ``count`` objects: the training-mode
+    :class:`ObjectBatchNorm2d` layers in ``module`` that track running statistics with a momentum share repeated
+    tensors (one :class:`SharedRepeats` per momentum value); every one of them must run once in the call."""
+    shared: list[SharedRepeats] = []
+    if count > 1:
+        tracked = [m for m in module.modules() if isinstance(m, ObjectBatchNorm2d) and m.training
+                   and m.momentum is not None and m.track_running_stats and m.running_mean is not None]
+        for momentum in dict.fromkeys(m.momentum for m in tracked):
+            shared.append(SharedRepeats([m for m in tracked if m.momentum == momentum], count))
+    return ObjectGroups(count=count, shared=shared)
