@@ -223,11 +223,12 @@ def cuda_launches(fn) -> int:
 
 def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
                  repeat: int) -> None:
-    from depthnerf.render.precision import configure_inference
+    from depthnerf.render.precision import field_runtime, inference_policy
     from depthnerf.render.views import render_poses, render_views, view_rays
 
     model.eval()
-    policy = configure_inference(model, device)
+    policy = inference_policy(device)
+    runtime = field_runtime(model, policy)
     src = batch.item(0).source if hasattr(batch, "source") else SourceViews(
         batch.src_images[:1], batch.src_poses[:1], batch.focal[:1], batch.principal[:1],
         batch.src_prior[:1] if batch.src_prior is not None else None)
@@ -237,7 +238,7 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         enc = model.encode(src)
 
         def paper():
-            render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, policy.ray_chunk, device)
+            render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, policy.ray_chunk, device, runtime=runtime)
         paper()
         t = timed(paper, repeat, device)
         print(f"view  paper sampler 64+16+16, {intr.height}x{intr.width}, {views} views per call, chunk "
@@ -254,7 +255,7 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         mask = torch.zeros_like(depth, dtype=torch.bool)
         mask[:, intr.height // 4: 3 * intr.height // 4, intr.width // 4: 3 * intr.width // 4] = True
         guide = build_depth_guide(src.poses[:, 0].to(device), intr, depth, mask, rays, GuideConfig())
-        coarse, fine = model.field(enc, "coarse"), model.field(enc, "fine")
+        coarse, fine = model.field(enc, "coarse", runtime), model.field(enc, "fine", runtime)
 
         def guided():
             render_views(coarse, fine, poses.to(device), intr, 0.8, 1.8, gcfg, chunk=policy.ray_chunk * views,

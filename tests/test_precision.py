@@ -3,11 +3,15 @@ autocast/point-chunk switches exercised on the CPU."""
 
 from __future__ import annotations
 
+import dataclasses
+
+import pytest
 import torch
 from test_model import query, randomize, small_config, sources
 
 from depthnerf.model import PixelNeRF
-from depthnerf.render.precision import CPU_RAY_CHUNK, CUDA_POINT_CHUNK, configure_inference, inference_policy
+from depthnerf.model.pixelnerf import FieldRuntime
+from depthnerf.render.precision import CPU_RAY_CHUNK, CUDA_POINT_CHUNK, field_runtime, inference_policy
 
 
 def test_policy_per_device():
@@ -19,23 +23,49 @@ def test_policy_per_device():
 
 
 @torch.no_grad()
-def test_cpu_configuration_changes_no_bit_and_bf16_stays_close():
+def test_cpu_runtime_changes_no_bit_and_bf16_stays_close():
     model = randomize(PixelNeRF(small_config(), use_depth=False))
     enc = model.encode(sources())
     pts, dirs = query(r=9, s=5)
     ref_rgb, ref_sigma = model.field(enc, "fine")(pts, dirs)
-    configure_inference(model, "cpu")
-    rgb, sigma = model.field(enc, "fine")(pts, dirs)
+    rgb, sigma = model.field(enc, "fine", field_runtime(model, inference_policy("cpu")))(pts, dirs)
     assert torch.equal(rgb, ref_rgb) and torch.equal(sigma, ref_sigma)
     # the CUDA settings' logic, on the CPU: bf16 autocast and another point chunk (fp32 outputs, bf16 accuracy)
-    model.inference_autocast, model.inference_chunk_points = torch.bfloat16, 11
-    rgb, sigma = model.field(enc, "fine")(pts, dirs)
+    rgb, sigma = model.field(enc, "fine", FieldRuntime(autocast=torch.bfloat16, chunk_points=11))(pts, dirs)
     assert rgb.dtype == torch.float32 and sigma.dtype == torch.float32
     torch.testing.assert_close(rgb, ref_rgb, rtol=0, atol=3e-2)
     torch.testing.assert_close(sigma, ref_sigma, rtol=5e-2, atol=5e-2)
-    model.inference_autocast = None
-    rgb, _ = model.field(enc, "fine")(pts, dirs)  # other chunking, fp32: equal up to rounding
+    rgb, _ = model.field(enc, "fine", FieldRuntime(chunk_points=11))(pts, dirs)  # other chunking, fp32: rounding
     torch.testing.assert_close(rgb, ref_rgb, rtol=1e-5, atol=1e-6)
+    assert model.field(enc, "fine")(pts, dirs)[0].equal(ref_rgb)  # the runtimes left nothing on the model
+
+
+@pytest.mark.parametrize("separate_fine", [True, False])
+@torch.no_grad()
+def test_compile_wraps_the_forwards_without_touching_the_modules(separate_fine):
+    """``--compile`` gives the runtime compiled wrappers of the MLPs' forwards (the fine pass uses the coarse one's
+    when there is no fine network) and changes no module; the field calls what the runtime holds."""
+    cfg = small_config()
+    if not separate_fine:
+        cfg = dataclasses.replace(cfg, fine=None)
+    model = randomize(PixelNeRF(cfg, use_depth=False))
+    runtime = field_runtime(model, inference_policy("cpu", compile=True))
+    assert set(runtime.forwards) == {"coarse", "fine"}
+    assert (runtime.forwards["fine"] is runtime.forwards["coarse"]) == (not separate_fine)
+    assert all("forward" not in vars(m) for m in model.modules())  # nothing monkey-patched
+    calls = []
+
+    def counted(which):
+        def forward(*args, **kwargs):
+            calls.append(which)
+            return model.network(which)(*args, **kwargs)
+        return forward
+
+    enc = model.encode(sources())
+    pts, dirs = query(r=4, s=3)
+    ref = model.field(enc, "fine")(pts, dirs)
+    out = model.field(enc, "fine", FieldRuntime(forwards={"fine": counted("fine")}))(pts, dirs)
+    assert calls and set(calls) == {"fine"} and all(torch.equal(a, b) for a, b in zip(out, ref, strict=True))
 
 
 def test_source_frame_geometry_stays_fp32_under_autocast():

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
     from depthnerf.pretrained.load import load_pretrained
     from depthnerf.render.mesh import parse_level
-    from depthnerf.render.precision import configure_inference
+    from depthnerf.render.precision import inference_policy
 
     out = args.out
     if out is None:
@@ -111,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
         out = args.run / "eval" / args.split
     device = resolve_device(args.device)
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
-    policy = configure_inference(pre.model, device, fp32=args.fp32, compile=args.compile)
+    policy = inference_policy(device, fp32=args.fp32, compile=args.compile)
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
         guided=guidance(args.guided, args.guided_align_samples),
         lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
         progress=not args.no_progress)
-    result = evaluate_protocol(pre, data, out, cfg, device)
+    result = evaluate_protocol(pre, data, out, cfg, device, policy)
     s = result.summary
     lp = f"{s['lpips']:.4f}" if s["lpips"] is not None else s["lpips_status"]
     geo = (f", Chamfer-L1 {s['chamfer_l1']:.4f}, F-score@{s['fscore_tau']} {s['fscore']:.3f}"

@@ -53,12 +53,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
     from depthnerf.render.mesh import parse_level
-    from depthnerf.render.precision import configure_inference
+    from depthnerf.render.precision import inference_policy
 
     device = resolve_device(args.device)
+    policy = inference_policy(device, fp32=args.fp32, compile=args.compile)
     rec = Reconstructor.from_pretrained(args.checkpoint, device, depth_estimator=args.depth,
-                                        depth_checkpoint=args.depth_checkpoint)
-    policy = configure_inference(rec.pretrained.model, device, fp32=args.fp32, compile=args.compile)
+                                        depth_checkpoint=args.depth_checkpoint, policy=policy)
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),

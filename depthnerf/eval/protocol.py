@@ -82,6 +82,7 @@ from depthnerf.files import write_text_atomic
 from depthnerf.pretrained.load import Pretrained
 from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
 from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, input_camera_mesh, levels_text
+from depthnerf.render.precision import InferencePolicy, field_runtime
 from depthnerf.render.views import render_poses
 
 
@@ -172,8 +173,10 @@ class _Evaluator:
     """Per-object evaluation with the state shared across objects (model, prior store, LPIPS, settings)."""
 
     def __init__(self, pre: Pretrained, cfg: ProtocolConfig, prior: PriorSource, lpips: LpipsMetric | None,
-                 input_res: int, eval_res: int, out_dir: Path, device: torch.device) -> None:
+                 input_res: int, eval_res: int, out_dir: Path, device: torch.device,
+                 policy: InferencePolicy | None) -> None:
         self.pre, self.cfg, self.prior, self.lpips = pre, cfg, prior, lpips
+        self.runtime = field_runtime(pre.model, policy)  # built once: it holds compiled MLPs with --compile
         self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
         self.near, self.far = pre.spec.z_range
         self.render = pre.spec.render if cfg.guided is None else guided_render(pre.spec.render, cfg.guided.budget)
@@ -190,11 +193,11 @@ class _Evaluator:
         src, tgt, enc = obj.source, obj.targets, obj.enc
         guide = None
         if cfg.guided is not None:
-            guide = make_source_guide(model.field(enc, "coarse"), src.poses[:1].to(self.device), src.intrinsics,
-                                      self.near, self.far, obj.prior, src.masks[:1].to(self.device),
+            guide = make_source_guide(model.field(enc, "coarse", self.runtime), src.poses[:1].to(self.device),
+                                      src.intrinsics, self.near, self.far, obj.prior, src.masks[:1].to(self.device),
                                       self.pre.spec.render, cfg.guided, cfg.chunk)
         preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.render,
-                             cfg.chunk, self.device, guide=guide).rgb.numpy()
+                             cfg.chunk, self.device, guide=guide, runtime=self.runtime).rgb.numpy()
         gts = tgt.images.permute(0, 2, 3, 1).numpy()
         t1 = time.perf_counter()
         metrics = object_metrics(record.object_id, preds, gts, ImageMetricsConfig(quantize_pred=cfg.quantize),
@@ -204,7 +207,7 @@ class _Evaluator:
         if cfg.mesh and record.mesh_path is not None:
             mesh, level = input_camera_mesh(model, enc, src.poses[0], src.intrinsics, self.near, self.far,
                                             MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device,
-                                            colored=False)
+                                            colored=False, runtime=self.runtime)
             geometry = object_geometry(mesh, record, cfg.geometry)
         t3 = time.perf_counter()
         if cfg.save_renders:
@@ -301,8 +304,9 @@ def _data_card(root: Path, category: str) -> dict:
 
 
 def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: ProtocolConfig = ProtocolConfig(),
-                      device: torch.device | str = "cpu") -> EvalOutputs:
-    """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring)."""
+                      device: torch.device | str = "cpu", policy: InferencePolicy | None = None) -> EvalOutputs:
+    """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring); the fields run under
+    ``policy`` (``depthnerf.render.precision``; None: fp32, the config's point chunk, no compile)."""
     t_start = time.perf_counter()
     device = torch.device(device)
     spec = pre.spec
@@ -336,7 +340,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     lpips = load_lpips(cfg.lpips, device)
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
     out_dir.mkdir(parents=True, exist_ok=True)
-    evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device)
+    evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device, policy)
     results = []
     for record in tqdm(records, desc="eval", unit="obj", file=sys.stderr, disable=not cfg.progress,
                        dynamic_ncols=True):

@@ -13,15 +13,18 @@ averages over the V source views at its combine layer (pixelNeRF's multi-view me
 Speed (figures from ``benchmarks/bench_model.py``): the MLP is one big matmul per layer over all B*V*R*S
 points; ``lin_z`` is applied to the feature maps (``FieldConfig.lin_z_on_map``); features are gathered from
 channels-last maps by a fused ``embedding_bag``; without autograd the residual blocks update in place and points
-are chunked (``FieldConfig.chunk_points``). Inference may run under ``torch.autocast("cpu", torch.bfloat16)``:
-the linears then run in bf16 (about 2x faster on avx512_bf16 CPUs) while the residual stream, the sampled
-features and the returned rgb/sigma stay fp32. Training defaults to fp32.
+are chunked (``FieldConfig.chunk_points``). How a field runs at inference (autocast dtype, point chunk, a
+compiled MLP forward) is a :class:`FieldRuntime` that whoever renders passes to :meth:`PixelNeRF.field`
+(``depthnerf.render.precision`` makes one from a device's policy): under bf16 autocast the linears run in bf16
+(about 2x faster on avx512_bf16 CPUs) while the residual stream, the sampled features and the returned rgb/sigma
+stay fp32. Training runs fp32 unless its step sets autocast itself.
 """
 
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
@@ -71,6 +74,20 @@ class EncodedViews(TensorBundle):
     """(H, W) of the source images, the frame in which (u, v) are measured."""
 
 
+@dataclass(frozen=True)
+class FieldRuntime:
+    """How field queries run: a device's inference settings, given to :meth:`PixelNeRF.field` by whoever renders
+    (never stored on the model). The default runs the MLPs as they are, in the field config's point chunks."""
+
+    autocast: torch.dtype | None = None
+    """Without autograd, queries run under ``torch.autocast(device, this dtype)`` (None: as called)."""
+    chunk_points: int | None = None
+    """Without autograd, points per MLP call (None: the field config's ``chunk_points``)."""
+    forwards: Mapping[str, Callable[..., Tensor]] = field(default_factory=dict)
+    """What runs in place of a pass's MLP forward, by pass (``"coarse"``, ``"fine"``): e.g. a ``torch.compile``
+    wrapper of it, held here by the caller (the module is not changed); a pass not listed calls its MLP."""
+
+
 def _check_sources(src: SourceViews, use_depth: bool) -> None:
     images = src.images
     if images.ndim != 5 or images.shape[2] != 3:
@@ -101,11 +118,6 @@ class PixelNeRF(nn.Module):
         latent = cfg.encoder.latent_size(self.use_depth)
         self.coarse = ResidualField(cfg.coarse, latent)
         self.fine = ResidualField(cfg.fine, latent) if cfg.fine is not None else None
-        # Runtime inference settings (not part of the config or the weights; see depthnerf.render.precision):
-        self.inference_autocast: torch.dtype | None = None
-        """Without autograd, field queries run under ``torch.autocast(device, this dtype)`` (None: as called)."""
-        self.inference_chunk_points: int | None = None
-        """Without autograd, points per field chunk (None: the field config's ``chunk_points``)."""
 
     def encode(self, src: SourceViews) -> EncodedViews:
         """Feature maps of all source views; nothing is stored on the module."""
@@ -123,26 +135,30 @@ class PixelNeRF(nn.Module):
             raise ValueError(f"which must be 'coarse' or 'fine', got {which!r}")
         return self.fine if which == "fine" and self.fine is not None else self.coarse
 
-    def field(self, enc: EncodedViews, which: Literal["coarse", "fine"]) -> FieldFn:
-        """The radiance field of one network conditioned on ``enc`` (a closure; no module state).
+    def field(self, enc: EncodedViews, which: Literal["coarse", "fine"],
+              runtime: FieldRuntime | None = None) -> FieldFn:
+        """The radiance field of one network conditioned on ``enc`` (a closure; no module state), run as
+        ``runtime`` says (None: the default :class:`FieldRuntime`).
 
         With ``lin_z_on_map`` the network's feature linears are applied to the maps here, once per call.
         """
+        runtime = runtime if runtime is not None else FieldRuntime()
         mlp = self.network(which)
+        forward = runtime.forwards.get(which, mlp)
         b, v, c, hf, wf = enc.features.shape
         if mlp.cfg.lin_z_on_map:
             maps = mlp.latent_map(enc.features.reshape(b * v, c, hf, wf)).reshape(b, v, hf, wf, -1)
         else:
             maps = enc.features.permute(0, 1, 3, 4, 2).contiguous()  # channels-last for row gathers
-        chunk = self.inference_chunk_points or mlp.cfg.chunk_points
-        amp_dtype = self.inference_autocast
+        chunk = runtime.chunk_points or mlp.cfg.chunk_points
+        amp_dtype = runtime.autocast
 
         def run(points: Tensor, dirs: Tensor) -> Tensor:
             rotated, cam = to_source_frames(points, enc.w2c)
             coords = rotated if mlp.cfg.point_frame == "rotated" else cam
             dirs_src = rotate_dirs(dirs, enc.w2c) if mlp.cfg.use_viewdirs else None
             latent = pixel_aligned(maps, cam, enc.focal, enc.principal, enc.image_size)
-            return mlp(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map)
+            return forward(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]
                      ) -> tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]:
@@ -166,6 +182,6 @@ class PixelNeRF(nn.Module):
 
         return field_fn
 
-    def fields(self, enc: EncodedViews) -> tuple[FieldFn, FieldFn]:
+    def fields(self, enc: EncodedViews, runtime: FieldRuntime | None = None) -> tuple[FieldFn, FieldFn]:
         """``(coarse, fine)`` fields for ``render_rays``."""
-        return self.field(enc, "coarse"), self.field(enc, "fine")
+        return self.field(enc, "coarse", runtime), self.field(enc, "fine", runtime)

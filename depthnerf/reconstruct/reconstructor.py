@@ -52,6 +52,7 @@ from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill,
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
 from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, input_camera_mesh
+from depthnerf.render.precision import InferencePolicy, field_runtime
 from depthnerf.render.views import ViewRenders, render_poses
 
 POINT_OPACITY = 0.5
@@ -111,12 +112,15 @@ class Reconstructor:
     """A loaded checkpoint that turns one photo into novel views, depths, a mesh and a point cloud."""
 
     def __init__(self, pretrained: Pretrained, device: torch.device | str = "cpu", depth_estimator: str | None = None,
-                 depth_checkpoint: str | None = None, *, photos: bool = True, match_cache: bool = False) -> None:
+                 depth_checkpoint: str | None = None, *, photos: bool = True, match_cache: bool = False,
+                 policy: InferencePolicy | None = None) -> None:
         """``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
         checkpoint's prior; ``photos``: inputs are photos without ground-truth depth (so the prior must be one
         that runs on a photo); ``match_cache`` rounds the live prior as the dataset cache stores it
-        (:func:`depthnerf.depth.cache.as_cached`), so results equal ``depthnerf eval``'s on the same view."""
+        (:func:`depthnerf.depth.cache.as_cached`), so results equal ``depthnerf eval``'s on the same view;
+        ``policy``: how the fields run (``depthnerf.render.precision``; None: fp32, the config's point chunk)."""
         self.pretrained = pretrained
+        self.runtime = field_runtime(pretrained.model, policy)  # built once: it holds compiled MLPs with --compile
         self.device = torch.device(device)
         spec = pretrained.spec
         name = depth_estimator or spec.prior.estimator
@@ -140,9 +144,10 @@ class Reconstructor:
 
     @classmethod
     def from_pretrained(cls, path_or_name: str | Path, device: torch.device | str = "cpu",
-                        depth_estimator: str | None = None, depth_checkpoint: str | None = None) -> Reconstructor:
+                        depth_estimator: str | None = None, depth_checkpoint: str | None = None, *,
+                        policy: InferencePolicy | None = None) -> Reconstructor:
         """Load a shipped name, weights file, checkpoint folder or run folder (``load_pretrained``)."""
-        return cls(load_pretrained(path_or_name, device), device, depth_estimator, depth_checkpoint)
+        return cls(load_pretrained(path_or_name, device), device, depth_estimator, depth_checkpoint, policy=policy)
 
     @torch.no_grad()
     def reconstruct(self, image: ImageLike, mask: ImageLike | None = None, views: int | None = None,
@@ -196,11 +201,12 @@ class Reconstructor:
         render, guide = spec.render, None
         if cfg.guided is not None:
             render = guided_render(spec.render, cfg.guided.budget)
-            guide = make_source_guide(model.field(encoded.enc, "coarse"), encoded.pose[None].to(self.device),
-                                      encoded.intr, near, far, encoded.inputs.disparity,
+            guide = make_source_guide(model.field(encoded.enc, "coarse", self.runtime),
+                                      encoded.pose[None].to(self.device), encoded.intr, near, far,
+                                      encoded.inputs.disparity,
                                       encoded.mask.to(self.device), spec.render, cfg.guided, cfg.chunk)
         return render_poses(model, encoded.enc, poses, intr, near, far, render, cfg.chunk, self.device, on_group,
-                            guide)
+                            guide, self.runtime)
 
     @torch.no_grad()
     def reconstruct_encoded(self, encoded: EncodedInput, poses: Float[torch.Tensor, "N 4 4"],
@@ -220,7 +226,8 @@ class Reconstructor:
         mesh, level = trimesh.Trimesh(), None
         if cfg.mesh_resolution > 0:
             mesh, level = input_camera_mesh(model, encoded.enc, encoded.pose, encoded.intr, near, far,
-                                            MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device)
+                                            MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device,
+                                            runtime=self.runtime)
         bar.update(1)
         bar.close()
         times["mesh_s"] = time.perf_counter() - t

@@ -50,7 +50,7 @@ from torch import Tensor
 
 from depthnerf.data.cameras import Intrinsics, camera_rays
 from depthnerf.errors import DepthnerfError
-from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
+from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
 
 DEFAULT_THRESHOLD = 20.0
 """Fallback density level when no input ray is opaque (see the module docstring)."""
@@ -312,11 +312,13 @@ def load_mesh(path: Path) -> trimesh.Trimesh:
     return mesh
 
 
-def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"]
+def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"],
+                  runtime: FieldRuntime | None = None
                   ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
     """``(density_fn, color_fn)`` of the fine network (the coarse one without a fine network) at world points
-    ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it."""
-    fn = model.field(enc, "fine")
+    ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it, run as
+    ``runtime`` says (None: the default)."""
+    fn = model.field(enc, "fine", runtime)
 
     def query(points: Tensor) -> tuple[Tensor, Tensor]:
         dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
@@ -327,9 +329,10 @@ def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"]
 
 
 def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,
-                      far: float, config: MeshConfig, device: torch.device | str, colored: bool = True
-                      ) -> tuple[trimesh.Trimesh, MeshLevel]:
+                      far: float, config: MeshConfig, device: torch.device | str, colored: bool = True,
+                      runtime: FieldRuntime | None = None) -> tuple[trimesh.Trimesh, MeshLevel]:
     """The mesh over the input camera's frustum box (fine network density, each point seen along the input
-    camera's ray through it), with the network's colour at each vertex when ``colored``."""
-    density_fn, color_fn = field_queries(model, enc, c2w[:3, 3].to(device))
+    camera's ray through it), with the network's colour at each vertex when ``colored``; the field runs as
+    ``runtime`` says (None: the default)."""
+    density_fn, color_fn = field_queries(model, enc, c2w[:3, 3].to(device), runtime)
     return source_mesh(density_fn, c2w, intr, near, far, config, color_fn if colored else None, device)

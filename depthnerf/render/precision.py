@@ -14,8 +14,12 @@ torch.compile      off                         off; ``--compile`` compiles the f
 =================  ==========================  ============================================================
 
 The CUDA values are sized from memory arithmetic, not measured (no GPU was available when they were set);
-docs/speed.md says which GPU figures are still open. ``depthnerf eval`` and ``depthnerf reconstruct`` call
-:func:`configure_inference` on the loaded model; an explicit ``--chunk`` wins over the default.
+docs/speed.md says which GPU figures are still open. The policy is an argument, never state on the model:
+``depthnerf eval`` and ``depthnerf reconstruct`` build it with :func:`inference_policy` from their flags and give
+it to whoever renders (``evaluate_protocol``, ``Reconstructor``), which turns it once into the
+:class:`~depthnerf.model.pixelnerf.FieldRuntime` its field calls take (:func:`field_runtime`: the compiled MLP
+forwards are wrappers that it holds); the ray chunk goes into their render configs, where an explicit ``--chunk``
+wins over the default.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 
-from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.model.pixelnerf import FieldRuntime, PixelNeRF
 
 CPU_RAY_CHUNK = 4096
 """Rays per render pass on the CPU (the value every CPU figure in docs/speed.md was measured with)."""
@@ -45,7 +49,7 @@ class InferencePolicy:
     point_chunk: int | None
     """Field points per chunk (None = the field config's ``chunk_points``)."""
     compile: bool
-    """Field MLPs wrapped in ``torch.compile``."""
+    """Field MLPs run through ``torch.compile`` wrappers."""
 
 
 def inference_policy(device: torch.device | str, *, fp32: bool = False, compile: bool = False) -> InferencePolicy:
@@ -56,13 +60,16 @@ def inference_policy(device: torch.device | str, *, fp32: bool = False, compile:
     return InferencePolicy(autocast=None, ray_chunk=CPU_RAY_CHUNK, point_chunk=None, compile=compile)
 
 
-def configure_inference(model: PixelNeRF, device: torch.device | str, *, fp32: bool = False,
-                        compile: bool = False) -> InferencePolicy:
-    """Apply :func:`inference_policy` to a loaded model (runtime settings only: weights and config unchanged)."""
-    policy = inference_policy(device, fp32=fp32, compile=compile)
-    model.inference_autocast = policy.autocast
-    model.inference_chunk_points = policy.point_chunk
-    if compile:
-        for mlp in {id(m): m for m in (model.coarse, model.fine) if m is not None}.values():
-            mlp.forward = torch.compile(mlp.forward, dynamic=True)
-    return policy
+def field_runtime(model: PixelNeRF, policy: InferencePolicy | None) -> FieldRuntime:
+    """What ``model.field`` takes to render under ``policy`` (None: the default runtime, as the model is): its
+    autocast dtype and point chunk and, with ``policy.compile``, ``torch.compile`` wrappers of the MLPs' forwards,
+    held by the returned runtime (the modules are not changed). Build it once per model and keep it: each
+    wrapper compiles on its first calls."""
+    if policy is None:
+        return FieldRuntime()
+    forwards = {}
+    if policy.compile:
+        compiled = {id(mlp): torch.compile(mlp.forward, dynamic=True)
+                    for mlp in (model.coarse, model.fine) if mlp is not None}
+        forwards = {which: compiled[id(model.network(which))] for which in ("coarse", "fine")}
+    return FieldRuntime(autocast=policy.autocast, chunk_points=policy.point_chunk, forwards=forwards)

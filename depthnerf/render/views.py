@@ -17,7 +17,7 @@ from torch import Tensor
 from depthnerf.bundles import TensorBundle
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
-from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF
+from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.guidance import SourceGuide
 from depthnerf.render.guide import DepthGuide
@@ -61,9 +61,11 @@ def render_views(coarse: FieldFn, fine: FieldFn | None, c2w: Float[Tensor, "N 4 
 @torch.no_grad()
 def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, near: float,
                  far: float, cfg: RenderConfig, chunk: int, device: torch.device | str,
-                 on_group: Callable[[int], None] | None = None, guide: SourceGuide | None = None) -> ViewRenders:
+                 on_group: Callable[[int], None] | None = None, guide: SourceGuide | None = None,
+                 runtime: FieldRuntime | None = None) -> ViewRenders:
     """Render N views of one encoded object (CPU float tensors), ``max(1, chunk // (H*W))`` views per call and
-    ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views.
+    ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views;
+    the fields run as ``runtime`` says (``depthnerf.render.precision.field_runtime``; None: the default).
 
     With ``cfg.guided.enabled`` (depth-guided sampling, :mod:`depthnerf.render.guidance`) ``guide`` gives every
     target ray its depth guess from the source view; a guided config without a guide is an error.
@@ -73,7 +75,7 @@ def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 
                              "with depthnerf eval/reconstruct rather than a guided render config")
     if chunk < 1:
         raise DepthnerfError(f"--chunk must be >= 1, got {chunk}")
-    coarse, fine = model.field(enc, "coarse"), model.field(enc, "fine")
+    coarse, fine = model.field(enc, "coarse", runtime), model.field(enc, "fine", runtime)
     group = max(1, chunk // (intr.height * intr.width))
     parts = []
     for start in range(0, len(poses), group):
