@@ -68,7 +68,7 @@ def tiny_run(run: Path, cfg: TrainConfig, seed: int = 0, steps: tuple[int, ...] 
     for k, step in enumerate(steps):
         model = tiny_model(cfg, seed + k)
         opt = torch.optim.Adam(model.parameters())
-        state = ckpt.TrainingState(step=step, best_psnr=10.0 + k, extra={})
+        state = ckpt.TrainingState(step=step, best_psnr=10.0 + k)
         path = ckpt.save_checkpoint(run / "checkpoints", model, opt, to_dict(cfg.model), state, keep_last=5,
                                     train_config=to_dict(cfg))
         if step == best:

@@ -146,6 +146,8 @@ def test_spec_round_trip_and_use_depth_derived():
     assert again == spec and again.use_depth and again.z_range == (1.25, 2.75) and again.resolution == 64
     assert "use_depth" not in json.dumps(to_dict(cfg))  # stored once: the prior
     assert inference_spec(with_prior(cfg, "none")).use_depth is False
+    older = {**json.loads(spec.to_json()), "extra": {"a convention": 1}}  # specs once held an unused mapping
+    assert spec_from_json(json.dumps(older), "x") == spec
 
 
 def test_legacy_use_depth_is_checked_then_dropped():

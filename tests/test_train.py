@@ -97,9 +97,13 @@ def test_baseline_and_depth_aware_presets_differ_only_in_the_prior_switch():
 def test_checkpoint_refuses_other_model_config(tmp_path):
     model = torch.nn.Linear(2, 3)
     opt = torch.optim.Adam(model.parameters())
-    saved = ckpt.save_checkpoint(tmp_path, model, opt, {"d": 1}, ckpt.TrainingState(5, 1.0, {}))
+    saved = ckpt.save_checkpoint(tmp_path, model, opt, {"d": 1}, ckpt.TrainingState(5, 1.0))
     (tmp_path / ".step_00000009.123.tmp").mkdir()  # a write interrupted by a kill is never "latest"
     assert ckpt.latest_checkpoint(tmp_path) == saved
+    state = json.loads((saved / "state.json").read_text())
+    assert "extra" not in state
+    (saved / "state.json").write_text(json.dumps({**state, "extra": {"old": 1}}))  # as older runs wrote it
+    assert ckpt.load_checkpoint(saved, model, opt, {"d": 1}) == ckpt.TrainingState(5, 1.0)
     with pytest.raises(DepthnerfError, match="different model config"):
         ckpt.load_checkpoint(saved, torch.nn.Linear(2, 3), None, {"d": 2})
     with pytest.raises(DepthnerfError, match="shape mismatch"):

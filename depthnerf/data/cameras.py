@@ -171,8 +171,3 @@ def backproject(depth: Float[Tensor, "H W"], c2w: Float[Tensor, "4 4"], intr: In
 def ray_distance_to_z(t: Tensor, dirs_cam_z: Tensor) -> Tensor:
     """z-depth from ray distance along a unit direction whose camera-frame z component is ``dirs_cam_z``."""
     return t * dirs_cam_z
-
-
-def z_to_ray_distance(z: Tensor, dirs_cam_z: Tensor) -> Tensor:
-    """Ray distance along a unit direction from z-depth (inverse of :func:`ray_distance_to_z`)."""
-    return z / dirs_cam_z

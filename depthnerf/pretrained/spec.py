@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from depthnerf.config_io import from_dict, to_dict
@@ -53,8 +53,6 @@ class InferenceSpec:
     """SHA-256 of the prior's weights at training time (None: no prior, or not recorded by older checkpoints)."""
     preset: str = "custom"
     """Training preset name (provenance)."""
-    extra: dict[str, Any] = field(default_factory=dict)
-    """Conventions added later (e.g. a pixel-centre convention); unknown to older checkpoints (empty)."""
 
     @property
     def use_depth(self) -> bool:
@@ -93,7 +91,7 @@ def spec_from_json(text: str, where: str) -> InferenceSpec:
         raise DepthnerfError(f"{where}: inference spec has no prior")
     prior = from_dict(PriorConfig, data["prior"], where=f"{where} prior")
     model = model_config_from_dict(data.get("model", {}), prior.enabled, f"{where} model")
-    rest = {k: v for k, v in data.items() if k not in ("model", "prior")}
+    rest = {k: v for k, v in data.items() if k not in ("model", "prior", "extra")}  # older specs: an unused "extra"
     spec = from_dict(InferenceSpec, {**rest, "model": {}, "prior": {}}, where=where)
     spec.model, spec.prior = model, prior
     return spec

@@ -97,8 +97,6 @@ class TrainingState:
     """Number of optimisation steps completed."""
     best_psnr: float
     """Best validation PSNR so far (-inf before the first validation)."""
-    extra: dict[str, Any]
-    """Free-form JSON state (e.g. last metrics)."""
 
 
 def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -127,7 +125,7 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
         os.fsync(f.fileno())
     crash_point("optimizer", state.step)
     best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
-    payload = {"step": state.step, "best_psnr": best, "extra": state.extra, "optimizer": opt_info}
+    payload = {"step": state.step, "best_psnr": best, "optimizer": opt_info}
     write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1, allow_nan=False))
     _fsync_dir(tmp)
     crash_point("state", state.step)
@@ -186,6 +184,5 @@ def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.opt
         except (SafetensorError, OSError) as err:
             raise DepthnerfError(f"{ckpt_dir / 'optimizer.safetensors'}: unreadable optimizer state ({err})") from None
         _optimizer_from_files(optimizer, opt_tensors, payload["optimizer"])
-    best = payload["best_psnr"]
-    return TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best),
-                         extra=payload["extra"])
+    best = payload["best_psnr"]  # older state files also hold an unused "extra" mapping: ignored
+    return TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best))

@@ -99,7 +99,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     cuda = info.device.type == "cuda"
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr, fused=cuda or None)
     model_cfg = to_dict(cfg.model)
-    state = ckpt.TrainingState(step=0, best_psnr=-math.inf, extra={})
+    state = ckpt.TrainingState(step=0, best_psnr=-math.inf)
     if latest is not None:
         state = ckpt.load_checkpoint(latest, model, optimizer, model_cfg)
     start = state.step
@@ -169,7 +169,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             best = max(best, res.psnr)
         if info.is_main and (step % cfg.log.checkpoint_every == 0 or step == s.max_steps or improved):
             last_saved = ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg,
-                                              ckpt.TrainingState(step=step, best_psnr=best, extra={}),
+                                              ckpt.TrainingState(step=step, best_psnr=best),
                                               keep_last=cfg.log.keep_last, train_config=to_dict(cfg),
                                               spec_json=spec.to_json())
             if improved:
