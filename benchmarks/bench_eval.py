@@ -51,7 +51,7 @@ def main() -> None:
     else:
         spec = inference_spec(preset(args.preset))
         torch.manual_seed(0)
-        model, label = PixelNeRF(spec.model, use_depth=spec.use_depth).eval(), f"{args.preset} (random weights)"
+        model, label = PixelNeRF(spec.model, depth_aware=spec.depth_aware).eval(), f"{args.preset} (random weights)"
     cfg = spec
     cat = category_defaults(spec.category)
     res_in, res = spec.resolution, args.resolution or spec.resolution
@@ -61,7 +61,7 @@ def main() -> None:
                        for k, e in enumerate((15.0, 30.0, 45.0))])[: args.views]
     src_pose = orbit_poses(cat.camera_radius, 30.0, 1)
     gen = torch.Generator().manual_seed(0)
-    prior = torch.randn(1, 1, 1, res_in, res_in, generator=gen) if spec.use_depth else None
+    prior = torch.randn(1, 1, 1, res_in, res_in, generator=gen) if spec.depth_aware else None
     src = SourceViews(images=torch.full((1, 1, 3, res_in, res_in), 0.5), poses=src_pose[None],
                       focal=torch.tensor([intr_in.focal]), principal=torch.tensor([[intr_in.cx, intr_in.cy]]),
                       prior=prior)

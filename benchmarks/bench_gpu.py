@@ -132,7 +132,7 @@ class CountOps(TorchDispatchMode):
                     print(f"  {rest:6d}  ({len(counts) - top} others)")
 
 
-def synthetic_batch(b: int, rays: int, res: int, use_depth: bool, seed: int = 0) -> tuple[TrainBatch, Intrinsics]:
+def synthetic_batch(b: int, rays: int, res: int, depth_aware: bool, seed: int = 0) -> tuple[TrainBatch, Intrinsics]:
     """Random source images on the SRN cars camera sphere and random target rays (timing only)."""
     gen = torch.Generator().manual_seed(seed)
     intr = Intrinsics(focal=131.25 * res / 128, cx=(res - 1) / 2, cy=(res - 1) / 2, height=res, width=res)
@@ -144,7 +144,7 @@ def synthetic_batch(b: int, rays: int, res: int, use_depth: bool, seed: int = 0)
     pick = [torch.gather(t, 1, idx[..., None].expand(-1, -1, 3)) for t in (all_rays.origins, all_rays.directions)]
     src = dict(images=torch.rand(b, 1, 3, res, res, generator=gen), poses=poses[:, :1],
                focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
-               prior=torch.randn(b, 1, 1, res, res, generator=gen) if use_depth else None)
+               prior=torch.randn(b, 1, 1, res, res, generator=gen) if depth_aware else None)
     if any(f.name == "source" for f in dataclasses.fields(TrainBatch)):
         src = {"source": SourceViews(**src)}
     else:  # a checkout from before TrainBatch carried the conditioning stage's SourceViews
@@ -286,15 +286,18 @@ def main() -> None:
                           ("cpu" if args.device == "auto" else args.device))
     cfg = with_prior(preset("paper-cars"), args.depth)
     torch.manual_seed(0)
-    use_depth = args.depth != "none"
+    depth_aware = args.depth != "none"
     try:
-        model = PixelNeRF(cfg.model, use_depth=use_depth)
-    except TypeError:  # checkouts from before the prior-derived switch (the "before" figure)
-        model = PixelNeRF(cfg.model)
+        model = PixelNeRF(cfg.model, depth_aware=depth_aware)
+    except TypeError:  # older checkouts: the switch was named use_depth, and before that stored in the config
+        try:
+            model = PixelNeRF(cfg.model, use_depth=depth_aware)
+        except TypeError:
+            model = PixelNeRF(cfg.model)
     model = model.to(device).train()
     if device.type == "cuda":
         model.encoder.to(memory_format=torch.channels_last)
-    batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, use_depth)
+    batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, depth_aware)
     batch = batch.to(device)
     step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False)
     shape = getattr(step, "shape", args.step_shape)
@@ -320,7 +323,7 @@ def main() -> None:
         print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
     # the op sequence does not depend on the number of rays: count with few (bf16 matmuls are slow on CPUs
     # without bf16 units)
-    small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, use_depth)
+    small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, depth_aware)
     proxy = make_step(model, cfg, small, device, args.step_shape, as_cuda=True)  # composed as on CUDA
     proxy()
     names = {id(m): n or "model" for n, m in model.named_modules()}

@@ -64,7 +64,7 @@ class Setting:
     """Objects per training batch."""
     rays: int = 128
     """Rays per object per training iteration."""
-    use_depth: bool = False
+    depth_aware: bool = False
     """Depth-aware encoder."""
 
     def model_config(self, lin_z_on_map: bool = True, chunk: int = FieldConfig.chunk_points) -> PixelNeRFConfig:
@@ -79,12 +79,12 @@ class Setting:
 
 SETTINGS = {
     "paper": Setting(128, "resnet34", 512, (64, 16, 16)),
-    "paper-depth": Setting(128, "resnet34", 512, (64, 16, 16), use_depth=True),
+    "paper-depth": Setting(128, "resnet34", 512, (64, 16, 16), depth_aware=True),
     "ref-small": Setting(128, "resnet34", 128, (32, 16, 8)),
     "cpu-64-d128": Setting(64, "resnet34", 128, (32, 16, 8)),
     "cpu-64-d256": Setting(64, "resnet34", 256, (32, 16, 8)),
     "cpu-64-r18": Setting(64, "resnet18", 128, (32, 16, 8)),
-    "cpu-64-d128-depth": Setting(64, "resnet34", 128, (32, 16, 8), use_depth=True),
+    "cpu-64-d128-depth": Setting(64, "resnet34", 128, (32, 16, 8), depth_aware=True),
     "cpu-64-d64": Setting(64, "resnet34", 64, (32, 16, 8)),
     "cpu-64-d128-s24": Setting(64, "resnet34", 128, (24, 8, 8)),
     "cpu-64-d128-r64": Setting(64, "resnet34", 128, (32, 16, 8), rays=64),
@@ -124,7 +124,7 @@ def scene(setting: Setting, b: int, seed: int = 0) -> tuple[SourceViews, torch.T
     poses = look_at(eye)
     src = SourceViews(images=torch.rand(b, 1, 3, res, res, generator=gen), poses=poses[:, :1],
                       focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
-                      prior=torch.randn(b, 1, 1, res, res, generator=gen) if setting.use_depth else None)
+                      prior=torch.randn(b, 1, 1, res, res, generator=gen) if setting.depth_aware else None)
     return src, poses[:, 1], intr
 
 
@@ -174,7 +174,7 @@ def case_field(args, setting: Setting) -> None:
     cfg = setting.model_config()
     for on_map in (False, True):
         torch.manual_seed(0)
-        model = PixelNeRF(setting.model_config(lin_z_on_map=on_map), use_depth=setting.use_depth)
+        model = PixelNeRF(setting.model_config(lin_z_on_map=on_map), depth_aware=setting.depth_aware)
 
         def train_step(model=model):
             enc = model.encode(src)
@@ -188,7 +188,7 @@ def case_field(args, setting: Setting) -> None:
             with torch.no_grad():
                 model.field(enc, "coarse")(pts, dirs)
         t_tr, t_in = best_time(train_step, args.repeat, args.clock), best_time(infer, args.repeat, args.clock)
-        latent = cfg.encoder.latent_size(setting.use_depth)
+        latent = cfg.encoder.latent_size(setting.depth_aware)
         flops = b * n_pts * mlp_flops(cfg.coarse.d_in, setting.d_hidden, 5, 3, latent, not on_map)
         print(f"field lin_z_on_map={on_map!s:5s}: train (encode+field fwd+bwd) {t_tr:6.2f} s "
               f"({b * n_pts / t_tr:8,.0f} pts/s); inference {t_in:6.2f} s ({b * n_pts / t_in:9,.0f} pts/s, "
@@ -197,7 +197,7 @@ def case_field(args, setting: Setting) -> None:
 
 def case_encoder(args, setting: Setting) -> None:
     src, _, _ = scene(setting, setting.objects)
-    model = PixelNeRF(setting.model_config(), use_depth=setting.use_depth)
+    model = PixelNeRF(setting.model_config(), depth_aware=setting.depth_aware)
 
     def fwd_bwd():
         model.encode(src).features.sum().backward()
@@ -214,7 +214,7 @@ def case_iter(args, setting: Setting) -> None:
     b = setting.objects
     src, target_poses, intr = scene(setting, b)
     model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point),
-                      use_depth=setting.use_depth).train()
+                      depth_aware=setting.depth_aware).train()
     rcfg = setting.render_config()
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     gen = torch.Generator().manual_seed(0)
@@ -253,7 +253,7 @@ def case_view(args, setting: Setting) -> None:
     torch.manual_seed(0)
     src, target_poses, intr_full = scene(setting, 1)
     model = PixelNeRF(setting.model_config(lin_z_on_map=not args.lin_z_per_point, chunk=args.chunk),
-                      use_depth=setting.use_depth).eval()
+                      depth_aware=setting.depth_aware).eval()
     rcfg = setting.render_config()
     with torch.no_grad():
         enc = model.encode(src)

@@ -238,7 +238,7 @@ def run_checkpoint(args: argparse.Namespace) -> dict:
     result = {
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
         "preset": cfg.preset, "depth_prior": cfg.prior.estimator,
-        "guide_depth": "prior aligned to a coarse render" if cfg.use_depth else "coarse render (no prior)",
+        "guide_depth": "prior aligned to a coarse render" if cfg.depth_aware else "coarse render (no prior)",
         "data": str(data.resolve()), "category": category, "split": args.split,
         "objects": [r.object_id for r in records], "views_per_object": settings[0].views // len(records),
         "views_stride": args.views_stride, "resolution": res, "z_range": [near, far],

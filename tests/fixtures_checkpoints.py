@@ -42,7 +42,7 @@ def tiny_config(category: str, estimator: str, depth_weights: Path | None = None
 def tiny_model(cfg: TrainConfig, seed: int = 0) -> PixelNeRF:
     """A random model of ``cfg`` whose BatchNorm buffers are not the defaults (so a lost buffer shows)."""
     torch.manual_seed(seed)
-    model = PixelNeRF(cfg.model, use_depth=cfg.prior.enabled)
+    model = PixelNeRF(cfg.model, depth_aware=cfg.prior.enabled)
     with torch.no_grad():
         for name, buf in model.named_buffers():
             if name.endswith("running_mean"):

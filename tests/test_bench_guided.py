@@ -52,7 +52,7 @@ def tiny_checkpoint(path: Path) -> Path:
     cfg = dataclasses.replace(cfg, data=DataConfig(category="cars", resolution=16), model=model_cfg,
                               render=RenderConfig(sampler=SamplerConfig(n_coarse=6, n_importance=4, n_gaussian=2)))
     torch.manual_seed(0)
-    model = PixelNeRF(model_cfg, use_depth=True)
+    model = PixelNeRF(model_cfg, depth_aware=True)
     ckpt.save_weights(path, model, to_dict(model_cfg), step=7, extra={"train_config": json.dumps(to_dict(cfg))})
     return path
 

@@ -185,7 +185,7 @@ def test_field_matches_bruteforce_reference(views, image_scale, frame, combine):
     torch.manual_seed(0)
     cfg = small_config(point_frame=frame, combine_layer=combine)
     cfg.encoder.image_scale = image_scale
-    model = randomize(PixelNeRF(cfg, use_depth=False))
+    model = randomize(PixelNeRF(cfg, depth_aware=False))
     src = sources(b=2, v=views, size=48)
     pts, dirs = query(b=2, r=3, s=4)
     pts[0, 0, 0] = torch.tensor([5.0, -4.0, 3.0])  # projects outside the image: border features
@@ -202,7 +202,7 @@ def test_field_matches_bruteforce_reference(views, image_scale, frame, combine):
 
 def test_multiview_pools_views():
     torch.manual_seed(0)
-    model = randomize(PixelNeRF(small_config(), use_depth=False))
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
     two = sources(b=1, v=2, seed=3)
     pts, dirs = query(b=1)
     with torch.no_grad():
@@ -222,8 +222,8 @@ def test_multiview_pools_views():
 @pytest.mark.parametrize("views", [1, 2])
 def test_lin_z_on_map_equals_per_point(views):
     torch.manual_seed(0)
-    per_point = randomize(PixelNeRF(small_config(lin_z_on_map=False), use_depth=False), seed=5)
-    on_map = PixelNeRF(small_config(lin_z_on_map=True), use_depth=False)
+    per_point = randomize(PixelNeRF(small_config(lin_z_on_map=False), depth_aware=False), seed=5)
+    on_map = PixelNeRF(small_config(lin_z_on_map=True), depth_aware=False)
     on_map.load_state_dict(per_point.state_dict())
     on_map.eval()
     src = sources(b=2, v=views, seed=2)
@@ -250,7 +250,7 @@ def test_lin_z_on_map_equals_per_point(views):
 
 def test_encode_is_stateless_and_encodings_interleave():
     torch.manual_seed(0)
-    model = randomize(PixelNeRF(small_config(), use_depth=False))
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
     before = {k: v.clone() for k, v in model.state_dict().items()}
     pts, dirs = query(b=1)
     with torch.no_grad():
@@ -258,7 +258,7 @@ def test_encode_is_stateless_and_encodings_interleave():
         assert isinstance(enc_a, EncodedViews) and enc_a.features.shape[:3] == (1, 1, 256 + 128 + 64 + 64)
         fa, fb = model.field(enc_a, "fine"), model.field(enc_b, "fine")
         a1, b1, a2 = fa(pts, dirs), fb(pts, dirs), fa(pts, dirs)
-        fresh = PixelNeRF(small_config(), use_depth=False)
+        fresh = PixelNeRF(small_config(), depth_aware=False)
         fresh.load_state_dict(model.state_dict())
         a_fresh = fresh.eval().field(fresh.encode(sources(b=1, seed=10)), "fine")(pts, dirs)
     torch.testing.assert_close(a1[0], a2[0], rtol=0, atol=0)
@@ -271,7 +271,7 @@ def test_encode_is_stateless_and_encodings_interleave():
 # --- baseline vs depth-aware --------------------------------------------------------------------------------------
 
 def test_depth_variant_differs_only_in_encoder_input():
-    base, deep = PixelNeRF(small_config(), use_depth=False), PixelNeRF(small_config(), use_depth=True)
+    base, deep = PixelNeRF(small_config(), depth_aware=False), PixelNeRF(small_config(), depth_aware=True)
     shapes_b = {n: tuple(p.shape) for n, p in base.named_parameters()}
     shapes_d = {n: tuple(p.shape) for n, p in deep.named_parameters()}
     extra = sorted(set(shapes_d) - set(shapes_b))
@@ -295,8 +295,8 @@ def test_depth_model_with_ablated_depth_inputs_equals_baseline():
     """Copy the baseline's weights into the depth model, zero the prior's conv1 kernel and the lin_z columns of the
     depth features: whatever the prior, the depth model computes exactly the baseline's function."""
     torch.manual_seed(0)
-    base = randomize(PixelNeRF(small_config(), use_depth=False))
-    deep = PixelNeRF(small_config(), use_depth=True).eval()
+    base = randomize(PixelNeRF(small_config(), depth_aware=False))
+    deep = PixelNeRF(small_config(), depth_aware=True).eval()
     state = deep.state_dict()
     for name, value in base.state_dict().items():
         if name == "encoder.trunk.conv1.weight":
@@ -320,7 +320,7 @@ def test_depth_model_with_ablated_depth_inputs_equals_baseline():
 def test_depth_model_requires_prior():
     from depthnerf.errors import DepthnerfError
 
-    model = PixelNeRF(small_config(), use_depth=True).eval()
+    model = PixelNeRF(small_config(), depth_aware=True).eval()
     with pytest.raises(DepthnerfError, match="prior"):
         model.encode(sources(b=1, prior=False))
 
@@ -342,23 +342,23 @@ def test_pretrained_weights_load_from_local_files(tmp_path):
     state = {k: v.contiguous() for k, v in torchvision.models.resnet34(weights=None).state_dict().items()}
     save_file(state, str(tmp_path / "r34.safetensors"))
     torch.save(state, tmp_path / "r34.pth")
-    base = ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "r34.safetensors")), use_depth=False)
+    base = ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "r34.safetensors")), depth_aware=False)
     for key, value in base.trunk.state_dict().items():
         assert torch.equal(value, state[key]), key
     assert not any(k.startswith(("layer4", "fc")) for k in base.state_dict())
-    deep = ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "r34.pth")), use_depth=True)
+    deep = ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "r34.pth")), depth_aware=True)
     w = deep.trunk.conv1.weight
     assert torch.equal(w[:, :3], state["conv1.weight"])
     torch.testing.assert_close(w[:, 3], state["conv1.weight"].mean(1))
     assert torch.equal(deep.trunk.layer3[5].conv2.weight, state["layer3.5.conv2.weight"])
 
     with pytest.raises(DepthnerfError, match="wrong backbone"):  # resnet34 weights into a resnet18 trunk
-        ImageEncoder(EncoderConfig(backbone="resnet18", pretrained_path=str(tmp_path / "r34.pth")), use_depth=False)
+        ImageEncoder(EncoderConfig(backbone="resnet18", pretrained_path=str(tmp_path / "r34.pth")), depth_aware=False)
     (tmp_path / "junk.safetensors").write_bytes(b"not a safetensors file")
     with pytest.raises(DepthnerfError, match="junk.safetensors"):
-        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "junk.safetensors")), use_depth=False)
+        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "junk.safetensors")), depth_aware=False)
     torch.save({"conv1.weight": _NotATensor()}, tmp_path / "pickled.pth")  # needs unpickling: refused
     with pytest.raises(DepthnerfError, match="pickled.pth"):
-        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "pickled.pth")), use_depth=False)
+        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "pickled.pth")), depth_aware=False)
     with pytest.raises(DepthnerfError, match="not found"):
-        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "missing.pth")), use_depth=False)
+        ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "missing.pth")), depth_aware=False)

@@ -56,7 +56,7 @@ def test_tiny_model_overfits_one_object():
         assert 0.3 < (gt > 0.99).all(-1).float().mean() < 0.6  # object and white background both present
         field = FieldConfig(d_hidden=64, density_bias_init=0.5)
         model = PixelNeRF(PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18", num_layers=2),
-                                          coarse=field, fine=field), use_depth=False)
+                                          coarse=field, fine=field), depth_aware=False)
         cfg = RenderConfig(sampler=SamplerConfig(n_coarse=32, n_importance=16, n_gaussian=8))
         opt = torch.optim.Adam(model.parameters(), lr=1e-3)
         gen = torch.Generator().manual_seed(0)

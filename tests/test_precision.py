@@ -24,7 +24,7 @@ def test_policy_per_device():
 
 @torch.no_grad()
 def test_cpu_runtime_changes_no_bit_and_bf16_stays_close():
-    model = randomize(PixelNeRF(small_config(), use_depth=False))
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
     enc = model.encode(sources())
     pts, dirs = query(r=9, s=5)
     ref_rgb, ref_sigma = model.field(enc, "fine")(pts, dirs)
@@ -48,7 +48,7 @@ def test_compile_wraps_the_forwards_without_touching_the_modules(separate_fine):
     cfg = small_config()
     if not separate_fine:
         cfg = dataclasses.replace(cfg, fine=None)
-    model = randomize(PixelNeRF(cfg, use_depth=False))
+    model = randomize(PixelNeRF(cfg, depth_aware=False))
     runtime = field_runtime(model, inference_policy("cpu", compile=True))
     assert set(runtime.forwards) == {"coarse", "fine"}
     assert (runtime.forwards["fine"] is runtime.forwards["coarse"]) == (not separate_fine)

@@ -70,7 +70,7 @@ def models(tmp_path_factory) -> dict[str, Path]:
     return {"tmp": tmp, "weights": weights, "run": tmp / "run",
             "constant": _save(tmp / "constant.safetensors", pre.model, run_cfg),
             "oracle": _save(tmp / "oracle.safetensors", pre.model, with_prior(run_cfg, "oracle")),
-            "baseline": _save(tmp / "baseline.safetensors", PixelNeRF(base_cfg.model, use_depth=False), base_cfg)}
+            "baseline": _save(tmp / "baseline.safetensors", PixelNeRF(base_cfg.model, depth_aware=False), base_cfg)}
 
 
 def disc_photo(h: int = 150, w: int = 200, center=(110, 70), radius: int = 40, bg=(40, 90, 160)) -> np.ndarray:

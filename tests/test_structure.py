@@ -139,13 +139,13 @@ def test_one_estimator_registry_feeds_every_flag():
         assert tuple(action.choices) == names, (module.__name__, flag)
 
 
-def test_spec_round_trip_and_use_depth_derived():
+def test_spec_round_trip_and_depth_aware_derived():
     cfg = with_prior(preset("cpu-chairs"), "oracle")
     spec = inference_spec(cfg, "ab" * 32)
     again = spec_from_json(spec.to_json(), "x")
-    assert again == spec and again.use_depth and again.z_range == (1.25, 2.75) and again.resolution == 64
+    assert again == spec and again.depth_aware and again.z_range == (1.25, 2.75) and again.resolution == 64
     assert "use_depth" not in json.dumps(to_dict(cfg))  # stored once: the prior
-    assert inference_spec(with_prior(cfg, "none")).use_depth is False
+    assert inference_spec(with_prior(cfg, "none")).depth_aware is False
     older = {**json.loads(spec.to_json()), "extra": {"a convention": 1}}  # specs once held an unused mapping
     assert spec_from_json(json.dumps(older), "x") == spec
 
@@ -159,7 +159,7 @@ def test_legacy_use_depth_is_checked_then_dropped():
     with pytest.raises(DepthnerfError, match="use_depth=False disagrees with the depth prior"):
         from_dict_config(legacy)
     with pytest.raises(DepthnerfError, match="disagrees"):
-        model_config_from_dict({"encoder": {"use_depth": True}}, use_depth=False, where="m")
+        model_config_from_dict({"encoder": {"use_depth": True}}, depth_aware=False, where="m")
 
 
 @pytest.mark.parametrize("name", sorted(shipped_checkpoints()))
@@ -174,7 +174,7 @@ def test_shipped_checkpoints_derive_their_spec(name):
     train = from_dict_config(json.loads(meta["train_config"]))
     spec = pre.spec
     assert spec.category == train.data.category and spec.resolution == train.data.resolution == 64
-    assert spec.prior == train.prior and spec.use_depth == name.endswith("-depth")
+    assert spec.prior == train.prior and spec.depth_aware == name.endswith("-depth")
     assert spec.render == train.render and spec.model == train.model and spec.preset == train.preset
     assert spec.z_range == {"cars": (0.8, 1.8), "chairs": (1.25, 2.75)}[spec.category]
 
@@ -199,7 +199,7 @@ def test_training_rejects_guided_sampling_when_the_config_is_built(capsys):
 
 def test_model_needs_the_prior_exactly_when_depth_aware():
     cfg = preset("cpu-cars").model
-    deep, base = PixelNeRF(cfg, use_depth=True), PixelNeRF(cfg, use_depth=False)
+    deep, base = PixelNeRF(cfg, depth_aware=True), PixelNeRF(cfg, depth_aware=False)
     assert deep.encoder.trunk.conv1.in_channels == 4 and base.encoder.trunk.conv1.in_channels == 3
     assert deep.coarse.cfg == base.coarse.cfg
     assert cfg.encoder.latent_size(True) - cfg.encoder.latent_size(False) == cfg.encoder.depth_channels

@@ -89,7 +89,7 @@ def test_learning_rate_schedule_closed_form():
 
 def test_baseline_and_depth_aware_presets_differ_only_in_the_prior_switch():
     base, depth = with_prior(preset("paper-cars"), "none"), with_prior(preset("paper-cars"), "bundled")
-    assert not base.prior.enabled and depth.prior.enabled  # use_depth is derived from the prior, never stored
+    assert not base.prior.enabled and depth.prior.enabled  # depth-awareness is derived from the prior, never stored
     assert base.model == depth.model and base.render == depth.render
     assert base.schedule == depth.schedule and base.data == depth.data
 

@@ -169,11 +169,11 @@ def test_encoder_walk_equals_torchvision_blocks():
 
 # --- the batched step ----------------------------------------------------------------------------------------------
 
-def tiny_setup(b: int, use_depth: bool = False, seed: int = 0, device: str = "cpu"):
+def tiny_setup(b: int, depth_aware: bool = False, seed: int = 0, device: str = "cpu"):
     field = FieldConfig(d_hidden=32, n_blocks=3, combine_layer=2, density_bias_init=0.5)
     cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18"), coarse=field, fine=field)
     torch.manual_seed(seed)
-    model = PixelNeRF(cfg, use_depth=use_depth).to(device).train()
+    model = PixelNeRF(cfg, depth_aware=depth_aware).to(device).train()
     gen = torch.Generator().manual_seed(seed + 1)
     size, r = 32, 24
     az = torch.rand(b, 1, generator=gen) * 2 * math.pi
@@ -182,7 +182,7 @@ def tiny_setup(b: int, use_depth: bool = False, seed: int = 0, device: str = "cp
     dirs = F.normalize(-origins + torch.randn(b, r, 3, generator=gen) * 0.1, dim=-1)
     source = SourceViews(images=torch.rand(b, 1, 3, size, size, generator=gen), poses=look_at(eye),
                          focal=torch.full((b,), size * 1.0), principal=torch.full((b, 2), (size - 1) / 2),
-                         prior=torch.rand(b, 1, 1, size, size, generator=gen) if use_depth else None)
+                         prior=torch.rand(b, 1, 1, size, size, generator=gen) if depth_aware else None)
     batch = TrainBatch(source=source, ray_origins=origins, ray_dirs=dirs, target_rgb=torch.rand(b, r, 3, generator=gen),
                        target_prior=torch.rand(b, r, generator=gen), target_fg=torch.rand(b, r, generator=gen) > 0.4,
                        target_cos=torch.rand(b, r, generator=gen) * 0.2 + 0.8)
@@ -206,11 +206,11 @@ def assert_grads_close(a: dict, b: dict, rel: float) -> None:
         assert (x - y).norm() <= rel * y.norm() + 1e-12, (k, float((x - y).norm() / y.norm()))
 
 
-@pytest.mark.parametrize("use_depth", [False, True])
-def test_batched_step_equals_the_per_object_loop(use_depth):
+@pytest.mark.parametrize("depth_aware", [False, True])
+def test_batched_step_equals_the_per_object_loop(depth_aware):
     """All objects through the encoder and fields at once give the per-object loop's loss terms and gradients
     (BatchNorm statistics and noise are per object), up to float32 rounding."""
-    model, loss, batch, keys = tiny_setup(3, use_depth)
+    model, loss, batch, keys = tiny_setup(3, depth_aware)
     batched = train_step(loss, batch, keys, 5, 0.8, 1.8, torch.device("cpu"))
     g_batched = grads(model)
     looped = train_step(loss, batch, keys, 5, 0.8, 1.8, torch.device("cpu"), per_object=True)

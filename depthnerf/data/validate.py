@@ -99,18 +99,18 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
     report = PartReport(strict)
     radii = []
     rgb, masks, depths = Counter(), Counter(), Counter()
-    use_mask, use_depth = record.has_mask, record.has_depth
+    masks_ok, depths_ok = record.has_mask, record.has_depth
     for view in range(record.num_views):
         pose = read_pose(record.pose_path(view))
         radii.append(float(np.linalg.norm(pose[:3, 3])))
         rgb[_size_checked(record.rgb_path(view), "image", expected, intrinsics)] += 1
-        if use_mask:
+        if masks_ok:
             try:
                 masks[_size_checked(record.mask_path(view), "mask", expected, intrinsics)] += 1
             except DepthnerfError as err:
                 report.add_error("mask", record.mask_path(view), err)
-                use_mask = False
-        if use_depth:
+                masks_ok = False
+        if depths_ok:
             path = record.depth_path(view)
             try:
                 depth = read_depth(path, record.depth_scale, expected, allow_empty=True)
@@ -119,15 +119,15 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
                 depths[_depth_format(path.name)] += 1
             except DepthnerfError as err:
                 report.add_error("depth", path, err)
-                use_depth = False
+                depths_ok = False
     if record.mesh_path is not None:
         try:
             check_mesh_header(record.mesh_path)
         except DepthnerfError as err:
             report.add_error("mesh", record.mesh_path, err)
     return ObjectCheck(num_views=record.num_views, radius_min=min(radii), radius_max=max(radii),
-                       rgb_formats=dict(rgb), mask_formats=dict(masks) if use_mask else {},
-                       depth_formats=dict(depths) if use_depth else {}, issues=tuple(report.issues))
+                       rgb_formats=dict(rgb), mask_formats=dict(masks) if masks_ok else {},
+                       depth_formats=dict(depths) if depths_ok else {}, issues=tuple(report.issues))
 
 
 @dataclass(frozen=True)

@@ -4,8 +4,8 @@ Defaults reproduce pixelNeRF's SRN configuration (``conf/default_mv.conf`` of sx
 with the first max-pool, conv1 + layer1..layer3 (512 feature channels), a 5-block residual MLP of width 512 with
 features injected before blocks 0-2 and views averaged at block 3, 6 positional-encoding frequencies
 ``1.5 * 2^k``, raw view directions, separate coarse and fine networks. The paper's method and the baseline
-differ by ONE switch, the depth prior (``use_depth`` below is derived from it:
-:attr:`depthnerf.depth.prior.PriorConfig.enabled`, never stored in a config).
+differ by ONE switch, the depth prior: whether a model is depth-aware (the ``depth_aware`` argument below and of
+the model's constructor) is :attr:`depthnerf.depth.prior.PriorConfig.enabled`, never stored in a config.
 """
 
 from __future__ import annotations
@@ -62,9 +62,9 @@ class EncoderConfig:
         """Channels contributed by the ResNet trunk (512 for the default 4 stages)."""
         return sum(TRUNK_CHANNELS[self.backbone][: self.num_layers])
 
-    def latent_size(self, use_depth: bool) -> int:
+    def latent_size(self, depth_aware: bool) -> int:
         """Total feature channels C of the encoded maps: trunk + depth encoder (for a depth-aware model)."""
-        return self.trunk_channels + (self.depth_channels if use_depth else 0)
+        return self.trunk_channels + (self.depth_channels if depth_aware else 0)
 
 
 @dataclass

@@ -1,12 +1,12 @@
 """Image (+ depth prior) encoder: a torchvision ResNet trunk and, for the depth-aware model, a depth encoder.
 
-Baseline (pixelNeRF, ``use_depth=False``)
+Baseline (pixelNeRF, ``depth_aware=False``)
     Images in [0, 1] are scaled to [-1, 1] (pixelNeRF's ``Normalize(0.5, 0.5)``), then conv1 -> bn1 -> relu
     (stage 0, H/2), max-pool (if ``use_first_pool``), layer1 (stage 1), layer2 (stage 2), layer3 (stage 3).
     Every stage is upsampled to the stage-0 resolution with bilinear ``align_corners=True`` and the stages are
     concatenated: 64 + 64 + 128 + 256 = 512 channels at H/2 x W/2.
 
-Depth-aware (the paper, ``use_depth=True``); everything else identical
+Depth-aware (the paper, ``depth_aware=True``); everything else identical
     * conv1 takes 4 channels: RGB in [-1, 1] and the normalised disparity prior (``depthnerf.depth.normalize``:
       foreground in [-4, 4], larger = nearer, background -5) times ``prior_scale`` (0.25: foreground in [-1, 1]).
       The 4th input channel's 7x7 kernels are initialised as the mean of the three RGB kernels (ImageNet weights
@@ -80,11 +80,11 @@ def basic_block(block: BasicBlock, x: Tensor, groups: ObjectGroups | None) -> Te
 class ResNetTrunk(nn.Module):
     """conv1/bn1/maxpool/layer1..layer3 of a torchvision ResNet; parameter names match torchvision's."""
 
-    def __init__(self, cfg: EncoderConfig, use_depth: bool):
+    def __init__(self, cfg: EncoderConfig, depth_aware: bool):
         super().__init__()
         full = getattr(torchvision.models, cfg.backbone)(weights=None, norm_layer=ObjectBatchNorm2d)
         self.conv1 = full.conv1
-        if use_depth:
+        if depth_aware:
             self.conv1 = nn.Conv2d(4, 64, kernel_size=7, stride=2, padding=3, bias=False)
             with torch.no_grad():
                 self.conv1.weight.copy_(expand_conv1(full.conv1.weight))
@@ -95,7 +95,7 @@ class ResNetTrunk(nn.Module):
                 raise DepthnerfError(f"encoder.backbone {cfg.backbone}: only BasicBlock ResNets are supported")
         self.num_layers = cfg.num_layers
         self.use_first_pool = cfg.use_first_pool
-        self.use_depth = use_depth
+        self.depth_aware = depth_aware
         self.backbone = cfg.backbone
         del full  # layer4, avgpool and fc are dropped here: never part of the module or the optimiser
 
@@ -124,7 +124,7 @@ class ResNetTrunk(nn.Module):
             if key not in state:
                 raise DepthnerfError(f"{source}: pretrained weights lack '{key}' (not a torchvision ResNet?)")
             value = state[key].to(ref.dtype)
-            if key == "conv1.weight" and self.use_depth and tuple(value.shape) == (64, 3, 7, 7):
+            if key == "conv1.weight" and self.depth_aware and tuple(value.shape) == (64, 3, 7, 7):
                 value = expand_conv1(value)
             if value.shape != ref.shape:
                 raise DepthnerfError(f"{source}: '{key}' has shape {tuple(value.shape)}, expected "
@@ -161,19 +161,19 @@ def read_state_dict(path: str | Path) -> dict[str, Tensor]:
 class ImageEncoder(nn.Module):
     """Encode source images (and priors) into pixel-aligned feature maps ``[N, C, Hf, Wf]`` (Hf = ceil(H'/2))."""
 
-    def __init__(self, cfg: EncoderConfig, use_depth: bool):
+    def __init__(self, cfg: EncoderConfig, depth_aware: bool):
         super().__init__()
         self.cfg = cfg
-        self.use_depth = use_depth
-        self.trunk = ResNetTrunk(cfg, use_depth)
-        self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if use_depth else None
+        self.depth_aware = depth_aware
+        self.trunk = ResNetTrunk(cfg, depth_aware)
+        self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if depth_aware else None
         if cfg.pretrained_path is not None:
             self.trunk.load_torchvision_state(read_state_dict(cfg.pretrained_path), cfg.pretrained_path)
 
     @property
     def latent_size(self) -> int:
         """Feature channels C."""
-        return self.cfg.latent_size(self.use_depth)
+        return self.cfg.latent_size(self.depth_aware)
 
     def forward(self, images: Float[Tensor, "N 3 H W"], prior: Float[Tensor, "N 1 H W"] | None = None,
                 objects: int = 1) -> Float[Tensor, "N C Hf Wf"]:
@@ -187,7 +187,7 @@ class ImageEncoder(nn.Module):
 
     def _forward(self, images: Tensor, prior: Tensor | None, groups: ObjectGroups) -> Tensor:
         x = images * 2.0 - 1.0
-        if self.use_depth:
+        if self.depth_aware:
             if prior is None:
                 raise DepthnerfError("depth-aware model (a depth prior is configured) needs a depth prior, got None")
             x = torch.cat([x, prior * self.cfg.prior_scale], dim=1)

@@ -88,13 +88,13 @@ class FieldRuntime:
     wrapper of it, held here by the caller (the module is not changed); a pass not listed calls its MLP."""
 
 
-def _check_sources(src: SourceViews, use_depth: bool) -> None:
+def _check_sources(src: SourceViews, depth_aware: bool) -> None:
     images = src.images
     if images.ndim != 5 or images.shape[2] != 3:
         raise DepthnerfError(f"SourceViews.images must be [B, V, 3, H, W], got {list(images.shape)}")
     b, v, _, h, w = images.shape
     expected = {"poses": (src.poses, (b, v, 4, 4)), "focal": (src.focal, (b,)), "principal": (src.principal, (b, 2))}
-    if use_depth:
+    if depth_aware:
         if src.prior is None:
             raise DepthnerfError("SourceViews.prior is None but the depth-aware model needs it")
         expected["prior"] = (src.prior, (b, v, 1, h, w))
@@ -104,26 +104,27 @@ def _check_sources(src: SourceViews, use_depth: bool) -> None:
 
 
 class PixelNeRF(nn.Module):
-    """Encoder + coarse MLP + fine MLP; the baseline and the depth-aware model differ only in ``use_depth``.
+    """Encoder + coarse MLP + fine MLP; the baseline and the depth-aware model differ only in ``depth_aware``.
 
-    ``use_depth`` is derived from the depth prior (:attr:`depthnerf.depth.prior.PriorConfig.enabled`): the
+    ``depth_aware`` is derived from the depth prior (:attr:`depthnerf.depth.prior.PriorConfig.enabled`): the
     depth-aware model's encoder also takes the normalised prior.
     """
 
-    def __init__(self, cfg: PixelNeRFConfig, *, use_depth: bool):
+    def __init__(self, cfg: PixelNeRFConfig, *, depth_aware: bool):
         super().__init__()
         self.cfg = cfg
-        self.use_depth = bool(use_depth)
-        self.encoder = ImageEncoder(cfg.encoder, self.use_depth)
-        latent = cfg.encoder.latent_size(self.use_depth)
+        self.depth_aware = bool(depth_aware)
+        """The encoder also takes the depth prior (a 4th input channel and the depth encoder)."""
+        self.encoder = ImageEncoder(cfg.encoder, self.depth_aware)
+        latent = cfg.encoder.latent_size(self.depth_aware)
         self.coarse = ResidualField(cfg.coarse, latent)
         self.fine = ResidualField(cfg.fine, latent) if cfg.fine is not None else None
 
     def encode(self, src: SourceViews) -> EncodedViews:
         """Feature maps of all source views; nothing is stored on the module."""
-        _check_sources(src, self.use_depth)
+        _check_sources(src, self.depth_aware)
         b, v, _, h, w = src.images.shape
-        prior = src.prior.reshape(b * v, 1, h, w) if self.use_depth else None
+        prior = src.prior.reshape(b * v, 1, h, w) if self.depth_aware else None
         feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior, objects=b)
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),

@@ -80,7 +80,7 @@ def load_pretrained(spec: str | Path, device: torch.device | str = "cpu") -> Pre
     path = resolve_checkpoint(spec)
     tensors, meta = read_weights(path)
     inference = spec_from_metadata(meta, str(path))
-    model = PixelNeRF(inference.model, use_depth=inference.use_depth)
+    model = PixelNeRF(inference.model, depth_aware=inference.depth_aware)
     load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
     model.to(device).eval()
     return Pretrained(model=model, spec=inference, path=path, sha256=sha256_file(path),

@@ -5,9 +5,9 @@ before the spec existed (the shipped ``depthnerf/checkpoints/*.safetensors`` and
 model config (``config``) and the whole training config (``train_config``) instead; :func:`spec_from_metadata`
 derives the same spec from those, so both load alike.
 
-Legacy rule for ``use_depth``: older model configs stored ``encoder.use_depth`` beside the prior. It is accepted
-only when it agrees with the prior (``use_depth == prior.estimator != "none"``) and then dropped; a disagreement
-is an error naming the file. New configs never hold it: it is :attr:`PriorConfig.enabled`.
+Legacy rule for ``encoder.use_depth``: older model configs stored it beside the prior. It is accepted only when
+it agrees with the prior (``use_depth == prior.estimator != "none"``) and then dropped; a disagreement is an error
+naming the file. New configs never hold it: whether a model is depth-aware is :attr:`PriorConfig.enabled`.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ class InferenceSpec:
     """How to run a trained model: what the encoder sees, how rays are rendered, in which frame and range."""
 
     model: PixelNeRFConfig
-    """The network (built with ``use_depth = prior.enabled``)."""
+    """The network (built with ``depth_aware = prior.enabled``)."""
     render: RenderConfig
     """The renderer it was trained with (samples, noise, background)."""
     prior: PriorConfig
@@ -55,7 +55,7 @@ class InferenceSpec:
     """Training preset name (provenance)."""
 
     @property
-    def use_depth(self) -> bool:
+    def depth_aware(self) -> bool:
         """The model is depth-aware (derived from the prior)."""
         return self.prior.enabled
 
@@ -69,15 +69,15 @@ class InferenceSpec:
         return json.dumps(to_dict(self), sort_keys=True)
 
 
-def model_config_from_dict(data: dict[str, Any], use_depth: bool, where: str) -> PixelNeRFConfig:
+def model_config_from_dict(data: dict[str, Any], depth_aware: bool, where: str) -> PixelNeRFConfig:
     """A model config from JSON, applying the legacy ``encoder.use_depth`` rule (module docstring)."""
     data = copy.deepcopy(data)
     encoder = data.get("encoder")
     if isinstance(encoder, dict) and "use_depth" in encoder:
         stored = encoder.pop("use_depth")
-        if bool(stored) != use_depth:
+        if bool(stored) != depth_aware:
             raise DepthnerfError(f"{where}: encoder.use_depth={stored} disagrees with the depth prior "
-                                 f"({'a prior' if use_depth else 'none'}); fix one of them")
+                                 f"({'a prior' if depth_aware else 'none'}); fix one of them")
     return from_dict(PixelNeRFConfig, data, where=where)
 
 

@@ -124,15 +124,15 @@ class Reconstructor:
         self.device = torch.device(device)
         spec = pretrained.spec
         name = depth_estimator or spec.prior.estimator
-        if spec.use_depth and name == "none":
+        if spec.depth_aware and name == "none":
             raise DepthnerfError(f"{pretrained.path}: depth-aware checkpoint needs a depth prior; pass --depth "
                                  f"{' or '.join(PHOTO_ESTIMATORS)}, not 'none'")
-        if photos and spec.use_depth and name not in PHOTO_ESTIMATORS:
+        if photos and spec.depth_aware and name not in PHOTO_ESTIMATORS:
             raise DepthnerfError(f"{pretrained.path}: trained with the '{name}' prior (ground-truth depth), which a "
                                  f"photo does not have; pass --depth {' or '.join(PHOTO_ESTIMATORS)}")
         ckpt = depth_checkpoint if depth_checkpoint is not None else (
             spec.prior.checkpoint if name == spec.prior.estimator else None)
-        self.prior_config = PriorConfig(name, ckpt) if spec.use_depth else PriorConfig("none")
+        self.prior_config = PriorConfig(name, ckpt) if spec.depth_aware else PriorConfig("none")
         self.prior = open_prior(self.prior_config, device=str(self.device), match_cache=match_cache)
         self.framing, self.framing_source = checkpoint_framing(pretrained.path, pretrained.data_root, spec.category)
 

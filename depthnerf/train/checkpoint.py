@@ -166,9 +166,9 @@ def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.opt
     tensors, meta = read_weights(ckpt_dir / "model.safetensors")
     stored = checkpoint_config(meta, ckpt_dir / "model.safetensors")
     encoder = stored.get("encoder")
-    if isinstance(encoder, dict) and encoder.get("use_depth", getattr(model, "use_depth", None)) == getattr(
-            model, "use_depth", None):  # legacy field, derived from the prior now (depthnerf.pretrained.spec)
-        encoder.pop("use_depth", None)
+    depth_aware = getattr(model, "depth_aware", None)
+    if isinstance(encoder, dict) and encoder.get("use_depth", depth_aware) == depth_aware:
+        encoder.pop("use_depth", None)  # legacy field, derived from the prior now (depthnerf.pretrained.spec)
     if stored != json.loads(json.dumps(model_config)):
         diff = sorted(k for k in set(stored) | set(model_config) if stored.get(k) != model_config.get(k))
         raise DepthnerfError(f"{ckpt_dir}: checkpoint was trained with a different model config (differs in: "

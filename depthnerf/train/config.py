@@ -195,8 +195,9 @@ def preset(name: str) -> TrainConfig:
 def from_dict_config(data: dict[str, Any], where: str = "config.json") -> TrainConfig:
     """A :class:`TrainConfig` from ``config.json`` (strict: unknown keys are an error).
 
-    Configs written before ``use_depth`` was derived hold ``model.encoder.use_depth``: accepted when it agrees
-    with ``prior`` and dropped (:func:`depthnerf.pretrained.spec.model_config_from_dict`).
+    Configs written before the model's depth-awareness was derived from the prior hold
+    ``model.encoder.use_depth``: accepted when it agrees with ``prior`` and dropped
+    (:func:`depthnerf.pretrained.spec.model_config_from_dict`).
     """
     data = copy.deepcopy(data)
     prior = from_dict(PriorConfig, data.get("prior", {}), where=f"{where}.prior")

@@ -93,7 +93,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     near, far = spec.z_range
 
     torch.manual_seed(cfg.seed)
-    model = PixelNeRF(cfg.model, use_depth=cfg.prior.enabled).to(info.device)
+    model = PixelNeRF(cfg.model, depth_aware=cfg.prior.enabled).to(info.device)
     if info.device.type == "cuda":
         model.encoder.to(memory_format=torch.channels_last)
     cuda = info.device.type == "cuda"
