@@ -305,8 +305,7 @@ def _data_card(root: Path, category: str) -> dict:
 
 def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: ProtocolConfig = ProtocolConfig(),
                       device: torch.device | str = "cpu", policy: InferencePolicy | None = None) -> EvalOutputs:
-    """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring); the fields run under
-    ``policy`` (``depthnerf.render.precision``; None: fp32, the config's point chunk, no compile)."""
+    """Run the protocol on ``data_root`` and write ``out_dir`` (module docstring), the fields under ``policy``."""
     t_start = time.perf_counter()
     device = torch.device(device)
     spec = pre.spec
