@@ -15,7 +15,7 @@ import pytest
 from fixtures_srn import make_srn_fixture
 from PIL import Image
 
-from depthnerf.app.logic import EXAMPLES_DIR, check_port, check_upload
+from depthnerf.app.logic import EXAMPLES_DIR, check_port, check_upload, collect_outputs
 from depthnerf.cli import main
 from depthnerf.data.srn_format import read_depth
 from depthnerf.errors import DepthnerfError
@@ -50,6 +50,9 @@ def test_mesh_resolution_is_checked_and_0_writes_no_mesh(tmp_path, capsys):
     assert manifest["mesh"]["made"] is False and manifest["files"]["mesh_ply"] is manifest["files"]["mesh_glb"] is None
     assert not (out / "mesh.ply").exists() and not (out / "mesh.glb").exists()
     assert (out / "views" / "view_001.png").is_file()
+    page = collect_outputs(out, manifest, "car_rgba.png")  # what the app shows for the same folder
+    assert page.viewer_glb is None and page.downloads == [out / "points.ply"]
+    assert "**Mesh** none (--mesh-resolution 0)" in page.details
 
 
 def test_an_earlier_reconstruction_is_kept_unless_overwrite(tmp_path, capsys):

@@ -331,7 +331,8 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
         + (f" ({settings['depth_checkpoint']})" if prior != "none" and settings.get("depth_checkpoint") else ""),
         f"**Camera** elevation {settings['elevation']:g} deg, radius {settings['radius']:g}, "
         f"fill {settings['fill']:.2f}, {settings['views']} orbit views",
-        f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else "")
+        ("**Mesh** none (--mesh-resolution 0)" if not manifest["mesh"].get("made", True) else
+         f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else ""))
         + f", {manifest['point_cloud']['points']} points",
         f"**Timings** {timings}",
         *([] if files.get("turntable_mp4") else [f"**MP4** {manifest['turntable_mp4_status']}"]),
