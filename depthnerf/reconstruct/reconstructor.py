@@ -263,7 +263,8 @@ class Reconstructor:
             point_colors=colors.astype(np.float32), settings=settings, timings=times)
 
     def save(self, result: Reconstruction, out_dir: str | Path) -> dict[str, Any]:
-        """Write every output into ``out_dir`` and return the manifest (also ``out_dir/manifest.json``)."""
+        """Write every output into ``out_dir`` and return the manifest (also ``out_dir/manifest.json``); an earlier
+        reconstruction's files there are replaced, other files left (:mod:`depthnerf.reconstruct.exports`)."""
         pre = self.pretrained
         provenance = {"checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256,
                       "checkpoint_step": pre.step, "preset": pre.spec.preset}
