@@ -135,8 +135,36 @@ def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) 
     return dataclasses.replace(cfg, prior=PriorConfig(estimator=estimator, checkpoint=checkpoint))
 
 
+NUMBER_RULES: dict[str, tuple[float, bool]] = {
+    "data.resolution": (8, True), "data.target_views": (0, True), "data.num_workers": (0, True),
+    "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
+    "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
+    "schedule.lr_decay": (0, False), "schedule.depth_loss_weight": (0, True),
+    "schedule.background_opacity_weight": (0, True), "log.log_every": (1, True), "log.val_every": (0, True),
+    "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
+    "log.render_chunk": (1, True)}
+"""Config path -> (bound, inclusive): the value must be ``>= bound`` (inclusive) or ``> bound``."""
+NAMED_FLAGS = {"schedule.max_steps": "--max-steps", "log.checkpoint_every": "--checkpoint-every"}
+"""Config paths that have a named ``depthnerf train`` flag (the others are set as ``--section.field``)."""
+
+
+def _field(cfg: Any, path: str) -> Any:
+    for name in path.split("."):
+        cfg = getattr(cfg, name)
+    return cfg
+
+
 def check_config(cfg: TrainConfig) -> TrainConfig:
-    """``cfg`` if every setting in it is honoured by training, else a one-line :class:`DepthnerfError`."""
+    """``cfg`` if every setting in it is honoured by training, else a one-line :class:`DepthnerfError` (naming
+    the flag, before anything is written)."""
+    for path, (bound, inclusive) in NUMBER_RULES.items():
+        value = _field(cfg, path)
+        if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
+            flag = NAMED_FLAGS.get(path, f"--{path}")
+            raise DepthnerfError(f"{flag} must be {'>=' if inclusive else '>'} {bound:g}, got {value}")
+    near, far = cfg.data.z_near, cfg.data.z_far
+    if near is not None and far is not None and not 0 <= near < far:
+        raise DepthnerfError(f"--data.z_near / --data.z_far must satisfy 0 <= z_near < z_far, got {near}, {far}")
     if cfg.render.guided.enabled:
         raise DepthnerfError("--render.guided.enabled: depth-guided sampling is an inference-time renderer "
                              "(depthnerf eval/reconstruct --guided); training renders with the paper's sampler")
