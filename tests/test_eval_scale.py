@@ -83,6 +83,9 @@ def test_two_gloo_processes_equal_one_process(case):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["world_size"] == 2 and summary["timing"]["objects_computed"] == OBJECTS
     assert done.stdout.count("wrote ") == 1  # rank 0 alone reports
+    refused = depthnerf(*case["args"], "--out", out, "--views-stride", "20", nproc=2)
+    assert refused.returncode != 0 and refused.stderr.count("error: ") == 1  # rank 0 says why, rank 1 is silent
+    assert "views_stride 30 there, 20 now" in refused.stderr
 
 
 @pytest.mark.slow

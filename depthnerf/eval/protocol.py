@@ -257,7 +257,7 @@ def _data_card(root: Path, category: str) -> dict:
     return {"root": str(root.resolve()), "card_path": str(card_path.resolve()) if card else None, "card": card}
 
 
-def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: str, prior: PriorConfig,
+def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: str, prior: PriorSource,
               eval_res: int, pixel_center: float, lpips_ok: bool, device: torch.device) -> dict:
     """What every per-object result depends on (the resume check of
     :class:`~depthnerf.eval.shards.ObjectStore`)."""
@@ -267,7 +267,7 @@ def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: s
             "input_resolution": pre.spec.resolution, "chunk": cfg.chunk, "mesh": cfg.mesh,
             "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
             "geometry": dataclasses.asdict(cfg.geometry), "save_renders": cfg.save_renders,
-            "choices": dataclasses.asdict(cfg.choices), "prior": [prior.estimator, prior.checkpoint],
+            "choices": dataclasses.asdict(cfg.choices), "prior": prior.provenance,
             "guided": None if cfg.guided is None else dataclasses.asdict(cfg.guided), "lpips": lpips_ok,
             "lpips_net": cfg.lpips.net, "pixel_center": pixel_center, "device": device.type,
             "autocast": str(getattr(model, "inference_autocast", None)),
@@ -322,7 +322,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
     out_dir.mkdir(parents=True, exist_ok=True)
     evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device)
-    store = ObjectStore(out_dir, _settings(pre, cfg, data_root, category, prior_cfg, eval_res,
+    store = ObjectStore(out_dir, _settings(pre, cfg, data_root, category, prior, eval_res,
                                            evaluator.pixel_center, lpips is not None, device))
     results, counts = evaluate_objects(records, evaluator, store, info, cfg.views_stride, overwrite=cfg.overwrite,
                                        progress=cfg.progress)

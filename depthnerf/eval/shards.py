@@ -241,7 +241,7 @@ def evaluate_objects(records: Sequence[ObjectRecord], evaluate: Callable[[Object
     bar = tqdm(total=len(mine) + (len(done) if info.world == 1 else 0),
                initial=len(done) if info.world == 1 else 0, desc=desc, unit="obj", file=sys.stderr,
                disable=not (progress and info.is_main), dynamic_ncols=True)
-    payloads, views, start = [], 0, time.perf_counter()
+    payloads, views, start, where = [], 0, time.perf_counter(), "" if info.world == 1 else " on rank 0"
     for k, record in enumerate(mine, start=1):
         result = evaluate(record)
         payload = encode(result, store.sha)
@@ -249,7 +249,8 @@ def evaluate_objects(records: Sequence[ObjectRecord], evaluate: Callable[[Object
         payloads.append(payload)
         crash_point(k)
         views += len(result.views.targets)
-        bar.set_postfix_str(f"{views / max(time.perf_counter() - start, 1e-9):.2f} views/s", refresh=False)
+        rate = views / max(time.perf_counter() - start, 1e-9)
+        bar.set_postfix_str(f"{rate:.2f} views/s{where}", refresh=False)
         bar.update(1)
     bar.close()
     gathered = gather_to_main(payloads, info)
