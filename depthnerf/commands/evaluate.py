@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from datetime import timedelta
 from pathlib import Path
 
@@ -137,6 +138,25 @@ def _process(device: str):
     return DistInfo(rank=0, world=1, device=resolve_device(device))
 
 
+def check_category(data: Path, category: str | None, split: str, trained: str, checkpoint: str) -> None:
+    """A warning line when ``--category`` scores a model on another category than it was trained on; an error
+    naming the categories the data holds when it has none of the model's (instead of a missing split folder)."""
+    from depthnerf.data.srn import discover_categories, split_dir
+
+    if category is not None:
+        if category != trained:
+            print(f"warning: scoring {checkpoint}, a {trained} model, on {category} data (--category {category}); "
+                  "the figures measure a category it was not trained on", file=sys.stderr, flush=True)
+        return
+    if split_dir(data, trained, split).is_dir():
+        return
+    held = [c for c in discover_categories(data) if split_dir(data, c, split).is_dir()]
+    if held:
+        raise DepthnerfError(f"{data}: holds {', '.join(f'{c}_{split}' for c in held)} but no {trained}_{split}, "
+                             f"and {checkpoint} is a {trained} model; pass a {trained} dataset, or --category "
+                             f"{held[0]} to score it on {held[0]} anyway")
+
+
 def run(args: argparse.Namespace) -> int:
     from depthnerf.distributed import teardown
     from depthnerf.eval.shards import RefusedOnMain
@@ -170,6 +190,7 @@ def _run(args: argparse.Namespace, info, choices) -> int:
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
+    check_category(data, args.category, args.split, pre.spec.category, str(args.run or args.checkpoint))
     if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too
         from depthnerf.data.srn import index_split
 

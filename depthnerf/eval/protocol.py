@@ -207,7 +207,8 @@ def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> None
 
 
 PER_OBJECT_COLUMNS = ("object_id", "input_view", "views", "psnr", "ssim", "lpips", "chamfer_l1", "fscore",
-                      "accuracy", "completeness", "precision", "recall", "empty_mesh", "mesh_level", "seconds")
+                      "floater_fraction", "accuracy", "completeness", "precision", "recall", "empty_mesh",
+                      "mesh_level", "seconds")
 """Columns of ``per_object.csv`` (empty cell = not measured)."""
 
 
@@ -216,7 +217,8 @@ def _per_object_row(r: ObjectResult) -> dict:
     return {"object_id": r.record.object_id, "input_view": r.views.input_view, "views": len(r.views.targets),
             "psnr": _fmt(r.metrics.psnr), "ssim": _fmt(r.metrics.ssim), "lpips": _fmt(r.metrics.lpips),
             **{k: _fmt(getattr(g, k)) if g is not None else ""
-               for k in ("chamfer_l1", "fscore", "accuracy", "completeness", "precision", "recall")},
+               for k in ("chamfer_l1", "fscore", "floater_fraction", "accuracy", "completeness", "precision",
+                         "recall")},
             "empty_mesh": "" if g is None else int(g.empty_prediction), "seconds": f"{sum(r.seconds.values()):.3f}",
             "mesh_level": _fmt(r.mesh_level.level if r.mesh_level else None)}
 
@@ -337,7 +339,8 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         summary["mesh_status"] = (f"ok: {len(geo)} of {len(results)} objects have mesh.ply; "
                                   + levels_text([r.mesh_level for r in results if r.mesh_level], cfg.mesh_resolution))
     else:
-        summary.update({"chamfer_l1": None, "fscore": None, "fscore_tau": None, "geometry_objects": 0})
+        summary.update({"chamfer_l1": None, "fscore": None, "fscore_tau": None, "floater_fraction": None,
+                        "geometry_objects": 0})
         summary["mesh_status"] = ("skipped (--no-mesh)" if not cfg.mesh
                                   else f"skipped: none of the {len(results)} objects has mesh.ply")
     native = sorted({(r.record.intrinsics.height, r.record.intrinsics.width) for r in results})
@@ -367,7 +370,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
                    "device": str(device), "torch_threads": torch.get_num_threads(),
                    "objects_computed": counts.computed, "objects_resumed": counts.resumed},
     })
-    for key in ("psnr", "ssim", "lpips", "chamfer_l1", "fscore"):
+    for key in ("psnr", "ssim", "lpips", "chamfer_l1", "fscore", "floater_fraction"):
         value = summary.get(key)
         if value is not None and not math.isfinite(value):
             raise DepthnerfError(f"evaluation produced a non-finite {key} ({value}); refusing to write it")

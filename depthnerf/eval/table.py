@@ -3,7 +3,8 @@
 Input contract: ``summary.json`` written by ``depthnerf eval`` into its output directory, a JSON object with at
 least ``psnr``, ``ssim`` (numbers), ``objects``, ``views`` (counts) and the provenance ``checkpoint_sha256``,
 ``preset``, ``category``, ``depth_prior``, ``method`` (the row label) and ``protocol`` (text); optional numbers
-``chamfer_l1``, ``fscore`` (with optional ``fscore_tau``) and ``lpips`` (null = not available).
+``chamfer_l1``, ``fscore`` (with optional ``fscore_tau``), ``floater_fraction`` and ``lpips`` (null = not
+available).
 
 A path given to :func:`find_summaries` is a summary file, an eval output directory (``DIR/summary.json``) or a run
 directory (``DIR/eval/*/summary.json``). Rows are methods (first-seen order), column groups are categories
@@ -26,7 +27,7 @@ from depthnerf.eval.config import RecordedChoices, recorded_choices
 REQUIRED_KEYS = ("psnr", "ssim", "objects", "views", "checkpoint_sha256", "preset", "category", "depth_prior",
                  "method", "protocol")
 """Keys every ``summary.json`` must have."""
-OPTIONAL_METRICS = ("chamfer_l1", "fscore", "lpips")
+OPTIONAL_METRICS = ("chamfer_l1", "fscore", "floater_fraction", "lpips")
 """Optional metric keys (number or null)."""
 PAPER_LABEL = "reported in the paper (real SRN)"
 """Suffix of the reference rows: numbers copied from the paper, measured on the real SRN data, not by us."""
@@ -40,7 +41,7 @@ PAPER_TABLE1 = (
 CATEGORY_ORDER = ("chairs", "cars")
 """Column order of the paper; other categories follow alphabetically."""
 COLUMNS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("chamfer_l1", "CD-L1", 4), ("fscore", "F-score", 3),
-           ("lpips", "LPIPS", 3))
+           ("floater_fraction", "Floaters", 3), ("lpips", "LPIPS", 3))
 """(key, header, decimals) of every metric column, in order."""
 MISSING = "—"
 """Cell text when a method has no value for a column."""
