@@ -8,6 +8,8 @@ reports, averaged over objects:
 - ``floaters``: floater fraction of the input-camera mesh (depthnerf.eval.geometry_metrics.floater_fraction);
 - ``src_bg_opacity``: mean rendered opacity of the INPUT view's own background pixels (the input view sees empty
   space there, so any opacity on those rays is density the evidence contradicts);
+- ``src_bg_white_error``: mean |rendered colour - white| on those same pixels (what the L2 colour loss sees of
+  that density when the view is a training target: near 0 when the density is white);
 - ``tgt_bg_opacity``: mean rendered opacity on the target views' background pixels.
 
 Conditions (a depth-aware checkpoint; the baseline gets ``as-trained`` and ``bn-batch-stats`` only):
@@ -74,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--objects", type=int, default=8)
     ap.add_argument("--stride", type=int, default=25)
     ap.add_argument("--mesh-resolution", type=int, default=96)
+    ap.add_argument("--conditions", nargs="+", help="a subset of the conditions (default: all that apply)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     pre = load_pretrained(args.checkpoint)
@@ -82,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     records = index_split(args.data, spec.category, "test").objects[: args.objects]
     depth_aware = spec.prior.enabled
     conditions = DEPTH_CONDITIONS if depth_aware else BASELINE_CONDITIONS
+    if args.conditions:
+        unknown = sorted(set(args.conditions) - set(conditions))
+        if unknown:
+            raise SystemExit(f"error: --conditions {unknown[0]}: choose from {', '.join(conditions)}")
+        conditions = tuple(args.conditions)
     source = open_prior(spec.prior, data_root=args.data, resolution=spec.resolution, records=records)
     oracle = open_prior(PriorConfig("oracle"), data_root=args.data, resolution=spec.resolution, records=records)
     twin = batch_stats_model(model)
@@ -110,16 +118,19 @@ def main(argv: list[str] | None = None) -> int:
                 "psnr": float(np.mean([psnr(out.rgb[k].numpy(), gts[k].numpy()) for k in range(len(gts))])),
                 "floaters": floater_fraction(mesh, gt_mesh, GeometryConfig(n_points=20_000)),
                 "src_bg_opacity": float(own.opacity[~src.masks].mean()),
+                "src_bg_white_error": float((1.0 - own.rgb[~src.masks]).abs().mean()),
                 "tgt_bg_opacity": float(out.opacity[~tgt.masks].mean()),
             })
         print(record.object_id, {c: {k: round(v, 3) for k, v in rows[c][-1].items()} for c in conditions},
               flush=True)
     means = {c: {k: float(np.mean([r[k] for r in rows[c]])) for k in rows[c][0]} for c in conditions}
     print(f"{args.checkpoint}: {len(records)} objects")
-    print("| condition | PSNR | floater fraction | input-view background opacity | target background opacity |")
-    print("|---|---:|---:|---:|---:|")
+    print("| condition | PSNR | floater fraction | input-view background opacity | its colour error "
+          "| target background opacity |")
+    print("|---|---:|---:|---:|---:|---:|")
     for c, m in means.items():
-        print(f"| {c} | {m['psnr']:.2f} | {m['floaters']:.3f} | {m['src_bg_opacity']:.3f} | {m['tgt_bg_opacity']:.3f} |")
+        print(f"| {c} | {m['psnr']:.2f} | {m['floaters']:.3f} | {m['src_bg_opacity']:.3f} | "
+              f"{m['src_bg_white_error']:.4f} | {m['tgt_bg_opacity']:.3f} |")
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": args.checkpoint, "objects": len(records), "means": means,
                                          "per_object": rows}, indent=1) + "\n")

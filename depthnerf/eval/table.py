@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
+from depthnerf.eval.config import RecordedChoices, recorded_choices
 
 REQUIRED_KEYS = ("psnr", "ssim", "objects", "views", "checkpoint_sha256", "preset", "category", "depth_prior",
                  "method", "protocol")
@@ -64,6 +65,8 @@ class EvalSummary:
     """Number of evaluated views."""
     provenance: dict[str, str]
     """``checkpoint_sha256``, ``preset``, ``depth_prior``, ``protocol`` (and ``fscore_tau`` when given)."""
+    choices: RecordedChoices | None = None
+    """The protocol choices it was scored with (:func:`depthnerf.eval.config.recorded_choices`)."""
 
 
 def _number(path: Path, data: dict, key: str, optional: bool) -> float | None:
@@ -103,7 +106,8 @@ def load_summary(path: Path) -> EvalSummary:
     if data.get("fscore_tau") is not None:
         provenance["fscore_tau"] = str(data["fscore_tau"])
     return EvalSummary(path=path, method=data["method"].strip(), category=data["category"].strip().lower(),
-                       metrics=metrics, objects=counts["objects"], views=counts["views"], provenance=provenance)
+                       metrics=metrics, objects=counts["objects"], views=counts["views"], provenance=provenance,
+                       choices=recorded_choices(path, data))
 
 
 def find_summaries(path: Path) -> list[Path]:
