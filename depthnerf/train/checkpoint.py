@@ -15,7 +15,10 @@ Nothing here unpickles: tensors go through safetensors, everything else through 
 
 Crash test hook: with ``DEPTHNERF_CRASH_AT=STAGE@STEP`` in the environment the process SIGKILLs itself at
 ``STAGE`` of the checkpoint write of step ``STEP`` (one of :data:`CRASH_STAGES`), so a test can kill training at
-every point of a write deterministically instead of racing a timer (``tests/test_train.py``).
+every point of a write deterministically instead of racing a timer (``tests/test_train.py``). The loop adds two
+points, ``step`` (after the optimiser step) and ``validation`` (as validation starts), and
+``DEPTHNERF_CRASH_AT=sigterm-STAGE@STEP`` / ``sigint-STAGE@STEP`` sends the process SIGTERM / SIGINT there instead
+(the clean stop of :mod:`depthnerf.train.stop`).
 """
 
 from __future__ import annotations
@@ -52,10 +55,21 @@ pointer is updated, after old checkpoints are pruned; for ``best``: after its te
 ``best`` was moved aside (before the new one takes its place)."""
 
 
+SIGNAL_HOOKS = {"sigterm": signal.SIGTERM, "sigint": signal.SIGINT}
+"""``DEPTHNERF_CRASH_AT=<name>-STAGE@STEP``: the signal sent instead of SIGKILL (module docstring)."""
+
+
 def crash_point(stage: str, step: int) -> None:
-    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``stage@step`` (test hook; a no-op otherwise)."""
-    if os.environ.get("DEPTHNERF_CRASH_AT") == f"{stage}@{step}":
+    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``stage@step``, send it SIGTERM / SIGINT if it is
+    ``sigterm-stage@step`` / ``sigint-stage@step`` (test hook; a no-op otherwise)."""
+    hook = os.environ.get("DEPTHNERF_CRASH_AT")
+    if not hook or not hook.endswith(f"{stage}@{step}"):
+        return
+    if hook == f"{stage}@{step}":
         os.kill(os.getpid(), signal.SIGKILL)
+    for name, sig in SIGNAL_HOOKS.items():
+        if hook == f"{name}-{stage}@{step}":
+            os.kill(os.getpid(), sig)
 
 
 def _fsync_dir(path: Path) -> None:
