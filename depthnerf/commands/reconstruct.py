@@ -1,9 +1,11 @@
 """``depthnerf reconstruct IMAGE --checkpoint CKPT --out DIR``: one photo -> depth prior, novel views, turntable,
 depth maps, mesh and point cloud (a thin layer over :class:`depthnerf.reconstruct.reconstructor.Reconstructor`).
 
-The photo should show one object, roughly centred, on a plain background; the mask is ``--mask``, else the
-alpha channel, else everything that differs from the border colour (rules, framing and camera defaults in
-:mod:`depthnerf.reconstruct.reconstructor`; the output layout in :mod:`depthnerf.reconstruct.exports`).
+The photo should show one object, roughly centred; the mask is ``--mask``, else the alpha channel, else a
+background model's cut-out when one is installed (``--background-removal``, ``--background-model``;
+:mod:`depthnerf.reconstruct.background`), else everything that differs from the border colour (rules, framing
+and camera defaults in :mod:`depthnerf.reconstruct.reconstructor`; the output layout in
+:mod:`depthnerf.reconstruct.exports`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from pathlib import Path
 
 from depthnerf.commands.evaluate import guidance, resolve_device
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
+from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -21,6 +24,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="model weights: weights file, checkpoint/run folder or shipped name")
     p.add_argument("--out", type=Path, required=True, help="output folder (manifest.json lists every file)")
     p.add_argument("--mask", type=Path, help="object mask, same size as the image (non-zero = object)")
+    p.add_argument("--background-removal", choices=MODES, default="auto",
+                   help="remove the background of a photo without alpha or mask with a rembg model: auto (default: "
+                        "when rembg and the model are installed, pip install 'depthnerf[bg]'), on, off")
+    p.add_argument("--background-model", metavar="NAME_OR_FILE",
+                   help=f"rembg model name ({', '.join(NAMED_MODELS)}; default {DEFAULT_MODEL}) from rembg's model "
+                        "folder (`rembg d NAME` downloads one there), or a U^2-Net-style .onnx file")
     p.add_argument("--views", type=int, default=36, help="novel views on the orbit (default 36)")
     p.add_argument("--elevation", type=float, default=20.0, help="input camera elevation, degrees (default 20)")
     p.add_argument("--radius", type=float, help="camera distance (default: the training category's)")
@@ -63,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
                             chunk=args.chunk or policy.ray_chunk, guided=guidance(args.guided, args.guided_align_samples),
-                            progress=not args.no_progress)
+                            progress=not args.no_progress, background_removal=args.background_removal,
+                            background_model=args.background_model)
     result = rec.reconstruct(args.image, mask=args.mask, config=cfg)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:

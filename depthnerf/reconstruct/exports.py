@@ -3,6 +3,8 @@
 Layout of ``OUT`` (every path in ``manifest.json`` is relative to ``OUT``)::
 
     input.png, input_mask.png     the prepared input view (on white, at the training resolution) and its mask
+    cutout.png                    the photo as read with the background model's alpha (RGBA; only when a
+                                  background model removed the background)
     depth_prior.png               the prior the encoder saw (depth-aware models): normalised disparity as 8-bit
                                   grey, foreground [-4, 4] -> [64, 255] (brighter = nearer), background 0
     views/view_NNN.png            the N orbit views (view 000 = the input camera)
@@ -76,6 +78,10 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
     Image.fromarray(to_u8(result.input.image)).save(out / "input.png")
     Image.fromarray(result.input.mask.astype(np.uint8) * 255).save(out / "input_mask.png")
     files["input"], files["input_mask"] = "input.png", "input_mask.png"
+    files["cutout"] = None
+    if result.input.cutout is not None:
+        Image.fromarray(to_u8(result.input.cutout), "RGBA").save(out / "cutout.png")
+        files["cutout"] = "cutout.png"
     if result.prior_normalized is not None:
         Image.fromarray(prior_image(result.prior_normalized)).save(out / "depth_prior.png")
         files["depth_prior"] = "depth_prior.png"
