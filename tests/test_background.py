@@ -22,6 +22,7 @@ from depthnerf.data.synth.framing import get_framing
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import BackgroundRemover, choose_remover
 from depthnerf.reconstruct.photo import prepare_photo
+from depthnerf.reconstruct.reconstructor import Reconstructor
 
 CLUTTER = "the background is not a plain colour"
 
@@ -113,6 +114,9 @@ def test_an_rgba_photo_or_a_given_mask_never_reaches_the_model(photo):
     with pytest.raises(DepthnerfError, match="no object found"):  # an RGB photo does reach it (empty mask here)
         prepare_photo(path, None, 64, background=remover)
     assert spy.calls == 1
+    with pytest.raises(DepthnerfError, match="no object found"):  # and through the API's own-remover argument
+        Reconstructor.from_pretrained("cpu-cars-depth").reconstruct(path, background=remover)
+    assert spy.calls == 2
 
 
 def one_line_error(capsys, code: int) -> str:

@@ -12,7 +12,8 @@ Model (``--background-model NAME_OR_FILE``; :data:`DEFAULT_MODEL` when not given
     ``u2net_custom``: one RGB input resized to 320x320 with ImageNet mean and std, the first channel of the first
     output a foreground score, min-max normalised). Nothing is downloaded here: a missing model is a one-line
     reason that says how to get it. Through the API any rembg session object also works
-    (``BackgroundRemover(rembg.new_session("isnet-general-use"), "isnet-general-use")``).
+    (``BackgroundRemover(rembg.new_session("isnet-general-use"), "isnet-general-use")``; import rembg after
+    setting ``NUMBA_THREADING_LAYER=workqueue``, see :func:`_import_rembg`).
 Use (:func:`depthnerf.reconstruct.photo.photo_mask`)
     Only for photos without a given mask or an alpha channel. The model's foreground score in [0, 1], at the
     photo's size, becomes the photo's alpha; then the RGBA rules apply (object = alpha > 0.5, composited on white,
