@@ -145,7 +145,7 @@ def test_page_in_headless_chromium(server, browser, tmp_path):
     d = browser
     d.get(url)
     wait_for(lambda: d.find_elements(By.CSS_SELECTOR, "#upload input[type=file]"), 60, "the page")
-    assert d.find_element(By.CSS_SELECTOR, "#status textarea").is_displayed()
+    assert wait_for(lambda: d.find_element(By.CSS_SELECTOR, "#status textarea").is_displayed(), 30, "the status box")
 
     # bad input: a non-image file, then a photo on a cluttered background -> one line each, the RGBA hint
     notes = tmp_path / "notes.png"
