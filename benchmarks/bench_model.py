@@ -274,7 +274,7 @@ CASES = {"peak": case_peak, "mlp": case_mlp, "field": case_field, "encoder": cas
 
 
 def _run_case(name: str, args, setting: Setting) -> None:
-    tuned = False if args.glibc_malloc_default else keep_freed_memory()
+    tuned = keep_freed_memory()  # False with --glibc-malloc-default (DEPTHNERF_MALLOC_TUNING=0, set by main)
     torch.set_num_threads(args.threads)
     if name == "peak":
         case_peak(args)
@@ -303,6 +303,8 @@ def main() -> None:
     parser.add_argument("--chunk", type=int, default=FieldConfig.chunk_points, help="FieldConfig.chunk_points (views)")
     args = parser.parse_args()
     setting = SETTINGS[args.setting]
+    if args.glibc_malloc_default:  # the spawned cases import depthnerf, which would tune malloc
+        os.environ["DEPTHNERF_MALLOC_TUNING"] = "0"
     print(f"setting {args.setting}: {setting}; clock {args.clock}, {args.threads} threads")
     ctx = mp.get_context("spawn")
     for name in args.cases:

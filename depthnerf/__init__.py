@@ -6,6 +6,10 @@ Pipeline (one straight line, one sub-package per stage):
 ``pretrained`` (inference spec, weights, loading) -> ``train`` | ``eval`` (SRN protocol, metrics) |
 ``reconstruct`` (one photo in) -> ``commands`` (the CLI) and ``demo``. See docs/architecture.md.
 
+Importing the package first sets the process-wide CPU settings the CLI uses (OpenMP wait policy PASSIVE unless
+``OMP_WAIT_POLICY`` is set, glibc malloc keeps freed memory; :mod:`depthnerf.cpu_runtime`), before anything
+imports torch; ``DEPTHNERF_PROCESS_DEFAULTS=0`` turns that off.
+
 Public API (imported lazily, so ``import depthnerf`` stays cheap)::
 
     from depthnerf import Reconstructor
@@ -17,6 +21,10 @@ Public API (imported lazily, so ``import depthnerf`` stays cheap)::
 from __future__ import annotations
 
 from typing import Any
+
+from depthnerf.cpu_runtime import configure_process as _configure_process
+
+_configure_process()  # before torch is imported (OpenMP reads its wait policy once); never overrides the user
 
 __version__ = "0.1.0"
 

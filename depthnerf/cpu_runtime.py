@@ -15,8 +15,13 @@ Two settings, both measured on the 2-core reference machine (``benchmarks/bench_
   instead of 3.6 GB for a paper-preset training step. This is the effect the PyTorch CPU tuning guide gets by
   preloading jemalloc or tcmalloc. It is a no-op on other C libraries and when ``DEPTHNERF_MALLOC_TUNING=0``.
 
-Python API users get the same speed by calling :func:`configure_process` (or just :func:`keep_freed_memory`)
-once at start-up; the library itself never changes process-wide settings behind a caller's back.
+``import depthnerf`` applies both (``depthnerf/__init__.py`` calls :func:`configure_process` before anything
+imports torch), so the Python API runs as fast as the CLI. Neither overrides an explicit choice: an
+``OMP_WAIT_POLICY`` already in the environment is kept, and the malloc thresholds are left alone when glibc's own
+``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` or a ``glibc.malloc`` tunable is set.
+``DEPTHNERF_PROCESS_DEFAULTS=0`` turns both off (the process keeps its settings); ``DEPTHNERF_MALLOC_TUNING=0``
+only the malloc one. Importing torch before depthnerf leaves the wait policy without effect in that process
+(OpenMP reads it when torch loads it): set ``OMP_WAIT_POLICY=PASSIVE`` in the environment then.
 """
 
 from __future__ import annotations
@@ -38,6 +43,13 @@ TRIM_THRESHOLD = 2**31 - 1
 OPT_OUT_VARIABLE = "DEPTHNERF_MALLOC_TUNING"
 """Environment variable; ``0`` leaves glibc's malloc at its defaults (lower RSS, slower large-batch training)."""
 
+OPT_OUT_ALL_VARIABLE = "DEPTHNERF_PROCESS_DEFAULTS"
+"""Environment variable; ``0`` makes :func:`configure_process` (``import depthnerf``, the CLI) change nothing."""
+
+GLIBC_MALLOC_VARIABLES = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+"""glibc's own malloc settings; when one is set (or ``GLIBC_TUNABLES`` names a ``glibc.malloc`` tunable), the
+user chose the allocator's behaviour and :func:`keep_freed_memory` leaves it alone."""
+
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # glibc <malloc.h> parameter numbers
 
 
@@ -49,11 +61,14 @@ def set_omp_wait_policy(environ: MutableMapping[str, str] | None = None) -> None
 def keep_freed_memory(environ: MutableMapping[str, str] | None = None) -> bool:
     """Raise glibc's mmap and trim thresholds so freed tensors are reused instead of unmapped.
 
-    Returns True when both settings were applied. Returns False on a non-glibc C library or when
-    ``DEPTHNERF_MALLOC_TUNING=0``. Affects only allocations made after the call.
+    Returns True when both settings were applied. Returns False on a non-glibc C library, when
+    ``DEPTHNERF_MALLOC_TUNING=0`` or when the environment sets glibc's malloc itself
+    (:data:`GLIBC_MALLOC_VARIABLES`). Affects only allocations made after the call.
     """
     env = os.environ if environ is None else environ
     if env.get(OPT_OUT_VARIABLE, "1") == "0" or platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    if any(name in env for name in GLIBC_MALLOC_VARIABLES) or "glibc.malloc." in env.get("GLIBC_TUNABLES", ""):
         return False
     try:
         libc = ctypes.CDLL("libc.so.6")
@@ -64,6 +79,9 @@ def keep_freed_memory(environ: MutableMapping[str, str] | None = None) -> bool:
 
 
 def configure_process(environ: MutableMapping[str, str] | None = None) -> bool:
-    """Both settings above. Returns whether the malloc tuning was applied."""
+    """Both settings above, unless ``DEPTHNERF_PROCESS_DEFAULTS=0``. Returns whether the malloc tuning was
+    applied."""
+    if (os.environ if environ is None else environ).get(OPT_OUT_ALL_VARIABLE, "1") == "0":
+        return False
     set_omp_wait_policy(environ)
     return keep_freed_memory(environ)

@@ -215,7 +215,7 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     encoded = rec.encode_view(src.images[:1], src.masks[:1], src.poses[0], src.intrinsics,
                               depth=src.depths[:1] if oracle else None)
     if not cfg.mesh:
-        notes.append("--no-mesh: no mesh extracted (mesh.ply and mesh.glb are empty)")
+        notes.append("--no-mesh: no mesh extracted (no mesh.ply or mesh.glb written)")
     rcfg = ReconstructConfig(mesh_resolution=cfg.mesh_resolution if cfg.mesh else 0, mesh_threshold=AUTO_LEVEL,
                              max_points=None, chunk=cfg.chunk)
     preds = rec.render(encoded, tgt.poses, tgt.intrinsics, rcfg).rgb.numpy()

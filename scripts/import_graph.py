@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent / "depthnerf"
 
 STAGES = {
-    "": 0, "errors": 0, "files": 0, "config_io": 0, "cpu_runtime": 0,
+    "": 0, "errors": 0, "files": 0, "config_io": 0, "cpu_runtime": 0, "distributed": 0,
     "bundles": 0, "data": 1, "depth": 2, "model": 3, "render": 4, "pretrained": 5,
     "train": 6, "eval": 6, "reconstruct": 6,
     "commands": 7, "app": 7, "demo": 7, "cli": 8, "__main__": 8,

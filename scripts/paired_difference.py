@@ -22,7 +22,8 @@ from pathlib import Path
 
 from scipy import stats
 
-METRICS: dict[str, bool] = {"psnr": True, "ssim": True, "chamfer_l1": False, "fscore": True}
+METRICS: dict[str, bool] = {"psnr": True, "ssim": True, "chamfer_l1": False, "fscore": True,
+                             "floater_fraction": False}
 """Metric column of per_object.csv -> whether higher is better."""
 
 
@@ -40,6 +41,9 @@ class PairedStat:
     ci95_low: float
     ci95_high: float
     wins: int
+    no_worse: int = 0
+    """Objects on which the method is at least as good as the baseline (ties count: floater fractions are often
+    exactly 0 for both)."""
 
 
 def read_per_object(folder: Path) -> dict[str, dict[str, str]]:
@@ -81,9 +85,10 @@ def paired(baseline: Path, method: Path) -> list[PairedStat]:
         se = math.sqrt(sum((x - mean) ** 2 for x in d) / (n - 1) / n)
         half = float(stats.t.ppf(0.975, n - 1)) * se
         wins = sum(1 for x in d if (x > 0 if higher else x < 0))
+        no_worse = sum(1 for x in d if (x >= 0 if higher else x <= 0))
         out.append(PairedStat(method=method_name(method), metric=metric, n=n, baseline_mean=sum(b) / n,
                               method_mean=sum(m) / n, mean_diff=mean, std_err=se, ci95_low=mean - half,
-                              ci95_high=mean + half, wins=wins))
+                              ci95_high=mean + half, wins=wins, no_worse=no_worse))
     return out
 
 
@@ -95,13 +100,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     rows = [s for folder in args.method for s in paired(args.baseline, folder)]
     print(f"paired against {method_name(args.baseline)} ({args.baseline})")
-    print("| method | metric | objects | baseline | method | difference | 95% interval | wins |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| method | metric | objects | baseline | method | difference | 95% interval | wins | no worse |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for s in rows:
         dec = 2 if s.metric == "psnr" else 4
         print(f"| {s.method} | {s.metric} | {s.n} | {s.baseline_mean:.{dec}f} | {s.method_mean:.{dec}f} | "
               f"{s.mean_diff:+.{dec}f} +- {s.std_err:.{dec}f} | [{s.ci95_low:+.{dec}f}, {s.ci95_high:+.{dec}f}] | "
-              f"{s.wins}/{s.n} |")
+              f"{s.wins}/{s.n} | {s.no_worse}/{s.n} |")
     if args.json:
         args.json.write_text(json.dumps([asdict(s) for s in rows], indent=2) + "\n")
     return 0

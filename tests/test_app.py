@@ -11,6 +11,7 @@ import json
 import os
 import re
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -71,7 +72,7 @@ def bad_inputs(tmp: Path) -> dict[str, tuple[Path | None, str]]:
                           "error: blank.png: no object found (the mask is empty)"),
         "cluttered": (_write(tmp / "scene.jpg", Image.fromarray(noise), quality=95),
                       "error: scene.jpg: the background is not a plain colour"),
-        "gif": (_write(tmp / "anim.gif", car), "error: anim.gif: GIF images are not supported; upload a PNG"),
+        "gif": (_write(tmp / "anim.gif", car), "error: anim.gif: GIF images are not supported; use a PNG, JPEG or WebP photo"),
         "nothing": (None, "error: no image: upload a PNG, JPEG or WebP photo, or pick an example"),
     }
 
@@ -186,6 +187,12 @@ def test_training_fill_is_the_checkpoints(session):
     assert session.training_fill("chair") < session.training_fill("car")
 
 
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def test_core_never_imports_gradio():
     code = ("import sys, depthnerf.cli, depthnerf.app.logic, depthnerf.commands.app, depthnerf.reconstruct.reconstructor;"
             "print('gradio' in sys.modules)")
@@ -211,10 +218,11 @@ def test_app_command_binds_localhost_without_share_and_queues_one_at_a_time(monk
         seen.update(kwargs, page=self)
 
     monkeypatch.setattr(gr.Blocks, "launch", fake_launch)
-    assert main(["app", "--port", "7999", "--views", "2", "--work-dir", str(tmp_path)]) == 0
-    assert seen["server_name"] == "127.0.0.1" and seen["server_port"] == 7999 and seen["share"] is False
-    assert seen["page"]._queue.default_concurrency_limit == 1
-    assert main(["app", "--share", "--host", "0.0.0.0", "--work-dir", str(tmp_path)]) == 0
+    port = free_port()  # the command checks that the port is free before it builds the page
+    assert main(["app", "--port", str(port), "--views", "2", "--work-dir", str(tmp_path)]) == 0
+    assert seen["server_name"] == "127.0.0.1" and seen["server_port"] == port and seen["share"] is False
+    assert seen["page"]._queue.default_concurrency_limit == 1 and seen["prevent_thread_lock"] is True
+    assert main(["app", "--share", "--host", "0.0.0.0", "--port", str(port), "--work-dir", str(tmp_path)]) == 0
     assert seen["share"] is True and seen["server_name"] == "0.0.0.0"
     assert main(["app", "--views", "40"]) == 2
 
@@ -226,9 +234,12 @@ def test_a_busy_port_is_one_line(monkeypatch, tmp_path, capsys):
         raise OSError("Cannot find empty port in range: 7998-7998. You can specify a different port ...")
 
     monkeypatch.setattr(gr.Blocks, "launch", busy)
-    assert main(["app", "--port", "7998", "--work-dir", str(tmp_path)]) == 2
-    assert capsys.readouterr().err == ("error: cannot serve on 127.0.0.1:7998 (Cannot find empty port in range: "
-                                       "7998-7998); pass another --port\n")
+    port = free_port()  # free when checked, taken when the server binds it (e.g. by another process meanwhile)
+    assert main(["app", "--port", str(port), "--work-dir", str(tmp_path)]) == 2
+    out, err = capsys.readouterr()
+    assert err == f"error: cannot serve on 127.0.0.1:{port} (Cannot find empty port in range: 7998-7998); pass " \
+                  "another --port\n"
+    assert "serving" not in out
 
 
 def flags_outside_commands(message: str) -> list[str]:
@@ -326,7 +337,7 @@ def test_the_temporary_run_folder_is_removed_on_sigterm(monkeypatch, capsys, tmp
 
     monkeypatch.setattr(gr.Blocks, "launch", serving)
     before = signal.getsignal(signal.SIGTERM)
-    assert main(["app", "--port", "7997"]) == 130
+    assert main(["app", "--port", str(free_port())]) == 130
     printed = re.search(r"runs are written to (\S+)\)", capsys.readouterr().out)
     assert printed and Path(printed.group(1)).parent == tmp_path and not Path(printed.group(1)).exists()
     assert signal.getsignal(signal.SIGTERM) == before

@@ -22,7 +22,7 @@ from depthnerf.data.synth.framing import get_framing
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import BackgroundRemover, choose_remover
 from depthnerf.reconstruct.photo import prepare_photo
-from depthnerf.reconstruct.reconstructor import Reconstructor
+from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
 
 CLUTTER = "the background is not a plain colour"
 
@@ -71,6 +71,11 @@ def test_reconstruct_cuts_the_object_out_with_a_model_file(photo, models, tmp_pa
     assert image[~mask].min() > 0.99  # the tiles are gone: white around the object
     assert len(manifest["files"]["views"]) == 1 and (out / "mesh.glb").is_file()
     assert "wrote 1 views" in capsys.readouterr().out
+    # the cut-out is one of the files a reconstruction owns: --overwrite with a photo that needs no model removes it
+    plain = Path(__file__).parents[1] / "depthnerf/app/examples/chair_white.png"
+    assert reconstruct(plain, out, "--overwrite", "--mesh-resolution", "0") == 0
+    assert json.loads((out / "manifest.json").read_text())["files"]["cutout"] is None
+    assert not (out / "cutout.png").exists()
 
 
 def test_the_mask_is_the_models_output(photo, models):
@@ -160,3 +165,5 @@ def test_bad_model_names_and_files_are_one_line(photo, models, tmp_path, capsys)
     assert err.startswith(f"error: {tmp_path / 'notes.onnx'}: not a loadable ONNX background model")
     err = one_line_error(capsys, reconstruct(path, tmp_path / "o", "--background-model", str(tmp_path / "no.onnx")))
     assert err.startswith(f"error: {tmp_path / 'no.onnx'}: background model file not found")
+    with pytest.raises(DepthnerfError, match=r"^--background-removal must be one of auto, on, off, got 'yes'$"):
+        ReconstructConfig(background_removal="yes")  # the API's config is checked as the flag is

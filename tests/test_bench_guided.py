@@ -17,7 +17,7 @@ from fixtures_srn import make_srn_fixture
 
 from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
+from depthnerf.eval.protocol import ProtocolChoices, ProtocolConfig, evaluate_protocol
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.load import load_pretrained
@@ -26,6 +26,8 @@ from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import DataConfig, preset, with_prior
 
 BENCH_DIR = Path(__file__).resolve().parent.parent / "benchmarks"
+FLOAT = ProtocolChoices(scored="float")
+"""The benchmark scores float renders: the eval it is checked against does too."""
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +79,8 @@ def test_checkpoint_mode_matches_eval_protocol(bench, tmp_path):
     assert result["guide_depth"] == "prior aligned to a coarse render" and result["depth_prior"] == "oracle"
 
     summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval",
-                                ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False)).summary
+                                ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False,
+                                               choices=FLOAT)).summary
     ref = rows["reference"]
     assert summary["views"] == 2 * 4 and ref["views"] == 8
     assert ref["psnr"] == pytest.approx(summary["psnr"], abs=1e-4)
@@ -142,7 +145,8 @@ def test_eval_guided_matches_the_benchmark_row(bench, tmp_path):
 
     root, weights, result = run_checkpoint_bench(bench, tmp_path, "12")
     row = {r["name"]: r for r in result["rows"]}["guided-12"]
-    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False, guided=GuidanceConfig(12))
+    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False, guided=GuidanceConfig(12),
+                         choices=FLOAT)
     summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval", cfg).summary
     assert summary["guided_sampling"]["budget"] == 12 and "guided sampling (12/ray)" in summary["method"]
     assert row["psnr"] == pytest.approx(summary["psnr"], abs=1e-3)

@@ -104,3 +104,47 @@ def test_bad_paths_and_conflicts(runs, tmp_path, capsys):
         assert main(["compare", *args]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and match in err
+
+
+def _choices(ssim: str = "uniform7", scored: str = "png8", skipped: tuple[str, ...] = ()) -> dict:
+    return {"ssim": ssim, "scored": scored, "objects": "pixelnerf" if skipped else "all",
+            "skipped_objects": list(skipped)}
+
+
+def _per_object(*ids: str) -> list[dict]:
+    return [{"object_id": i, "views": 10, "psnr": 20.0, "ssim": 0.8, "lpips": None} for i in ids]
+
+
+@pytest.mark.parametrize(("a", "b", "match"), [
+    ({"protocol_choices": _choices("uniform7")}, {"protocol_choices": _choices("gaussian11")},
+     "with --ssim gaussian11 but"),
+    ({"protocol_choices": _choices(scored="png8")}, {"metrics_path": "float renders (eval.py)"},  # older summary
+     "with --scored float but"),
+    ({"protocol_choices": _choices(skipped=("w",)), "per_object": _per_object("x")},
+     {"protocol_choices": _choices(), "per_object": _per_object("x", "w")},
+     "left out object w (--objects pixelnerf) but"),
+])
+def test_summaries_with_other_protocol_choices_are_refused(tmp_path, capsys, a, b, match):
+    first = _summary(tmp_path / "a" / "summary.json", "ours", "cars", 20.0, 0.8, **a)
+    second = _summary(tmp_path / "b" / "summary.json", "theirs", "cars", 21.0, 0.81, **b)
+    assert main(["compare", str(first), str(second)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and match in err and "--mixed-protocols" in err
+    assert str(first) in err and str(second) in err
+    assert main(["compare", str(first), str(second), "--mixed-protocols"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("**WARNING: mixed protocol choices") and match in out
+    assert set(_rows(out)) == {"Method", "ours", "theirs"}
+
+
+def test_agreeing_protocol_choices_are_stated_under_the_table(tmp_path, capsys):
+    cars = _summary(tmp_path / "cars" / "summary.json", "ours", "cars", 20.0, 0.8,
+                    protocol_choices=_choices(skipped=("w",)), per_object=_per_object("x"))
+    older = _summary(tmp_path / "old" / "summary.json", "older", "cars", 19.0, 0.7,  # before choices were recorded
+                     metrics_path="quantized 8-bit renders (calc_metrics.py)", per_object=_per_object("x"))
+    chairs = _summary(tmp_path / "chairs" / "summary.json", "ours", "chairs", 22.0, 0.9,
+                      protocol_choices=_choices(), per_object=_per_object("w"))  # another category's "w"
+    assert main(["compare", str(cars), str(older), str(chairs)]) == 0
+    out = capsys.readouterr().out
+    assert out.endswith("Protocol choices of every measured row: SSIM uniform7, png8 renders scored, left out "
+                        "(pixelNeRF cannot load them): w.\n")

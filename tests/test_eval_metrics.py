@@ -64,6 +64,47 @@ def test_ssim_matches_brute_force_loop():
     assert ssim(pred, gt) == pytest.approx(_ssim_reference(pred, gt), abs=1e-10)
 
 
+def _gaussian_ssim_reference(x: np.ndarray, y: np.ndarray, zero_pad: bool) -> float:
+    """Textbook Gaussian SSIM, one pixel at a time: 11x11 weights exp(-r^2 / (2 * 1.5^2)) normalised to sum 1,
+    weighted (population) statistics; ``zero_pad``: every pixel, outside values 0, else the valid region only."""
+    c1, c2, half = 0.01**2, 0.03**2, 5
+    d = np.arange(-half, half + 1)
+    w = np.exp(-(d[:, None] ** 2 + d[None, :] ** 2) / (2 * 1.5**2))
+    w /= w.sum()
+    pad = half if zero_pad else 0
+    xp = np.pad(x, ((pad, pad), (pad, pad), (0, 0)))
+    yp = np.pad(y, ((pad, pad), (pad, pad), (0, 0)))
+    vals = []
+    for ch in range(x.shape[-1]):
+        for i in range(half, xp.shape[0] - half):
+            for j in range(half, xp.shape[1] - half):
+                a = xp[i - half:i + half + 1, j - half:j + half + 1, ch]
+                b = yp[i - half:i + half + 1, j - half:j + half + 1, ch]
+                ma, mb = (w * a).sum(), (w * b).sum()
+                va, vb, cov = (w * (a - ma) ** 2).sum(), (w * (b - mb) ** 2).sum(), (w * (a - ma) * (b - mb)).sum()
+                vals.append(((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma**2 + mb**2 + c1) * (va + vb + c2)))
+    return float(np.mean(vals))
+
+
+@pytest.mark.parametrize("window, zero_pad", [("gaussian11", False), ("gaussian11-zeropad", True)])
+def test_gaussian_ssim_matches_brute_force_loop(window, zero_pad):
+    gt = _rand((16, 17, 3), 7)
+    pred = np.clip(gt + 0.3 * _rand((16, 17, 3), 8) - 0.15, 0, 1)
+    value = ssim(pred, gt, ImageMetricsConfig(ssim_window=window))
+    assert value == pytest.approx(_gaussian_ssim_reference(pred, gt, zero_pad), abs=1e-10)
+    assert value != pytest.approx(ssim(pred, gt), abs=1e-3)  # a different number from pixelNeRF's uniform7
+
+
+def test_ssim_variant_is_checked_and_needs_its_window():
+    img = _rand((10, 10, 3), 9)
+    assert math.isfinite(ssim(img, img))  # 10x10 fits the 7x7 window ...
+    for window in ("gaussian11", "gaussian11-zeropad"):
+        with pytest.raises(DepthnerfError, match="smaller than the SSIM window 11x11"):  # ... not the 11x11 one
+            ssim(img, img, ImageMetricsConfig(ssim_window=window))
+    with pytest.raises(DepthnerfError, match="unknown SSIM variant"):
+        ssim(img, img, ImageMetricsConfig(ssim_window="gaussian7"))
+
+
 def test_ssim_of_constant_images_is_finite_closed_form():
     white, grey = np.ones((16, 16, 3)), np.full((16, 16, 3), 0.5)
     assert ssim(white, white) == pytest.approx(1.0)

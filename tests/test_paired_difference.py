@@ -50,6 +50,16 @@ def test_paired_statistics_match_hand_computation(tmp_path: Path) -> None:
     assert s.ci95_high - s.mean_diff == pytest.approx(stats.t.ppf(0.975, 3) * se)
     assert s.baseline_mean == pytest.approx(21.25) and s.method_mean == pytest.approx(21.875)
     assert rows["chamfer_l1"].wins == 3  # lower is better: 0.05<0.10, 0.10<0.30, 0.30<0.40
+    assert s.no_worse == 3 and rows["chamfer_l1"].no_worse == 3
+
+
+def test_ties_count_as_no_worse(tmp_path: Path) -> None:
+    pd = _load()
+    base = _write(tmp_path / "base", "baseline", [20.0, 22.0, 18.0], [0.10, 0.20, 0.30])
+    meth = _write(tmp_path / "meth", "depth", [20.0, 21.0, 19.0], [0.10, 0.25, 0.30])
+    rows = {s.metric: s for s in pd.paired(base, meth)}
+    assert (rows["psnr"].wins, rows["psnr"].no_worse) == (1, 2)
+    assert (rows["chamfer_l1"].wins, rows["chamfer_l1"].no_worse) == (0, 2)
 
 
 def test_mismatched_objects_or_views_are_errors(tmp_path: Path) -> None:

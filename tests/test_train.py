@@ -122,14 +122,23 @@ def test_background_opacity_loss_closed_form():
 
 def test_background_opacity_term_enters_the_training_loss(data, tmp_path):
     """With ``--schedule.background_opacity_weight W`` the logged loss is coarse + fine + W * background (and the
-    background term is logged, positive at initialisation); off by default (logged as 0)."""
+    background term is logged, positive at initialisation, and logged unweighted at weight 0); on in the CPU
+    presets, off in the paper's."""
     run = tmp_path / "bg"
     cli("train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--out", str(run),
         "--max-steps", "2", "--log.val_every", "0", "--schedule.background_opacity_weight", "0.5", *TINY)
     for m in (m for m in read_metrics(run) if "loss" in m):
         assert m["loss_background"] > 0
         assert m["loss"] == pytest.approx(m["loss_coarse"] + m["loss_fine"] + 0.5 * m["loss_background"], rel=1e-6)
-    assert preset("cpu-cars").schedule.background_opacity_weight == 0.0
+    off = tmp_path / "off"
+    cli("train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--out", str(off),
+        "--max-steps", "2", "--log.val_every", "0", "--schedule.background_opacity_weight", "0", *TINY)
+    for m in (m for m in read_metrics(off) if "loss" in m):
+        assert m["loss_background"] > 0
+        assert m["loss"] == pytest.approx(m["loss_coarse"] + m["loss_fine"], rel=1e-6)
+    assert preset("cpu-cars").schedule.background_opacity_weight == 0.02
+    assert preset("cpu-chairs").schedule.background_opacity_weight == 0.02
+    assert preset("paper-cars").schedule.background_opacity_weight == 0.0
 
 
 def test_train_run_folder_determinism_and_refusal_to_overwrite(data, tmp_path):

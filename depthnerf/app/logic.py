@@ -3,7 +3,8 @@ wires these to widgets, and tests call them without a browser).
 
 One request = one :class:`RunRequest` -> :meth:`AppSession.run` -> one :class:`RunOutputs`:
 
-1. the upload is checked (:func:`check_upload`: a PNG, JPEG or WebP file; everything else
+1. the upload is checked (:func:`check_upload`: a PNG, JPEG or WebP file, the rule of
+   :func:`depthnerf.reconstruct.photo.check_photo_format`; everything else
    :func:`depthnerf.reconstruct.photo.prepare_photo` checks: unreadable/truncated files, sides < 16 px, no
    foreground, a cluttered background);
 2. the checkpoint is loaded once per (checkpoint, depth prior) and kept (:class:`ModelCache`);
@@ -37,6 +38,7 @@ from __future__ import annotations
 import importlib.util
 import re
 import shutil
+import socket
 import sys
 import tempfile
 import threading
@@ -55,8 +57,6 @@ from depthnerf.errors import DepthnerfError
 
 EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 """Bundled example photos (``scripts/make_app_examples.py``)."""
-FORMATS = {"PNG": "PNG", "JPEG": "JPEG", "WEBP": "WebP"}
-"""Accepted upload formats (Pillow format name -> shown name)."""
 DEPTH_PRIORS = ("bundled", "depth-anything-v2")
 """Depth priors the page offers."""
 SHIPPED_MODELS = {"car": "cpu-cars-depth", "chair": "cpu-chairs-depth"}
@@ -203,6 +203,8 @@ def prior_description(prior: str, depth_checkpoint: str = "") -> str:
 
 def check_upload(image: str | Path | None) -> Path:
     """The upload's path when it is a PNG, JPEG or WebP file; else a one-line DepthnerfError."""
+    from depthnerf.reconstruct.photo import check_photo_format
+
     if image is None or str(image) == "":
         raise DepthnerfError("no image: upload a PNG, JPEG or WebP photo, or pick an example")
     path = Path(image)
@@ -214,9 +216,24 @@ def check_upload(image: str | Path | None) -> Path:
             fmt = im.format
     except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{name}: not an image ({' '.join(str(err).split())})") from None
-    if fmt not in FORMATS:
-        raise DepthnerfError(f"{name}: {fmt} images are not supported; upload a PNG, JPEG or WebP")
+    check_photo_format(fmt, name)  # the rule depthnerf reconstruct applies
     return path
+
+
+def check_port(host: str, port: int) -> None:
+    """One line when ``host:port`` cannot be bound (in use, or ``host`` is no address of this machine), checked
+    before the page loads anything."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM,
+                                                             flags=socket.AI_PASSIVE)[0]
+    except (socket.gaierror, UnicodeError) as err:
+        raise DepthnerfError(f"--host {host}: not an address of this machine ({err})") from None
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is no conflict
+        try:
+            probe.bind(address)
+        except OSError as err:
+            raise DepthnerfError(f"cannot serve on {host}:{port} ({err.strerror or err}); pass another --port") from None
 
 
 def examples() -> list[Path]:
@@ -375,7 +392,8 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
                              else "the alpha channel or the border colour decided (no background model ran)"),
         f"**Camera** elevation {settings['elevation']:g} deg, radius {settings['radius']:g}, "
         f"fill {settings['fill']:.2f}, {settings['views']} orbit views",
-        f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else "")
+        ("**Mesh** none (--mesh-resolution 0)" if not manifest["mesh"].get("made", True) else
+         f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else ""))
         + f", {manifest['point_cloud']['points']} points",
         f"**Timings** {timings}",
         *([] if files.get("turntable_mp4") else [f"**MP4** {manifest['turntable_mp4_status']}"]),

@@ -26,6 +26,7 @@ from depthnerf.app.logic import (
     RunOutputs,
     RunRequest,
     background_installed,
+    check_port,
     examples,
     prior_description,
 )
@@ -187,22 +188,26 @@ def build_page(session: AppSession) -> gr.Blocks:
 
 
 def serve(config: AppConfig) -> None:
-    """Build the page and serve it until interrupted (a busy port is a one-line error)."""
+    """Build the page and serve it until interrupted. A busy port is a one-line error before anything is loaded;
+    "serving" is printed once the server is bound."""
+    check_port(config.host, config.port)
     session = AppSession(config)
-    print(f"depthnerf app: loading {config.checkpoints[0]} (runs are written to {session.work_dir})", flush=True)
-    page = build_page(session)
-    page.queue(default_concurrency_limit=1, max_size=64)
-    print(f"depthnerf app: serving http://{config.host}:{config.port}/"
-          + (" and a public share link" if config.share else " (this machine only)" if config.host in LOCAL else "")
-          + "; Ctrl+C stops it", flush=True)
-    previous = _stop_on_sigterm()
+    previous = _stop_on_sigterm()  # SIGTERM stops the page as Ctrl+C does, loading included
     try:
-        page.launch(server_name=config.host, server_port=config.port, share=config.share, ssr_mode=False,
-                    allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS,
-                    max_file_size=MAX_UPLOAD, quiet=True)
-    except OSError as err:
-        raise DepthnerfError(f"cannot serve on {config.host}:{config.port} ({' '.join(str(err).split('.')[:1])}); "
-                             "pass another --port") from None
+        print(f"depthnerf app: loading {config.checkpoints[0]} (runs are written to {session.work_dir})", flush=True)
+        page = build_page(session)
+        page.queue(default_concurrency_limit=1, max_size=64)
+        try:
+            page.launch(server_name=config.host, server_port=config.port, share=config.share, ssr_mode=False,
+                        allowed_paths=[str(Path(session.work_dir))], show_error=False, inbrowser=False, css=CSS,
+                        max_file_size=MAX_UPLOAD, quiet=True, prevent_thread_lock=True)
+        except OSError as err:
+            raise DepthnerfError(f"cannot serve on {config.host}:{config.port} "
+                                 f"({' '.join(str(err).split('.')[:1])}); pass another --port") from None
+        print(f"depthnerf app: serving http://{config.host}:{config.port}/"
+              + (" and a public share link" if config.share else " (this machine only)" if config.host in LOCAL
+                 else "") + "; Ctrl+C stops it", flush=True)
+        page.block_thread()
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)

@@ -38,12 +38,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("gradio") is None:
         raise DepthnerfError(INSTALL_HINT)
-    from depthnerf.app.logic import SHIPPED_MODELS, AppConfig
+    from depthnerf.app.logic import SHIPPED_MODELS, AppConfig, check_port
 
     if not 1 <= args.views <= args.max_views:
         raise DepthnerfError(f"--views must be within 1..--max-views ({args.max_views}), got {args.views}")
+    if args.mesh_resolution != 0 and args.mesh_resolution < 2:
+        raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {args.mesh_resolution}")
     if not 0 < args.port < 65536:
         raise DepthnerfError(f"--port must be within 1..65535, got {args.port}")
+    check_port(args.host, args.port)  # before gradio is imported and the first model loaded
     config = AppConfig(host=args.host, port=args.port,
                        checkpoints=tuple(args.checkpoint or SHIPPED_MODELS.values()), share=args.share,
                        views=args.views, max_views=args.max_views, mesh_resolution=args.mesh_resolution,

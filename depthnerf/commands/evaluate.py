@@ -2,7 +2,8 @@
 
 ``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
 [--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--mesh-threshold auto|X]
-[--save-renders] [--strict]``
+[--save-renders] [--ssim uniform7|gaussian11|gaussian11-zeropad] [--scored png8|float] [--objects pixelnerf|all]
+[--overwrite] [--strict]``
 
 Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
 with ``--run``, required with ``--checkpoint``), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
@@ -12,17 +13,29 @@ the training resolution, with the run's depth prior (its cache must exist for th
 --splits test --resolution <training resolution>``). Every file of the split is checked before anything is
 scored (as ``train`` does), so a corrupt image in a view that is not scored is still an error; ``--strict`` makes
 problems in the optional parts (depth, masks, meshes) errors too (see docs/data.md).
+
+``--ssim``, ``--scored`` and ``--objects`` select the protocol choices that move published numbers (defaults:
+pixelNeRF's; :mod:`depthnerf.eval.config`). Every object's result is kept under ``OUT_DIR/objects/``: the same
+command run again continues a killed evaluation, other settings there are refused unless ``--overwrite``.
+``torchrun --nproc_per_node=N -m depthnerf eval ...`` shares the objects out over N processes (one GPU each,
+``LOCAL_RANK`` picks it; gloo on CPU) and rank 0 writes the merged outputs (:mod:`depthnerf.eval.shards`).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
+from datetime import timedelta
 from pathlib import Path
 
 import torch
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
+
+COLLECTIVE_TIMEOUT = timedelta(hours=6)
+"""How long rank 0 waits for the slowest rank's share of the objects before the merge (multi-process runs)."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,8 +60,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fscore-tau", type=float, default=0.01, help="F-score threshold in GT diagonals (0.01)")
     p.add_argument("--mesh-points", type=int, default=100_000, help="surface samples per mesh (default 100000)")
     p.add_argument("--save-renders", action="store_true", help="write renders, meshes and renders.csv")
-    p.add_argument("--quantize", action="store_true",
-                   help="score 8-bit truncated renders (pixelNeRF calc_metrics.py) instead of float renders")
+    p.add_argument("--ssim", choices=("uniform7", "gaussian11", "gaussian11-zeropad"), default="uniform7",
+                   help="SSIM: uniform7 (default, pixelNeRF: 7x7 uniform window), gaussian11 (11x11 "
+                        "Gaussian sigma 1.5, Wang et al./scikit-image), gaussian11-zeropad (the same, zero-padded: "
+                        "the 3DGS ssim() Splatter Image uses)")
+    p.add_argument("--scored", choices=("png8", "float"), default=None,
+                   help="score the renders as 8-bit PNGs, truncated (default, pixelNeRF's paper numbers, "
+                        "calc_metrics.py) or as floats (the numbers pixelNeRF's eval.py prints)")
+    p.add_argument("--quantize", action="store_true", help="same as --scored png8 (the default)")
+    p.add_argument("--objects", choices=("pixelnerf", "all"), default="pixelnerf",
+                   help="pixelnerf (default): leave out the objects pixelNeRF's evaluation cannot load (SRN's "
+                        "all-white test car 876d92ce6a0e4bf399588eee976baae); all: score every object")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start over in OUT_DIR, discarding the objects an earlier evaluation finished there")
     p.add_argument("--method", help="row label for depthnerf compare (default from the depth prior)")
     p.add_argument("--depth", choices=ESTIMATORS,
                    help="override the depth prior recorded in the checkpoint (its cache must exist)")
@@ -96,7 +120,58 @@ def guidance(budget: int | None, align_samples: int):
     return GuidanceConfig(budget=budget, align_samples=align_samples)
 
 
+def _choices(args: argparse.Namespace):
+    from depthnerf.eval.config import ProtocolChoices
+
+    if args.quantize and args.scored == "float":
+        raise DepthnerfError("--quantize (= --scored png8) contradicts --scored float: pass one of them")
+    return ProtocolChoices(ssim=args.ssim, scored=args.scored or "png8", objects=args.objects).check()
+
+
+def _process(device: str):
+    """This process's place in the job: a torchrun rank (its process group set up, one GPU each by
+    ``LOCAL_RANK``, gloo on CPU) or the only process."""
+    from depthnerf.distributed import DistInfo, setup
+
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        return setup(device, timeout=COLLECTIVE_TIMEOUT)
+    return DistInfo(rank=0, world=1, device=resolve_device(device))
+
+
+def check_category(data: Path, category: str | None, split: str, trained: str, checkpoint: str) -> None:
+    """A warning line when ``--category`` scores a model on another category than it was trained on; an error
+    naming the categories the data holds when it has none of the model's (instead of a missing split folder)."""
+    from depthnerf.data.srn import discover_categories, split_dir
+
+    if category is not None:
+        if category != trained:
+            print(f"warning: scoring {checkpoint}, a {trained} model, on {category} data (--category {category}); "
+                  "the figures measure a category it was not trained on", file=sys.stderr, flush=True)
+        return
+    if split_dir(data, trained, split).is_dir():
+        return
+    held = [c for c in discover_categories(data) if split_dir(data, c, split).is_dir()]
+    if held:
+        raise DepthnerfError(f"{data}: holds {', '.join(f'{c}_{split}' for c in held)} but no {trained}_{split}, "
+                             f"and {checkpoint} is a {trained} model; pass a {trained} dataset, or --category "
+                             f"{held[0]} to score it on {held[0]} anyway")
+
+
 def run(args: argparse.Namespace) -> int:
+    from depthnerf.distributed import teardown
+    from depthnerf.eval.shards import RefusedOnMain
+
+    choices = _choices(args)
+    info = _process(args.device)
+    try:
+        return _run(args, info, choices)
+    except RefusedOnMain:
+        return 2  # rank 0 prints why
+    finally:
+        teardown(info)
+
+
+def _run(args: argparse.Namespace, info, choices) -> int:
     from depthnerf.eval.geometry_metrics import GeometryConfig
     from depthnerf.eval.metrics import LpipsConfig
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
@@ -109,12 +184,13 @@ def run(args: argparse.Namespace) -> int:
         if args.run is None:
             raise DepthnerfError("--out OUT_DIR is required with --checkpoint")
         out = args.run / "eval" / args.split
-    device = resolve_device(args.device)
+    device = info.device
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
     policy = configure_inference(pre.model, device, fp32=args.fp32, compile=args.compile)
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
+    check_category(data, args.category, args.split, pre.spec.category, str(args.run or args.checkpoint))
     if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too
         from depthnerf.data.srn import index_split
 
@@ -124,11 +200,13 @@ def run(args: argparse.Namespace) -> int:
         resolution=args.resolution, chunk=args.chunk or policy.ray_chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
-        quantize=args.quantize, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
+        choices=choices, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
         guided=guidance(args.guided, args.guided_align_samples),
         lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
-        progress=not args.no_progress)
-    result = evaluate_protocol(pre, data, out, cfg, device)
+        progress=not args.no_progress, overwrite=args.overwrite)
+    result = evaluate_protocol(pre, data, out, cfg, device, info)
+    if result is None:  # a rank other than 0: rank 0 writes and prints
+        return 0
     s = result.summary
     lp = f"{s['lpips']:.4f}" if s["lpips"] is not None else s["lpips_status"]
     geo = (f", Chamfer-L1 {s['chamfer_l1']:.4f}, F-score@{s['fscore_tau']} {s['fscore']:.3f}"

@@ -11,10 +11,12 @@ and camera defaults in :mod:`depthnerf.reconstruct.reconstructor`; the output la
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from depthnerf.commands.evaluate import guidance, resolve_device
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
+from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 
 
@@ -22,7 +24,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("image", type=Path, help="input photo (RGB, RGBA or grayscale)")
     p.add_argument("--checkpoint", required=True,
                    help="model weights: weights file, checkpoint/run folder or shipped name")
-    p.add_argument("--out", type=Path, required=True, help="output folder (manifest.json lists every file)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder (manifest.json lists every file); checked before any work")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier reconstruction in --out (only the files reconstruct writes)")
     p.add_argument("--mask", type=Path, help="object mask, same size as the image (non-zero = object)")
     p.add_argument("--background-removal", choices=MODES, default="auto",
                    help="remove the background of a photo without alpha or mask with a rembg model: auto (default: "
@@ -60,26 +65,39 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from depthnerf.pretrained.load import load_pretrained
+    from depthnerf.reconstruct.background import choose_remover
+    from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
     from depthnerf.render.mesh import parse_level
     from depthnerf.render.precision import configure_inference
 
-    device = resolve_device(args.device)
-    rec = Reconstructor.from_pretrained(args.checkpoint, device, depth_estimator=args.depth,
-                                        depth_checkpoint=args.depth_checkpoint)
-    policy = configure_inference(rec.pretrained.model, device, fp32=args.fp32, compile=args.compile)
+    # every flag and the output folder are checked before the model is loaded or anything rendered
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
-                            chunk=args.chunk or policy.ray_chunk, guided=guidance(args.guided, args.guided_align_samples),
-                            progress=not args.no_progress, background_removal=args.background_removal,
-                            background_model=args.background_model)
-    result = rec.reconstruct(args.image, mask=args.mask, config=cfg)
+                            chunk=ReconstructConfig.chunk if args.chunk is None else args.chunk,
+                            guided=guidance(args.guided, args.guided_align_samples), progress=not args.no_progress,
+                            background_removal=args.background_removal, background_model=args.background_model)
+    check_output_dir(args.out, args.overwrite)
+    # a background model the flags name loads (or fails in one line) before the NeRF does
+    background = choose_remover(args.background_removal, args.background_model)
+    device = resolve_device(args.device)
+    pretrained = load_pretrained(args.checkpoint, device)
+    if not pretrained.spec.use_depth and (args.depth not in (None, "none") or args.depth_checkpoint):
+        flag = f"--depth {args.depth}" if args.depth not in (None, "none") else "--depth-checkpoint"
+        raise DepthnerfError(f"{args.checkpoint}: a baseline checkpoint (trained without a depth prior) takes no "
+                             f"depth prior; drop {flag}, or use a depth-aware checkpoint")
+    rec = Reconstructor(pretrained, device, depth_estimator=args.depth, depth_checkpoint=args.depth_checkpoint)
+    policy = configure_inference(rec.pretrained.model, device, fp32=args.fp32, compile=args.compile)
+    cfg = dataclasses.replace(cfg, chunk=policy.ray_chunk if args.chunk is None else args.chunk)
+    result = rec.reconstruct(args.image, mask=args.mask, config=cfg, background=background)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:
         print(f"note: {note}")
     mesh = manifest["mesh"]
-    print(f"wrote {len(manifest['files']['views'])} views, turntable, mesh ({mesh['faces']} faces"
-          f"{', empty' if mesh['empty'] else ''}), {manifest['point_cloud']['points']} points to {args.out} "
-          f"(manifest: {args.out / 'manifest.json'})")
+    made = (f"mesh ({mesh['faces']} faces{', empty' if mesh['empty'] else ''})" if mesh["made"]
+            else "no mesh (--mesh-resolution 0)")
+    print(f"wrote {len(manifest['files']['views'])} views, turntable, {made}, "
+          f"{manifest['point_cloud']['points']} points to {args.out} (manifest: {args.out / 'manifest.json'})")
     return 0

@@ -136,8 +136,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise DepthnerfError("--out RUN_DIR is required to train")
+    from depthnerf.distributed import setup, teardown
     from depthnerf.eval.validation import validate
-    from depthnerf.train.distributed import setup, teardown
     from depthnerf.train.loop import train
 
     if args.strict:  # training checks every file itself (leniently); this makes optional parts strict too

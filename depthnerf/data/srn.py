@@ -103,6 +103,9 @@ def split_dir(root: Path, category: str, split: str) -> Path:
 def discover_categories(root: Path) -> list[str]:
     """Sorted category names found as ``<category>_<split>`` folders directly under ``root``."""
     root = Path(root)
+    if root.exists() and not root.is_dir():
+        raise DepthnerfError(f"{root}: is a file, not a dataset folder (pass the folder that holds the "
+                             "<category>_<split>/ folders)")
     if not root.is_dir():
         raise DepthnerfError(f"{root}: dataset folder does not exist")
     found = set()
@@ -178,7 +181,11 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
     """
     folder = split_dir(root, category, split)
     if not folder.is_dir():
-        raise DepthnerfError(f"{folder}: split folder does not exist")
+        if Path(root).exists() and not Path(root).is_dir():
+            raise DepthnerfError(f"{root}: is a file, not a dataset folder (pass the folder that holds "
+                                 f"{category}_{split}/)")
+        problem = "is a file, not a split folder" if folder.exists() else "split folder does not exist"
+        raise DepthnerfError(f"{folder}: {problem}")
     object_dirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
     if not object_dirs:
         raise DepthnerfError(f"{folder}: empty split (no object folders)")

@@ -139,6 +139,18 @@ EXR_UNSUPPORTED = ("EXR depth is not supported: no kept library reads OpenEXR (P
 """Why ``.exr`` depth maps are refused (one line, used in errors and warnings)."""
 
 _PNG16_MODES = ("I;16", "I;16B", "I;16L", "I")
+_NUMPY_SIGNATURES = {".npz": (b"PK\x03\x04", b"PK\x05\x06"), ".npy": (b"\x93NUMPY",)}
+"""The first bytes of a NumPy ``.npz`` (a zip archive, possibly empty) and ``.npy`` file."""
+
+
+def _check_numpy_signature(path: Path, suffix: str) -> None:
+    """One line when the file is not what its suffix says (numpy would try to unpickle it and say so)."""
+    with open(path, "rb") as handle:
+        head = handle.read(8)
+    if not head.startswith(_NUMPY_SIGNATURES[suffix]):
+        what = "empty" if not head else f"corrupt or not a NumPy {suffix} file"
+        raise DepthnerfError(f"{path}: unreadable depth map: the file is {what}; rewrite it with "
+                             f"numpy.{'savez' if suffix == '.npz' else 'save'}")
 
 
 def _depth_png(path: Path, png_scale: float | None) -> np.ndarray:
@@ -173,15 +185,24 @@ def read_depth(path: Path, png_scale: float | None = None, shape: tuple[int, int
         if suffix == ".png":
             depth = _depth_png(path, png_scale)
         elif suffix == ".npy":
+            _check_numpy_signature(path, suffix)
             depth = np.load(path, allow_pickle=False)
         else:
+            _check_numpy_signature(path, suffix)
             with np.load(path, allow_pickle=False) as data:
                 depth = data["depth"]
     except FileNotFoundError:
         raise DepthnerfError(f"{path}: depth file is missing") from None
     except KeyError:
         raise DepthnerfError(f"{path}: depth file has no 'depth' array") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, Image.DecompressionBombError) as err:
+    except ValueError as err:
+        if "pickle" in str(err):
+            raise DepthnerfError(f"{path}: unreadable depth map: it holds Python objects, not a float array "
+                                 "(never unpickled); store the depth as a float array") from None
+        raise DepthnerfError(f"{path}: unreadable depth map ({err})") from None
+    except (zipfile.BadZipFile, EOFError) as err:
+        raise DepthnerfError(f"{path}: unreadable depth map: a truncated or corrupt {suffix} file ({err})") from None
+    except (OSError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable depth map ({err})") from None
     return check_depth(path, depth, shape, allow_empty)
 

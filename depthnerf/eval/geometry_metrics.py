@@ -29,9 +29,14 @@ Definitions (Occupancy Networks / Tatarchenko et al. 2019 conventions)
     of the prediction; **F-score@tau = 2 P R / (P + R)** (0 when P + R = 0). Default ``tau = 0.01`` (1% of the
     object's diagonal, Tatarchenko et al.'s choice).
 
+Floaters (beyond the paper): **floater fraction** = the fraction of the predicted surface (its area-weighted
+samples) lying outside the ground-truth mesh's axis-aligned bounding box grown by ``floater_margin`` (in GT
+diagonals; default 0.05) on every side. Density the input view never asked for (e.g. white slabs above a car,
+invisible on the white background) shows up here even when Chamfer-L1 hides it behind a good completeness.
+
 Empty prediction (no faces or zero area, e.g. a density that never reached the marching-cubes level): worst-case
 values, no error: accuracy = completeness = Chamfer-L1 = one GT diagonal (1.0 when normalised), precision =
-recall = F-score = 0, and ``empty_prediction = True``.
+recall = F-score = 0, floater fraction 0, and ``empty_prediction = True``.
 """
 
 from __future__ import annotations
@@ -65,6 +70,8 @@ class GeometryConfig:
     """Sampling seed (the same for both meshes)."""
     normalize: bool = True
     """Express distances in units of the GT bounding-box diagonal."""
+    floater_margin: float = 0.05
+    """The GT bounding box is grown by this (in GT diagonals) on every side before counting floaters."""
     depth_pixel_center: float = 0.0
     """Pixel-centre convention of the dataset's depth maps (its card's ``camera.pixel_center``; 0.5 for
     ``depthnerf synth --framing srn``), used to back-project them into the visible-surface ground truth."""
@@ -94,6 +101,8 @@ class GeometryMetrics:
     """True when the predicted mesh had no surface (worst-case values above)."""
     ground_truth: str = "mesh.ply"
     """Where the GT samples came from (``mesh.ply`` or ``visible surface from N depth maps``)."""
+    floater_fraction: float = 0.0
+    """Fraction of the predicted surface outside the GT bounding box grown by ``floater_margin``."""
 
 
 def sample_surface(mesh: trimesh.Trimesh, n_points: int, seed: int) -> Float[np.ndarray, "N 3"]:
@@ -106,6 +115,25 @@ def nearest_distances(src: Float[np.ndarray, "N 3"], dst: Float[np.ndarray, "M 3
     """Euclidean distance from every ``src`` point to its nearest ``dst`` point."""
     dist, _ = cKDTree(dst).query(src, k=1)
     return np.asarray(dist, dtype=np.float64)
+
+
+def outside_box(points: Float[np.ndarray, "N 3"], lo: Float[np.ndarray, " 3"], hi: Float[np.ndarray, " 3"],
+                margin: float) -> Float[np.ndarray, " N"]:
+    """True for the points outside the box ``[lo - margin, hi + margin]`` (per axis)."""
+    return np.any((points < lo - margin) | (points > hi + margin), axis=-1)
+
+
+def floater_fraction(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: GeometryConfig = GeometryConfig(),
+                     pred_points: Float[np.ndarray, "N 3"] | None = None) -> float:
+    """Fraction of ``pred``'s surface outside ``gt``'s bounding box grown by ``config.floater_margin`` GT
+    diagonals (module docstring); 0 for an empty prediction. ``pred_points``: ``pred``'s surface samples (world
+    frame), when already drawn."""
+    if _is_empty(pred):
+        return 0.0
+    lo, hi = np.asarray(gt.bounds[0], np.float64), np.asarray(gt.bounds[1], np.float64)
+    margin = config.floater_margin * float(np.linalg.norm(hi - lo))
+    points = sample_surface(pred, config.n_points, config.seed) if pred_points is None else pred_points
+    return float(outside_box(points, lo, hi, margin).mean())
 
 
 def _is_empty(mesh: trimesh.Trimesh) -> bool:
@@ -125,7 +153,9 @@ def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: Geometr
     if _is_empty(pred):
         worst = diagonal / scale
         return GeometryMetrics(worst, worst, worst, 0.0, 0.0, 0.0, config.tau, scale, True)
-    pred_pts = sample_surface(pred, config.n_points, config.seed) / scale
+    pred_world = sample_surface(pred, config.n_points, config.seed)
+    floaters = floater_fraction(pred, gt, config, pred_world)
+    pred_pts = pred_world / scale
     gt_pts = (sample_surface(gt, config.n_points, config.seed) if gt_points is None
               else np.asarray(gt_points, dtype=np.float64)) / scale
     to_gt, to_pred = nearest_distances(pred_pts, gt_pts), nearest_distances(gt_pts, pred_pts)
@@ -133,7 +163,7 @@ def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: Geometr
     precision, recall = float((to_gt < config.tau).mean()), float((to_pred < config.tau).mean())
     fscore = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
     return GeometryMetrics((accuracy + completeness) / 2, accuracy, completeness, precision, recall, fscore,
-                           config.tau, scale, False)
+                           config.tau, scale, False, floater_fraction=floaters)
 
 
 def backproject_depth(depth: Float[np.ndarray, "H W"], c2w: Float[np.ndarray, "4 4"],
@@ -197,10 +227,11 @@ def summarize_geometry(results: Sequence[GeometryMetrics], config: GeometryConfi
     if not results:
         raise DepthnerfError("no meshes were evaluated: nothing to summarise")
     means = {k: float(np.mean([asdict(r)[k] for r in results]))
-             for k in ("chamfer_l1", "accuracy", "completeness", "precision", "recall", "fscore")}
+             for k in ("chamfer_l1", "accuracy", "completeness", "precision", "recall", "fscore",
+                       "floater_fraction")}
     units = "ground-truth bounding-box diagonals" if config.normalize else "world units"
     sources = Counter(r.ground_truth for r in results)
     gt = (next(iter(sources)) if len(sources) == 1
           else "; ".join(f"{name} ({n} objects)" for name, n in sorted(sources.items())))
-    return {**means, "fscore_tau": config.tau, "geometry_units": units, "geometry_points": config.n_points,
+    return {**means, "fscore_tau": config.tau, "floater_margin": config.floater_margin, "geometry_units": units, "geometry_points": config.n_points,
             "empty_predictions": sum(r.empty_prediction for r in results), "geometry_gt": gt}

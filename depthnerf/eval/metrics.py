@@ -11,6 +11,12 @@ Facts checked in pixelNeRF's ``eval/eval.py`` and ``eval/calc_metrics.py``:
   now): the mean over channels of per-channel SSIM, with the old ``compare_ssim`` defaults that pixelNeRF got and
   that we pass explicitly: a 7x7 *uniform* window (``gaussian_weights=False``), sample covariance
   (``use_sample_covariance=True``), ``K1 = 0.01``, ``K2 = 0.03``, computed in float64 (as the old function did).
+  That is :attr:`ImageMetricsConfig.ssim_window` ``"uniform7"``, the default. Later papers use an 11x11 Gaussian
+  window (sigma 1.5, population covariance), in two spellings that differ at the image border (see
+  :data:`SSIM_WINDOWS`): ``"gaussian11"`` (scikit-image's ``gaussian_weights=True, sigma=1.5,
+  use_sample_covariance=False``, Wang et al. 2004: the 5-pixel border is left out) and ``"gaussian11-zeropad"``
+  (the ``ssim()`` of 3D Gaussian Splatting's ``utils/loss_utils.py``, which Splatter Image's ``eval.py`` calls:
+  the image is zero-padded and every pixel counts; computed here in float64, there in float32).
 - LPIPS: the ``lpips`` package, VGG trunk, v0.1 linear layers, inputs scaled to ``[-1, 1]``.
 - Aggregation: per object, the plain mean over its evaluated views; dataset, the plain mean over objects (not
   over views): eval.py's ``total_psnr / cnt`` with ``cnt`` counting objects, calc_metrics.py's reduce step.
@@ -37,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from jaxtyping import Float
+from scipy.ndimage import correlate1d
 from skimage.metrics import structural_similarity
 
 from depthnerf.errors import DepthnerfError
@@ -44,7 +51,20 @@ from depthnerf.errors import DepthnerfError
 MSE_FLOOR = 1e-10
 """Smallest MSE used in PSNR: caps PSNR at 100 dB so a pixel-perfect render stays finite."""
 SSIM_WIN_SIZE = 7
-"""SSIM window side (scikit-image's default, what pixelNeRF used)."""
+"""SSIM window side of ``uniform7`` (scikit-image's former default, what pixelNeRF used)."""
+SSIM_WINDOWS = {
+    "uniform7": "7x7 uniform window, sample covariance, 3-pixel border left out (pixelNeRF: scikit-image's "
+                "compare_ssim defaults)",
+    "gaussian11": "11x11 Gaussian window sigma 1.5, population covariance, 5-pixel border left out (Wang et al. "
+                  "2004; scikit-image gaussian_weights=True, sigma=1.5, use_sample_covariance=False)",
+    "gaussian11-zeropad": "11x11 Gaussian window sigma 1.5, population covariance, zero-padded image, mean over "
+                          "every pixel (3D Gaussian Splatting's ssim(), as Splatter Image's eval.py calls it)",
+}
+"""The SSIM variants :func:`ssim` computes (``ImageMetricsConfig.ssim_window``, ``depthnerf eval --ssim``)."""
+SSIM_WINDOW_SIDE = {"uniform7": SSIM_WIN_SIZE, "gaussian11": 11, "gaussian11-zeropad": 11}
+"""Window side of each SSIM variant (the smallest image it measures)."""
+GAUSSIAN_SIGMA = 1.5
+"""Standard deviation (pixels) of the Gaussian SSIM windows."""
 TRUNK_WEIGHTS = {"vgg": "VGG16_Weights.IMAGENET1K_V1", "alex": "AlexNet_Weights.IMAGENET1K_V1"}
 """The torchvision weight enums whose ImageNet trunks LPIPS uses."""
 
@@ -55,6 +75,8 @@ class ImageMetricsConfig:
 
     quantize_pred: bool = False
     """Truncate the render to 8 bit before measuring (pixelNeRF calc_metrics.py path); False = eval.py path."""
+    ssim_window: str = "uniform7"
+    """SSIM variant, a key of :data:`SSIM_WINDOWS` (``uniform7``: pixelNeRF's)."""
     lpips_batch: int = 32
     """Views per LPIPS forward pass (pixelNeRF's default)."""
 
@@ -130,15 +152,49 @@ def psnr(pred: Float[np.ndarray, "H W 3"], gt: Float[np.ndarray, "H W 3"],
     return 10.0 * math.log10(1.0 / max(mse, MSE_FLOOR))
 
 
+def gaussian_window_1d(side: int = 11, sigma: float = GAUSSIAN_SIGMA) -> Float[np.ndarray, " K"]:
+    """Normalised 1D Gaussian weights of a ``side``-tap window (the 2D window is their outer product)."""
+    x = np.arange(side, dtype=np.float64) - side // 2
+    g = np.exp(-(x**2) / (2 * sigma**2))
+    return g / g.sum()
+
+
+def _ssim_zeropad(pred: np.ndarray, gt: np.ndarray, k1: float = 0.01, k2: float = 0.03) -> float:
+    """SSIM as 3D Gaussian Splatting's ``ssim()``: Gaussian-weighted local statistics of the zero-padded images
+    (same-size maps), population covariance, the SSIM map averaged over every pixel and channel."""
+    g = gaussian_window_1d()
+
+    def blur(x: np.ndarray) -> np.ndarray:
+        x = correlate1d(x, g, axis=0, mode="constant", cval=0.0)
+        return correlate1d(x, g, axis=1, mode="constant", cval=0.0)
+
+    mu_x, mu_y = blur(pred), blur(gt)
+    var_x, var_y = blur(pred * pred) - mu_x**2, blur(gt * gt) - mu_y**2
+    cov = blur(pred * gt) - mu_x * mu_y
+    c1, c2 = k1**2, k2**2
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return float(ssim_map.mean())
+
+
 def ssim(pred: Float[np.ndarray, "H W 3"], gt: Float[np.ndarray, "H W 3"],
          config: ImageMetricsConfig = ImageMetricsConfig()) -> float:
-    """scikit-image SSIM over all channels with pixelNeRF's settings (see the module docstring)."""
+    """SSIM over all channels in the variant ``config.ssim_window`` (default pixelNeRF's; module docstring)."""
     pred, gt = _pair(pred, gt, config)
-    if min(pred.shape[:2]) < SSIM_WIN_SIZE:
+    window = config.ssim_window
+    if window not in SSIM_WINDOWS:
+        raise DepthnerfError(f"unknown SSIM variant {window!r} (choose {', '.join(SSIM_WINDOWS)})")
+    side = SSIM_WINDOW_SIDE[window]
+    if min(pred.shape[:2]) < side:
         raise DepthnerfError(f"image {pred.shape[0]}x{pred.shape[1]} is smaller than the SSIM window "
-                             f"{SSIM_WIN_SIZE}x{SSIM_WIN_SIZE}")
-    value = float(structural_similarity(pred, gt, win_size=SSIM_WIN_SIZE, data_range=1.0, channel_axis=-1,
-                                        gaussian_weights=False, use_sample_covariance=True, K1=0.01, K2=0.03))
+                             f"{side}x{side}")
+    if window == "uniform7":
+        value = float(structural_similarity(pred, gt, win_size=SSIM_WIN_SIZE, data_range=1.0, channel_axis=-1,
+                                            gaussian_weights=False, use_sample_covariance=True, K1=0.01, K2=0.03))
+    elif window == "gaussian11":
+        value = float(structural_similarity(pred, gt, data_range=1.0, channel_axis=-1, gaussian_weights=True,
+                                            sigma=GAUSSIAN_SIGMA, use_sample_covariance=False, K1=0.01, K2=0.03))
+    else:
+        value = _ssim_zeropad(pred, gt)
     if not math.isfinite(value):
         raise DepthnerfError(f"SSIM is not finite ({value}) for images of shape {pred.shape}")
     return value
@@ -255,7 +311,7 @@ def object_metrics(object_id: str, preds: Sequence[np.ndarray] | np.ndarray, gts
     if lpips is not None:
         lp = lpips.per_view(np.stack([p for p, _ in pairs]), np.stack([g for _, g in pairs]), config.lpips_batch)
     views = []
-    exact = ImageMetricsConfig()  # pairs are already clamped/quantised: measure them as they are
+    exact = ImageMetricsConfig(ssim_window=config.ssim_window)  # pairs already clamped/quantised: as they are
     for i, (p, g) in enumerate(pairs):
         views.append(ViewMetrics(psnr=psnr(p, g, exact), ssim=ssim(p, g, exact),
                                  lpips=None if lp is None else float(lp[i])))

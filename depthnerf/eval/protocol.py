@@ -1,15 +1,28 @@
 """The SRN evaluation protocol (pixelNeRF's), as run by ``depthnerf eval``.
 
 Protocol
-    For every object of the split (sorted by id, the first ``max_objects``): view :data:`INPUT_VIEW` (64) is the
-    single input view and every other view is a target (250 for SRN's 251 views), optionally every ``stride``-th
-    of them in order (``targets = [v != input][::stride]``). Objects with at most 64 views (tiny fixtures) use
-    view 0 as input, and the protocol text says so. Each object is encoded ONCE (image features of the input view,
+    For every object of the split (sorted by id, without the objects the protocol choices leave out, the first
+    ``max_objects``): view :data:`INPUT_VIEW` (64) is the single input view and every other view is a target (250
+    for SRN's 251 views), optionally every ``stride``-th of them in order (``targets = [v != input][::stride]``).
+    Objects with at most 64 views (tiny fixtures) use view 0 as input, and the protocol text says so. Each object is encoded ONCE (image features of the input view,
     and its depth prior) and those features serve every target view and the mesh. Target views are rendered with
     the checkpoint's renderer (deterministic sampling unless the checkpoint's ``render.sampler.eval_random``), in
     groups of ``max(1, chunk // (H*W))`` views and ``chunk`` rays per pass, so memory is bounded by ``chunk``.
     Metrics: :mod:`depthnerf.eval.metrics` (PSNR/SSIM as pixelNeRF, LPIPS only from local weights), per object the
-    mean over its targets, dataset the mean over objects.
+    mean over its targets, dataset the mean over objects. Random draws of the renderer (only with
+    ``render.sampler.eval_random``) are seeded per object from its id, so no result depends on what else the
+    process evaluated.
+
+Protocol choices
+    The SSIM variant, the precision renders are scored at (8-bit PNG or float) and whether the objects
+    pixelNeRF's evaluation cannot load are left out: :mod:`depthnerf.eval.config` (defaults are pixelNeRF's),
+    recorded in ``summary.json`` ``protocol_choices``.
+
+Scale and resume
+    ``torchrun --nproc_per_node=N -m depthnerf eval ...`` shares the objects out over N processes (one GPU each, or
+    gloo on CPU); every object's result is a file of its own under ``OUT_DIR/objects/``, so a killed evaluation
+    restarted with the same arguments computes only the missing objects, and rank 0 merges the outputs, identical
+    to a one-process run's (:mod:`depthnerf.eval.shards`). ``summary.json`` records ``world_size``.
 
 Resolution
     ``resolution`` is the size targets are rendered and scored at; default the checkpoint's training resolution
@@ -25,51 +38,49 @@ Resolution
     maps, else ``mesh.ply`` (``geometry_gt``), in ``mesh.ply`` diagonals (:mod:`depthnerf.eval.geometry_metrics`).
     Objects without ``mesh.ply`` get empty geometry cells; the means are over objects that have one.
 
-An all-white object (the real SRN cars test set has one) has an empty mask: its prior is the background constant,
-its metrics stay finite (PSNR is capped at 100 dB), and a non-finite dataset metric is an error, never written.
+An all-white object (the real SRN cars test set has one; left out by default, scored with ``--objects all``) has
+an empty mask: its prior is the background constant, its metrics stay finite (PSNR is capped at 100 dB), and a
+non-finite dataset metric is an error, never written.
 
-Outputs in ``OUT_DIR`` (overwritten): ``summary.json`` (what ``depthnerf compare`` reads, see
+Outputs in ``OUT_DIR`` (rewritten at the end of every run): ``summary.json`` (what ``depthnerf compare`` reads, see
 :mod:`depthnerf.eval.table`), ``per_object.csv``, and with ``save_renders``: ``renders/<object_id>/<view>.png``,
 predicted meshes ``meshes/<object_id>.ply`` and ``renders.csv`` (``object_id,view,render_path,gt_path,psnr,ssim``;
 paths relative to ``OUT_DIR`` unless absolute). ``gt_path`` is the dataset's own image when targets are scored at
 its native resolution (read it with :func:`depthnerf.data.srn_format.read_rgb`, which composites alpha on
 white), else an 8-bit copy of the resized ground truth in ``gt/`` (then recomputed metrics differ by 8-bit
-quantisation of the ground truth as well as of the render). Renders are 8-bit PNGs (rounded; truncated with
-``quantize``), so metrics recomputed from them match within 8-bit quantisation.
+quantisation of the ground truth as well as of the render). Renders are 8-bit PNGs (truncated, the image
+scored, with the default ``--scored png8``; rounded with ``--scored float``), so metrics recomputed from them
+match exactly (png8) or within 8-bit quantisation (float). ``objects/``: the per-object result files.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import hashlib
 import io
 import json
 import math
-import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 import trimesh
-from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.srn import ObjectRecord, index_split
 from depthnerf.data.synth.framing import dataset_pixel_center
 from depthnerf.depth.prior import PriorConfig, PriorSource
+from depthnerf.distributed import DistInfo
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.geometry_metrics import (
-    GeometryConfig,
-    GeometryMetrics,
-    object_geometry,
-    summarize_geometry,
-)
+from depthnerf.eval.config import ProtocolChoices, ProtocolConfig
+from depthnerf.eval.geometry_metrics import object_geometry, summarize_geometry
 from depthnerf.eval.metrics import (
+    SSIM_WINDOW_SIDE,
     ImageMetricsConfig,
-    LpipsConfig,
     LpipsMetric,
     ObjectMetrics,
     load_lpips,
@@ -78,75 +89,15 @@ from depthnerf.eval.metrics import (
     summarize,
 )
 from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, dataset_prior, prepare_object, protocol_views
+from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects
 from depthnerf.files import write_text_atomic
 from depthnerf.pretrained.load import Pretrained
-from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
-from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, MeshLevel, input_camera_mesh, levels_text
+from depthnerf.render.guidance import guided_render, make_source_guide
+from depthnerf.render.mesh import MeshConfig, input_camera_mesh, levels_text
 from depthnerf.render.views import render_poses
 
-
-@dataclass(frozen=True)
-class ProtocolConfig:
-    """What ``depthnerf eval`` evaluates and how."""
-
-    split: str = "test"
-    """Split folder suffix (``<category>_<split>``)."""
-    category: str | None = None
-    """Category folder prefix; None = the checkpoint's training category."""
-    views_stride: int = 1
-    """Score every K-th target view (1 = all 250)."""
-    max_objects: int | None = None
-    """Evaluate only the first N objects (sorted by id); None = all."""
-    resolution: int | None = None
-    """Render/score resolution; None = the checkpoint's training resolution (see the module docstring)."""
-    chunk: int = 4096
-    """Rays per render pass (bounds memory)."""
-    mesh: bool = True
-    """Extract a mesh per object and score it against ``mesh.ply`` when the object has one."""
-    mesh_resolution: int = 128
-    """Marching-cubes samples along the longest side of the frustum box."""
-    mesh_threshold: float | str = AUTO_LEVEL
-    """Density level of the extracted surface, or ``"auto"`` (per object, see :mod:`depthnerf.render.mesh`)."""
-    geometry: GeometryConfig = field(default_factory=GeometryConfig)
-    """Chamfer / F-score settings."""
-    save_renders: bool = False
-    """Write rendered PNGs, predicted meshes and ``renders.csv``."""
-    quantize: bool = False
-    """Score 8-bit-truncated renders (pixelNeRF's calc_metrics.py path) instead of float renders (eval.py)."""
-    method: str | None = None
-    """Row label for ``depthnerf compare``; None = from the depth prior."""
-    depth: str | None = None
-    """Override of the depth prior recorded in the checkpoint (``--depth``; None: the checkpoint's)."""
-    depth_checkpoint: str | None = None
-    """Override of the depth estimator weights recorded in the checkpoint (``--depth-checkpoint``)."""
-    guided: GuidanceConfig | None = None
-    """Render targets with depth-guided sampling (``--guided BUDGET``, :mod:`depthnerf.render.guidance`); None:
-    the checkpoint's own sampler."""
-    lpips: LpipsConfig = field(default_factory=LpipsConfig)
-    """Where LPIPS weights are looked for (never downloaded)."""
-    pixel_center: float | None = None
-    """Pixel-centre convention the model reads the data with (see ``DataConfig.pixel_center``); None = the
-    checkpoint's trained value. Overriding it measures what a convention mismatch costs."""
-    progress: bool = True
-    """Progress bar over objects (stderr)."""
-
-
-@dataclass
-class ObjectResult:
-    """Everything measured on one object."""
-
-    record: ObjectRecord
-    """The object."""
-    views: ProtocolViews
-    """Which views were used."""
-    metrics: ObjectMetrics
-    """Image metrics."""
-    geometry: GeometryMetrics | None
-    """3D metrics; None without a GT mesh or with meshing off."""
-    mesh_level: MeshLevel | None
-    """The density level the mesh was extracted at (None without a mesh)."""
-    seconds: dict[str, float]
-    """Wall-clock seconds of ``render`` (encode + render), ``metrics`` and ``mesh``."""
+__all__ = ["ProtocolChoices", "ProtocolConfig", "ObjectResult", "EvalOutputs", "evaluate_protocol", "method_label",
+           "protocol_text", "PER_OBJECT_COLUMNS"]
 
 
 @dataclass
@@ -178,12 +129,14 @@ class _Evaluator:
         self.near, self.far = pre.spec.z_range
         self.render = pre.spec.render if cfg.guided is None else guided_render(pre.spec.render, cfg.guided.budget)
         self.pixel_center = pre.spec.pixel_center if cfg.pixel_center is None else cfg.pixel_center
-        self.rows: list[dict] = []
+        self.png8 = cfg.choices.scored == "png8"
+        self.metrics_cfg = ImageMetricsConfig(quantize_pred=self.png8, ssim_window=cfg.choices.ssim)
 
     @torch.no_grad()
     def __call__(self, record: ObjectRecord) -> ObjectResult:
         model, cfg = self.pre.model, self.cfg
         views = protocol_views(record.num_views, cfg.views_stride)
+        torch.manual_seed(object_seed(record.object_id))  # eval_random draws: the same in any process
         t0 = time.perf_counter()
         obj = prepare_object(model, record, views, self.prior, self.input_res, self.eval_res, self.device,
                              pixel_center=self.pixel_center)
@@ -197,8 +150,7 @@ class _Evaluator:
                              cfg.chunk, self.device, guide=guide).rgb.numpy()
         gts = tgt.images.permute(0, 2, 3, 1).numpy()
         t1 = time.perf_counter()
-        metrics = object_metrics(record.object_id, preds, gts, ImageMetricsConfig(quantize_pred=cfg.quantize),
-                                 self.lpips)
+        metrics = object_metrics(record.object_id, preds, gts, self.metrics_cfg, self.lpips)
         t2 = time.perf_counter()
         geometry, mesh, level = None, None, None
         if cfg.mesh and record.mesh_path is not None:
@@ -207,20 +159,20 @@ class _Evaluator:
                                             colored=False)
             geometry = object_geometry(mesh, record, cfg.geometry)
         t3 = time.perf_counter()
-        if cfg.save_renders:
-            self._save(record, views, preds, gts, metrics, mesh)
+        rows = self._save(record, views, preds, gts, metrics, mesh) if cfg.save_renders else []
         return ObjectResult(record=record, views=views, metrics=metrics, geometry=geometry, mesh_level=level,
-                            seconds={"render": t1 - t0, "metrics": t2 - t1, "mesh": t3 - t2})
+                            seconds={"render": t1 - t0, "metrics": t2 - t1, "mesh": t3 - t2}, renders=rows)
 
     def _save(self, record: ObjectRecord, views: ProtocolViews, preds: np.ndarray, gts: np.ndarray,
-              metrics: ObjectMetrics, mesh: trimesh.Trimesh | None) -> None:
+              metrics: ObjectMetrics, mesh: trimesh.Trimesh | None) -> list[dict]:
         native = (record.intrinsics.height, record.intrinsics.width) == gts.shape[1:3]
+        rows = []
         for k, view in enumerate(views.targets):
             name = f"{record.view_names[view]}.png"
             render_rel = Path("renders") / record.object_id / name
             (self.out_dir / render_rel).parent.mkdir(parents=True, exist_ok=True)
-            pred = preds[k] if not self.cfg.quantize else np.floor(np.clip(preds[k], 0, 1) * 255).astype(np.uint8)
-            srn_format.write_rgb(self.out_dir / render_rel, pred)  # 8-bit PNG (truncated with --quantize)
+            pred = np.floor(np.clip(preds[k], 0, 1) * 255).astype(np.uint8) if self.png8 else preds[k]
+            srn_format.write_rgb(self.out_dir / render_rel, pred)  # 8-bit PNG: the scored image with png8
             if native:
                 gt_path = str(record.rgb_path(view).resolve())
             else:
@@ -228,12 +180,18 @@ class _Evaluator:
                 (self.out_dir / gt_rel).parent.mkdir(parents=True, exist_ok=True)
                 srn_format.write_rgb(self.out_dir / gt_rel, gts[k])
                 gt_path = gt_rel.as_posix()
-            self.rows.append({"object_id": record.object_id, "view": view, "render_path": render_rel.as_posix(),
-                              "gt_path": gt_path, "psnr": repr(metrics.views[k].psnr),
-                              "ssim": repr(metrics.views[k].ssim)})
+            rows.append({"object_id": record.object_id, "view": view, "render_path": render_rel.as_posix(),
+                         "gt_path": gt_path, "psnr": repr(metrics.views[k].psnr),
+                         "ssim": repr(metrics.views[k].ssim)})
         if mesh is not None:
             (self.out_dir / "meshes").mkdir(exist_ok=True)
             mesh.export(self.out_dir / "meshes" / f"{record.object_id}.ply")
+        return rows
+
+
+def object_seed(object_id: str) -> int:
+    """The seed of an object's random render draws (from its id alone)."""
+    return int(hashlib.sha256(object_id.encode()).hexdigest()[:15], 16)
 
 
 def _fmt(value: float | None) -> str:
@@ -249,7 +207,8 @@ def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> None
 
 
 PER_OBJECT_COLUMNS = ("object_id", "input_view", "views", "psnr", "ssim", "lpips", "chamfer_l1", "fscore",
-                      "accuracy", "completeness", "precision", "recall", "empty_mesh", "mesh_level", "seconds")
+                      "floater_fraction", "accuracy", "completeness", "precision", "recall", "empty_mesh",
+                      "mesh_level", "seconds")
 """Columns of ``per_object.csv`` (empty cell = not measured)."""
 
 
@@ -258,13 +217,14 @@ def _per_object_row(r: ObjectResult) -> dict:
     return {"object_id": r.record.object_id, "input_view": r.views.input_view, "views": len(r.views.targets),
             "psnr": _fmt(r.metrics.psnr), "ssim": _fmt(r.metrics.ssim), "lpips": _fmt(r.metrics.lpips),
             **{k: _fmt(getattr(g, k)) if g is not None else ""
-               for k in ("chamfer_l1", "fscore", "accuracy", "completeness", "precision", "recall")},
+               for k in ("chamfer_l1", "fscore", "floater_fraction", "accuracy", "completeness", "precision",
+                         "recall")},
             "empty_mesh": "" if g is None else int(g.empty_prediction), "seconds": f"{sum(r.seconds.values()):.3f}",
             "mesh_level": _fmt(r.mesh_level.level if r.mesh_level else None)}
 
 
 def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: str, category: str, stride: int,
-                  eval_res: int, input_res: int, deterministic: bool) -> str:
+                  eval_res: int, input_res: int, deterministic: bool, skipped: Sequence[str] = ()) -> str:
     """One line saying exactly which protocol ran."""
     inputs = sorted({r.views.input_view for r in results})
     others = sorted({r.views.others for r in results})
@@ -283,8 +243,9 @@ def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: st
     if input_res != eval_res:
         res += f" (input view encoded at the training resolution {input_res}x{input_res})"
     sampling = "deterministic sampling" if deterministic else "random sampling (render.sampler.eval_random)"
-    return (f"{head}, {targets}, {len(results)} of {total_objects} objects of {category}_{split}, {res}, "
-            f"{sampling}")
+    left_out = f" ({', '.join(skipped)} left out: pixelNeRF cannot load it)" if skipped else ""
+    return (f"{head}, {targets}, {len(results)} of {total_objects} objects of {category}_{split}{left_out}, "
+            f"{res}, {sampling}")
 
 
 def _data_card(root: Path, category: str) -> dict:
@@ -298,11 +259,33 @@ def _data_card(root: Path, category: str) -> dict:
     return {"root": str(root.resolve()), "card_path": str(card_path.resolve()) if card else None, "card": card}
 
 
-def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: ProtocolConfig = ProtocolConfig(),
-                      device: torch.device | str = "cpu") -> EvalOutputs:
-    """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring)."""
+def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: str, prior: PriorSource,
+              eval_res: int, pixel_center: float, lpips_ok: bool, device: torch.device) -> dict:
+    """What every per-object result depends on (the resume check of
+    :class:`~depthnerf.eval.shards.ObjectStore`)."""
+    model = pre.model
+    return {"checkpoint_sha256": pre.sha256, "data_root": str(data_root.resolve()), "category": category,
+            "split": cfg.split, "views_stride": cfg.views_stride, "resolution": eval_res,
+            "input_resolution": pre.spec.resolution, "chunk": cfg.chunk, "mesh": cfg.mesh,
+            "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
+            "geometry": dataclasses.asdict(cfg.geometry), "save_renders": cfg.save_renders,
+            "choices": dataclasses.asdict(cfg.choices), "prior": prior.provenance,
+            "guided": None if cfg.guided is None else dataclasses.asdict(cfg.guided), "lpips": lpips_ok,
+            "lpips_net": cfg.lpips.net, "pixel_center": pixel_center, "device": device.type,
+            "autocast": str(getattr(model, "inference_autocast", None)),
+            "point_chunk": getattr(model, "inference_chunk_points", None)}
+
+
+def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: ProtocolConfig | None = None,
+                      device: torch.device | str = "cpu", info: DistInfo | None = None) -> EvalOutputs | None:
+    """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring). With ``info`` (a
+    ``torchrun`` job) this rank scores its share of the objects; rank 0 merges and returns the outputs, the other
+    ranks return None."""
     t_start = time.perf_counter()
     device = torch.device(device)
+    info = info or DistInfo(rank=0, world=1, device=device)
+    cfg = cfg or ProtocolConfig()
+    choices = cfg.choices.check()
     spec = pre.spec
     data_root, out_dir = Path(data_root), Path(out_dir)
     category = cfg.category or spec.category
@@ -316,11 +299,17 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
     # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
     cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=dataset_pixel_center(data_root, category)))
-    records = all_records[: cfg.max_objects] if cfg.max_objects else all_records
+    skipped = [r.object_id for r in all_records if choices.skips(r.object_id)]
+    kept = [r for r in all_records if not choices.skips(r.object_id)]
+    if not kept:
+        raise DepthnerfError(f"{data_root}: every object of {category}_{cfg.split} is left out by --objects "
+                             f"{choices.objects}")
+    records = kept[: cfg.max_objects] if cfg.max_objects else kept
     input_res = spec.resolution
     eval_res = cfg.resolution or input_res
-    if eval_res < 8:
-        raise DepthnerfError(f"--resolution must be >= 8 (SSIM window 7), got {eval_res}")
+    side = max(8, SSIM_WINDOW_SIDE[choices.ssim])
+    if eval_res < side:
+        raise DepthnerfError(f"--resolution must be >= {side} (SSIM {choices.ssim}), got {eval_res}")
     prior_cfg = spec.prior
     if cfg.depth is not None or cfg.depth_checkpoint is not None:
         estimator = cfg.depth or prior_cfg.estimator
@@ -335,10 +324,12 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
     out_dir.mkdir(parents=True, exist_ok=True)
     evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device)
-    results = []
-    for record in tqdm(records, desc="eval", unit="obj", file=sys.stderr, disable=not cfg.progress,
-                       dynamic_ncols=True):
-        results.append(evaluator(record))
+    store = ObjectStore(out_dir, _settings(pre, cfg, data_root, category, prior, eval_res,
+                                           evaluator.pixel_center, lpips is not None, device))
+    results, counts = evaluate_objects(records, evaluator, store, info, cfg.views_stride, overwrite=cfg.overwrite,
+                                       progress=cfg.progress)
+    if results is None:
+        return None
 
     summary = summarize([r.metrics for r in results], lp_reason)
     geo = [r.geometry for r in results if r.geometry is not None]
@@ -348,7 +339,8 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         summary["mesh_status"] = (f"ok: {len(geo)} of {len(results)} objects have mesh.ply; "
                                   + levels_text([r.mesh_level for r in results if r.mesh_level], cfg.mesh_resolution))
     else:
-        summary.update({"chamfer_l1": None, "fscore": None, "fscore_tau": None, "geometry_objects": 0})
+        summary.update({"chamfer_l1": None, "fscore": None, "fscore_tau": None, "floater_fraction": None,
+                        "geometry_objects": 0})
         summary["mesh_status"] = ("skipped (--no-mesh)" if not cfg.mesh
                                   else f"skipped: none of the {len(results)} objects has mesh.ply")
     native = sorted({(r.record.intrinsics.height, r.record.intrinsics.width) for r in results})
@@ -356,7 +348,8 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     total = time.perf_counter() - t_start
     summary.update({
         "protocol": protocol_text(results, len(all_records), cfg.split, category, cfg.views_stride, eval_res,
-                                  input_res, deterministic),
+                                  input_res, deterministic, skipped),
+        "protocol_choices": choices.record(skipped),
         "method": cfg.method or method_label(estimator) + (
             f" + guided sampling ({cfg.guided.budget}/ray)" if cfg.guided is not None else ""),
         "guided_sampling": None if cfg.guided is None else dataclasses.asdict(cfg.guided),
@@ -369,12 +362,15 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
         "pixel_center": evaluator.pixel_center, "trained_pixel_center": spec.pixel_center,
         "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),
-        "metrics_path": "quantized 8-bit renders (calc_metrics.py)" if cfg.quantize else "float renders (eval.py)",
+        "metrics_path": ("quantized 8-bit renders (calc_metrics.py)" if choices.scored == "png8"
+                         else "float renders (eval.py)"),
+        "world_size": info.world,
         "timing": {"total_s": total, "per_object_s": total / len(results),
                    **{f"{k}_s": float(sum(r.seconds[k] for r in results)) for k in ("render", "metrics", "mesh")},
-                   "device": str(device), "torch_threads": torch.get_num_threads()},
+                   "device": str(device), "torch_threads": torch.get_num_threads(),
+                   "objects_computed": counts.computed, "objects_resumed": counts.resumed},
     })
-    for key in ("psnr", "ssim", "lpips", "chamfer_l1", "fscore"):
+    for key in ("psnr", "ssim", "lpips", "chamfer_l1", "fscore", "floater_fraction"):
         value = summary.get(key)
         if value is not None and not math.isfinite(value):
             raise DepthnerfError(f"evaluation produced a non-finite {key} ({value}); refusing to write it")
@@ -383,7 +379,8 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     renders = None
     if cfg.save_renders:
         renders = out_dir / "renders.csv"
-        _write_csv(renders, ("object_id", "view", "render_path", "gt_path", "psnr", "ssim"), evaluator.rows)
+        _write_csv(renders, ("object_id", "view", "render_path", "gt_path", "psnr", "ssim"),
+                   [row for r in results for row in r.renders])
         summary["renders_csv"] = renders.name
     summary_path = out_dir / "summary.json"
     write_text_atomic(summary_path, json.dumps(summary, indent=1) + "\n")

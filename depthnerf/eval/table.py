@@ -3,7 +3,8 @@
 Input contract: ``summary.json`` written by ``depthnerf eval`` into its output directory, a JSON object with at
 least ``psnr``, ``ssim`` (numbers), ``objects``, ``views`` (counts) and the provenance ``checkpoint_sha256``,
 ``preset``, ``category``, ``depth_prior``, ``method`` (the row label) and ``protocol`` (text); optional numbers
-``chamfer_l1``, ``fscore`` (with optional ``fscore_tau``) and ``lpips`` (null = not available).
+``chamfer_l1``, ``fscore`` (with optional ``fscore_tau``), ``floater_fraction`` and ``lpips`` (null = not
+available).
 
 A path given to :func:`find_summaries` is a summary file, an eval output directory (``DIR/summary.json``) or a run
 directory (``DIR/eval/*/summary.json``). Rows are methods (first-seen order), column groups are categories
@@ -21,11 +22,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
+from depthnerf.eval.config import RecordedChoices, recorded_choices
 
 REQUIRED_KEYS = ("psnr", "ssim", "objects", "views", "checkpoint_sha256", "preset", "category", "depth_prior",
                  "method", "protocol")
 """Keys every ``summary.json`` must have."""
-OPTIONAL_METRICS = ("chamfer_l1", "fscore", "lpips")
+OPTIONAL_METRICS = ("chamfer_l1", "fscore", "floater_fraction", "lpips")
 """Optional metric keys (number or null)."""
 PAPER_LABEL = "reported in the paper (real SRN)"
 """Suffix of the reference rows: numbers copied from the paper, measured on the real SRN data, not by us."""
@@ -39,7 +41,7 @@ PAPER_TABLE1 = (
 CATEGORY_ORDER = ("chairs", "cars")
 """Column order of the paper; other categories follow alphabetically."""
 COLUMNS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("chamfer_l1", "CD-L1", 4), ("fscore", "F-score", 3),
-           ("lpips", "LPIPS", 3))
+           ("floater_fraction", "Floaters", 3), ("lpips", "LPIPS", 3))
 """(key, header, decimals) of every metric column, in order."""
 MISSING = "—"
 """Cell text when a method has no value for a column."""
@@ -63,6 +65,8 @@ class EvalSummary:
     """Number of evaluated views."""
     provenance: dict[str, str]
     """``checkpoint_sha256``, ``preset``, ``depth_prior``, ``protocol`` (and ``fscore_tau`` when given)."""
+    choices: RecordedChoices | None = None
+    """The protocol choices it was scored with (:func:`depthnerf.eval.config.recorded_choices`)."""
 
 
 def _number(path: Path, data: dict, key: str, optional: bool) -> float | None:
@@ -102,7 +106,8 @@ def load_summary(path: Path) -> EvalSummary:
     if data.get("fscore_tau") is not None:
         provenance["fscore_tau"] = str(data["fscore_tau"])
     return EvalSummary(path=path, method=data["method"].strip(), category=data["category"].strip().lower(),
-                       metrics=metrics, objects=counts["objects"], views=counts["views"], provenance=provenance)
+                       metrics=metrics, objects=counts["objects"], views=counts["views"], provenance=provenance,
+                       choices=recorded_choices(path, data))
 
 
 def find_summaries(path: Path) -> list[Path]:

@@ -15,17 +15,25 @@ Layout of ``OUT`` (every path in ``manifest.json`` is relative to ``OUT``)::
     turntable.gif                 the orbit views as an endless GIF (``TURNTABLE_FPS``)
     turntable.mp4                 the same as H.264 when ``imageio-ffmpeg`` is installed (else the manifest says so)
     mesh.ply                      vertex-coloured world-frame mesh, +z up (may be empty: ``mesh.empty`` in the
-                                  manifest)
+                                  manifest; not written with ``mesh_resolution`` 0: ``mesh.made`` false)
     mesh.glb                      the same mesh in glTF's frame (+y up, :data:`GLTF_FROM_WORLD`), so any glTF
                                   viewer shows it upright
     points.ply                    coloured world-frame point cloud
     manifest.json                 all of the above + checkpoint, settings, notes and timings
+
+These names (:data:`OUTPUT_NAMES`, :data:`NUMBERED_OUTPUTS`) are the files a reconstruction owns in ``OUT``:
+writing one first removes an earlier reconstruction's (so no stale frame of a longer orbit survives) and leaves
+every other file alone. :func:`check_output_dir` is what ``depthnerf reconstruct`` runs before any work: the
+folder must be creatable and writable, and may hold an earlier reconstruction only with ``--overwrite``.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import re
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -44,6 +52,54 @@ TURNTABLE_FPS = 12
 """Frames per second of the turntable GIF / MP4."""
 GLTF_FROM_WORLD = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
 """World (+z up) to glTF (+y up): ``(x, y, z) -> (x, z, -y)``, a rotation of -90 degrees about +x."""
+OUTPUT_NAMES = ("manifest.json", "input.png", "input_mask.png", "cutout.png", "depth_prior.png", "depths.npz",
+                "turntable.gif", "turntable.mp4", "mesh.ply", "mesh.glb", "points.ply")
+"""Files a reconstruction writes at the top of its folder."""
+NUMBERED_OUTPUTS = {"views": re.compile(r"view_\d{3,}\.png"), "depths": re.compile(r"depth_\d{3,}\.png")}
+"""Sub-folder -> the per-view files a reconstruction writes there."""
+
+
+def earlier_outputs(out: Path) -> list[Path]:
+    """The files of an earlier reconstruction in ``out``: :data:`OUTPUT_NAMES` and :data:`NUMBERED_OUTPUTS`."""
+    found = [out / name for name in OUTPUT_NAMES if (out / name).is_file()]
+    for sub, pattern in NUMBERED_OUTPUTS.items():
+        if (out / sub).is_dir():
+            found += sorted(p for p in (out / sub).iterdir() if p.is_file() and pattern.fullmatch(p.name))
+    return found
+
+
+def check_output_dir(out: Path, overwrite: bool = False) -> None:
+    """Fail at once, before any work, when ``out`` cannot take a reconstruction: a file, not creatable or not
+    writable, or holding an earlier reconstruction (unless ``overwrite``). Creates nothing."""
+    out = Path(out)
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        what = "--out" if existing == out else f"the output folder's parent {existing}"
+        raise DepthnerfError(f"{out}: {what} is a file, not a folder")
+    try:
+        handle, probe = tempfile.mkstemp(dir=existing, prefix=".depthnerf-write-check-")
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as err:
+        raise DepthnerfError(f"{out}: cannot write the output folder{'' if existing == out else f' in {existing}'} "
+                             f"({err.strerror or err})") from None
+    earlier = earlier_outputs(out) if existing == out else []
+    if earlier and not overwrite:
+        raise DepthnerfError(f"{out}: holds an earlier reconstruction ({len(earlier)} files: "
+                             f"{', '.join(p.relative_to(out).as_posix() for p in earlier[:3])}"
+                             f"{', ...' if len(earlier) > 3 else ''}); pass --overwrite to replace it, or choose "
+                             "another --out")
+
+
+def clear_outputs(out: Path) -> None:
+    """Remove an earlier reconstruction's files from ``out`` (and its sub-folders when that empties them)."""
+    for path in earlier_outputs(out):
+        path.unlink()
+    for sub in NUMBERED_OUTPUTS:
+        if (out / sub).is_dir() and not any((out / sub).iterdir()):
+            (out / sub).rmdir()
 
 
 def to_u8(x: np.ndarray) -> np.ndarray:
@@ -69,6 +125,8 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
     t0 = time.perf_counter()
     out = Path(out_dir)
     try:
+        if out.is_dir():
+            clear_outputs(out)
         (out / "views").mkdir(parents=True, exist_ok=True)
         (out / "depths").mkdir(exist_ok=True)
     except OSError as err:
@@ -108,9 +166,11 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
     else:
         files["turntable_mp4"] = None
         mp4_status = "not written: imageio-ffmpeg is not installed (pip install 'depthnerf[video]')"
-    result.mesh.export(out / "mesh.ply")
-    result.mesh.copy().apply_transform(GLTF_FROM_WORLD).export(out / "mesh.glb")
-    files["mesh_ply"], files["mesh_glb"] = "mesh.ply", "mesh.glb"
+    made = result.settings.get("mesh_resolution", 1) != 0
+    if made:
+        result.mesh.export(out / "mesh.ply")
+        result.mesh.copy().apply_transform(GLTF_FROM_WORLD).export(out / "mesh.glb")
+    files["mesh_ply"], files["mesh_glb"] = ("mesh.ply", "mesh.glb") if made else (None, None)
     rgba = np.concatenate([to_u8(result.point_colors), np.full((len(result.points), 1), 255, np.uint8)], axis=1)
     if len(result.points):
         trimesh.PointCloud(result.points, colors=rgba).export(out / "points.ply")
@@ -120,6 +180,9 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
                           "property uchar blue\nproperty uchar alpha\nend_header\n")
     files["point_cloud"] = "points.ply"
     empty = len(result.mesh.faces) == 0
+    mesh_note = ("not made (mesh resolution 0)" if not made else
+                 "the density never reached the marching-cubes level inside the input frustum" if empty else
+                 "world frame, vertex colours from the fine network")
     manifest = {
         **provenance,
         "files": files,
@@ -129,9 +192,8 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
         "settings": result.settings,
         "intrinsics": {"focal": intr.focal, "cx": intr.cx, "cy": intr.cy, "height": intr.height,
                        "width": intr.width},
-        "mesh": {"vertices": int(len(result.mesh.vertices)), "faces": int(len(result.mesh.faces)), "empty": empty,
-                 "note": ("the density never reached the marching-cubes level inside the input frustum"
-                          if empty else "world frame, vertex colours from the fine network")},
+        "mesh": {"made": made, "vertices": int(len(result.mesh.vertices)), "faces": int(len(result.mesh.faces)),
+                 "empty": empty, "note": mesh_note},
         "point_cloud": {"points": int(len(result.points)),
                         "rule": f"rendered depth of every view where opacity > {result.settings['point_opacity']}"},
         "conventions": "world +z up, object at the origin, poses camera-to-world with OpenCV axes; depths are "

@@ -1,7 +1,9 @@
 """Reading, masking and framing one photo for a model (the first step of :mod:`depthnerf.reconstruct`).
 
 Input photo (assumption: ONE object, roughly centred, on a plain background)
-    Any image Pillow reads; grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
+    A PNG, JPEG or WebP file (:data:`PHOTO_FORMATS`; other formats, GIF animations included, are refused with one
+    line, by ``depthnerf reconstruct`` and the app alike; arrays and in-memory images are taken as they are);
+    grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
     images larger than :data:`MAX_SIDE` px are first downscaled (box filter) so the longer side is ``MAX_SIDE``
     (noted). Mask, in order: the given mask (non-zero = object, same size as the image); else the alpha channel
     (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
@@ -59,6 +61,8 @@ MAX_OBJECT_AREA = 0.9
 """Largest fraction of the image the border-colour mask may cover before the background counts as cluttered."""
 DEFAULT_FILL = 0.62
 """``fill`` for other categories."""
+PHOTO_FORMATS = {"PNG": "PNG", "JPEG": "JPEG", "MPO": "JPEG", "WEBP": "WebP"}
+"""Accepted photo file formats: Pillow's format name -> the name shown (MPO: a camera's multi-picture JPEG)."""
 ImageLike = str | Path | np.ndarray | Image.Image
 
 
@@ -89,12 +93,22 @@ def _to_float(arr: np.ndarray) -> np.ndarray:
     return np.clip(arr.astype(np.float32), 0.0, 1.0)
 
 
+def check_photo_format(fmt: str | None, name: str) -> None:
+    """One line when a file's Pillow format ``fmt`` is not a :data:`PHOTO_FORMATS` one (None: not from a file)."""
+    if fmt is not None and fmt not in PHOTO_FORMATS:
+        raise DepthnerfError(f"{name}: {fmt} images are not supported; use a PNG, JPEG or WebP photo")
+
+
 def _open(source: str | Path | Image.Image, name: str) -> Image.Image:
     try:
         im = source if isinstance(source, Image.Image) else Image.open(source)
+        if not isinstance(source, Image.Image):
+            check_photo_format(im.format, name)
         im.load()
     except FileNotFoundError:
         raise DepthnerfError(f"{name}: image file not found") from None
+    except IsADirectoryError:
+        raise DepthnerfError(f"{name}: is a folder, not an image file") from None
     except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{name}: unreadable image ({err})") from None
     if im.mode in ("P", "PA", "CMYK", "YCbCr", "HSV", "LAB", "RGBa", "La"):

@@ -29,7 +29,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +48,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.model.conditioning import Conditioned, condition
 from depthnerf.model.pixelnerf import EncodedViews
 from depthnerf.pretrained.load import Pretrained, load_pretrained
-from depthnerf.reconstruct.background import BackgroundRemover, choose_remover
+from depthnerf.reconstruct.background import MODES, BackgroundRemover, choose_remover
 from depthnerf.reconstruct.exports import save_reconstruction
 from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsics
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
@@ -97,6 +97,22 @@ class ReconstructConfig:
     (:mod:`depthnerf.reconstruct.background`)."""
     background_model: str | None = None
     """rembg model name or ONNX file; None = :data:`~depthnerf.reconstruct.background.DEFAULT_MODEL`."""
+
+    def __post_init__(self) -> None:
+        """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
+        for name, value, least in (("views", self.views, 1), ("render_resolution", self.render_resolution, 1),
+                                   ("chunk", self.chunk, 1), ("max_points", self.max_points, 0)):
+            if value is not None and value < least:
+                raise DepthnerfError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
+        if self.mesh_resolution != 0 and self.mesh_resolution < 2:
+            raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
+        if self.fill is not None and not 0 < self.fill <= 1:
+            raise DepthnerfError(f"--fill must be in (0, 1], got {self.fill}")
+        if self.framing not in ("auto", "keep"):
+            raise DepthnerfError(f"--framing must be 'auto' or 'keep', got {self.framing!r}")
+        if self.background_removal not in MODES:
+            raise DepthnerfError(f"--background-removal must be one of {', '.join(MODES)}, "
+                                 f"got {self.background_removal!r}")
 
 
 @dataclass
@@ -171,7 +187,9 @@ class Reconstructor:
         """Reconstruct one photo (see the module docstring); ``views`` (default 36) overrides ``config.views``;
         ``background`` (e.g. over your own rembg session) replaces the config's background removal."""
         cfg = config or ReconstructConfig()
-        views = cfg.views if views is None else views
+        if views is not None:
+            cfg = replace(cfg, views=views)
+        views = cfg.views
         spec = self.pretrained.spec
         times: dict[str, float] = {}
         t = time.perf_counter()
@@ -276,7 +294,8 @@ class Reconstructor:
             point_colors=colors.astype(np.float32), settings=settings, timings=times)
 
     def save(self, result: Reconstruction, out_dir: str | Path) -> dict[str, Any]:
-        """Write every output into ``out_dir`` and return the manifest (also ``out_dir/manifest.json``)."""
+        """Write every output into ``out_dir`` and return the manifest (also ``out_dir/manifest.json``); an earlier
+        reconstruction's files there are replaced, other files left (:mod:`depthnerf.reconstruct.exports`)."""
         pre = self.pretrained
         provenance = {"checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256,
                       "checkpoint_step": pre.step, "preset": pre.spec.preset}

@@ -84,7 +84,8 @@ class ScheduleConfig:
     background_opacity_weight: float = 0.0
     """Weight of :func:`~depthnerf.train.step.background_opacity_per_object` on coarse and fine opacity of
     background target rays, averaged over objects (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
-    colour loss; this term penalises it (the white floaters of docs/RESULTS.md)."""
+    colour loss; this term penalises it (the white floaters of docs/RESULTS.md). The term is measured and logged
+    (``loss_background``) at every weight, 0 included."""
 
 
 @dataclass
@@ -134,8 +135,36 @@ def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) 
     return dataclasses.replace(cfg, prior=PriorConfig(estimator=estimator, checkpoint=checkpoint))
 
 
+NUMBER_RULES: dict[str, tuple[float, bool]] = {
+    "data.resolution": (8, True), "data.target_views": (0, True), "data.num_workers": (0, True),
+    "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
+    "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
+    "schedule.lr_decay": (0, False), "schedule.depth_loss_weight": (0, True),
+    "schedule.background_opacity_weight": (0, True), "log.log_every": (1, True), "log.val_every": (0, True),
+    "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
+    "log.render_chunk": (1, True)}
+"""Config path -> (bound, inclusive): the value must be ``>= bound`` (inclusive) or ``> bound``."""
+NAMED_FLAGS = {"schedule.max_steps": "--max-steps", "log.checkpoint_every": "--checkpoint-every"}
+"""Config paths that have a named ``depthnerf train`` flag (the others are set as ``--section.field``)."""
+
+
+def _field(cfg: Any, path: str) -> Any:
+    for name in path.split("."):
+        cfg = getattr(cfg, name)
+    return cfg
+
+
 def check_config(cfg: TrainConfig) -> TrainConfig:
-    """``cfg`` if every setting in it is honoured by training, else a one-line :class:`DepthnerfError`."""
+    """``cfg`` if every setting in it is honoured by training, else a one-line :class:`DepthnerfError` (naming
+    the flag, before anything is written)."""
+    for path, (bound, inclusive) in NUMBER_RULES.items():
+        value = _field(cfg, path)
+        if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
+            flag = NAMED_FLAGS.get(path, f"--{path}")
+            raise DepthnerfError(f"{flag} must be {'>=' if inclusive else '>'} {bound:g}, got {value}")
+    near, far = cfg.data.z_near, cfg.data.z_far
+    if near is not None and far is not None and not 0 <= near < far:
+        raise DepthnerfError(f"--data.z_near / --data.z_far must satisfy 0 <= z_near < z_far, got {near}, {far}")
     if cfg.render.guided.enabled:
         raise DepthnerfError("--render.guided.enabled: depth-guided sampling is an inference-time renderer "
                              "(depthnerf eval/reconstruct --guided); training renders with the paper's sampler")
@@ -152,6 +181,11 @@ def _paper(category: str) -> TrainConfig:
                        render=RenderConfig(), schedule=ScheduleConfig(), log=LogConfig())
 
 
+CPU_BACKGROUND_OPACITY_WEIGHT = 0.02
+"""The CPU presets' background-opacity weight (beyond the paper; the paper presets keep 0): without it the
+depth-aware car model grows white density on background rays (docs/RESULTS.md, "Floaters")."""
+
+
 def _cpu(category: str) -> TrainConfig:
     """Sized for a 2-core CPU in <= 45 minutes (each reduction documented in docs/presets.md)."""
     small_field = FieldConfig(d_hidden=64, n_blocks=5, combine_layer=3, density_bias_init=DENSITY_BIAS)
@@ -162,7 +196,8 @@ def _cpu(category: str) -> TrainConfig:
         model=PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18"), coarse=small_field, fine=small_field),
         render=RenderConfig(sampler=SamplerConfig(n_coarse=32, n_importance=16, n_gaussian=8)),
         schedule=ScheduleConfig(max_steps=2000, bbox_steps=500, objects_phase1=4, objects_phase2=4,
-                                rays_per_object=128, lr=1e-4 * 3, lr_decay=0.995),
+                                rays_per_object=128, lr=1e-4 * 3, lr_decay=0.995,
+                                background_opacity_weight=CPU_BACKGROUND_OPACITY_WEIGHT),
         log=LogConfig(log_every=25, val_every=250, val_objects=4, val_views=(0, 125, 200),
                       checkpoint_every=250, keep_last=2, render_chunk=4096),
     )

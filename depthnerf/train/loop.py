@@ -34,6 +34,7 @@ from tqdm import tqdm
 from depthnerf.config_io import to_dict
 from depthnerf.data.srn import index_split
 from depthnerf.depth.prior import PriorSource, open_prior
+from depthnerf.distributed import DistInfo, barrier
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF
@@ -41,7 +42,6 @@ from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, StepSampler, collate, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
-from depthnerf.train.distributed import DistInfo, barrier
 from depthnerf.train.items import TrainItems
 from depthnerf.train.run_log import RunLog, record_launch
 from depthnerf.train.step import BatchLoss, train_step

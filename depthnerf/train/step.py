@@ -48,7 +48,7 @@ class LossTerms:
     depth: Tensor
     """Scale/shift-invariant depth loss (0 when off)."""
     background: Tensor
-    """Background-opacity loss, coarse + fine (0 when off)."""
+    """Background-opacity term, coarse + fine: measured whether or not it is weighted into ``total``."""
 
     def stacked(self) -> Float[Tensor, " 5"]:
         """The terms in :data:`TERMS` order, detached, fp32, on the device."""
@@ -91,11 +91,13 @@ class BatchLoss(torch.nn.Module):
                                                      batch.target_fg, dirs_cam_z=batch.target_cos)
             depth = per_object.mean()
             total = total + self.depth_weight * depth
-        background = total * 0
+        # always measured (logged as loss_background: the floater diagnostic), back-propagated only when weighted
+        background = (background_opacity_per_object(out.coarse.opacity, batch.target_fg)
+                      + background_opacity_per_object(out.fine.opacity, batch.target_fg)).mean()
         if self.background_weight > 0:
-            background = (background_opacity_per_object(out.coarse.opacity, batch.target_fg)
-                          + background_opacity_per_object(out.fine.opacity, batch.target_fg)).mean()
             total = total + self.background_weight * background
+        else:
+            background = background.detach()
         return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth, background=background)
 
 

@@ -25,7 +25,7 @@ from types import FrameType
 
 import torch
 
-from depthnerf.train.distributed import DistInfo
+from depthnerf.distributed import DistInfo
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
 """Signals that stop training with a checkpoint."""

@@ -311,8 +311,10 @@ def generate(config: SynthConfig) -> dict:
     for name, n in config.counts().items():
         if n < 0:
             raise DepthnerfError(f"synth: --{name}-objects must be >= 0 (got {n})")
-    if config.resolution < 8 or config.views_train < 1 or config.views_test < 1 or config.workers < 1:
-        raise DepthnerfError("synth: --resolution must be >= 8 and --views-*, --workers >= 1")
+    for flag, value, least in (("--resolution", config.resolution, 8), ("--views-train", config.views_train, 1),
+                               ("--views-test", config.views_test, 1), ("--workers", config.workers, 1)):
+        if value < least:
+            raise DepthnerfError(f"synth: {flag} must be >= {least} (got {value})")
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise DepthnerfError(f"{out}: output path exists and is not a directory")

@@ -1,13 +1,18 @@
-"""Process-group set-up for multi-GPU / multi-node training with ``torchrun`` (PyTorch DDP).
+"""Process-group set-up for multi-GPU / multi-node jobs launched with ``torchrun`` (training and evaluation).
 
-``torchrun`` sets ``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK``; without them the run is a single process. The
-backend is NCCL on CUDA and gloo on CPU (what the CPU test uses). Rank 0 alone logs, validates and checkpoints.
+``torchrun`` sets ``RANK``, ``WORLD_SIZE`` and ``LOCAL_RANK``; without them the job is a single process. The
+backend is NCCL on CUDA (one GPU per process, ``LOCAL_RANK`` picks it) and gloo on CPU (what the CPU tests use).
+Training: rank 0 alone logs, validates and checkpoints (PyTorch DDP). Evaluation: every rank scores its share of
+the objects and rank 0 merges them (:func:`gather_to_main`, :func:`broadcast_from_main`). A neutral module: any
+stage may use it.
 """
 
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from datetime import timedelta
+from typing import Any
 
 import torch
 import torch.distributed as dist
@@ -20,7 +25,7 @@ class DistInfo:
     """Where this process sits in the job."""
 
     rank: int
-    """Global rank (0 = the process that logs and checkpoints)."""
+    """Global rank (0 = the process that logs and checkpoints, and merges an evaluation)."""
     world: int
     """Number of processes."""
     device: torch.device
@@ -58,8 +63,9 @@ def pick_device(device: str, local_rank: int = 0) -> torch.device:
     return torch.device(f"cuda:{index}")
 
 
-def setup(device: str = "auto", deterministic: bool = False) -> DistInfo:
-    """Initialise the process group if launched by torchrun, and pick this rank's device."""
+def setup(device: str = "auto", deterministic: bool = False, timeout: timedelta | None = None) -> DistInfo:
+    """Initialise the process group if launched by torchrun, and pick this rank's device. ``timeout``: how long a
+    collective may wait for the slowest rank (None: PyTorch's default)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local = int(os.environ.get("LOCAL_RANK", "0"))
@@ -70,7 +76,8 @@ def setup(device: str = "auto", deterministic: bool = False) -> DistInfo:
     if use_cuda:
         torch.cuda.set_device(dev)
     if world > 1 and not dist.is_initialized():
-        dist.init_process_group(backend="nccl" if use_cuda else "gloo")
+        kwargs = {} if timeout is None else {"timeout": timeout}
+        dist.init_process_group(backend="nccl" if use_cuda else "gloo", **kwargs)
     return DistInfo(rank=rank, world=world, device=dev)
 
 
@@ -82,3 +89,21 @@ def barrier(info: DistInfo) -> None:
 def teardown(info: DistInfo) -> None:
     if info.world > 1 and dist.is_initialized():
         dist.destroy_process_group()
+
+
+def gather_to_main(obj: Any, info: DistInfo) -> list[Any] | None:
+    """Every rank's picklable ``obj``, in rank order, on rank 0 (None on the other ranks); ``[obj]`` alone."""
+    if info.world == 1:
+        return [obj]
+    out = [None] * info.world if info.is_main else None
+    dist.gather_object(obj, out, dst=0)
+    return out
+
+
+def broadcast_from_main(obj: Any, info: DistInfo) -> Any:
+    """Rank 0's picklable ``obj`` on every rank (what the other ranks pass is ignored)."""
+    if info.world == 1:
+        return obj
+    box = [obj if info.is_main else None]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]

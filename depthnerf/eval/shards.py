@@ -1,0 +1,268 @@
+"""Evaluation at scale: objects shared out over ``torchrun`` ranks, one result file per object, exact resume.
+
+Files (under ``OUT_DIR/objects/``)
+    ``settings.json``: everything a per-object result depends on (checkpoint hash, data, views, resolution,
+    chunk, prior, protocol choices, mesh and geometry settings, device type and render precision; not
+    ``--max-objects``, ``--method`` or the number of processes). ``<object_id>.json``: one object's metrics, mesh
+    level, timings and ``renders.csv`` rows, written atomically (:func:`depthnerf.files.write_json_atomic`, a
+    temporary sibling renamed into place) after its PNGs and mesh, with the settings' hash inside. A reader only
+    ever sees whole files; a stray ``.NAME.PID.tmp`` of a killed process is never read, and a file that does not
+    parse or carries another settings hash counts as not done.
+
+Resume
+    :func:`evaluate_objects` skips the objects whose file is there, so a killed evaluation restarted with the same
+    arguments computes only the rest, and the merged outputs equal an uninterrupted run's (the stored floats
+    round-trip exactly through JSON; only timings differ). A restart with other settings, once an object is
+    finished, is a one-line error naming what differs, unless ``--overwrite`` (which deletes the object files).
+
+Sharding
+    Rank 0 checks the folder and sends every rank the same list of unfinished objects (in dataset order); rank
+    ``r`` of ``N`` takes every ``N``-th of them starting at ``r``, writes each object's file as it finishes, and
+    sends its results to rank 0 (over the process group, so the merge does not need a shared file system; rank 0
+    writes the files of objects it did not compute when they are missing, so a restart resumes them too). Rank 0
+    returns every object in dataset order; the summary's means are then the one-process means, bit for bit.
+    ``--save-renders`` PNGs and meshes are written by the rank that computed the object: with several machines,
+    ``OUT_DIR`` should be on a file system they share.
+
+Test hook: with ``DEPTHNERF_CRASH_AT=eval-object@K`` in the environment a process SIGKILLs itself right after
+writing the result file of its K-th object.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from depthnerf.data.protocol import ProtocolViews, protocol_views
+from depthnerf.data.srn import ObjectRecord
+from depthnerf.distributed import DistInfo, broadcast_from_main, gather_to_main
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.geometry_metrics import GeometryMetrics
+from depthnerf.eval.metrics import ObjectMetrics, ViewMetrics
+from depthnerf.files import write_json_atomic
+from depthnerf.render.mesh import MeshLevel
+
+OBJECTS_DIR = "objects"
+"""Folder of the per-object result files, inside the evaluation's output folder."""
+SETTINGS_FILE = "settings.json"
+"""What the results in :data:`OBJECTS_DIR` were computed with."""
+FORMAT = "depthnerf-eval-object-1"
+"""Format tag of a per-object result file."""
+CRASH_STAGE = "eval-object"
+"""``DEPTHNERF_CRASH_AT`` stage of the test hook (module docstring)."""
+
+
+@dataclass
+class ObjectResult:
+    """Everything measured on one object."""
+
+    record: ObjectRecord
+    """The object."""
+    views: ProtocolViews
+    """Which views were used."""
+    metrics: ObjectMetrics
+    """Image metrics."""
+    geometry: GeometryMetrics | None
+    """3D metrics; None without a GT mesh or with meshing off."""
+    mesh_level: MeshLevel | None
+    """The density level the mesh was extracted at (None without a mesh)."""
+    seconds: dict[str, float]
+    """Wall-clock seconds of ``render`` (encode + render), ``metrics`` and ``mesh``."""
+    renders: list[dict] = field(default_factory=list)
+    """Its ``renders.csv`` rows (with ``save_renders``)."""
+
+
+class RefusedOnMain(DepthnerfError):
+    """What a rank other than 0 raises when rank 0 refused the evaluation (rank 0 prints the reason)."""
+
+
+def settings_hash(settings: dict) -> str:
+    """Short stable hash of a settings mapping (sorted-key JSON)."""
+    import hashlib
+
+    return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def encode(result: ObjectResult, settings_sha: str) -> dict:
+    """The JSON content of an object's result file."""
+    m = result.metrics
+    return {"format": FORMAT, "object_id": result.record.object_id, "settings_sha": settings_sha,
+            "metrics": {"psnr": m.psnr, "ssim": m.ssim, "lpips": m.lpips,
+                        "views": [dataclasses.asdict(v) for v in m.views]},
+            "geometry": None if result.geometry is None else dataclasses.asdict(result.geometry),
+            "mesh_level": None if result.mesh_level is None else dataclasses.asdict(result.mesh_level),
+            "seconds": result.seconds, "renders": result.renders}
+
+
+def decode(payload: dict, record: ObjectRecord, stride: int) -> ObjectResult:
+    """An :class:`ObjectResult` back from :func:`encode`'s mapping (``KeyError``/``TypeError`` when malformed)."""
+    m = payload["metrics"]
+    metrics = ObjectMetrics(object_id=record.object_id, views=[ViewMetrics(**v) for v in m["views"]],
+                            psnr=m["psnr"], ssim=m["ssim"], lpips=m["lpips"])
+    geo, level = payload["geometry"], payload["mesh_level"]
+    return ObjectResult(record=record, views=protocol_views(record.num_views, stride), metrics=metrics,
+                        geometry=None if geo is None else GeometryMetrics(**geo),
+                        mesh_level=None if level is None else MeshLevel(**level),
+                        seconds=dict(payload["seconds"]), renders=list(payload["renders"]))
+
+
+def _flat(settings: dict, prefix: str = "") -> dict:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
+    out = {}
+    for key, value in settings.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _differences(old: dict, new: dict) -> list[str]:
+    """``"key OLD there, NEW now"`` for every setting that differs (nested keys dotted)."""
+    old, new = _flat(old), _flat(new)
+    return [f"{k} {json.dumps(old.get(k))} there, {json.dumps(new.get(k))} now"
+            for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+
+
+class ObjectStore:
+    """The per-object result files of one evaluation (module docstring)."""
+
+    def __init__(self, out_dir: Path, settings: dict) -> None:
+        self.dir = Path(out_dir) / OBJECTS_DIR
+        self.settings = json.loads(json.dumps(settings))  # as it reads back from disk
+        self.sha = settings_hash(self.settings)
+
+    def path(self, object_id: str) -> Path:
+        return self.dir / f"{object_id}.json"
+
+    def _object_files(self) -> list[Path]:
+        return sorted(p for p in self.dir.glob("*.json") if p.name != SETTINGS_FILE) if self.dir.is_dir() else []
+
+    def prepare(self, overwrite: bool) -> None:
+        """Check an earlier evaluation's settings (a one-line error when they differ and objects are finished,
+        unless ``overwrite``), delete its files with ``overwrite``, and record the current settings."""
+        settings_path = self.dir / SETTINGS_FILE
+        files = self._object_files()
+        if overwrite:
+            for path in files:
+                path.unlink()
+        elif files and settings_path.is_file():
+            try:
+                old = json.loads(settings_path.read_text())
+            except (OSError, json.JSONDecodeError) as err:
+                raise DepthnerfError(f"{settings_path}: unreadable ({err}); pass --overwrite to start "
+                                     "over") from None
+            diff = _differences(old, self.settings) if isinstance(old, dict) else ["not a JSON object"]
+            if diff:
+                raise DepthnerfError(
+                    f"{self.dir.parent}: holds {len(files)} objects evaluated with other settings ("
+                    f"{'; '.join(diff[:3])}{'; ...' if len(diff) > 3 else ''}); pass --overwrite to start over or "
+                    "choose another --out")
+        write_json_atomic(settings_path, self.settings)
+
+    def finished(self, records: Sequence[ObjectRecord], stride: int) -> dict[str, ObjectResult]:
+        """The objects of ``records`` whose result file is complete and was made with these settings."""
+        done = {}
+        for record in records:
+            path = self.path(record.object_id)
+            if not path.is_file():
+                continue
+            try:
+                payload = json.loads(path.read_text())
+                if payload.get("format") != FORMAT or payload.get("settings_sha") != self.sha:
+                    continue
+                done[record.object_id] = decode(payload, record, stride)
+            except (OSError, ValueError, KeyError, TypeError, AttributeError):
+                continue  # not a result of this evaluation: computed again
+        return done
+
+    def save(self, payload: dict, *, only_if_missing: bool = False) -> None:
+        """Write an object's result file atomically (:func:`encode`'s mapping)."""
+        path = self.path(payload["object_id"])
+        if not (only_if_missing and path.is_file()):
+            write_json_atomic(path, payload)
+
+
+def crash_point(done: int) -> None:
+    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``eval-object@<done>`` (test hook; a no-op otherwise)."""
+    if os.environ.get("DEPTHNERF_CRASH_AT") == f"{CRASH_STAGE}@{done}":
+        os.kill(os.getpid(), signal.SIGKILL)
+
+
+@dataclass(frozen=True)
+class RunCounts:
+    """How many objects this invocation computed and how many it took from an earlier one."""
+
+    computed: int
+    """Objects scored now (all ranks)."""
+    resumed: int
+    """Objects whose result file was already there."""
+
+
+def _plan(store: ObjectStore, records: Sequence[ObjectRecord], stride: int, info: DistInfo,
+          overwrite: bool) -> tuple[dict[str, ObjectResult], list[str]]:
+    """Rank 0 prepares the store and finds the finished objects; every rank gets the unfinished ids."""
+    done: dict[str, ObjectResult] = {}
+    message = None
+    if info.is_main:
+        try:
+            store.prepare(overwrite)
+            done = store.finished(records, stride)
+        except DepthnerfError as err:
+            message = str(err)
+    todo = [r.object_id for r in records if r.object_id not in done]
+    message, todo = broadcast_from_main((message, todo), info)
+    if message is not None:
+        raise DepthnerfError(message) if info.is_main else RefusedOnMain(message)
+    return done, todo
+
+
+def evaluate_objects(records: Sequence[ObjectRecord], evaluate: Callable[[ObjectRecord], ObjectResult],
+                     store: ObjectStore, info: DistInfo, stride: int, *, overwrite: bool = False,
+                     progress: bool = True) -> tuple[list[ObjectResult] | None, RunCounts]:
+    """Score ``records`` over the ranks of ``info`` with resume (module docstring). Rank 0 gets every object's
+    result in ``records`` order; the other ranks get None."""
+    done, todo = _plan(store, records, stride, info, overwrite)
+    by_id = {r.object_id: r for r in records}
+    mine = [by_id[i] for i in todo[info.rank::info.world]]
+    if info.is_main and done:
+        print(f"resuming {store.dir.parent}: {len(done)} of {len(records)} objects already evaluated, "
+              f"{len(todo)} to go", file=sys.stderr, flush=True)
+    desc = "eval" if info.world == 1 else f"eval (rank 0 of {info.world}, {len(todo)} objects in all)"
+    bar = tqdm(total=len(mine) + (len(done) if info.world == 1 else 0),
+               initial=len(done) if info.world == 1 else 0, desc=desc, unit="obj", file=sys.stderr,
+               disable=not (progress and info.is_main), dynamic_ncols=True)
+    payloads, views, start, where = [], 0, time.perf_counter(), "" if info.world == 1 else " on rank 0"
+    for k, record in enumerate(mine, start=1):
+        result = evaluate(record)
+        payload = encode(result, store.sha)
+        store.save(payload)
+        payloads.append(payload)
+        crash_point(k)
+        views += len(result.views.targets)
+        rate = views / max(time.perf_counter() - start, 1e-9)
+        bar.set_postfix_str(f"{rate:.2f} views/s{where}", refresh=False)
+        bar.update(1)
+    bar.close()
+    gathered = gather_to_main(payloads, info)
+    counts = RunCounts(computed=len(todo), resumed=len(done))
+    if not info.is_main:
+        return None, counts
+    results = dict(done)
+    for part in gathered:
+        for payload in part:
+            store.save(payload, only_if_missing=True)  # objects other machines computed, for a later resume
+            results[payload["object_id"]] = decode(payload, by_id[payload["object_id"]], stride)
+    missing = [r.object_id for r in records if r.object_id not in results]
+    if missing:
+        raise DepthnerfError(f"{store.dir}: no result for {len(missing)} objects (first {missing[0]})")
+    return [results[r.object_id] for r in records], counts

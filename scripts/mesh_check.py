@@ -1,0 +1,92 @@
+"""Is a reconstruction's mesh one clean object? Connected pieces and stray faces above it.
+
+For each ``depthnerf reconstruct`` output folder (``mesh.ply``: world frame, +z up; ``depths.npz``: view 0 is the
+input camera; ``input_mask.png``) prints: ``components`` (connected pieces), ``main_share`` (fraction of all faces
+in the largest piece), ``inside_share`` (fraction of faces whose centroid projects inside the input's own mask:
+the object the input view shows), ``above_share`` (fraction of faces whose centroid lies above the object's top
+by more than ``--above`` of its height, default 0.10; the object = the faces projecting inside the mask) and
+``white_share`` (vertices with every colour channel >= 0.95: density the white background hides).
+Exit 1 when any mesh misses ``--min-main-share`` (default 0.95) or has a face above the limit, so it can gate a
+release.
+
+    python scripts/mesh_check.py out/car out/chair
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from PIL import Image
+
+
+def inside_mask(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """True for world points that project (OpenCV camera ``c2w``; ``intrinsics`` = f, cx, cy, H, W; pixel (i, j)
+    at (u, v) = (j, i)) in front of the camera onto a mask pixel."""
+    f, cx, cy, h, w = intrinsics
+    cam = (points - c2w[:3, 3]) @ c2w[:3, :3]
+    z = cam[:, 2]
+    u = np.round(f * cam[:, 0] / np.maximum(z, 1e-9) + cx).astype(np.int64)
+    v = np.round(f * cam[:, 1] / np.maximum(z, 1e-9) + cy).astype(np.int64)
+    ok = (z > 0) & (u >= 0) & (u < int(w)) & (v >= 0) & (v < int(h))
+    out = np.zeros(len(points), dtype=bool)
+    out[ok] = mask[v[ok], u[ok]]
+    return out
+
+
+def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray,
+                above: float) -> dict:
+    """Components, the largest one's face share, the faces on the input's mask and those above it (module
+    docstring)."""
+    if len(mesh.faces) == 0:
+        return {"faces": 0, "components": 0, "main_share": 0.0, "inside_share": 0.0, "above_share": 0.0,
+                "white_share": 0.0}
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    counts = np.bincount(labels)
+    main = int(np.argmax(counts))
+    centroids = mesh.triangles_center
+    inside = inside_mask(centroids, c2w, intrinsics, mask)
+    object_z = centroids[inside, 2] if inside.any() else centroids[:, 2]
+    top, height = float(object_z.max()), float(object_z.max() - object_z.min())
+    white = 0.0
+    colors = getattr(mesh.visual, "vertex_colors", None)
+    if colors is not None and len(colors) == len(mesh.vertices):
+        white = float((np.asarray(colors)[:, :3] >= 0.95 * 255).all(axis=1).mean())
+    return {"faces": int(len(mesh.faces)), "components": int(len(counts)),
+            "main_share": float(counts[main] / len(mesh.faces)), "inside_share": float(inside.mean()),
+            "above_share": float((centroids[:, 2] > top + above * height).mean()), "white_share": white}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("paths", nargs="+", type=Path, help="depthnerf reconstruct output folders")
+    ap.add_argument("--above", type=float, default=0.10, help="stray-face margin above the main piece (heights)")
+    ap.add_argument("--min-main-share", type=float, default=0.95)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    reports, ok = {}, True
+    for path in args.paths:
+        missing = [n for n in ("mesh.ply", "depths.npz", "input_mask.png") if not (path / n).is_file()]
+        if missing:
+            print(f"error: {path / missing[0]}: missing (not a depthnerf reconstruct folder with a mesh?)",
+                  file=sys.stderr)
+            return 2
+        cams = np.load(path / "depths.npz")
+        mask = np.asarray(Image.open(path / "input_mask.png").convert("L")) > 127
+        rep = mesh_report(trimesh.load(path / "mesh.ply", process=False, force="mesh"), cams["poses"][0],
+                          cams["intrinsics"], mask, args.above)
+        reports[str(path)] = rep
+        ok &= rep["main_share"] >= args.min_main_share and rep["above_share"] == 0.0
+        print(f"{path}: {rep['faces']} faces, {rep['components']} components, main piece {rep['main_share']:.1%}, "
+              f"on the input's mask {rep['inside_share']:.1%}, above the object {rep['above_share']:.1%}, white vertices {rep['white_share']:.1%}")
+    if args.json:
+        args.json.write_text(json.dumps(reports, indent=1) + "\n")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

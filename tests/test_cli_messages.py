@@ -1,0 +1,187 @@
+"""Cases a new user trips on get one clear line: a flag that cannot work, a checkpoint that cannot take what is
+asked of it, an output folder that is not free, a file where a folder is expected, a corrupt depth map, a busy
+port. Each goes through the CLI entry (``depthnerf.cli.main``) and checks the message and the exit status."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+from fixtures_srn import make_srn_fixture
+from PIL import Image
+
+from depthnerf.app.logic import EXAMPLES_DIR, check_port, check_upload, collect_outputs
+from depthnerf.cli import main
+from depthnerf.data.srn_format import read_depth
+from depthnerf.errors import DepthnerfError
+
+CAR = EXAMPLES_DIR / "car_rgba.png"
+QUICK = ["--views", "2", "--no-progress"]
+
+
+def reconstruct(*args: str | Path) -> int:
+    return main(["reconstruct", *map(str, args)])
+
+
+def one_error(capsys) -> str:
+    """The single stderr line of a failed command (asserted to be exactly one ``error: ...`` line)."""
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err.strip()
+
+
+def test_mesh_resolution_is_checked_and_0_writes_no_mesh(tmp_path, capsys):
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "bad", "--mesh-resolution",
+                       "-1", *QUICK) == 2
+    assert one_error(capsys) == "error: --mesh-resolution must be 0 (no mesh) or >= 2, got -1"
+    assert not (tmp_path / "bad").exists()
+    for flag in ("--views", "--render-resolution", "--chunk"):
+        assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "bad", flag, "0") == 2
+        assert one_error(capsys) == f"error: {flag} must be >= 1, got 0"
+    out = tmp_path / "out"
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--mesh-resolution", "0", *QUICK) == 0
+    assert "no mesh (--mesh-resolution 0)" in capsys.readouterr().out
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["mesh"]["made"] is False and manifest["files"]["mesh_ply"] is manifest["files"]["mesh_glb"] is None
+    assert not (out / "mesh.ply").exists() and not (out / "mesh.glb").exists()
+    assert (out / "views" / "view_001.png").is_file()
+    page = collect_outputs(out, manifest, "car_rgba.png")  # what the app shows for the same folder
+    assert page.viewer_glb is None and page.downloads == [out / "points.ply"]
+    assert "**Mesh** none (--mesh-resolution 0)" in page.details
+
+
+def test_an_earlier_reconstruction_is_kept_unless_overwrite(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--mesh-resolution", "0", *QUICK) == 0
+    (out / "notes.txt").write_text("mine")
+    (out / "views" / "sketch.png").write_bytes(b"mine")
+    before = (out / "manifest.json").read_bytes()
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, *QUICK) == 2
+    err = one_error(capsys)
+    assert err.startswith(f"error: {out}: holds an earlier reconstruction (") and "pass --overwrite" in err
+    assert (out / "manifest.json").read_bytes() == before
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--overwrite", "--views", "1",
+                       "--mesh-resolution", "4", "--no-progress") == 0
+    assert sorted(p.name for p in (out / "views").iterdir()) == ["sketch.png", "view_000.png"]  # view_001 gone
+    assert (out / "notes.txt").read_text() == "mine" and (out / "mesh.ply").is_file()
+    assert json.loads((out / "manifest.json").read_text())["settings"]["views"] == 1
+
+
+def test_an_unusable_output_folder_fails_before_any_work(tmp_path, capsys, monkeypatch):
+    import depthnerf.pretrained.load as load
+
+    def never(*args, **kwargs):
+        raise AssertionError("the model was loaded before the output folder was checked")
+
+    monkeypatch.setattr(load, "load_pretrained", never)
+    (tmp_path / "a_file").write_text("x")
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "a_file" / "out") == 2
+    assert one_error(capsys) == (f"error: {tmp_path / 'a_file' / 'out'}: the output folder's parent "
+                                 f"{tmp_path / 'a_file'} is a file, not a folder")
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "a_file") == 2
+    assert one_error(capsys) == f"error: {tmp_path / 'a_file'}: --out is a file, not a folder"
+    if os.geteuid() != 0:  # root writes anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o555)
+        assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", locked / "out") == 2
+        assert "cannot write the output folder" in one_error(capsys)
+
+
+def test_a_baseline_checkpoint_refuses_a_depth_prior(tmp_path, capsys):
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-baseline", "--depth", "bundled", "--out", tmp_path / "o") == 2
+    assert one_error(capsys) == ("error: cpu-cars-baseline: a baseline checkpoint (trained without a depth prior) "
+                                 "takes no depth prior; drop --depth bundled, or use a depth-aware checkpoint")
+
+
+def test_the_cli_and_the_app_refuse_the_same_formats(tmp_path, capsys):
+    gif = tmp_path / "car.gif"
+    Image.open(CAR).save(gif)
+    assert reconstruct(gif, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "o", *QUICK) == 2
+    line = f"{gif}: GIF images are not supported; use a PNG, JPEG or WebP photo"
+    assert one_error(capsys) == f"error: {line}"
+    with pytest.raises(DepthnerfError, match="car.gif: GIF images are not supported; use a PNG, JPEG or WebP"):
+        check_upload(gif)
+    webp = tmp_path / "car.webp"
+    Image.open(CAR).save(webp, lossless=True)
+    assert check_upload(webp) == webp  # what the app takes, reconstruct takes too (no error before the render)
+
+
+@pytest.mark.parametrize(("flags", "line"), [
+    (["--max-steps", "-5"], "--max-steps must be >= 1, got -5"),
+    (["--max-steps", "0"], "--max-steps must be >= 1, got 0"),
+    (["--checkpoint-every", "0"], "--checkpoint-every must be >= 1, got 0"),
+    (["--schedule.lr", "-1"], "--schedule.lr must be > 0, got -1.0"),
+    (["--schedule.rays_per_object", "0"], "--schedule.rays_per_object must be >= 1, got 0"),
+])
+def test_train_numbers_are_checked_before_the_run_folder_exists(tmp_path, capsys, flags, line):
+    assert main(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "run"), *flags]) == 2
+    assert one_error(capsys) == f"error: {line}"
+    assert not (tmp_path / "run").exists()
+
+
+def test_eval_names_a_category_mismatch(tmp_path, capsys):
+    data = make_srn_fixture(tmp_path / "data", "cars", {"test": 1}, views=3, size=16)
+    common = ["--checkpoint", "cpu-chairs-baseline", "--data", str(data), "--no-mesh", "--no-progress"]
+    assert main(["eval", *common, "--out", str(tmp_path / "e1")]) == 2
+    assert one_error(capsys) == (f"error: {data}: holds cars_test but no chairs_test, and cpu-chairs-baseline is a "
+                                 "chairs model; pass a chairs dataset, or --category cars to score it on cars anyway")
+    assert main(["eval", *common, "--category", "cars", "--out", str(tmp_path / "e2")]) == 0
+    err = capsys.readouterr().err
+    assert ("warning: scoring cpu-chairs-baseline, a chairs model, on cars data (--category cars); the figures "
+            "measure a category it was not trained on\n") in err
+    assert json.loads((tmp_path / "e2" / "summary.json").read_text())["category"] == "cars"
+
+
+def test_a_corrupt_depth_map_is_named(tmp_path, capsys):
+    data = make_srn_fixture(tmp_path / "data", "cars", {"train": 1}, views=2, with_depth=True)
+    bad = sorted((data / "cars_train").glob("*/depth/*.npz"))[0]
+    bad.write_bytes(b"\x00garbage that is no zip archive")
+    assert main(["inspect", "--data", str(data), "--strict"]) == 2
+    assert one_error(capsys) == (f"error: {bad}: unreadable depth map: the file is corrupt or not a NumPy .npz "
+                                 "file; rewrite it with numpy.savez")
+    cases = {"empty.npz": (b"", "the file is empty; rewrite it with numpy.savez"),
+             "cut.npz": (b"PK\x03\x04 and then nothing", "a truncated or corrupt .npz file (File is not a zip file)"),
+             "text.npy": (b"0.5 0.5\n", "the file is corrupt or not a NumPy .npy file; rewrite it with numpy.save")}
+    for name, (content, text) in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(DepthnerfError) as caught:
+            read_depth(tmp_path / name)
+        assert str(caught.value) == f"{tmp_path / name}: unreadable depth map: {text}"
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(DepthnerfError, match=r"objects.npy: unreadable depth map: it holds Python objects, not a"):
+        read_depth(tmp_path / "objects.npy")
+
+
+def test_inspect_names_a_file_given_for_the_data_folder(tmp_path, capsys):
+    (tmp_path / "cars_card.json").write_text("{}")
+    assert main(["inspect", "--data", str(tmp_path / "cars_card.json")]) == 2
+    assert one_error(capsys) == (f"error: {tmp_path / 'cars_card.json'}: is a file, not a dataset folder (pass the "
+                                 "folder that holds the <category>_<split>/ folders)")
+
+
+@pytest.mark.parametrize(("flag", "value", "least"), [("--resolution", "7", 8), ("--workers", "0", 1),
+                                                      ("--views-test", "0", 1)])
+def test_synth_names_only_the_offending_flag(tmp_path, capsys, flag, value, least):
+    assert main(["synth", "--category", "cars", "--out", str(tmp_path / "d"), flag, value]) == 2
+    assert one_error(capsys) == f"error: synth: {flag} must be >= {least} (got {value})"
+
+
+def test_a_busy_port_is_refused_before_anything_is_served(capsys):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        line = f"cannot serve on 127.0.0.1:{port} (Address already in use); pass another --port"
+        with pytest.raises(DepthnerfError) as caught:
+            check_port("127.0.0.1", port)
+        assert str(caught.value) == line
+        if importlib.util.find_spec("gradio") is not None:  # without gradio the command stops at its install hint
+            assert main(["app", "--port", str(port)]) == 2
+            out, err = capsys.readouterr()
+            assert out == "" and err == f"error: {line}\n"  # nothing loaded, nothing "serving"
+    check_port("127.0.0.1", port)  # free again

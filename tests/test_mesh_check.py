@@ -1,0 +1,64 @@
+"""scripts/mesh_check.py: the release gate on reconstruct meshes, against hand-built scenes."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "mesh_check.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("mesh_check", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _camera() -> tuple[np.ndarray, np.ndarray]:
+    """A camera on -y looking at the origin (+z up; OpenCV axes: x right, y down, z forward)."""
+    c2w = np.eye(4)
+    c2w[:3, :3] = np.stack([(1.0, 0, 0), (0, 0, -1.0), (0, 1.0, 0)], axis=1)  # columns: cam x, y, z in world
+    c2w[:3, 3] = [0.0, -3.0, 0.0]
+    return c2w, np.array([32.0, 15.5, 15.5, 32, 32])
+
+
+def _scene(with_slab: bool) -> trimesh.Trimesh:
+    body = trimesh.creation.box(extents=(1.0, 1.0, 0.5))
+    if not with_slab:
+        return body
+    slab = trimesh.creation.box(extents=(1.0, 1.0, 0.05),
+                                transform=trimesh.transformations.translation_matrix((0.0, 0.0, 1.2)))
+    return trimesh.util.concatenate([body, slab])
+
+
+def test_projection_matches_a_pixel_loop() -> None:
+    mc = _load()
+    c2w, intr = _camera()
+    mask = np.zeros((32, 32), dtype=bool)
+    mask[10:22, 8:24] = True
+    pts = np.random.default_rng(0).uniform(-1.5, 1.5, size=(200, 3))
+    got = mc.inside_mask(pts, c2w, intr, mask)
+    for p, g in zip(pts, got, strict=True):
+        x, y, z = (p - c2w[:3, 3]) @ c2w[:3, :3]
+        u, v = round(32.0 * x / z + 15.5), round(32.0 * y / z + 15.5)
+        assert g == (z > 0 and 0 <= u < 32 and 0 <= v < 32 and bool(mask[v, u]))
+
+
+def test_slab_above_the_object_fails_the_gate() -> None:
+    mc = _load()
+    c2w, intr = _camera()
+    body = _scene(False)
+    mask = mc.inside_mask(np.asarray(body.vertices) * 1.01, c2w, intr, np.ones((32, 32), bool))  # sanity
+    assert mask.all()
+    # the input mask: the body's silhouette (a box 1.0 wide, 0.5 tall at distance ~2.5-3.5)
+    sil = np.zeros((32, 32), dtype=bool)
+    sil[11:21, 6:26] = True
+    clean = mc.mesh_report(body, c2w, intr, sil, 0.10)
+    assert clean["components"] == 1 and clean["main_share"] == 1.0 and clean["above_share"] == 0.0
+    dirty = mc.mesh_report(_scene(True), c2w, intr, sil, 0.10)
+    assert dirty["components"] == 2 and dirty["main_share"] == 0.5  # 12 + 12 faces
+    assert dirty["above_share"] == 0.5  # every slab face is 0.95 above the body's top (height 0.5)
