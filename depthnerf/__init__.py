@@ -33,6 +33,7 @@ _PUBLIC = {
     "ReconstructConfig": "depthnerf.reconstruct.reconstructor",
     "Reconstruction": "depthnerf.reconstruct.result",
     "prepare_photo": "depthnerf.reconstruct.photo",
+    "BackgroundRemover": "depthnerf.reconstruct.background",
 }
 
 __all__ = [*_PUBLIC, "__version__"]

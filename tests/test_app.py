@@ -1,15 +1,21 @@
 """``depthnerf app`` without a browser: the plain functions of :mod:`depthnerf.app.logic` (upload checks, one-line
-messages for every kind of bad input, a real run through the shipped checkpoint and the files it collects), the
-command (install hint without gradio, bind address, queue) and the promise that the core never imports gradio."""
+messages for every kind of bad input in the page's words, a real run through the shipped checkpoint and the files
+it collects, background removal, the depth prior's weights and licence), the page's wiring (a new upload clears
+every earlier output), the command (install hint without gradio, bind address, queue, the temporary folder
+removed on SIGTERM) and the promise that the core never imports gradio."""
 
 from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import re
+import signal
 import socket
 import struct
 import subprocess
 import sys
+import time
 import zlib
 from pathlib import Path
 
@@ -19,12 +25,15 @@ import trimesh
 from PIL import Image
 
 from depthnerf.app.logic import (
+    DEPTH_PRIORS,
     AppConfig,
     AppSession,
     RunRequest,
+    background_installed,
     check_upload,
     examples,
     one_line,
+    prior_description,
     resolve_model,
 )
 from depthnerf.cli import main
@@ -231,3 +240,104 @@ def test_a_busy_port_is_one_line(monkeypatch, tmp_path, capsys):
     assert err == f"error: cannot serve on 127.0.0.1:{port} (Cannot find empty port in range: 7998-7998); pass " \
                   "another --port\n"
     assert "serving" not in out
+
+
+def flags_outside_commands(message: str) -> list[str]:
+    """Command-line flags a page message still names (shell commands in backticks are fine: they are run
+    elsewhere)."""
+    return re.findall(r"--[a-z][a-z-]*", re.sub(r"`[^`]*`", "", message))
+
+
+def test_messages_speak_the_pages_language(session, tmp_path, monkeypatch):
+    """No ``--flag`` of depthnerf in what the page shows: the flags a message suggests become the page's fields."""
+    import huggingface_hub.constants
+
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)  # no network attempt
+    bad = bad_inputs(tmp_path)
+    scene, blank = bad["cluttered"][0], bad["no foreground"][0]
+    cases = {
+        "clutter, removal on": (RunRequest(scene, "car"), "enter FILE.onnx under 'Background model'"),
+        "clutter, removal off": (RunRequest(scene, "car", remove_background=False),
+                                 "background removal is off (tick 'Remove background')"),
+        "no object": (RunRequest(blank, "car"), "upload an RGBA cut-out of the object"),
+        "bad background model": (RunRequest(scene, "car", background_model="bria-rmbg"),
+                                 "error: background model bria-rmbg: not a model file"),
+        "depth anything offline": (RunRequest(examples()[0], "car", depth_prior="depth-anything-v2",
+                                              depth_checkpoint="someone/not-cached-here"),
+                                   "enter DIR under 'Depth Anything V2 weights'"),
+    }
+    for kind, (request, expected) in cases.items():
+        message = session.run(request).message
+        assert expected in message and not flags_outside_commands(message), (kind, message)
+        if kind != "depth anything offline":  # the preview does not load a depth prior
+            preview = session.preview(request)[1]
+            assert expected in preview and not flags_outside_commands(preview), (kind, preview)
+
+
+def test_prior_choice_names_the_weights_it_loads_and_their_licence():
+    assert prior_description("bundled").endswith("(MIT)")
+    base = prior_description("depth-anything-v2")
+    assert base.startswith("Depth Anything V2 Base (depth-anything/Depth-Anything-V2-Base-hf, the paper's prior)")
+    assert "CC-BY-NC-4.0" in base and "non-commercial" in base
+    small = prior_description("depth-anything-v2", "depth-anything/Depth-Anything-V2-Small-hf")
+    assert small.startswith("Depth Anything V2 Small") and "Apache-2.0" in small
+
+
+def test_background_removal_runs_in_the_app(session, tmp_path):
+    if not background_installed():  # not imported here: depthnerf imports rembg itself (background.py)
+        pytest.skip("rembg is not installed (pip install -e '.[bg]')")
+    pytest.importorskip("onnx", reason="onnx builds the test's model")
+    from fixtures_background import cluttered_car, iou, tiny_u2net
+
+    rgb, truth = cluttered_car()
+    photo = tmp_path / "van.jpg"
+    Image.fromarray(rgb).save(photo, quality=95)
+    model = str(tiny_u2net(tmp_path / "tiny.onnx"))
+    image, message = session.preview(RunRequest(photo, "car", background_model=model))
+    assert image is not None and "background removed by the tiny.onnx model" in message, message
+    out = session.run(RunRequest(photo, "car", views=1, background_model=model))
+    assert out.ok and "**Background** removed by the tiny.onnx model" in out.details, out.message
+    cutout = np.asarray(Image.open(out.input_image.parent / "cutout.png"))
+    assert iou(cutout[..., 3] > 127, truth) > 0.9
+    off = session.run(RunRequest(photo, "car", views=1, background_model=model, remove_background=False))
+    assert not off.ok and "background is not a plain colour" in off.message
+
+
+def test_a_new_upload_clears_every_earlier_output(session, tmp_path):
+    """The page's upload event writes every output the reconstruction writes: an error or a new photo leaves no
+    earlier depth prior, orbit, mesh or download on the page."""
+    pytest.importorskip("gradio", reason="gradio is not installed (pip install -e '.[app]')")
+    from depthnerf.app.page import PRIOR_CHOICES, build_page
+
+    assert [value for _, value in PRIOR_CHOICES] == list(DEPTH_PRIORS)
+    page = build_page(session)
+    fns = {f.name: f for f in page.fns.values()}
+    ids = {name: [getattr(b, "elem_id", None) for b in fns[name].outputs] for name in ("preview", "reconstruct")}
+    assert set(ids["reconstruct"]) <= set(ids["preview"]), ids
+    notes = tmp_path / "notes.png"
+    notes.write_text("not pixels")
+    for image in (notes, examples()[0], None):
+        values = dict(zip(ids["preview"], fns["preview"].fn(str(image) if image else None, "car", "", None, True, ""),
+                          strict=True))
+        assert all(values[k] in (None, "") for k in ("prior-image", "video", "gif", "viewer", "downloads",
+                                                      "details")), values
+        assert (values["prepared"] is not None) == (image == examples()[0])
+
+
+def test_the_temporary_run_folder_is_removed_on_sigterm(monkeypatch, capsys, tmp_path):
+    """``depthnerf app`` without --work-dir runs in a temporary folder; SIGTERM (as a service manager stops it)
+    ends the server like Ctrl+C, and the folder goes."""
+    gr = pytest.importorskip("gradio", reason="gradio is not installed (pip install -e '.[app]')")
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    monkeypatch.setattr("tempfile.tempdir", None)  # re-read TMPDIR
+
+    def serving(self, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)  # interrupted by the handler (as Gradio's launch blocks until Ctrl+C)
+
+    monkeypatch.setattr(gr.Blocks, "launch", serving)
+    before = signal.getsignal(signal.SIGTERM)
+    assert main(["app", "--port", str(free_port())]) == 130
+    printed = re.search(r"runs are written to (\S+)\)", capsys.readouterr().out)
+    assert printed and Path(printed.group(1)).parent == tmp_path and not Path(printed.group(1)).exists()
+    assert signal.getsignal(signal.SIGTERM) == before

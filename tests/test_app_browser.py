@@ -5,7 +5,9 @@ tab uploads a non-image file and a photo on a cluttered background (one-line mes
 bundled example and reconstructs it while a second tab picks the other example from the page's list, asks for
 its reconstruction and must show its queue position; then the orbit video (a real MP4), the GIF, the 3D viewer and the three downloads must be on the page.
 A screenshot goes to ``tmp_path/app.png``; with ``DEPTHNERF_APP_SCREENSHOT=docs/figures/app.png`` it is also
-copied there (how README's figure is made).
+copied there (how README's figure is made). Then a new (bad) upload must clear every earlier output, and the
+depth prior's line must name the weights Depth Anything loads and their licence. Last, SIGTERM stops the server
+with exit status 0, its temporary run folder removed and Gradio's cached uploads and outputs deleted.
 
 Nothing downloads a browser: the driver and browser paths are given explicitly (``DEPTHNERF_CHROMEDRIVER``,
 ``DEPTHNERF_CHROMIUM``, default ``/usr/bin/chromedriver`` and ``/usr/bin/chromium``) and Selenium Manager is
@@ -15,6 +17,7 @@ the browser is missing.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import shutil
@@ -59,12 +62,12 @@ def free_port() -> int:
 def server(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("app_server")
     port = free_port()
+    (tmp / "tmp").mkdir()
     env = {**os.environ, "GRADIO_ANALYTICS_ENABLED": "False", "GRADIO_TEMP_DIR": str(tmp / "gradio"),
-           "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+           "TMPDIR": str(tmp / "tmp"), "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     log = open(tmp / "server.log", "w")  # noqa: SIM115 - closed below
     proc = subprocess.Popen([sys.executable, "-m", "depthnerf", "app", "--port", str(port), "--views", "2",
-                             "--mesh-resolution", "24", "--work-dir", str(tmp / "runs")], stdout=log,
-                            stderr=subprocess.STDOUT, env=env, cwd=tmp)
+                             "--mesh-resolution", "24"], stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp)
     url = f"http://127.0.0.1:{port}/"
     deadline = time.monotonic() + 180
     while True:
@@ -78,7 +81,7 @@ def server(tmp_path_factory):
             proc.kill()
             pytest.fail(f"the app did not start: {(tmp / 'server.log').read_text()[-2000:]}")
         time.sleep(0.5)
-    yield url, tmp / "server.log"
+    yield url, tmp / "server.log", proc, tmp
     proc.terminate()
     try:
         proc.wait(timeout=20)
@@ -138,11 +141,11 @@ def fetch(url: str) -> bytes:
 
 
 def test_page_in_headless_chromium(server, browser, tmp_path):
-    url, log = server
+    url, log, _, _ = server
     d = browser
     d.get(url)
     wait_for(lambda: d.find_elements(By.CSS_SELECTOR, "#upload input[type=file]"), 60, "the page")
-    assert d.find_element(By.CSS_SELECTOR, "#status textarea").is_displayed()
+    assert wait_for(lambda: d.find_element(By.CSS_SELECTOR, "#status textarea").is_displayed(), 30, "the status box")
 
     # bad input: a non-image file, then a photo on a cluttered background -> one line each, the RGBA hint
     notes = tmp_path / "notes.png"
@@ -218,3 +221,31 @@ def test_page_in_headless_chromium(server, browser, tmp_path):
     assert Image.open(shot).size[0] >= 1000
     if target := os.environ.get("DEPTHNERF_APP_SCREENSHOT"):
         shutil.copyfile(shot, target)
+
+    # a new upload (here a bad one) clears every earlier output
+    upload(d, notes)
+    wait_for(lambda: status(d).startswith("error: notes.png"), 60, "the new upload's message")
+    for selector in ("#video video", "#gif img", "#prior-image img", "#prepared img", "#viewer canvas",
+                     "#downloads a[href]"):
+        assert wait_for(lambda sel=selector: not d.find_elements(By.CSS_SELECTOR, sel), 20, f"{selector} cleared")
+    # the depth prior names the weights it loads and their licence; no command-line flags on the page
+    assert "MIT" in d.find_element(By.ID, "prior-info").text
+    d.find_element(By.XPATH, "//*[@id='prior']//label[contains(., 'Depth Anything V2')]").click()
+    info = wait_for(lambda: "Base" in d.find_element(By.ID, "prior-info").text and
+                    d.find_element(By.ID, "prior-info").text, 20, "the Depth Anything line")
+    assert "Depth-Anything-V2-Base-hf" in info and "CC-BY-NC-4.0" in info
+    body = d.find_element(By.TAG_NAME, "body").text
+    assert not re.findall(r"--(?:mask|depth-checkpoint|background-model|fill)\b", body), body
+    checked = d.find_element(By.CSS_SELECTOR, "#remove-bg input[type=checkbox]").is_selected()
+    assert checked == all(importlib.util.find_spec(m) is not None for m in ("rembg", "onnxruntime"))
+
+
+def test_sigterm_stops_the_server_and_removes_its_files(server):
+    _, log, proc, tmp = server
+    proc.terminate()
+    assert proc.wait(timeout=60) == 0, log.read_text()[-2000:]
+    work = re.search(r"runs are written to (\S+)\)", log.read_text())
+    assert work and Path(work.group(1)).parent == tmp / "tmp" and not Path(work.group(1)).exists()
+    assert any((tmp / "gradio").iterdir())  # Gradio did cache the uploads and outputs ...
+    cached = [p for p in (tmp / "gradio").rglob("*") if p.is_file() and p.stat().st_size > 0]
+    assert not cached, cached  # ... and deleted them (it leaves its empty upload staging files and folders)

@@ -1,15 +1,18 @@
 """Training: schedule pieces against closed forms, run folder contract, determinism, exact resume after SIGKILL,
-and DDP (torchrun, gloo, 2 CPU processes) against a single process with the same global batch."""
+the clean stop on SIGTERM / Ctrl+C (a checkpoint at that step, the resume command, exact resume), and DDP
+(torchrun, gloo, 2 CPU processes) against a single process with the same global batch."""
 
 from __future__ import annotations
 
 import json
 import math
 import os
+import shlex
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -21,7 +24,7 @@ from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, sample_pixels, step_keys
 from depthnerf.train.config import preset, with_prior
 from depthnerf.train.loop import learning_rate
-from depthnerf.train.run_log import read_metrics
+from depthnerf.train.run_log import read_launches, read_metrics
 from depthnerf.train.step import background_opacity_per_object
 
 TINY = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
@@ -198,6 +201,60 @@ def test_kill_at_every_stage_of_a_checkpoint_write_then_resume_is_exact(data, un
     assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
 
 
+def stop_line(stderr: str) -> str:
+    lines = [line for line in stderr.splitlines() if line.startswith("stopped by ")]
+    assert len(lines) == 1, stderr[-2000:]
+    return lines[0]
+
+
+def test_sigterm_mid_run_checkpoints_that_step_and_prints_the_resume_command(data, tmp_path):
+    """A real SIGTERM from outside, at whatever step the run has reached: exit 143, a checkpoint at the last
+    completed step, one line naming the command that resumes it, and that command resumes from that step."""
+    run = tmp_path / "preempted"
+    args = [*CRASH_ARGS, "--data", str(data), "--out", str(run)]
+    args[args.index("--max-steps") + 1] = "500"  # far more than it reaches before the signal
+    proc = subprocess.Popen([sys.executable, "-m", "depthnerf", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while max(losses(run), default=0) < 2 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-2000:]
+    line = stop_line(err)
+    step = max(losses(run))  # every step is logged (--log.log_every 1): the last one is where it stopped
+    assert 2 <= step < 500 and line.startswith(f"stopped by SIGTERM at step {step}: checkpoint ")
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == f"step_{step:08d}"
+    assert json.loads(out.strip().splitlines()[-1])["stopped_by"] == "SIGTERM"
+    command = line.split("resume with: ", 1)[1]
+    assert shlex.split(command) == ["depthnerf", "train", "--out", str(run.resolve()), "--resume", "--no-progress"]
+    resumed = cli(*shlex.split(command)[1:], "--max-steps", str(step + 1))
+    assert f"resumed from step {step} (" in resumed.stderr and max(losses(run)) == step + 1
+    assert [(x["start_step"], x["world_size"]) for x in read_launches(run)] == [(0, 1), (step, 1)]
+
+
+@pytest.mark.parametrize("hook, code, expected", [("sigterm-step@3", 143, 3), ("sigint-validation@4", 130, 4),
+                                                  ("sigterm-weights@4", 143, 4)])
+def test_stop_signal_then_resume_is_exact(data, uninterrupted, tmp_path, hook, code, expected):
+    """SIGTERM after step 3 (between checkpoints), Ctrl+C as the step-4 validation starts (the validation is
+    abandoned), SIGTERM in the middle of the step-4 checkpoint write (it completes, nothing more is written):
+    the checkpoint is of that step, and ``--resume`` reproduces the uninterrupted run bit for bit."""
+    run = tmp_path / "stopped"
+    val = ["--log.val_every", "4"] if "validation" in hook else []
+    stopped = cli(*CRASH_ARGS, "--data", str(data), "--out", str(run), *val, check=False,
+                  env={"DEPTHNERF_CRASH_AT": hook})
+    assert stopped.returncode == code, stopped.stderr[-2000:]
+    assert stop_line(stopped.stderr).startswith(f"stopped by {'SIGINT' if code == 130 else 'SIGTERM'} at step "
+                                                f"{expected}: ")
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == f"step_{expected:08d}"
+    assert sorted(losses(run)) == list(range(1, expected + 1))
+    assert not any("val_psnr" in m for m in read_metrics(run))
+    cli(*CRASH_ARGS, "--data", str(data), "--out", str(run), "--resume", *val)
+    assert losses(run) == losses(uninterrupted)
+    ref, got = final_weights(uninterrupted), final_weights(run)
+    assert ref.keys() == got.keys() and all(torch.equal(ref[k], got[k]) for k in ref)
+
+
 def test_resume_says_what_it_did_and_refuses_contradicting_flags(data, tmp_path, monkeypatch):
     run = tmp_path / "r"
     base = ["train", "--preset", "cpu-cars", "--depth", "none", "--log.val_every", "0", *TINY]
@@ -270,6 +327,7 @@ def test_torchrun_two_processes_match_one_process(data, tmp_path):
                            "-m", "depthnerf", *args, "--out", str(ddp)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert losses(ddp) == pytest.approx(losses(single), rel=1e-4)
+    assert [x["world_size"] for x in read_launches(ddp)] == [2] and read_launches(single)[0]["world_size"] == 1
     w_single = ckpt.read_weights(ckpt.latest_checkpoint(single / "checkpoints") / "model.safetensors")[0]
     w_ddp = ckpt.read_weights(ckpt.latest_checkpoint(ddp / "checkpoints") / "model.safetensors")[0]
     for key, value in w_single.items():

@@ -15,8 +15,15 @@ One request = one :class:`RunRequest` -> :meth:`AppSession.run` -> one :class:`R
    GLB, PLY mesh and PLY point cloud for download.
 
 Any :class:`~depthnerf.errors.DepthnerfError` becomes ``RunOutputs.message`` = ``error: <one line>`` (the upload's
-temporary path replaced by its file name); any other exception becomes ``internal error (<type>): <message>``
-with the traceback on the server's stderr. The server keeps serving either way.
+temporary path replaced by its file name, the command-line flags a message suggests replaced by the page's
+fields: :data:`PAGE_WORDS`); any other exception becomes ``internal error (<type>): <message>`` with the
+traceback on the server's stderr. The server keeps serving either way.
+
+Background removal
+    The page's "Remove background" box is ``ReconstructConfig.background_removal`` ``auto`` (ticked) or ``off``;
+    it starts ticked when the ``[bg]`` extra (rembg, onnxruntime) is installed (:func:`background_installed`).
+    The model is the page's "Background model" field, else ``AppConfig.background_model``, else rembg's
+    ``u2net`` (:mod:`depthnerf.reconstruct.background`).
 
 Foreground ratio
     The page's "foreground ratio" is TripoSR's quantity: the object's longer bounding-box side over the side of
@@ -28,6 +35,8 @@ Foreground ratio
 
 from __future__ import annotations
 
+import importlib.util
+import re
 import shutil
 import socket
 import sys
@@ -52,6 +61,17 @@ DEPTH_PRIORS = ("bundled", "depth-anything-v2")
 """Depth priors the page offers."""
 SHIPPED_MODELS = {"car": "cpu-cars-depth", "chair": "cpu-chairs-depth"}
 """Page label -> shipped depth-aware checkpoint per category."""
+PAGE_WORDS = (
+    (r"; pass a mask \(--mask\)", "; upload an RGBA cut-out of the object (transparent background)"),
+    (r" or pass a mask \(--mask\)", ""),
+    (r"pass --depth-checkpoint ([^\s;,)]+)", r"enter \1 under 'Depth Anything V2 weights'"),
+    (r"pass --background-model ([^\s;,)]+)", r"enter \1 under 'Background model'"),
+    (r"background removal is off \(--background-removal off\)", "background removal is off (tick 'Remove background')"),
+    (r"--background-model ([^\s;,)]+):", r"background model \1:"),
+    (r"--fill", "the foreground ratio"),
+    (r"--views", "orbit views"),
+)
+"""(pattern, replacement): the command-line flags that messages suggest, in the page's words."""
 ProgressFn = Callable[[float, str], None]
 
 
@@ -83,6 +103,8 @@ class AppConfig:
     """Loaded (checkpoint, depth prior) pairs kept in memory."""
     allow_checkpoint_paths: bool = True
     """Offer the free "local checkpoint path" field (off when sharing publicly)."""
+    background_model: str | None = None
+    """Background model when the page's field is empty (rembg name or ONNX file; None: rembg's u2net)."""
 
 
 @dataclass(frozen=True)
@@ -105,6 +127,10 @@ class RunRequest:
     """Input camera (and orbit) elevation, degrees."""
     views: int = 8
     """Orbit views."""
+    remove_background: bool = True
+    """Remove the background of a photo without alpha with a background model when one is installed."""
+    background_model: str = ""
+    """rembg model name or ONNX file ("" = ``AppConfig.background_model``, else rembg's u2net)."""
 
 
 @dataclass
@@ -146,8 +172,33 @@ def one_line(err: BaseException, image: str | Path | None) -> str:
     if image:
         text = text.replace(str(image), display_name(image))
     if isinstance(err, DepthnerfError):
-        return f"error: {text}"
+        return f"error: {page_words(text)}"
     return f"internal error ({type(err).__name__}): {text}"
+
+
+def page_words(text: str) -> str:
+    """``text`` with the command-line flags it suggests replaced by the page's fields (:data:`PAGE_WORDS`)."""
+    for pattern, replacement in PAGE_WORDS:
+        text = re.sub(pattern, replacement, text)
+    return text
+
+
+def background_installed() -> bool:
+    """Whether the ``[bg]`` extra (rembg and onnxruntime) is installed."""
+    return all(importlib.util.find_spec(m) is not None for m in ("rembg", "onnxruntime"))
+
+
+def prior_description(prior: str, depth_checkpoint: str = "") -> str:
+    """Which weights a depth prior choice loads, and their licence (one line for the page)."""
+    if prior == "bundled":
+        return "bundled: this project's small depth network, trained on the synthetic benchmark only (MIT)"
+    from depthnerf.depth.depth_anything import DEFAULT_CHECKPOINT, licence_of
+
+    checkpoint = depth_checkpoint.strip() or DEFAULT_CHECKPOINT
+    size = next((s for s in ("Small", "Base", "Large") if s.lower() in checkpoint.lower()), None)
+    what = f"Depth Anything V2 {size}" if size else "Depth Anything V2"
+    paper = ", the paper's prior" if checkpoint == DEFAULT_CHECKPOINT else ""
+    return f"{what} ({checkpoint}{paper}); licence {licence_of(checkpoint)}"
 
 
 def check_upload(image: str | Path | None) -> Path:
@@ -258,13 +309,19 @@ class AppSession:
             path = check_upload(request.image)
             rec = self.models.get(resolve_model(request))
             fill = request.foreground_ratio or rec.default_fill
-            prep = prepare_photo(path, None, model_resolution(rec), "auto", fill)
+            prep = prepare_photo(path, None, model_resolution(rec), "auto", fill,
+                                 rec.background_remover(*self.background(request)))
         except Exception as err:  # noqa: BLE001 - every failure is one line on the page
             if not isinstance(err, DepthnerfError):
                 traceback.print_exc(file=sys.stderr)
             return None, one_line(err, request.image)
         return (to_u8(prep.image),
                 f"ready: {display_name(request.image)}, " + "; ".join(prep.notes))
+
+    def background(self, request: RunRequest) -> tuple[str, str | None]:
+        """``(ReconstructConfig.background_removal, background_model)`` of a request."""
+        model = request.background_model.strip() or self.config.background_model
+        return ("auto" if request.remove_background else "off"), model or None
 
     def _new_run_dir(self) -> Path:
         """A fresh run folder; the oldest beyond ``keep_runs`` are deleted."""
@@ -302,9 +359,10 @@ class AppSession:
         progress(0.0, f"loading {spec}")
         rec = self.models.get(spec, request.depth_prior, request.depth_checkpoint)
         progress(0.05, "reconstructing")
+        mode, background_model = self.background(request)
         cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),
                                 fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
-                                progress=True)
+                                progress=True, background_removal=mode, background_model=background_model)
         result = rec.reconstruct(path, config=cfg)
         progress(0.95, "writing outputs")
         run_dir = self._new_run_dir()
@@ -329,6 +387,9 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
         f"**Model** {Path(manifest['checkpoint']).name} (category {settings['category']}, "
         f"{settings['resolution']} px), depth prior **{prior}**"
         + (f" ({settings['depth_checkpoint']})" if prior != "none" and settings.get("depth_checkpoint") else ""),
+        "**Background** " + (f"removed by the {settings['background_model']} model "
+                             f"({settings['background_model_licence']})" if settings.get("background_model")
+                             else "the alpha channel or the border colour decided (no background model ran)"),
         f"**Camera** elevation {settings['elevation']:g} deg, radius {settings['radius']:g}, "
         f"fill {settings['fill']:.2f}, {settings['views']} orbit views",
         ("**Mesh** none (--mesh-resolution 0)" if not manifest["mesh"].get("made", True) else

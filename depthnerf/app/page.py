@@ -4,32 +4,40 @@ Imports Gradio (the ``[app]`` extra); nothing else in the package does. Requests
 one worker (``queue(default_concurrency_limit=1)``): one reconstruction at a time, and a second tab sees its
 place in the queue on its outputs. The server binds ``AppConfig.host`` (127.0.0.1 by default) and asks for a
 public share link only with ``AppConfig.share``.
+
+A new upload clears every output of the previous one (the preview fills in the preprocessed input; errors leave
+nothing stale). On exit (Ctrl+C or SIGTERM) the server closes, Gradio deletes the files it cached for this page
+(uploads included; ``delete_cache``) and the temporary run folder is removed (a ``--work-dir`` is kept).
 """
 
 from __future__ import annotations
 
 import shutil
+import signal
+import threading
 from pathlib import Path
 
 import gradio as gr
 
 from depthnerf.app.logic import (
-    DEPTH_PRIORS,
     SHIPPED_MODELS,
     AppConfig,
     AppSession,
     RunOutputs,
     RunRequest,
+    background_installed,
     check_port,
     examples,
+    prior_description,
 )
 from depthnerf.errors import DepthnerfError
 
 INTRO = """# depthnerf: one photo in, 3D out
 Upload a photo of **one object** (PNG, JPEG or WebP; RGB or RGBA, any size) or pick an example, then press
-**Reconstruct**. The page removes the background (the alpha channel if the image has one, else everything that
-differs from the border colour), recentres the object at the foreground ratio, puts it on white and resizes it to
-the model's input; then a depth-aware pixelNeRF renders an orbit of novel views and extracts a mesh.
+**Reconstruct**. The page removes the background (the alpha channel if the image has one, else a background model
+when "Remove background" is ticked and one is installed, else everything that differs from the border colour),
+recentres the object at the foreground ratio, puts it on white and resizes it to the model's input; then a
+depth-aware pixelNeRF renders an orbit of novel views and extracts a mesh.
 
 **Honest note.** The shipped CPU models (`cpu-cars-depth`, `cpu-chairs-depth`) are small, were trained at 64 px on
 procedurally *synthesised* cars and chairs with the bundled depth network as their prior, and have never seen a
@@ -39,12 +47,20 @@ from the one these models were trained with.
 """
 
 CLUTTER_HINT = """**Cluttered background?** The border-colour mask only works on a plain background. Cut the object out
-(a PNG or WebP with a transparent background) and upload that RGBA image above."""
+(a PNG or WebP with a transparent background) and upload that RGBA image above, or let a background model do it:
+install it where the page runs (`pip install 'depthnerf[bg]'`, then `rembg d u2net` for its weights) and tick
+**Remove background**."""
 
 LOCAL = ("127.0.0.1", "localhost", "::1")
 """Host names that only this machine can reach."""
 MAX_UPLOAD = "100mb"
 """Largest upload Gradio accepts (a 6000x4000 PNG is well below)."""
+PRIOR_CHOICES = [("bundled (MIT)", "bundled"),
+                 ("Depth Anything V2 (Base by default, as the paper; Base/Large CC-BY-NC-4.0, Small Apache-2.0)",
+                  "depth-anything-v2")]
+"""(label, value) of the depth prior choice; the line under it names the exact weights and licence."""
+DELETE_CACHE = (3600, 86400)
+"""Gradio's cache of this page: files older than a day deleted hourly, and all of them when the server stops."""
 RATIO_INFO = ("object's longer side / frame side (TripoSR's foreground ratio; TripoSR's 0.85 suits its own "
               "model; the default is the fill of the chosen model's training data)")
 
@@ -60,6 +76,12 @@ def model_choices(config: AppConfig) -> list[tuple[str, str]]:
     """(label, checkpoint) pairs of the model menu."""
     by_name = {name: label for label, name in SHIPPED_MODELS.items()}
     return [(f"{by_name[c]} ({c})" if c in by_name else c, c) for c in config.checkpoints]
+
+
+def _cleared(prepared, message: str, clutter: bool) -> tuple:
+    """The preview's outputs: the preprocessed input (or nothing) and its message; every result of an earlier
+    run cleared."""
+    return (prepared, message, gr.Markdown(visible=clutter), None, None, None, None, None, "")
 
 
 def _outputs(out: RunOutputs) -> tuple:
@@ -78,12 +100,13 @@ def build_page(session: AppSession) -> gr.Blocks:
     first = choices[0][1]
     start_fill = session.training_fill(first)
 
-    def preview(image, model, ckpt_path, ratio):
+    def preview(image, model, ckpt_path, ratio, remove_bg, bg_model):
         if not image:  # the upload was cleared: nothing to complain about yet
-            return None, "upload a PNG, JPEG or WebP photo, or pick an example", gr.Markdown(visible=False)
-        img, message = session.preview(RunRequest(image, model, ckpt_path or "", foreground_ratio=ratio))
-        clutter = img is None and "background is not a plain colour" in message
-        return img, message, gr.Markdown(visible=clutter)
+            return _cleared(None, "upload a PNG, JPEG or WebP photo, or pick an example", False)
+        img, message = session.preview(RunRequest(image, model, ckpt_path or "", foreground_ratio=ratio,
+                                                  remove_background=bool(remove_bg),
+                                                  background_model=bg_model or ""))
+        return _cleared(img, message, img is None and "background is not a plain colour" in message)
 
     def fill_for(model, ckpt_path):
         try:
@@ -91,14 +114,14 @@ def build_page(session: AppSession) -> gr.Blocks:
         except Exception:  # noqa: BLE001 - a bad path shows up (one line) when the user runs it
             return gr.Slider()
 
-    def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views,
+    def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg, bg_model,
                     progress=gr.Progress(track_tqdm=True)):  # noqa: B008 - Gradio's way to ask for a progress bar
         request = RunRequest(image=image, model=model, checkpoint_path=ckpt_path or "", depth_prior=prior,
                              depth_checkpoint=prior_ckpt or "", foreground_ratio=ratio, elevation=elevation,
-                             views=int(views))
+                             views=int(views), remove_background=bool(remove_bg), background_model=bg_model or "")
         return _outputs(session.run(request, lambda frac, text: progress(frac, desc=text)))
 
-    with gr.Blocks(title="depthnerf app", analytics_enabled=False) as page:
+    with gr.Blocks(title="depthnerf app", analytics_enabled=False, delete_cache=DELETE_CACHE) as page:
         gr.Markdown(INTRO)
         with gr.Row():
             with gr.Column(scale=1):
@@ -112,10 +135,18 @@ def build_page(session: AppSession) -> gr.Blocks:
                 ckpt_path = gr.Textbox(label="or a local checkpoint (weights file, checkpoint or run folder)",
                                        placeholder="runs/cars/checkpoints/best", visible=config.allow_checkpoint_paths,
                                        elem_id="checkpoint-path")
-                prior = gr.Radio(list(DEPTH_PRIORS), value="bundled", label="Depth prior", elem_id="prior")
+                installed = background_installed()
+                remove_bg = gr.Checkbox(value=installed, label="Remove background (rembg)", elem_id="remove-bg",
+                                        info="for photos without transparency" if installed else
+                                        "not installed where the page runs: pip install 'depthnerf[bg]'")
+                bg_model = gr.Textbox(label="Background model (rembg name in its model folder, or an .onnx file)",
+                                      placeholder="u2net", visible=config.allow_checkpoint_paths,
+                                      elem_id="background-model")
+                prior = gr.Radio(PRIOR_CHOICES, value="bundled", label="Depth prior", elem_id="prior")
                 prior_ckpt = gr.Textbox(label="Depth Anything V2 weights (hub id in the local cache, or a folder)",
-                                        placeholder="depth-anything/Depth-Anything-V2-Small-hf",
+                                        placeholder="depth-anything/Depth-Anything-V2-Base-hf (default)",
                                         elem_id="prior-checkpoint")
+                prior_info = gr.Markdown(prior_description("bundled"), elem_id="prior-info")
                 ratio = gr.Slider(0.3, 1.0, value=start_fill, step=0.01, label="Foreground ratio", info=RATIO_INFO,
                                   elem_id="ratio")
                 elevation = gr.Slider(-10, 60, value=20, step=1, label="Elevation (degrees)", elem_id="elevation")
@@ -139,11 +170,18 @@ def build_page(session: AppSession) -> gr.Blocks:
                                     interactive=False, elem_id="downloads")
                 details = gr.Markdown(elem_id="details")
 
-        upload.change(preview, [upload, model, ckpt_path, ratio], [prepared, status, clutter], api_name="preview")
-        ratio.release(preview, [upload, model, ckpt_path, ratio], [prepared, status, clutter], api_visibility="private")
+        preview_in = [upload, model, ckpt_path, ratio, remove_bg, bg_model]
+        preview_out = [prepared, status, clutter, prior_img, video, gif, viewer, downloads, details]
+        upload.change(preview, preview_in, preview_out, api_name="preview")
+        ratio.release(preview, preview_in, preview_out, api_visibility="private")
+        remove_bg.change(preview, preview_in, preview_out, api_visibility="private")
+        bg_model.submit(preview, preview_in, preview_out, api_visibility="private")
         model.change(fill_for, [model, ckpt_path], [ratio], api_visibility="private")
         ckpt_path.submit(fill_for, [model, ckpt_path], [ratio], api_visibility="private")
-        run.click(reconstruct, [upload, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views],
+        for trigger in (prior.change, prior_ckpt.change):
+            trigger(prior_description, [prior, prior_ckpt], [prior_info], api_visibility="private")
+        run.click(reconstruct, [upload, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg,
+                                bg_model],
                   [status, prepared, prior_img, video, gif, viewer, downloads, details, clutter],
                   api_name="reconstruct", concurrency_limit=1, concurrency_id="reconstruct")
     return page
@@ -154,6 +192,7 @@ def serve(config: AppConfig) -> None:
     "serving" is printed once the server is bound."""
     check_port(config.host, config.port)
     session = AppSession(config)
+    previous = _stop_on_sigterm()  # SIGTERM stops the page as Ctrl+C does, loading included
     try:
         print(f"depthnerf app: loading {config.checkpoints[0]} (runs are written to {session.work_dir})", flush=True)
         page = build_page(session)
@@ -170,5 +209,20 @@ def serve(config: AppConfig) -> None:
                  else "") + "; Ctrl+C stops it", flush=True)
         page.block_thread()
     finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
         if config.work_dir is None:  # our temporary folder
             shutil.rmtree(session.work_dir, ignore_errors=True)
+
+
+def _stop_on_sigterm():
+    """SIGTERM ends the server as Ctrl+C does (Gradio closes it, then :func:`serve` cleans up); returns the
+    previous handler (None outside the main thread, where Python allows no handler)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    return previous if previous is not None else signal.SIG_DFL

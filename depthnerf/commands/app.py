@@ -28,7 +28,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-resolution", type=int, default=64,
                    help="marching-cubes samples along the mesh box's longest side (default 64; 0 = no mesh)")
     p.add_argument("--device", default="cpu", help="torch device of the models (default cpu)")
-    p.add_argument("--work-dir", type=Path, help="where runs are written (default: a temporary folder)")
+    p.add_argument("--work-dir", type=Path,
+                   help="where runs are written (default: a temporary folder, removed when the app stops)")
+    p.add_argument("--background-model", metavar="NAME_OR_FILE",
+                   help="background model when the page's field is empty: rembg model name or .onnx file "
+                        "(default u2net from rembg's model folder; needs pip install 'depthnerf[bg]')")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
     config = AppConfig(host=args.host, port=args.port,
                        checkpoints=tuple(args.checkpoint or SHIPPED_MODELS.values()), share=args.share,
                        views=args.views, max_views=args.max_views, mesh_resolution=args.mesh_resolution,
-                       device=args.device, work_dir=args.work_dir, allow_checkpoint_paths=not args.share)
+                       device=args.device, work_dir=args.work_dir, allow_checkpoint_paths=not args.share,
+                       background_model=args.background_model)
     from depthnerf.app.page import serve
 
     serve(config)

@@ -1,9 +1,11 @@
 """``depthnerf reconstruct IMAGE --checkpoint CKPT --out DIR``: one photo -> depth prior, novel views, turntable,
 depth maps, mesh and point cloud (a thin layer over :class:`depthnerf.reconstruct.reconstructor.Reconstructor`).
 
-The photo should show one object, roughly centred, on a plain background; the mask is ``--mask``, else the
-alpha channel, else everything that differs from the border colour (rules, framing and camera defaults in
-:mod:`depthnerf.reconstruct.reconstructor`; the output layout in :mod:`depthnerf.reconstruct.exports`).
+The photo should show one object, roughly centred; the mask is ``--mask``, else the alpha channel, else a
+background model's cut-out when one is installed (``--background-removal``, ``--background-model``;
+:mod:`depthnerf.reconstruct.background`), else everything that differs from the border colour (rules, framing
+and camera defaults in :mod:`depthnerf.reconstruct.reconstructor`; the output layout in
+:mod:`depthnerf.reconstruct.exports`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from pathlib import Path
 from depthnerf.commands.evaluate import guidance, resolve_device
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.errors import DepthnerfError
+from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -26,6 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier reconstruction in --out (only the files reconstruct writes)")
     p.add_argument("--mask", type=Path, help="object mask, same size as the image (non-zero = object)")
+    p.add_argument("--background-removal", choices=MODES, default="auto",
+                   help="remove the background of a photo without alpha or mask with a rembg model: auto (default: "
+                        "when rembg and the model are installed, pip install 'depthnerf[bg]'), on, off")
+    p.add_argument("--background-model", metavar="NAME_OR_FILE",
+                   help=f"rembg model name ({', '.join(NAMED_MODELS)}; default {DEFAULT_MODEL}) from rembg's model "
+                        "folder (`rembg d NAME` downloads one there), or a U^2-Net-style .onnx file")
     p.add_argument("--views", type=int, default=36, help="novel views on the orbit (default 36)")
     p.add_argument("--elevation", type=float, default=20.0, help="input camera elevation, degrees (default 20)")
     p.add_argument("--radius", type=float, help="camera distance (default: the training category's)")
@@ -57,6 +66,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from depthnerf.pretrained.load import load_pretrained
+    from depthnerf.reconstruct.background import choose_remover
     from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
     from depthnerf.render.mesh import parse_level
@@ -67,8 +77,11 @@ def run(args: argparse.Namespace) -> int:
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
                             chunk=ReconstructConfig.chunk if args.chunk is None else args.chunk,
-                            guided=guidance(args.guided, args.guided_align_samples), progress=not args.no_progress)
+                            guided=guidance(args.guided, args.guided_align_samples), progress=not args.no_progress,
+                            background_removal=args.background_removal, background_model=args.background_model)
     check_output_dir(args.out, args.overwrite)
+    # a background model the flags name loads (or fails in one line) before the NeRF does
+    background = choose_remover(args.background_removal, args.background_model)
     device = resolve_device(args.device)
     pretrained = load_pretrained(args.checkpoint, device)
     if not pretrained.spec.depth_aware and (args.depth not in (None, "none") or args.depth_checkpoint):
@@ -79,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     rec = Reconstructor(pretrained, device, depth_estimator=args.depth, depth_checkpoint=args.depth_checkpoint,
                         policy=policy)
     cfg = dataclasses.replace(cfg, chunk=policy.ray_chunk if args.chunk is None else args.chunk)
-    result = rec.reconstruct(args.image, mask=args.mask, config=cfg)
+    result = rec.reconstruct(args.image, mask=args.mask, config=cfg, background=background)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:
         print(f"note: {note}")

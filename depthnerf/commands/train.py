@@ -8,6 +8,10 @@ launch the same command with ``torchrun --nproc_per_node=N -m depthnerf train ..
 that preempts jobs reissues the same command); one line on stderr says which. On resume the run's own
 ``config.json`` is used: flags that agree with it are accepted, flags that change what is trained are refused
 (see :data:`CHANGEABLE_ON_RESUME` for what may change), and ``--data`` may point at the same data moved elsewhere.
+
+SIGTERM (a cluster about to preempt the job) or Ctrl+C writes a checkpoint at the current step, prints one line
+on stderr with the exact command that resumes it (:func:`resume_command`) and exits with 143 / 130
+(:mod:`depthnerf.train.stop`).
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
+import shlex
 import sys
 from pathlib import Path
 from typing import Any
@@ -149,4 +155,24 @@ def run(args: argparse.Namespace) -> int:
         teardown(info)
     if info.is_main:
         print(json.dumps(result, allow_nan=False))
-    return 0
+        if result["stopped_by"]:
+            print(f"stopped by {result['stopped_by']} at step {result['step']}: checkpoint {result['checkpoint']}; "
+                  f"resume with: {resume_command(args, info.world)}", file=sys.stderr, flush=True)
+    return int(result["exit_code"])
+
+
+def resume_command(args: argparse.Namespace, world: int) -> str:
+    """The one command that continues this run: ``depthnerf train --out RUN --resume`` plus the flags that are
+    not stored in the run's config (device, determinism, strictness); under torchrun the same launch."""
+    cmd = ["depthnerf", "train", "--out", str(Path(args.out).resolve()), "--resume"]
+    cmd += ["--device", args.device] if args.device != "auto" else []
+    cmd += [flag for flag, on in (("--deterministic", args.deterministic), ("--strict", args.strict),
+                                  ("--no-progress", args.no_progress)) if on]
+    text = shlex.join(cmd)
+    if world > 1:
+        per_node = int(os.environ.get("LOCAL_WORLD_SIZE", world))
+        nodes = max(1, world // max(1, per_node))
+        launch = (f"torchrun --nproc_per_node={per_node}" if nodes == 1 else
+                  f"torchrun --nnodes={nodes} --nproc_per_node={per_node} <your rendezvous flags, on every node>")
+        text = f"{launch} -m {text}"
+    return text

@@ -5,8 +5,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -35,8 +36,10 @@ class ValidationResult:
 
 @torch.no_grad()
 def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSource, views: Sequence[int],
-             spec: InferenceSpec, chunk: int, device: torch.device) -> ValidationResult:
-    """Render ``views`` of each record from its input view and score them against the ground truth."""
+             spec: InferenceSpec, chunk: int, device: torch.device,
+             progress: Callable[[int], Any] | None = None) -> ValidationResult:
+    """Render ``views`` of each record from its input view and score them against the ground truth
+    (``progress(1)`` after each record)."""
     was_training = model.training
     model.eval()
     scores, images = [], {}
@@ -62,6 +65,8 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSour
                 if disparity is not None:
                     d = disparity[0].numpy()
                     images["prior"] = (d - d.min()) / max(float(d.max() - d.min()), 1e-8)
+            if progress is not None:
+                progress(1)
     finally:
         model.train(was_training)
     return ValidationResult(psnr=float(np.mean([s.psnr for s in scores])),

@@ -3,6 +3,8 @@
 Layout of ``OUT`` (every path in ``manifest.json`` is relative to ``OUT``)::
 
     input.png, input_mask.png     the prepared input view (on white, at the training resolution) and its mask
+    cutout.png                    the photo as read with the background model's alpha (RGBA; only when a
+                                  background model removed the background)
     depth_prior.png               the prior the encoder saw (depth-aware models): normalised disparity as 8-bit
                                   grey, foreground [-4, 4] -> [64, 255] (brighter = nearer), background 0
     views/view_NNN.png            the N orbit views (view 000 = the input camera)
@@ -50,8 +52,8 @@ TURNTABLE_FPS = 12
 """Frames per second of the turntable GIF / MP4."""
 GLTF_FROM_WORLD = np.array([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
 """World (+z up) to glTF (+y up): ``(x, y, z) -> (x, z, -y)``, a rotation of -90 degrees about +x."""
-OUTPUT_NAMES = ("manifest.json", "input.png", "input_mask.png", "depth_prior.png", "depths.npz", "turntable.gif",
-                "turntable.mp4", "mesh.ply", "mesh.glb", "points.ply")
+OUTPUT_NAMES = ("manifest.json", "input.png", "input_mask.png", "cutout.png", "depth_prior.png", "depths.npz",
+                "turntable.gif", "turntable.mp4", "mesh.ply", "mesh.glb", "points.ply")
 """Files a reconstruction writes at the top of its folder."""
 NUMBERED_OUTPUTS = {"views": re.compile(r"view_\d{3,}\.png"), "depths": re.compile(r"depth_\d{3,}\.png")}
 """Sub-folder -> the per-view files a reconstruction writes there."""
@@ -134,6 +136,10 @@ def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[
     Image.fromarray(to_u8(result.input.image)).save(out / "input.png")
     Image.fromarray(result.input.mask.astype(np.uint8) * 255).save(out / "input_mask.png")
     files["input"], files["input_mask"] = "input.png", "input_mask.png"
+    files["cutout"] = None
+    if result.input.cutout is not None:
+        Image.fromarray(to_u8(result.input.cutout), "RGBA").save(out / "cutout.png")
+        files["cutout"] = "cutout.png"
     if result.prior_normalized is not None:
         Image.fromarray(prior_image(result.prior_normalized)).save(out / "depth_prior.png")
         files["depth_prior"] = "depth_prior.png"

@@ -6,7 +6,9 @@ Input photo (assumption: ONE object, roughly centred, on a plain background)
     grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
     images larger than :data:`MAX_SIDE` px are first downscaled (box filter) so the longer side is ``MAX_SIDE``
     (noted). Mask, in order: the given mask (non-zero = object, same size as the image); else the alpha channel
-    (``alpha > 0.5``) when the image has a non-opaque alpha; else the *background colour* = the per-channel median
+    (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
+    (:mod:`depthnerf.reconstruct.background`), its foreground score as the alpha (then as for alpha; the RGBA
+    cut-out is kept in :attr:`PreparedImage.cutout`); else the *background colour* = the per-channel median
     of the image border (a ring ``max(1, 2%)`` of the shorter side wide) and object = pixels whose largest channel
     difference from it exceeds :data:`BACKGROUND_TOLERANCE` (0.1, i.e. ~26 of 255 levels). Background pixels are
     then set to white (alpha is composited on white), as in the SRN training images.
@@ -14,8 +16,9 @@ Cluttered background (border-colour mask only)
     A plain background makes the border ring nearly all background. When more than :data:`MAX_BORDER_OBJECT`
     (35 %) of the ring's pixels differ from the border colour (a non-uniform border: texture, a scene, a
     gradient), or the mask covers more than :data:`MAX_OBJECT_AREA` (90 %) of the image, the mask is not an
-    object but the scene: a :class:`~depthnerf.errors.DepthnerfError` asks for an RGBA cut-out or a mask instead
-    of reconstructing smears. (An object may touch the border: it then covers a minority of the ring.)
+    object but the scene: a :class:`~depthnerf.errors.DepthnerfError` says why no background model removed it
+    (the extra or its weights missing: how to get them) and asks for an RGBA cut-out or a mask instead of
+    reconstructing smears. (An object may touch the border: it then covers a minority of the ring.)
 Framing rule (``framing="auto"``)
     A square crop centred on the mask's bounding box, of side ``max(box width, box height) / fill``, padded with
     white where it leaves the image, then resampled to the model's training resolution (area averaging, bilinear
@@ -42,6 +45,7 @@ from PIL import Image
 from depthnerf.data.srn import mask_bboxes
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, get_framing
 from depthnerf.errors import DepthnerfError
+from depthnerf.reconstruct.background import BackgroundRemover
 
 MIN_SIDE = 16
 """Smallest accepted image side (pixels)."""
@@ -74,6 +78,9 @@ class PreparedImage:
     """What was done to the input (grayscale, downscaled, mask source, crop)."""
     source_size: tuple[int, int]
     """(height, width) of the file as read."""
+    cutout: Float[np.ndarray, "h w 4"] | None = None
+    """The photo as read (after any downscale) with the background model's alpha, in [0, 1]; None when no model
+    ran."""
 
 
 def _to_float(arr: np.ndarray) -> np.ndarray:
@@ -149,10 +156,12 @@ def read_photo(source: ImageLike, notes: list[str]) -> tuple[np.ndarray, np.ndar
 
 
 def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None, notes: list[str],
-               name: str = "image", source_size: tuple[int, int] | None = None) -> np.ndarray:
+               name: str = "image", source_size: tuple[int, int] | None = None, hint: str | None = None
+               ) -> np.ndarray:
     """The object mask by the rule of the module docstring (given mask, alpha, or border background colour).
 
-    A given mask must have the image's size as read (``source_size``); it is downscaled with the image.
+    A given mask must have the image's size as read (``source_size``); it is downscaled with the image. ``hint``:
+    why no background model ran (part of the cluttered-background error).
     """
     height, width = rgb.shape[:2]
     if mask is not None:
@@ -183,7 +192,7 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
         out = np.abs(rgb - bg).max(axis=-1) > BACKGROUND_TOLERANCE
         notes.append(f"mask: pixels differing from the border colour {np.round(bg * 255).astype(int).tolist()} by "
                      f"more than {BACKGROUND_TOLERANCE}")
-        check_plain_background(out, ring, name)
+        check_plain_background(out, ring, name, hint)
     if not out.any():
         raise DepthnerfError(f"{name}: no object found (the mask is empty); pass a mask (--mask)")
     return out
@@ -196,15 +205,16 @@ def border_ring(mask: np.ndarray, ring: int) -> np.ndarray:
     return mask[inner]
 
 
-def check_plain_background(mask: np.ndarray, ring: int, name: str) -> None:
-    """Reject a border-colour mask that is the scene rather than an object (module docstring)."""
+def check_plain_background(mask: np.ndarray, ring: int, name: str, hint: str | None = None) -> None:
+    """Reject a border-colour mask that is the scene rather than an object (module docstring); ``hint`` says why
+    no background model removed the background."""
     border = float(border_ring(mask, ring).mean())
     area = float(mask.mean())
     if border > MAX_BORDER_OBJECT or area > MAX_OBJECT_AREA:
         raise DepthnerfError(
             f"{name}: the background is not a plain colour (the border-colour mask covers {border:.0%} of the border "
-            f"and {area:.0%} of the image), so no object can be cut out; use an RGBA cut-out with a transparent "
-            "background or pass a mask (--mask)")
+            f"and {area:.0%} of the image), so no object can be cut out; {hint + '; or ' if hint else ''}use an "
+            "RGBA cut-out with a transparent background or pass a mask (--mask)")
 
 
 def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, resolution: int, framing: str,
@@ -248,11 +258,22 @@ def category_fill(category: str, framing: str = DEFAULT_FRAMING) -> float:
 
 
 def prepare_photo(image: ImageLike, mask: ImageLike | None, resolution: int, framing: str = "auto",
-                  fill: float = DEFAULT_FILL) -> PreparedImage:
-    """Read, mask and frame a photo for a model trained at ``resolution`` (module docstring)."""
+                  fill: float = DEFAULT_FILL, background: BackgroundRemover | None = None) -> PreparedImage:
+    """Read, mask and frame a photo for a model trained at ``resolution`` (module docstring); ``background``
+    removes the background of a photo without mask or alpha (when it holds a model; else its reason goes into
+    the cluttered-background error)."""
     notes: list[str] = []
     rgb, alpha, size = read_photo(image, notes)
     name = str(image) if isinstance(image, str | Path) else "image"
-    m = photo_mask(rgb, alpha, mask, notes, name, size)
+    cutout = None
+    if mask is None and alpha is None and background is not None:
+        if background.available:
+            alpha = background.foreground(rgb)
+            cutout = np.dstack([rgb, alpha])
+            notes.append(f"background removed by the {background.name} model (rembg): its foreground score is the "
+                         "alpha")
+        elif background.required:
+            raise DepthnerfError(f"{name}: {background.reason}")
+    m = photo_mask(rgb, alpha, mask, notes, name, size, background.reason if background is not None else None)
     img, m_small = frame_photo(rgb, alpha, m, resolution, framing, fill, notes)
-    return PreparedImage(image=img, mask=m_small, notes=notes, source_size=size)
+    return PreparedImage(image=img, mask=m_small, notes=notes, source_size=size, cutout=cutout)

@@ -1,6 +1,8 @@
 """Single-photo reconstruction: the :class:`Reconstructor` API behind ``depthnerf reconstruct``.
 
-Photo reading, masking and framing: :mod:`depthnerf.reconstruct.photo`.
+Photo reading, masking and framing: :mod:`depthnerf.reconstruct.photo`; background removal for photos on a
+cluttered background (``ReconstructConfig.background_removal`` / ``background_model``; loaded once per model and
+kept): :mod:`depthnerf.reconstruct.background`.
 Camera
     The input camera sits at ``radius`` from the origin at ``elevation`` degrees (azimuth 0), looking at the origin
     (:mod:`depthnerf.reconstruct.orbit`); focal length in pixels of the category's 128 px release frame (SRN: 131.25),
@@ -46,6 +48,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.model.conditioning import Conditioned, condition
 from depthnerf.model.pixelnerf import EncodedViews
 from depthnerf.pretrained.load import Pretrained, load_pretrained
+from depthnerf.reconstruct.background import MODES, BackgroundRemover, choose_remover
 from depthnerf.reconstruct.exports import save_reconstruction
 from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsics
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
@@ -90,6 +93,11 @@ class ReconstructConfig:
     """Render with depth-guided sampling (:mod:`depthnerf.render.guidance`); None: the checkpoint's sampler."""
     progress: bool = False
     """Show a progress bar (stderr)."""
+    background_removal: str = "auto"
+    """``auto`` (a background model when one is installed), ``on`` or ``off``
+    (:mod:`depthnerf.reconstruct.background`)."""
+    background_model: str | None = None
+    """rembg model name or ONNX file; None = :data:`~depthnerf.reconstruct.background.DEFAULT_MODEL`."""
 
     def __post_init__(self) -> None:
         """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
@@ -103,6 +111,9 @@ class ReconstructConfig:
             raise DepthnerfError(f"--fill must be in (0, 1], got {self.fill}")
         if self.framing not in ("auto", "keep"):
             raise DepthnerfError(f"--framing must be 'auto' or 'keep', got {self.framing!r}")
+        if self.background_removal not in MODES:
+            raise DepthnerfError(f"--background-removal must be one of {', '.join(MODES)}, "
+                                 f"got {self.background_removal!r}")
 
 
 @dataclass
@@ -148,6 +159,18 @@ class Reconstructor:
         self.prior_config = PriorConfig(name, ckpt) if spec.depth_aware else PriorConfig("none")
         self.prior = open_prior(self.prior_config, device=str(self.device), match_cache=match_cache)
         self.framing, self.framing_source = checkpoint_framing(pretrained.path, pretrained.data_root, spec.category)
+        self._removers: dict[tuple[str, str | None], BackgroundRemover] = {}
+
+    def background_remover(self, mode: str = "auto", model: str | None = None) -> BackgroundRemover:
+        """The background remover of ``mode`` / ``model`` (loaded on first use, then kept; a model that is not
+        there is asked for again next time, so a download in between is picked up)."""
+        key = (mode, model)
+        if key not in self._removers:
+            remover = choose_remover(mode, model)
+            if not remover.available and mode != "off":
+                return remover
+            self._removers[key] = remover
+        return self._removers[key]
 
     @property
     def default_fill(self) -> float:
@@ -164,8 +187,10 @@ class Reconstructor:
 
     @torch.no_grad()
     def reconstruct(self, image: ImageLike, mask: ImageLike | None = None, views: int | None = None,
-                    config: ReconstructConfig | None = None) -> Reconstruction:
-        """Reconstruct one photo (see the module docstring); ``views`` (default 36) overrides ``config.views``."""
+                    config: ReconstructConfig | None = None, background: BackgroundRemover | None = None
+                    ) -> Reconstruction:
+        """Reconstruct one photo (see the module docstring); ``views`` (default 36) overrides ``config.views``;
+        ``background`` (e.g. over your own rembg session) replaces the config's background removal."""
         cfg = config or ReconstructConfig()
         if views is not None:
             cfg = replace(cfg, views=views)
@@ -180,7 +205,9 @@ class Reconstructor:
             cat = category_defaults(spec.category)  # unknown category: an error asking for both
             radius, focal, image_size = cfg.radius or cat.camera_radius, cfg.focal or cat.focal, cat.image_size
         fill = cfg.fill if cfg.fill is not None else self.default_fill
-        prepared = prepare_photo(image, mask, res, cfg.framing, fill)
+        if background is None:
+            background = self.background_remover(cfg.background_removal, cfg.background_model)
+        prepared = prepare_photo(image, mask, res, cfg.framing, fill, background)
         times["prepare_s"] = time.perf_counter() - t
         poses = orbit_poses(radius, cfg.elevation, views)
         pixel_center = spec.pixel_center  # the photo's SRN-style intrinsics read as training read the data
@@ -195,7 +222,11 @@ class Reconstructor:
         result.timings = {**times, **result.timings}
         result.settings = {"radius": radius, "elevation": cfg.elevation, "focal": focal, "focal_frame": image_size,
                            "framing": cfg.framing, "fill": fill,
-                           "training_framing": self.framing, **result.settings}
+                           "training_framing": self.framing,
+                           "background_removal": cfg.background_removal,
+                           "background_model": None if prepared.cutout is None else background.name,
+                           "background_model_licence": None if prepared.cutout is None else background.licence,
+                           **result.settings}
         return result
 
     @torch.no_grad()

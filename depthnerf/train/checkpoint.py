@@ -15,7 +15,10 @@ Nothing here unpickles: tensors go through safetensors, everything else through 
 
 Crash test hook: with ``DEPTHNERF_CRASH_AT=STAGE@STEP`` in the environment the process SIGKILLs itself at
 ``STAGE`` of the checkpoint write of step ``STEP`` (one of :data:`CRASH_STAGES`), so a test can kill training at
-every point of a write deterministically instead of racing a timer (``tests/test_train.py``).
+every point of a write deterministically instead of racing a timer (``tests/test_train.py``). The loop adds two
+points, ``step`` (after the optimiser step) and ``validation`` (as validation starts), and
+``DEPTHNERF_CRASH_AT=sigterm-STAGE@STEP`` / ``sigint-STAGE@STEP`` sends the process SIGTERM / SIGINT there instead
+(the clean stop of :mod:`depthnerf.train.stop`).
 """
 
 from __future__ import annotations
@@ -52,10 +55,21 @@ pointer is updated, after old checkpoints are pruned; for ``best``: after its te
 ``best`` was moved aside (before the new one takes its place)."""
 
 
+SIGNAL_HOOKS = {"sigterm": signal.SIGTERM, "sigint": signal.SIGINT}
+"""``DEPTHNERF_CRASH_AT=<name>-STAGE@STEP``: the signal sent instead of SIGKILL (module docstring)."""
+
+
 def crash_point(stage: str, step: int) -> None:
-    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``stage@step`` (test hook; a no-op otherwise)."""
-    if os.environ.get("DEPTHNERF_CRASH_AT") == f"{stage}@{step}":
+    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``stage@step``, send it SIGTERM / SIGINT if it is
+    ``sigterm-stage@step`` / ``sigint-stage@step`` (test hook; a no-op otherwise)."""
+    hook = os.environ.get("DEPTHNERF_CRASH_AT")
+    if not hook or not hook.endswith(f"{stage}@{step}"):
+        return
+    if hook == f"{stage}@{step}":
         os.kill(os.getpid(), signal.SIGKILL)
+    for name, sig in SIGNAL_HOOKS.items():
+        if hook == f"{name}-{stage}@{step}":
+            os.kill(os.getpid(), sig)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -97,6 +111,8 @@ class TrainingState:
     """Number of optimisation steps completed."""
     best_psnr: float
     """Best validation PSNR so far (-inf before the first validation)."""
+    world_size: int = 1
+    """Processes (torchrun ranks) of the run that wrote the checkpoint (1 in state files that predate it)."""
 
 
 def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -125,7 +141,7 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
         os.fsync(f.fileno())
     crash_point("optimizer", state.step)
     best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
-    payload = {"step": state.step, "best_psnr": best, "optimizer": opt_info}
+    payload = {"step": state.step, "best_psnr": best, "world_size": state.world_size, "optimizer": opt_info}
     write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1, allow_nan=False))
     _fsync_dir(tmp)
     crash_point("state", state.step)
@@ -185,4 +201,5 @@ def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.opt
             raise DepthnerfError(f"{ckpt_dir / 'optimizer.safetensors'}: unreadable optimizer state ({err})") from None
         _optimizer_from_files(optimizer, opt_tensors, payload["optimizer"])
     best = payload["best_psnr"]  # older state files also hold an unused "extra" mapping: ignored
-    return TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best))
+    return TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best),
+                         world_size=int(payload.get("world_size", 1)))

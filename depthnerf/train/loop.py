@@ -10,6 +10,10 @@ synchronised on CPU (SyncBatchNorm needs a GPU); DDP keeps rank 0's.
 
 On CUDA: bf16 autocast, fused Adam, channels-last encoder, pinned host batches, and the loss terms stay on the
 device until a log step reads them (the only host synchronisation of the loop besides validation/checkpoints).
+
+SIGTERM / SIGINT end the loop after the current step with a checkpoint of that step (:mod:`depthnerf.train.stop`);
+the returned state then names the signal (``stopped_by``). Every start and resume appends one line to the run's
+``launches.jsonl`` (:func:`~depthnerf.train.run_log.record_launch`: step, world size, device).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import signal
 import sys
 import time
 from pathlib import Path
@@ -33,12 +38,14 @@ from depthnerf.distributed import DistInfo, barrier
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, StepSampler, collate, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.items import TrainItems
-from depthnerf.train.run_log import RunLog
+from depthnerf.train.run_log import RunLog, record_launch
 from depthnerf.train.step import BatchLoss, train_step
+from depthnerf.train.stop import STOP_SIGNALS, StopRequest, ValidationInterrupted, exit_code, signal_name
 from depthnerf.train.validator import Validator
 
 __all__ = ["learning_rate", "train"]
@@ -110,6 +117,9 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         _write_run_files(run_dir, cfg, prior_source, len(records))
+        note = record_launch(run_dir, start, info.world, str(info.device))
+        if note:
+            print(note, file=sys.stderr, flush=True)
     barrier(info)
 
     loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight)
@@ -122,7 +132,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
                        pixel_center=cfg.data.pixel_center)
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate, num_workers=cfg.data.num_workers, pin_memory=cuda,
-                        persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None)
+                        persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
+                        worker_init_fn=_ignore_stop_signals if cfg.data.num_workers else None)
     log = RunLog(run_dir, start) if info.is_main else None
     bar = tqdm(total=s.max_steps, initial=start, desc="train", unit="it", dynamic_ncols=True,
                disable=not (progress and info.is_main))
@@ -130,53 +141,94 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     per_object = s.step_shape == "per-object"
     model.train()
     step, best, last_saved = start, state.best_psnr, None
+    saved_step, stopping = None, False
     t_last, rays_since = time.perf_counter(), 0
-    for batch in loader:
-        lr = learning_rate(cfg, plan, step)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        batch = batch.to(info.device, non_blocking=True)
-        keys = step_keys(plan, step, info.rank, info.world)
-        optimizer.zero_grad(set_to_none=True)
-        terms = train_step(runner, batch, keys, step, near, far, info.device, amp=amp, per_object=per_object,
-                           distributed=info.world > 1)
-        optimizer.step()
-        step += 1
-        rays_since += len(keys) * s.rays_per_object * info.world
-        bar.update(1)
-        log_now = step % cfg.log.log_every == 0 or step == s.max_steps
-        if log_now and info.world > 1:  # every rank reaches the same log steps
-            torch.distributed.all_reduce(terms)
-            terms /= info.world
-        if info.is_main and log_now:
-            total, coarse, fine, depth, background = terms.tolist()  # the one host sync per log interval
-            now = time.perf_counter()
-            psnr = -10.0 * math.log10(max(fine, 1e-10))
-            values = {"loss": total, "loss_coarse": coarse, "loss_fine": fine, "loss_depth": depth,
-                      "loss_background": background, "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
-                      "rays_per_s": rays_since / max(now - t_last, 1e-9)}
-            log.log(step, values)
-            bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")
-            t_last, rays_since = now, 0
-        val_now = validate is not None and cfg.log.val_every > 0 and (step % cfg.log.val_every == 0 or step == s.max_steps)
-        improved = False
-        if info.is_main and val_now:
-            res = validate(model, val_records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk,
-                           info.device)
-            log.log(step, {"val_psnr": res.psnr, "val_ssim": res.ssim}, prefix="val")
-            log.images(step, res.images)
-            improved = res.psnr > best
-            best = max(best, res.psnr)
-        if info.is_main and (step % cfg.log.checkpoint_every == 0 or step == s.max_steps or improved):
-            last_saved = ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg,
-                                              ckpt.TrainingState(step=step, best_psnr=best),
-                                              keep_last=cfg.log.keep_last, train_config=to_dict(cfg),
-                                              spec_json=spec.to_json())
-            if improved:
-                ckpt.mark_best(ckpt_root, last_saved)
+    with StopRequest(info) as stop:
+        for batch in loader:
+            lr = learning_rate(cfg, plan, step)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            batch = batch.to(info.device, non_blocking=True)
+            keys = step_keys(plan, step, info.rank, info.world)
+            optimizer.zero_grad(set_to_none=True)
+            terms = train_step(runner, batch, keys, step, near, far, info.device, amp=amp, per_object=per_object,
+                               distributed=info.world > 1)
+            optimizer.step()
+            step += 1
+            ckpt.crash_point("step", step)
+            rays_since += len(keys) * s.rays_per_object * info.world
+            bar.update(1)
+            log_now = step % cfg.log.log_every == 0 or step == s.max_steps
+            if log_now and info.world > 1:  # every rank reaches the same log steps
+                torch.distributed.all_reduce(terms)
+                terms /= info.world
+            if info.is_main and log_now:
+                total, coarse, fine, depth, background = terms.tolist()  # the one host sync per log interval
+                now = time.perf_counter()
+                psnr = -10.0 * math.log10(max(fine, 1e-10))
+                values = {"loss": total, "loss_coarse": coarse, "loss_fine": fine, "loss_depth": depth,
+                          "loss_background": background, "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
+                          "rays_per_s": rays_since / max(now - t_last, 1e-9)}
+                log.log(step, values)
+                bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")
+                t_last, rays_since = now, 0
+            val_now = validate is not None and cfg.log.val_every > 0 and stop.signum is None and (
+                step % cfg.log.val_every == 0 or step == s.max_steps)
+            improved = False
+            if info.is_main and val_now:
+                try:
+                    res = _validate(validate, stop, model, val_records, prior_source, spec, cfg, info, step,
+                                    progress and info.is_main)
+                except ValidationInterrupted:
+                    pass  # stop.signum is set: the step's checkpoint follows
+                else:
+                    log.log(step, {"val_psnr": res.psnr, "val_ssim": res.ssim}, prefix="val")
+                    log.images(step, res.images)
+                    improved = res.psnr > best
+                    best = max(best, res.psnr)
+            if info.is_main and (step % cfg.log.checkpoint_every == 0 or step == s.max_steps or improved):
+                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, best, cfg, spec, info)
+                saved_step = step
+                if improved:
+                    ckpt.mark_best(ckpt_root, last_saved)
+            stopping = stop.requested()  # after the step's checkpoint: a signal during its write counts too
+            if info.is_main and stopping and saved_step != step:
+                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, best, cfg, spec, info)
+                saved_step = step
+            if stopping:
+                break
+        finished = step >= s.max_steps  # a signal after the last step stops nothing
+        stopped_by = signal_name(stop.signum) if stopping and stop.signum and not finished else None
     bar.close()
     if log is not None:
         log.close()
     barrier(info)
     return {"step": step, "best_val_psnr": best if math.isfinite(best) else None,  # strict JSON: no -Infinity
-            "checkpoint": str(last_saved) if last_saved else None}
+            "checkpoint": str(last_saved) if last_saved else None, "stopped_by": stopped_by,
+            "exit_code": exit_code(stop.signum) if stopped_by else 0}
+
+
+def _save(ckpt_root: Path, model: PixelNeRF, optimizer: torch.optim.Optimizer, model_cfg: dict, step: int,
+          best: float, cfg: TrainConfig, spec: InferenceSpec, info: DistInfo) -> Path:
+    """The run checkpoint of ``step`` (:func:`depthnerf.train.checkpoint.save_checkpoint`)."""
+    state = ckpt.TrainingState(step=step, best_psnr=best, world_size=info.world)
+    return ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg, state, keep_last=cfg.log.keep_last,
+                                train_config=to_dict(cfg), spec_json=spec.to_json())
+
+
+def _ignore_stop_signals(worker_id: int) -> None:
+    """DataLoader workers ignore SIGTERM / SIGINT (sent to the whole process group): the main process stops
+    cleanly and shuts them down; a worker that died first would abort it."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, signal.SIG_IGN)
+
+
+def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior: PriorSource,
+              spec: InferenceSpec, cfg: TrainConfig, info: DistInfo, step: int, progress: bool):
+    """One validation as its own phase: a second progress bar over the val objects; interruptible by a stop
+    signal (:meth:`StopRequest.interruptible`)."""
+    with tqdm(total=len(records), desc=f"validate (step {step})", unit="object", leave=False, position=1,
+              dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible():
+        ckpt.crash_point("validation", step)
+        return validate(model, records, prior, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
+                        progress=vbar.update)

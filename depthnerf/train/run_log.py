@@ -1,4 +1,6 @@
-"""A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step) and TensorBoard events.
+"""A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step), TensorBoard events and
+``launches.jsonl`` (one JSON object per start or resume of the run: the step it started from, the world size =
+number of torchrun ranks, the device and the time).
 
 On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
 its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s``, so the logged curves of a resumed
@@ -9,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -76,3 +79,36 @@ def read_metrics(run_dir: Path) -> list[dict[str, Any]]:
     """All JSON lines of a run's ``metrics.jsonl``."""
     path = Path(run_dir) / "metrics.jsonl"
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+
+
+def record_launch(run_dir: Path, start_step: int, world_size: int, device: str) -> str | None:
+    """Append this start of the run to ``RUN_DIR/launches.jsonl``; returns a one-line note when a resume runs
+    with another world size than the previous launch (the global batch is the same; results agree within float
+    rounding, not bit for bit), else None."""
+    path = Path(run_dir) / "launches.jsonl"
+    launches = read_launches(run_dir)
+    previous = launches[-1] if launches else None
+    if path.exists() and not path.read_text().endswith("\n") and path.stat().st_size:
+        with open(path, "a") as f:
+            f.write("\n")  # after a line cut by a kill
+    entry = {"start_step": start_step, "world_size": world_size, "device": device,
+             "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    with open(path, "a") as f:
+        f.write(json.dumps(entry) + "\n")
+    old = previous.get("world_size") if isinstance(previous, dict) else None
+    if start_step > 0 and old is not None and old != world_size:
+        return (f"note: resuming with world size {world_size} (the run's previous launch had {old}): the same "
+                "global batch, equal to the earlier launch within float rounding, not bit for bit")
+    return None
+
+
+def read_launches(run_dir: Path) -> list[dict[str, Any]]:
+    """All JSON lines of a run's ``launches.jsonl``."""
+    path = Path(run_dir) / "launches.jsonl"
+    out = []
+    for line in path.read_text().splitlines() if path.exists() else []:
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue  # a line cut by a kill
+    return out

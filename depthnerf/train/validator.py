@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 import numpy as np
@@ -23,8 +23,10 @@ class ValidationScores(Protocol):
 
 
 class Validator(Protocol):
-    """``validate(model, records, prior, views, spec, chunk, device)``: render ``views`` of each record from its
-    input view (conditioned on ``prior``) and score them."""
+    """``validate(model, records, prior, views, spec, chunk, device, progress=None)``: render ``views`` of each
+    record from its input view (conditioned on ``prior``) and score them; ``progress(1)`` after each record (the
+    loop's validation progress bar)."""
 
     def __call__(self, model: PixelNeRF, records: Sequence[Any], prior: PriorSource, views: Sequence[int],
-                 spec: InferenceSpec, chunk: int, device: torch.device) -> ValidationScores: ...
+                 spec: InferenceSpec, chunk: int, device: torch.device,
+                 progress: Callable[[int], Any] | None = None) -> ValidationScores: ...
