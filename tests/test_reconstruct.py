@@ -32,7 +32,7 @@ from depthnerf.pretrained.load import load_pretrained
 from depthnerf.reconstruct.orbit import srn_intrinsics
 from depthnerf.reconstruct.photo import category_fill, prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
-from depthnerf.render.guidance import GuidanceConfig
+from depthnerf.render.guidance import DEFAULT_BUDGET, GuidanceConfig
 from depthnerf.render.mesh import CameraGrid
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import from_dict_config, with_prior
@@ -231,7 +231,8 @@ def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys
                  str(tmp_path / "g"), "--views", "2", "--mesh-resolution", "0", "--guided", "--no-progress",
                  "--depth-estimator", "bundled", "--depth-checkpoint", str(models["weights"])]) == 0
     manifest = json.loads((tmp_path / "g" / "manifest.json").read_text())
-    assert manifest["settings"]["guided_sampling"] == 24 and manifest["settings"]["depth_estimator"] == "bundled"
+    assert manifest["settings"]["guided_sampling"] == DEFAULT_BUDGET == 48
+    assert manifest["settings"]["depth_estimator"] == "bundled"
     assert main(["reconstruct", str(tmp_path / "photo.png"), "--checkpoint", str(models["constant"]), "--out",
                  str(tmp_path / "h"), "--guided", "5"]) == 2
     assert "--guided 5: a guided budget needs >= 6" in capsys.readouterr().err

@@ -33,6 +33,7 @@ import torch
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
+from depthnerf.render.guidance import DEFAULT_BUDGET
 
 COLLECTIVE_TIMEOUT = timedelta(hours=6)
 """How long rank 0 waits for the slowest rank's share of the objects before the merge (multi-process runs)."""
@@ -77,8 +78,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth", choices=ESTIMATORS,
                    help="override the depth prior recorded in the checkpoint (its cache must exist)")
     p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
-    p.add_argument("--guided", type=int, nargs="?", const=24, metavar="BUDGET",
-                   help="render with depth-guided sampling, BUDGET samples per occupied ray (default 24)")
+    p.add_argument("--guided", type=int, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
+                   help="render with depth-guided sampling, BUDGET samples per occupied ray "
+                        f"(default {DEFAULT_BUDGET})")
     p.add_argument("--guided-align-samples", type=int, default=32,
                    help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")

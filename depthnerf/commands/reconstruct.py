@@ -18,6 +18,7 @@ from depthnerf.commands.evaluate import guidance, resolve_device
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
+from depthnerf.render.guidance import DEFAULT_BUDGET
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -52,8 +53,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
                         "--depth-estimator: same)")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
-    p.add_argument("--guided", type=int, nargs="?", const=24, metavar="BUDGET",
-                   help="render with depth-guided sampling, BUDGET samples per occupied ray (default 24)")
+    p.add_argument("--guided", type=int, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
+                   help="render with depth-guided sampling, BUDGET samples per occupied ray "
+                        f"(default {DEFAULT_BUDGET})")
     p.add_argument("--guided-align-samples", type=int, default=32,
                    help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
     p.add_argument("--chunk", type=int, help="rays per render pass (default 4096 on CPU, 65536 on CUDA)")
