@@ -30,12 +30,10 @@ from depthnerf.app.logic import (
     AppSession,
     RunRequest,
     background_installed,
-    check_upload,
     examples,
-    one_line,
-    prior_description,
     resolve_model,
 )
+from depthnerf.app.messages import check_upload, one_line, prior_description
 from depthnerf.cli import main
 from depthnerf.data.synth.framing import get_framing
 from depthnerf.errors import DepthnerfError

@@ -15,7 +15,8 @@ import pytest
 from fixtures_srn import make_srn_fixture
 from PIL import Image
 
-from depthnerf.app.logic import EXAMPLES_DIR, check_port, check_upload, collect_outputs
+from depthnerf.app.logic import EXAMPLES_DIR, check_port, collect_outputs
+from depthnerf.app.messages import check_upload
 from depthnerf.cli import main
 from depthnerf.data.srn_format import read_depth
 from depthnerf.errors import DepthnerfError

@@ -28,8 +28,8 @@ from depthnerf.app.logic import (
     background_installed,
     check_port,
     examples,
-    prior_description,
 )
+from depthnerf.app.messages import prior_description
 from depthnerf.errors import DepthnerfError
 
 INTRO = """# depthnerf: one photo in, 3D out

@@ -1,0 +1,79 @@
+"""What the page says: errors in one line and in the page's words, the depth-prior line, the upload check.
+
+Messages from the package name command-line flags (``--mask``, ``--depth-checkpoint`` ...); the page shows them
+with its own field names (:data:`PAGE_WORDS`).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from PIL import Image
+
+from depthnerf.errors import DepthnerfError
+
+PAGE_WORDS = (
+    (r"; pass a mask \(--mask\)", "; upload an RGBA cut-out of the object (transparent background)"),
+    (r" or pass a mask \(--mask\)", ""),
+    (r"pass --depth-checkpoint ([^\s;,)]+)", r"enter \1 under 'Depth Anything V2 weights'"),
+    (r"pass --background-model ([^\s;,)]+)", r"enter \1 under 'Background model'"),
+    (r"background removal is off \(--background-removal off\)", "background removal is off (tick 'Remove background')"),
+    (r"--background-model ([^\s;,)]+):", r"background model \1:"),
+    (r"--fill", "the foreground ratio"),
+    (r"--views", "orbit views"),
+)
+"""(pattern, replacement): the command-line flags that messages suggest, in the page's words."""
+
+def display_name(path: str | Path | None) -> str:
+    """The file name a user recognises (Gradio uploads live in temporary folders)."""
+    return Path(path).name if path else "image"
+
+
+def one_line(err: BaseException, image: str | Path | None) -> str:
+    """``error: ...`` for a DepthnerfError (temporary upload path -> file name), ``internal error ...`` else."""
+    text = " ".join(str(err).split())
+    if image:
+        text = text.replace(str(image), display_name(image))
+    if isinstance(err, DepthnerfError):
+        return f"error: {page_words(text)}"
+    return f"internal error ({type(err).__name__}): {text}"
+
+
+def page_words(text: str) -> str:
+    """``text`` with the command-line flags it suggests replaced by the page's fields (:data:`PAGE_WORDS`)."""
+    for pattern, replacement in PAGE_WORDS:
+        text = re.sub(pattern, replacement, text)
+    return text
+
+
+def prior_description(prior: str, depth_checkpoint: str = "") -> str:
+    """Which weights a depth prior choice loads, and their licence (one line for the page)."""
+    if prior == "bundled":
+        return "bundled: this project's small depth network, trained on the synthetic benchmark only (MIT)"
+    from depthnerf.depth.depth_anything import DEFAULT_CHECKPOINT, licence_of
+
+    checkpoint = depth_checkpoint.strip() or DEFAULT_CHECKPOINT
+    size = next((s for s in ("Small", "Base", "Large") if s.lower() in checkpoint.lower()), None)
+    what = f"Depth Anything V2 {size}" if size else "Depth Anything V2"
+    paper = ", the paper's prior" if checkpoint == DEFAULT_CHECKPOINT else ""
+    return f"{what} ({checkpoint}{paper}); licence {licence_of(checkpoint)}"
+
+
+def check_upload(image: str | Path | None) -> Path:
+    """The upload's path when it is a PNG, JPEG or WebP file; else a one-line DepthnerfError."""
+    from depthnerf.reconstruct.photo import check_photo_format
+
+    if image is None or str(image) == "":
+        raise DepthnerfError("no image: upload a PNG, JPEG or WebP photo, or pick an example")
+    path = Path(image)
+    name = display_name(path)
+    if not path.is_file():
+        raise DepthnerfError(f"{name}: file not found")
+    try:
+        with Image.open(path) as im:
+            fmt = im.format
+    except (OSError, ValueError, Image.DecompressionBombError) as err:
+        raise DepthnerfError(f"{name}: not an image ({' '.join(str(err).split())})") from None
+    check_photo_format(fmt, name)  # the rule depthnerf reconstruct applies
+    return path
