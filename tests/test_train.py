@@ -316,7 +316,8 @@ def test_device_cuda_without_a_gpu_is_one_line(data, tmp_path):
 def test_torchrun_two_processes_match_one_process(data, tmp_path):
     """DDP's gradient averaging against one process. Both run the per-object step shape, so each object's
     arithmetic is the same in both and only the reduction differs; Adam turns the last-bit differences of other
-    matmul shapes into 1e-4-level loss differences within 2 steps. The batched step's rank split is checked on
+    matmul shapes into 1e-4-level loss differences within 2 steps (with the CPU presets' background term: up to
+    1.3e-4 relative at step 3). The batched step's rank split is checked on
     gradients in tests/test_train_step.py."""
     args = ["train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--max-steps", "3",
             "--log.val_every", "0", "--device", "cpu", "--schedule.step_shape", "per-object", *TINY]
@@ -326,7 +327,9 @@ def test_torchrun_two_processes_match_one_process(data, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
                            "-m", "depthnerf", *args, "--out", str(ddp)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert losses(ddp) == pytest.approx(losses(single), rel=1e-4)
+    ddp_losses, single_losses = losses(ddp), losses(single)
+    assert ddp_losses[1] == pytest.approx(single_losses[1], rel=1e-5)  # before any update: rounding only
+    assert ddp_losses == pytest.approx(single_losses, rel=5e-4)  # after 2 Adam steps: measured up to 1.3e-4
     assert [x["world_size"] for x in read_launches(ddp)] == [2] and read_launches(single)[0]["world_size"] == 1
     w_single = ckpt.read_weights(ckpt.latest_checkpoint(single / "checkpoints") / "model.safetensors")[0]
     w_ddp = ckpt.read_weights(ckpt.latest_checkpoint(ddp / "checkpoints") / "model.safetensors")[0]
