@@ -121,3 +121,14 @@ def _set_path(node: Any, parts: list[str], value: str, full: str) -> Any:
     else:
         new = _set_path(current, parts[1:], value, full)
     return dataclasses.replace(node, **{head: new})
+
+
+def flat_keys(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested dict as dotted keys: ``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (how CLI overrides name fields)."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(flat_keys(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out

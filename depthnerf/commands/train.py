@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from depthnerf.config_io import apply_overrides, to_dict
+from depthnerf.config_io import apply_overrides, flat_keys, to_dict
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
@@ -83,19 +83,9 @@ def _apply_flags(cfg: TrainConfig, args: argparse.Namespace) -> TrainConfig:
     return apply_overrides(cfg, args.overrides)
 
 
-def _flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
 def config_changes(old: TrainConfig, new: TrainConfig) -> dict[str, tuple[Any, Any]]:
     """Dotted config paths whose values differ: ``{path: (old, new)}``."""
-    a, b = _flatten(json.loads(json.dumps(to_dict(old)))), _flatten(json.loads(json.dumps(to_dict(new))))
+    a, b = flat_keys(json.loads(json.dumps(to_dict(old)))), flat_keys(json.loads(json.dumps(to_dict(new))))
     return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
 
 

@@ -42,6 +42,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from depthnerf.config_io import flat_keys
 from depthnerf.data.protocol import ProtocolViews, protocol_views
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.distributed import DistInfo, broadcast_from_main, gather_to_main
@@ -115,20 +116,9 @@ def decode(payload: dict, record: ObjectRecord, stride: int) -> ObjectResult:
                         seconds=dict(payload["seconds"]), renders=list(payload["renders"]))
 
 
-def _flat(settings: dict, prefix: str = "") -> dict:
-    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``."""
-    out = {}
-    for key, value in settings.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
 def _differences(old: dict, new: dict) -> list[str]:
     """``"key OLD there, NEW now"`` for every setting that differs (nested keys dotted)."""
-    old, new = _flat(old), _flat(new)
+    old, new = flat_keys(old), flat_keys(new)
     return [f"{k} {json.dumps(old.get(k))} there, {json.dumps(new.get(k))} now"
             for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
 
