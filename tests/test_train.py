@@ -336,4 +336,7 @@ def test_torchrun_two_processes_match_one_process(data, tmp_path):
     for key, value in w_single.items():
         if "running_" in key or "num_batches" in key:
             continue  # BatchNorm running statistics are rank 0's own (DDP broadcasts buffers from rank 0)
-        assert torch.allclose(value.float(), w_ddp[key].float(), rtol=1e-3, atol=1e-5), key
+        # Adam's step is ~lr * sign(gradient) where a gradient is near 0, so a last-bit difference can flip one
+        # step: |difference| <= 2 * lr per step
+        bound = 2 * preset("cpu-cars").schedule.lr * 3
+        assert torch.allclose(value.float(), w_ddp[key].float(), rtol=1e-3, atol=bound), key
