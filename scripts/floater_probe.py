@@ -33,12 +33,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from depthnerf.data.srn import index_split, load_object
+from depthnerf.data.srn import index_split
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.depth.prior import PriorConfig, open_prior
 from depthnerf.eval.geometry_metrics import GeometryConfig, floater_fraction
 from depthnerf.eval.metrics import psnr
-from depthnerf.eval.objects import protocol_views
+from depthnerf.eval.objects import prepare_object, protocol_views
 from depthnerf.model.conditioning import condition_views
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.mesh import MeshConfig, input_camera_mesh, load_mesh
@@ -95,15 +95,14 @@ def main(argv: list[str] | None = None) -> int:
     twin = batch_stats_model(model)
     rows: dict[str, list[dict]] = {c: [] for c in conditions}
     for record in records:
-        views = protocol_views(record.num_views, args.stride)
-        src = load_object(record, [views.input_view], resolution=spec.resolution, pixel_center=spec.pixel_center)
-        tgt = load_object(record, list(views.targets), resolution=spec.resolution, pixel_center=spec.pixel_center)
-        cond = condition_views(source, src)
+        obj = prepare_object(model, record, protocol_views(record.num_views, args.stride), source, spec.resolution,
+                             spec.resolution, torch.device("cpu"), pixel_center=spec.pixel_center)
+        src, tgt = obj.source, obj.targets
         oracle_prior = condition_views(oracle, src).inputs.prior if depth_aware else None
         gt_mesh = load_mesh(record.mesh_path)
         for name in conditions:
             net = twin if name == "bn-batch-stats" else model
-            inputs = cond.inputs
+            inputs = obj.inputs
             if depth_aware:
                 inputs = dataclasses.replace(inputs, prior=conditioned_prior(name, inputs.prior, src.masks,
                                                                              oracle_prior))

@@ -20,19 +20,21 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 from PIL import Image
+
+from depthnerf.data.cameras import project, world_to_camera
 
 
 def inside_mask(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """True for world points that project (OpenCV camera ``c2w``; ``intrinsics`` = f, cx, cy, H, W; pixel (i, j)
-    at (u, v) = (j, i)) in front of the camera onto a mask pixel."""
+    at (u, v) = (j, i); :mod:`depthnerf.data.cameras`) in front of the camera onto a mask pixel."""
     f, cx, cy, h, w = intrinsics
-    cam = (points - c2w[:3, 3]) @ c2w[:3, :3]
-    z = cam[:, 2]
-    u = np.round(f * cam[:, 0] / np.maximum(z, 1e-9) + cx).astype(np.int64)
-    v = np.round(f * cam[:, 1] / np.maximum(z, 1e-9) + cy).astype(np.int64)
-    ok = (z > 0) & (u >= 0) & (u < int(w)) & (v >= 0) & (v < int(h))
+    cam = world_to_camera(torch.tensor(points, dtype=torch.float64), torch.tensor(c2w, dtype=torch.float64))
+    uv = np.round(project(cam, float(f), (float(cx), float(cy))).numpy()).astype(np.int64)
+    u, v = uv[:, 0], uv[:, 1]
+    ok = (cam[:, 2].numpy() > 0) & (u >= 0) & (u < int(w)) & (v >= 0) & (v < int(h))
     out = np.zeros(len(points), dtype=bool)
     out[ok] = mask[v[ok], u[ok]]
     return out

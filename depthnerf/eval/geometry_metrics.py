@@ -233,5 +233,5 @@ def summarize_geometry(results: Sequence[GeometryMetrics], config: GeometryConfi
     sources = Counter(r.ground_truth for r in results)
     gt = (next(iter(sources)) if len(sources) == 1
           else "; ".join(f"{name} ({n} objects)" for name, n in sorted(sources.items())))
-    return {**means, "fscore_tau": config.tau, "floater_margin": config.floater_margin, "geometry_units": units, "geometry_points": config.n_points,
-            "empty_predictions": sum(r.empty_prediction for r in results), "geometry_gt": gt}
+    return {**means, "fscore_tau": config.tau, "floater_margin": config.floater_margin, "geometry_units": units,
+            "geometry_points": config.n_points, "empty_predictions": sum(r.empty_prediction for r in results), "geometry_gt": gt}
