@@ -8,7 +8,8 @@
 #
 # Environment: STEPS (training steps, default: the preset's 2000), JOBS (runs in parallel, default 2, each with
 # one thread: on 2 cores, two 1-thread jobs beat one 2-thread job), STRIDE (eval view stride, default 25),
-# RUNS (which runs, default all six, e.g. "cars-none cars-bundled"), FRAMING (synthetic benchmark framing,
+# RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
+# mirror-symmetric conditioning), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
 # 0.5 reads the SRN-framed renders exactly), GENERALISATION (1: also run scripts/generalisation_check.sh on
@@ -38,15 +39,21 @@ depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
 # 3. + 4. train and evaluate each run
 one_run() {
   set -euo pipefail  # not inherited through xargs: a failed training must not be evaluated
-  local name=$1 cat=${1%%-*} prior=${1#*-}
+  local name=$1 cat=${1%%-*} rest=${1#*-}
+  local prior=${rest%%-*} variant=${rest#*-}
   local run="$STUDY/runs/$name" ev="$STUDY/eval/$name" log="$STUDY/logs/$name.log"
-  local steps=()
+  local steps=() extra=()
   [ -n "$STEPS" ] && steps=(--max-steps "$STEPS")
+  case "$rest" in
+    "$prior") ;;
+    *-sym) extra=(--model.mirror true) ;;  # mirror-symmetric conditioning (docs/RESULTS.md, "Symmetry")
+    *) echo "unknown run variant '$variant' in $name (known: sym)" >&2; return 2 ;;
+  esac
   if [ ! -f "$ev/summary.json" ]; then
     local resume=()
     [ -f "$run/config.json" ] && resume=(--resume)
     depthnerf train --preset "cpu-$cat" --data "$STUDY/data" --depth "$prior" --seed "$SEED" --out "$run" \
-      --data.pixel_center "$PIXEL_CENTER" "${steps[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
+      --data.pixel_center "$PIXEL_CENTER" "${steps[@]}" "${extra[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
     depthnerf eval --run "$run" --views-stride "$STRIDE" --save-renders --out "$ev" --no-progress >> "$log" 2>&1
   fi
   echo "$name done"

@@ -87,6 +87,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pixel-center", type=float,
                    help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
                         "data.pixel_center (measures what a convention mismatch costs)")
+    p.add_argument("--no-symmetry", action="store_true",
+                   help="mirror models: condition on no symmetry plane (the model's no-plane mode)")
+    p.add_argument("--symmetry-plane", type=float, nargs=4, metavar=("NX", "NY", "NZ", "D"),
+                   help="mirror models: the objects' symmetry plane n.x = d in the world frame (default: the "
+                        "dataset card's, else ShapeNet's x = 0)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     p.add_argument("--fp32", action="store_true", help="render in fp32 on CUDA too (default there: bf16 autocast)")
     p.add_argument("--compile", action="store_true",
@@ -204,6 +209,8 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         choices=choices, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
         guided=guidance(args.guided, args.guided_align_samples),
+        symmetry=not args.no_symmetry,
+        symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane),
         lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
         progress=not args.no_progress, overwrite=args.overwrite)
     result = evaluate_protocol(pre, data, out, cfg, device, info, policy)

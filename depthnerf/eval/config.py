@@ -139,6 +139,12 @@ class ProtocolConfig:
     pixel_center: float | None = None
     """Pixel-centre convention the model reads the data with (see ``DataConfig.pixel_center``); None = the
     checkpoint's trained value. Overriding it measures what a convention mismatch costs."""
+    symmetry: bool = True
+    """Mirror models (``PixelNeRFConfig.mirror``): condition on the dataset's symmetry plane
+    (:func:`depthnerf.data.symmetry.dataset_plane`); False (``--no-symmetry``) = on none, the model's no-plane
+    mode. Ignored for other models."""
+    symmetry_plane: tuple[float, ...] | None = None
+    """The plane ``nx,ny,nz,d`` to use instead of the dataset's (``--symmetry-plane``)."""
     progress: bool = True
     """Progress bar over objects (stderr)."""
     overwrite: bool = False

@@ -54,13 +54,14 @@ def dataset_prior(spec: InferenceSpec, data_root: Path, records: Sequence[Object
 @torch.no_grad()
 def prepare_object(model: PixelNeRF, record: ObjectRecord, views: ProtocolViews, prior: PriorSource,
                    input_res: int, eval_res: int, device: torch.device, *,
-                   pixel_center: float = 0.0) -> PreparedObject:
+                   pixel_center: float = 0.0, symmetry_plane: Sequence[float] | None = None) -> PreparedObject:
     """Load the input view at ``input_res`` (with its ground-truth depth when the prior needs it), condition it
     on ``prior`` and encode it; load the targets at ``eval_res``. ``pixel_center``: the data's pixel-centre
-    convention as the model reads it (the checkpoint's ``InferenceSpec.pixel_center``)."""
+    convention as the model reads it (the checkpoint's ``InferenceSpec.pixel_center``); ``symmetry_plane``: the
+    object's mirror plane (mirror models; :mod:`depthnerf.data.symmetry`)."""
     src = load_object(record, [views.input_view], resolution=input_res,
                       with_depth=prior.kind == "live" and prior.prior.estimator == "oracle", pixel_center=pixel_center)
     tgt = load_object(record, list(views.targets), resolution=eval_res, pixel_center=pixel_center)
-    cond = condition_views(prior, src, device)
+    cond = condition_views(prior, src, device, symmetry_plane=symmetry_plane)
     return PreparedObject(views=views, source=src, targets=tgt, prior=cond.disparity, inputs=cond.inputs,
                           enc=model.encode(cond.inputs))

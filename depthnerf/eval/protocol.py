@@ -72,6 +72,7 @@ import trimesh
 
 from depthnerf.data import srn_format
 from depthnerf.data.srn import ObjectRecord, index_split
+from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_pixel_center
 from depthnerf.depth.prior import PriorConfig, PriorSource
 from depthnerf.distributed import DistInfo
@@ -125,13 +126,19 @@ class _Evaluator:
 
     def __init__(self, pre: Pretrained, cfg: ProtocolConfig, prior: PriorSource, lpips: LpipsMetric | None,
                  input_res: int, eval_res: int, out_dir: Path, device: torch.device,
-                 policy: InferencePolicy | None) -> None:
+                 policy: InferencePolicy | None, data_root: Path, category: str) -> None:
         self.pre, self.cfg, self.prior, self.lpips = pre, cfg, prior, lpips
         self.runtime = field_runtime(pre.model, policy)  # built once: it holds compiled MLPs with --compile
         self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
         self.near, self.far = pre.spec.z_range
         self.render = pre.spec.render if cfg.guided is None else guided_render(pre.spec.render, cfg.guided.budget)
         self.pixel_center = pre.spec.pixel_center if cfg.pixel_center is None else cfg.pixel_center
+        self.symmetry_plane: tuple[float, ...] | None = None
+        self.symmetry_from = "not a mirror model"
+        if pre.model.cfg.mirror:
+            self.symmetry_from = "off (--no-symmetry)"
+            if cfg.symmetry:
+                self.symmetry_plane, self.symmetry_from = dataset_plane(data_root, category, cfg.symmetry_plane)
         self.png8 = cfg.choices.scored == "png8"
         self.metrics_cfg = ImageMetricsConfig(quantize_pred=self.png8, ssim_window=cfg.choices.ssim)
 
@@ -142,7 +149,7 @@ class _Evaluator:
         torch.manual_seed(object_seed(record.object_id))  # eval_random draws: the same in any process
         t0 = time.perf_counter()
         obj = prepare_object(model, record, views, self.prior, self.input_res, self.eval_res, self.device,
-                             pixel_center=self.pixel_center)
+                             pixel_center=self.pixel_center, symmetry_plane=self.symmetry_plane)
         src, tgt, enc = obj.source, obj.targets, obj.enc
         guide = None
         if cfg.guided is not None:
@@ -276,7 +283,9 @@ def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: s
             "guided": None if cfg.guided is None else dataclasses.asdict(cfg.guided), "lpips": lpips_ok,
             "lpips_net": cfg.lpips.net, "pixel_center": pixel_center, "device": device.type,
             "autocast": str(None if policy is None else policy.autocast),
-            "point_chunk": None if policy is None else policy.point_chunk}
+            "point_chunk": None if policy is None else policy.point_chunk,
+            **({"symmetry_plane": None if cfg.symmetry_plane is None else list(cfg.symmetry_plane),
+                "symmetry": cfg.symmetry} if pre.model.cfg.mirror else {})}
 
 
 def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: ProtocolConfig | None = None,
@@ -328,7 +337,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     lpips = load_lpips(cfg.lpips, device)
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
     out_dir.mkdir(parents=True, exist_ok=True)
-    evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device, policy)
+    evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device, policy, data_root, category)
     store = ObjectStore(out_dir, _settings(pre, cfg, data_root, category, prior, eval_res,
                                            evaluator.pixel_center, lpips is not None, device, policy))
     results, counts = evaluate_objects(records, evaluator, store, info, cfg.views_stride, overwrite=cfg.overwrite,
@@ -366,6 +375,8 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         "native_resolution": [list(s) for s in native],
         "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
         "pixel_center": evaluator.pixel_center, "trained_pixel_center": spec.pixel_center,
+        "symmetry_plane": None if evaluator.symmetry_plane is None else list(evaluator.symmetry_plane),
+        "symmetry_plane_source": evaluator.symmetry_from,
         "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),
         "metrics_path": ("quantized 8-bit renders (calc_metrics.py)" if choices.scored == "png8"
                          else "float renders (eval.py)"),

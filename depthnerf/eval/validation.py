@@ -37,9 +37,10 @@ class ValidationResult:
 @torch.no_grad()
 def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSource, views: Sequence[int],
              spec: InferenceSpec, chunk: int, device: torch.device,
-             progress: Callable[[int], Any] | None = None) -> ValidationResult:
+             progress: Callable[[int], Any] | None = None,
+             symmetry_plane: Sequence[float] | None = None) -> ValidationResult:
     """Render ``views`` of each record from its input view and score them against the ground truth
-    (``progress(1)`` after each record)."""
+    (``progress(1)`` after each record); ``symmetry_plane``: the objects' mirror plane (mirror models)."""
     was_training = model.training
     model.eval()
     scores, images = [], {}
@@ -50,7 +51,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSour
             targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
             obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=spec.pixel_center)
             cond = condition(prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
-                             where=DatasetViews(record, (src,)))
+                             where=DatasetViews(record, (src,)), symmetry_plane=symmetry_plane)
             disparity = cond.disparity
             enc = model.encode(cond.inputs)
             out = render_views(model.field(enc, "coarse"), model.field(enc, "fine"),

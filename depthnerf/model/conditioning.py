@@ -8,6 +8,7 @@ feeds the encoder the same numbers for the same view.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -38,18 +39,25 @@ class Conditioned:
 
 def condition(source: PriorSource, images: Float[Tensor, "V 3 H W"], masks: Bool[Tensor, "V H W"],
               poses: Float[Tensor, "V 4 4"], intr: Intrinsics, device: torch.device | str = "cpu", *,
-              depths: Float[Tensor, "V H W"] | None = None, where: DatasetViews | None = None) -> Conditioned:
-    """The encoder input of V source views of one object (see the module docstring)."""
+              depths: Float[Tensor, "V H W"] | None = None, where: DatasetViews | None = None,
+              symmetry_plane: Sequence[float] | None = None) -> Conditioned:
+    """The encoder input of V source views of one object (see the module docstring); ``symmetry_plane``: the
+    object's mirror plane in the world frame (:mod:`depthnerf.data.symmetry`; None: none given)."""
     disparity = source.disparity(images, depths=depths, where=where)
     prior = None if disparity is None else prior_input(disparity, masks)[None].to(device)
+    plane = None if symmetry_plane is None else torch.tensor([list(symmetry_plane)], dtype=torch.float32,
+                                                             device=device)
     return Conditioned(
         inputs=SourceViews(images=images[None].to(device), poses=poses[None].to(device),
                            focal=torch.tensor([intr.focal], device=device),
-                           principal=torch.tensor([[intr.cx, intr.cy]], device=device), prior=prior),
+                           principal=torch.tensor([[intr.cx, intr.cy]], device=device), prior=prior,
+                           symmetry_plane=plane),
         disparity=disparity)
 
 
-def condition_views(source: PriorSource, obj: ObjectViews, device: torch.device | str = "cpu") -> Conditioned:
+def condition_views(source: PriorSource, obj: ObjectViews, device: torch.device | str = "cpu", *,
+                    symmetry_plane: Sequence[float] | None = None) -> Conditioned:
     """:func:`condition` on loaded dataset views (all of ``obj``'s views are sources)."""
     return condition(source, obj.images, obj.masks, obj.poses, obj.intrinsics, device, depths=obj.depths,
-                     where=DatasetViews(obj.record, tuple(int(v) for v in obj.view_indices.tolist())))
+                     where=DatasetViews(obj.record, tuple(int(v) for v in obj.view_indices.tolist())),
+                     symmetry_plane=symmetry_plane)

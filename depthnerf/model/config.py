@@ -139,3 +139,9 @@ class PixelNeRFConfig:
     fine: FieldConfig | None = field(default_factory=FieldConfig)
     """The fine NeRF MLP, a separate network (pixelNeRF ``mlp_fine``); None = the coarse network also serves
     the fine pass (pixelNeRF with an empty ``mlp_fine``)."""
+    mirror: bool = False
+    """Mirror-symmetric conditioning (beyond the paper; off in the paper presets): every query point also reads
+    the source features at the projection of its mirror image in the object's symmetry plane
+    (:mod:`depthnerf.data.symmetry`), through its own input and feature linears (``lin_in_mirror``,
+    ``lin_z_mirror``), which also get whether the point and its mirror image project inside the source frame.
+    Objects without a plane (a zero plane) skip that branch, so one model serves both."""

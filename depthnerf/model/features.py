@@ -41,6 +41,16 @@ def project_points(cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
     return cam[..., :2] / z * focal[:, None, None, None] + principal[:, None, None, :]
 
 
+def in_frame(cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"], principal: Float[Tensor, "B 2"],
+             image_size: tuple[int, int]) -> Float[Tensor, "B V N"]:
+    """1.0 where a camera-frame point is in front of the camera and projects inside the ``H x W`` image
+    (``0 <= u <= W``, ``0 <= v <= H``), else 0.0."""
+    h, w = image_size
+    uv = project_points(cam, focal, principal)
+    inside = (cam[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= w) & (uv[..., 1] >= 0) & (uv[..., 1] <= h)
+    return inside.to(cam.dtype)
+
+
 def uv_to_grid(uv: Float[Tensor, "*B 2"], image_size: tuple[int, int],
                feature_size: tuple[int, int]) -> Float[Tensor, "*B 2"]:
     """pixelNeRF's ``latent_scaling``: image coordinates -> ``grid_sample`` coordinates in [-1, 1]."""

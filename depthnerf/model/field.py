@@ -10,16 +10,40 @@ source views are averaged; ``lin_out(relu(x))`` -> 4 = (rgb logits, sigma). Colo
 (applied by the caller). Initialisation as pixelNeRF: kaiming-normal (fan_in) weights and zero biases for
 lin_in, lin_z, lin_out and every fc_0; fc_1 weights and biases are zero, so each block starts as the identity
 (``FieldConfig.density_bias_init`` optionally replaces the init of lin_out's density row, see there).
+
+Mirror branch (``PixelNeRFConfig.mirror``): a second input linear ``lin_in_mirror`` takes the mirror image's
+input ``[gamma(x'), d', in_frame(x), in_frame(x')]`` and a second set of feature linears ``lin_z_mirror`` the
+features sampled at the mirror image's projection; both are added to the direct ones, times a per-object gate
+(1 with a symmetry plane, 0 without): ``x = lin_in(u) + g lin_in_mirror(u')``, ``x += lin_z[i](z) + g
+lin_z_mirror[i](z')``. The mirror linears are initialised like their direct twins.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from depthnerf.bundles import TensorBundle
 from depthnerf.model.config import FieldConfig
+
+MIRROR_FLAGS = 2
+"""Extra inputs of the mirror branch: whether the point and its mirror image project inside the source frame."""
+
+
+@dataclass
+class MirrorQuery(TensorBundle):
+    """What the mirror branch of :meth:`ResidualField.forward` gets for every point and source view."""
+
+    inputs: Float[Tensor, "B V N Dm"]
+    """``[gamma(x'), d', in_frame(x), in_frame(x')]`` of the mirror image x' (Dm = d_in + 2)."""
+    latent: Float[Tensor, "B V N L"]
+    """Features at the mirror image's projection (sampled ``latent_map(..., mirror=True)`` when projected)."""
+    gate: Float[Tensor, " B"]
+    """1.0 for objects with a symmetry plane, 0.0 without (the branch then adds nothing)."""
 
 
 class PositionalEncoding(nn.Module):
@@ -74,7 +98,7 @@ class ResidualBlock(nn.Module):
 class ResidualField(nn.Module):
     """pixelNeRF's ResnetFC conditioned on ``d_latent`` pixel-aligned feature channels."""
 
-    def __init__(self, cfg: FieldConfig, d_latent: int):
+    def __init__(self, cfg: FieldConfig, d_latent: int, *, mirror: bool = False):
         super().__init__()
         self.cfg = cfg
         self.encoding = PositionalEncoding(cfg.num_freqs, cfg.freq_factor, cfg.include_input)
@@ -82,17 +106,25 @@ class ResidualField(nn.Module):
         self.blocks = nn.ModuleList([ResidualBlock(cfg.d_hidden) for _ in range(cfg.n_blocks)])
         self.n_lin_z = min(cfg.combine_layer, cfg.n_blocks)
         self.lin_z = nn.ModuleList([_kaiming(nn.Linear(d_latent, cfg.d_hidden)) for _ in range(self.n_lin_z)])
+        self.mirror = mirror
+        """Whether the mirror branch exists (``PixelNeRFConfig.mirror``)."""
+        if mirror:
+            self.lin_in_mirror = _kaiming(nn.Linear(cfg.d_in + MIRROR_FLAGS, cfg.d_hidden))
+            self.lin_z_mirror = nn.ModuleList([_kaiming(nn.Linear(d_latent, cfg.d_hidden))
+                                               for _ in range(self.n_lin_z)])
         self.lin_out = _kaiming(nn.Linear(cfg.d_hidden, 4))
         if cfg.density_bias_init is not None:
             with torch.no_grad():
                 self.lin_out.weight[3].zero_()
                 self.lin_out.bias[3] = cfg.density_bias_init
 
-    def latent_map(self, maps: Float[Tensor, "N C Hf Wf"]) -> Float[Tensor, "N Hf Wf Z"]:
-        """All ``lin_z`` applied to every feature pixel, channels-last: ``Z = n_lin_z * d_hidden`` channels."""
+    def latent_map(self, maps: Float[Tensor, "N C Hf Wf"], *, mirror: bool = False) -> Float[Tensor, "N Hf Wf Z"]:
+        """All ``lin_z`` (``lin_z_mirror`` with ``mirror``) applied to every feature pixel, channels-last:
+        ``Z = n_lin_z * d_hidden`` channels."""
         n, c, hf, wf = maps.shape
-        weight = torch.cat([lin.weight for lin in self.lin_z]) if self.n_lin_z else maps.new_zeros(0, c)
-        bias = torch.cat([lin.bias for lin in self.lin_z]) if self.n_lin_z else maps.new_zeros(0)
+        lins = self.lin_z_mirror if mirror else self.lin_z
+        weight = torch.cat([lin.weight for lin in lins]) if self.n_lin_z else maps.new_zeros(0, c)
+        bias = torch.cat([lin.bias for lin in lins]) if self.n_lin_z else maps.new_zeros(0)
         out = torch.matmul(maps.reshape(n, c, hf * wf).transpose(1, 2), weight.t()) + bias
         return out.reshape(n, hf, wf, -1)
 
@@ -102,9 +134,10 @@ class ResidualField(nn.Module):
         return torch.cat([enc, dirs], dim=-1) if self.cfg.use_viewdirs else enc
 
     def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"], *,
-                projected: bool) -> Float[Tensor, "B N 4"]:
+                projected: bool, mirror: MirrorQuery | None = None) -> Float[Tensor, "B N 4"]:
         """Raw outputs (rgb logits, sigma pre-activation). ``latent`` is either the sampled features
-        (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z)."""
+        (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z); ``mirror``
+        (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike."""
         b, v, n, _ = inputs.shape
         d = self.cfg.d_hidden
         x = self.lin_in(inputs.reshape(b * v * n, -1))
@@ -113,11 +146,21 @@ class ResidualField(nn.Module):
         inplace = not torch.is_grad_enabled()
         if inplace:
             x = x.to(inputs.dtype)  # the residual stream stays fp32 under autocast
+        zm, zm_parts, gate = None, None, None
+        if mirror is not None:
+            if not self.mirror:
+                raise ValueError("mirror inputs given to a field built without the mirror branch")
+            gate = mirror.gate.to(x.dtype)[:, None, None].expand(b, v, n).reshape(b * v * n, 1)
+            x = x + self.lin_in_mirror(mirror.inputs.reshape(b * v * n, -1)).to(x.dtype) * gate
+            zm = mirror.latent.reshape(b * v * n, -1)
+            zm_parts = zm.split(d, dim=1) if projected else None
         for i, block in enumerate(self.blocks):
             if i == self.cfg.combine_layer and v > 1:
                 x = x.reshape(b, v, n, d).mean(dim=1).reshape(b * n, d)
             if i < self.n_lin_z:
                 zi = z_parts[i] if z_parts is not None else self.lin_z[i](z)
+                if zm is not None:
+                    zi = zi + (zm_parts[i] if zm_parts is not None else self.lin_z_mirror[i](zm)) * gate
                 x = x.add_(zi) if inplace else x + zi
             x = block.forward_(x) if inplace else block(x)
         if self.cfg.combine_layer == self.cfg.n_blocks and v > 1:

@@ -34,11 +34,12 @@ from torch import Tensor, nn
 
 from depthnerf.bundles import FieldFn, TensorBundle
 from depthnerf.data.cameras import invert_pose
+from depthnerf.data.symmetry import has_plane, reflect_dirs, reflect_points
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import PixelNeRFConfig
 from depthnerf.model.encoder import ImageEncoder
-from depthnerf.model.features import pixel_aligned, rotate_dirs, to_source_frames
-from depthnerf.model.field import ResidualField
+from depthnerf.model.features import in_frame, pixel_aligned, rotate_dirs, to_source_frames
+from depthnerf.model.field import MirrorQuery, ResidualField
 
 
 @dataclass
@@ -56,6 +57,9 @@ class SourceViews(TensorBundle):
     prior: Float[Tensor, "B V 1 H W"] | None = None
     """Normalised disparity prior (``depthnerf.depth.normalize.normalize_disparity``: foreground in [-4, 4],
     larger = nearer, background -5); required iff the encoder uses depth, ignored otherwise."""
+    symmetry_plane: Float[Tensor, "B 4"] | None = None
+    """Each object's mirror-symmetry plane in the world frame (:mod:`depthnerf.data.symmetry`; a zero row: no
+    plane); read by models with ``PixelNeRFConfig.mirror``, ignored otherwise. None: no object has one."""
 
 
 @dataclass
@@ -72,6 +76,8 @@ class EncodedViews(TensorBundle):
     """Principal point (cx, cy) in pixels."""
     image_size: tuple[int, int]
     """(H, W) of the source images, the frame in which (u, v) are measured."""
+    symmetry_plane: Float[Tensor, "B 4"] | None = None
+    """The sources' symmetry planes (:attr:`SourceViews.symmetry_plane`)."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,8 @@ def _check_sources(src: SourceViews, depth_aware: bool) -> None:
         if src.prior is None:
             raise DepthnerfError("SourceViews.prior is None but the depth-aware model needs it")
         expected["prior"] = (src.prior, (b, v, 1, h, w))
+    if src.symmetry_plane is not None:
+        expected["symmetry_plane"] = (src.symmetry_plane, (b, 4))
     for name, (tensor, shape) in expected.items():
         if tuple(tensor.shape) != shape:
             raise DepthnerfError(f"SourceViews.{name} must have shape {list(shape)}, got {list(tensor.shape)}")
@@ -117,8 +125,8 @@ class PixelNeRF(nn.Module):
         """The encoder also takes the depth prior (a 4th input channel and the depth encoder)."""
         self.encoder = ImageEncoder(cfg.encoder, self.depth_aware)
         latent = cfg.encoder.latent_size(self.depth_aware)
-        self.coarse = ResidualField(cfg.coarse, latent)
-        self.fine = ResidualField(cfg.fine, latent) if cfg.fine is not None else None
+        self.coarse = ResidualField(cfg.coarse, latent, mirror=cfg.mirror)
+        self.fine = ResidualField(cfg.fine, latent, mirror=cfg.mirror) if cfg.fine is not None else None
 
     def encode(self, src: SourceViews) -> EncodedViews:
         """Feature maps of all source views; nothing is stored on the module."""
@@ -126,9 +134,10 @@ class PixelNeRF(nn.Module):
         b, v, _, h, w = src.images.shape
         prior = src.prior.reshape(b * v, 1, h, w) if self.depth_aware else None
         feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior, objects=b)
+        plane = src.symmetry_plane
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),
-                            image_size=(h, w))
+                            image_size=(h, w), symmetry_plane=None if plane is None else plane.to(feats.dtype))
 
     def network(self, which: Literal["coarse", "fine"]) -> ResidualField:
         """The MLP used for a pass (the coarse one for "fine" when there is no separate fine network)."""
@@ -147,10 +156,16 @@ class PixelNeRF(nn.Module):
         mlp = self.network(which)
         forward = runtime.forwards.get(which, mlp)
         b, v, c, hf, wf = enc.features.shape
+        plane = enc.symmetry_plane if self.cfg.mirror else None
+        gate = has_plane(plane) if plane is not None else None
+        use_mirror = gate is not None and bool(gate.any())
         if mlp.cfg.lin_z_on_map:
-            maps = mlp.latent_map(enc.features.reshape(b * v, c, hf, wf)).reshape(b, v, hf, wf, -1)
+            flat = enc.features.reshape(b * v, c, hf, wf)
+            maps = mlp.latent_map(flat).reshape(b, v, hf, wf, -1)
+            maps_m = mlp.latent_map(flat, mirror=True).reshape(b, v, hf, wf, -1) if use_mirror else None
         else:
             maps = enc.features.permute(0, 1, 3, 4, 2).contiguous()  # channels-last for row gathers
+            maps_m = maps
         chunk = runtime.chunk_points or mlp.cfg.chunk_points
         amp_dtype = runtime.autocast
 
@@ -159,6 +174,18 @@ class PixelNeRF(nn.Module):
             coords = rotated if mlp.cfg.point_frame == "rotated" else cam
             dirs_src = rotate_dirs(dirs, enc.w2c) if mlp.cfg.use_viewdirs else None
             latent = pixel_aligned(maps, cam, enc.focal, enc.principal, enc.image_size)
+            mirror = None
+            if use_mirror:
+                rotated_m, cam_m = to_source_frames(reflect_points(points, plane), enc.w2c)
+                dirs_m = rotate_dirs(reflect_dirs(dirs, plane), enc.w2c) if mlp.cfg.use_viewdirs else None
+                flags = torch.stack([in_frame(cam, enc.focal, enc.principal, enc.image_size),
+                                     in_frame(cam_m, enc.focal, enc.principal, enc.image_size)], dim=-1)
+                inputs_m = mlp.inputs(rotated_m if mlp.cfg.point_frame == "rotated" else cam_m, dirs_m)
+                mirror = MirrorQuery(inputs=torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1),
+                                     latent=pixel_aligned(maps_m, cam_m, enc.focal, enc.principal, enc.image_size),
+                                     gate=gate)
+                return forward(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map,
+                               mirror=mirror)
             return forward(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]

@@ -50,6 +50,10 @@ class DataConfig:
     Blender/SRN renders); 0.5 = Blender's convention, exact for SRN and ``depthnerf synth --framing srn`` data.
     Applied once where views are loaded (a principal-point shift, :meth:`Intrinsics.with_pixel_center`), so rays
     and feature projection agree; eval, reconstruct and the demo use the value the checkpoint was trained with."""
+    symmetry_plane: tuple[float, ...] | None = None
+    """The objects' mirror-symmetry plane ``nx,ny,nz,d`` in the world frame, read by mirror models
+    (``--model.mirror true``) only; None = the dataset card's, else ShapeNet's left-right plane x = 0
+    (:func:`depthnerf.data.symmetry.dataset_plane`, where the convention is stated)."""
     target_views: int = 0
     """Target views loaded per object and step (0 = all views but the source, as pixelNeRF)."""
     num_workers: int = 2
@@ -81,6 +85,10 @@ class ScheduleConfig:
     together (one call each); ``per-object`` = one object at a time with gradients accumulated (the earlier
     loop). Same per-object BatchNorm statistics and noise, so the same result up to float rounding
     (``depthnerf.train.step``); a speed choice only."""
+    mirror_dropout: float = 0.2
+    """Mirror models only: the fraction of training items conditioned WITHOUT their symmetry plane (drawn per item
+    from the item's seed), so that one model also serves inputs without a plane (a photo whose facing is not
+    given); 0 = always with the plane."""
     background_opacity_weight: float = 0.0
     """Weight of :func:`~depthnerf.train.step.background_opacity_per_object` on coarse and fine opacity of
     background target rays, averaged over objects (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
@@ -140,7 +148,7 @@ NUMBER_RULES: dict[str, tuple[float, bool]] = {
     "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
     "schedule.lr_decay": (0, False), "schedule.depth_loss_weight": (0, True),
-    "schedule.background_opacity_weight": (0, True), "log.log_every": (1, True), "log.val_every": (0, True),
+    "schedule.background_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "log.log_every": (1, True), "log.val_every": (0, True),
     "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
     "log.render_chunk": (1, True)}
 """Config path -> (bound, inclusive): the value must be ``>= bound`` (inclusive) or ``> bound``."""
@@ -162,6 +170,8 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
         if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
             flag = NAMED_FLAGS.get(path, f"--{path}")
             raise DepthnerfError(f"{flag} must be {'>=' if inclusive else '>'} {bound:g}, got {value}")
+    if cfg.schedule.mirror_dropout >= 1:
+        raise DepthnerfError(f"--schedule.mirror_dropout must be < 1, got {cfg.schedule.mirror_dropout}")
     near, far = cfg.data.z_near, cfg.data.z_far
     if near is not None and far is not None and not 0 <= near < far:
         raise DepthnerfError(f"--data.z_near / --data.z_far must satisfy 0 <= z_near < z_far, got {near}, {far}")

@@ -22,7 +22,9 @@ class TrainItems(Dataset):
     """``items[key]`` -> a :class:`TrainBatch` with B = 1 for the object and draws named by ``key``."""
 
     def __init__(self, records: Sequence[ObjectRecord], prior: PriorSource, *, resolution: int,
-                 target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0) -> None:
+                 target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0,
+                 symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0
+                 ) -> None:
         self.records = list(records)
         self.prior = prior
         self.resolution = resolution
@@ -30,6 +32,10 @@ class TrainItems(Dataset):
         self.rays = rays_per_object
         self.target_priors = target_priors
         self.pixel_center = pixel_center
+        self.symmetry_plane = symmetry_plane
+        """The objects' plane (mirror models; None: sources carry none)."""
+        self.mirror_dropout = mirror_dropout
+        """Fraction of items conditioned with the zero ("no plane") plane instead."""
 
     def __len__(self) -> int:
         return len(self.records)
@@ -48,8 +54,12 @@ class TrainItems(Dataset):
         origins = obj.poses[tgt][view, :3, 3]
         # the conditioning stage's own bundle (B = 1, V = 1); the target views' prior, made by the same stage,
         # feeds the optional depth loss
+        plane = None
+        if self.symmetry_plane is not None:  # drawn last, so the views and rays are a plain model's
+            dropped = bool(torch.rand((), generator=gen) < self.mirror_dropout)
+            plane = (0.0, 0.0, 0.0, 0.0) if dropped else self.symmetry_plane
         source = condition(self.prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics,
-                           where=DatasetViews(record, (src,))).inputs
+                           where=DatasetViews(record, (src,)), symmetry_plane=plane).inputs
         target_prior = None
         if self.target_priors and source.prior is not None:
             targets_in = condition(self.prior, obj.images[tgt], obj.masks[tgt], obj.poses[tgt], obj.intrinsics,

@@ -33,6 +33,7 @@ from tqdm import tqdm
 
 from depthnerf.config_io import to_dict
 from depthnerf.data.srn import index_split
+from depthnerf.data.symmetry import dataset_plane
 from depthnerf.depth.prior import PriorSource, open_prior
 from depthnerf.distributed import DistInfo, barrier
 from depthnerf.errors import DepthnerfError
@@ -96,6 +97,11 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
                                  ) from None
         prior_source.check(val_records)
+    plane = None
+    if cfg.model.mirror:
+        plane, plane_from = dataset_plane(root, cat, cfg.data.symmetry_plane)
+        if info.is_main:
+            print(f"mirror conditioning: symmetry plane {plane} ({plane_from})", file=sys.stderr, flush=True)
     spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"))
     near, far = spec.z_range
 
@@ -129,7 +135,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
                      objects_phase1=s.objects_phase1, objects_phase2=s.objects_phase2)
     items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
-                       pixel_center=cfg.data.pixel_center)
+                       pixel_center=cfg.data.pixel_center, symmetry_plane=plane,
+                       mirror_dropout=s.mirror_dropout)
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
@@ -178,7 +185,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             if info.is_main and val_now:
                 try:
                     res = _validate(validate, stop, model, val_records, prior_source, spec, cfg, info, step,
-                                    progress and info.is_main)
+                                    progress and info.is_main, plane)
                 except ValidationInterrupted:
                     pass  # stop.signum is set: the step's checkpoint follows
                 else:
@@ -224,11 +231,12 @@ def _ignore_stop_signals(worker_id: int) -> None:
 
 
 def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior: PriorSource,
-              spec: InferenceSpec, cfg: TrainConfig, info: DistInfo, step: int, progress: bool):
+              spec: InferenceSpec, cfg: TrainConfig, info: DistInfo, step: int, progress: bool,
+              plane: tuple[float, ...] | None):
     """One validation as its own phase: a second progress bar over the val objects; interruptible by a stop
     signal (:meth:`StopRequest.interruptible`)."""
     with tqdm(total=len(records), desc=f"validate (step {step})", unit="object", leave=False, position=1,
               dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible():
         ckpt.crash_point("validation", step)
         return validate(model, records, prior, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
-                        progress=vbar.update)
+                        progress=vbar.update, symmetry_plane=plane)

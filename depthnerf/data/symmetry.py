@@ -1,0 +1,106 @@
+"""Mirror symmetry of the objects: the plane convention, reflections, and where a dataset's plane comes from.
+
+Convention (stated here once). A symmetry plane is four numbers ``(nx, ny, nz, d)`` in the WORLD frame of the
+object's cameras: the points ``x`` with ``n . x = d`` for a unit normal ``n``. The mirror image of a point is
+``x' = x - 2 (n . x - d) n`` and of a direction ``v' = v - 2 (n . v) n``. The all-zero plane means "no plane"
+(the reflection formulas then return their input unchanged), which is how a batch mixes objects with and without
+one.
+
+Where a dataset's plane comes from (:func:`dataset_plane`):
+
+- a dataset card (``<root>/<category>_card.json``, written by ``depthnerf synth``) that states ``"mirror_plane"``,
+  or whose ``"objects"`` entry names the objects' ``front`` and ``up`` axes and ``centre``: the plane through the
+  centre whose normal is the left-right axis ``up x front`` (synthetic data: front +x, up +z, so ``y = 0``);
+- otherwise ShapeNet's left-right plane, :data:`SHAPENET_PLANE`: ShapeNetCore objects are centred with the front
+  along -Z and up along +Y, so the left-right axis is X; SRN's renders keep X as the left-right axis (their
+  Blender import turns -Z forward / +Y up into Blender's frame without touching X), so the plane is ``x = 0``;
+- ``--data.symmetry_plane nx ny nz d`` overrides both (data with other axes).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from depthnerf.errors import DepthnerfError
+
+SHAPENET_PLANE: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+"""ShapeNet's (and SRN's) left-right symmetry plane ``x = 0`` (see the module docstring)."""
+
+_AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+
+
+def normalized_plane(plane: tuple[float, ...] | list[float], where: str) -> tuple[float, float, float, float]:
+    """``plane`` with a unit normal (d scaled alike); a one-line error naming ``where`` for a bad one."""
+    values = [float(v) for v in plane]
+    norm = float(np.linalg.norm(values[:3])) if len(values) == 4 else 0.0
+    if len(values) != 4 or not np.all(np.isfinite(values)) or norm < 1e-8:
+        raise DepthnerfError(f"{where}: a symmetry plane is 4 finite numbers nx ny nz d with a non-zero normal, "
+                             f"got {plane}")
+    return (values[0] / norm, values[1] / norm, values[2] / norm, values[3] / norm)
+
+
+def plane_from_card(card: dict, where: str) -> tuple[float, float, float, float] | None:
+    """The plane a dataset card states (``mirror_plane``, or ``objects.front/up/centre``); None if it says none."""
+    if "mirror_plane" in card:
+        return normalized_plane(card["mirror_plane"], f"{where} mirror_plane")
+    objects = card.get("objects") or {}
+    front, up = objects.get("front"), objects.get("up")
+    if front is None or up is None:
+        return None
+    if front not in _AXES or up not in _AXES:
+        raise DepthnerfError(f"{where}: objects.front / objects.up must be one of {sorted(_AXES)}, "
+                             f"got {front!r} / {up!r}")
+    left = np.cross(np.array(_AXES[up], float), np.array(_AXES[front], float))
+    if not np.any(left):
+        raise DepthnerfError(f"{where}: objects.front {front} and objects.up {up} are parallel")
+    centre = np.asarray(objects.get("centre", (0.0, 0.0, 0.0)), dtype=float)
+    return normalized_plane((*left.tolist(), float(left @ centre)), where)
+
+
+def dataset_plane(root: str | Path, category: str,
+                  override: tuple[float, ...] | None = None) -> tuple[tuple[float, float, float, float], str]:
+    """The symmetry plane of a dataset and where it came from (see the module docstring)."""
+    if override is not None:
+        return normalized_plane(override, "--data.symmetry_plane"), "--data.symmetry_plane"
+    card_path = Path(root) / f"{category}_card.json"
+    if card_path.is_file():
+        try:
+            card = json.loads(card_path.read_text())
+        except (OSError, ValueError) as err:
+            raise DepthnerfError(f"{card_path}: unreadable dataset card ({err})") from None
+        plane = plane_from_card(card, str(card_path))
+        if plane is not None:
+            return plane, f"dataset card {card_path.name}"
+    return SHAPENET_PLANE, "ShapeNet's left-right plane x = 0 (no dataset card states one)"
+
+
+def reflect_points(points: Float[Tensor, "B N 3"], plane: Float[Tensor, "B 4"]) -> Float[Tensor, "B N 3"]:
+    """Mirror images ``x - 2 (n . x - d) n`` of each object's points in its plane (unchanged for a zero plane)."""
+    n, d = plane[:, None, :3], plane[:, None, 3:]
+    return points - 2.0 * ((points * n).sum(-1, keepdim=True) - d) * n
+
+
+def reflect_dirs(dirs: Float[Tensor, "B N 3"], plane: Float[Tensor, "B 4"]) -> Float[Tensor, "B N 3"]:
+    """Mirror images ``v - 2 (n . v) n`` of directions (unchanged for a zero plane)."""
+    n = plane[:, None, :3]
+    return dirs - 2.0 * (dirs * n).sum(-1, keepdim=True) * n
+
+
+def has_plane(plane: Float[Tensor, "B 4"]) -> Float[Tensor, " B"]:
+    """1.0 for objects with a plane (non-zero normal), 0.0 for the "no plane" zero row."""
+    return (plane[:, :3].abs().sum(-1) > 0).to(plane.dtype)
+
+
+def facing_plane(facing_deg: float) -> tuple[float, float, float, float]:
+    """The plane of an object at the origin whose front points ``facing_deg`` degrees from the direction towards
+    the camera, turning towards the image's right (0: faces the camera, 90: faces right), for a camera at azimuth
+    0 of a +z-up world (:mod:`depthnerf.reconstruct.orbit`): front ``(cos a, sin a, 0)``, normal ``(-sin a, cos a,
+    0)``. Facing ``a`` and ``a + 180`` give the same plane."""
+    a = np.radians(float(facing_deg))
+    return normalized_plane((-np.sin(a), np.cos(a), 0.0, 0.0), "facing")
