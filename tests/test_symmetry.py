@@ -1,0 +1,209 @@
+"""Mirror-symmetric conditioning: the plane convention, the data's symmetry, the field against a brute-force loop,
+the no-plane mode, and the training items' plane draws."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from depthnerf.data.cameras import project, world_to_camera
+from depthnerf.data.symmetry import (SHAPENET_PLANE, dataset_plane, facing_plane, plane_from_card, reflect_dirs,
+                                     reflect_points)
+from depthnerf.data.synth.cars import CAR_STYLES, build_car, sample_car
+from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, build_chair, sample_chair
+from depthnerf.errors import DepthnerfError
+from depthnerf.model import PixelNeRF
+from tests.test_model import bilinear_border, query, randomize, small_config, sources
+
+SYNTH_CARD = {"objects": {"bbox_diagonal": 1.0, "centre": [0.0, 0.0, 0.0], "front": "+x", "up": "+z"}}
+
+
+def test_dataset_plane_sources(tmp_path):
+    assert plane_from_card(SYNTH_CARD, "card") == (0.0, 1.0, 0.0, 0.0)  # left axis = up x front = +y
+    shifted = {"objects": {"front": "-y", "up": "+z", "centre": [0.5, 0.2, 0.0]}}
+    assert plane_from_card(shifted, "card") == pytest.approx((1.0, 0.0, 0.0, 0.5))  # normal +x through x = 0.5
+    assert plane_from_card({"mirror_plane": [0, 0, 2, 1]}, "card") == (0.0, 0.0, 1.0, 0.5)
+    assert plane_from_card({"objects": {}}, "card") is None
+    with pytest.raises(DepthnerfError, match="parallel"):
+        plane_from_card({"objects": {"front": "+z", "up": "-z"}}, "card")
+    plane, source = dataset_plane(tmp_path, "cars")
+    assert plane == SHAPENET_PLANE and "ShapeNet" in source  # no card: SRN / ShapeNet data
+    (tmp_path / "cars_card.json").write_text(json.dumps(SYNTH_CARD))
+    assert dataset_plane(tmp_path, "cars") == ((0.0, 1.0, 0.0, 0.0), "dataset card cars_card.json")
+    assert dataset_plane(tmp_path, "cars", (0, 0, 3, 0))[0] == (0.0, 0.0, 1.0, 0.0)
+    with pytest.raises(DepthnerfError, match="--data.symmetry_plane: a symmetry plane is 4 finite numbers"):
+        dataset_plane(tmp_path, "cars", (0, 0, 0, 1))
+    (tmp_path / "cars_card.json").write_text("{not json")
+    with pytest.raises(DepthnerfError, match="cars_card.json: unreadable dataset card"):
+        dataset_plane(tmp_path, "cars")
+
+
+def test_reflection_formulas():
+    plane = torch.tensor([[0.6, 0.8, 0.0, 0.3], [0.0, 0.0, 0.0, 0.0]])
+    pts = torch.randn(2, 7, 3, dtype=torch.float64).float()
+    mirrored = reflect_points(pts, plane)
+    n, d = plane[0, :3], plane[0, 3]
+    for p, q in zip(pts[0], mirrored[0]):
+        assert float(q @ n - d) == pytest.approx(-float(p @ n - d), abs=1e-5)  # opposite side, same distance
+        assert torch.allclose((p + q) / 2 @ n, d, atol=1e-5)  # midpoint on the plane
+    torch.testing.assert_close(reflect_points(mirrored, plane), pts)  # an involution
+    torch.testing.assert_close(mirrored[1], pts[1])  # the zero plane: unchanged
+    dirs = torch.nn.functional.normalize(torch.randn(2, 5, 3), dim=-1)
+    torch.testing.assert_close(reflect_dirs(dirs, plane)[0] @ n, -(dirs[0] @ n))
+    # facing: 0 = towards the camera at azimuth 0 (+x): the plane holds +x; facing 90 holds +y
+    assert facing_plane(0.0) == pytest.approx((0.0, 1.0, 0.0, 0.0), abs=1e-12)
+    assert facing_plane(90.0) == pytest.approx((-1.0, 0.0, 0.0, 0.0), abs=1e-12)
+    assert facing_plane(30.0) == pytest.approx(tuple(-v for v in facing_plane(210.0)), abs=1e-12)
+
+
+def _mirror_gap(mesh_vertices: np.ndarray, faces: np.ndarray, plane: tuple[float, ...]) -> np.ndarray:
+    """Distance from the mirror images of surface samples to the surface."""
+    mesh = trimesh.Trimesh(mesh_vertices, faces)
+    pts, _ = trimesh.sample.sample_surface(mesh, 1500, seed=0)
+    mirrored = reflect_points(torch.tensor(pts)[None], torch.tensor([plane], dtype=torch.float64))[0].numpy()
+    return trimesh.proximity.closest_point(mesh, mirrored)[1]
+
+
+@pytest.mark.parametrize(("category", "name"), [("cars", s) for s in CAR_STYLES]
+                         + [("chairs", a) for a in CHAIR_ARCHETYPES])
+def test_synthetic_objects_are_unchanged_by_their_card_plane(category, name):
+    """The plane derived from the synthetic card maps every generated object onto itself (office chairs only
+    nearly: their five-star base has a random phase and, as in ShapeNet, objects are centred on their bounding
+    box, so the base also shifts the symmetric rest off the plane by a few thousandths)."""
+    plane = plane_from_card(SYNTH_CARD, "card")
+    build, sample = (build_car, sample_car) if category == "cars" else (build_chair, sample_chair)
+    mesh = build(sample(np.random.default_rng(3), name))
+    gap = _mirror_gap(mesh.vertices, mesh.faces, plane)
+    wrong = _mirror_gap(mesh.vertices, mesh.faces, (1.0, 0.0, 0.0, 0.0))  # the front-back plane
+    if name == "office":
+        assert gap.mean() < 0.01 and wrong.mean() > 2 * gap.mean()
+    else:
+        assert np.quantile(gap, 0.99) < 3e-3 and gap.mean() < 3e-4  # facets
+        assert wrong.mean() > 5e-3
+
+
+def reference_mirror_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
+    """Point by point: the direct branch as pixelNeRF, plus the mirror image projected by hand."""
+    mlp = model.network(which)
+    h, w = enc.image_size
+    hf, wf = enc.features.shape[-2:]
+    plane = src.symmetry_plane
+    rgb, sigma = torch.zeros(*pts.shape), torch.zeros(pts.shape[:-1])
+    for bi in range(pts.shape[0]):
+        n, d = plane[bi, :3], plane[bi, 3]
+        gate = float(n.abs().sum() > 0)
+        c2w = src.poses[bi, 0]
+        rot = c2w[:3, :3].T
+        for ri in range(pts.shape[1]):
+            for si in range(pts.shape[2]):
+                p, v = pts[bi, ri, si], dirs[bi, ri]
+                pm = p - 2 * (p @ n - d) * n
+                vm = v - 2 * (v @ n) * n
+                feats, flags = [], []
+                for q in (p, pm):
+                    cam = world_to_camera(q[None], c2w)[0]
+                    u, vv = project(cam[None], float(src.focal[bi]), tuple(src.principal[bi].tolist()))[0]
+                    feats.append(bilinear_border(enc.features[bi, 0], float(u) * wf / w, float(vv) * hf / h))
+                    flags.append(float(cam[2] > 0 and 0 <= u <= w and 0 <= vv <= h))
+                x = mlp.lin_in(torch.cat([mlp.encoding(rot @ p), rot @ v]))
+                x = x + gate * mlp.lin_in_mirror(torch.cat([mlp.encoding(rot @ pm), rot @ vm, torch.tensor(flags)]))
+                for k in range(mlp.cfg.combine_layer):
+                    x = x + mlp.lin_z[k](feats[0]) + gate * mlp.lin_z_mirror[k](feats[1])
+                    blk = mlp.blocks[k]
+                    x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
+                for blk in mlp.blocks[mlp.cfg.combine_layer:]:
+                    x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
+                out = mlp.lin_out(torch.relu(x))
+                rgb[bi, ri, si], sigma[bi, ri, si] = torch.sigmoid(out[:3]), torch.relu(out[3])
+    return rgb, sigma
+
+
+@pytest.mark.parametrize("on_map", [True, False])
+def test_mirror_field_matches_bruteforce_reference(on_map):
+    torch.manual_seed(0)
+    cfg = small_config(lin_z_on_map=on_map)
+    cfg.mirror = True
+    model = randomize(PixelNeRF(cfg, depth_aware=False))
+    src = sources(b=3, v=1, size=48)
+    src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.6, 0.0, 0.8, 0.1], [0.0, 0.0, 0.0, 0.0]])
+    pts, dirs = query(b=3, r=3, s=4)
+    pts[1, 0, 0] = torch.tensor([0.4, 0.0, -3.0])  # its mirror image lands far outside the image
+    with torch.no_grad():
+        enc = model.encode(src)
+        for which in ("coarse", "fine"):
+            rgb, sigma = model.field(enc, which)(pts, dirs)
+            ref_rgb, ref_sigma = reference_mirror_field(model, enc, src, which, pts, dirs)
+            torch.testing.assert_close(rgb, ref_rgb, atol=1e-5, rtol=1e-4)
+            torch.testing.assert_close(sigma, ref_sigma, atol=1e-5, rtol=1e-4)
+    assert (sigma > 0).any() and rgb.std() > 1e-3
+
+
+def test_no_plane_is_the_plain_model_and_the_branch_trains():
+    torch.manual_seed(0)
+    cfg = small_config()
+    cfg.mirror = True
+    mirror = randomize(PixelNeRF(cfg, depth_aware=False))
+    plain = PixelNeRF(small_config(), depth_aware=False).eval()
+    missing = plain.load_state_dict(mirror.state_dict(), strict=False)
+    assert missing.missing_keys == [] and all("mirror" in k for k in missing.unexpected_keys)
+    src = sources(b=2, v=1, size=32)
+    pts, dirs = query(b=2)
+    with torch.no_grad():
+        expected = plain.field(plain.encode(src), "fine")(pts, dirs)
+        for plane in (None, torch.zeros(2, 4)):
+            src.symmetry_plane = plane
+            got = mirror.field(mirror.encode(src), "fine")(pts, dirs)
+            torch.testing.assert_close(got, expected, rtol=0, atol=0)
+    src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    with torch.no_grad():
+        with_plane = mirror.field(mirror.encode(src), "fine")(pts, dirs)
+    assert not torch.allclose(with_plane[1][0], expected[1][0])  # object 0 uses its plane
+    torch.testing.assert_close(with_plane[1][1], expected[1][1])  # object 1 has none
+    mirror.train()
+    rgb, sigma = mirror.field(mirror.encode(src), "coarse")(pts, dirs)
+    (rgb.sum() + sigma.sum()).backward()
+    assert mirror.coarse.lin_in_mirror.weight.grad.abs().sum() > 0
+    assert all(lin.weight.grad.abs().sum() > 0 for lin in mirror.coarse.lin_z_mirror)
+
+
+def test_symmetry_plane_shape_is_checked():
+    cfg = small_config()
+    cfg.mirror = True
+    src = sources(b=2)
+    src.symmetry_plane = torch.zeros(1, 4)
+    with pytest.raises(DepthnerfError, match=r"SourceViews.symmetry_plane must have shape \[2, 4\]"):
+        PixelNeRF(cfg, depth_aware=False).encode(src)
+
+
+def test_training_items_draw_the_plane_last(tmp_path):
+    """A mirror run sees the same views and rays as a plain run; about ``mirror_dropout`` of its items carry the
+    zero plane, the same ones on every call."""
+    from depthnerf.data.srn import index_split
+    from depthnerf.depth.prior import PriorConfig, open_prior
+    from depthnerf.train.batching import ItemKey
+    from depthnerf.train.items import TrainItems
+    from tests.fixtures_srn import make_srn_fixture
+
+    make_srn_fixture(tmp_path, "cars", splits={"train": 2}, views=4, size=16)
+    records = index_split(tmp_path, "cars", "train").objects
+    prior = open_prior(PriorConfig("none"), data_root=tmp_path, resolution=16, records=records)
+    common = dict(resolution=16, target_views=0, rays_per_object=8, target_priors=False)
+    plain = TrainItems(records, prior, **common)
+    mirror = TrainItems(records, prior, **common, symmetry_plane=(0.0, 1.0, 0.0, 0.0), mirror_dropout=0.3)
+    keys = [ItemKey(object_index=k % 2, seed=1000 + k, use_bbox=False) for k in range(200)]
+    dropped = 0
+    for key in keys:
+        a, b = plain[key], mirror[key]
+        assert a.source.symmetry_plane is None
+        torch.testing.assert_close(a.ray_dirs, b.ray_dirs, rtol=0, atol=0)
+        torch.testing.assert_close(a.target_rgb, b.target_rgb, rtol=0, atol=0)
+        plane = b.source.symmetry_plane[0].tolist()
+        assert plane in ([0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0])
+        dropped += plane == [0.0, 0.0, 0.0, 0.0]
+        assert mirror[key].source.symmetry_plane[0].tolist() == plane
+    assert abs(dropped / len(keys) - 0.3) < 4 * math.sqrt(0.3 * 0.7 / len(keys))
