@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from pathlib import Path
 
 from depthnerf.commands.evaluate import guidance, resolve_device
@@ -44,6 +45,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--framing", choices=["auto", "keep"], default="auto",
                    help="auto: crop around the object to the training fill; keep: only pad to square")
     p.add_argument("--fill", type=float, help="object's longer side / frame side with --framing auto")
+    p.add_argument("--facing", type=_facing, default=90.0, metavar="DEG|none",
+                   help="mirror models: which way the object's front points, degrees from the camera towards the "
+                        "image's right (0 = facing the camera, 90 = facing right, 270 = left; default 90, a side "
+                        "view); none = no symmetry plane")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (0 = no mesh)")
     p.add_argument("--mesh-threshold", default="auto",
@@ -66,6 +71,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _facing(text: str) -> float | None:
+    """``--facing``: an angle in degrees or ``none``."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an angle in degrees or 'none', got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite angle in degrees, got {text!r}")
+    return value
+
+
 def run(args: argparse.Namespace) -> int:
     from depthnerf.pretrained.load import load_pretrained
     from depthnerf.reconstruct.background import choose_remover
@@ -80,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
                             chunk=ReconstructConfig.chunk if args.chunk is None else args.chunk,
                             guided=guidance(args.guided, args.guided_align_samples), progress=not args.no_progress,
-                            background_removal=args.background_removal, background_model=args.background_model)
+                            background_removal=args.background_removal, background_model=args.background_model,
+                            facing=args.facing)
     check_output_dir(args.out, args.overwrite)
     # a background model the flags name loads (or fails in one line) before the NeRF does
     background = choose_remover(args.background_removal, args.background_model)
@@ -98,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
     manifest = rec.save(result, args.out)
     for note in result.input.notes:
         print(f"note: {note}")
+    if pretrained.model.cfg.mirror:
+        print(f"note: symmetry {result.settings['symmetry']}")
     mesh = manifest["mesh"]
     made = (f"mesh ({mesh['faces']} faces{', empty' if mesh['empty'] else ''})" if mesh["made"]
             else "no mesh (--mesh-resolution 0)")

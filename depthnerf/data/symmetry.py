@@ -103,4 +103,4 @@ def facing_plane(facing_deg: float) -> tuple[float, float, float, float]:
     0 of a +z-up world (:mod:`depthnerf.reconstruct.orbit`): front ``(cos a, sin a, 0)``, normal ``(-sin a, cos a,
     0)``. Facing ``a`` and ``a + 180`` give the same plane."""
     a = np.radians(float(facing_deg))
-    return normalized_plane((-np.sin(a), np.cos(a), 0.0, 0.0), "facing")
+    return normalized_plane((round(-np.sin(a), 12), round(np.cos(a), 12), 0.0, 0.0), "facing")

@@ -26,6 +26,7 @@ Outputs
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -41,6 +42,7 @@ from tqdm import tqdm
 
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import category_defaults
+from depthnerf.data.symmetry import facing_plane
 from depthnerf.data.synth.framing import checkpoint_framing
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.depth.prior import PriorConfig, open_prior
@@ -62,6 +64,8 @@ POINT_OPACITY = 0.5
 """Rendered pixels with more than this opacity go into the point cloud."""
 RELEASE_SIZE = 128
 """Frame size ``--focal`` refers to when the category is not a known SRN one (SRN images are 128 px)."""
+DEFAULT_FACING = 90.0
+"""``ReconstructConfig.facing`` by default: a side view with the front to the right (the SRN input view)."""
 @dataclass(frozen=True)
 class ReconstructConfig:
     """How a photo is reconstructed (None = the checkpoint's training category / resolution)."""
@@ -98,6 +102,12 @@ class ReconstructConfig:
     (:mod:`depthnerf.reconstruct.background`)."""
     background_model: str | None = None
     """rembg model name or ONNX file; None = :data:`~depthnerf.reconstruct.background.DEFAULT_MODEL`."""
+    facing: float | None = DEFAULT_FACING
+    """Mirror models (``PixelNeRFConfig.mirror``): which way the object's front points, degrees from the direction
+    towards the camera, turning towards the image's right (0 = facing the camera, 90 = facing right, 180 = away,
+    270 = facing left; 90 and 270 give the same plane). Its mirror plane is the vertical plane through the object
+    centre along the front (:func:`~depthnerf.data.symmetry.facing_plane`). Default 90: a side view, as the SRN
+    protocol's input view. None = no plane: the model's no-plane mode. Ignored by other models."""
 
     def __post_init__(self) -> None:
         """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
@@ -109,6 +119,8 @@ class ReconstructConfig:
             raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
         if self.fill is not None and not 0 < self.fill <= 1:
             raise DepthnerfError(f"--fill must be in (0, 1], got {self.fill}")
+        if self.facing is not None and not math.isfinite(self.facing):
+            raise DepthnerfError(f"--facing must be a finite angle in degrees or 'none', got {self.facing}")
         if self.framing not in ("auto", "keep"):
             raise DepthnerfError(f"--framing must be 'auto' or 'keep', got {self.framing!r}")
         if self.background_removal not in MODES:
@@ -216,12 +228,14 @@ class Reconstructor:
         img_t = torch.from_numpy(prepared.image).permute(2, 0, 1)[None].contiguous()
         mask_t = torch.from_numpy(prepared.mask)[None]
         t = time.perf_counter()
-        encoded = self.encode_view(img_t, mask_t, poses[0], intr)
+        plane, symmetry = self.symmetry(cfg.facing)
+        encoded = self.encode_view(img_t, mask_t, poses[0], intr, symmetry_plane=plane)
         times["encode_s"] = time.perf_counter() - t
         result = self.reconstruct_encoded(encoded, poses, render_intr, cfg, prepared)
         result.timings = {**times, **result.timings}
         result.settings = {"radius": radius, "elevation": cfg.elevation, "focal": focal, "focal_frame": image_size,
-                           "framing": cfg.framing, "fill": fill,
+                           "framing": cfg.framing, "fill": fill, "facing": cfg.facing,
+                           "symmetry_plane": None if plane is None else list(plane), "symmetry": symmetry,
                            "training_framing": self.framing,
                            "background_removal": cfg.background_removal,
                            "background_model": None if prepared.cutout is None else background.name,
@@ -229,13 +243,26 @@ class Reconstructor:
                            **result.settings}
         return result
 
+    def symmetry(self, facing: float | None) -> tuple[tuple[float, float, float, float] | None, str]:
+        """The mirror plane for an object facing ``facing`` degrees (``ReconstructConfig.facing``) and a line
+        saying which plane is used, or why none."""
+        if not self.pretrained.model.cfg.mirror:
+            return None, "off: the model has no mirror-symmetric conditioning"
+        if facing is None:
+            return None, "off: no facing given (the model's no-plane mode)"
+        default = " (the default: a side view)" if facing == DEFAULT_FACING else ""
+        return facing_plane(facing), f"on: the object faces {facing:g} degrees{default}"
+
     @torch.no_grad()
     def encode_view(self, image: Float[torch.Tensor, "1 3 H W"], mask: Bool[torch.Tensor, "1 H W"],
                     pose: Float[torch.Tensor, "4 4"], intr: Intrinsics, *,
-                    depth: Float[torch.Tensor, "1 H W"] | None = None) -> EncodedInput:
+                    depth: Float[torch.Tensor, "1 H W"] | None = None,
+                    symmetry_plane: tuple[float, ...] | None = None) -> EncodedInput:
         """Condition one view on its prior (the conditioning stage) and encode it (``depth``: its ground-truth
-        z-depth, which only the ``oracle`` prior reads and only synthetic data has)."""
-        cond = condition(self.prior, image, mask, pose[None], intr, self.device, depths=depth)
+        z-depth, which only the ``oracle`` prior reads and only synthetic data has; ``symmetry_plane``: the
+        object's mirror plane for mirror models, :meth:`symmetry`)."""
+        cond = condition(self.prior, image, mask, pose[None], intr, self.device, depths=depth,
+                         symmetry_plane=symmetry_plane)
         return EncodedInput(inputs=cond, enc=self.pretrained.model.encode(cond.inputs), pose=pose, intr=intr,
                             mask=mask)
 

@@ -1,0 +1,118 @@
+"""PSNR / SSIM binned by the angle between each target view and the input view, paired per object.
+
+The far side of an object (targets 135-180 degrees from the input camera) is where a single-image model guesses;
+an overall mean hides it. For each eval folder (``depthnerf eval --save-renders``: its ``renders.csv`` holds the
+per-view scores) this reads the dataset's camera poses, puts every scored view in a bin by the angle between its
+optical axis and the input view's, averages each object's views per bin, and compares every ``--method`` with
+the ``--baseline`` on the objects both scored in that bin: mean difference, 95% t-interval and wins.
+
+    python scripts/angle_bins.py --baseline study/eval/cars-bundled --method study/eval/cars-bundled-sym \
+        [--bins 0 45 90 135 180] [--json OUT.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from depthnerf.data.srn import index_split
+from depthnerf.data.srn_format import read_pose
+
+METRICS = ("psnr", "ssim")
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    if not path.is_file():
+        raise SystemExit(f"error: {path}: missing (run depthnerf eval with --save-renders)")
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def view_angles(folder: Path) -> dict[tuple[str, int], float]:
+    """(object id, view) -> degrees between the view's optical axis and its object's input view's."""
+    summary = json.loads((folder / "summary.json").read_text())
+    root = Path(summary["data_card"]["root"])
+    records = {r.object_id: r for r in index_split(root, summary["category"], summary["split"],
+                                                   check_files=False).objects}
+    inputs = {row["object_id"]: int(row["input_view"]) for row in _read_csv(folder / "per_object.csv")}
+    angles = {}
+    for row in _read_csv(folder / "renders.csv"):
+        oid, view = row["object_id"], int(row["view"])
+        rec = records[oid]
+        axis = [read_pose(rec.path / "pose" / f"{rec.view_names[v]}.txt")[:3, 2] for v in (inputs[oid], view)]
+        cos = float(np.dot(axis[0], axis[1]) / (np.linalg.norm(axis[0]) * np.linalg.norm(axis[1])))
+        angles[(oid, view)] = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+    return angles
+
+
+def binned(folder: Path, edges: list[float], angles: dict[tuple[str, int], float]) -> dict[int, dict[str, dict]]:
+    """bin -> object id -> {metric: mean over the object's views in the bin, "views": count}."""
+    acc: dict[int, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+    for row in _read_csv(folder / "renders.csv"):
+        angle = angles[(row["object_id"], int(row["view"]))]
+        k = min(int(np.searchsorted(edges, angle, side="right")) - 1, len(edges) - 2)
+        for m in METRICS:
+            acc[k][row["object_id"]][m].append(float(row[m]))
+    return {k: {oid: {**{m: float(np.mean(v[m])) for m in METRICS}, "views": len(v["psnr"])}
+                for oid, v in objs.items()} for k, objs in acc.items()}
+
+
+def compare(base: dict, method: dict, edges: list[float]) -> list[dict]:
+    """Per bin and metric: paired mean difference (method - baseline), 95% t-interval, wins."""
+    out = []
+    for k in range(len(edges) - 1):
+        ids = sorted(set(base.get(k, {})) & set(method.get(k, {})))
+        for m in METRICS:
+            if not ids:
+                continue
+            a = np.array([base[k][i][m] for i in ids])
+            b = np.array([method[k][i][m] for i in ids])
+            d = b - a
+            se = float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else float("nan")
+            half = float(stats.t.ppf(0.975, len(d) - 1) * se) if len(d) > 1 else float("nan")
+            out.append({"bin": f"{edges[k]:g}-{edges[k + 1]:g}", "metric": m, "objects": len(ids),
+                        "views": int(sum(method[k][i]["views"] for i in ids)), "baseline": float(a.mean()),
+                        "method": float(b.mean()), "diff": float(d.mean()), "ci95": [d.mean() - half, d.mean() + half],
+                        "wins": int((d > 0).sum())})
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--baseline", type=Path, required=True, help="eval folder of the reference method")
+    ap.add_argument("--method", type=Path, nargs="+", required=True, help="eval folders to compare with it")
+    ap.add_argument("--bins", type=float, nargs="+", default=[0, 45, 90, 135, 180], help="bin edges, degrees")
+    ap.add_argument("--json", type=Path, help="also write the figures as JSON")
+    args = ap.parse_args(argv)
+    edges = sorted(args.bins)
+    if len(edges) < 2 or edges[0] < 0 or edges[-1] > 180:
+        raise SystemExit("error: --bins needs >= 2 edges within 0..180")
+    angles = view_angles(args.baseline)
+    base = binned(args.baseline, edges, angles)
+    report = {}
+    for folder in args.method:
+        rows = compare(base, binned(folder, edges, view_angles(folder)), edges)
+        report[str(folder)] = rows
+        print(f"\n{folder} - {args.baseline} (paired per object; objects and views per bin)\n")
+        print("| bin (deg) | metric | objects | views | baseline | method | difference (95% CI) | wins |")
+        print("|---|---|---|---|---|---|---|---|")
+        for r in rows:
+            fmt = ".2f" if r["metric"] == "psnr" else ".4f"
+            print(f"| {r['bin']} | {r['metric']} | {r['objects']} | {r['views']} | {r['baseline']:{fmt}} | "
+                  f"{r['method']:{fmt}} | {r['diff']:+{fmt}} [{r['ci95'][0]:+{fmt}}, {r['ci95'][1]:+{fmt}}] | "
+                  f"{r['wins']}/{r['objects']} |")
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
