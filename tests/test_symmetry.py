@@ -207,3 +207,45 @@ def test_training_items_draw_the_plane_last(tmp_path):
         dropped += plane == [0.0, 0.0, 0.0, 0.0]
         assert mirror[key].source.symmetry_plane[0].tolist() == plane
     assert abs(dropped / len(keys) - 0.3) < 4 * math.sqrt(0.3 * 0.7 / len(keys))
+
+
+def test_reconstruct_facing_sets_the_plane(tmp_path, capsys):
+    """A mirror checkpoint gets the plane of ``--facing`` (and none with ``none``); a plain one ignores it."""
+    import numpy as np
+    from PIL import Image
+
+    from depthnerf.cli import main
+    from depthnerf.config_io import apply_overrides
+    from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+    from tests.fixtures_checkpoints import save_tiny, tiny_config
+
+    plain_cfg = tiny_config("cars", "none")
+    mirror_cfg = apply_overrides(plain_cfg, ["--model.mirror", "true"])
+    mirror_path = save_tiny(tmp_path / "mirror.safetensors", mirror_cfg)
+    plain_path = save_tiny(tmp_path / "plain.safetensors", plain_cfg)
+    photo = np.full((40, 40, 3), 255, np.uint8)
+    photo[12:30, 8:34] = (200, 40, 40)
+    Image.fromarray(photo).save(tmp_path / "car.png")
+    cfg = ReconstructConfig(views=2, mesh_resolution=0)
+    mirror = Reconstructor.from_pretrained(mirror_path)
+    side = mirror.reconstruct(tmp_path / "car.png", config=cfg)
+    front = mirror.reconstruct(tmp_path / "car.png", config=ReconstructConfig(views=2, mesh_resolution=0, facing=0))
+    off = mirror.reconstruct(tmp_path / "car.png", config=ReconstructConfig(views=2, mesh_resolution=0, facing=None))
+    assert side.settings["symmetry_plane"] == pytest.approx([-1.0, 0.0, 0.0, 0.0])
+    assert "default" in side.settings["symmetry"] and side.settings["symmetry"].startswith("on")
+    assert front.settings["symmetry_plane"] == pytest.approx([0.0, 1.0, 0.0, 0.0])
+    assert off.settings["symmetry_plane"] is None and off.settings["symmetry"].startswith("off")
+    assert not np.allclose(side.views, front.views) and not np.allclose(side.views, off.views)
+    plain = Reconstructor.from_pretrained(plain_path)
+    a = plain.reconstruct(tmp_path / "car.png", config=cfg)
+    b = plain.reconstruct(tmp_path / "car.png", config=ReconstructConfig(views=2, mesh_resolution=0, facing=None))
+    assert a.settings["symmetry_plane"] is None and "no mirror" in a.settings["symmetry"]
+    np.testing.assert_array_equal(a.views, b.views)
+    assert main(["reconstruct", str(tmp_path / "car.png"), "--checkpoint", str(mirror_path), "--out",
+                 str(tmp_path / "out"), "--views", "2", "--mesh-resolution", "0", "--facing", "none",
+                 "--no-progress"]) == 0
+    assert "symmetry off: no facing given" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["reconstruct", str(tmp_path / "car.png"), "--checkpoint", str(mirror_path), "--out",
+              str(tmp_path / "out2"), "--facing", "left"])
+    assert "--facing: expected an angle in degrees or 'none'" in capsys.readouterr().err

@@ -1,0 +1,73 @@
+"""scripts/angle_bins.py against angles and paired statistics computed by hand."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from depthnerf.data.cameras import look_at
+from tests.fixtures_srn import make_srn_fixture
+
+SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "angle_bins.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("angle_bins", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _eval(folder: Path, root: Path, psnr: dict[tuple[str, int], float]) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "summary.json").write_text(json.dumps({"data_card": {"root": str(root)}, "category": "cars",
+                                                     "split": "test"}))
+    ids = sorted({oid for oid, _ in psnr})
+    with open(folder / "per_object.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["object_id", "input_view"])
+        w.writeheader()
+        w.writerows({"object_id": oid, "input_view": 0} for oid in ids)
+    with open(folder / "renders.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["object_id", "view", "psnr", "ssim"])
+        w.writeheader()
+        w.writerows({"object_id": oid, "view": v, "psnr": p, "ssim": p / 100} for (oid, v), p in psnr.items())
+    return folder
+
+
+def test_bins_follow_the_camera_angle_and_pair_per_object(tmp_path):
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 3}, views=4, size=8)
+    azimuths = [0.0, 30.0, 100.0, 170.0]  # horizontal cameras: the angle to view 0 is the azimuth
+    for obj in sorted((root / "cars_test").iterdir()):
+        for k, az in enumerate(azimuths):
+            a = math.radians(az)
+            pose = look_at(torch.tensor([1.3 * math.cos(a), 1.3 * math.sin(a), 0.0])).numpy()
+            np.savetxt(obj / "pose" / f"{k:06d}.txt", pose.reshape(1, 16))
+    ids = sorted(p.name for p in (root / "cars_test").iterdir())
+    base = {(oid, v): 20.0 + v for oid in ids for v in (1, 2, 3)}
+    gain = {ids[0]: 1.0, ids[1]: 2.0, ids[2]: 0.0}
+    method = {(oid, v): p + (gain[oid] if v == 3 else 0.5) for (oid, v), p in base.items()}
+    mod = _load()
+    b, m = _eval(tmp_path / "base", root, base), _eval(tmp_path / "method", root, method)
+    angles = mod.view_angles(b)
+    assert [round(angles[(ids[0], v)], 4) for v in (1, 2, 3)] == [30.0, 100.0, 170.0]
+    rows = {(r["bin"], r["metric"]): r for r in mod.compare(mod.binned(b, [0, 45, 90, 135, 180], angles),
+                                                             mod.binned(m, [0, 45, 90, 135, 180], angles),
+                                                             [0, 45, 90, 135, 180])}
+    assert ("45-90", "psnr") not in rows  # no view there
+    assert rows[("0-45", "psnr")]["diff"] == pytest.approx(0.5) and rows[("0-45", "psnr")]["wins"] == 3
+    far = rows[("135-180", "psnr")]
+    d = np.array([1.0, 2.0, 0.0])
+    half = 4.302652729911275 * d.std(ddof=1) / math.sqrt(3)  # t_{0.975, 2}
+    assert far["diff"] == pytest.approx(1.0) and far["ci95"] == pytest.approx([1.0 - half, 1.0 + half])
+    assert far["wins"] == 2 and far["objects"] == 3 and far["views"] == 3
+    assert mod.main(["--baseline", str(b), "--method", str(m), "--json", str(tmp_path / "o.json")]) == 0
+    assert json.loads((tmp_path / "o.json").read_text())[str(m)][0]["bin"] == "0-45"
