@@ -362,3 +362,29 @@ def test_pretrained_weights_load_from_local_files(tmp_path):
         ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "pickled.pth")), depth_aware=False)
     with pytest.raises(DepthnerfError, match="not found"):
         ImageEncoder(EncoderConfig(pretrained_path=str(tmp_path / "missing.pth")), depth_aware=False)
+
+
+def test_image_statistics_at_inference_are_trainings_and_leave_the_buffers():
+    from depthnerf.errors import DepthnerfError
+
+    model = PixelNeRF(small_config(), depth_aware=True)
+    src = sources(b=3, size=32, prior=True)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    model.train()
+    with torch.no_grad():
+        trained = model.encode(src).features  # per-object statistics (and a running-statistics update)
+    model.load_state_dict(state)
+    model.eval()
+    with torch.no_grad():
+        image = model.encode(src, encoder_norm="image").features
+        running = model.encode(src).features
+        alone = torch.cat([model.encode(SourceViews(images=src.images[i:i + 1], poses=src.poses[i:i + 1],
+                                                    focal=src.focal[i:i + 1], principal=src.principal[i:i + 1],
+                                                    prior=src.prior[i:i + 1]), encoder_norm="image").features
+                           for i in range(3)])
+    torch.testing.assert_close(image, trained, rtol=0, atol=0)
+    torch.testing.assert_close(alone, image, rtol=1e-4, atol=1e-4)
+    assert not torch.allclose(running, image, atol=1e-2)
+    assert all(torch.equal(v, state[k]) for k, v in model.state_dict().items())  # nothing updated
+    with pytest.raises(DepthnerfError, match="encoder_norm must be one of running, image"):
+        model.encode(src, encoder_norm="batch")

@@ -87,6 +87,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pixel-center", type=float,
                    help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
                         "data.pixel_center (measures what a convention mismatch costs)")
+    p.add_argument("--encoder-norm", choices=("running", "image"), default="running",
+                   help="encoder BatchNorm statistics: running (pixelNeRF, default) or the input image's own, as "
+                        "training normalises each object")
     p.add_argument("--no-symmetry", action="store_true",
                    help="mirror models: condition on no symmetry plane (the model's no-plane mode)")
     p.add_argument("--symmetry-plane", type=float, nargs=4, metavar=("NX", "NY", "NZ", "D"),
@@ -209,7 +212,7 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         choices=choices, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
         guided=guidance(args.guided, args.guided_align_samples),
-        symmetry=not args.no_symmetry,
+        symmetry=not args.no_symmetry, encoder_norm=args.encoder_norm,
         symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane),
         lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
         progress=not args.no_progress, overwrite=args.overwrite)

@@ -139,6 +139,9 @@ class ProtocolConfig:
     pixel_center: float | None = None
     """Pixel-centre convention the model reads the data with (see ``DataConfig.pixel_center``); None = the
     checkpoint's trained value. Overriding it measures what a convention mismatch costs."""
+    encoder_norm: str = "running"
+    """How the encoder's BatchNorm normalises the input view (``--encoder-norm``, :meth:`PixelNeRF.encode`):
+    ``running`` statistics (pixelNeRF) or the ``image``'s own, as training normalises each object."""
     symmetry: bool = True
     """Mirror models (``PixelNeRFConfig.mirror``): condition on the dataset's symmetry plane
     (:func:`depthnerf.data.symmetry.dataset_plane`); False (``--no-symmetry``) = on none, the model's no-plane

@@ -19,7 +19,7 @@ from depthnerf.data.protocol import INPUT_VIEW, SRN_VIEWS, ProtocolViews, protoc
 from depthnerf.data.srn import ObjectRecord, ObjectViews, load_object
 from depthnerf.depth.prior import PriorConfig, PriorSource, open_prior
 from depthnerf.model.conditioning import condition_views
-from depthnerf.model.pixelnerf import EncodedViews, PixelNeRF, SourceViews
+from depthnerf.model.pixelnerf import EncodedViews, EncoderNorm, PixelNeRF, SourceViews
 from depthnerf.pretrained.spec import InferenceSpec
 
 __all__ = ["INPUT_VIEW", "SRN_VIEWS", "ProtocolViews", "protocol_views", "PreparedObject", "dataset_prior",
@@ -54,14 +54,16 @@ def dataset_prior(spec: InferenceSpec, data_root: Path, records: Sequence[Object
 @torch.no_grad()
 def prepare_object(model: PixelNeRF, record: ObjectRecord, views: ProtocolViews, prior: PriorSource,
                    input_res: int, eval_res: int, device: torch.device, *,
-                   pixel_center: float = 0.0, symmetry_plane: Sequence[float] | None = None) -> PreparedObject:
+                   pixel_center: float = 0.0, symmetry_plane: Sequence[float] | None = None,
+                   encoder_norm: EncoderNorm = "running") -> PreparedObject:
     """Load the input view at ``input_res`` (with its ground-truth depth when the prior needs it), condition it
     on ``prior`` and encode it; load the targets at ``eval_res``. ``pixel_center``: the data's pixel-centre
     convention as the model reads it (the checkpoint's ``InferenceSpec.pixel_center``); ``symmetry_plane``: the
-    object's mirror plane (mirror models; :mod:`depthnerf.data.symmetry`)."""
+    object's mirror plane (mirror models; :mod:`depthnerf.data.symmetry`); ``encoder_norm``: see
+    :meth:`PixelNeRF.encode`."""
     src = load_object(record, [views.input_view], resolution=input_res,
                       with_depth=prior.kind == "live" and prior.prior.estimator == "oracle", pixel_center=pixel_center)
     tgt = load_object(record, list(views.targets), resolution=eval_res, pixel_center=pixel_center)
     cond = condition_views(prior, src, device, symmetry_plane=symmetry_plane)
     return PreparedObject(views=views, source=src, targets=tgt, prior=cond.disparity, inputs=cond.inputs,
-                          enc=model.encode(cond.inputs))
+                          enc=model.encode(cond.inputs, encoder_norm=encoder_norm))

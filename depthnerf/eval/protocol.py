@@ -149,7 +149,8 @@ class _Evaluator:
         torch.manual_seed(object_seed(record.object_id))  # eval_random draws: the same in any process
         t0 = time.perf_counter()
         obj = prepare_object(model, record, views, self.prior, self.input_res, self.eval_res, self.device,
-                             pixel_center=self.pixel_center, symmetry_plane=self.symmetry_plane)
+                             pixel_center=self.pixel_center, symmetry_plane=self.symmetry_plane,
+                             encoder_norm=cfg.encoder_norm)
         src, tgt, enc = obj.source, obj.targets, obj.enc
         guide = None
         if cfg.guided is not None:
@@ -284,6 +285,7 @@ def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: s
             "lpips_net": cfg.lpips.net, "pixel_center": pixel_center, "device": device.type,
             "autocast": str(None if policy is None else policy.autocast),
             "point_chunk": None if policy is None else policy.point_chunk,
+            **({"encoder_norm": cfg.encoder_norm} if cfg.encoder_norm != "running" else {}),
             **({"symmetry_plane": None if cfg.symmetry_plane is None else list(cfg.symmetry_plane),
                 "symmetry": cfg.symmetry} if pre.model.cfg.mirror else {})}
 
@@ -375,6 +377,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         "native_resolution": [list(s) for s in native],
         "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
         "pixel_center": evaluator.pixel_center, "trained_pixel_center": spec.pixel_center,
+        "encoder_norm": cfg.encoder_norm,
         "symmetry_plane": None if evaluator.symmetry_plane is None else list(evaluator.symmetry_plane),
         "symmetry_plane_source": evaluator.symmetry_from,
         "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),

@@ -176,11 +176,11 @@ class ImageEncoder(nn.Module):
         return self.cfg.latent_size(self.depth_aware)
 
     def forward(self, images: Float[Tensor, "N 3 H W"], prior: Float[Tensor, "N 1 H W"] | None = None,
-                objects: int = 1) -> Float[Tensor, "N C Hf Wf"]:
+                objects: int = 1, *, image_stats: bool = False) -> Float[Tensor, "N C Hf Wf"]:
         """Feature maps of ``N = objects * V`` images; in training mode BatchNorm statistics are per object
         (``depthnerf.model.norm``: one plan per call, passed to every layer, folded at the end), so encoding B
-        objects together equals encoding them one at a time."""
-        groups = object_groups(self, objects)
+        objects together equals encoding them one at a time; ``image_stats``: in evaluation mode too."""
+        groups = object_groups(self, objects, image_stats)
         feats = self._forward(images, prior, groups)
         groups.fold()
         return feats

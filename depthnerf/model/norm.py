@@ -14,7 +14,9 @@ encoder call and passed down through the encoder's forward (nothing is set on th
 statistics: one ``batch_norm`` call over the batch viewed as ``[V, count * C, H, W]``, with the affine parameters
 and running statistics repeated per object. After the encoder ran, :meth:`ObjectGroups.fold` updates the running
 statistics as ``count`` successive BatchNorm calls would (up to float rounding). Without a plan, with one object,
-or in evaluation mode the layer is plain BatchNorm.
+or in evaluation mode the layer is plain BatchNorm, unless the plan asks for ``image_stats``: then an
+evaluation-mode layer normalises each object with its own statistics too, exactly as training did, and leaves its
+running statistics alone (the inference choice ``encoder_norm="image"`` of :meth:`PixelNeRF.encode`).
 
 Few operators per layer (each one a kernel launch on a GPU): the plan repeats the affine parameters and running
 statistics of ALL its layers at once (a concatenation and one gather each), and folds the per-object running
@@ -40,6 +42,8 @@ class ObjectBatchNorm2d(nn.BatchNorm2d):
 
     def forward(self, x: Tensor, groups: ObjectGroups | None = None) -> Tensor:
         """Normalise ``x`` (``[count * V, C, H, W]``); ``groups``: the plan of the encoder call (None: plain)."""
+        if groups is not None and groups.image_stats and not self.training:
+            return self._image_stats(x, groups.count)
         if groups is None or groups.count <= 1 or not self.training:
             return super().forward(x)
         g = groups.count
@@ -66,6 +70,20 @@ class ObjectBatchNorm2d(nn.BatchNorm2d):
             # (ResNet's ReLU(inplace=True), ``out += identity``) record a copy of the whole base in backward
             return torch.ops.aten._unsafe_view(y, (n, c, h, w))
         return y.reshape(v, g, c, h, w).transpose(0, 1).reshape(n, c, h, w)  # a copy: not a view of y
+
+
+    def _image_stats(self, x: Tensor, g: int) -> Tensor:
+        """Each object's samples normalised with their own statistics (as in training), running statistics
+        neither read nor updated."""
+        n, c, h, w = x.shape
+        if n % g:
+            raise ValueError(f"ObjectBatchNorm2d: batch of {n} does not split into {g} objects")
+        v = n // g
+        weight = None if self.weight is None else self.weight.repeat(g)
+        bias = None if self.bias is None else self.bias.repeat(g)
+        grouped = x.reshape(g, v, c, h, w).transpose(0, 1).reshape(v, g * c, h, w)
+        y = F.batch_norm(grouped, None, None, weight, bias, True, 0.0, self.eps)
+        return y.reshape(v, g, c, h, w).transpose(0, 1).reshape(n, c, h, w)
 
 
 def _repeat_index(sizes: list[int], groups: int, device: torch.device) -> tuple[Tensor, Tensor]:
@@ -138,6 +156,8 @@ class ObjectGroups:
     """Objects in the batch: each is ``batch / count`` consecutive samples."""
     shared: list[SharedRepeats]
     """The repeated tensors of the plan's tracked training-mode layers, one entry per momentum value."""
+    image_stats: bool = False
+    """Evaluation-mode layers also normalise each object with its own statistics (module docstring)."""
 
     def take(self, layer: ObjectBatchNorm2d) -> Repeated:
         """``layer``'s repeated weight, bias, running mean and running variance (once per plan)."""
@@ -155,7 +175,7 @@ class ObjectGroups:
             s.fold()
 
 
-def object_groups(module: nn.Module, count: int) -> ObjectGroups:
+def object_groups(module: nn.Module, count: int, image_stats: bool = False) -> ObjectGroups:
     """The plan for one call of ``module`` on a batch of ``count`` objects: the training-mode
     :class:`ObjectBatchNorm2d` layers in ``module`` that track running statistics with a momentum share repeated
     tensors (one :class:`SharedRepeats` per momentum value); every one of them must run once in the call."""
@@ -165,4 +185,4 @@ def object_groups(module: nn.Module, count: int) -> ObjectGroups:
                    and m.momentum is not None and m.track_running_stats and m.running_mean is not None]
         for momentum in dict.fromkeys(m.momentum for m in tracked):
             shared.append(SharedRepeats([m for m in tracked if m.momentum == momentum], count))
-    return ObjectGroups(count=count, shared=shared)
+    return ObjectGroups(count=count, shared=shared, image_stats=image_stats)

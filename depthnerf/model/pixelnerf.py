@@ -42,6 +42,12 @@ from depthnerf.model.features import in_frame, pixel_aligned, rotate_dirs, to_so
 from depthnerf.model.field import MirrorQuery, ResidualField
 
 
+EncoderNorm = Literal["running", "image"]
+"""How the encoder's BatchNorm layers normalise at inference (:meth:`PixelNeRF.encode`)."""
+ENCODER_NORMS: tuple[str, ...] = ("running", "image")
+"""The :data:`EncoderNorm` values."""
+
+
 @dataclass
 class SourceViews(TensorBundle):
     """The conditioning views of B objects, V views each."""
@@ -128,12 +134,17 @@ class PixelNeRF(nn.Module):
         self.coarse = ResidualField(cfg.coarse, latent, mirror=cfg.mirror)
         self.fine = ResidualField(cfg.fine, latent, mirror=cfg.mirror) if cfg.fine is not None else None
 
-    def encode(self, src: SourceViews) -> EncodedViews:
-        """Feature maps of all source views; nothing is stored on the module."""
+    def encode(self, src: SourceViews, *, encoder_norm: EncoderNorm = "running") -> EncodedViews:
+        """Feature maps of all source views; nothing is stored on the module. ``encoder_norm`` (evaluation mode):
+        the encoder's BatchNorm layers normalise with their running statistics (``"running"``, pixelNeRF) or with
+        each object's own source-view statistics, as training does (``"image"``)."""
         _check_sources(src, self.depth_aware)
+        if encoder_norm not in ENCODER_NORMS:
+            raise DepthnerfError(f"encoder_norm must be one of {', '.join(ENCODER_NORMS)}, got {encoder_norm!r}")
         b, v, _, h, w = src.images.shape
         prior = src.prior.reshape(b * v, 1, h, w) if self.depth_aware else None
-        feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior, objects=b)
+        feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior, objects=b,
+                             image_stats=encoder_norm == "image")
         plane = src.symmetry_plane
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),
