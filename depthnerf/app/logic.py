@@ -115,6 +115,9 @@ class RunRequest:
     """Input camera (and orbit) elevation, degrees."""
     views: int = 8
     """Orbit views."""
+    facing: float | None = 90.0
+    """Which way the object's front points (``ReconstructConfig.facing``; models with mirror-symmetric
+    conditioning only); None = no symmetry plane."""
     remove_background: bool = True
     """Remove the background of a photo without alpha with a background model when one is installed."""
     background_model: str = ""
@@ -296,7 +299,8 @@ class AppSession:
         mode, background_model = self.background(request)
         cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),
                                 fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
-                                progress=True, background_removal=mode, background_model=background_model)
+                                progress=True, background_removal=mode, background_model=background_model,
+                                facing=None if request.facing is None else float(request.facing))
         result = rec.reconstruct(path, config=cfg)
         progress(0.95, "writing outputs")
         run_dir = self._new_run_dir()
@@ -326,6 +330,7 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
                              else "the alpha channel or the border colour decided (no background model ran)"),
         f"**Camera** elevation {settings['elevation']:g} deg, radius {settings['radius']:g}, "
         f"fill {settings['fill']:.2f}, {settings['views']} orbit views",
+        f"**Symmetry** {settings.get('symmetry', 'off: the model has no mirror-symmetric conditioning')}",
         ("**Mesh** none (--mesh-resolution 0)" if not manifest["mesh"].get("made", True) else
          f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else ""))
         + f", {manifest['point_cloud']['points']} points",

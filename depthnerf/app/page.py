@@ -63,6 +63,12 @@ DELETE_CACHE = (3600, 86400)
 """Gradio's cache of this page: files older than a day deleted hourly, and all of them when the server stops."""
 RATIO_INFO = ("object's longer side / frame side (TripoSR's foreground ratio; TripoSR's 0.85 suits its own "
               "model; the default is the fill of the chosen model's training data)")
+FACING_DEFAULT = 90.0
+"""The facing slider's start: a side view with the front to the right (``ReconstructConfig.facing``)."""
+FACING_INFO = ("which way the object's front points: 0 = towards the camera, 90 = right (a side view, the "
+               "default), 180 = away, 270 = left; sets the mirror plane of models with mirror-symmetric conditioning")
+SYMMETRY_INFO = ("models with mirror-symmetric conditioning also read each point's mirror image; untick for none "
+                 "(the details below say which plane was used)")
 
 
 CSS = """
@@ -115,10 +121,12 @@ def build_page(session: AppSession) -> gr.Blocks:
             return gr.Slider()
 
     def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg, bg_model,
+                    facing=FACING_DEFAULT, use_symmetry=True,
                     progress=gr.Progress(track_tqdm=True)):  # noqa: B008 - Gradio's way to ask for a progress bar
         request = RunRequest(image=image, model=model, checkpoint_path=ckpt_path or "", depth_prior=prior,
                              depth_checkpoint=prior_ckpt or "", foreground_ratio=ratio, elevation=elevation,
-                             views=int(views), remove_background=bool(remove_bg), background_model=bg_model or "")
+                             views=int(views), remove_background=bool(remove_bg), background_model=bg_model or "",
+                             facing=float(facing) if use_symmetry else None)
         return _outputs(session.run(request, lambda frac, text: progress(frac, desc=text)))
 
     with gr.Blocks(title="depthnerf app", analytics_enabled=False, delete_cache=DELETE_CACHE) as page:
@@ -152,6 +160,10 @@ def build_page(session: AppSession) -> gr.Blocks:
                 elevation = gr.Slider(-10, 60, value=20, step=1, label="Elevation (degrees)", elem_id="elevation")
                 views = gr.Slider(1, config.max_views, value=config.views, step=1, label="Orbit views",
                                   elem_id="views")
+                use_symmetry = gr.Checkbox(value=True, label="Use mirror symmetry", info=SYMMETRY_INFO,
+                                           elem_id="use-symmetry")
+                facing = gr.Slider(0, 359, value=FACING_DEFAULT, step=1, label="Object facing (degrees)",
+                                   info=FACING_INFO, elem_id="facing")
                 run = gr.Button("Reconstruct", variant="primary", elem_id="run")
             with gr.Column(scale=2):
                 status = gr.Textbox(label="Status", interactive=False, elem_id="status")
@@ -181,7 +193,7 @@ def build_page(session: AppSession) -> gr.Blocks:
         for trigger in (prior.change, prior_ckpt.change):
             trigger(prior_description, [prior, prior_ckpt], [prior_info], api_visibility="private")
         run.click(reconstruct, [upload, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg,
-                                bg_model],
+                                bg_model, facing, use_symmetry],
                   [status, prepared, prior_img, video, gif, viewer, downloads, details, clutter],
                   api_name="reconstruct", concurrency_limit=1, concurrency_id="reconstruct")
     return page
