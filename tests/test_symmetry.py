@@ -249,3 +249,32 @@ def test_reconstruct_facing_sets_the_plane(tmp_path, capsys):
         main(["reconstruct", str(tmp_path / "car.png"), "--checkpoint", str(mirror_path), "--out",
               str(tmp_path / "out2"), "--facing", "left"])
     assert "--facing: expected an angle in degrees or 'none'" in capsys.readouterr().err
+
+
+def test_eval_records_the_plane_it_used(tmp_path):
+    """eval conditions a mirror checkpoint on the dataset's plane (ShapeNet's without a card, the card's with one),
+    on none with --no-symmetry, and says so in summary.json; a plain checkpoint records none."""
+    from depthnerf.cli import main
+    from depthnerf.config_io import apply_overrides
+    from tests.fixtures_checkpoints import save_tiny, tiny_config
+    from tests.fixtures_srn import make_srn_fixture
+
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 1}, views=3, size=16)
+    plain_cfg = tiny_config("cars", "none")
+    mirror = save_tiny(tmp_path / "mirror.safetensors", apply_overrides(plain_cfg, ["--model.mirror", "true"]))
+    plain = save_tiny(tmp_path / "plain.safetensors", plain_cfg)
+
+    def summary(ckpt, out, *flags):
+        assert main(["eval", "--checkpoint", str(ckpt), "--data", str(root), "--out", str(tmp_path / out),
+                     "--no-mesh", "--no-progress", *flags]) == 0
+        return json.loads((tmp_path / out / "summary.json").read_text())
+
+    shapenet = summary(mirror, "a")
+    assert shapenet["symmetry_plane"] == [1.0, 0.0, 0.0, 0.0] and "ShapeNet" in shapenet["symmetry_plane_source"]
+    off = summary(mirror, "b", "--no-symmetry")
+    assert off["symmetry_plane"] is None and off["symmetry_plane_source"] == "off (--no-symmetry)"
+    assert off["psnr"] != shapenet["psnr"]
+    (root / "cars_card.json").write_text(json.dumps(SYNTH_CARD))
+    card = summary(mirror, "c")
+    assert card["symmetry_plane"] == [0.0, 1.0, 0.0, 0.0] and card["psnr"] != shapenet["psnr"]
+    assert summary(plain, "d")["symmetry_plane"] is None
