@@ -305,7 +305,7 @@ class Check:
         if workers and have[0]:
             cmd += ["-n", str(workers)]
         if have[1]:
-            cmd += ["--timeout", os.environ.get("GPU_CHECK_TEST_TIMEOUT", "180")]
+            cmd += ["--timeout", os.environ.get("GPU_CHECK_TEST_TIMEOUT", "120")]
         cmd += shlex.split(os.environ.get("GPU_CHECK_PYTEST_ARGS", ""))
         grace = min(60.0, 0.25 * limit)
         env = {"GPU_CHECK_DEADLINE": str(time.time() + limit - grace), "GPU_CHECK_REPORT": str(report),

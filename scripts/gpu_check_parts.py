@@ -148,16 +148,17 @@ def compare(a: Path, b: Path, killed: Path | None = None) -> dict:
 
 def pytest_summary(report: Path, proc: Proc) -> dict:
     """Counts, failing ids, skip reasons and the slowest tests from the plugin's JSON lines."""
-    collected, phases = 0, {}
+    collected, ids, phases = 0, [], {}
     if report.is_file():
         for line in report.read_text().splitlines():
             r = json.loads(line)
             if "collected" in r:
-                collected = max(collected, r["collected"])
+                if r["collected"] >= collected:
+                    collected, ids = r["collected"], r.get("ids", [])
             else:
                 phases.setdefault(r["nodeid"], []).append(r)
     counts: Counter = Counter()
-    failures, skips, durations, budget = [], Counter(), [], 0
+    failures, skips, durations, budget, unfinished = [], Counter(), [], 0, set()
     for nodeid, rs in phases.items():
         bad = [r for r in rs if r["outcome"] == "failed"]
         call = next((r for r in rs if r["when"] == "call"), None)
@@ -172,15 +173,19 @@ def pytest_summary(report: Path, proc: Proc) -> dict:
             counts["xfailed"] += 1
         elif skipped is not None:
             counts["skipped"] += 1
-            budget += skipped["message"] == BUDGET_REASON
+            if skipped["message"] == BUDGET_REASON:
+                budget += 1
+                unfinished.add(nodeid)
             skips[skipped["message"][:160]] += 1
         elif call is not None:
             counts["xpassed" if call["xfail"] else "passed"] += 1
     tail = [line for line in proc.output.splitlines() if line.strip()]
-    summary = next((line for line in reversed(tail) if " in " in line and ("passed" in line or "failed" in line
-                                                                         or "skipped" in line)), None)
+    words = ("passed", "failed", "skipped", "error", "no tests ran")
+    summary = next((line for line in reversed(tail) if " in " in line and any(w in line for w in words)), None)
+    unfinished |= {i for i in ids if i not in phases}
     return {"returncode": proc.rc, "timed_out": proc.timed_out, "collected": collected, "counts": dict(counts),
             "not_run_budget": budget, "not_reached": max(0, collected - len(phases)),
+            "rerun_files": sorted({i.split("::")[0] for i in unfinished}),
             "failures": failures[:40], "failures_listed": min(40, len(failures)),
             "skip_reasons": dict(skips.most_common(12)),
             "slowest": [[round(d, 1), n] for d, n in sorted(durations, reverse=True)[:10]],

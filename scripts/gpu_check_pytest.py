@@ -5,7 +5,8 @@ PYTHONPATH, so the scripts folder itself never is). Environment:
 
 - ``GPU_CHECK_DEADLINE``: Unix time; a test whose setup starts after it is skipped with :data:`BUDGET_REASON`
   (so pytest ends on its own, with its summary, when the budget is spent; the test running then finishes).
-- ``GPU_CHECK_REPORT``: a JSON-lines file. One line ``{"collected": N}`` once collection is done, then one line
+- ``GPU_CHECK_REPORT``: a JSON-lines file. One line ``{"collected": N, "ids": [...]}`` once collection is done,
+  then one line
   per test phase (setup / call / teardown) that failed, was skipped, or is a call: ``nodeid``, ``when``,
   ``outcome``, ``duration``, ``message`` (a failure's last lines, a skip's reason), ``xfail``. Lines are appended
   and flushed as reports arrive, so a run killed from outside still leaves what finished. Under pytest-xdist only
@@ -51,7 +52,7 @@ def pytest_runtest_setup(item) -> None:
 
 
 def pytest_collection_finish(session) -> None:
-    _write({"collected": len(session.items)})
+    _write({"collected": len(session.items), "ids": [item.nodeid for item in session.items]})
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -59,7 +60,7 @@ def pytest_xdist_node_collection_finished(node, ids) -> None:
     global _collected_once
     if not globals().get("_collected_once"):
         _collected_once = True
-        _write({"collected": len(ids)})
+        _write({"collected": len(ids), "ids": list(ids)})
 
 
 def _message(report) -> str:
@@ -75,4 +76,4 @@ def pytest_runtest_logreport(report) -> None:
         return
     _write({"nodeid": report.nodeid, "when": report.when, "outcome": report.outcome,
             "duration": round(report.duration, 3), "message": _message(report) if not report.passed else "",
-            "xfail": bool(getattr(report, "wasxfail", False))})
+            "xfail": hasattr(report, "wasxfail")})  # its value is the reason, often empty

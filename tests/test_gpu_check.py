@@ -95,7 +95,8 @@ def test_pytest_outcomes_are_counted_and_the_failure_named(check):
     assert d["counts"] == {"passed": 1, "failed": 1, "skipped": 1} and d["collected"] == 3
     assert [f["id"].split("::")[-1] for f in d["failures"]] == ["test_fails"]
     assert "planted failure" in d["failures"][0]["message"] and d["skip_reasons"] == {"planted skip": 1}
-    assert d["not_run_budget"] == 0 and d["not_reached"] == 0 and "1 failed" in d["summary_line"]
+    assert d["not_run_budget"] == 0 and d["not_reached"] == 0 and d["rerun_files"] == []
+    assert "1 failed" in d["summary_line"]
     assert (out / "pytest_report.jsonl").is_file()
 
 
@@ -109,6 +110,7 @@ def test_tests_past_the_deadline_are_skipped_and_counted(tmp_path):
                            str(tmp_path / "test_tiny.py")], cwd=tmp_path, env=env, capture_output=True, text=True)
     summary = parts.pytest_summary(report, parts.Proc(proc.returncode, proc.stdout, 1.0, False))
     assert summary["counts"] == {"skipped": 3} and summary["not_run_budget"] == 3, proc.stdout[-2000:]
+    assert summary["rerun_files"] == ["test_tiny.py"] and summary["collected"] == 3
 
 
 def test_the_comparison_sees_one_changed_loss_and_one_changed_tensor(check, tmp_path):
