@@ -147,8 +147,11 @@ class Check:
         probe = self.run([self.py, "-c", env_probe_code()], limit)
         info: dict = {"python_executable": self.py, "cpus": os.cpu_count(), "forced_cpu": self.forced_cpu,
                       "source_sha256": source_digest()}
-        git = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
-        info["git_commit"] = git.stdout.strip() if git.returncode == 0 else None
+        try:  # the device tool's copy of a checkout may come without .git, the machine without git
+            git = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+            info["git_commit"] = git.stdout.strip() if git.returncode == 0 else None
+        except OSError:
+            info["git_commit"] = None
         if shutil.which("nvidia-smi") and not self.forced_cpu:
             smi = self.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
                            20)
@@ -333,9 +336,35 @@ class Check:
         self.stage("pytest", self.pytest_stage)
         self.result["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
         self.save()
+        print(headline(self.result))
         summary = " ".join(f"{k}={v}" for k, v in self.result["summary"].items())
         print(f"gpu_check: {summary} ({self.result['seconds']} s); {self.out / 'gpu_check.json'}")
         return 0 if all(v != "failed" for v in self.result["summary"].values()) else 1
+
+
+def headline(result: dict) -> str:
+    """The figures a person looks for first, a few lines (the device tool shows the end of the output)."""
+    st = result["stages"]
+    dev = result.get("device", {})
+    lines = [f"device: {dev.get('gpu_name') or 'no GPU'} ({dev.get('nvidia_smi', '-')}), torch {dev.get('torch')}, "
+             f"CUDA {dev.get('torch_cuda')}"]
+    for name, entry in st.items():
+        d = entry.get("details", {})
+        if name == "bench" and "baseline" in d:
+            b, a = d["baseline"], d.get("depth_aware", {})
+            keys = ("train_ms_best", "kernel_launches_per_step", "peak_memory_gib", "view_paper_ms", "view_guided_ms",
+                    "eval_704x250_paper_gpu_hours", "eval_704x250_guided_gpu_hours")
+            lines.append("bench baseline: " + ", ".join(f"{k} {b.get(k)}" for k in keys))
+            lines.append(f"bench depth-aware: train_ms_best {a.get('train_ms_best')}, "
+                         f"kernel_launches_per_step {a.get('kernel_launches_per_step')}")
+        elif name in ("resume_exact", "same_seed", "fast_kernels") and "identical" in d:
+            lines.append(f"{name}: identical {d['identical']}, steps differing {d['steps_differing']}, "
+                         f"max rel loss diff {d['max_rel_loss_diff']}")
+        elif name == "pytest" and "counts" in d:
+            lines.append(f"pytest: {d['counts']}, not run (budget) {d['not_run_budget']}, not reached "
+                         f"{d['not_reached']}; rerun: {' '.join(d['rerun_files']) or '-'}")
+            lines += [f"  FAILED {f['id']}" for f in d["failures"][:15]]
+    return "\n".join(lines)
 
 
 def read_json(path: Path) -> dict:

@@ -2,7 +2,8 @@
 environment probe. ``python scripts/gpu_check_parts.py compare RUN_A RUN_B [KILLED_METRICS]`` prints the
 comparison of two run folders as one JSON line (every logged loss term of every step, the final checkpoint's
 weights and optimiser state; with KILLED_METRICS, also the steps the killed process of RUN_B logged before its
-kill, which ``--resume`` drops from ``metrics.jsonl`` and logs again)."""
+kill, which ``--resume`` drops from ``metrics.jsonl`` and logs again). ``python scripts/gpu_check_parts.py digest``
+prints :func:`source_digest` of this checkout, to match the ``source_sha256`` of a gpu_check.json to a commit."""
 
 from __future__ import annotations
 
@@ -193,6 +194,9 @@ def pytest_summary(report: Path, proc: Proc) -> dict:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) not in (4, 5) or sys.argv[1] != "compare":
-        raise SystemExit("usage: gpu_check_parts.py compare RUN_A RUN_B [KILLED_METRICS]")
-    print(json.dumps(compare(*map(Path, sys.argv[2:]))))
+    if sys.argv[1:] == ["digest"]:
+        print(source_digest())
+    elif len(sys.argv) in (4, 5) and sys.argv[1] == "compare":
+        print(json.dumps(compare(*map(Path, sys.argv[2:]))))
+    else:
+        raise SystemExit("usage: gpu_check_parts.py compare RUN_A RUN_B [KILLED_METRICS] | digest")
