@@ -318,10 +318,13 @@ class Check:
         details = pytest_summary(report, r)
         details.update(workers=workers, threads_per_worker=threads, deadline_s=round(limit - grace),
                        args=cmd[3:])
-        ok = (r.rc == 0 and not r.timed_out and details["counts"].get("failed", 0) == 0
-              and details["counts"].get("error", 0) == 0 and details["not_run_budget"] == 0
-              and details["not_reached"] == 0)
-        return ("ok" if ok else "failed"), details
+        c = details["counts"]
+        why = [f"{c[k]} {k}" for k in ("failed", "error") if c.get(k)]
+        why += [f"{details[k]} {k.replace('_', ' ')}" for k in ("not_run_budget", "not_reached") if details[k]]
+        why += [f"pytest exit {r.rc}"] if r.rc != 0 and not why else []
+        why += ["stopped at the stage's limit"] if r.timed_out else []
+        details["reason"] = "; ".join(why) or None
+        return ("failed" if why else "ok"), details
 
     def main(self) -> int:
         self.stage("env", self.env_stage)
@@ -362,7 +365,8 @@ def headline(result: dict) -> str:
                          f"max rel loss diff {d['max_rel_loss_diff']}")
         elif name == "pytest" and "counts" in d:
             lines.append(f"pytest: {d['counts']}, not run (budget) {d['not_run_budget']}, not reached "
-                         f"{d['not_reached']}; rerun: {' '.join(d['rerun_files']) or '-'}")
+                         f"{d['not_reached']}; rerun {len(d['rerun_files'])} files: {' '.join(d['rerun_files'][:8]) or '-'}"
+                         f"{' ...' if len(d['rerun_files']) > 8 else ''}")
             lines += [f"  FAILED {f['id']}" for f in d["failures"][:15]]
     return "\n".join(lines)
 

@@ -91,7 +91,7 @@ def test_kill_resume_and_same_seed_runs_are_compared_bit_for_bit(check):
 def test_pytest_outcomes_are_counted_and_the_failure_named(check):
     _, result, out = check
     d = result["stages"]["pytest"]["details"]
-    assert result["stages"]["pytest"]["status"] == "failed"
+    assert result["stages"]["pytest"]["status"] == "failed" and d["reason"] == "1 failed"
     assert d["counts"] == {"passed": 1, "failed": 1, "skipped": 1} and d["collected"] == 3
     assert [f["id"].split("::")[-1] for f in d["failures"]] == ["test_fails"]
     assert "planted failure" in d["failures"][0]["message"] and d["skip_reasons"] == {"planted skip": 1}
