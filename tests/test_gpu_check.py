@@ -22,6 +22,7 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import gpu_check_parts as parts  # noqa: E402
 
 pytestmark = [
+    pytest.mark.slow,
     pytest.mark.skipif(shutil.which("bash") is None or not hasattr(os, "killpg"), reason="needs bash and POSIX"),
     pytest.mark.skipif(bool(os.environ.get("GPU_CHECK_ACTIVE")), reason="inside gpu_check's own pytest stage"),
 ]
