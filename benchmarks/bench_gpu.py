@@ -13,6 +13,7 @@ checkout's loop body (the "before" figure of docs/speed.md).
 
     python benchmarks/bench_gpu.py                       # CUDA if available, else the CPU op count
     python benchmarks/bench_gpu.py --device cpu --time   # also time the CPU step (~10 s per iteration)
+    python benchmarks/bench_gpu.py --json out.json       # also write the figures as JSON (scripts/gpu_check.py)
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import json
 import math
 import statistics
 import sys
@@ -36,6 +38,9 @@ from depthnerf.model import PixelNeRF, SourceViews
 from depthnerf.render.rays import rays_from_camera
 from depthnerf.train.batching import ItemKey, TrainBatch
 from depthnerf.train.config import preset, with_prior
+
+SRN_EVAL_VIEWS = 704 * 250
+"""The SRN-protocol cars test set: 704 objects x 250 target views (the projection of the per-view figures)."""
 
 NO_KERNEL = {"_unsafe_view", "empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided",
              "_record_function_enter_new", "_record_function_exit"}
@@ -222,7 +227,8 @@ def cuda_launches(fn) -> int:
 
 
 def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
-                 repeat: int) -> None:
+                 repeat: int, out: dict) -> None:
+    """Print (and put in ``out``) ms per view with the paper's sampler and guided, and the SRN eval projection."""
     from depthnerf.render.precision import field_runtime, inference_policy
     from depthnerf.render.views import render_poses, render_views, view_rays
 
@@ -243,11 +249,15 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         t = timed(paper, repeat, device)
         print(f"view  paper sampler 64+16+16, {intr.height}x{intr.width}, {views} views per call, chunk "
               f"{policy.ray_chunk}, {'bf16' if policy.autocast else 'fp32'}: {min(t) / views * 1e3:.1f} ms per view")
+        out.update(view_paper_ms=min(t) / views * 1e3, view_resolution=intr.height, views_per_call=views,
+                   view_precision="bf16" if policy.autocast else "fp32")
+        project(out, "paper", out["view_paper_ms"])
         try:
             from depthnerf.render.config import GuideConfig
             from depthnerf.render.guide import build_depth_guide
         except ImportError:
             print("view  guided: N/A (no depth guide in this checkout)")
+            out["view_guided_ms"] = None
             return
         gcfg = dataclasses.replace(cfg.render, guided=dataclasses.replace(cfg.render.guided, enabled=True))
         rays = view_rays(poses.to(device), intr, 0.8, 1.8)
@@ -264,6 +274,15 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         t = timed(guided, repeat, device)
         print(f"view  guided sampler (synthetic guide, {guide.occupied.float().mean():.0%} rays occupied): "
               f"{min(t) / views * 1e3:.1f} ms per view")
+        out.update(view_guided_ms=min(t) / views * 1e3, guided_rays_occupied=float(guide.occupied.float().mean()))
+        project(out, "guided", out["view_guided_ms"])
+
+
+def project(out: dict, name: str, ms_per_view: float) -> None:
+    """The SRN-protocol evaluation (704 x 250 views) projected from a per-view time, in GPU-hours."""
+    hours = SRN_EVAL_VIEWS * ms_per_view / 1e3 / 3600
+    out[f"eval_704x250_{name}_gpu_hours"] = hours
+    print(f"eval projection, 704 objects x 250 views, {name} sampler: {hours:.2f} GPU-hours")
 
 
 def main() -> None:
@@ -281,7 +300,21 @@ def main() -> None:
     p.add_argument("--count-rays", type=int, default=8, help="CPU op count: rays per object (count is the same)")
     p.add_argument("--breakdown", type=int, nargs="?", const=25, default=0, metavar="TOP",
                    help="CPU op count: also print it by phase, aten op, module and source (TOP rows each)")
+    p.add_argument("--json", metavar="PATH", help="also write the printed figures to PATH as JSON")
     args = p.parse_args()
+    out: dict = {}
+    try:
+        run(args, out)
+    except BaseException as e:  # the figures so far still go to --json, with what stopped the run
+        out["error"] = f"{type(e).__name__}: {e}"
+        raise
+    finally:
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump(out, f, indent=1)
+
+
+def run(args, out: dict) -> None:
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
                           ("cpu" if args.device == "auto" else args.device))
     cfg = with_prior(preset("paper-cars"), args.depth)
@@ -301,7 +334,10 @@ def main() -> None:
     batch = batch.to(device)
     step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False)
     shape = getattr(step, "shape", args.step_shape)
+    out.update(device=str(device), objects=args.objects, rays=args.rays, resolution=args.resolution,
+               depth=args.depth, step_shape=shape, torch=torch.__version__)
     if device.type == "cuda":
+        out.update(gpu=torch.cuda.get_device_name(device), cuda=torch.version.cuda)
         step()  # warm-up (allocations, cuDNN/cuBLAS handles)
     print(f"paper preset ({cfg.model.encoder.backbone}, d_hidden {cfg.model.coarse.d_hidden}, "
           f"{cfg.render.sampler.n_coarse}+{cfg.render.sampler.n_importance}+{cfg.render.sampler.n_gaussian} "
@@ -312,15 +348,19 @@ def main() -> None:
         t = timed(step, args.repeat, device)
         print(f"train iteration: {min(t) * 1e3:.1f} ms best, {statistics.median(t) * 1e3:.1f} ms median "
               f"({args.repeat} iterations)")
-        print(f"CUDA kernel launches per training step: {cuda_launches(step)}")
-        print(f"peak GPU memory (training): {torch.cuda.max_memory_allocated() / 2**30:.2f} GiB")
+        out.update(train_ms_best=min(t) * 1e3, train_ms_median=statistics.median(t) * 1e3, repeat=args.repeat)
+        out["kernel_launches_per_step"] = cuda_launches(step)
+        print(f"CUDA kernel launches per training step: {out['kernel_launches_per_step']}")
+        out["peak_memory_gib"] = torch.cuda.max_memory_allocated() / 2**30
+        print(f"peak GPU memory (training): {out['peak_memory_gib']:.2f} GiB")
         if not args.no_views:
-            view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4))
+            view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4), out)
         return
     if args.time:
         step()  # the untimed warm-up below is skipped without --time
         t = timed(step, 3, device)
         print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
+        out.update(cpu_train_s_best=min(t), cpu_train_s_median=statistics.median(t))
     # the op sequence does not depend on the number of rays: count with few (bf16 matmuls are slow on CPUs
     # without bf16 units)
     small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, depth_aware)
@@ -335,6 +375,8 @@ def main() -> None:
           f"{args.objects} objects x {args.count_rays} rays")
     print(f"of which views and allocations (no kernel on a GPU): {counter.no_kernel}")
     print(f"aten ops per training step: {counter.count}")
+    out.update(aten_ops_per_step=counter.count, aten_ops_without_kernel=counter.no_kernel,
+               count_rays=args.count_rays)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ where the real package wins over any namespace candidate.
 
 What it does: makes ``TMP/holder/depthnerf/`` (``pyproject.toml`` and ``README.md`` copied, the package folder
 linked), ``pip install --no-deps -e`` it into ``TMP/site`` (``--target``), then from ``TMP/holder`` runs
-``python -S`` with ``TMP/site`` processed as a site directory (``site.addsitedir``: the ``.pth`` files run as at
+``python -S`` (without ``PYTHONPATH``) with ``TMP/site`` processed as a site directory (``site.addsitedir``: the ``.pth`` files run as at
 start-up, after the current directory is on the path; ``-S`` keeps this interpreter's own install out of it) and
 checks that ``import depthnerf`` is the linked package. ``--no-build-isolation`` builds with the setuptools
 installed here (no download; needs setuptools >= 70.1, or >= 68 with ``wheel``). Prints one line; exit 0 when
@@ -22,6 +22,7 @@ the package is imported, 1 when it is shadowed, 2 when the install itself failed
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import subprocess
 import sys
@@ -52,8 +53,9 @@ def check(tmp: Path, build_isolation: bool) -> tuple[int, str]:
     install = subprocess.run(cmd, capture_output=True, text=True)
     if install.returncode != 0:
         return 2, f"pip install -e failed: {' '.join(install.stderr.split())[-600:]}"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # a checkout put on it would win (gpu_env.sh)
     probe = subprocess.run([sys.executable, "-S", "-c", PROBE, str(tmp / "site")], capture_output=True, text=True,
-                           cwd=clone.parent)
+                           cwd=clone.parent, env=env)
     expected = clone / "depthnerf" / "__init__.py"
     found = probe.stdout.split()[0] if probe.stdout.split() else None
     if probe.returncode == 0 and found == str(expected):
