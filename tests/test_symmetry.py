@@ -12,8 +12,14 @@ import torch
 import trimesh
 
 from depthnerf.data.cameras import project, world_to_camera
-from depthnerf.data.symmetry import (SHAPENET_PLANE, dataset_plane, facing_plane, plane_from_card, reflect_dirs,
-                                     reflect_points)
+from depthnerf.data.symmetry import (
+    SHAPENET_PLANE,
+    dataset_plane,
+    facing_plane,
+    plane_from_card,
+    reflect_dirs,
+    reflect_points,
+)
 from depthnerf.data.synth.cars import CAR_STYLES, build_car, sample_car
 from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, build_chair, sample_chair
 from depthnerf.errors import DepthnerfError
@@ -48,7 +54,7 @@ def test_reflection_formulas():
     pts = torch.randn(2, 7, 3, dtype=torch.float64).float()
     mirrored = reflect_points(pts, plane)
     n, d = plane[0, :3], plane[0, 3]
-    for p, q in zip(pts[0], mirrored[0]):
+    for p, q in zip(pts[0], mirrored[0], strict=True):
         assert float(q @ n - d) == pytest.approx(-float(p @ n - d), abs=1e-5)  # opposite side, same distance
         assert torch.allclose((p + q) / 2 @ n, d, atol=1e-5)  # midpoint on the plane
     torch.testing.assert_close(reflect_points(mirrored, plane), pts)  # an involution

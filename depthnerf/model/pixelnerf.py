@@ -41,7 +41,6 @@ from depthnerf.model.encoder import ImageEncoder
 from depthnerf.model.features import in_frame, pixel_aligned, rotate_dirs, to_source_frames
 from depthnerf.model.field import MirrorQuery, ResidualField
 
-
 EncoderNorm = Literal["running", "image"]
 """How the encoder's BatchNorm layers normalise at inference (:meth:`PixelNeRF.encode`)."""
 ENCODER_NORMS: tuple[str, ...] = ("running", "image")
