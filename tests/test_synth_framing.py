@@ -15,7 +15,8 @@ from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics, look_at, pixel_directions, project, world_to_camera
 from depthnerf.data.synth.cars import CAR_STYLES, HELDOUT_CAR_STYLES, build_car, sample_car
 from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, HELDOUT_ARCHETYPES, build_chair, sample_chair
-from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing, dataset_pixel_center, get_framing
+from depthnerf.data.card import dataset_pixel_center
+from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing, get_framing
 from depthnerf.data.synth.generate import SynthConfig, category_spec, generate, object_poses, object_rngs
 from depthnerf.data.synth.primitives import Material, MeshBuilder, box
 from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
@@ -248,7 +249,7 @@ def test_checkpoint_framing_lookup(tmp_path: Path) -> None:
     assert framing == "srn" and source.endswith("ck.json")
     shipped = Path(__file__).resolve().parent.parent / "depthnerf" / "checkpoints"
     for card in sorted(shipped.glob("cpu-*.json")):
-        assert checkpoint_framing(card.with_suffix(".safetensors"), None, "cars")[0] == "srn", card  # session 5
+        assert checkpoint_framing(card.with_suffix(".safetensors"), None, "cars")[0] == "srn", card
     assert set(FRAMINGS) == {"srn", "legacy"}
 
 

@@ -72,7 +72,7 @@ import trimesh
 
 from depthnerf.data import srn_format
 from depthnerf.data.srn import ObjectRecord, index_split
-from depthnerf.data.synth.framing import dataset_pixel_center
+from depthnerf.data.card import card_path, card_pixel_center, read_dataset_card
 from depthnerf.depth.prior import PriorConfig, PriorSource
 from depthnerf.distributed import DistInfo
 from depthnerf.errors import DepthnerfError
@@ -251,15 +251,9 @@ def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: st
             f"{res}, {sampling}")
 
 
-def _data_card(root: Path, category: str) -> dict:
-    card_path = root / f"{category}_card.json"
-    card = None
-    if card_path.is_file():
-        try:
-            card = json.loads(card_path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise DepthnerfError(f"{card_path}: unreadable dataset card ({err})") from None
-    return {"root": str(root.resolve()), "card_path": str(card_path.resolve()) if card else None, "card": card}
+def _data_card(root: Path, category: str, card: dict | None) -> dict:
+    path = card_path(root, category)
+    return {"root": str(root.resolve()), "card_path": str(path.resolve()) if card else None, "card": card}
 
 
 def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: str, prior: PriorSource,
@@ -302,8 +296,9 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         raise DepthnerfError(f"--chunk must be >= 1 and --mesh-resolution >= 2 (got {cfg.chunk}, "
                              f"{cfg.mesh_resolution})")
     all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
+    card = read_dataset_card(data_root, category)
     # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
-    cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=dataset_pixel_center(data_root, category)))
+    cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=card_pixel_center(card)))
     skipped = [r.object_id for r in all_records if choices.skips(r.object_id)]
     kept = [r for r in all_records if not choices.skips(r.object_id)]
     if not kept:
@@ -361,7 +356,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         "category": category, "split": cfg.split, "preset": spec.preset,
         "depth_prior": estimator, "depth_prior_provenance": prior.provenance,
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
-        "data_card": _data_card(data_root, category),
+        "data_card": _data_card(data_root, category, card),
         "resolution": eval_res, "input_resolution": input_res, "train_resolution": spec.resolution,
         "native_resolution": [list(s) for s in native],
         "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,

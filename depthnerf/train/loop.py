@@ -32,6 +32,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from depthnerf.config_io import to_dict
+from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.depth.prior import PriorSource, open_prior
 from depthnerf.distributed import DistInfo, barrier
@@ -65,8 +66,7 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
     prior = {"estimator": cfg.prior.estimator, **(prior_source.provenance or {})}
     write_text_atomic(run_dir / "prior.json", json.dumps(prior, indent=1, default=str) + "\n")
     root = Path(cfg.data.root)
-    card_path = root / f"{cfg.data.category}_card.json"
-    card = json.loads(card_path.read_text()) if card_path.is_file() else None
+    card = read_dataset_card(root, cfg.data.category)
     data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
                  "resolution": cfg.data.resolution, "dataset_card": card}
     write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
