@@ -35,3 +35,19 @@ def test_a_bad_card_is_one_error_naming_it_for_every_reader(tmp_path: Path, text
                  lambda: checkpoint_framing(tmp_path / "w.safetensors", tmp_path, "cars")):
         with pytest.raises(DepthnerfError, match=f"{card}: unreadable dataset card"):
             read()
+
+
+def test_load_object_says_which_pixel_centre_it_used(tmp_path: Path) -> None:
+    import warnings
+
+    from fixtures_srn import make_srn_fixture
+
+    from depthnerf.data.srn import index_split, load_object
+
+    record = index_split(make_srn_fixture(tmp_path, "cars", {"test": 1}, views=2, size=8), "cars", "test").objects[0]
+    with pytest.warns(UserWarning, match=r"no pixel centre stated; intrinsics.txt read integer-centred"):
+        unstated = load_object(record, [0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_object(record, [0], pixel_center=0.0).intrinsics == unstated.intrinsics
+        assert load_object(record, [0], pixel_center=0.5).intrinsics.cx == unstated.intrinsics.cx - 0.5

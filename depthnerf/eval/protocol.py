@@ -71,8 +71,8 @@ import torch
 import trimesh
 
 from depthnerf.data import srn_format
-from depthnerf.data.srn import ObjectRecord, index_split
 from depthnerf.data.card import card_path, card_pixel_center, read_dataset_card
+from depthnerf.data.srn import ObjectRecord, index_split
 from depthnerf.depth.prior import PriorConfig, PriorSource
 from depthnerf.distributed import DistInfo
 from depthnerf.errors import DepthnerfError
