@@ -244,8 +244,8 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         print(f"view  paper sampler 64+16+16, {intr.height}x{intr.width}, {views} views per call, chunk "
               f"{policy.ray_chunk}, {'bf16' if policy.autocast else 'fp32'}: {min(t) / views * 1e3:.1f} ms per view")
         try:
-            from depthnerf.render.config import GuideConfig
-            from depthnerf.render.guide import build_depth_guide
+            from depthnerf.render.config import GuidedConfig
+            from depthnerf.render.depth_guide import build_depth_guide
         except ImportError:
             print("view  guided: N/A (no depth guide in this checkout)")
             return
@@ -254,7 +254,7 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         depth = torch.full((1, intr.height, intr.width), 1.2, device=device)  # a synthetic source surface
         mask = torch.zeros_like(depth, dtype=torch.bool)
         mask[:, intr.height // 4: 3 * intr.height // 4, intr.width // 4: 3 * intr.width // 4] = True
-        guide = build_depth_guide(src.poses[:, 0].to(device), intr, depth, mask, rays, GuideConfig())
+        guide = build_depth_guide(src.poses[:, 0].to(device), intr, depth, mask, rays, GuidedConfig())
         coarse, fine = model.field(enc, "coarse", runtime), model.field(enc, "fine", runtime)
 
         def guided():

@@ -33,7 +33,7 @@ import torch
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
-from depthnerf.render.guidance import DEFAULT_BUDGET
+from depthnerf.render.config import DEFAULT_BUDGET
 
 COLLECTIVE_TIMEOUT = timedelta(hours=6)
 """How long rank 0 waits for the slowest rank's share of the objects before the merge (multi-process runs)."""
@@ -109,17 +109,11 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def guidance(budget: int | None, align_samples: int):
-    """The ``--guided`` setting: None (the checkpoint's sampler) or a GuidanceConfig."""
-    from depthnerf.render.guidance import GuidanceConfig
+def guided_request(budget: int | None, align_samples: int):
+    """The ``--guided`` setting: None (the checkpoint's sampler) or the guided config of that budget."""
+    from depthnerf.render.source_guide import guided_config
 
-    if budget is None:
-        return None
-    if budget < 6:
-        raise DepthnerfError(f"--guided {budget}: a guided budget needs >= 6 samples per ray")
-    if align_samples < 1:
-        raise DepthnerfError(f"--guided-align-samples must be >= 1, got {align_samples}")
-    return GuidanceConfig(budget=budget, align_samples=align_samples)
+    return None if budget is None else guided_config(budget, align_samples)
 
 
 def _choices(args: argparse.Namespace):
@@ -203,7 +197,7 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         choices=choices, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
-        guided=guidance(args.guided, args.guided_align_samples),
+        guided=guided_request(args.guided, args.guided_align_samples),
         lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
         progress=not args.no_progress, overwrite=args.overwrite)
     result = evaluate_protocol(pre, data, out, cfg, device, info, policy)

@@ -14,11 +14,11 @@ import argparse
 import dataclasses
 from pathlib import Path
 
-from depthnerf.commands.evaluate import guidance, resolve_device
+from depthnerf.commands.evaluate import guided_request, resolve_device
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
-from depthnerf.render.guidance import DEFAULT_BUDGET
+from depthnerf.render.config import DEFAULT_BUDGET
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
                             chunk=ReconstructConfig.chunk if args.chunk is None else args.chunk,
-                            guided=guidance(args.guided, args.guided_align_samples), progress=not args.no_progress,
+                            guided=guided_request(args.guided, args.guided_align_samples), progress=not args.no_progress,
                             background_removal=args.background_removal, background_model=args.background_model)
     check_output_dir(args.out, args.overwrite)
     # a background model the flags name loads (or fails in one line) before the NeRF does

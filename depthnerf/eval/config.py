@@ -40,7 +40,7 @@ from pathlib import Path
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import GeometryConfig
 from depthnerf.eval.metrics import SSIM_WINDOWS, LpipsConfig
-from depthnerf.render.guidance import GuidanceConfig
+from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import AUTO_LEVEL
 
 SCORED = {"png8": "8-bit PNG renders, truncated as pixelNeRF's eval.py writes them (its paper numbers, "
@@ -131,8 +131,8 @@ class ProtocolConfig:
     """Override of the depth prior recorded in the checkpoint (``--depth``; None: the checkpoint's)."""
     depth_checkpoint: str | None = None
     """Override of the depth estimator weights recorded in the checkpoint (``--depth-checkpoint``)."""
-    guided: GuidanceConfig | None = None
-    """Render targets with depth-guided sampling (``--guided BUDGET``, :mod:`depthnerf.render.guidance`); None:
+    guided: GuidedConfig | None = None
+    """Render targets with depth-guided sampling (``--guided BUDGET``, :mod:`depthnerf.render.source_guide`); None:
     the checkpoint's own sampler."""
     lpips: LpipsConfig = field(default_factory=LpipsConfig)
     """Where LPIPS weights are looked for (never downloaded)."""

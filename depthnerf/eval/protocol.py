@@ -92,9 +92,9 @@ from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, dataset_prior, pre
 from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects
 from depthnerf.files import write_text_atomic
 from depthnerf.pretrained.load import Pretrained
-from depthnerf.render.guidance import guided_render, make_source_guide
 from depthnerf.render.mesh import MeshConfig, input_camera_mesh, levels_text
 from depthnerf.render.precision import InferencePolicy, field_runtime
+from depthnerf.render.source_guide import guided_record, make_source_guide
 from depthnerf.render.views import render_poses
 
 __all__ = ["ProtocolChoices", "ProtocolConfig", "ObjectResult", "EvalOutputs", "evaluate_protocol", "method_label",
@@ -130,7 +130,7 @@ class _Evaluator:
         self.runtime = field_runtime(pre.model, policy)  # built once: it holds compiled MLPs with --compile
         self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
         self.near, self.far = pre.spec.z_range
-        self.render = pre.spec.render if cfg.guided is None else guided_render(pre.spec.render, cfg.guided.budget)
+        self.render = pre.spec.render if cfg.guided is None else replace(pre.spec.render, guided=cfg.guided)
         self.pixel_center = pre.spec.pixel_center if cfg.pixel_center is None else cfg.pixel_center
         self.png8 = cfg.choices.scored == "png8"
         self.metrics_cfg = ImageMetricsConfig(quantize_pred=self.png8, ssim_window=cfg.choices.ssim)
@@ -267,7 +267,7 @@ def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: s
             "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
             "geometry": dataclasses.asdict(cfg.geometry), "save_renders": cfg.save_renders,
             "choices": dataclasses.asdict(cfg.choices), "prior": prior.provenance,
-            "guided": None if cfg.guided is None else dataclasses.asdict(cfg.guided), "lpips": lpips_ok,
+            "guided": None if cfg.guided is None else guided_record(cfg.guided), "lpips": lpips_ok,
             "lpips_net": cfg.lpips.net, "pixel_center": pixel_center, "device": device.type,
             "autocast": str(None if policy is None else policy.autocast),
             "point_chunk": None if policy is None else policy.point_chunk}
@@ -352,7 +352,7 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
         "protocol_choices": choices.record(skipped),
         "method": cfg.method or method_label(estimator) + (
             f" + guided sampling ({cfg.guided.budget}/ray)" if cfg.guided is not None else ""),
-        "guided_sampling": None if cfg.guided is None else dataclasses.asdict(cfg.guided),
+        "guided_sampling": None if cfg.guided is None else guided_record(cfg.guided),
         "category": category, "split": cfg.split, "preset": spec.preset,
         "depth_prior": estimator, "depth_prior_provenance": prior.provenance,
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,

@@ -14,7 +14,7 @@ Depth prior (depth-aware checkpoints)
     :class:`~depthnerf.depth.prior.PriorSource`), normalised over the mask by the conditioning stage
     (:func:`depthnerf.model.conditioning.condition`), as in training. ``oracle`` needs ground-truth depth,
     impossible for a photo: an error suggesting ``--depth bundled``. ``ReconstructConfig.guided`` renders with
-    depth-guided sampling (:mod:`depthnerf.render.guidance`).
+    depth-guided sampling (:mod:`depthnerf.render.source_guide`).
 Outputs
     N views on the orbit through the input camera (rendered at ``render_resolution``, default the training one),
     their depth (ray distance, opacity-normalised) and opacity, a mesh (marching cubes over the input camera's
@@ -53,9 +53,10 @@ from depthnerf.reconstruct.exports import save_reconstruction
 from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsics
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
-from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
+from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, input_camera_mesh
 from depthnerf.render.precision import InferencePolicy, field_runtime
+from depthnerf.render.source_guide import make_source_guide
 from depthnerf.render.views import ViewRenders, render_poses
 
 POINT_OPACITY = 0.5
@@ -89,8 +90,8 @@ class ReconstructConfig:
     """Largest point-cloud size (None: every point)."""
     chunk: int = 4096
     """Rays per render pass."""
-    guided: GuidanceConfig | None = None
-    """Render with depth-guided sampling (:mod:`depthnerf.render.guidance`); None: the checkpoint's sampler."""
+    guided: GuidedConfig | None = None
+    """Render with depth-guided sampling (:mod:`depthnerf.render.source_guide`); None: the checkpoint's sampler."""
     progress: bool = False
     """Show a progress bar (stderr)."""
     background_removal: str = "auto"
@@ -246,7 +247,7 @@ class Reconstructor:
         near, far = spec.z_range
         render, guide = spec.render, None
         if cfg.guided is not None:
-            render = guided_render(spec.render, cfg.guided.budget)
+            render = replace(spec.render, guided=cfg.guided)
             guide = make_source_guide(model.field(encoded.enc, "coarse", self.runtime),
                                       encoded.pose[None].to(self.device), encoded.intr, near, far,
                                       encoded.inputs.disparity,
