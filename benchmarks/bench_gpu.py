@@ -144,7 +144,7 @@ def synthetic_batch(b: int, rays: int, res: int, depth_aware: bool, seed: int = 
     pick = [torch.gather(t, 1, idx[..., None].expand(-1, -1, 3)) for t in (all_rays.origins, all_rays.directions)]
     src = dict(images=torch.rand(b, 1, 3, res, res, generator=gen), poses=poses[:, :1],
                focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
-               prior=torch.randn(b, 1, 1, res, res, generator=gen) if depth_aware else None)
+               disparity=torch.randn(b, 1, 1, res, res, generator=gen) if depth_aware else None)
     if any(f.name == "source" for f in dataclasses.fields(TrainBatch)):
         src = {"source": SourceViews(**src)}
     else:  # a checkout from before TrainBatch carried the conditioning stage's SourceViews

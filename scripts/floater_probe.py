@@ -98,14 +98,14 @@ def main(argv: list[str] | None = None) -> int:
         obj = prepare_object(model, record, protocol_views(record.num_views, args.stride), source, spec.resolution,
                              spec.resolution, torch.device("cpu"), pixel_center=spec.pixel_center)
         src, tgt = obj.source, obj.targets
-        oracle_prior = condition_views(oracle, src).inputs.prior if depth_aware else None
+        oracle_prior = condition_views(oracle, src).inputs.disparity if depth_aware else None
         gt_mesh = load_mesh(record.mesh_path)
         for name in conditions:
             net = twin if name == "bn-batch-stats" else model
             inputs = obj.inputs
             if depth_aware:
-                inputs = dataclasses.replace(inputs, prior=conditioned_prior(name, inputs.prior, src.masks,
-                                                                             oracle_prior))
+                inputs = dataclasses.replace(inputs, disparity=conditioned_prior(name, inputs.disparity, src.masks,
+                                                                                 oracle_prior))
             with torch.no_grad():
                 enc = net.encode(inputs)
                 own = render_poses(net, enc, src.poses, src.intrinsics, near, far, spec.render, 4096, "cpu")

@@ -45,8 +45,8 @@ def test_live_prior_rounded_as_cached_equals_the_cache(setup):
         assert torch.equal(from_cache, from_live)  # bit-exact by design: one rounding rule (as_cached)
         assert torch.equal(as_cached(raw.disparity(obj.images)), from_live)
         a, b = condition_views(cached, obj), condition(live, obj.images, obj.masks, obj.poses, obj.intrinsics)
-        assert torch.equal(a.inputs.prior, b.inputs.prior) and torch.equal(a.inputs.images, b.inputs.images)
-        assert torch.equal(a.inputs.prior[0, :, 0], normalize_disparity(from_cache, obj.masks))
+        assert torch.equal(a.inputs.disparity, b.inputs.disparity) and torch.equal(a.inputs.images, b.inputs.images)
+        assert torch.equal(a.inputs.disparity[0, :, 0], normalize_disparity(from_cache, obj.masks))
     with pytest.raises(DepthnerfError, match="serves dataset views only"):
         cached.disparity(obj.images)
 
@@ -63,7 +63,7 @@ def test_oracle_and_none_sources(setup):
         oracle_live.disparity(obj.images)
     none = open_prior(PriorConfig("none"), data_root=root)
     cond = condition_views(none, obj)
-    assert none.kind == "none" and cond.disparity is None and cond.inputs.prior is None
+    assert none.kind == "none" and cond.disparity is None and cond.inputs.disparity is None
     assert none.provenance is None
 
 

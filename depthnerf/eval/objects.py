@@ -59,7 +59,7 @@ def prepare_object(model: PixelNeRF, record: ObjectRecord, views: ProtocolViews,
     on ``prior`` and encode it; load the targets at ``eval_res``. ``pixel_center``: the data's pixel-centre
     convention as the model reads it (the checkpoint's ``InferenceSpec.pixel_center``)."""
     src = load_object(record, [views.input_view], resolution=input_res,
-                      with_depth=prior.kind == "live" and prior.prior.estimator == "oracle", pixel_center=pixel_center)
+                      with_depth=prior.needs_depths, pixel_center=pixel_center)
     tgt = load_object(record, list(views.targets), resolution=eval_res, pixel_center=pixel_center)
     cond = condition_views(prior, src, device)
     return PreparedObject(views=views, source=src, targets=tgt, prior=cond.disparity, inputs=cond.inputs,

@@ -53,8 +53,8 @@ class SourceViews(TensorBundle):
     """Focal length in pixels (one per object, shared by its views)."""
     principal: Float[Tensor, "B 2"]
     """Principal point (cx, cy) in pixels."""
-    prior: Float[Tensor, "B V 1 H W"] | None = None
-    """Normalised disparity prior (``depthnerf.depth.normalize.normalize_disparity``: foreground in [-4, 4],
+    disparity: Float[Tensor, "B V 1 H W"] | None = None
+    """The depth prior's relative disparity, normalised (``depthnerf.depth.normalize.normalize_disparity``: foreground in [-4, 4],
     larger = nearer, background -5); required iff the encoder uses depth, ignored otherwise."""
 
 
@@ -95,9 +95,9 @@ def _check_sources(src: SourceViews, depth_aware: bool) -> None:
     b, v, _, h, w = images.shape
     expected = {"poses": (src.poses, (b, v, 4, 4)), "focal": (src.focal, (b,)), "principal": (src.principal, (b, 2))}
     if depth_aware:
-        if src.prior is None:
-            raise DepthnerfError("SourceViews.prior is None but the depth-aware model needs it")
-        expected["prior"] = (src.prior, (b, v, 1, h, w))
+        if src.disparity is None:
+            raise DepthnerfError("SourceViews.disparity is None but the depth-aware model needs the depth prior")
+        expected["disparity"] = (src.disparity, (b, v, 1, h, w))
     for name, (tensor, shape) in expected.items():
         if tuple(tensor.shape) != shape:
             raise DepthnerfError(f"SourceViews.{name} must have shape {list(shape)}, got {list(tensor.shape)}")
@@ -124,8 +124,8 @@ class PixelNeRF(nn.Module):
         """Feature maps of all source views; nothing is stored on the module."""
         _check_sources(src, self.depth_aware)
         b, v, _, h, w = src.images.shape
-        prior = src.prior.reshape(b * v, 1, h, w) if self.depth_aware else None
-        feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior, objects=b)
+        disparity = src.disparity.reshape(b * v, 1, h, w) if self.depth_aware else None
+        feats = self.encoder(src.images.reshape(b * v, 3, h, w), disparity, objects=b)
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),
                             image_size=(h, w))

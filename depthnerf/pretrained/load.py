@@ -35,12 +35,12 @@ def shipped_checkpoints() -> dict[str, Path]:
     return {p.stem: p for p in sorted(SHIPPED_DIR.glob("*.safetensors"))}
 
 
-def resolve_checkpoint(spec: str | Path) -> Path:
-    """The weights file a checkpoint spec names (see the module docstring)."""
+def resolve_checkpoint(checkpoint: str | Path) -> Path:
+    """The weights file ``checkpoint`` names: a shipped name or a path (see the module docstring)."""
     shipped = shipped_checkpoints()
-    if isinstance(spec, str) and spec in shipped:
-        return shipped[spec]
-    path = Path(spec)
+    if isinstance(checkpoint, str) and checkpoint in shipped:
+        return shipped[checkpoint]
+    path = Path(checkpoint)
     if path.is_file():
         return path
     if (path / "model.safetensors").is_file():
@@ -54,7 +54,8 @@ def resolve_checkpoint(spec: str | Path) -> Path:
             return latest / "model.safetensors"
         raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")
     names = ", ".join(shipped) or "none shipped"
-    raise DepthnerfError(f"{spec}: not a checkpoint file, checkpoint folder, run folder or shipped name ({names})")
+    raise DepthnerfError(f"{checkpoint}: not a checkpoint file, checkpoint folder, run folder or shipped name "
+                         f"({names})")
 
 
 @dataclass
@@ -75,9 +76,9 @@ class Pretrained:
     """Dataset root the model was trained on (provenance; a default for ``depthnerf eval --data``)."""
 
 
-def load_pretrained(spec: str | Path, device: torch.device | str = "cpu") -> Pretrained:
-    """Load a checkpoint spec into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
-    path = resolve_checkpoint(spec)
+def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") -> Pretrained:
+    """Load a checkpoint (shipped name or path) into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
+    path = resolve_checkpoint(checkpoint)
     tensors, meta = read_weights(path)
     inference = spec_from_metadata(meta, str(path))
     model = PixelNeRF(inference.model, depth_aware=inference.depth_aware)

@@ -285,7 +285,7 @@ class Reconstructor:
             prepared = PreparedImage(image=encoded.inputs.inputs.images[0, 0].permute(1, 2, 0).cpu().numpy(),
                                      mask=encoded.mask[0].numpy(), notes=[],
                                      source_size=(encoded.intr.height, encoded.intr.width))
-        disparity, prior = encoded.inputs.disparity, encoded.inputs.inputs.prior
+        disparity, prior = encoded.inputs.disparity, encoded.inputs.inputs.disparity
         settings = {"resolution": spec.resolution, "render_resolution": render_intr.height, "views": len(poses),
                     "z_range": [near, far], "category": spec.category,
                     "depth_estimator": self.prior_config.estimator, "depth_checkpoint": self.prior_config.checkpoint,

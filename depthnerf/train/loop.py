@@ -223,12 +223,12 @@ def _ignore_stop_signals(worker_id: int) -> None:
         signal.signal(sig, signal.SIG_IGN)
 
 
-def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior: PriorSource,
+def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior_source: PriorSource,
               spec: InferenceSpec, cfg: TrainConfig, info: DistInfo, step: int, progress: bool):
     """One validation as its own phase: a second progress bar over the val objects; interruptible by a stop
     signal (:meth:`StopRequest.interruptible`)."""
     with tqdm(total=len(records), desc=f"validate (step {step})", unit="object", leave=False, position=1,
               dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible():
         ckpt.crash_point("validation", step)
-        return validate(model, records, prior, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
+        return validate(model, records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
                         progress=vbar.update)

@@ -23,10 +23,10 @@ class ValidationScores(Protocol):
 
 
 class Validator(Protocol):
-    """``validate(model, records, prior, views, spec, chunk, device, progress=None)``: render ``views`` of each
-    record from its input view (conditioned on ``prior``) and score them; ``progress(1)`` after each record (the
+    """``validate(model, records, prior_source, views, spec, chunk, device, progress=None)``: render ``views`` of
+    each record from its input view (conditioned on ``prior_source``) and score them; ``progress(1)`` after each record (the
     loop's validation progress bar)."""
 
-    def __call__(self, model: PixelNeRF, records: Sequence[Any], prior: PriorSource, views: Sequence[int],
+    def __call__(self, model: PixelNeRF, records: Sequence[Any], prior_source: PriorSource, views: Sequence[int],
                  spec: InferenceSpec, chunk: int, device: torch.device,
                  progress: Callable[[int], Any] | None = None) -> ValidationScores: ...
