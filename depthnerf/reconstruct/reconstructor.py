@@ -41,7 +41,6 @@ from tqdm import tqdm
 
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import category_defaults
-from depthnerf.data.synth.framing import checkpoint_framing
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.depth.prior import PriorConfig, open_prior
 from depthnerf.errors import DepthnerfError
@@ -159,7 +158,7 @@ class Reconstructor:
             spec.prior.checkpoint if name == spec.prior.estimator else None)
         self.prior_config = PriorConfig(name, ckpt) if spec.depth_aware else PriorConfig("none")
         self.prior = open_prior(self.prior_config, device=str(self.device), match_cache=match_cache)
-        self.framing, self.framing_source = checkpoint_framing(pretrained.path, pretrained.data_root, spec.category)
+        self.framing, self.framing_source = spec.framing, pretrained.framing_origin
         self._removers: dict[tuple[str, str | None], BackgroundRemover] = {}
 
     def background_remover(self, mode: str = "auto", model: str | None = None) -> BackgroundRemover:

@@ -34,6 +34,7 @@ from tqdm import tqdm
 from depthnerf.config_io import to_dict
 from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
+from depthnerf.data.synth.framing import dataset_framing
 from depthnerf.depth.prior import PriorSource, open_prior
 from depthnerf.distributed import DistInfo, barrier
 from depthnerf.errors import DepthnerfError
@@ -61,12 +62,12 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
     return s.lr * s.lr_decay ** epochs
 
 
-def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int) -> None:
+def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int,
+                     card: dict | None) -> None:
     write_text_atomic(run_dir / "config.json", json.dumps(to_dict(cfg), indent=1) + "\n")
     prior = {"estimator": cfg.prior.estimator, **(prior_source.provenance or {})}
     write_text_atomic(run_dir / "prior.json", json.dumps(prior, indent=1, default=str) + "\n")
     root = Path(cfg.data.root)
-    card = read_dataset_card(root, cfg.data.category)
     data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
                  "resolution": cfg.data.resolution, "dataset_card": card}
     write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
@@ -96,7 +97,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
                                  ) from None
         prior_source.check(val_records)
-    spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"))
+    card = read_dataset_card(root, cat)
+    spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"), dataset_framing(card))
     near, far = spec.z_range
 
     torch.manual_seed(cfg.seed)
@@ -116,7 +118,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
               file=sys.stderr, flush=True)
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        _write_run_files(run_dir, cfg, prior_source, len(records))
+        _write_run_files(run_dir, cfg, prior_source, len(records), card)
         note = record_launch(run_dir, start, info.world, str(info.device))
         if note:
             print(note, file=sys.stderr, flush=True)
