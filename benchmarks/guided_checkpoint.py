@@ -41,8 +41,9 @@ from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import index_split
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics, psnr
-from depthnerf.eval.objects import PreparedObject, dataset_prior, prepare_object
+from depthnerf.eval.objects import PreparedObject, prepare_object
 from depthnerf.files import write_text_atomic
+from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.config import GuidedConfig, RenderConfig
 from depthnerf.render.pipeline import FieldFn
@@ -152,7 +153,7 @@ def _bench_object(obj: PreparedObject, fields: tuple[CountedField, CountedField]
     src, tgt = obj.source, obj.targets
     src_mask = src.masks[:1]
     guided = bench_guided(args, settings[0].render.guided)
-    depth, t_align = timed(lambda: source_depth(coarse, src.poses[:1], src.intrinsics, near, far, obj.prior,
+    depth, t_align = timed(lambda: source_depth(coarse, src.poses[:1], src.intrinsics, near, far, obj.encoded.disparity,
                                                 src_mask, settings[0].render, guided, args.chunk), 1)
     source_guide = SourceGuide(c2w=src.poses[:1], intr=src.intrinsics, depth=depth, mask=src_mask, guided=guided)
     gts = tgt.images.permute(0, 2, 3, 1).numpy()
@@ -225,17 +226,17 @@ def run_checkpoint(args: argparse.Namespace) -> dict:
     data = Path(args.data)
     category = args.category or cfg.category
     records = index_split(data, category, args.split, check_files=False).objects[: args.objects]
-    prior = dataset_prior(cfg, data, records)
+    session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=data, records=records))
     near, far = cfg.z_range
     res = cfg.resolution
     plain = [c for c in str(args.plain_samplers or "").split() if c]
     settings = _settings(cfg.render, budgets, reference_render(cfg.render, args.reference_samples),
                          bench_guided(args, cfg.render.guided), plain)
-    align, device = [], torch.device("cpu")
+    align = []
     for k, record in enumerate(records):
-        obj = prepare_object(pre.model, record, protocol_views(record.num_views, args.views_stride),
-                             prior, res, res, device)
-        fields = CountedField(pre.model.field(obj.enc, "coarse")), CountedField(pre.model.field(obj.enc, "fine"))
+        obj = prepare_object(session, record, protocol_views(record.num_views, args.views_stride))
+        enc = obj.encoded.enc
+        fields = CountedField(pre.model.field(enc, "coarse")), CountedField(pre.model.field(enc, "fine"))
         if k == 0:  # warm-up (allocator, thread pools), not timed
             render_views(*fields, obj.targets.poses[:1], obj.targets.intrinsics, near, far, cfg.render,
                          chunk=args.chunk)

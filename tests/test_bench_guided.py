@@ -18,9 +18,9 @@ from fixtures_srn import make_srn_fixture
 from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.protocol import ProtocolChoices, ProtocolConfig, evaluate_protocol
+from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
-from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.config import DEFAULT_BUDGET, GuidedConfig, RenderConfig, SamplerConfig
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import DataConfig, preset, with_prior
@@ -78,9 +78,9 @@ def test_checkpoint_mode_matches_eval_protocol(bench, tmp_path):
     assert result["views_per_object"] == 4 and len(result["objects"]) == 2 and result["checkpoint_step"] == 7
     assert result["guide_depth"] == "prior aligned to a coarse render" and result["depth_prior"] == "oracle"
 
-    summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval",
-                                ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False,
-                                               choices=FLOAT)).summary
+    session = InferenceSession(weights, SessionOptions(inputs="dataset", data_root=root))
+    summary = evaluate_protocol(session, tmp_path / "eval", ProtocolConfig(views_stride=20, max_objects=2, mesh=False,
+                                                                           progress=False, choices=FLOAT)).summary
     ref = rows["reference"]
     assert summary["views"] == 2 * 4 and ref["views"] == 8
     assert ref["psnr"] == pytest.approx(summary["psnr"], abs=1e-4)
@@ -146,9 +146,10 @@ def test_eval_guided_matches_the_benchmark_row(bench, tmp_path):
 
     root, weights, result = run_checkpoint_bench(bench, tmp_path, "12")
     row = {r["name"]: r for r in result["rows"]}["guided-12"]
-    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False, guided=guided_config(12),
+    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False,
                          choices=FLOAT)
-    summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval", cfg).summary
+    session = InferenceSession(weights, SessionOptions(inputs="dataset", data_root=root, guided=guided_config(12)))
+    summary = evaluate_protocol(session, tmp_path / "eval", cfg).summary
     assert summary["guided_sampling"]["budget"] == 12 and "guided sampling (12/ray)" in summary["method"]
     assert row["psnr"] == pytest.approx(summary["psnr"], abs=1e-3)
     for mine, theirs in zip(row["per_object"], summary["per_object"], strict=True):

@@ -215,7 +215,7 @@ def test_bad_checkpoints(models, tmp_path, capsys):
         assert text in err and err.count("\n") == 1
     rec = Reconstructor.from_pretrained(models["oracle"], depth_estimator="bundled",
                                         depth_checkpoint=str(models["weights"]))
-    assert rec.prior.kind == "live" and rec.prior.estimator.name == "bundled"
+    assert rec.session.prior_source.kind == "live" and rec.session.prior_source.estimator.name == "bundled"
 
 
 def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys):
