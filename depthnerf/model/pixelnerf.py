@@ -54,8 +54,8 @@ class SourceViews(TensorBundle):
     principal: Float[Tensor, "B 2"]
     """Principal point (cx, cy) in pixels."""
     disparity: Float[Tensor, "B V 1 H W"] | None = None
-    """The depth prior's relative disparity, normalised (``depthnerf.depth.normalize.normalize_disparity``: foreground in [-4, 4],
-    larger = nearer, background -5); required iff the encoder uses depth, ignored otherwise."""
+    """The depth prior's relative disparity, normalised (``depthnerf.depth.normalize.normalize_disparity``:
+    foreground in [-4, 4], larger = nearer, background -5); required iff the encoder uses depth, ignored otherwise."""
 
 
 @dataclass

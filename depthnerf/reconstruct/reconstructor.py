@@ -10,10 +10,10 @@ Camera
     (:func:`~depthnerf.data.srn.category_defaults`), elevation 20 degrees; a category without defaults needs both
     ``radius`` and ``focal`` (then in pixels of a 128 px frame).
 Session
-    A Reconstructor is a thin user of an :class:`~depthnerf.infer.session.InferenceSession` on photos: the checkpoint's
-    spec with the caller's overrides, the prior source, the device policy (bf16 and large ray chunks on CUDA,
-    fp32 and 4096 rays on the CPU) and the guided setup are resolved there, once, for the CLI, the Python API,
-    the demo and the app alike.
+    A Reconstructor is a thin user of an :class:`~depthnerf.infer.session.InferenceSession` on photos: the
+    checkpoint's spec with the caller's overrides, the prior source, the device policy (bf16 and large ray chunks
+    on CUDA, fp32 and 4096 rays on the CPU) and the guided setup are resolved there, once, for the CLI, the
+    Python API, the demo and the app alike.
 Depth prior (depth-aware checkpoints)
     The checkpoint's estimator run live on the prepared image at the training resolution (the session's
     :class:`~depthnerf.depth.prior.PriorSource`), normalised over the mask by the conditioning stage
@@ -118,7 +118,7 @@ class ReconstructConfig:
 
 
 class Reconstructor:
-    """An inference session that turns one photo into novel views, depths, a mesh and a point cloud."""
+    """Turns one photo into novel views, depths, a mesh and a point cloud, over an inference session."""
 
     def __init__(self, session: InferenceSession) -> None:
         """``session``: the checkpoint with its overrides resolved (:meth:`from_pretrained` makes one)."""
