@@ -61,10 +61,10 @@ def main() -> None:
                        for k, e in enumerate((15.0, 30.0, 45.0))])[: args.views]
     src_pose = orbit_poses(cat.camera_radius, 30.0, 1)
     gen = torch.Generator().manual_seed(0)
-    prior = torch.randn(1, 1, 1, res_in, res_in, generator=gen) if spec.depth_aware else None
+    disparity = torch.randn(1, 1, 1, res_in, res_in, generator=gen) if spec.depth_aware else None
     src = SourceViews(images=torch.full((1, 1, 3, res_in, res_in), 0.5), poses=src_pose[None],
                       focal=torch.tensor([intr_in.focal]), principal=torch.tensor([[intr_in.cx, intr_in.cy]]),
-                      prior=prior)
+                      disparity=disparity)
     s = cfg.render.sampler
     print(f"{label}: torch threads {torch.get_num_threads()}, {args.views} views at {res}x{res} (input {res_in}), "
           f"samples {s.n_coarse} coarse + {s.n_coarse + s.n_importance + s.n_gaussian} fine, "

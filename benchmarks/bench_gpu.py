@@ -149,7 +149,7 @@ def synthetic_batch(b: int, rays: int, res: int, depth_aware: bool, seed: int = 
     pick = [torch.gather(t, 1, idx[..., None].expand(-1, -1, 3)) for t in (all_rays.origins, all_rays.directions)]
     src = dict(images=torch.rand(b, 1, 3, res, res, generator=gen), poses=poses[:, :1],
                focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
-               prior=torch.randn(b, 1, 1, res, res, generator=gen) if depth_aware else None)
+               disparity=torch.randn(b, 1, 1, res, res, generator=gen) if depth_aware else None)
     if any(f.name == "source" for f in dataclasses.fields(TrainBatch)):
         src = {"source": SourceViews(**src)}
     else:  # a checkout from before TrainBatch carried the conditioning stage's SourceViews
@@ -253,8 +253,8 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
                    view_precision="bf16" if policy.autocast else "fp32")
         project(out, "paper", out["view_paper_ms"])
         try:
-            from depthnerf.render.config import GuideConfig
-            from depthnerf.render.guide import build_depth_guide
+            from depthnerf.render.config import GuidedConfig
+            from depthnerf.render.depth_guide import build_depth_guide
         except ImportError:
             print("view  guided: N/A (no depth guide in this checkout)")
             out["view_guided_ms"] = None
@@ -264,7 +264,7 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         depth = torch.full((1, intr.height, intr.width), 1.2, device=device)  # a synthetic source surface
         mask = torch.zeros_like(depth, dtype=torch.bool)
         mask[:, intr.height // 4: 3 * intr.height // 4, intr.width // 4: 3 * intr.width // 4] = True
-        guide = build_depth_guide(src.poses[:, 0].to(device), intr, depth, mask, rays, GuideConfig())
+        guide = build_depth_guide(src.poses[:, 0].to(device), intr, depth, mask, rays, GuidedConfig())
         coarse, fine = model.field(enc, "coarse", runtime), model.field(enc, "fine", runtime)
 
         def guided():

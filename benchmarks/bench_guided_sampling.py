@@ -39,8 +39,8 @@ from depthnerf.data.cameras import Intrinsics, look_at
 from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.errors import DepthnerfError
 from depthnerf.render.analytic import Sphere, SphereScene
-from depthnerf.render.config import GuideConfig, GuidedSamplerConfig, RenderConfig, SamplerConfig
-from depthnerf.render.guide import build_depth_guide
+from depthnerf.render.config import GuidedConfig, RenderConfig, SamplerConfig
+from depthnerf.render.depth_guide import build_depth_guide
 from depthnerf.render.pipeline import FieldFn, render_image
 from depthnerf.render.rays import rays_from_camera
 
@@ -126,8 +126,8 @@ def analytic_subject(args: argparse.Namespace) -> Subject:
 def align_source(s: Subject, samples: int) -> tuple[torch.Tensor, float]:
     """Metric source z-depth: the prior aligned against a coarse-only render of the source view."""
     t0 = time.perf_counter()
-    z = source_depth(s.coarse, s.source_c2w, s.intr, s.near, s.far, s.source_prior, s.source_mask, samples,
-                     RenderConfig())
+    z = source_depth(s.coarse, s.source_c2w, s.intr, s.near, s.far, s.source_prior, s.source_mask, RenderConfig(),
+                     GuidedConfig(align_samples=samples, align_min_opacity=0.5))
     return z, time.perf_counter() - t0
 
 
@@ -138,8 +138,8 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 def run(s: Subject, args: argparse.Namespace) -> None:
     counter = s.coarse if isinstance(s.coarse, _Counted) else None
     aligned, t_align = align_source(s, args.align_samples)
-    guide_cfg = GuideConfig(spread=args.spread)
-    paper, guided = RenderConfig(), RenderConfig(guided=GuidedSamplerConfig(enabled=True))
+    guide_cfg = GuidedConfig(spread=args.spread)
+    paper, guided = RenderConfig(), RenderConfig(guided=GuidedConfig(enabled=True))
     rows = []
     print(f"source alignment: {t_align:.3f} s once ({t_align / len(s.target_c2w):.3f} s per view amortised over "
           f"{len(s.target_c2w)} views)")
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mlp-width", type=int, default=128, help="dummy MLP width emulating network cost")
     p.add_argument("--mlp-layers", type=int, default=4, help="dummy MLP layers (0: analytic field only)")
     p.add_argument("--align-samples", type=int, default=32, help="coarse samples of the source alignment render")
-    p.add_argument("--spread", type=float, default=GuideConfig.spread, help="guide window half-width")
+    p.add_argument("--spread", type=float, default=GuidedConfig.spread, help="guide window half-width")
     p.add_argument("--chunk", type=int, default=4096, help="rays per chunk")
     p.add_argument("--repeats", type=int, default=2, help="time each render this many times, keep the fastest")
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")

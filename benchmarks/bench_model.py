@@ -124,7 +124,7 @@ def scene(setting: Setting, b: int, seed: int = 0) -> tuple[SourceViews, torch.T
     poses = look_at(eye)
     src = SourceViews(images=torch.rand(b, 1, 3, res, res, generator=gen), poses=poses[:, :1],
                       focal=torch.full((b,), intr.focal), principal=torch.full((b, 2), intr.cx),
-                      prior=torch.randn(b, 1, 1, res, res, generator=gen) if setting.depth_aware else None)
+                      disparity=torch.randn(b, 1, 1, res, res, generator=gen) if setting.depth_aware else None)
     return src, poses[:, 1], intr
 
 

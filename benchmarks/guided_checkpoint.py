@@ -7,8 +7,8 @@ target views are then rendered one at a time
 
 - with the checkpoint's own sampler (``render`` of its training config, e.g. 32 + 16 + 8) or, with
   ``--reference-samples 64,16,16``, the paper's sampler on the same network: the reference row;
-- with depth-guided sampling (:mod:`depthnerf.render.guided`) at each ``--budgets`` total of samples per occupied
-  ray (:func:`guided_sampler` splits it), the guide built from the input view's prior aligned to metric depth
+- with depth-guided sampling (:mod:`depthnerf.render.source_guide`) at each ``--budgets`` total of samples per
+  occupied ray (:func:`guided_config` splits it), the guide built from the input view's prior aligned to metric depth
   against a cheap coarse render of the input view (:func:`source_depth`; without a prior, that render's depth).
   The rows report which fraction of target rays the guide covered (a trusted surface guess / any window); rays
   it does not cover are sampled as empty space, with half the budget;
@@ -41,15 +41,16 @@ from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import index_split
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics, psnr
-from depthnerf.eval.objects import PreparedObject, dataset_prior, prepare_object
+from depthnerf.eval.objects import PreparedObject, prepare_object
 from depthnerf.files import write_text_atomic
+from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.pretrained.load import load_pretrained
-from depthnerf.render.config import GuideConfig, RenderConfig
-from depthnerf.render.guidance import ALIGN_MIN_OPACITY, SourceGuide, guided_sampler, source_depth
+from depthnerf.render.config import GuidedConfig, RenderConfig
 from depthnerf.render.pipeline import FieldFn
+from depthnerf.render.source_guide import SourceGuide, guided_config, guided_record, source_depth
 from depthnerf.render.views import render_views, view_rays
 
-__all__ = ["ALIGN_MIN_OPACITY", "guided_sampler", "source_depth", "run_checkpoint", "reference_render"]
+__all__ = ["guided_config", "source_depth", "run_checkpoint", "reference_render"]
 
 TARGET_SPEEDUP = 3.0
 """Issue 4: guided sampling must be at least this much faster than the reference sampler ..."""
@@ -121,7 +122,14 @@ def reference_render(render: RenderConfig, samples: str | None) -> RenderConfig:
                                                                    n_gaussian=g))
 
 
-def _settings(render: RenderConfig, budgets: list[int], reference: RenderConfig,
+def bench_guided(args: argparse.Namespace, base: GuidedConfig | None = None) -> GuidedConfig:
+    """The guided settings of the command line (``--align-samples``, ``--align-min-opacity``, ``--spread``) on
+    ``base`` (the checkpoint's ``render.guided``); the budget's counts are set per row."""
+    return dataclasses.replace(base or GuidedConfig(), align_samples=args.align_samples,
+                               align_min_opacity=args.align_min_opacity, spread=args.spread)
+
+
+def _settings(render: RenderConfig, budgets: list[int], reference: RenderConfig, guided: GuidedConfig,
               plain: list[str] = ()) -> list[Setting]:
     sc = reference.sampler
     rows = [Setting("reference", reference, f"{sc.n_coarse}+{sc.n_importance}+{sc.n_gaussian}")]
@@ -131,7 +139,7 @@ def _settings(render: RenderConfig, budgets: list[int], reference: RenderConfig,
         name = f"{s.n_coarse}+{s.n_importance}+{s.n_gaussian}"
         rows.append(Setting(f"plain-{name}", cfg, name))
     for b in budgets:
-        g = guided_sampler(b, render.guided)
+        g = guided_config(b, guided.align_samples, guided)
         rows.append(Setting(f"guided-{b}", dataclasses.replace(render, guided=g),
                             f"{g.n_uniform}+{g.n_window}+{g.n_importance}+{g.n_gaussian} / "
                             f"{g.n_empty}+{g.n_empty_importance}"))
@@ -144,11 +152,10 @@ def _bench_object(obj: PreparedObject, fields: tuple[CountedField, CountedField]
     coarse, fine = fields
     src, tgt = obj.source, obj.targets
     src_mask = src.masks[:1]
-    depth, t_align = timed(lambda: source_depth(coarse, src.poses[:1], src.intrinsics, near, far, obj.prior,
-                                                src_mask, args.align_samples, settings[0].render, args.chunk,
-                                                args.align_min_opacity), 1)
-    source_guide = SourceGuide(c2w=src.poses[:1], intr=src.intrinsics, depth=depth, mask=src_mask,
-                               cfg=GuideConfig(spread=args.spread))
+    guided = bench_guided(args, settings[0].render.guided)
+    depth, t_align = timed(lambda: source_depth(coarse, src.poses[:1], src.intrinsics, near, far, obj.encoded.disparity,
+                                                src_mask, settings[0].render, guided, args.chunk), 1)
+    source_guide = SourceGuide(c2w=src.poses[:1], intr=src.intrinsics, depth=depth, mask=src_mask, guided=guided)
     gts = tgt.images.permute(0, 2, 3, 1).numpy()
     ref_preds = None
     for s in settings:
@@ -219,16 +226,17 @@ def run_checkpoint(args: argparse.Namespace) -> dict:
     data = Path(args.data)
     category = args.category or cfg.category
     records = index_split(data, category, args.split, check_files=False).objects[: args.objects]
-    prior = dataset_prior(cfg, data, records)
+    session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=data, records=records))
     near, far = cfg.z_range
     res = cfg.resolution
     plain = [c for c in str(args.plain_samplers or "").split() if c]
-    settings = _settings(cfg.render, budgets, reference_render(cfg.render, args.reference_samples), plain)
-    align, device = [], torch.device("cpu")
+    settings = _settings(cfg.render, budgets, reference_render(cfg.render, args.reference_samples),
+                         bench_guided(args, cfg.render.guided), plain)
+    align = []
     for k, record in enumerate(records):
-        obj = prepare_object(pre.model, record, protocol_views(record.num_views, args.views_stride),
-                             prior, res, res, device)
-        fields = CountedField(pre.model.field(obj.enc, "coarse")), CountedField(pre.model.field(obj.enc, "fine"))
+        obj = prepare_object(session, record, protocol_views(record.num_views, args.views_stride))
+        enc = obj.encoded.enc
+        fields = CountedField(pre.model.field(enc, "coarse")), CountedField(pre.model.field(enc, "fine"))
         if k == 0:  # warm-up (allocator, thread pools), not timed
             render_views(*fields, obj.targets.poses[:1], obj.targets.intrinsics, near, far, cfg.render,
                          chunk=args.chunk)
@@ -244,7 +252,7 @@ def run_checkpoint(args: argparse.Namespace) -> dict:
         "views_stride": args.views_stride, "resolution": res, "z_range": [near, far],
         "reference_sampler": settings[0].samples, "torch_threads": torch.get_num_threads(), "repeats": args.repeats, "align_samples": args.align_samples,
         "align_min_opacity": args.align_min_opacity,
-        "align_ms_per_object": 1000 * float(np.mean(align)), "guide": dataclasses.asdict(GuideConfig(args.spread)),
+        "align_ms_per_object": 1000 * float(np.mean(align)), "guide": guided_record(bench_guided(args, cfg.render.guided))["guide"],
         "target": {"speedup": TARGET_SPEEDUP, "max_psnr_loss_db": TARGET_MAX_LOSS_DB},
         "rows": rows, "meets_target": meets,
     }

@@ -1,10 +1,11 @@
 """depthnerf: depth-aware pixelNeRF for single-image 3D object reconstruction.
 
 Pipeline (one straight line, one sub-package per stage):
-``data`` (SRN reader, synthetic generator) -> ``depth`` (monocular priors, prior sources, cache) -> ``model``
-(conditioning, encoder, field, pixelNeRF) -> ``render`` (samplers, volume rendering, guided sampling, meshes) ->
-``pretrained`` (inference spec, weights, loading) -> ``train`` | ``eval`` (SRN protocol, metrics) |
-``reconstruct`` (one photo in) -> ``commands`` (the CLI) and ``demo``. See docs/architecture.md.
+``data`` (SRN reader, dataset cards, synthetic generator) -> ``depth`` (monocular priors, prior sources, cache) ->
+``model`` (conditioning, encoder, field, pixelNeRF) -> ``render`` (samplers, volume rendering, guided sampling,
+meshes, device policy) -> ``pretrained`` (inference spec, weights, loading) -> ``infer`` (the inference session)
+-> ``train`` | ``eval`` (SRN protocol, metrics) | ``reconstruct`` (one photo in) -> ``commands`` (the CLI),
+``app`` and ``demo``. See docs/architecture.md.
 
 Importing the package first sets the process-wide CPU settings the CLI uses (OpenMP wait policy PASSIVE unless
 ``OMP_WAIT_POLICY`` is set, glibc malloc keeps freed memory; :mod:`depthnerf.cpu_runtime`), before anything
@@ -13,9 +14,12 @@ imports torch; ``DEPTHNERF_PROCESS_DEFAULTS=0`` turns that off.
 Public API (imported lazily, so ``import depthnerf`` stays cheap)::
 
     from depthnerf import Reconstructor
-    rec = Reconstructor.from_pretrained("cpu-cars-depth")
+    rec = Reconstructor.from_pretrained("cpu-cars-depth")     # device="cuda": bf16, large ray chunks
     result = rec.reconstruct("car.png")
     rec.save(result, "out/")
+
+``InferenceSession`` / ``SessionOptions`` (:mod:`depthnerf.infer.session`): a checkpoint and overrides resolved
+once, what ``Reconstructor``, ``depthnerf eval``, the demo and the app run on.
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ _PUBLIC = {
     "Reconstruction": "depthnerf.reconstruct.result",
     "prepare_photo": "depthnerf.reconstruct.photo",
     "BackgroundRemover": "depthnerf.reconstruct.background",
+    "InferenceSession": "depthnerf.infer.session",
+    "SessionOptions": "depthnerf.infer.session",
 }
 
 __all__ = [*_PUBLIC, "__version__"]

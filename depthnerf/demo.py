@@ -1,7 +1,10 @@
 """``depthnerf demo``: synthesise one unseen car and one unseen chair, reconstruct each from one view, score it.
 
-An application of :class:`~depthnerf.reconstruct.Reconstructor` (reconstruction) and :mod:`depthnerf.eval.metrics`
-(scores), so it sits above both stages, beside ``commands/``.
+An application of the inference session (:class:`~depthnerf.infer.session.InferenceSession`: the checkpoint, its
+prior and the device policy resolved once), :func:`depthnerf.eval.objects.prepare_object` and
+:mod:`depthnerf.eval.metrics` (the object as ``depthnerf eval`` prepares and scores it) and
+:class:`~depthnerf.reconstruct.Reconstructor` (turntable, mesh and files), so it sits above those stages, beside
+``commands/``.
 
 Objects
     Per category, test object 0 of ``depthnerf synth --category C --seed S --test-objects 1`` (default seed
@@ -14,10 +17,10 @@ Reconstruction and scores
     targets are every ``views_stride``-th of the other 250 views (:func:`~depthnerf.eval.protocol.protocol_views`;
     stride 25 = 10 views), rendered at the training resolution and scored with :mod:`depthnerf.eval.metrics`
     (float renders, per-object mean PSNR/SSIM). The depth prior is the checkpoint's own estimator run live on the
-    input view by :class:`~depthnerf.reconstruct.Reconstructor` with ``match_cache=True``: rounded as the cache
-    stores it (:func:`depthnerf.depth.cache.as_cached`), so the model sees what ``depthnerf eval`` feeds it for the
-    same view; an ``oracle`` checkpoint gets the synthetic ground-truth depth of the input view, which only
-    synthetic data has (reported in notes).
+    input view (a session on ``views`` inputs): rounded as the cache stores it
+    (:func:`depthnerf.depth.cache.as_cached`), so the model sees what ``depthnerf eval`` feeds it for the same view;
+    an ``oracle`` checkpoint gets the synthetic ground-truth depth of the input view, which only synthetic data has
+    (reported in notes).
 Outputs per category in ``OUT/<category>/``
     Everything :func:`depthnerf.reconstruct.exports.save_reconstruction` writes (``input.png``, ``depth_prior.png``, the
     turntable frames in ``views/`` and ``turntable.gif``, ``depths/``, ``mesh.ply``/``mesh.glb`` of marching cubes
@@ -46,13 +49,15 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.protocol import ProtocolViews, protocol_views
-from depthnerf.data.srn import index_split, load_object
+from depthnerf.data.srn import index_split
 from depthnerf.data.synth.framing import DEFAULT_FRAMING
 from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_status
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics
+from depthnerf.eval.objects import prepare_object
 from depthnerf.files import write_text_atomic
-from depthnerf.pretrained.load import Pretrained, load_pretrained, resolve_checkpoint, shipped_checkpoints
+from depthnerf.infer.session import InferenceSession, SessionOptions
+from depthnerf.pretrained.load import resolve_checkpoint, shipped_checkpoints
 from depthnerf.reconstruct.exports import save_reconstruction, to_u8
 from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
@@ -78,7 +83,7 @@ class DemoConfig:
     categories: tuple[str, ...] = CATEGORIES
     """Categories to run, in order."""
     checkpoints: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_CHECKPOINTS))
-    """Checkpoint spec per category (shipped name, weights file, checkpoint or run folder)."""
+    """Checkpoint per category (shipped name, weights file, checkpoint or run folder)."""
     views_stride: int = 25
     """Score every K-th of the 250 target views (25: 10 views)."""
     turntable_views: int = 16
@@ -87,8 +92,8 @@ class DemoConfig:
     """Extract the mesh (marching cubes over the input frustum)."""
     mesh_resolution: int = 96
     """Marching-cubes samples along the frustum box's longest side."""
-    chunk: int = 4096
-    """Rays per render pass."""
+    chunk: int | None = None
+    """Rays per render pass; None: the device policy's (4096 on the CPU, 65536 on CUDA)."""
     progress: bool = True
     """Progress bar per category (stderr)."""
 
@@ -99,9 +104,9 @@ class CategoryResult:
 
     category: str
     """``cars`` or ``chairs``."""
-    pretrained: Pretrained
-    """The checkpoint used."""
-    checkpoint_spec: str
+    session: InferenceSession
+    """The checkpoint used, with its prior and device policy."""
+    checkpoint: str
     """How it was named on the command line."""
     object_id: str
     """The synthesised object."""
@@ -123,26 +128,28 @@ class CategoryResult:
     """Faces of the extracted mesh (None with ``mesh=False``)."""
 
 
-def load_checkpoint_for(category: str, spec: str) -> Pretrained:
-    """Load the checkpoint given for ``category``; a missing one is a one-line error saying how to get it."""
+def load_checkpoint_for(category: str, checkpoint: str, device: torch.device | str = "cpu") -> InferenceSession:
+    """The session of the checkpoint given for ``category`` (its own prior run live on dataset-like views, the
+    device's policy); a missing one is a one-line error saying how to get it."""
     try:
-        resolve_checkpoint(spec)
+        resolve_checkpoint(checkpoint)
     except DepthnerfError:
-        if spec in DEFAULT_CHECKPOINTS.values() or not Path(spec).exists():
+        if checkpoint in DEFAULT_CHECKPOINTS.values() or not Path(checkpoint).exists():
             shipped = ", ".join(shipped_checkpoints()) or "none"
-            raise DepthnerfError(f"checkpoint '{spec}' for {category} is not installed (shipped: {shipped}); "
+            raise DepthnerfError(f"checkpoint '{checkpoint}' for {category} is not installed (shipped: {shipped}); "
                                  "'depthnerf checkpoints' lists the shipped ones, or pass "
                                  f"--{category}-checkpoint RUN_DIR_OR_FILE from 'depthnerf train'") from None
         raise
-    pre = load_pretrained(spec)
-    if pre.spec.category != category:
-        raise DepthnerfError(f"{pre.path}: trained on {pre.spec.category}, given as the {category} checkpoint")
-    return pre
+    session = InferenceSession(checkpoint, SessionOptions(device=device, inputs="views"))
+    if session.spec.category != category:
+        raise DepthnerfError(f"{session.pretrained.path}: trained on {session.spec.category}, given as the "
+                             f"{category} checkpoint")
+    return session
 
 
 def synthesize(category: str, root: Path, seed: int, resolution: int, framing: str = DEFAULT_FRAMING) -> ObjectJob:
     """Test object 0 of ``seed`` at ``resolution`` with 251 views in ``root`` (reused when already there), framed
-    as ``framing`` (that of the checkpoint's training data: ``Reconstructor.framing``)."""
+    as ``framing`` (that of the checkpoint's training data: ``InferenceSpec.framing``)."""
     cfg = SynthConfig(category=category, out=root, train_objects=0, val_objects=0, test_objects=1,
                       resolution=resolution, seed=seed, progress=False, framing=framing)
     job = ObjectJob(cfg, "test", 0)
@@ -178,8 +185,8 @@ def _save_novel_views(out: Path, root: Path, names: Sequence[str], preds: np.nda
     return files
 
 
-def _prior_note(pre: Pretrained) -> str:
-    name = pre.spec.prior.estimator
+def _prior_note(session: InferenceSession) -> str:
+    name = session.spec.prior.estimator
     if name == "none":
         return "baseline checkpoint: no depth prior"
     if name == "oracle":
@@ -189,31 +196,24 @@ def _prior_note(pre: Pretrained) -> str:
 
 
 @torch.no_grad()
-def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, device: torch.device
-                 ) -> CategoryResult:
-    """Synthesise, reconstruct, score and save one category with a loaded checkpoint (module docstring)."""
+def run_category(category: str, session: InferenceSession, checkpoint: str, cfg: DemoConfig) -> CategoryResult:
+    """Synthesise, reconstruct, score and save one category with a checkpoint's session (module docstring)."""
     times: dict[str, float] = {}
-    pre.model.to(device)
-    res = pre.spec.resolution
-    rec = Reconstructor(pre, device, photos=False, match_cache=True)
+    res = session.spec.resolution
+    rec = Reconstructor(session)
     bar = tqdm(total=4, desc=f"demo {category}", unit="stage", file=sys.stderr, disable=not cfg.progress)
     t = time.perf_counter()
-    framing, framing_source = rec.framing, rec.framing_source
-    job = synthesize(category, cfg.out / "data", cfg.seed, res, framing)
+    job = synthesize(category, cfg.out / "data", cfg.seed, res, session.framing)
     record = next(r for r in index_split(cfg.out / "data", category, "test").objects if r.object_id == job.object_id)
     times["synth_s"] = time.perf_counter() - t
     bar.update(1)
     t = time.perf_counter()
     views = protocol_views(record.num_views, cfg.views_stride)
     notes: list[str] = [f"object {record.object_id}: depthnerf synth --category {category} --seed {cfg.seed} "
-                        f"--test-objects 1 --resolution {res} --framing {framing} (test split, never used for "
-                        f"training; framing from {framing_source})", _prior_note(pre)]
-    oracle = pre.spec.prior.estimator == "oracle"
-    pixel_center = pre.spec.pixel_center
-    src = load_object(record, [views.input_view], resolution=res, with_depth=oracle, pixel_center=pixel_center)
-    tgt = load_object(record, list(views.targets), resolution=res, pixel_center=pixel_center)
-    encoded = rec.encode_view(src.images[:1], src.masks[:1], src.poses[0], src.intrinsics,
-                              depth=src.depths[:1] if oracle else None)
+                        f"--test-objects 1 --resolution {res} --framing {session.framing} (test split, never used "
+                        f"for training; framing from {session.framing_origin})", _prior_note(session)]
+    obj = prepare_object(session, record, views)  # exactly as depthnerf eval prepares it
+    src, tgt, encoded = obj.source, obj.targets, obj.encoded
     if not cfg.mesh:
         notes.append("--no-mesh: no mesh extracted (no mesh.ply or mesh.glb written)")
     rcfg = ReconstructConfig(mesh_resolution=cfg.mesh_resolution if cfg.mesh else 0, mesh_threshold=AUTO_LEVEL,
@@ -236,9 +236,7 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     result.settings = {"radius": radius, "elevation": elevation, "azimuth": azimuth, **result.settings}
     t = time.perf_counter()
     out = cfg.out / category
-    provenance = {"checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
-                  "preset": pre.spec.preset}
-    manifest = save_reconstruction(result, out, provenance)
+    manifest = save_reconstruction(result, out, session.provenance())
     files = {k: (None if v is None else [f"{category}/{x}" for x in v] if isinstance(v, list) else f"{category}/{v}")
              for k, v in manifest["files"].items() if k != "views" and k != "depths"}
     files.update({"turntable_frames": f"{category}/views", "manifest": f"{category}/manifest.json"})
@@ -246,17 +244,17 @@ def run_category(category: str, pre: Pretrained, spec: str, cfg: DemoConfig, dev
     times.update({"turntable_s": result.timings["render_s"], "mesh_s": result.timings["mesh_s"]})
     times["save_s"] = time.perf_counter() - t
     per_view = [{"view": v, "psnr": m.psnr, "ssim": m.ssim} for v, m in zip(views.targets, metrics.views, strict=True)]
-    return CategoryResult(category=category, pretrained=pre, checkpoint_spec=spec, object_id=record.object_id,
+    return CategoryResult(category=category, session=session, checkpoint=checkpoint, object_id=record.object_id,
                           views=views, psnr=metrics.psnr, ssim=metrics.ssim, per_view=per_view, notes=notes,
                           seconds=times, files=files,
                           mesh_faces=manifest["mesh"]["faces"] if cfg.mesh else None)
 
 
 def _category_json(r: CategoryResult) -> dict:
-    pre = r.pretrained
-    return {"checkpoint": r.checkpoint_spec, "checkpoint_path": str(pre.path.resolve()),
+    pre = r.session.pretrained
+    return {"checkpoint": r.checkpoint, "checkpoint_path": str(pre.path.resolve()),
             "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step, "preset": pre.spec.preset,
-            "depth_prior": pre.spec.prior.estimator, "object_id": r.object_id, "input_view": r.views.input_view,
+            "depth_prior": r.session.spec.prior.estimator, "object_id": r.object_id, "input_view": r.views.input_view,
             "target_views": list(r.views.targets), "psnr": r.psnr, "ssim": r.ssim, "per_view": r.per_view,
             "notes": r.notes, "mesh_faces": r.mesh_faces,
             "seconds": {**r.seconds, "total_s": sum(r.seconds.values())}, "files": r.files}
@@ -270,18 +268,18 @@ def run_demo(cfg: DemoConfig, device: torch.device | str = "cpu") -> dict:
         raise DepthnerfError(f"--categories: choose from {', '.join(CATEGORIES)} (got {', '.join(unknown) or 'none'})")
     if cfg.views_stride < 1 or cfg.turntable_views < 1 or cfg.mesh_resolution < 2:
         raise DepthnerfError("--views-stride and --turntable-views must be >= 1, --mesh-resolution >= 2")
-    specs = {c: cfg.checkpoints.get(c, DEFAULT_CHECKPOINTS[c]) for c in cfg.categories}
+    checkpoints = {c: cfg.checkpoints.get(c, DEFAULT_CHECKPOINTS[c]) for c in cfg.categories}
     loaded = {}
-    for category, spec in specs.items():  # every checkpoint loads before any work starts
+    for category, checkpoint in checkpoints.items():  # every checkpoint loads before any work starts
         t = time.perf_counter()
-        loaded[category] = (load_checkpoint_for(category, spec), time.perf_counter() - t)
+        loaded[category] = (load_checkpoint_for(category, checkpoint, device), time.perf_counter() - t)
     try:
         cfg.out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise DepthnerfError(f"{cfg.out}: cannot create the output folder ({err.strerror or err})") from None
     results = []
-    for category, (pre, load_s) in loaded.items():
-        results.append(run_category(category, pre, specs[category], cfg, torch.device(device)))
+    for category, (session, load_s) in loaded.items():
+        results.append(run_category(category, session, checkpoints[category], cfg))
         results[-1].seconds = {"load_s": load_s, **results[-1].seconds}
     total = time.perf_counter() - t0
     demo = {"seed": cfg.seed, "data": "data", "views_stride": cfg.views_stride,

@@ -123,12 +123,12 @@ def probe_sources(spec: InferenceSpec) -> tuple[SourceViews, torch.Tensor]:
     mask = r < 0.3
     disc = torch.stack([0.8 - r, 0.3 + r, torch.full_like(r, 0.5)])
     image = torch.where(mask[None], disc, torch.ones_like(disc))
-    prior = None
+    normalized = None
     if spec.depth_aware:
         disparity = torch.where(mask, 1.0 - r, torch.zeros_like(r))
-        prior = normalize_disparity(disparity[None], mask[None])[None, :, None]
+        normalized = normalize_disparity(disparity[None], mask[None])[None, :, None]
     src = SourceViews(images=image[None, None], poses=poses[:1][None], focal=torch.tensor([intr.focal]),
-                      principal=torch.tensor([[intr.cx, intr.cy]]), prior=prior)
+                      principal=torch.tensor([[intr.cx, intr.cy]]), disparity=normalized)
     return src, poses[1:2]
 
 

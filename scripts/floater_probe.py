@@ -39,6 +39,7 @@ from depthnerf.depth.prior import PriorConfig, open_prior
 from depthnerf.eval.geometry_metrics import GeometryConfig, floater_fraction
 from depthnerf.eval.metrics import psnr
 from depthnerf.eval.objects import prepare_object, protocol_views
+from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.model.conditioning import condition_views
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.mesh import MeshConfig, input_camera_mesh, load_mesh
@@ -80,9 +81,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     pre = load_pretrained(args.checkpoint)
-    spec, model = pre.spec, pre.model
+    records = index_split(args.data, pre.spec.category, "test").objects[: args.objects]
+    session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=args.data, records=records))
+    spec, model = session.spec, session.model
     near, far = spec.z_range
-    records = index_split(args.data, spec.category, "test").objects[: args.objects]
     depth_aware = spec.prior.enabled
     conditions = DEPTH_CONDITIONS if depth_aware else BASELINE_CONDITIONS
     if args.conditions:
@@ -90,22 +92,20 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             raise SystemExit(f"error: --conditions {unknown[0]}: choose from {', '.join(conditions)}")
         conditions = tuple(args.conditions)
-    source = open_prior(spec.prior, data_root=args.data, resolution=spec.resolution, records=records)
     oracle = open_prior(PriorConfig("oracle"), data_root=args.data, resolution=spec.resolution, records=records)
     twin = batch_stats_model(model)
     rows: dict[str, list[dict]] = {c: [] for c in conditions}
     for record in records:
-        obj = prepare_object(model, record, protocol_views(record.num_views, args.stride), source, spec.resolution,
-                             spec.resolution, torch.device("cpu"), pixel_center=spec.pixel_center)
+        obj = prepare_object(session, record, protocol_views(record.num_views, args.stride))
         src, tgt = obj.source, obj.targets
-        oracle_prior = condition_views(oracle, src).inputs.prior if depth_aware else None
+        oracle_prior = condition_views(oracle, src).inputs.disparity if depth_aware else None
         gt_mesh = load_mesh(record.mesh_path)
         for name in conditions:
             net = twin if name == "bn-batch-stats" else model
-            inputs = obj.inputs
+            inputs = obj.encoded.inputs
             if depth_aware:
-                inputs = dataclasses.replace(inputs, prior=conditioned_prior(name, inputs.prior, src.masks,
-                                                                             oracle_prior))
+                inputs = dataclasses.replace(inputs, disparity=conditioned_prior(name, inputs.disparity, src.masks,
+                                                                                 oracle_prior))
             with torch.no_grad():
                 enc = net.encode(inputs)
                 own = render_poses(net, enc, src.poses, src.intrinsics, near, far, spec.render, 4096, "cpu")

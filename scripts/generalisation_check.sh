@@ -12,7 +12,7 @@
 # Environment: SEED (default 4242; training used 0, the bundled depth net's evaluation 1234, the demo 2718),
 # FAMILY (heldout: microcars and hybrid chairs, never in the training grammar; `standard` gives the reference on
 # the same seed), FRAMING (default: the framing of <prefix>-<first category>-depth's training data, from its
-# card; the shipped checkpoints were moved from legacy to srn in session 5), OBJECTS (20), STRIDE (25), CATEGORIES ("cars chairs"),
+# spec; the shipped checkpoints are srn-framed), OBJECTS (20), STRIDE (25), CATEGORIES ("cars chairs"),
 # CHECKPOINT_PREFIX (cpu: cpu-<cat>-{depth,baseline}), MESH (0: no Chamfer/F-score; 1: also geometry).
 # Resumable: data and finished evaluations (summary.json) are kept.
 set -euo pipefail

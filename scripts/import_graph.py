@@ -26,9 +26,9 @@ ROOT = Path(__file__).resolve().parent.parent / "depthnerf"
 
 STAGES = {
     "": 0, "errors": 0, "files": 0, "config_io": 0, "cpu_runtime": 0, "distributed": 0,
-    "bundles": 0, "data": 1, "depth": 2, "model": 3, "render": 4, "pretrained": 5,
-    "train": 6, "eval": 6, "reconstruct": 6,
-    "commands": 7, "app": 7, "demo": 7, "cli": 8, "__main__": 8,
+    "bundles": 0, "data": 1, "depth": 2, "model": 3, "render": 4, "pretrained": 5, "infer": 6,
+    "train": 7, "eval": 7, "reconstruct": 7,
+    "commands": 8, "app": 8, "demo": 8, "cli": 9, "__main__": 9,
 }
 """Stage of each top-level module/package of depthnerf: imports go from higher to lower (or equal) stages only;
 train, eval and reconstruct share a stage but never import each other."""

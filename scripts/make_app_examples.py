@@ -21,8 +21,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from depthnerf.data.synth.framing import checkpoint_framing
-from depthnerf.pretrained.load import shipped_checkpoints
+from depthnerf.pretrained.load import load_pretrained
 
 SEED = 2718
 VIEW = 64
@@ -36,7 +35,7 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         for category, name in EXAMPLES.items():
-            framing, _ = checkpoint_framing(shipped_checkpoints()[f"cpu-{category}-depth"], None, category)
+            framing = load_pretrained(f"cpu-{category}-depth").spec.framing
             subprocess.run([sys.executable, "-m", "depthnerf", "synth", "--category", category, "--out", tmp,
                             "--train-objects", "0", "--val-objects", "0", "--test-objects", "1", "--seed",
                             str(SEED), "--framing", framing, "--quiet"], check=True)

@@ -20,7 +20,8 @@ import torch
 import trimesh
 
 from depthnerf.data.srn import index_split
-from depthnerf.eval.objects import dataset_prior, prepare_object, protocol_views
+from depthnerf.eval.objects import prepare_object, protocol_views
+from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.mesh import field_queries
 
@@ -37,16 +38,14 @@ def main(argv: list[str] | None = None) -> int:
         pre = load_pretrained(run)
         ev = (args.eval_root or run.resolve().parent.parent / "eval") / run.name
         records = index_split(args.data, pre.spec.category, "test").objects[: args.objects]
-        prior = dataset_prior(pre.spec, args.data, records)
-        res = pre.spec.resolution
+        session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=args.data, records=records))
         for rec in records:
             mesh_path = ev / "meshes" / f"{rec.object_id}.ply"
             if not mesh_path.is_file():
                 print(f"error: {mesh_path}: missing (run depthnerf eval --save-renders)", file=sys.stderr)
                 return 2
-            obj = prepare_object(pre.model, rec, protocol_views(rec.num_views, 25), prior, res, res,
-                                 torch.device("cpu"))
-            _, color_fn = field_queries(pre.model, obj.enc, obj.source.poses[0, :3, 3])
+            obj = prepare_object(session, rec, protocol_views(rec.num_views, 25))
+            _, color_fn = field_queries(pre.model, obj.encoded.enc, obj.source.poses[0, :3, 3])
             parts = sorted(trimesh.load(mesh_path).split(only_watertight=False), key=lambda m: -len(m.vertices))
             cells = []
             for part in parts[:4]:

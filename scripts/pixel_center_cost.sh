@@ -13,7 +13,7 @@
 #
 # Environment: SEED (0: the study's own test objects, never used in training; object k is the same whatever the
 # split sizes), OBJECTS (20), STRIDE (25), FRAMING (default: the first checkpoint's training framing, from its
-# card; session 4 measured FRAMING=legacy with the legacy checkpoints of that time), SHIFT (0.5), CHECKPOINTS
+# spec; docs/data.md also reports FRAMING=legacy with the earlier legacy checkpoints), SHIFT (0.5), CHECKPOINTS
 # ("cpu-cars-depth cpu-chairs-depth"; their category is the second dash-field).
 set -euo pipefail
 OUT=${1:-study/pixel_center}

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from depthnerf.data import srn_format
+from depthnerf.data.card import INTEGER_CENTRED
 from depthnerf.data.srn import ObjectRecord, index_split, load_object
 from depthnerf.depth.cache import CachedPriorStore, PriorStore, object_path
 from depthnerf.errors import DepthnerfError
@@ -232,7 +233,7 @@ def build_rows(evals: Sequence[EvalDir], data_root: Path, object_ids: Sequence[s
                                  f"or is missing ({sorted(map(str, inputs))})")
         src = inputs.pop()
         target = choose_view(evals, object_id, view)
-        src_view = load_object(record, [src], resolution=input_res)
+        src_view = load_object(record, [src], resolution=input_res, pixel_center=INTEGER_CENTRED)  # pixels only
         cells = [Cell("input view", src_view.images[0].permute(1, 2, 0).numpy(), src, str(record.rgb_path(src)))]
         for name, store in stores.items():
             disparity = store.load(record, [src])[0].numpy()

@@ -89,6 +89,7 @@ def synth(category: str, out: Path, train: int, test: int, seed: int, workers: i
 
 def load_pack(args: argparse.Namespace) -> tuple[torch.Tensor, torch.Tensor]:
     """uint8 images ``[N, 3, H, W]`` and float16 z-depth ``[N, H, W]`` of every train view of both categories."""
+    from depthnerf.data.card import INTEGER_CENTRED
     from depthnerf.data.srn import index_split, load_object
 
     for category in CATEGORIES if not args.skip_synth else ():  # synth resumes: completes a partial run
@@ -103,7 +104,7 @@ def load_pack(args: argparse.Namespace) -> tuple[torch.Tensor, torch.Tensor]:
                 return tensors["images"], tensors["depths"]
     images, depths = [], []
     for i, record in enumerate(records):
-        obj = load_object(record, with_depth=True)
+        obj = load_object(record, with_depth=True, pixel_center=INTEGER_CENTRED)  # pixels only
         images.append((obj.images * 255).round().to(torch.uint8))
         depths.append(obj.depths.half())
         if i % 50 == 0:

@@ -18,10 +18,10 @@ from fixtures_srn import make_srn_fixture
 from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.protocol import ProtocolChoices, ProtocolConfig, evaluate_protocol
+from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.model.pixelnerf import PixelNeRF
-from depthnerf.pretrained.load import load_pretrained
-from depthnerf.render.config import GuidedSamplerConfig, RenderConfig, SamplerConfig
+from depthnerf.render.config import DEFAULT_BUDGET, GuidedConfig, RenderConfig, SamplerConfig
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import DataConfig, preset, with_prior
 
@@ -78,9 +78,9 @@ def test_checkpoint_mode_matches_eval_protocol(bench, tmp_path):
     assert result["views_per_object"] == 4 and len(result["objects"]) == 2 and result["checkpoint_step"] == 7
     assert result["guide_depth"] == "prior aligned to a coarse render" and result["depth_prior"] == "oracle"
 
-    summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval",
-                                ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False,
-                                               choices=FLOAT)).summary
+    session = InferenceSession(weights, SessionOptions(inputs="dataset", data_root=root))
+    summary = evaluate_protocol(session, tmp_path / "eval", ProtocolConfig(views_stride=20, max_objects=2, mesh=False,
+                                                                           progress=False, choices=FLOAT)).summary
     ref = rows["reference"]
     assert summary["views"] == 2 * 4 and ref["views"] == 8
     assert ref["psnr"] == pytest.approx(summary["psnr"], abs=1e-4)
@@ -100,20 +100,21 @@ def test_checkpoint_mode_matches_eval_protocol(bench, tmp_path):
 
 
 def test_guided_budget_split(bench):
-    from guided_checkpoint import guided_sampler
+    """One budget sets the sampler's counts of the one guided config; the default counts are the default budget's."""
+    from guided_checkpoint import guided_config
 
-    g = guided_sampler(8, GuidedSamplerConfig())
+    g = guided_config(8)
     assert (g.enabled, g.n_uniform, g.n_window, g.n_importance, g.n_gaussian) == (True, 1, 3, 3, 1)
     assert (g.n_empty, g.n_empty_importance) == (3, 1)
-    g = guided_sampler(48, GuidedSamplerConfig())
-    assert (g.n_uniform, g.n_window, g.n_importance, g.n_gaussian, g.n_empty, g.n_empty_importance) == \
-        (8, 16, 16, 8, 16, 8)
+    default = GuidedConfig()
+    assert dataclasses.replace(guided_config(DEFAULT_BUDGET), enabled=False) == default
+    assert default.budget == DEFAULT_BUDGET == 48
     for total in (6, 7, 16, 24, 31):
-        g = guided_sampler(total, GuidedSamplerConfig())
-        assert g.n_uniform + g.n_window + g.n_importance + g.n_gaussian == total
-        assert g.n_empty + g.n_empty_importance == total // 2
-    with pytest.raises(DepthnerfError):
-        guided_sampler(5, GuidedSamplerConfig())
+        g = guided_config(total, 5, GuidedConfig(spread=0.2))
+        assert g.n_uniform + g.n_window + g.n_importance + g.n_gaussian == g.budget == total
+        assert g.n_empty + g.n_empty_importance == total // 2 and (g.align_samples, g.spread) == (5, 0.2)
+    with pytest.raises(DepthnerfError, match="--guided 5: a guided budget needs >= 6"):
+        guided_config(5)
 
 
 def test_reference_samples_override(bench, tmp_path):
@@ -140,14 +141,15 @@ def test_reference_samples_override(bench, tmp_path):
 
 def test_eval_guided_matches_the_benchmark_row(bench, tmp_path):
     """``depthnerf eval --guided B`` and the benchmark's guided-B row run the same package code
-    (depthnerf.render.guidance): same prior alignment, same guide, same sampler, so the same PSNR."""
-    from depthnerf.render.guidance import GuidanceConfig
+    (depthnerf.render.source_guide): same prior alignment, same guide, same sampler, so the same PSNR."""
+    from depthnerf.render.source_guide import guided_config
 
     root, weights, result = run_checkpoint_bench(bench, tmp_path, "12")
     row = {r["name"]: r for r in result["rows"]}["guided-12"]
-    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False, guided=GuidanceConfig(12),
+    cfg = ProtocolConfig(views_stride=20, max_objects=2, mesh=False, progress=False,
                          choices=FLOAT)
-    summary = evaluate_protocol(load_pretrained(weights), root, tmp_path / "eval", cfg).summary
+    session = InferenceSession(weights, SessionOptions(inputs="dataset", data_root=root, guided=guided_config(12)))
+    summary = evaluate_protocol(session, tmp_path / "eval", cfg).summary
     assert summary["guided_sampling"]["budget"] == 12 and "guided sampling (12/ray)" in summary["method"]
     assert row["psnr"] == pytest.approx(summary["psnr"], abs=1e-3)
     for mine, theirs in zip(row["per_object"], summary["per_object"], strict=True):

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from depthnerf.bundles import TensorBundle
-from depthnerf.render.guide import DepthGuide
+from depthnerf.render.depth_guide import DepthGuide
 from depthnerf.render.rays import RayBundle
 from depthnerf.render.volume import RenderResult
 

@@ -44,7 +44,7 @@ def test_precompute_then_load_matches_the_estimator_and_resumes(data, tmp_path, 
     store.check(records)
     est = make_estimator("bundled", ckpt)
     for record in records:
-        expect = est.predict(load_object(record).images)
+        expect = est.predict(load_object(record, pixel_center=0.0).images)
         got = store.load(record, [2, 0])
         assert got.shape == (2, 16, 16) and got.dtype == torch.float32
         assert torch.allclose(got, expect[[2, 0]], rtol=2e-3, atol=1e-3)  # float16 storage
@@ -101,7 +101,7 @@ def test_oracle_and_none_stores(data):
     assert PriorStore.open(data, "none") is None
     store = PriorStore.open(data, "oracle", resolution=16)
     record = index_split(data, "cars", "train").objects[1]
-    depth = load_object(record, [1, 2], with_depth=True).depths
+    depth = load_object(record, [1, 2], with_depth=True, pixel_center=0.0).depths
     got = store.load(record, [1, 2])
     mask = depth > 0
     assert mask.any() and torch.allclose(got[mask], 1 / depth[mask]) and (got[~mask] == 0).all()
@@ -146,7 +146,7 @@ def test_depth_eval_flat_reference_matches_a_brute_force_loop(data, tmp_path, ca
     flat = json.loads(out.read_text())["flat_reference"]
     rel, hits = [], []
     for record in index_split(data, "cars", "train").objects:
-        depths = load_object(record, list(range(record.num_views)), with_depth=True).depths.double().numpy()
+        depths = load_object(record, list(range(record.num_views)), with_depth=True, pixel_center=0.0).depths.double().numpy()
         for z in depths:
             fg = z[z > 0]
             z_flat = 1.0 / np.mean(1.0 / fg)
@@ -178,7 +178,7 @@ def test_depth_anything_cache_from_a_local_checkpoint(data, tmp_path, capsys):
     store = PriorStore.open(data, "depth-anything-v2", ckpt, resolution=16)
     assert store.root.name.startswith("depth-anything-v2-") and store.root.name.endswith("-16")
     record = index_split(data, "cars", "test").objects[0]
-    expect = make_estimator("depth-anything-v2", ckpt).predict(load_object(record).images)
+    expect = make_estimator("depth-anything-v2", ckpt).predict(load_object(record, pixel_center=0.0).images)
     assert torch.allclose(store.load(record, [0, 1, 2]), expect, rtol=2e-3, atol=1e-3)
     with pytest.raises(DepthnerfError, match="--depth depth-anything-v2 --depth-checkpoint .*--splits train"):
         store.load(index_split(data, "cars", "train").objects[0], [0])

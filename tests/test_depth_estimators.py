@@ -116,7 +116,7 @@ def test_shipped_bundled_weights_beat_a_flat_prior_on_unseen_synthetic_objects(t
     for category in ("cars", "chairs"):
         generate(SynthConfig(category=category, out=tmp_path, train_objects=0, val_objects=0, test_objects=1,
                              views_test=8, seed=777, progress=False))
-        obj = load_object(index_split(tmp_path, category, "test").objects[0], with_depth=True)
+        obj = load_object(index_split(tmp_path, category, "test").objects[0], with_depth=True, pixel_center=0.0)
         ours = affine_invariant_scores(est.predict(obj.images), obj.depths)
         flat = affine_invariant_scores(torch.zeros_like(obj.depths), obj.depths)
         assert ours.valid.all()

@@ -169,14 +169,14 @@ def test_constant_field_gives_closed_form_psnr_and_frustum_mesh(setup):
     views = list(protocol_views(66, 13).targets)
     rows = {r["object_id"]: r for r in _read_csv(out / "per_object.csv")}
     for record in records:
-        gts = load_object(record, views, resolution=16).images.permute(0, 2, 3, 1).double().numpy()
+        gts = load_object(record, views, resolution=16, pixel_center=0.0).images.permute(0, 2, 3, 1).double().numpy()
         expected = np.mean([10 * math.log10(1 / np.mean((color - g) ** 2)) for g in gts])
         assert float(rows[record.object_id]["psnr"]) == pytest.approx(expected, abs=1e-3)
     for r in _read_csv(out / "renders.csv"):
         assert r["gt_path"].startswith("gt/")  # resized ground truth is written next to the renders
         assert np.abs(srn_format.read_rgb(out / r["render_path"]) - color).max() <= 0.5 / 255 + 1e-6
     record = records[0]
-    src = load_object(record, [64])
+    src = load_object(record, [64], pixel_center=0.0)
     grid = CameraGrid.from_frustum(src.poses[0], src.intrinsics, 0.8, 1.8)
     step = grid.layout(12)[1]
     mesh = trimesh.load(out / "meshes" / f"{record.object_id}.ply", force="mesh")

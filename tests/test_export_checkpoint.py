@@ -94,7 +94,7 @@ def test_roundtrip_within_fp16_tolerance(exporter, run, tmp_path):
     torch.manual_seed(0)
     sources = SourceViews(images=torch.rand(1, 1, 3, 16, 16), poses=torch.eye(4)[None, None],
                           focal=torch.tensor([16.4]), principal=torch.tensor([[8.0, 8.0]]),
-                          prior=torch.rand(1, 1, 1, 16, 16) * 8 - 4)
+                          disparity=torch.rand(1, 1, 1, 16, 16) * 8 - 4)
     sources.poses[0, 0, 2, 3] = -1.3
     points = torch.rand(1, 64, 4, 3) - 0.5
     dirs = torch.nn.functional.normalize(torch.rand(1, 64, 3) - 0.5, dim=-1)

@@ -38,15 +38,15 @@ def test_live_prior_rounded_as_cached_equals_the_cache(setup):
     raw = open_prior(prior)
     assert (cached.kind, live.kind, raw.kind) == ("cache", "live", "live")
     for record in records:
-        obj = load_object(record, [2, 0], resolution=16)
+        obj = load_object(record, [2, 0], resolution=16, pixel_center=0.0)
         where = DatasetViews(record, (2, 0))
         from_cache = cached.disparity(obj.images, where=where)
         from_live = live.disparity(obj.images)
         assert torch.equal(from_cache, from_live)  # bit-exact by design: one rounding rule (as_cached)
         assert torch.equal(as_cached(raw.disparity(obj.images)), from_live)
         a, b = condition_views(cached, obj), condition(live, obj.images, obj.masks, obj.poses, obj.intrinsics)
-        assert torch.equal(a.inputs.prior, b.inputs.prior) and torch.equal(a.inputs.images, b.inputs.images)
-        assert torch.equal(a.inputs.prior[0, :, 0], normalize_disparity(from_cache, obj.masks))
+        assert torch.equal(a.inputs.disparity, b.inputs.disparity) and torch.equal(a.inputs.images, b.inputs.images)
+        assert torch.equal(a.inputs.disparity[0, :, 0], normalize_disparity(from_cache, obj.masks))
     with pytest.raises(DepthnerfError, match="serves dataset views only"):
         cached.disparity(obj.images)
 
@@ -55,7 +55,7 @@ def test_oracle_and_none_sources(setup):
     root, _, records = setup
     oracle_cache = open_prior(PriorConfig("oracle"), data_root=root, resolution=16, records=records)
     oracle_live = open_prior(PriorConfig("oracle"))
-    obj = load_object(records[0], [1], resolution=16, with_depth=True)
+    obj = load_object(records[0], [1], resolution=16, with_depth=True, pixel_center=0.0)
     expect = oracle_disparity(obj.depths)
     assert torch.equal(oracle_cache.disparity(obj.images, where=DatasetViews(records[0], (1,))), expect)
     assert torch.equal(oracle_live.disparity(obj.images, depths=obj.depths), expect)
@@ -63,7 +63,7 @@ def test_oracle_and_none_sources(setup):
         oracle_live.disparity(obj.images)
     none = open_prior(PriorConfig("none"), data_root=root)
     cond = condition_views(none, obj)
-    assert none.kind == "none" and cond.disparity is None and cond.inputs.prior is None
+    assert none.kind == "none" and cond.disparity is None and cond.inputs.disparity is None
     assert none.provenance is None
 
 

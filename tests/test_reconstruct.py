@@ -32,8 +32,9 @@ from depthnerf.pretrained.load import load_pretrained
 from depthnerf.reconstruct.orbit import srn_intrinsics
 from depthnerf.reconstruct.photo import category_fill, prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
-from depthnerf.render.guidance import DEFAULT_BUDGET, GuidanceConfig
+from depthnerf.render.config import DEFAULT_BUDGET
 from depthnerf.render.mesh import CameraGrid
+from depthnerf.render.source_guide import guided_config
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import from_dict_config, with_prior
 
@@ -214,12 +215,12 @@ def test_bad_checkpoints(models, tmp_path, capsys):
         assert text in err and err.count("\n") == 1
     rec = Reconstructor.from_pretrained(models["oracle"], depth_estimator="bundled",
                                         depth_checkpoint=str(models["weights"]))
-    assert rec.prior.kind == "live" and rec.prior.estimator.name == "bundled"
+    assert rec.session.prior_source.kind == "live" and rec.session.prior_source.estimator.name == "bundled"
 
 
 def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys):
     rec = Reconstructor.from_pretrained(models["constant"])
-    cfg = ReconstructConfig(views=2, mesh_resolution=0, guided=GuidanceConfig(budget=12))
+    cfg = ReconstructConfig(views=2, mesh_resolution=0, guided=guided_config(12))
     res = rec.reconstruct(disc_photo(), config=cfg)
     assert np.abs(res.views - np.array(COLOR)).max() < 1e-4 and res.opacity.min() > 1 - 1e-4
     assert res.settings["guided_sampling"] == 12

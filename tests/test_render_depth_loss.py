@@ -3,8 +3,8 @@
 import pytest
 import torch
 
+from depthnerf.render.depth_guide import align_disparity_to_depth
 from depthnerf.render.depth_loss import fit_scale_shift, ssi_depth_loss
-from depthnerf.render.guide import align_disparity_to_depth
 
 
 def _data(seed=0, b=3, r=200):

@@ -8,8 +8,8 @@ import torch
 from depthnerf.data.cameras import Intrinsics, look_at
 from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.render.analytic import Sphere, SphereScene
-from depthnerf.render.config import GuideConfig, GuidedSamplerConfig, RenderConfig, SamplerConfig
-from depthnerf.render.guide import DepthGuide, align_disparity_to_depth, build_depth_guide
+from depthnerf.render.config import GuidedConfig, RenderConfig, SamplerConfig
+from depthnerf.render.depth_guide import DepthGuide, align_disparity_to_depth, build_depth_guide
 from depthnerf.render.pipeline import render_image, render_rays
 from depthnerf.render.rays import RayBundle, camera_z_of_directions, rays_from_camera
 
@@ -44,7 +44,7 @@ def _reference(scene, rays):
 
 def _guide(scene, src, rays, depth=None):
     z, mask = scene.depth_map(src, INTR, NEAR, FAR)
-    return build_depth_guide(src, INTR, z if depth is None else depth, mask, rays, GuideConfig())
+    return build_depth_guide(src, INTR, z if depth is None else depth, mask, rays, GuidedConfig())
 
 
 def test_guide_classes_against_exact_geometry():
@@ -73,7 +73,7 @@ def test_guided_sampling_matches_full_sampling_with_a_third_of_the_evaluations()
     full_net = _Counter(SCENE)
     full = render_rays(full_net, full_net, rays, RenderConfig(), train=False)
     guided_net = _Counter(SCENE)
-    cfg = RenderConfig(guided=GuidedSamplerConfig(enabled=True))
+    cfg = RenderConfig(guided=GuidedConfig(enabled=True))
     guided = render_rays(guided_net, guided_net, rays, cfg, train=False, guide=_guide(SCENE, src, rays))
     assert full_net.points == 160 * rays.near.numel()
     assert guided_net.points * 3 <= full_net.points
@@ -100,8 +100,8 @@ def test_guided_end_to_end_from_a_relative_disparity_prior():
     rel = ((aligned - z_src).abs() / z_src)[mask]
     assert rel.median() < 0.02  # coarse 32-sample reference is biased by about half a bin
     rays = rays_from_camera(tgt, INTR, NEAR, FAR)
-    guide = build_depth_guide(src, INTR, aligned, mask, rays, GuideConfig())
-    cfg = RenderConfig(guided=GuidedSamplerConfig(enabled=True))
+    guide = build_depth_guide(src, INTR, aligned, mask, rays, GuidedConfig())
+    cfg = RenderConfig(guided=GuidedConfig(enabled=True))
     out = render_image(SCENE, SCENE, rays, cfg, chunk=4096, guide=guide)
     assert _psnr(out.fine.rgb, _reference(SCENE, rays).rgb) > 42
 
@@ -120,7 +120,7 @@ def test_guided_sampling_is_robust_to_surfaces_hidden_from_the_source():
     guide = _guide(scene, src, rays, hidden_z)
     assert not guide.valid[on_hidden].any() and guide.occupied[on_hidden].all()  # shadow entries
     ref = _reference(scene, rays)
-    out = render_rays(scene, scene, rays, RenderConfig(guided=GuidedSamplerConfig(enabled=True)), train=False,
+    out = render_rays(scene, scene, rays, RenderConfig(guided=GuidedConfig(enabled=True)), train=False,
                       guide=guide)
     err = ((out.fine.rgb - ref.rgb) ** 2).mean(-1)
     assert -10 * math.log10(err[on_hidden].mean().item()) > 35
@@ -132,13 +132,13 @@ def test_guided_batch_rows_with_different_group_sizes_match_single_rows():
     tgt = torch.cat([_camera(30, 30), _camera(150, 20)])
     rays = rays_from_camera(tgt, INTR, NEAR, FAR)
     z, mask = SCENE.depth_map(src, INTR, NEAR, FAR)
-    guide = build_depth_guide(src, INTR, z, mask, rays, GuideConfig())
+    guide = build_depth_guide(src, INTR, z, mask, rays, GuidedConfig())
     assert guide.occupied[0].sum() != guide.occupied[1].sum()
-    cfg = RenderConfig(guided=GuidedSamplerConfig(enabled=True))
+    cfg = RenderConfig(guided=GuidedConfig(enabled=True))
     both = render_rays(SCENE, SCENE, rays, cfg, train=False, guide=guide)
     for b in range(2):
         row = RayBundle(rays.origins[b:b + 1], rays.directions[b:b + 1], rays.near[b:b + 1], rays.far[b:b + 1])
-        row_guide = build_depth_guide(src[b:b + 1], INTR, z[b:b + 1], mask[b:b + 1], row, GuideConfig())
+        row_guide = build_depth_guide(src[b:b + 1], INTR, z[b:b + 1], mask[b:b + 1], row, GuidedConfig())
         single = render_rays(SCENE, SCENE, row, cfg, train=False, guide=row_guide)
         assert torch.allclose(both.fine.rgb[b], single.fine.rgb[0], atol=1e-6)
         s = single.fine.t.shape[-1]
@@ -155,7 +155,7 @@ def test_guided_training_pass_is_differentiable():
 
     src, tgt = _camera(0, 20), _camera(40, 30)
     rays = rays_from_camera(tgt, INTR, NEAR, FAR)
-    cfg = RenderConfig(guided=GuidedSamplerConfig(enabled=True))
+    cfg = RenderConfig(guided=GuidedConfig(enabled=True))
     out = render_rays(fn, fn, rays, cfg, train=True, generator=torch.Generator().manual_seed(0),
                       guide=_guide(SCENE, src, rays))
     out.fine.rgb.sum().backward()
@@ -166,10 +166,10 @@ def test_guide_input_checks():
     rays = rays_from_camera(_camera(40, 30), INTR, NEAR, FAR)
     z, mask = SCENE.depth_map(_camera(0, 20), INTR, NEAR, FAR)
     with pytest.raises(ValueError, match="disagree"):
-        build_depth_guide(_camera(0, 20), INTR, z[:, :16], mask[:, :16], rays, GuideConfig())
-    guide = build_depth_guide(_camera(0, 20), INTR, z, mask, rays, GuideConfig())
+        build_depth_guide(_camera(0, 20), INTR, z[:, :16], mask[:, :16], rays, GuidedConfig())
+    guide = build_depth_guide(_camera(0, 20), INTR, z, mask, rays, GuidedConfig())
     with pytest.raises(ValueError, match="DepthGuide"):
         render_rays(SCENE, SCENE, rays, RenderConfig(), train=False, guide=guide)
     with pytest.raises(ValueError, match="guide for"):
-        render_rays(SCENE, SCENE, rays.slice(0, 10), RenderConfig(guided=GuidedSamplerConfig(enabled=True)),
+        render_rays(SCENE, SCENE, rays.slice(0, 10), RenderConfig(guided=GuidedConfig(enabled=True)),
                     train=False, guide=guide)

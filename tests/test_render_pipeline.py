@@ -7,8 +7,8 @@ import torch
 
 from depthnerf.data.cameras import Intrinsics, camera_rays, look_at, ray_distance_to_z, world_to_camera
 from depthnerf.render.analytic import Sphere, SphereScene
-from depthnerf.render.config import GuideConfig, GuidedSamplerConfig, RenderConfig, SamplerConfig
-from depthnerf.render.guide import build_depth_guide
+from depthnerf.render.config import GuidedConfig, RenderConfig, SamplerConfig
+from depthnerf.render.depth_guide import build_depth_guide
 from depthnerf.render.passes import evaluate_field
 from depthnerf.render.pipeline import render_image, render_rays
 from depthnerf.render.rays import RayBundle, camera_z_of_directions, rays_from_camera, rays_from_pixels
@@ -86,12 +86,12 @@ def test_paper_render_of_analytic_scene_matches_dense_quadrature():
 @pytest.mark.parametrize("guided", [False, True])
 def test_chunked_render_equals_unchunked(guided):
     rays = rays_from_camera(_camera(40, 30), INTR, 0.8, 1.8)
-    cfg = RenderConfig(guided=GuidedSamplerConfig(enabled=guided))
+    cfg = RenderConfig(guided=GuidedConfig(enabled=guided))
     guide = None
     if guided:
         src = _camera(0, 20)
         z, mask = SCENE.depth_map(src, INTR, 0.8, 1.8)
-        guide = build_depth_guide(src, INTR, z, mask, rays, GuideConfig())
+        guide = build_depth_guide(src, INTR, z, mask, rays, GuidedConfig())
     full = render_rays(SCENE, SCENE, rays, cfg, train=False, guide=guide)
     chunked = render_image(SCENE, SCENE, rays, cfg, chunk=100, guide=guide)  # 576 = 5 * 100 + 76
     for name in ("rgb", "depth", "opacity", "weights", "t"):
@@ -131,7 +131,7 @@ def test_field_shape_and_guide_flag_errors():
     with pytest.raises(ValueError, match="field returned"):
         evaluate_field(lambda p, d: (p[..., :2], p[..., 0]), rays, torch.ones(1, 576, 3))
     with pytest.raises(ValueError, match="DepthGuide"):
-        render_rays(SCENE, SCENE, rays, RenderConfig(guided=GuidedSamplerConfig(enabled=True)), train=False)
+        render_rays(SCENE, SCENE, rays, RenderConfig(guided=GuidedConfig(enabled=True)), train=False)
     with pytest.raises(ValueError, match="chunk"):
         render_image(SCENE, SCENE, rays, RenderConfig(), chunk=0)
     assert isinstance(rays, RayBundle)

@@ -56,7 +56,7 @@ def test_index_and_load_match_what_was_written(srn_root_full: Path):
     assert rec.rgb_path(2) == rec.path / "rgb" / "000002.png" and rec.pose_path(0).suffix == ".txt"
     assert index.checks[rec.object_id].radius_min == pytest.approx(1.3, abs=1e-6)
 
-    views = srn.load_object(rec, with_depth=True)
+    views = srn.load_object(rec, with_depth=True, pixel_center=0.0)
     assert views.images.shape == (3, 3, 16, 16) and views.images.dtype == torch.float32
     assert views.view_indices.tolist() == [0, 1, 2] and views.intrinsics == rec.intrinsics
     k = [object_id("cars", "train", i) for i in range(2)].index(rec.object_id)
@@ -72,7 +72,7 @@ def test_index_and_load_match_what_was_written(srn_root_full: Path):
 def test_depth_pose_intrinsics_conventions_agree(srn_root_full: Path):
     """Back-projecting every z-depth pixel with the loaded intrinsics and pose lands on the sphere."""
     rec = srn.index_split(srn_root_full, "cars", "test").objects[0]
-    views = srn.load_object(rec, with_depth=True)
+    views = srn.load_object(rec, with_depth=True, pixel_center=0.0)
     rays = pixel_directions(views.intrinsics, normalize=False)  # z == 1, so z-depth scales it to the point
     for v in range(rec.num_views):
         pts_cam = rays[views.masks[v]] * views.depths[v][views.masks[v], None]
@@ -94,8 +94,8 @@ def test_real_srn_style_loads_identically(tmp_path: Path):
     assert len((dst / "pose" / "000000.txt").read_text().split("\n")[0].split()) == 4
     assert STYLES == ("rgba8", "rgb16", "rgba16")
     assert [_png_format(dst / "rgb" / f"{v:06d}.png") for v in range(4)] == [(8, 6), (16, 2), (16, 6), (8, 6)]
-    a = srn.load_object(srn.index_object(src, "cars", "test"), with_depth=True)
-    b = srn.load_object(srn.index_split(tmp_path / "b", "cars", "test").objects[0], with_depth=True)
+    a = srn.load_object(srn.index_object(src, "cars", "test"), with_depth=True, pixel_center=0.0)
+    b = srn.load_object(srn.index_split(tmp_path / "b", "cars", "test").objects[0], with_depth=True, pixel_center=0.0)
     assert a.intrinsics == b.intrinsics == Intrinsics(131.25, 64.0, 64.0, 128, 128)
     for name in ("images", "poses", "masks", "bboxes", "depths", "view_indices"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
@@ -108,7 +108,7 @@ def test_16bit_grey_png_full_precision(tmp_path: Path):
     grey[0, 0] = 65535
     Image.fromarray(grey).save(obj / "rgb" / "000000.png")
     assert Image.open(obj / "rgb" / "000000.png").mode.startswith("I;16")
-    views = srn.load_object(srn.index_object(obj, "cars", "train"))
+    views = srn.load_object(srn.index_object(obj, "cars", "train"), pixel_center=0.0)
     expected = torch.from_numpy(grey.astype(np.float32) / 65535).expand(3, 16, 16)
     assert torch.equal(views.images[0], expected)
     assert not views.masks[0, 0, 0] and views.masks[0].sum() == 255  # only the 65535 pixel is white
@@ -149,12 +149,12 @@ def _block_object(tmp_path: Path, size: int = 64) -> srn.ObjectRecord:
 @pytest.mark.parametrize("resolution", [16, 32, 128])
 def test_resize_rescales_intrinsics_like_a_projected_point(tmp_path: Path, resolution: int):
     rec = _block_object(tmp_path)
-    full = srn.load_object(rec)
+    full = srn.load_object(rec, pixel_center=0.0)
     # The world point seen at the block's centre (u, v) = (21.5, 9.5), 1.1 in front of the camera.
     intr, c2w = full.intrinsics, full.poses[0]
     p_cam = torch.tensor([(21.5 - intr.cx) / intr.focal, (9.5 - intr.cy) / intr.focal, 1.0]) * 1.1
     p_world = c2w[:3, :3] @ p_cam + c2w[:3, 3]
-    small = srn.load_object(rec, resolution=resolution)
+    small = srn.load_object(rec, resolution=resolution, pixel_center=0.0)
     s = resolution / 64
     assert small.images.shape == (1, 3, resolution, resolution)
     assert small.intrinsics.focal == pytest.approx(intr.focal * s)
@@ -193,13 +193,13 @@ def test_mask_and_bbox_match_brute_force(tmp_path: Path):
         srn_format.write_rgb(obj / "rgb" / f"{v:06d}.png", img)
     rgba = np.concatenate([images[2], np.full((12, 12, 1), 255, np.uint8)], axis=-1)
     Image.fromarray(rgba, mode="RGBA").save(obj / "rgb" / "000002.png")
-    views = srn.load_object(srn.index_object(obj, "cars", "train"))
+    views = srn.load_object(srn.index_object(obj, "cars", "train"), pixel_center=0.0)
     for v in range(4):
         mask, box = _brute_mask_and_box(images[v])
         assert torch.equal(views.masks[v], torch.from_numpy(mask)) and views.bboxes[v].tolist() == box
     assert not views.masks[3].any() and views.bboxes[3].tolist() == [0, 0, 11, 11]
     assert views.bboxes.dtype == torch.int64
-    half = srn.load_object(srn.index_object(obj, "cars", "train"), resolution=6)
+    half = srn.load_object(srn.index_object(obj, "cars", "train"), resolution=6, pixel_center=0.0)
     for v in range(4):  # a 2x2 block is object if any of its pixels is
         mask, _ = _brute_mask_and_box(images[v])
         ref = np.array([[mask[2 * i:2 * i + 2, 2 * j:2 * j + 2].any() for j in range(6)] for i in range(6)])
@@ -211,8 +211,8 @@ def test_mask_and_bbox_match_brute_force(tmp_path: Path):
 
 def test_depth_resize_averages_valid_depths_only(srn_root_full: Path):
     rec = srn.index_split(srn_root_full, "cars", "train").objects[1]
-    full = srn.load_object(rec, with_depth=True)
-    half = srn.load_object(rec, with_depth=True, resolution=8)
+    full = srn.load_object(rec, with_depth=True, pixel_center=0.0)
+    half = srn.load_object(rec, with_depth=True, resolution=8, pixel_center=0.0)
     for v in range(rec.num_views):
         d = full.depths[v].numpy()
         for i in range(8):
@@ -226,16 +226,16 @@ def test_depth_resize_averages_valid_depths_only(srn_root_full: Path):
 def test_view_selection_and_request_errors(srn_root: Path):
     rec = srn.index_split(srn_root, "cars", "train", check_files=False).objects[0]
     assert srn.index_split(srn_root, "cars", "train", check_files=False).checks == {}
-    full = srn.load_object(rec)
-    some = srn.load_object(rec, views=[2, 0])
+    full = srn.load_object(rec, pixel_center=0.0)
+    some = srn.load_object(rec, views=[2, 0], pixel_center=0.0)
     assert some.view_indices.tolist() == [2, 0]
     assert torch.equal(some.images, full.images[[2, 0]]) and torch.equal(some.poses, full.poses[[2, 0]])
     with pytest.raises(DepthnerfError, match="view index 3 out of range"):
-        srn.load_object(rec, views=[0, 3])
+        srn.load_object(rec, views=[0, 3], pixel_center=0.0)
     with pytest.raises(DepthnerfError, match="no depth/ folder"):
-        srn.load_object(rec, with_depth=True)
+        srn.load_object(rec, with_depth=True, pixel_center=0.0)
     with pytest.raises(DepthnerfError, match="cannot resize 16x16 images to height 0"):
-        srn.load_object(rec, resolution=0)
+        srn.load_object(rec, resolution=0, pixel_center=0.0)
 
 
 def test_check_size_false_rescales_intrinsics(srn_root: Path):
@@ -244,8 +244,8 @@ def test_check_size_false_rescales_intrinsics(srn_root: Path):
         img = srn_format.read_rgb(rec.rgb_path(v))
         srn_format.write_rgb(rec.rgb_path(v), img.repeat(2, axis=0).repeat(2, axis=1))
     with pytest.raises(DepthnerfError, match=r"000000\.png: image is 32x32 but .*intrinsics\.txt says 16x16"):
-        srn.load_object(rec)
-    views = srn.load_object(rec, check_size=False)
+        srn.load_object(rec, pixel_center=0.0)
+    views = srn.load_object(rec, check_size=False, pixel_center=0.0)
     assert views.images.shape[-2:] == (32, 32) and views.intrinsics == rec.intrinsics.resized(32, 32)
 
 
@@ -260,7 +260,7 @@ def test_bad_input_raises_one_line_naming_the_file(tmp_path: Path, case: str):
     # Without the file checks, the same problem surfaces at the latest when the views are loaded.
     with pytest.raises(DepthnerfError) as err:
         for rec in srn.index_split(root, "cars", split, check_files=False).objects:
-            srn.load_object(rec, with_depth=True)
+            srn.load_object(rec, with_depth=True, pixel_center=0.0)
     assert str(path) in str(err.value) and "\n" not in str(err.value)
 
 
@@ -296,8 +296,8 @@ def test_synth_output_and_its_real_srn_spelling_load_identically(tmp_path: Path)
     (rec,) = index.objects
     assert rec.num_views == 3 and rec.has_depth and rec.has_mask and rec.mesh_path is not None
     to_srn_style(rec.path, tmp_path / "srn" / "cars_train" / rec.object_id)
-    a = srn.load_object(rec, with_depth=True)
-    b = srn.load_object(srn.index_split(tmp_path / "srn", "cars", "train").objects[0], with_depth=True)
+    a = srn.load_object(rec, with_depth=True, pixel_center=0.0)
+    b = srn.load_object(srn.index_split(tmp_path / "srn", "cars", "train").objects[0], with_depth=True, pixel_center=0.0)
     assert a.intrinsics == b.intrinsics
     for name in ("images", "poses", "masks", "bboxes", "depths", "view_indices"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name

@@ -42,8 +42,8 @@ def test_third_party_layout_reads_like_the_documented_one(tmp_path: Path):
     assert all(r.has_depth and r.has_mask and r.mesh_path is not None and not r.issues for r in recs)
     assert recs[0].ignored == ("meta.json", "normal/", "render_log.txt")
     for a_rec, b_rec in zip(original.objects, recs, strict=True):
-        a = srn.load_object(a_rec, with_depth=True)
-        b = srn.load_object(b_rec, with_depth=True)
+        a = srn.load_object(a_rec, with_depth=True, pixel_center=0.0)
+        b = srn.load_object(b_rec, with_depth=True, pixel_center=0.0)
         for name in ("images", "masks", "bboxes", "view_indices"):
             assert torch.equal(getattr(a, name), getattr(b, name)), name
         assert torch.allclose(b.poses.double(), torch.from_numpy(BLENDER_WORLD) @ a.poses.double(), atol=1e-6)
@@ -69,7 +69,7 @@ def test_bad_optional_part_is_off_for_that_object_only(tmp_path: Path, case: str
     usable = {"depth": bad.has_depth, "mask": bad.has_mask, "mesh": bad.mesh_path is not None}
     assert usable == {p: p != part for p in usable}
     assert good.has_depth and good.has_mask and good.mesh_path is not None and not good.issues
-    views = srn.load_object(bad)  # the rest of the object still loads (masks fall back to the white rule)
+    views = srn.load_object(bad, pixel_center=0.0)  # the rest of the object still loads (masks fall back to the white rule)
     assert views.masks.any()
     with pytest.raises(DepthnerfError) as err:
         srn.index_split(root, "cars", "train", strict=True)
@@ -80,7 +80,7 @@ def test_bad_optional_part_is_off_for_that_object_only(tmp_path: Path, case: str
             lazy = srn.index_split(root, "cars", "train", check_files=False).objects[0]
         if lazy.has_depth:
             with pytest.raises(DepthnerfError, match="depth"):
-                srn.load_object(lazy, with_depth=True)
+                srn.load_object(lazy, with_depth=True, pixel_center=0.0)
 
 
 def test_equal_problems_of_a_split_are_one_warning(tmp_path: Path):
@@ -110,7 +110,7 @@ def test_nearest_depth_scale_wins(tmp_path: Path):
     (obj / srn_format.DEPTH_SCALE_FILE).write_text(f"{2 * PNG_SCALE}\n")
     rec = srn.index_split(root, "cars", "train").objects[0]
     assert rec.depth_scale == 2 * PNG_SCALE and rec.ignored == ()
-    depths = srn.load_object(rec, with_depth=True).depths
+    depths = srn.load_object(rec, with_depth=True, pixel_center=0.0).depths
     for got, want in zip(depths, truth, strict=True):
         assert np.abs(got.numpy() - want).max() <= PNG_SCALE * (1 + 1e-3)
 
@@ -124,7 +124,7 @@ def test_view_in_two_formats_uses_the_preferred_one(tmp_path: Path):
     assert len(caught) == 1 and str(obj / "depth" / "000001.npy") in str(caught[0].message)
     assert "also has depth/000001.npz, which is used" in str(caught[0].message)
     assert rec.has_depth and rec.depth_files == ("000000.npz", "000001.npz", "000002.npz")
-    assert srn.load_object(rec, [1], with_depth=True).depths.max() < 9.0
+    assert srn.load_object(rec, [1], with_depth=True, pixel_center=0.0).depths.max() < 9.0
     with pytest.raises(DepthnerfError, match=r"000001\.npy: view 000001 also has"):
         srn.index_split(root, "cars", "train", strict=True)
 
@@ -136,10 +136,10 @@ def test_blank_view_may_have_all_zero_depth(tmp_path: Path):
     srn_format.write_depth(obj / "depth" / "000002.npz", np.zeros((16, 16), np.float32))
     index, caught = _index(root, strict=True)
     assert caught == [] and index.objects[0].has_depth
-    assert not srn.load_object(index.objects[0], with_depth=True).depths[2].any()
+    assert not srn.load_object(index.objects[0], with_depth=True, pixel_center=0.0).depths[2].any()
     srn_format.write_depth(obj / "depth" / "000001.npz", np.zeros((16, 16), np.float32))
     with pytest.raises(DepthnerfError, match=r"000001\.npz: depth map is all zero .* but rgb/000001\.png shows"):
-        srn.load_object(srn.index_split(root, "cars", "train", check_files=False).objects[0], with_depth=True)
+        srn.load_object(srn.index_split(root, "cars", "train", check_files=False).objects[0], with_depth=True, pixel_center=0.0)
 
 
 def test_read_depth_formats_and_shapes(tmp_path: Path):

@@ -164,12 +164,15 @@ def test_legacy_use_depth_is_checked_then_dropped():
 
 @pytest.mark.parametrize("name", sorted(shipped_checkpoints()))
 def test_shipped_checkpoints_derive_their_spec(name):
-    """The stored spec (checkpoints since session 5) equals the one derived from the training config, which is
-    how checkpoints written before specs existed are read."""
+    """The stored spec equals the one derived from the training config, which is how checkpoints written before
+    specs existed are read; the framing, which the shipped specs predate, is derived once at load from the
+    checkpoint card beside the weights."""
     pre = load_pretrained(name)
     meta = read_weights(pre.path)[1]
     derived = spec_from_metadata({k: v for k, v in meta.items() if k != SPEC_KEY}, "w")
-    assert SPEC_KEY in meta and dataclasses.replace(derived, prior_weights_hash=pre.spec.prior_weights_hash) == pre.spec
+    assert SPEC_KEY in meta and "framing" not in json.loads(meta[SPEC_KEY]) and derived.framing is None
+    assert pre.spec.framing == "srn" and pre.framing_origin == str(pre.path.with_suffix(".json"))
+    assert dataclasses.replace(derived, prior_weights_hash=pre.spec.prior_weights_hash, framing="srn") == pre.spec
     assert (pre.spec.prior_weights_hash is not None) == name.endswith("-depth")  # only the stored spec has it
     train = from_dict_config(json.loads(meta["train_config"]))
     spec = pre.spec

@@ -13,9 +13,10 @@ import torch
 
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics, look_at, pixel_directions, project, world_to_camera
+from depthnerf.data.card import dataset_pixel_center
 from depthnerf.data.synth.cars import CAR_STYLES, HELDOUT_CAR_STYLES, build_car, sample_car
 from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, HELDOUT_ARCHETYPES, build_chair, sample_chair
-from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing, dataset_pixel_center, get_framing
+from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing, get_framing
 from depthnerf.data.synth.generate import SynthConfig, category_spec, generate, object_poses, object_rngs
 from depthnerf.data.synth.primitives import Material, MeshBuilder, box
 from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
@@ -174,7 +175,7 @@ def test_load_object_applies_the_pixel_center_before_resizing(tmp_path: Path) ->
                     np.ones_like(jj, dtype=np.float64)], -1)
     good = load_object(record, [0], resolution=16, pixel_center=0.5).intrinsics
     np.testing.assert_allclose(pixel_directions(good, normalize=False).numpy(), ref, atol=1e-6)
-    bad = load_object(record, [0], resolution=16).intrinsics
+    bad = load_object(record, [0], resolution=16, pixel_center=0.0).intrinsics
     assert np.abs(pixel_directions(bad, normalize=False).numpy() - ref).max() > 0.1 / file_intr.focal
     assert dataset_pixel_center(tmp_path, "cars") == 0.5 and dataset_pixel_center(tmp_path, "chairs") == 0.0
 
@@ -248,7 +249,7 @@ def test_checkpoint_framing_lookup(tmp_path: Path) -> None:
     assert framing == "srn" and source.endswith("ck.json")
     shipped = Path(__file__).resolve().parent.parent / "depthnerf" / "checkpoints"
     for card in sorted(shipped.glob("cpu-*.json")):
-        assert checkpoint_framing(card.with_suffix(".safetensors"), None, "cars")[0] == "srn", card  # session 5
+        assert checkpoint_framing(card.with_suffix(".safetensors"), None, "cars")[0] == "srn", card
     assert set(FRAMINGS) == {"srn", "legacy"}
 
 

@@ -182,7 +182,7 @@ def tiny_setup(b: int, depth_aware: bool = False, seed: int = 0, device: str = "
     dirs = F.normalize(-origins + torch.randn(b, r, 3, generator=gen) * 0.1, dim=-1)
     source = SourceViews(images=torch.rand(b, 1, 3, size, size, generator=gen), poses=look_at(eye),
                          focal=torch.full((b,), size * 1.0), principal=torch.full((b, 2), (size - 1) / 2),
-                         prior=torch.rand(b, 1, 1, size, size, generator=gen) if depth_aware else None)
+                         disparity=torch.rand(b, 1, 1, size, size, generator=gen) if depth_aware else None)
     batch = TrainBatch(source=source, ray_origins=origins, ray_dirs=dirs, target_rgb=torch.rand(b, r, 3, generator=gen),
                        target_prior=torch.rand(b, r, generator=gen), target_fg=torch.rand(b, r, generator=gen) > 0.4,
                        target_cos=torch.rand(b, r, generator=gen) * 0.2 + 0.8)

@@ -7,7 +7,9 @@ One request = one :class:`RunRequest` -> :meth:`AppSession.run` -> one :class:`R
    :func:`depthnerf.reconstruct.photo.check_photo_format`; everything else
    :func:`depthnerf.reconstruct.photo.prepare_photo` checks: unreadable/truncated files, sides < 16 px, no
    foreground, a cluttered background);
-2. the checkpoint is loaded once per (checkpoint, depth prior) and kept (:class:`ModelCache`);
+2. the checkpoint is loaded once per (checkpoint, depth prior) into an inference session (the device's policy
+   included, as for every user of :class:`~depthnerf.infer.session.InferenceSession`) and kept
+   (:class:`ModelCache`); the page's depth prior applies to depth-aware checkpoints (a baseline one has none);
 3. :meth:`Reconstructor.reconstruct <depthnerf.reconstruct.reconstructor.Reconstructor.reconstruct>` runs with
    the page's settings and :meth:`~depthnerf.reconstruct.reconstructor.Reconstructor.save` writes its outputs
    (the same code path as ``depthnerf reconstruct``; the app adds nothing to the pipeline);
@@ -179,9 +181,9 @@ def examples() -> list[Path]:
 
 
 def resolve_model(request: RunRequest) -> str:
-    """Checkpoint spec of a request: the path field if filled in, else the menu entry (labels mapped)."""
-    spec = request.checkpoint_path.strip() or request.model
-    return SHIPPED_MODELS.get(spec, spec)
+    """Checkpoint of a request: the path field if filled in, else the menu entry (labels mapped)."""
+    checkpoint = request.checkpoint_path.strip() or request.model
+    return SHIPPED_MODELS.get(checkpoint, checkpoint)
 
 
 class ModelCache:
@@ -197,6 +199,7 @@ class ModelCache:
     def get(self, checkpoint: str, depth_prior: str = "bundled", depth_checkpoint: str = ""):
         """The Reconstructor (loaded on first use)."""
         from depthnerf import Reconstructor
+        from depthnerf.pretrained.load import load_pretrained
 
         if depth_prior not in DEPTH_PRIORS:
             raise DepthnerfError(f"depth prior must be one of {', '.join(DEPTH_PRIORS)}, got {depth_prior!r}")
@@ -205,8 +208,11 @@ class ModelCache:
             if key in self._models:
                 self._models.move_to_end(key)
                 return self._models[key]
-            rec = Reconstructor.from_pretrained(checkpoint, self.device, depth_estimator=depth_prior,
-                                                depth_checkpoint=key[2] or None)
+            pretrained = load_pretrained(checkpoint, self.device)
+            depth_aware = pretrained.spec.depth_aware  # the page's prior menu is for depth-aware models
+            rec = Reconstructor.from_pretrained(pretrained, self.device,
+                                                depth_estimator=depth_prior if depth_aware else None,
+                                                depth_checkpoint=(key[2] or None) if depth_aware else None)
             self._models[key] = rec
             while len(self._models) > self.capacity:
                 self._models.popitem(last=False)
@@ -215,7 +221,7 @@ class ModelCache:
 
 def model_resolution(rec) -> int:
     """Training (input) resolution of a loaded Reconstructor."""
-    return rec.pretrained.spec.resolution
+    return rec.session.spec.resolution
 
 
 class AppSession:
@@ -292,9 +298,9 @@ class AppSession:
             raise DepthnerfError(f"orbit views must be within 1..{max_views}, got {request.views}")
         if request.foreground_ratio is not None and not 0.05 <= request.foreground_ratio <= 1.0:
             raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {request.foreground_ratio}")
-        spec = resolve_model(request)
-        progress(0.0, f"loading {spec}")
-        rec = self.models.get(spec, request.depth_prior, request.depth_checkpoint)
+        checkpoint = resolve_model(request)
+        progress(0.0, f"loading {checkpoint}")
+        rec = self.models.get(checkpoint, request.depth_prior, request.depth_checkpoint)
         progress(0.05, "reconstructing")
         mode, background_model = self.background(request)
         cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),

@@ -2,7 +2,7 @@
 
 Synthesises one unseen car and one unseen chair (``depthnerf synth`` test object 0 of ``--seed``, default
 :data:`depthnerf.demo.DEMO_SEED`), reconstructs each from its view 64 with the shipped depth-aware
-checkpoints (``--cars-checkpoint`` / ``--chairs-checkpoint``: any checkpoint spec), scores every
+checkpoints (``--cars-checkpoint`` / ``--chairs-checkpoint``: any checkpoint name or path), scores every
 ``--views-stride``-th true view by the SRN protocol with the metric code of ``depthnerf eval`` and writes input,
 depth prior, novel views vs truth, a turntable GIF, a mesh and ``OUT/demo.json`` (layout in
 :mod:`depthnerf.demo`). Prints a summary table, where the files are and its own wall time.

@@ -1,7 +1,8 @@
 """``depthnerf depth``: precompute monocular depth priors into the dataset's cache.
 
-``depthnerf depth --data DIR --estimator {bundled,depth-anything-v2} [--checkpoint HUB_ID_OR_DIR]
+``depthnerf depth --data DIR --depth {bundled,depth-anything-v2} [--depth-checkpoint HUB_ID_OR_DIR]
 [--splits train val test] [--category C] [--batch-size N] [--resolution R] [--device cpu] [--strict]``
+(``--estimator`` / ``--checkpoint``: older spellings of ``--depth`` / ``--depth-checkpoint``, kept as aliases)
 
 Writes ``DIR/depth_priors/<estimator>-<hash12>-<res>/<category>_<split>/<object_id>.safetensors`` plus a
 ``manifest.json`` (see :mod:`depthnerf.depth.cache`); resumable (finished objects are skipped), atomic writes.
@@ -21,11 +22,12 @@ DEFAULT_SPLITS = ("train", "val", "test")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
-    parser.add_argument("--depth", "--estimator", dest="estimator", choices=ESTIMATORS, required=True,
-                        help="depth prior (estimator) to cache (--estimator: same)")
-    parser.add_argument("--depth-checkpoint", "--checkpoint", dest="checkpoint", default=None,
+    parser.add_argument("--depth", "--estimator", dest="depth", choices=ESTIMATORS, required=True,
+                        help="depth prior (estimator) to cache (--estimator: an older spelling, kept as an alias)")
+    parser.add_argument("--depth-checkpoint", "--checkpoint", dest="depth_checkpoint", default=None,
                         help="estimator weights: hub id or local directory (depth-anything-v2), weights file "
-                             "(bundled); default: the backend's default (--checkpoint: same)")
+                             "(bundled); default: the backend's default (--checkpoint: an older spelling, kept as "
+                             "an alias; it names the estimator's weights, never a model)")
     parser.add_argument("--splits", nargs="+", choices=DEFAULT_SPLITS, default=None,
                         help="splits to process (default: train val test, those that exist)")
     parser.add_argument("--category", action="append", default=None,
@@ -40,9 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.estimator not in CACHED_ESTIMATORS:
-        print(f"estimator '{args.estimator}' needs no cache "
-              f"({'computed from depth/ on the fly' if args.estimator == 'oracle' else 'no depth prior'})")
+    if args.depth not in CACHED_ESTIMATORS:
+        print(f"estimator '{args.depth}' needs no cache "
+              f"({'computed from depth/ on the fly' if args.depth == 'oracle' else 'no depth prior'})")
         return 0
     if args.strict:
         from depthnerf.data.srn import discover_categories, index_split, split_dir
@@ -52,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
                 if args.splits or split_dir(args.data, category, split).is_dir():
                     index_split(args.data, category, split, strict=True)
     cfg = PrecomputeConfig(
-        data_root=args.data, estimator=args.estimator, checkpoint=args.checkpoint,
+        data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint,
         splits=tuple(args.splits or DEFAULT_SPLITS), categories=tuple(args.category) if args.category else None,
         require_splits=args.splits is not None, batch_size=args.batch_size, resolution=args.resolution,
         device=args.device, progress=not args.no_progress)

@@ -1,7 +1,8 @@
 """``depthnerf depth-eval``: affine-invariant accuracy of a depth estimator against ground-truth z-depth.
 
-``depthnerf depth-eval --data DIR [--split test] --estimator NAME [--checkpoint ...] [--category C]
-[--json PATH] [--max-objects N] [--max-views N]``
+``depthnerf depth-eval --data DIR [--split test] --depth NAME [--depth-checkpoint W] [--category C]
+[--json PATH] [--max-objects N] [--max-views N]`` (``--estimator`` / ``--checkpoint``: older spellings of
+``--depth`` / ``--depth-checkpoint``, kept as aliases)
 
 Prints AbsRel and delta<1.25 after per-image least-squares scale-and-shift alignment in disparity space on the
 foreground (:mod:`depthnerf.depth.metrics`), overall and per category. ``--json`` writes
@@ -25,10 +26,11 @@ from depthnerf.files import write_text_atomic
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
     parser.add_argument("--split", choices=("train", "val", "test"), default="test", help="split (default test)")
-    parser.add_argument("--depth", "--estimator", dest="estimator", choices=ESTIMATORS, required=True,
-                        help="depth prior (estimator) to score (--estimator: same)")
-    parser.add_argument("--depth-checkpoint", "--checkpoint", dest="checkpoint", default=None,
-                        help="estimator weights: hub id / local directory / weights file (--checkpoint: same)")
+    parser.add_argument("--depth", "--estimator", dest="depth", choices=ESTIMATORS, required=True,
+                        help="depth prior (estimator) to score (--estimator: an older spelling, kept as an alias)")
+    parser.add_argument("--depth-checkpoint", "--checkpoint", dest="depth_checkpoint", default=None,
+                        help="estimator weights: hub id / local directory / weights file (--checkpoint: an older "
+                             "spelling, kept as an alias; it names the estimator's weights, never a model)")
     parser.add_argument("--category", action="append", default=None, help="only this category (repeatable)")
     parser.add_argument("--json", type=Path, default=None, help="write the scores as JSON to this file")
     parser.add_argument("--max-objects", type=int, default=None, help="at most N objects per category")
@@ -41,12 +43,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = DepthEvalConfig(
-        data_root=args.data, estimator=args.estimator, checkpoint=args.checkpoint, split=args.split,
+        data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint, split=args.split,
         categories=tuple(args.category) if args.category else None, max_objects=args.max_objects,
         max_views=args.max_views, batch_size=args.batch_size, device=args.device, use_cache=not args.no_cache,
         progress=not args.no_progress)
     result = evaluate_depth(cfg)
-    print(f"{args.estimator} on {args.split} ({result.objects} objects, {result.images} images, "
+    print(f"{args.depth} on {args.split} ({result.objects} objects, {result.images} images, "
           f"predictions from {result.source}):")
     print(f"  all      AbsRel {result.abs_rel:.4f}  delta<1.25 {result.delta1:.4f}")
     for category, scores in sorted(result.per_category.items()):

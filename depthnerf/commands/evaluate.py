@@ -33,7 +33,7 @@ import torch
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
-from depthnerf.render.guidance import DEFAULT_BUDGET
+from depthnerf.render.config import DEFAULT_BUDGET
 
 COLLECTIVE_TIMEOUT = timedelta(hours=6)
 """How long rank 0 waits for the slowest rank's share of the objects before the merge (multi-process runs)."""
@@ -117,17 +117,12 @@ def resolve_device(name: str) -> torch.device:
     return device
 
 
-def guidance(budget: int | None, align_samples: int):
-    """The ``--guided`` setting: None (the checkpoint's sampler) or a GuidanceConfig."""
-    from depthnerf.render.guidance import GuidanceConfig
+def guided_request(budget: int | None, align_samples: int):
+    """The ``--guided [BUDGET]`` / ``--guided-align-samples`` flags: None (the checkpoint's sampler) or the guided
+    config of that budget (:func:`depthnerf.render.source_guide.guided_config`)."""
+    from depthnerf.render.source_guide import guided_config
 
-    if budget is None:
-        return None
-    if budget < 6:
-        raise DepthnerfError(f"--guided {budget}: a guided budget needs >= 6 samples per ray")
-    if align_samples < 1:
-        raise DepthnerfError(f"--guided-align-samples must be >= 1, got {align_samples}")
-    return GuidanceConfig(budget=budget, align_samples=align_samples)
+    return None if budget is None else guided_config(budget, align_samples)
 
 
 def _choices(args: argparse.Namespace):
@@ -185,9 +180,9 @@ def _run(args: argparse.Namespace, info, choices) -> int:
     from depthnerf.eval.geometry_metrics import GeometryConfig
     from depthnerf.eval.metrics import LpipsConfig
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
+    from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.pretrained.load import load_pretrained
     from depthnerf.render.mesh import parse_level
-    from depthnerf.render.precision import inference_policy
 
     out = args.out
     if out is None:
@@ -195,8 +190,8 @@ def _run(args: argparse.Namespace, info, choices) -> int:
             raise DepthnerfError("--out OUT_DIR is required with --checkpoint")
         out = args.run / "eval" / args.split
     device = info.device
+    guided = guided_request(args.guided, args.guided_align_samples)
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
-    policy = inference_policy(device, fp32=args.fp32, compile=args.compile)
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
@@ -207,16 +202,17 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         index_split(data, args.category or pre.spec.category, args.split, strict=True)
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
-        resolution=args.resolution, chunk=args.chunk or policy.ray_chunk, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
+        resolution=args.resolution, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
-        choices=choices, method=args.method, depth=args.depth, depth_checkpoint=args.depth_checkpoint,
-        guided=guidance(args.guided, args.guided_align_samples),
-        symmetry=not args.no_symmetry, encoder_norm=args.encoder_norm,
-        symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane),
-        lpips=LpipsConfig(trunk_path=args.lpips_trunk), pixel_center=args.pixel_center,
+        choices=choices, method=args.method, lpips=LpipsConfig(trunk_path=args.lpips_trunk),
         progress=not args.no_progress, overwrite=args.overwrite)
-    result = evaluate_protocol(pre, data, out, cfg, device, info, policy)
+    session = InferenceSession(pre, SessionOptions(
+        device=device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset", data_root=data,
+        fp32=args.fp32, compile=args.compile, chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
+        encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
+        symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane)))
+    result = evaluate_protocol(session, out, cfg, info)
     if result is None:  # a rank other than 0: rank 0 writes and prints
         return 0
     s = result.summary

@@ -11,15 +11,13 @@ and camera defaults in :mod:`depthnerf.reconstruct.reconstructor`; the output la
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 from pathlib import Path
 
-from depthnerf.commands.evaluate import guidance, resolve_device
+from depthnerf.commands.evaluate import guided_request, resolve_device
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
-from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
-from depthnerf.render.guidance import DEFAULT_BUDGET
+from depthnerf.render.config import DEFAULT_BUDGET
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -85,39 +83,30 @@ def _facing(text: str) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from depthnerf.pretrained.load import load_pretrained
+    from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.reconstruct.background import choose_remover
     from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
     from depthnerf.render.mesh import parse_level
-    from depthnerf.render.precision import inference_policy
 
     # every flag and the output folder are checked before the model is loaded or anything rendered
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
-                            chunk=ReconstructConfig.chunk if args.chunk is None else args.chunk,
-                            guided=guidance(args.guided, args.guided_align_samples), progress=not args.no_progress,
-                            background_removal=args.background_removal, background_model=args.background_model,
-                            facing=args.facing)
+                            progress=not args.no_progress, background_removal=args.background_removal,
+                            background_model=args.background_model, facing=args.facing)
+    options = SessionOptions(device=resolve_device(args.device), depth=args.depth,
+                             depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
+                             chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples))
     check_output_dir(args.out, args.overwrite)
     # a background model the flags name loads (or fails in one line) before the NeRF does
     background = choose_remover(args.background_removal, args.background_model)
-    device = resolve_device(args.device)
-    pretrained = load_pretrained(args.checkpoint, device)
-    if not pretrained.spec.depth_aware and (args.depth not in (None, "none") or args.depth_checkpoint):
-        flag = f"--depth {args.depth}" if args.depth not in (None, "none") else "--depth-checkpoint"
-        raise DepthnerfError(f"{args.checkpoint}: a baseline checkpoint (trained without a depth prior) takes no "
-                             f"depth prior; drop {flag}, or use a depth-aware checkpoint")
-    policy = inference_policy(device, fp32=args.fp32, compile=args.compile)
-    rec = Reconstructor(pretrained, device, depth_estimator=args.depth, depth_checkpoint=args.depth_checkpoint,
-                        policy=policy)
-    cfg = dataclasses.replace(cfg, chunk=policy.ray_chunk if args.chunk is None else args.chunk)
+    rec = Reconstructor(InferenceSession(args.checkpoint, options))
     result = rec.reconstruct(args.image, mask=args.mask, config=cfg, background=background)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:
         print(f"note: {note}")
-    if pretrained.model.cfg.mirror:
+    if rec.session.model.cfg.mirror:
         print(f"note: symmetry {result.settings['symmetry']}")
     mesh = manifest["mesh"]
     made = (f"mesh ({mesh['faces']} faces{', empty' if mesh['empty'] else ''})" if mesh["made"]

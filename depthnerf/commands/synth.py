@@ -4,7 +4,7 @@ Example: ``depthnerf synth --category cars --out data/synth --train-objects 20 -
 writes ``data/synth/cars_{train,val,test}/<object_id>/...`` (SRN layout plus depth, masks and meshes) and
 ``data/synth/cars_card.json``. Re-running the same command resumes: finished objects are skipped.
 ``--framing srn`` (default) frames objects as SRN's renderer does, ``--framing legacy`` as generator 1 (the data of
-the checkpoints shipped before session 5); ``--family heldout`` draws car and chair styles the standard family never does.
+an earlier set of shipped checkpoints); ``--family heldout`` draws car and chair styles the standard family never does.
 """
 
 from __future__ import annotations

@@ -67,9 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _apply_flags(cfg: TrainConfig, args: argparse.Namespace) -> TrainConfig:
     """--depth -> named flags -> --section.field overrides, on top of ``cfg``."""
     if args.depth is not None or args.depth_checkpoint is not None:
-        cfg = with_prior(cfg, args.depth or cfg.prior.estimator,
-                         args.depth_checkpoint if args.depth_checkpoint is not None else
-                         (cfg.prior.checkpoint if args.depth in (None, cfg.prior.estimator) else None))
+        prior = cfg.prior.override(args.depth, args.depth_checkpoint)
+        cfg = with_prior(cfg, prior.estimator, prior.checkpoint)
     if args.data is not None:
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(Path(args.data).resolve())))
     if args.seed is not None:

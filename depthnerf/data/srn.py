@@ -33,6 +33,7 @@ Conventions, as in pixelNeRF's ``SRNDataset`` unless said otherwise:
 from __future__ import annotations
 
 import sys
+import warnings
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -48,6 +49,7 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format, srn_parts
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.card import INTEGER_CENTRED
 from depthnerf.data.records import SPLITS, ObjectRecord, SplitIndex
 from depthnerf.data.srn_parts import PartReport
 from depthnerf.data.validate import check_object
@@ -278,7 +280,7 @@ def _resample(images: Float[Tensor, "V 3 H W"], masks: Bool[Tensor, "V H W"], de
 
 
 def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, resolution: int | None = None,
-                with_depth: bool = False, check_size: bool = True, pixel_center: float = 0.0) -> ObjectViews:
+                with_depth: bool = False, check_size: bool = True, pixel_center: float | None = None) -> ObjectViews:
     """Load views of one object (all by default) as tensors; see the module docstring for the conventions.
 
     ``resolution``: output height (width scales with it; SRN images are square), area resampling.
@@ -286,8 +288,15 @@ def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, res
     ``check_size``: an image whose size differs from ``intrinsics.txt`` is an error; with ``False`` the
     intrinsics are instead rescaled to the decoded size (which must be a uniform rescale).
     ``pixel_center``: the data's pixel (i, j) is centred at ``(j + c, i + c)`` in ``intrinsics.txt``'s coordinates;
-    the returned intrinsics are integer-centred (shifted by ``c`` at the file's resolution, then resized).
+    the returned intrinsics are integer-centred (shifted by ``c`` at the file's resolution, then resized). Callers
+    state it (a checkpoint's ``InferenceSpec.pixel_center``, a run's ``data.pixel_center``, or
+    :data:`~depthnerf.data.card.INTEGER_CENTRED` where only pixels are read); without it the files are read
+    integer-centred, with a warning saying so.
     """
+    if pixel_center is None:
+        warnings.warn("load_object: no pixel centre stated; intrinsics.txt read integer-centred (pixel (i, j) at "
+                      "(j, i), pixel_center 0.0, pixelNeRF's reading); pass pixel_center=", stacklevel=2)
+        pixel_center = INTEGER_CENTRED
     indices = _view_indices(record, views)
     if with_depth and not record.has_depth:
         raise DepthnerfError(f"{record.path}: no depth/ folder, or not a usable one (ground-truth depth requested)")

@@ -19,13 +19,13 @@ Where a dataset's plane comes from (:func:`dataset_plane`):
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 from jaxtyping import Float
 from torch import Tensor
 
+from depthnerf.data.card import card_path, read_dataset_card
 from depthnerf.errors import DepthnerfError
 
 SHAPENET_PLANE: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
@@ -67,15 +67,11 @@ def dataset_plane(root: str | Path, category: str,
     """The symmetry plane of a dataset and where it came from (see the module docstring)."""
     if override is not None:
         return normalized_plane(override, "--data.symmetry_plane"), "--data.symmetry_plane"
-    card_path = Path(root) / f"{category}_card.json"
-    if card_path.is_file():
-        try:
-            card = json.loads(card_path.read_text())
-        except (OSError, ValueError) as err:
-            raise DepthnerfError(f"{card_path}: unreadable dataset card ({err})") from None
-        plane = plane_from_card(card, str(card_path))
+    card = read_dataset_card(root, category)
+    if card is not None:
+        plane = plane_from_card(card, str(card_path(root, category)))
         if plane is not None:
-            return plane, f"dataset card {card_path.name}"
+            return plane, f"dataset card {card_path(root, category).name}"
     return SHAPENET_PLANE, "ShapeNet's left-right plane x = 0 (no dataset card states one)"
 
 

@@ -2,8 +2,9 @@
 
 Modules (public API):
 
-- :mod:`~depthnerf.depth.prior`: the prior's one road: ``PriorConfig`` (``--depth`` / ``--depth-checkpoint``),
-  ``open_prior(...)`` -> a ``PriorSource`` (dataset cache, live estimator, or none) serving raw disparity.
+- :mod:`~depthnerf.depth.prior`: the prior's one road: ``PriorConfig`` (``prior``: ``--depth`` /
+  ``--depth-checkpoint``, ``PriorConfig.override`` the one rule for them), ``open_prior(...)`` -> a ``PriorSource``
+  (``prior_source``: dataset cache, live estimator, or none) serving raw relative ``disparity``.
 - :mod:`~depthnerf.depth.estimators`: the ONE registry of names (``ESTIMATORS``, ``CACHED_ESTIMATORS``,
   ``PHOTO_ESTIMATORS``), ``make_estimator(name, checkpoint, device)``, ``describe_estimator(name, checkpoint)``.
 - :mod:`~depthnerf.depth.backend`: the convention (RGB ``[B,3,H,W]`` in [0,1] -> relative disparity ``[B,H,W]``,

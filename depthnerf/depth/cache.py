@@ -169,12 +169,14 @@ class OraclePriorStore(PriorStore):
     """``oracle``: ``1 / z`` on the foreground (0 on the background) from the dataset's ground-truth depth."""
 
     def load(self, record: Any, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+        from depthnerf.data.card import INTEGER_CENTRED
         from depthnerf.data.srn import load_object
 
         if not record.has_depth:
             raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, none found")
         views = self._check_views(record, views, Path(record.path))
-        obj = load_object(record, views, resolution=self.resolution, with_depth=True)
+        obj = load_object(record, views, resolution=self.resolution, with_depth=True,
+                          pixel_center=INTEGER_CENTRED)  # depth pixels only
         return oracle_disparity(obj.depths)
 
     def check(self, records: Sequence[Any]) -> None:

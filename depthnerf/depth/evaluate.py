@@ -103,6 +103,7 @@ def _view_subset(num_views: int, max_views: int | None) -> list[int]:
 
 def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
     """Score ``cfg.estimator`` on ``cfg.split`` (see the module docstring)."""
+    from depthnerf.data.card import INTEGER_CENTRED
     from depthnerf.data.srn import discover_categories, index_split, load_object
 
     provenance = describe_estimator(cfg.estimator, cfg.checkpoint)
@@ -132,7 +133,7 @@ def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
                disable=not cfg.progress)
     for record in bar:
         views = _view_subset(record.num_views, cfg.max_views)
-        obj = load_object(record, views, with_depth=True)
+        obj = load_object(record, views, with_depth=True, pixel_center=INTEGER_CENTRED)  # pixels only
         if store is not None:
             disparity = store.load(record, views)
         else:

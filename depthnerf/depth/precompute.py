@@ -114,6 +114,7 @@ def predict_views(estimator: DepthEstimator, images: torch.Tensor, depths: torch
 
 def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
     """Fill the cache for ``cfg`` (resumable; see the module docstring)."""
+    from depthnerf.data.card import INTEGER_CENTRED
     from depthnerf.data.srn import load_object
 
     if cfg.estimator not in CACHED_ESTIMATORS:
@@ -160,7 +161,7 @@ def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
             if estimator is None:  # loaded (and the manifest written) only once there is work to do
                 estimator = make_estimator(cfg.estimator, cfg.checkpoint, device=cfg.device)
                 write_json_atomic(manifest_path, manifest)
-            views = load_object(record, resolution=resolution)
+            views = load_object(record, resolution=resolution, pixel_center=INTEGER_CENTRED)  # pixels only
             disparity = predict_views(estimator, views.images, None, cfg.batch_size)
             write_object_priors(path, disparity, {
                 "fingerprint": fingerprint, "weights_hash": provenance.weights_hash,

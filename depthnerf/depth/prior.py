@@ -1,9 +1,10 @@
-"""The depth prior's one road: a :class:`PriorConfig` names it, a :class:`PriorSource` serves its raw disparity.
+"""The depth prior's one road: a :class:`PriorConfig` names it, a :class:`PriorSource` serves its disparity.
 
-``--depth NAME [--depth-checkpoint W]`` (every command) -> :class:`PriorConfig` (stored in the run config and in
-every checkpoint's inference spec) -> :func:`open_prior` -> a :class:`PriorSource` -> ``source.disparity(...)``
-(raw relative disparity ``[V, H, W]``) -> :func:`depthnerf.model.conditioning.condition` (normalised over the
-mask into ``SourceViews.prior``, the encoder's input). Whether the model is depth-aware is *derived* from the
+``--depth NAME [--depth-checkpoint W]`` (every command) -> a :class:`PriorConfig`, named ``prior`` (stored in the
+run config and in every checkpoint's inference spec; :meth:`PriorConfig.override` is the one rule for the flags)
+-> :func:`open_prior` -> a :class:`PriorSource`, named ``prior_source`` -> ``prior_source.disparity(...)`` (raw
+relative ``disparity`` ``[V, H, W]``) -> :func:`depthnerf.model.conditioning.condition` (normalised over the mask
+into ``SourceViews.disparity``, the encoder's input). Whether the model is depth-aware is *derived* from the
 config (:attr:`PriorConfig.enabled`), never stored beside it.
 
 Sources
@@ -52,6 +53,15 @@ class PriorConfig:
         """The model is depth-aware (its encoder takes the prior): every estimator but ``none``."""
         return self.estimator != "none"
 
+    def override(self, depth: str | None = None, depth_checkpoint: str | None = None) -> PriorConfig:
+        """This prior with ``--depth`` / ``--depth-checkpoint`` applied, the one rule of every command: None keeps
+        the estimator; the weights are ``depth_checkpoint`` when given, else this prior's own when the estimator
+        is unchanged, else the new estimator's default (None)."""
+        estimator = depth or self.estimator
+        if depth_checkpoint is not None:
+            return PriorConfig(estimator, depth_checkpoint)
+        return PriorConfig(estimator, self.checkpoint if estimator == self.estimator else None)
+
 
 @dataclass(frozen=True)
 class DatasetViews:
@@ -66,10 +76,12 @@ class DatasetViews:
 class PriorSource:
     """Raw relative disparity ``[V, H, W]`` (float32, CPU) of source views, or None without a prior."""
 
-    prior: PriorConfig
-    """What this source serves."""
+    config: PriorConfig
+    """The prior this source serves."""
     kind: str
     """``cache``, ``live`` or ``none``."""
+    needs_depths: bool = False
+    """:meth:`disparity` needs the views' ground-truth depth (the ``oracle`` prior run live)."""
 
     def disparity(self, images: Float[Tensor, "V 3 H W"], *, depths: Float[Tensor, "V H W"] | None = None,
                   where: DatasetViews | None = None) -> Float[Tensor, "V H W"] | None:
@@ -90,8 +102,8 @@ class NoPrior(PriorSource):
 
     kind = "none"
 
-    def __init__(self, prior: PriorConfig) -> None:
-        self.prior = prior
+    def __init__(self, config: PriorConfig) -> None:
+        self.config = config
 
     def disparity(self, images, *, depths=None, where=None):
         return None
@@ -102,12 +114,12 @@ class CachedPrior(PriorSource):
 
     kind = "cache"
 
-    def __init__(self, prior: PriorConfig, store: PriorStore) -> None:
-        self.prior, self.store = prior, store
+    def __init__(self, config: PriorConfig, store: PriorStore) -> None:
+        self.config, self.store = config, store
 
     def disparity(self, images, *, depths=None, where=None):
         if where is None:
-            raise DepthnerfError(f"the '{self.prior.estimator}' prior cache serves dataset views only; "
+            raise DepthnerfError(f"the '{self.config.estimator}' prior cache serves dataset views only; "
                                  "open a live prior source for photos")
         return self.store.load(where.record, list(where.views))
 
@@ -124,16 +136,17 @@ class LivePrior(PriorSource):
 
     kind = "live"
 
-    def __init__(self, prior: PriorConfig, device: str = "cpu", match_cache: bool = False) -> None:
-        self.prior, self.match_cache = prior, match_cache
-        self.estimator = make_estimator(prior.estimator, prior.checkpoint, device=device)
+    def __init__(self, config: PriorConfig, device: str = "cpu", match_cache: bool = False) -> None:
+        self.config, self.match_cache = config, match_cache
+        self.estimator = make_estimator(config.estimator, config.checkpoint, device=device)
+        self.needs_depths = self.estimator.needs_depth
 
     def disparity(self, images, *, depths=None, where=None):
         if self.estimator.needs_depth and depths is None:
             raise DepthnerfError("the 'oracle' depth prior needs ground-truth depth, which a photo does not have; "
                                  f"choose --depth {' or '.join(n for n in ESTIMATORS if estimator_entry(n).photo)}")
         disparity = self.estimator.predict(images, depths if self.estimator.needs_depth else None).float()
-        return as_cached(disparity) if self.match_cache and estimator_entry(self.prior.estimator).cached else disparity
+        return as_cached(disparity) if self.match_cache and estimator_entry(self.config.estimator).cached else disparity
 
     @property
     def provenance(self) -> dict[str, Any]:
@@ -149,6 +162,6 @@ def open_prior(prior: PriorConfig, *, data_root: str | os.PathLike | None = None
     if data_root is None:
         return LivePrior(prior, device, match_cache)
     store = PriorStore.open(Path(data_root), prior.estimator, prior.checkpoint, resolution=resolution)
-    source = CachedPrior(prior, store)
-    source.check(records)
-    return source
+    prior_source = CachedPrior(prior, store)
+    prior_source.check(records)
+    return prior_source

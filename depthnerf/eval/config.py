@@ -40,7 +40,6 @@ from pathlib import Path
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import GeometryConfig
 from depthnerf.eval.metrics import SSIM_WINDOWS, LpipsConfig
-from depthnerf.render.guidance import GuidanceConfig
 from depthnerf.render.mesh import AUTO_LEVEL
 
 SCORED = {"png8": "8-bit PNG renders, truncated as pixelNeRF's eval.py writes them (its paper numbers, "
@@ -99,7 +98,8 @@ class ProtocolChoices:
 
 @dataclass(frozen=True)
 class ProtocolConfig:
-    """What ``depthnerf eval`` evaluates and how."""
+    """What ``depthnerf eval`` evaluates and how (how the checkpoint runs, its prior, pixel centre, device policy,
+    chunk and guided sampling, is the session's: :class:`~depthnerf.infer.session.SessionOptions`)."""
 
     split: str = "test"
     """Split folder suffix (``<category>_<split>``)."""
@@ -111,8 +111,6 @@ class ProtocolConfig:
     """Evaluate only the first N objects (sorted by id, after the ones ``choices`` leave out); None = all."""
     resolution: int | None = None
     """Render/score resolution; None = the checkpoint's training resolution (:mod:`depthnerf.eval.protocol`)."""
-    chunk: int = 4096
-    """Rays per render pass (bounds memory)."""
     mesh: bool = True
     """Extract a mesh per object and score it against ``mesh.ply`` when the object has one."""
     mesh_resolution: int = 128
@@ -127,27 +125,8 @@ class ProtocolConfig:
     """SSIM variant, scored precision and left-out objects (module docstring; defaults are pixelNeRF's)."""
     method: str | None = None
     """Row label for ``depthnerf compare``; None = from the depth prior."""
-    depth: str | None = None
-    """Override of the depth prior recorded in the checkpoint (``--depth``; None: the checkpoint's)."""
-    depth_checkpoint: str | None = None
-    """Override of the depth estimator weights recorded in the checkpoint (``--depth-checkpoint``)."""
-    guided: GuidanceConfig | None = None
-    """Render targets with depth-guided sampling (``--guided BUDGET``, :mod:`depthnerf.render.guidance`); None:
-    the checkpoint's own sampler."""
     lpips: LpipsConfig = field(default_factory=LpipsConfig)
     """Where LPIPS weights are looked for (never downloaded)."""
-    pixel_center: float | None = None
-    """Pixel-centre convention the model reads the data with (see ``DataConfig.pixel_center``); None = the
-    checkpoint's trained value. Overriding it measures what a convention mismatch costs."""
-    encoder_norm: str = "running"
-    """How the encoder's BatchNorm normalises the input view (``--encoder-norm``, :meth:`PixelNeRF.encode`):
-    ``running`` statistics (pixelNeRF) or the ``image``'s own, as training normalises each object."""
-    symmetry: bool = True
-    """Mirror models (``PixelNeRFConfig.mirror``): condition on the dataset's symmetry plane
-    (:func:`depthnerf.data.symmetry.dataset_plane`); False (``--no-symmetry``) = on none, the model's no-plane
-    mode. Ignored for other models."""
-    symmetry_plane: tuple[float, ...] | None = None
-    """The plane ``nx,ny,nz,d`` to use instead of the dataset's (``--symmetry-plane``)."""
     progress: bool = True
     """Progress bar over objects (stderr)."""
     overwrite: bool = False

@@ -71,10 +71,8 @@ import torch
 import trimesh
 
 from depthnerf.data import srn_format
+from depthnerf.data.card import card_path, card_pixel_center, read_dataset_card
 from depthnerf.data.srn import ObjectRecord, index_split
-from depthnerf.data.symmetry import dataset_plane
-from depthnerf.data.synth.framing import dataset_pixel_center
-from depthnerf.depth.prior import PriorConfig, PriorSource
 from depthnerf.distributed import DistInfo
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.config import ProtocolChoices, ProtocolConfig
@@ -89,14 +87,12 @@ from depthnerf.eval.metrics import (
     object_metrics,
     summarize,
 )
-from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, dataset_prior, prepare_object, protocol_views
+from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, prepare_object, protocol_views
 from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects
 from depthnerf.files import write_text_atomic
-from depthnerf.pretrained.load import Pretrained
-from depthnerf.render.guidance import guided_render, make_source_guide
-from depthnerf.render.mesh import MeshConfig, input_camera_mesh, levels_text
-from depthnerf.render.precision import InferencePolicy, field_runtime
-from depthnerf.render.views import render_poses
+from depthnerf.infer.session import InferenceSession
+from depthnerf.render.mesh import MeshConfig, levels_text
+from depthnerf.render.source_guide import guided_record
 
 __all__ = ["ProtocolChoices", "ProtocolConfig", "ObjectResult", "EvalOutputs", "evaluate_protocol", "method_label",
            "protocol_text", "PER_OBJECT_COLUMNS"]
@@ -122,52 +118,32 @@ def method_label(estimator: str) -> str:
 
 
 class _Evaluator:
-    """Per-object evaluation with the state shared across objects (model, prior store, LPIPS, settings)."""
+    """Per-object evaluation with the state shared across objects (the session, LPIPS, settings)."""
 
-    def __init__(self, pre: Pretrained, cfg: ProtocolConfig, prior: PriorSource, lpips: LpipsMetric | None,
-                 input_res: int, eval_res: int, out_dir: Path, device: torch.device,
-                 policy: InferencePolicy | None, data_root: Path, category: str) -> None:
-        self.pre, self.cfg, self.prior, self.lpips = pre, cfg, prior, lpips
-        self.runtime = field_runtime(pre.model, policy)  # built once: it holds compiled MLPs with --compile
-        self.input_res, self.eval_res, self.out_dir, self.device = input_res, eval_res, out_dir, device
-        self.near, self.far = pre.spec.z_range
-        self.render = pre.spec.render if cfg.guided is None else guided_render(pre.spec.render, cfg.guided.budget)
-        self.pixel_center = pre.spec.pixel_center if cfg.pixel_center is None else cfg.pixel_center
-        self.symmetry_plane: tuple[float, ...] | None = None
-        self.symmetry_from = "not a mirror model"
-        if pre.model.cfg.mirror:
-            self.symmetry_from = "off (--no-symmetry)"
-            if cfg.symmetry:
-                self.symmetry_plane, self.symmetry_from = dataset_plane(data_root, category, cfg.symmetry_plane)
+    def __init__(self, session: InferenceSession, cfg: ProtocolConfig, lpips: LpipsMetric | None, eval_res: int,
+                 out_dir: Path, category: str) -> None:
+        self.session, self.cfg, self.lpips, self.eval_res, self.out_dir = session, cfg, lpips, eval_res, out_dir
+        self.symmetry_plane, self.symmetry_from = session.dataset_symmetry(category)
         self.png8 = cfg.choices.scored == "png8"
         self.metrics_cfg = ImageMetricsConfig(quantize_pred=self.png8, ssim_window=cfg.choices.ssim)
 
     @torch.no_grad()
     def __call__(self, record: ObjectRecord) -> ObjectResult:
-        model, cfg = self.pre.model, self.cfg
+        session, cfg = self.session, self.cfg
         views = protocol_views(record.num_views, cfg.views_stride)
         torch.manual_seed(object_seed(record.object_id))  # eval_random draws: the same in any process
         t0 = time.perf_counter()
-        obj = prepare_object(model, record, views, self.prior, self.input_res, self.eval_res, self.device,
-                             pixel_center=self.pixel_center, symmetry_plane=self.symmetry_plane,
-                             encoder_norm=cfg.encoder_norm)
-        src, tgt, enc = obj.source, obj.targets, obj.enc
-        guide = None
-        if cfg.guided is not None:
-            guide = make_source_guide(model.field(enc, "coarse", self.runtime), src.poses[:1].to(self.device),
-                                      src.intrinsics, self.near, self.far, obj.prior, src.masks[:1].to(self.device),
-                                      self.pre.spec.render, cfg.guided, cfg.chunk)
-        preds = render_poses(model, enc, tgt.poses, tgt.intrinsics, self.near, self.far, self.render,
-                             cfg.chunk, self.device, guide=guide, runtime=self.runtime).rgb.numpy()
+        obj = prepare_object(session, record, views, self.eval_res, self.symmetry_plane)
+        tgt = obj.targets
+        preds = session.render(obj.encoded, tgt.poses, tgt.intrinsics).rgb.numpy()
         gts = tgt.images.permute(0, 2, 3, 1).numpy()
         t1 = time.perf_counter()
         metrics = object_metrics(record.object_id, preds, gts, self.metrics_cfg, self.lpips)
         t2 = time.perf_counter()
         geometry, mesh, level = None, None, None
         if cfg.mesh and record.mesh_path is not None:
-            mesh, level = input_camera_mesh(model, enc, src.poses[0], src.intrinsics, self.near, self.far,
-                                            MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device,
-                                            colored=False, runtime=self.runtime)
+            mesh, level = session.mesh(obj.encoded, MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold),
+                                       colored=False)
             geometry = object_geometry(mesh, record, cfg.geometry)
         t3 = time.perf_counter()
         rows = self._save(record, views, preds, gts, metrics, mesh) if cfg.save_renders else []
@@ -259,62 +235,58 @@ def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: st
             f"{res}, {sampling}")
 
 
-def _data_card(root: Path, category: str) -> dict:
-    card_path = root / f"{category}_card.json"
-    card = None
-    if card_path.is_file():
-        try:
-            card = json.loads(card_path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
-            raise DepthnerfError(f"{card_path}: unreadable dataset card ({err})") from None
-    return {"root": str(root.resolve()), "card_path": str(card_path.resolve()) if card else None, "card": card}
+def _data_card(root: Path, category: str, card: dict | None) -> dict:
+    path = card_path(root, category)
+    return {"root": str(root.resolve()), "card_path": str(path.resolve()) if card else None, "card": card}
 
 
-def _settings(pre: Pretrained, cfg: ProtocolConfig, data_root: Path, category: str, prior: PriorSource,
-              eval_res: int, pixel_center: float, lpips_ok: bool, device: torch.device,
-              policy: InferencePolicy | None) -> dict:
+def _settings(session: InferenceSession, cfg: ProtocolConfig, data_root: Path, category: str, eval_res: int,
+              lpips_ok: bool) -> dict:
     """What every per-object result depends on (the resume check of
     :class:`~depthnerf.eval.shards.ObjectStore`)."""
+    pre, spec, guided = session.pretrained, session.spec, session.guided
     return {"checkpoint_sha256": pre.sha256, "data_root": str(data_root.resolve()), "category": category,
             "split": cfg.split, "views_stride": cfg.views_stride, "resolution": eval_res,
-            "input_resolution": pre.spec.resolution, "chunk": cfg.chunk, "mesh": cfg.mesh,
+            "input_resolution": spec.resolution, "chunk": session.chunk, "mesh": cfg.mesh,
             "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
             "geometry": dataclasses.asdict(cfg.geometry), "save_renders": cfg.save_renders,
-            "choices": dataclasses.asdict(cfg.choices), "prior": prior.provenance,
-            "guided": None if cfg.guided is None else dataclasses.asdict(cfg.guided), "lpips": lpips_ok,
-            "lpips_net": cfg.lpips.net, "pixel_center": pixel_center, "device": device.type,
-            "autocast": str(None if policy is None else policy.autocast),
-            "point_chunk": None if policy is None else policy.point_chunk,
-            **({"encoder_norm": cfg.encoder_norm} if cfg.encoder_norm != "running" else {}),
-            **({"symmetry_plane": None if cfg.symmetry_plane is None else list(cfg.symmetry_plane),
-                "symmetry": cfg.symmetry} if pre.model.cfg.mirror else {})}
+            "choices": dataclasses.asdict(cfg.choices), "prior": session.prior_source.provenance,
+            "guided": None if guided is None else guided_record(guided), "lpips": lpips_ok,
+            "lpips_net": cfg.lpips.net, "pixel_center": spec.pixel_center, "device": session.device.type,
+            "autocast": str(session.policy.autocast), "point_chunk": session.policy.point_chunk,
+            **({"encoder_norm": session.options.encoder_norm} if session.options.encoder_norm != "running" else {}),
+            **({"symmetry_plane": None if session.options.symmetry_plane is None
+                else list(session.options.symmetry_plane), "symmetry": session.options.symmetry}
+               if session.model.cfg.mirror else {})}
 
 
-def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: ProtocolConfig | None = None,
-                      device: torch.device | str = "cpu", info: DistInfo | None = None,
-                      policy: InferencePolicy | None = None) -> EvalOutputs | None:
-    """Run the protocol on ``data_root`` and write ``out_dir`` (see the module docstring), the fields under
-    ``policy`` (``depthnerf.render.precision``; None: fp32, the config's point chunk). With ``info`` (a
-    ``torchrun`` job) this rank scores its share of the objects; rank 0 merges and returns the outputs, the other
-    ranks return None."""
+def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolConfig | None = None,
+                      info: DistInfo | None = None) -> EvalOutputs | None:
+    """Run the protocol on the session's dataset and write ``out_dir`` (see the module docstring). The session
+    (``SessionOptions(inputs="dataset", data_root=...)``: the checkpoint with the caller's overrides, the
+    dataset's prior cache, the device policy) is how the model runs. With ``info`` (a ``torchrun`` job) this rank
+    scores its share of the objects; rank 0 merges and returns the outputs, the other ranks return None."""
     t_start = time.perf_counter()
-    device = torch.device(device)
+    if session.options.inputs != "dataset":
+        raise DepthnerfError("evaluate_protocol needs a session on a dataset's prior cache "
+                             "(SessionOptions(inputs='dataset', data_root=...))")
+    device = session.device
     info = info or DistInfo(rank=0, world=1, device=device)
     cfg = cfg or ProtocolConfig()
     choices = cfg.choices.check()
-    spec = pre.spec
-    data_root, out_dir = Path(data_root), Path(out_dir)
+    pre, spec = session.pretrained, session.spec
+    data_root, out_dir = Path(session.options.data_root), Path(out_dir)
     category = cfg.category or spec.category
     if cfg.views_stride < 1:
         raise DepthnerfError(f"--views-stride must be >= 1, got {cfg.views_stride}")
     if cfg.max_objects is not None and cfg.max_objects < 1:
         raise DepthnerfError(f"--max-objects must be >= 1, got {cfg.max_objects}")
-    if cfg.chunk < 1 or cfg.mesh_resolution < 2:
-        raise DepthnerfError(f"--chunk must be >= 1 and --mesh-resolution >= 2 (got {cfg.chunk}, "
-                             f"{cfg.mesh_resolution})")
+    if cfg.mesh_resolution < 2:
+        raise DepthnerfError(f"--mesh-resolution must be >= 2, got {cfg.mesh_resolution}")
     all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
+    card = read_dataset_card(data_root, category)
     # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
-    cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=dataset_pixel_center(data_root, category)))
+    cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=card_pixel_center(card)))
     skipped = [r.object_id for r in all_records if choices.skips(r.object_id)]
     kept = [r for r in all_records if not choices.skips(r.object_id)]
     if not kept:
@@ -326,22 +298,13 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
     side = max(8, SSIM_WINDOW_SIDE[choices.ssim])
     if eval_res < side:
         raise DepthnerfError(f"--resolution must be >= {side} (SSIM {choices.ssim}), got {eval_res}")
-    prior_cfg = spec.prior
-    if cfg.depth is not None or cfg.depth_checkpoint is not None:
-        estimator = cfg.depth or prior_cfg.estimator
-        if (estimator != "none") != prior_cfg.enabled:
-            raise DepthnerfError(f"--depth {estimator}: the checkpoint's model was trained "
-                                 f"{'with' if prior_cfg.enabled else 'without'} a depth prior")
-        prior_cfg = PriorConfig(estimator, cfg.depth_checkpoint if cfg.depth_checkpoint is not None else (
-            prior_cfg.checkpoint if estimator == prior_cfg.estimator else None))
-    estimator = prior_cfg.estimator
-    prior = dataset_prior(spec, data_root, records, prior_cfg)
+    session.prior_source.check(records)
+    estimator, guided = spec.prior.estimator, session.guided
     lpips = load_lpips(cfg.lpips, device)
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
     out_dir.mkdir(parents=True, exist_ok=True)
-    evaluator = _Evaluator(pre, cfg, prior, lpips, input_res, eval_res, out_dir, device, policy, data_root, category)
-    store = ObjectStore(out_dir, _settings(pre, cfg, data_root, category, prior, eval_res,
-                                           evaluator.pixel_center, lpips is not None, device, policy))
+    evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category)
+    store = ObjectStore(out_dir, _settings(session, cfg, data_root, category, eval_res, lpips is not None))
     results, counts = evaluate_objects(records, evaluator, store, info, cfg.views_stride, overwrite=cfg.overwrite,
                                        progress=cfg.progress)
     if results is None:
@@ -367,17 +330,17 @@ def evaluate_protocol(pre: Pretrained, data_root: Path, out_dir: Path, cfg: Prot
                                   input_res, deterministic, skipped),
         "protocol_choices": choices.record(skipped),
         "method": cfg.method or method_label(estimator) + (
-            f" + guided sampling ({cfg.guided.budget}/ray)" if cfg.guided is not None else ""),
-        "guided_sampling": None if cfg.guided is None else dataclasses.asdict(cfg.guided),
+            f" + guided sampling ({guided.budget}/ray)" if guided is not None else ""),
+        "guided_sampling": None if guided is None else guided_record(guided),
         "category": category, "split": cfg.split, "preset": spec.preset,
-        "depth_prior": estimator, "depth_prior_provenance": prior.provenance,
+        "depth_prior": estimator, "depth_prior_provenance": session.prior_source.provenance,
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,
-        "data_card": _data_card(data_root, category),
+        "data_card": _data_card(data_root, category, card),
         "resolution": eval_res, "input_resolution": input_res, "train_resolution": spec.resolution,
         "native_resolution": [list(s) for s in native],
         "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
-        "pixel_center": evaluator.pixel_center, "trained_pixel_center": spec.pixel_center,
-        "encoder_norm": cfg.encoder_norm,
+        "pixel_center": spec.pixel_center, "trained_pixel_center": pre.spec.pixel_center,
+        "encoder_norm": session.options.encoder_norm,
         "symmetry_plane": None if evaluator.symmetry_plane is None else list(evaluator.symmetry_plane),
         "symmetry_plane_source": evaluator.symmetry_from,
         "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),

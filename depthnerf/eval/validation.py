@@ -35,7 +35,7 @@ class ValidationResult:
 
 
 @torch.no_grad()
-def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSource, views: Sequence[int],
+def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: PriorSource, views: Sequence[int],
              spec: InferenceSpec, chunk: int, device: torch.device,
              progress: Callable[[int], Any] | None = None,
              symmetry_plane: Sequence[float] | None = None) -> ValidationResult:
@@ -50,7 +50,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior: PriorSour
             src = protocol_views(record.num_views).input_view
             targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
             obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=spec.pixel_center)
-            cond = condition(prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
+            cond = condition(prior_source, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
                              where=DatasetViews(record, (src,)), symmetry_plane=symmetry_plane)
             disparity = cond.disparity
             enc = model.encode(cond.inputs)

@@ -55,10 +55,11 @@ class DepthEncoder(nn.Module):
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
 
-    def forward(self, prior: Float[Tensor, "N 1 H W"], groups: ObjectGroups | None = None
+    def forward(self, disparity: Float[Tensor, "N 1 H W"], groups: ObjectGroups | None = None
                 ) -> Float[Tensor, "N Cd H2 W2"]:
-        """``groups``: the per-object BatchNorm plan of the encoder call (``depthnerf.model.norm``)."""
-        x = prior
+        """``disparity``: the (scaled) normalised prior; ``groups``: the per-object BatchNorm plan of the encoder
+        call (``depthnerf.model.norm``)."""
+        x = disparity
         for layer in self.net:
             x = layer(x, groups) if isinstance(layer, ObjectBatchNorm2d) else layer(x)
         return x
@@ -175,22 +176,22 @@ class ImageEncoder(nn.Module):
         """Feature channels C."""
         return self.cfg.latent_size(self.depth_aware)
 
-    def forward(self, images: Float[Tensor, "N 3 H W"], prior: Float[Tensor, "N 1 H W"] | None = None,
+    def forward(self, images: Float[Tensor, "N 3 H W"], disparity: Float[Tensor, "N 1 H W"] | None = None,
                 objects: int = 1, *, image_stats: bool = False) -> Float[Tensor, "N C Hf Wf"]:
         """Feature maps of ``N = objects * V`` images; in training mode BatchNorm statistics are per object
         (``depthnerf.model.norm``: one plan per call, passed to every layer, folded at the end), so encoding B
         objects together equals encoding them one at a time; ``image_stats``: in evaluation mode too."""
         groups = object_groups(self, objects, image_stats)
-        feats = self._forward(images, prior, groups)
+        feats = self._forward(images, disparity, groups)
         groups.fold()
         return feats
 
-    def _forward(self, images: Tensor, prior: Tensor | None, groups: ObjectGroups) -> Tensor:
+    def _forward(self, images: Tensor, disparity: Tensor | None, groups: ObjectGroups) -> Tensor:
         x = images * 2.0 - 1.0
         if self.depth_aware:
-            if prior is None:
+            if disparity is None:
                 raise DepthnerfError("depth-aware model (a depth prior is configured) needs a depth prior, got None")
-            x = torch.cat([x, prior * self.cfg.prior_scale], dim=1)
+            x = torch.cat([x, disparity * self.cfg.prior_scale], dim=1)
         if self.cfg.image_scale != 1.0:
             up = self.cfg.image_scale > 1.0
             x = F.interpolate(x, scale_factor=self.cfg.image_scale, mode="bilinear" if up else "area",

@@ -59,9 +59,9 @@ class SourceViews(TensorBundle):
     """Focal length in pixels (one per object, shared by its views)."""
     principal: Float[Tensor, "B 2"]
     """Principal point (cx, cy) in pixels."""
-    prior: Float[Tensor, "B V 1 H W"] | None = None
-    """Normalised disparity prior (``depthnerf.depth.normalize.normalize_disparity``: foreground in [-4, 4],
-    larger = nearer, background -5); required iff the encoder uses depth, ignored otherwise."""
+    disparity: Float[Tensor, "B V 1 H W"] | None = None
+    """The depth prior's relative disparity, normalised (``depthnerf.depth.normalize.normalize_disparity``:
+    foreground in [-4, 4], larger = nearer, background -5); required iff the encoder uses depth, ignored otherwise."""
     symmetry_plane: Float[Tensor, "B 4"] | None = None
     """Each object's mirror-symmetry plane in the world frame (:mod:`depthnerf.data.symmetry`; a zero row: no
     plane); read by models with ``PixelNeRFConfig.mirror``, ignored otherwise. None: no object has one."""
@@ -106,9 +106,9 @@ def _check_sources(src: SourceViews, depth_aware: bool) -> None:
     b, v, _, h, w = images.shape
     expected = {"poses": (src.poses, (b, v, 4, 4)), "focal": (src.focal, (b,)), "principal": (src.principal, (b, 2))}
     if depth_aware:
-        if src.prior is None:
-            raise DepthnerfError("SourceViews.prior is None but the depth-aware model needs it")
-        expected["prior"] = (src.prior, (b, v, 1, h, w))
+        if src.disparity is None:
+            raise DepthnerfError("SourceViews.disparity is None but the depth-aware model needs the depth prior")
+        expected["disparity"] = (src.disparity, (b, v, 1, h, w))
     if src.symmetry_plane is not None:
         expected["symmetry_plane"] = (src.symmetry_plane, (b, 4))
     for name, (tensor, shape) in expected.items():
@@ -141,8 +141,8 @@ class PixelNeRF(nn.Module):
         if encoder_norm not in ENCODER_NORMS:
             raise DepthnerfError(f"encoder_norm must be one of {', '.join(ENCODER_NORMS)}, got {encoder_norm!r}")
         b, v, _, h, w = src.images.shape
-        prior = src.prior.reshape(b * v, 1, h, w) if self.depth_aware else None
-        feats = self.encoder(src.images.reshape(b * v, 3, h, w), prior, objects=b,
+        disparity = src.disparity.reshape(b * v, 1, h, w) if self.depth_aware else None
+        feats = self.encoder(src.images.reshape(b * v, 3, h, w), disparity, objects=b,
                              image_stats=encoder_norm == "image")
         plane = src.symmetry_plane
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),

@@ -8,18 +8,20 @@
 4. a run directory: its ``checkpoints/best`` if validation ran, else its latest checkpoint.
 
 The weights' metadata carries the inference spec (:mod:`depthnerf.pretrained.spec`; derived from the stored
-model and training configs for checkpoints written before specs existed), so the model is rebuilt exactly and
-loaded strictly (a mismatch is an error naming the file, never a partial load).
+model and training configs for checkpoints written before specs existed, and its framing derived here for specs
+written before the framing was), so the model is rebuilt exactly and loaded strictly (a mismatch is an error
+naming the file, never a partial load).
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 
+from depthnerf.data.synth.framing import checkpoint_framing
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import PixelNeRF
@@ -28,6 +30,8 @@ from depthnerf.pretrained.weights import latest_checkpoint, load_state_strict, r
 
 SHIPPED_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
 """Where the package's own checkpoints live."""
+SPEC_FRAMING = "the checkpoint's inference spec"
+"""``Pretrained.framing_origin`` of a checkpoint whose spec states its framing."""
 
 
 def shipped_checkpoints() -> dict[str, Path]:
@@ -35,12 +39,12 @@ def shipped_checkpoints() -> dict[str, Path]:
     return {p.stem: p for p in sorted(SHIPPED_DIR.glob("*.safetensors"))}
 
 
-def resolve_checkpoint(spec: str | Path) -> Path:
-    """The weights file a checkpoint spec names (see the module docstring)."""
+def resolve_checkpoint(checkpoint: str | Path) -> Path:
+    """The weights file ``checkpoint`` names: a shipped name or a path (see the module docstring)."""
     shipped = shipped_checkpoints()
-    if isinstance(spec, str) and spec in shipped:
-        return shipped[spec]
-    path = Path(spec)
+    if isinstance(checkpoint, str) and checkpoint in shipped:
+        return shipped[checkpoint]
+    path = Path(checkpoint)
     if path.is_file():
         return path
     if (path / "model.safetensors").is_file():
@@ -54,7 +58,8 @@ def resolve_checkpoint(spec: str | Path) -> Path:
             return latest / "model.safetensors"
         raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")
     names = ", ".join(shipped) or "none shipped"
-    raise DepthnerfError(f"{spec}: not a checkpoint file, checkpoint folder, run folder or shipped name ({names})")
+    raise DepthnerfError(f"{checkpoint}: not a checkpoint file, checkpoint folder, run folder or shipped name "
+                         f"({names})")
 
 
 @dataclass
@@ -73,18 +78,25 @@ class Pretrained:
     """Training steps behind these weights."""
     data_root: str | None = None
     """Dataset root the model was trained on (provenance; a default for ``depthnerf eval --data``)."""
+    framing_origin: str = SPEC_FRAMING
+    """Where ``spec.framing`` was read: :data:`SPEC_FRAMING`, or for older checkpoints the card it was derived
+    from (:func:`~depthnerf.data.synth.framing.checkpoint_framing`)."""
 
 
-def load_pretrained(spec: str | Path, device: torch.device | str = "cpu") -> Pretrained:
-    """Load a checkpoint spec into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
-    path = resolve_checkpoint(spec)
+def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") -> Pretrained:
+    """Load a checkpoint (shipped name or path) into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
+    path = resolve_checkpoint(checkpoint)
     tensors, meta = read_weights(path)
-    inference = spec_from_metadata(meta, str(path))
+    inference, data_root = spec_from_metadata(meta, str(path)), _data_root(meta)
+    origin = SPEC_FRAMING
+    if inference.framing is None:  # written before the spec held the framing: derived once, here
+        framing, origin = checkpoint_framing(path, data_root, inference.category)
+        inference = replace(inference, framing=framing)
     model = PixelNeRF(inference.model, depth_aware=inference.depth_aware)
     load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
     model.to(device).eval()
     return Pretrained(model=model, spec=inference, path=path, sha256=sha256_file(path),
-                      step=int(meta.get("step", 0)), data_root=_data_root(meta))
+                      step=int(meta.get("step", 0)), data_root=data_root, framing_origin=origin)
 
 
 def _data_root(meta: dict[str, str]) -> str | None:

@@ -1,9 +1,11 @@
 """The inference spec: everything needed to run a trained model as it was trained, stored in every checkpoint.
 
 A checkpoint's weights metadata holds ``inference_spec`` (the JSON of :class:`InferenceSpec`). Checkpoints written
-before the spec existed (the shipped ``depthnerf/checkpoints/*.safetensors`` and older run folders) hold the
-model config (``config``) and the whole training config (``train_config``) instead; :func:`spec_from_metadata`
-derives the same spec from those, so both load alike.
+before the spec existed (older run folders) hold the model config (``config``) and the whole training config
+(``train_config``) instead; :func:`spec_from_metadata` derives the same spec from those, so both load alike.
+Specs written before the ``framing`` field (the shipped ``depthnerf/checkpoints/*.safetensors`` among them) have
+none; :func:`depthnerf.pretrained.load.load_pretrained` derives it once, at load
+(:func:`~depthnerf.data.synth.framing.checkpoint_framing`), so a loaded spec always states it.
 
 Legacy rule for ``encoder.use_depth``: older model configs stored it beside the prior. It is accepted only when
 it agrees with the prior (``use_depth == prior.estimator != "none"``) and then dropped; a disagreement is an error
@@ -48,7 +50,12 @@ class InferenceSpec:
     """Far bound of the ray distance."""
     pixel_center: float = 0.0
     """Pixel-centre convention the model read its data with (``DataConfig.pixel_center``: pixel (i, j) centred at
-    ``(j + c, i + c)`` in ``intrinsics.txt``'s coordinates); 0.0 for checkpoints written before it existed."""
+    ``(j + c, i + c)`` in ``intrinsics.txt``'s coordinates); 0.0 for checkpoints written before it existed (they
+    all read their data so)."""
+    framing: str | None = None
+    """Framing of the training data (``srn`` or ``legacy``, :mod:`depthnerf.data.synth.framing`): what a photo is
+    framed to and how the demo synthesises objects; a dataset without a card (real SRN) is ``srn``. None only in
+    the stored JSON of checkpoints written before the field: loading derives it."""
     prior_weights_hash: str | None = None
     """SHA-256 of the prior's weights at training time (None: no prior, or not recorded by older checkpoints)."""
     preset: str = "custom"

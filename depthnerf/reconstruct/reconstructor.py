@@ -9,12 +9,17 @@ Camera
     rescaled to the working resolution. Defaults: the checkpoint's training category
     (:func:`~depthnerf.data.srn.category_defaults`), elevation 20 degrees; a category without defaults needs both
     ``radius`` and ``focal`` (then in pixels of a 128 px frame).
+Session
+    A Reconstructor is a thin user of an :class:`~depthnerf.infer.session.InferenceSession` on photos: the
+    checkpoint's spec with the caller's overrides, the prior source, the device policy (bf16 and large ray chunks
+    on CUDA, fp32 and 4096 rays on the CPU) and the guided setup are resolved there, once, for the CLI, the
+    Python API, the demo and the app alike.
 Depth prior (depth-aware checkpoints)
-    The checkpoint's estimator run live on the prepared image at the training resolution (a
+    The checkpoint's estimator run live on the prepared image at the training resolution (the session's
     :class:`~depthnerf.depth.prior.PriorSource`), normalised over the mask by the conditioning stage
     (:func:`depthnerf.model.conditioning.condition`), as in training. ``oracle`` needs ground-truth depth,
-    impossible for a photo: an error suggesting ``--depth bundled``. ``ReconstructConfig.guided`` renders with
-    depth-guided sampling (:mod:`depthnerf.render.guidance`).
+    impossible for a photo: an error suggesting ``--depth bundled``. Guided sampling (``--guided``, the session's
+    or ``ReconstructConfig.guided`` per call): :mod:`depthnerf.render.source_guide`.
 Outputs
     N views on the orbit through the input camera (rendered at ``render_resolution``, default the training one),
     their depth (ray distance, opacity-normalised) and opacity, a mesh (marching cubes over the input camera's
@@ -43,22 +48,17 @@ from tqdm import tqdm
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import category_defaults
 from depthnerf.data.symmetry import facing_plane
-from depthnerf.data.synth.framing import checkpoint_framing
-from depthnerf.depth.estimators import PHOTO_ESTIMATORS
-from depthnerf.depth.prior import PriorConfig, open_prior
 from depthnerf.errors import DepthnerfError
-from depthnerf.model.conditioning import Conditioned, condition
-from depthnerf.model.pixelnerf import EncodedViews
-from depthnerf.pretrained.load import Pretrained, load_pretrained
+from depthnerf.infer.session import EncodedView, InferenceSession, SessionOptions
+from depthnerf.pretrained.load import Pretrained
 from depthnerf.reconstruct.background import MODES, BackgroundRemover, choose_remover
 from depthnerf.reconstruct.exports import save_reconstruction
 from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsics
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
-from depthnerf.render.guidance import GuidanceConfig, guided_render, make_source_guide
-from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, input_camera_mesh
-from depthnerf.render.precision import InferencePolicy, field_runtime
-from depthnerf.render.views import ViewRenders, render_poses
+from depthnerf.render.config import GuidedConfig
+from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig
+from depthnerf.render.views import ViewRenders
 
 POINT_OPACITY = 0.5
 """Rendered pixels with more than this opacity go into the point cloud."""
@@ -91,10 +91,11 @@ class ReconstructConfig:
     """Density level of the mesh surface, or ``"auto"`` (see :mod:`depthnerf.render.mesh`)."""
     max_points: int | None = 200_000
     """Largest point-cloud size (None: every point)."""
-    chunk: int = 4096
-    """Rays per render pass."""
-    guided: GuidanceConfig | None = None
-    """Render with depth-guided sampling (:mod:`depthnerf.render.guidance`); None: the checkpoint's sampler."""
+    chunk: int | None = None
+    """Rays per render pass; None: the session's (the device policy's: 4096 on the CPU, 65536 on CUDA)."""
+    guided: GuidedConfig | None = None
+    """Render with depth-guided sampling (:func:`~depthnerf.render.source_guide.guided_config`); None: the
+    session's guided setup (by default the checkpoint's own sampler)."""
     progress: bool = False
     """Show a progress bar (stderr)."""
     background_removal: str = "auto"
@@ -128,50 +129,34 @@ class ReconstructConfig:
                                  f"got {self.background_removal!r}")
 
 
-@dataclass
-class EncodedInput:
-    """One input view conditioned on its prior and encoded (what every rendering of the object starts from)."""
-
-    inputs: Conditioned
-    """The encoder's input and the raw prior."""
-    enc: EncodedViews
-    """The model's features of the view."""
-    pose: Float[torch.Tensor, "4 4"]
-    """Camera-to-world pose of the input view."""
-    intr: Intrinsics
-    """Intrinsics of the input view (the training resolution)."""
-    mask: Bool[torch.Tensor, "1 H W"]
-    """Foreground mask of the input view."""
-
-
 class Reconstructor:
-    """A loaded checkpoint that turns one photo into novel views, depths, a mesh and a point cloud."""
+    """Turns one photo into novel views, depths, a mesh and a point cloud, over an inference session."""
 
-    def __init__(self, pretrained: Pretrained, device: torch.device | str = "cpu", depth_estimator: str | None = None,
-                 depth_checkpoint: str | None = None, *, photos: bool = True, match_cache: bool = False,
-                 policy: InferencePolicy | None = None) -> None:
-        """``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
-        checkpoint's prior; ``photos``: inputs are photos without ground-truth depth (so the prior must be one
-        that runs on a photo); ``match_cache`` rounds the live prior as the dataset cache stores it
-        (:func:`depthnerf.depth.cache.as_cached`), so results equal ``depthnerf eval``'s on the same view;
-        ``policy``: how the fields run (``depthnerf.render.precision``; None: fp32, the config's point chunk)."""
-        self.pretrained = pretrained
-        self.runtime = field_runtime(pretrained.model, policy)  # built once: it holds compiled MLPs with --compile
-        self.device = torch.device(device)
-        spec = pretrained.spec
-        name = depth_estimator or spec.prior.estimator
-        if spec.depth_aware and name == "none":
-            raise DepthnerfError(f"{pretrained.path}: depth-aware checkpoint needs a depth prior; pass --depth "
-                                 f"{' or '.join(PHOTO_ESTIMATORS)}, not 'none'")
-        if photos and spec.depth_aware and name not in PHOTO_ESTIMATORS:
-            raise DepthnerfError(f"{pretrained.path}: trained with the '{name}' prior (ground-truth depth), which a "
-                                 f"photo does not have; pass --depth {' or '.join(PHOTO_ESTIMATORS)}")
-        ckpt = depth_checkpoint if depth_checkpoint is not None else (
-            spec.prior.checkpoint if name == spec.prior.estimator else None)
-        self.prior_config = PriorConfig(name, ckpt) if spec.depth_aware else PriorConfig("none")
-        self.prior = open_prior(self.prior_config, device=str(self.device), match_cache=match_cache)
-        self.framing, self.framing_source = checkpoint_framing(pretrained.path, pretrained.data_root, spec.category)
+    def __init__(self, session: InferenceSession) -> None:
+        """``session``: the checkpoint with its overrides resolved (:meth:`from_pretrained` makes one)."""
+        self.session = session
         self._removers: dict[tuple[str, str | None], BackgroundRemover] = {}
+
+    @classmethod
+    def from_pretrained(cls, checkpoint: str | Path | Pretrained, device: torch.device | str = "cpu",
+                        depth_estimator: str | None = None, depth_checkpoint: str | None = None,
+                        **options: Any) -> Reconstructor:
+        """Load a shipped name, weights file, checkpoint folder or run folder (``load_pretrained``) into a session
+        on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
+        checkpoint's prior, ``options`` are further :class:`~depthnerf.infer.session.SessionOptions` (``fp32``,
+        ``compile``, ``chunk``, ``guided``, ``pixel_center``, ``policy``, ``inputs``)."""
+        return cls(InferenceSession(checkpoint, SessionOptions(device=device, depth=depth_estimator,
+                                                               depth_checkpoint=depth_checkpoint, **options)))
+
+    @property
+    def pretrained(self) -> Pretrained:
+        """The loaded checkpoint (its own spec: ``pretrained.spec``; the resolved one: ``session.spec``)."""
+        return self.session.pretrained
+
+    @property
+    def framing(self) -> str:
+        """Framing of the model's training data (``session.framing``)."""
+        return self.session.framing
 
     def background_remover(self, mode: str = "auto", model: str | None = None) -> BackgroundRemover:
         """The background remover of ``mode`` / ``model`` (loaded on first use, then kept; a model that is not
@@ -187,15 +172,8 @@ class Reconstructor:
     @property
     def default_fill(self) -> float:
         """The fill the model was trained at (``ReconstructConfig.fill`` when it is None): that of the framing of
-        its training data (:func:`~depthnerf.data.synth.framing.checkpoint_framing`, :func:`category_fill`)."""
-        return category_fill(self.pretrained.spec.category, self.framing)
-
-    @classmethod
-    def from_pretrained(cls, path_or_name: str | Path, device: torch.device | str = "cpu",
-                        depth_estimator: str | None = None, depth_checkpoint: str | None = None, *,
-                        policy: InferencePolicy | None = None) -> Reconstructor:
-        """Load a shipped name, weights file, checkpoint folder or run folder (``load_pretrained``)."""
-        return cls(load_pretrained(path_or_name, device), device, depth_estimator, depth_checkpoint, policy=policy)
+        its training data (``InferenceSpec.framing``, :func:`category_fill`)."""
+        return category_fill(self.session.spec.category, self.framing)
 
     @torch.no_grad()
     def reconstruct(self, image: ImageLike, mask: ImageLike | None = None, views: int | None = None,
@@ -207,7 +185,7 @@ class Reconstructor:
         if views is not None:
             cfg = replace(cfg, views=views)
         views = cfg.views
-        spec = self.pretrained.spec
+        spec = self.session.spec
         times: dict[str, float] = {}
         t = time.perf_counter()
         res = spec.resolution
@@ -229,7 +207,7 @@ class Reconstructor:
         mask_t = torch.from_numpy(prepared.mask)[None]
         t = time.perf_counter()
         plane, symmetry = self.symmetry(cfg.facing)
-        encoded = self.encode_view(img_t, mask_t, poses[0], intr, symmetry_plane=plane)
+        encoded = self.session.encode(img_t, mask_t, poses[0], intr, symmetry_plane=plane)
         times["encode_s"] = time.perf_counter() - t
         result = self.reconstruct_encoded(encoded, poses, render_intr, cfg, prepared)
         result.timings = {**times, **result.timings}
@@ -246,48 +224,36 @@ class Reconstructor:
     def symmetry(self, facing: float | None) -> tuple[tuple[float, float, float, float] | None, str]:
         """The mirror plane for an object facing ``facing`` degrees (``ReconstructConfig.facing``) and a line
         saying which plane is used, or why none."""
-        if not self.pretrained.model.cfg.mirror:
+        if not self.session.model.cfg.mirror:
             return None, "off: the model has no mirror-symmetric conditioning"
         if facing is None:
             return None, "off: no facing given (the model's no-plane mode)"
         default = " (the default: a side view)" if facing == DEFAULT_FACING else ""
         return facing_plane(facing), f"on: the object faces {facing:g} degrees{default}"
 
-    @torch.no_grad()
     def encode_view(self, image: Float[torch.Tensor, "1 3 H W"], mask: Bool[torch.Tensor, "1 H W"],
                     pose: Float[torch.Tensor, "4 4"], intr: Intrinsics, *,
                     depth: Float[torch.Tensor, "1 H W"] | None = None,
-                    symmetry_plane: tuple[float, ...] | None = None) -> EncodedInput:
-        """Condition one view on its prior (the conditioning stage) and encode it (``depth``: its ground-truth
-        z-depth, which only the ``oracle`` prior reads and only synthetic data has; ``symmetry_plane``: the
-        object's mirror plane for mirror models, :meth:`symmetry`)."""
-        cond = condition(self.prior, image, mask, pose[None], intr, self.device, depths=depth,
-                         symmetry_plane=symmetry_plane)
-        return EncodedInput(inputs=cond, enc=self.pretrained.model.encode(cond.inputs), pose=pose, intr=intr,
-                            mask=mask)
+                    symmetry_plane: tuple[float, ...] | None = None) -> EncodedView:
+        """Condition one view on its prior and encode it (:meth:`InferenceSession.encode
+        <depthnerf.infer.session.InferenceSession.encode>`; ``symmetry_plane``: the object's mirror plane for
+        mirror models, :meth:`symmetry`)."""
+        return self.session.encode(image, mask, pose, intr, depth=depth, symmetry_plane=symmetry_plane)
 
-    def render(self, encoded: EncodedInput, poses: Float[torch.Tensor, "N 4 4"], intr: Intrinsics,
+    def render(self, encoded: EncodedView, poses: Float[torch.Tensor, "N 4 4"], intr: Intrinsics,
                cfg: ReconstructConfig, on_group: Callable[[int], Any] | None = None) -> ViewRenders:
-        """Render ``poses`` of an encoded view at ``intr`` (depth-guided with ``cfg.guided``)."""
-        spec, model = self.pretrained.spec, self.pretrained.model
-        near, far = spec.z_range
-        render, guide = spec.render, None
-        if cfg.guided is not None:
-            render = guided_render(spec.render, cfg.guided.budget)
-            guide = make_source_guide(model.field(encoded.enc, "coarse", self.runtime),
-                                      encoded.pose[None].to(self.device), encoded.intr, near, far,
-                                      encoded.inputs.disparity,
-                                      encoded.mask.to(self.device), spec.render, cfg.guided, cfg.chunk)
-        return render_poses(model, encoded.enc, poses, intr, near, far, render, cfg.chunk, self.device, on_group,
-                            guide, self.runtime)
+        """Render ``poses`` of an encoded view at ``intr`` (depth-guided with ``cfg.guided`` or the session's)."""
+        guided = self.session.guided if cfg.guided is None else cfg.guided
+        return self.session.render(encoded, poses, intr, guided=guided, chunk=cfg.chunk, on_group=on_group)
 
     @torch.no_grad()
-    def reconstruct_encoded(self, encoded: EncodedInput, poses: Float[torch.Tensor, "N 4 4"],
+    def reconstruct_encoded(self, encoded: EncodedView, poses: Float[torch.Tensor, "N 4 4"],
                             render_intr: Intrinsics, cfg: ReconstructConfig, prepared: PreparedImage | None = None,
                             on_stage: Callable[[int], Any] | None = None) -> Reconstruction:
         """The orbit ``poses`` rendered at ``render_intr``, the mesh of the input frustum and the point cloud."""
-        spec, model = self.pretrained.spec, self.pretrained.model
+        spec = self.session.spec
         near, far = spec.z_range
+        guided = self.session.guided if cfg.guided is None else cfg.guided
         times: dict[str, float] = {}
         bar = tqdm(total=len(poses) + 1, desc="reconstruct", unit="step", file=sys.stderr, disable=not cfg.progress)
         t = time.perf_counter()
@@ -298,9 +264,7 @@ class Reconstructor:
         t = time.perf_counter()
         mesh, level = trimesh.Trimesh(), None
         if cfg.mesh_resolution > 0:
-            mesh, level = input_camera_mesh(model, encoded.enc, encoded.pose, encoded.intr, near, far,
-                                            MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold), self.device,
-                                            runtime=self.runtime)
+            mesh, level = self.session.mesh(encoded, MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold))
         bar.update(1)
         bar.close()
         times["mesh_s"] = time.perf_counter() - t
@@ -308,21 +272,21 @@ class Reconstructor:
             on_stage(1)
         points, colors = orbit_points(out, poses, render_intr, POINT_OPACITY, cfg.max_points)
         if prepared is None:
-            prepared = PreparedImage(image=encoded.inputs.inputs.images[0, 0].permute(1, 2, 0).cpu().numpy(),
+            prepared = PreparedImage(image=encoded.inputs.images[0, 0].permute(1, 2, 0).cpu().numpy(),
                                      mask=encoded.mask[0].numpy(), notes=[],
                                      source_size=(encoded.intr.height, encoded.intr.width))
-        disparity, prior = encoded.inputs.disparity, encoded.inputs.inputs.prior
+        disparity, normalized = encoded.disparity, encoded.inputs.disparity
         settings = {"resolution": spec.resolution, "render_resolution": render_intr.height, "views": len(poses),
                     "z_range": [near, far], "category": spec.category,
-                    "depth_estimator": self.prior_config.estimator, "depth_checkpoint": self.prior_config.checkpoint,
-                    "guided_sampling": None if cfg.guided is None else cfg.guided.budget,
+                    "depth_estimator": spec.prior.estimator, "depth_checkpoint": spec.prior.checkpoint,
+                    "guided_sampling": None if guided is None else guided.budget,
                     "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
                     "mesh_level": level and level.level, "mesh_level_rule": level and level.describe(),
                     "point_opacity": POINT_OPACITY,
                     "mesh_colors": "fine-network rgb at each vertex seen along the input camera's ray"}
         return Reconstruction(
             input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
-            prior_normalized=None if prior is None else prior[0, 0, 0].cpu().numpy(),
+            prior_normalized=None if normalized is None else normalized[0, 0, 0].cpu().numpy(),
             poses=poses.numpy(), intrinsics=render_intr, views=out.rgb.numpy(), depths=out.depth.numpy(),
             opacity=out.opacity.numpy(), mesh=mesh, points=points.astype(np.float32),
             point_colors=colors.astype(np.float32), settings=settings, timings=times)
@@ -330,7 +294,4 @@ class Reconstructor:
     def save(self, result: Reconstruction, out_dir: str | Path) -> dict[str, Any]:
         """Write every output into ``out_dir`` and return the manifest (also ``out_dir/manifest.json``); an earlier
         reconstruction's files there are replaced, other files left (:mod:`depthnerf.reconstruct.exports`)."""
-        pre = self.pretrained
-        provenance = {"checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256,
-                      "checkpoint_step": pre.step, "preset": pre.spec.preset}
-        return save_reconstruction(result, Path(out_dir), provenance)
+        return save_reconstruction(result, Path(out_dir), self.session.provenance())

@@ -1,4 +1,4 @@
-"""Configuration of the renderer: the paper's hierarchical sampler and the optional depth-guided sampler.
+"""Configuration of the renderer: the paper's hierarchical sampler and the optional depth-guided sampling.
 
 Defaults reproduce pixelNeRF / the paper (64 stratified coarse samples, 16 importance + 16 Gaussian fine samples,
 white background, no sigma noise); every extension is a flag that is OFF by default.
@@ -32,11 +32,21 @@ class SamplerConfig:
     makes evaluation deterministic: bin midpoints, quantile importance samples, normal-quantile Gaussian samples."""
 
 
-@dataclass
-class GuidedSamplerConfig:
-    """Depth-guided sampling (beyond the paper): few samples, placed by a per-ray ``DepthGuide``.
+DEFAULT_BUDGET = 48
+"""Samples per occupied ray of ``--guided`` without a number: the smallest budget measured to cost at most 0.1 dB of
+PSNR against the shipped CPU checkpoints' own sampler (cars -0.08, chairs -0.04 dB; docs/RESULTS.md). The default
+pass counts below (8 + 16 + 16 + 8) are this budget split 1:2:2:1."""
 
-    Two passes of one network (the fine one by default), the second reusing the first's evaluations:
+
+@dataclass
+class GuidedConfig:
+    """Depth-guided sampling (beyond the paper), the one config of all three of its steps
+    (:mod:`depthnerf.render.source_guide`): the source view's prior aligned to metric depth (``align_*``), a
+    per-ray guess of each target ray's surface from it (:mod:`depthnerf.render.depth_guide`: ``march_*``,
+    ``spread``, ``surface_tolerance``, ``mask_dilation``) and the two-pass sampler around the guesses
+    (:mod:`depthnerf.render.guided_sampler`: the ``n_*`` counts).
+
+    The sampler: two passes of one network (the fine one by default), the second reusing the first's evaluations:
 
     - pass 1, rays the guide marks *occupied*: ``n_uniform`` stratified samples over [near, far] plus ``n_window``
       stratified over the guide's window (``[t_guess - spread, t_guess + spread]`` for a trusted surface guess,
@@ -46,10 +56,12 @@ class GuidedSamplerConfig:
       opacity-normalised depth; the result composites the sorted union.
 
     Network evaluations per ray: 48 (occupied) or 24 (empty) by default, against the paper's 64 + 96 = 160.
+    ``--guided BUDGET`` sets the counts from one budget (:func:`~depthnerf.render.source_guide.guided_config`).
     """
 
     enabled: bool = False
-    """Use depth-guided sampling; then ``render_rays`` requires a ``DepthGuide``."""
+    """Use depth-guided sampling; then ``render_rays`` requires a ``DepthGuide``. Training refuses it (an
+    inference-time renderer: ``depthnerf eval/reconstruct --guided``)."""
     n_uniform: int = 8
     """Pass-1 stratified samples over [near, far] on occupied rays (catch what the guess misses)."""
     n_window: int = 16
@@ -69,12 +81,11 @@ class GuidedSamplerConfig:
     first_pass: Literal["fine", "coarse"] = "fine"
     """Network of pass 1. "fine" (default) reuses its evaluations in pass 2; "coarse" re-evaluates the whole
     union with the fine network (costlier, for comparison). Without a fine network both passes use the coarse."""
-
-
-@dataclass
-class GuideConfig:
-    """How a :class:`~depthnerf.render.guide.DepthGuide` is built from the source view's aligned depth."""
-
+    align_samples: int = 32
+    """Coarse samples per ray of the cheap render of the source view that the prior is aligned against."""
+    align_min_opacity: float = 0.5
+    """Source pixels at least this opaque in that render anchor the alignment. Soft CPU models rarely exceed
+    0.9 (a threshold of 0.9 left the guide empty on most objects)."""
     march_steps: int = 128
     """Points per target ray tested against the source depth map (epipolar march between near and far)."""
     spread: float = 0.1
@@ -86,8 +97,13 @@ class GuideConfig:
     mask_dilation: int = 2
     """Source-mask dilation in pixels (dilated pixels take the nearest foreground depth) so rays grazing the
     silhouette, where soft density still renders, are not classed as empty."""
-    chunk: int = 8192
-    """Rays marched at once (bounds memory to about ``chunk * march_steps * 60`` bytes)."""
+    march_chunk: int = 8192
+    """Target rays marched at once (bounds memory to about ``march_chunk * march_steps * 60`` bytes)."""
+
+    @property
+    def budget(self) -> int:
+        """Samples per occupied ray (the four occupied-ray counts together)."""
+        return self.n_uniform + self.n_window + self.n_importance + self.n_gaussian
 
 
 @dataclass
@@ -96,8 +112,8 @@ class RenderConfig:
 
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
     """The paper's coarse-to-fine sampler."""
-    guided: GuidedSamplerConfig = field(default_factory=GuidedSamplerConfig)
-    """Depth-guided sampler (off by default)."""
+    guided: GuidedConfig = field(default_factory=GuidedConfig)
+    """Depth-guided sampling (off by default; on only at inference, ``--guided``)."""
     white_background: bool = True
     """Composite on white: ``rgb += 1 - opacity`` (SRN renders are on white)."""
     sigma_noise_std: float = 0.0

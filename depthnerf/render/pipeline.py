@@ -12,7 +12,7 @@ As in pixelNeRF the fine pass re-evaluates the coarse samples with the fine netw
 at near) and is not detached (``SamplerConfig.detach_gaussian_center``). One deliberate difference: pixelNeRF
 draws random samples at evaluation too; here ``train=False`` is deterministic (bin midpoints, quantiles; see
 ``samplers``) unless ``SamplerConfig.eval_random``. The depth-guided path (``cfg.guided.enabled``) is in
-:mod:`~depthnerf.render.guided`.
+:mod:`~depthnerf.render.guided_sampler`.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from __future__ import annotations
 import torch
 
 from depthnerf.render.config import RenderConfig
-from depthnerf.render.guide import DepthGuide
-from depthnerf.render.guided import render_guided
+from depthnerf.render.depth_guide import DepthGuide
+from depthnerf.render.guided_sampler import render_guided
 from depthnerf.render.noise import Generators
 from depthnerf.render.passes import FieldFn, RenderOutput, add_sigma_noise, cat_results, evaluate_field
 from depthnerf.render.rays import RayBundle

@@ -14,12 +14,12 @@ torch.compile      off                         off; ``--compile`` compiles the f
 =================  ==========================  ============================================================
 
 The CUDA values are sized from memory arithmetic, not measured (no GPU was available when they were set);
-docs/speed.md says which GPU figures are still open. The policy is an argument, never state on the model:
-``depthnerf eval`` and ``depthnerf reconstruct`` build it with :func:`inference_policy` from their flags and give
-it to whoever renders (``evaluate_protocol``, ``Reconstructor``), which turns it once into the
+docs/speed.md says which GPU figures are still open. The policy is an argument, never state on the model: every
+inference path (``depthnerf eval``, ``depthnerf reconstruct``, the Python API ``Reconstructor``, the demo and the
+app) gets it from its :class:`~depthnerf.infer.session.InferenceSession`, which builds it once with
+:func:`inference_policy` for its device (``--fp32`` / ``--compile``), turns it once into the
 :class:`~depthnerf.model.pixelnerf.FieldRuntime` its field calls take (:func:`field_runtime`: the compiled MLP
-forwards are wrappers that it holds); the ray chunk goes into their render configs, where an explicit ``--chunk``
-wins over the default.
+forwards are wrappers that it holds) and renders ``ray_chunk`` rays per pass unless ``--chunk`` says otherwise.
 """
 
 from __future__ import annotations

@@ -19,10 +19,10 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
 from depthnerf.render.config import RenderConfig
-from depthnerf.render.guidance import SourceGuide
-from depthnerf.render.guide import DepthGuide
+from depthnerf.render.depth_guide import DepthGuide
 from depthnerf.render.pipeline import FieldFn, render_image
 from depthnerf.render.rays import RayBundle, rays_from_camera
+from depthnerf.render.source_guide import SourceGuide
 
 
 @dataclass
@@ -67,7 +67,7 @@ def render_poses(model: PixelNeRF, enc: EncodedViews, poses: Float[Tensor, "N 4 
     ``chunk`` rays per pass, so memory stays bounded; ``on_group(n)`` runs after each group of ``n`` views;
     the fields run as ``runtime`` says (``depthnerf.render.precision.field_runtime``; None: the default).
 
-    With ``cfg.guided.enabled`` (depth-guided sampling, :mod:`depthnerf.render.guidance`) ``guide`` gives every
+    With ``cfg.guided.enabled`` (depth-guided sampling, :mod:`depthnerf.render.source_guide`) ``guide`` gives every
     target ray its depth guess from the source view; a guided config without a guide is an error.
     """
     if cfg.guided.enabled and guide is None:

@@ -255,9 +255,11 @@ def z_range(cfg: TrainConfig) -> tuple[float, float]:
     return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)
 
 
-def inference_spec(cfg: TrainConfig, prior_weights_hash: str | None = None) -> InferenceSpec:
-    """What a checkpoint of this run stores so that evaluation and reconstruction never read the training config."""
+def inference_spec(cfg: TrainConfig, prior_weights_hash: str | None = None, framing: str | None = None
+                   ) -> InferenceSpec:
+    """What a checkpoint of this run stores so that evaluation and reconstruction never read the training config
+    (``framing``: the training data's, :func:`depthnerf.data.synth.framing.dataset_framing`)."""
     near, far = z_range(cfg)
     return InferenceSpec(model=cfg.model, render=cfg.render, prior=cfg.prior, category=cfg.data.category,
                          resolution=cfg.data.resolution, z_near=near, z_far=far, pixel_center=cfg.data.pixel_center,
-                         prior_weights_hash=prior_weights_hash, preset=cfg.preset)
+                         framing=framing, prior_weights_hash=prior_weights_hash, preset=cfg.preset)

@@ -21,12 +21,12 @@ from depthnerf.train.batching import ItemKey, TrainBatch, pick_views, sample_pix
 class TrainItems(Dataset):
     """``items[key]`` -> a :class:`TrainBatch` with B = 1 for the object and draws named by ``key``."""
 
-    def __init__(self, records: Sequence[ObjectRecord], prior: PriorSource, *, resolution: int,
+    def __init__(self, records: Sequence[ObjectRecord], prior_source: PriorSource, *, resolution: int,
                  target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0,
                  symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0
                  ) -> None:
         self.records = list(records)
-        self.prior = prior
+        self.prior_source = prior_source
         self.resolution = resolution
         self.target_views = target_views
         self.rays = rays_per_object
@@ -58,13 +58,13 @@ class TrainItems(Dataset):
         if self.symmetry_plane is not None:  # drawn last, so the views and rays are a plain model's
             dropped = bool(torch.rand((), generator=gen) < self.mirror_dropout)
             plane = (0.0, 0.0, 0.0, 0.0) if dropped else self.symmetry_plane
-        source = condition(self.prior, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics,
+        source = condition(self.prior_source, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics,
                            where=DatasetViews(record, (src,)), symmetry_plane=plane).inputs
         target_prior = None
-        if self.target_priors and source.prior is not None:
-            targets_in = condition(self.prior, obj.images[tgt], obj.masks[tgt], obj.poses[tgt], obj.intrinsics,
+        if self.target_priors and source.disparity is not None:
+            targets_in = condition(self.prior_source, obj.images[tgt], obj.masks[tgt], obj.poses[tgt], obj.intrinsics,
                                    where=DatasetViews(record, tuple(targets))).inputs
-            target_prior = targets_in.prior[0, :, 0][view, row, col][None]
+            target_prior = targets_in.disparity[0, :, 0][view, row, col][None]
         return TrainBatch(
             source=source, ray_origins=origins[None], ray_dirs=dirs[None],
             target_rgb=obj.images[tgt][view, :, row, col][None], target_prior=target_prior,

@@ -32,8 +32,10 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from depthnerf.config_io import to_dict
+from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
+from depthnerf.data.synth.framing import dataset_framing
 from depthnerf.depth.prior import PriorSource, open_prior
 from depthnerf.distributed import DistInfo, barrier
 from depthnerf.errors import DepthnerfError
@@ -61,13 +63,12 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
     return s.lr * s.lr_decay ** epochs
 
 
-def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int) -> None:
+def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int,
+                     card: dict | None) -> None:
     write_text_atomic(run_dir / "config.json", json.dumps(to_dict(cfg), indent=1) + "\n")
     prior = {"estimator": cfg.prior.estimator, **(prior_source.provenance or {})}
     write_text_atomic(run_dir / "prior.json", json.dumps(prior, indent=1, default=str) + "\n")
     root = Path(cfg.data.root)
-    card_path = root / f"{cfg.data.category}_card.json"
-    card = json.loads(card_path.read_text()) if card_path.is_file() else None
     data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
                  "resolution": cfg.data.resolution, "dataset_card": card}
     write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
@@ -102,7 +103,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         plane, plane_from = dataset_plane(root, cat, cfg.data.symmetry_plane)
         if info.is_main:
             print(f"mirror conditioning: symmetry plane {plane} ({plane_from})", file=sys.stderr, flush=True)
-    spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"))
+    card = read_dataset_card(root, cat)
+    spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"), dataset_framing(card))
     near, far = spec.z_range
 
     torch.manual_seed(cfg.seed)
@@ -122,7 +124,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
               file=sys.stderr, flush=True)
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
-        _write_run_files(run_dir, cfg, prior_source, len(records))
+        _write_run_files(run_dir, cfg, prior_source, len(records), card)
         note = record_launch(run_dir, start, info.world, str(info.device))
         if note:
             print(note, file=sys.stderr, flush=True)
@@ -230,7 +232,7 @@ def _ignore_stop_signals(worker_id: int) -> None:
         signal.signal(sig, signal.SIG_IGN)
 
 
-def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior: PriorSource,
+def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior_source: PriorSource,
               spec: InferenceSpec, cfg: TrainConfig, info: DistInfo, step: int, progress: bool,
               plane: tuple[float, ...] | None):
     """One validation as its own phase: a second progress bar over the val objects; interruptible by a stop
@@ -238,5 +240,5 @@ def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records:
     with tqdm(total=len(records), desc=f"validate (step {step})", unit="object", leave=False, position=1,
               dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible():
         ckpt.crash_point("validation", step)
-        return validate(model, records, prior, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
+        return validate(model, records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
                         progress=vbar.update, symmetry_plane=plane)

@@ -14,9 +14,9 @@ fill (median, train views) cars 0.66, chairs 0.43                        cars 0.
 
 Facts and sources: docs/data.md ("Synthetic benchmark framing"). The fill (the longer side of the object's box
 over the image side) is what a photo is framed to for a model trained on this data
-(:func:`depthnerf.reconstruct.photo.category_fill`). The shipped ``cpu-*`` checkpoints were trained on
-``srn`` data (``legacy`` before session 5); their cards say so (``"framing"``), and :func:`checkpoint_framing` reads
-it back so the demo synthesises objects framed as the checkpoint's training data.
+(:func:`depthnerf.reconstruct.photo.category_fill`). A checkpoint's inference spec states the framing of its
+training data (``InferenceSpec.framing``); for checkpoints written before that field (the shipped ``cpu-*`` ones,
+trained on ``srn`` data), :func:`checkpoint_framing` derives it once, at load, from what they carry.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.card import card_path, read_dataset_card
 from depthnerf.errors import DepthnerfError
 
 
@@ -89,11 +90,12 @@ def card_framing(card: dict) -> str:
 
 
 def checkpoint_framing(weights: Path, data_root: str | Path | None, category: str) -> tuple[str, str]:
-    """Framing of the synthetic data a checkpoint was trained on, and where that was read.
+    """Framing of the synthetic data an older checkpoint (one whose inference spec has no ``framing``) was
+    trained on, and where that was read.
 
     Looked up in order: the checkpoint card next to the weights (``<name>.json``, field ``framing``, as
     ``scripts/export_checkpoint.py`` writes it), then the training data's dataset card
-    (``<data_root>/<category>_card.json``), else the default framing.
+    (:func:`~depthnerf.data.card.read_dataset_card`), else the default framing.
     """
     card = Path(weights).with_suffix(".json")
     if card.is_file():
@@ -104,24 +106,13 @@ def checkpoint_framing(weights: Path, data_root: str | Path | None, category: st
         if isinstance(meta, dict) and "framing" in meta:
             return get_framing(str(meta["framing"])).name, str(card)
     if data_root is not None:
-        data_card = Path(data_root) / f"{category}_card.json"
-        if data_card.is_file():
-            try:
-                return get_framing(card_framing(json.loads(data_card.read_text()))).name, str(data_card)
-            except (OSError, ValueError) as err:
-                raise DepthnerfError(f"{data_card}: unreadable dataset card ({err})") from None
+        data_card = read_dataset_card(data_root, category)
+        if data_card is not None:
+            return get_framing(card_framing(data_card)).name, str(card_path(data_root, category))
     return DEFAULT_FRAMING, "default (no checkpoint card or dataset card found)"
 
 
-def dataset_pixel_center(root: str | Path, category: str) -> float:
-    """Pixel-centre convention a dataset states in its card (``<root>/<category>_card.json``,
-    ``camera.pixel_center``); 0.0 (integer-centred) when there is no card or the card predates the field."""
-    path = Path(root) / f"{category}_card.json"
-    if not path.is_file():
-        return 0.0
-    try:
-        card = json.loads(path.read_text())
-    except (OSError, ValueError) as err:
-        raise DepthnerfError(f"{path}: unreadable dataset card ({err})") from None
-    camera = card.get("camera", {}) if isinstance(card, dict) else {}
-    return float(camera.get("pixel_center", 0.0)) if isinstance(camera, dict) else 0.0
+def dataset_framing(card: dict | None) -> str:
+    """Framing of a dataset with this card (:func:`~depthnerf.data.card.read_dataset_card`): the card's
+    (:func:`card_framing`); a dataset without a card (a real SRN download) is SRN's own renders, ``srn``."""
+    return DEFAULT_FRAMING if card is None else get_framing(card_framing(card)).name

@@ -11,9 +11,10 @@ Layout written (SRN, see :mod:`depthnerf.data.srn_format`)::
 
 Framing (``framing``, :mod:`depthnerf.data.synth.framing`): ``srn`` (default, generator ``depthnerf-synth-2``)
 frames objects as SRN's renderer does (unit bounding-box diagonal, SRN's spiral with view 64 a side view, Blender
-pixel centres); ``legacy`` (``depthnerf-synth-1``) reproduces the first generator exactly
-(the training data of the checkpoints shipped before session 5). Family (``family``): ``standard`` (the shape grammars' training mix) or ``heldout`` (car and chair
-styles the standard family never draws, for generalisation checks); the generator id gets ``-heldout``.
+pixel centres); ``legacy`` (``depthnerf-synth-1``) reproduces the first generator exactly (the training data of
+an earlier set of shipped checkpoints). Family (``family``): ``standard`` (the shape grammars' training mix) or
+``heldout`` (car and chair styles the standard family never draws, for generalisation checks); the generator id
+gets ``-heldout``.
 
 Determinism: object ``k`` of ``split`` draws everything from ``SeedSequence(seed, spawn_key=(crc32(category),
 split, k))``, so files do not depend on ``--workers``, on the order of work or on resuming. Object ids are
@@ -147,7 +148,8 @@ class SynthConfig:
     progress: bool = True
     """Show a tqdm progress bar."""
     framing: str = DEFAULT_FRAMING
-    """``srn`` (SRN's renderer: docs/data.md) or ``legacy`` (generator 1, the shipped checkpoints' data before session 5)."""
+    """``srn`` (SRN's renderer: docs/data.md) or ``legacy`` (generator 1: an earlier set of shipped checkpoints'
+    data)."""
     family: str = "standard"
     """Shape family: ``standard`` or ``heldout`` (styles the standard family never draws)."""
 

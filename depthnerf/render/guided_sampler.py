@@ -1,7 +1,7 @@
 """The depth-guided sampler (beyond the paper): two passes of one network around a per-ray ``DepthGuide``.
 
-See :class:`~depthnerf.render.config.GuidedSamplerConfig` for the sample budget and
-:mod:`depthnerf.render.guide` for how guesses are made. Rays are split into the guide's *occupied* and *empty*
+See :class:`~depthnerf.render.config.GuidedConfig` for the sample counts and
+:mod:`depthnerf.render.depth_guide` for how guesses are made. Rays are split into the guide's *occupied* and *empty*
 groups, each rendered with its own sample counts (per batch row, padded to the largest group), and the results
 are scattered back; sample axes shorter than the widest group are padded with ``t = far`` and zero weight.
 """
@@ -13,7 +13,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from depthnerf.render.config import RenderConfig
-from depthnerf.render.guide import DepthGuide
+from depthnerf.render.depth_guide import DepthGuide
 from depthnerf.render.noise import Generators
 from depthnerf.render.passes import (
     FieldFn,

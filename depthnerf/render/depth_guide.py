@@ -1,4 +1,5 @@
-"""Per-ray depth guesses for a target view from the SOURCE view's depth prior (beyond the paper).
+"""Depth-guided sampling's guesses (beyond the paper): per-ray depth guesses for a target view from the SOURCE
+view's depth prior (settings: :class:`~depthnerf.render.config.GuidedConfig`).
 
 1. Align: the prior is relative disparity; :func:`align_disparity_to_depth` fits ``s p + b ~ 1 / z_ref`` (least
    squares in disparity space) against a metric reference ``z_ref`` on a mask, e.g. the opacity-normalised depth
@@ -34,7 +35,7 @@ from torch import Tensor
 
 from depthnerf.bundles import TensorBundle
 from depthnerf.data.cameras import Intrinsics, project, world_to_camera
-from depthnerf.render.config import GuideConfig
+from depthnerf.render.config import GuidedConfig
 from depthnerf.render.depth_loss import fit_scale_shift
 from depthnerf.render.rays import RayBundle
 from depthnerf.render.samplers import stratified_samples
@@ -102,7 +103,7 @@ def _dilate(depth: Tensor, mask: Tensor, pixels: int) -> tuple[Tensor, Tensor]:
 
 
 def _march_chunk(source_c2w: Tensor, intr: Intrinsics, z_map: Tensor, fg: Tensor, rays: RayBundle,
-                 cfg: GuideConfig) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                 cfg: GuidedConfig) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     bsz, n_rays = rays.near.shape
     k = cfg.march_steps
     t = stratified_samples(rays.near, rays.far, k, random=False)  # [B R K]
@@ -137,7 +138,7 @@ def _march_chunk(source_c2w: Tensor, intr: Intrinsics, z_map: Tensor, fg: Tensor
 @torch.no_grad()
 def build_depth_guide(source_c2w: Float[Tensor, "B 4 4"], source_intr: Intrinsics,
                       source_depth: Float[Tensor, "B H W"], source_mask: Bool[Tensor, "B H W"], rays: RayBundle,
-                      cfg: GuideConfig) -> DepthGuide:
+                      cfg: GuidedConfig) -> DepthGuide:
     """Per-ray depth guesses of target ``rays`` from the source view's aligned z-depth (see module docstring).
 
     ``source_depth`` is metric z-depth in the source camera (e.g. from :func:`align_disparity_to_depth`), used
@@ -148,8 +149,8 @@ def build_depth_guide(source_c2w: Float[Tensor, "B 4 4"], source_intr: Intrinsic
                          f"and intrinsics {source_intr.height}x{source_intr.width} disagree")
     fg = source_mask.bool() & (source_depth > 0) & torch.isfinite(source_depth)
     z_map, fg = _dilate(source_depth, fg, cfg.mask_dilation)
-    outs = [_march_chunk(source_c2w, source_intr, z_map, fg, rays.slice(s, s + cfg.chunk), cfg)
-            for s in range(0, rays.num_rays, cfg.chunk)]
+    outs = [_march_chunk(source_c2w, source_intr, z_map, fg, rays.slice(s, s + cfg.march_chunk), cfg)
+            for s in range(0, rays.num_rays, cfg.march_chunk)]
     t_guess, t_enter, valid, occupied = (torch.cat([o[i] for o in outs], dim=1) for i in range(4))
     return DepthGuide(t_guess=t_guess, t_enter=t_enter, valid=valid, occupied=occupied,
                       spread=torch.full_like(t_guess, cfg.spread))

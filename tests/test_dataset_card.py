@@ -1,0 +1,53 @@
+"""The one reader of dataset cards (``<root>/<category>_card.json``, :mod:`depthnerf.data.card`): every user
+(training's ``data_card.json``, eval's summary and pixel centre, a checkpoint's framing) reads it the same way."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from depthnerf.data.card import card_pixel_center, dataset_pixel_center, read_dataset_card
+from depthnerf.data.synth.framing import checkpoint_framing, dataset_framing
+from depthnerf.errors import DepthnerfError
+
+
+def test_missing_card_is_none_and_states_integer_centres(tmp_path: Path) -> None:
+    assert read_dataset_card(tmp_path, "cars") is None
+    assert dataset_pixel_center(tmp_path, "cars") == 0.0 and card_pixel_center(None) == 0.0
+    assert dataset_framing(None) == "srn"  # no card: a real SRN download, SRN's own framing
+
+
+def test_card_fields(tmp_path: Path) -> None:
+    (tmp_path / "cars_card.json").write_text(json.dumps({"framing": "srn", "camera": {"pixel_center": 0.5}}))
+    (tmp_path / "chairs_card.json").write_text(json.dumps({"generator": "depthnerf-synth-1/chairs"}))
+    assert read_dataset_card(tmp_path, "cars")["framing"] == "srn"
+    assert dataset_pixel_center(tmp_path, "cars") == 0.5 and dataset_pixel_center(tmp_path, "chairs") == 0.0
+    assert dataset_framing(read_dataset_card(tmp_path, "chairs")) == "legacy"  # a card before framings
+
+
+@pytest.mark.parametrize("text", ["{not json", "[1, 2]", "\"srn\""])
+def test_a_bad_card_is_one_error_naming_it_for_every_reader(tmp_path: Path, text: str) -> None:
+    card = tmp_path / "cars_card.json"
+    card.write_text(text)
+    for read in (lambda: read_dataset_card(tmp_path, "cars"), lambda: dataset_pixel_center(tmp_path, "cars"),
+                 lambda: checkpoint_framing(tmp_path / "w.safetensors", tmp_path, "cars")):
+        with pytest.raises(DepthnerfError, match=f"{card}: unreadable dataset card"):
+            read()
+
+
+def test_load_object_says_which_pixel_centre_it_used(tmp_path: Path) -> None:
+    import warnings
+
+    from fixtures_srn import make_srn_fixture
+
+    from depthnerf.data.srn import index_split, load_object
+
+    record = index_split(make_srn_fixture(tmp_path, "cars", {"test": 1}, views=2, size=8), "cars", "test").objects[0]
+    with pytest.warns(UserWarning, match=r"no pixel centre stated; intrinsics.txt read integer-centred"):
+        unstated = load_object(record, [0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_object(record, [0], pixel_center=0.0).intrinsics == unstated.intrinsics
+        assert load_object(record, [0], pixel_center=0.5).intrinsics.cx == unstated.intrinsics.cx - 0.5
