@@ -9,7 +9,7 @@
 # Environment: STEPS (training steps, default: the preset's 2000), JOBS (runs in parallel, default 2, each with
 # one thread: on 2 cores, two 1-thread jobs beat one 2-thread job), STRIDE (eval view stride, default 25),
 # RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
-# mirror-symmetric conditioning), FRAMING (synthetic benchmark framing,
+# mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
 # 0.5 reads the SRN-framed renders exactly), GENERALISATION (1: also run scripts/generalisation_check.sh on
@@ -47,7 +47,8 @@ one_run() {
   case "$rest" in
     "$prior") ;;
     *-sym) extra=(--model.mirror true) ;;  # mirror-symmetric conditioning (docs/RESULTS.md, "Symmetry")
-    *) echo "unknown run variant '$variant' in $name (known: sym)" >&2; return 2 ;;
+    *-dl) extra=(--schedule.depth_loss_weight "${DEPTH_LOSS:-10}") ;;  # depth as supervision ("Depth loss")
+    *) echo "unknown run variant '$variant' in $name (known: sym, dl)" >&2; return 2 ;;
   esac
   if [ ! -f "$ev/summary.json" ]; then
     local resume=()
