@@ -50,6 +50,7 @@ from tqdm import tqdm
 from depthnerf.data import srn_format
 from depthnerf.data.protocol import ProtocolViews, protocol_views
 from depthnerf.data.srn import index_split
+from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import DEFAULT_FRAMING
 from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_status
 from depthnerf.errors import DepthnerfError
@@ -212,7 +213,11 @@ def run_category(category: str, session: InferenceSession, checkpoint: str, cfg:
     notes: list[str] = [f"object {record.object_id}: depthnerf synth --category {category} --seed {cfg.seed} "
                         f"--test-objects 1 --resolution {res} --framing {session.framing} (test split, never used "
                         f"for training; framing from {session.framing_origin})", _prior_note(session)]
-    obj = prepare_object(session, record, views)  # exactly as depthnerf eval prepares it
+    plane = None
+    if session.model.cfg.mirror:  # the synthetic data's plane, from its card, as eval reads it
+        plane, plane_from = dataset_plane(cfg.out / "data", category)
+        notes.append(f"mirror-symmetric conditioning on the plane {list(plane)} ({plane_from})")
+    obj = prepare_object(session, record, views, symmetry_plane=plane)  # exactly as depthnerf eval prepares it
     src, tgt, encoded = obj.source, obj.targets, obj.encoded
     if not cfg.mesh:
         notes.append("--no-mesh: no mesh extracted (no mesh.ply or mesh.glb written)")
