@@ -63,11 +63,16 @@ def method_name(folder: Path) -> str:
     return folder.name
 
 
-def paired(baseline: Path, method: Path) -> list[PairedStat]:
-    """Paired statistics of ``method`` against ``baseline`` for every metric both have."""
+def paired(baseline: Path, method: Path, common: bool = False) -> list[PairedStat]:
+    """Paired statistics of ``method`` against ``baseline`` for every metric both have (``common``: on the objects
+    both scored, e.g. an evaluation stopped early, instead of requiring the same objects)."""
     base, other = read_per_object(baseline), read_per_object(method)
+    if common:
+        shared = set(base) & set(other)
+        base, other = {k: base[k] for k in shared}, {k: other[k] for k in shared}
     if set(base) != set(other):
-        raise SystemExit(f"error: {method}/per_object.csv: objects differ from {baseline}/per_object.csv")
+        raise SystemExit(f"error: {method}/per_object.csv: objects differ from {baseline}/per_object.csv "
+                         "(--common pairs the objects both scored)")
     for oid in base:
         if base[oid]["views"] != other[oid]["views"]:
             raise SystemExit(f"error: {method}/per_object.csv: object {oid} was scored on other views than in "
@@ -97,8 +102,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--baseline", type=Path, required=True, help="eval folder of the baseline")
     parser.add_argument("--method", type=Path, nargs="+", required=True, help="eval folders to compare")
     parser.add_argument("--json", type=Path, help="also write the rows as JSON")
+    parser.add_argument("--common", action="store_true",
+                        help="pair on the objects both evaluations scored (default: they must be the same)")
     args = parser.parse_args(argv)
-    rows = [s for folder in args.method for s in paired(args.baseline, folder)]
+    rows = [s for folder in args.method for s in paired(args.baseline, folder, args.common)]
     print(f"paired against {method_name(args.baseline)} ({args.baseline})")
     print("| method | metric | objects | baseline | method | difference | 95% interval | wins | no worse |")
     print("|---|---|---|---|---|---|---|---|---|")
