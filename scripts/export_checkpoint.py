@@ -247,6 +247,10 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
                 if cfg.prior.enabled else "") + ".",
              f"- NeRF MLP: {f.n_blocks} residual blocks of width {f.d_hidden}; samples {r.n_coarse} coarse + "
              f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(inference_spec(cfg).z_range)}.",
+             *([f"- Mirror-symmetric conditioning (beyond the paper): each point also reads the features at its "
+                f"mirror image's projection; trained with {s.mirror_dropout:g} of the items without a plane. "
+                "`depthnerf eval` uses the dataset's plane (`--no-symmetry`: none), `depthnerf reconstruct "
+                "--facing DEG` a photo's (default 90, a side view; `none`: none)."] if m.mirror else []),
              f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}, {s.objects_phase1}/{s.objects_phase2} objects x "
              f"{s.rays_per_object} rays per step, bbox sampling for {s.bbox_steps} steps; seed {cfg.seed}.",
              "- Full config: the `train_config` entry of the weights' metadata "
