@@ -165,19 +165,25 @@ def test_legacy_use_depth_is_checked_then_dropped():
 @pytest.mark.parametrize("name", sorted(shipped_checkpoints()))
 def test_shipped_checkpoints_derive_their_spec(name):
     """The stored spec equals the one derived from the training config, which is how checkpoints written before
-    specs existed are read; the framing, which the shipped specs predate, is derived once at load from the
-    checkpoint card beside the weights."""
+    specs existed are read; the framing, which the -depth / -baseline specs predate, is derived once at load from
+    the checkpoint card beside the weights (the -sym ones store it)."""
     pre = load_pretrained(name)
     meta = read_weights(pre.path)[1]
     derived = spec_from_metadata({k: v for k, v in meta.items() if k != SPEC_KEY}, "w")
-    assert SPEC_KEY in meta and "framing" not in json.loads(meta[SPEC_KEY]) and derived.framing is None
-    assert pre.spec.framing == "srn" and pre.framing_origin == str(pre.path.with_suffix(".json"))
+    depth_aware = not name.endswith("-baseline")
+    stored = json.loads(meta[SPEC_KEY])
+    assert derived.framing is None and pre.spec.framing == "srn"
+    if name.endswith("-sym"):
+        assert stored["framing"] == "srn" and pre.framing_origin == "the checkpoint's inference spec"
+    else:
+        assert "framing" not in stored and pre.framing_origin == str(pre.path.with_suffix(".json"))
     assert dataclasses.replace(derived, prior_weights_hash=pre.spec.prior_weights_hash, framing="srn") == pre.spec
-    assert (pre.spec.prior_weights_hash is not None) == name.endswith("-depth")  # only the stored spec has it
+    assert (pre.spec.prior_weights_hash is not None) == depth_aware  # only the stored spec has it
     train = from_dict_config(json.loads(meta["train_config"]))
     spec = pre.spec
     assert spec.category == train.data.category and spec.resolution == train.data.resolution == 64
-    assert spec.prior == train.prior and spec.depth_aware == name.endswith("-depth")
+    assert spec.prior == train.prior and spec.depth_aware == depth_aware
+    assert spec.model.mirror == name.endswith("-sym")
     assert spec.render == train.render and spec.model == train.model and spec.preset == train.preset
     assert spec.z_range == {"cars": (0.8, 1.8), "chairs": (1.25, 2.75)}[spec.category]
 
