@@ -284,3 +284,20 @@ def test_eval_records_the_plane_it_used(tmp_path):
     card = summary(mirror, "c")
     assert card["symmetry_plane"] == [0.0, 1.0, 0.0, 0.0] and card["psnr"] != shapenet["psnr"]
     assert summary(plain, "d")["symmetry_plane"] is None
+
+
+def test_app_passes_the_facing_and_says_which_plane(tmp_path):
+    """The page's facing slider reaches the mirror model, its checkbox turns the plane off, and the details say so."""
+    from depthnerf.app.logic import AppConfig, AppSession, RunRequest, examples
+    from depthnerf.config_io import apply_overrides
+    from tests.fixtures_checkpoints import save_tiny, tiny_config
+
+    mirror = save_tiny(tmp_path / "mirror.safetensors",
+                       apply_overrides(tiny_config("cars", "none"), ["--model.mirror", "true"]))
+    session = AppSession(AppConfig(mesh_resolution=0, work_dir=tmp_path / "app", keep_runs=3))
+    example = examples()[0]
+    side = session.run(RunRequest(example, "car", checkpoint_path=str(mirror), views=1, facing=90.0))
+    off = session.run(RunRequest(example, "car", checkpoint_path=str(mirror), views=1, facing=None))
+    assert side.ok and off.ok, (side.message, off.message)
+    assert "**Symmetry** on: the object faces 90 degrees (the default: a side view)" in side.details
+    assert "**Symmetry** off: no facing given" in off.details
