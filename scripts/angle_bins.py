@@ -43,12 +43,16 @@ def view_angles(folder: Path) -> dict[tuple[str, int], float]:
     records = {r.object_id: r for r in index_split(root, summary["category"], summary["split"],
                                                    check_files=False).objects}
     inputs = {row["object_id"]: int(row["input_view"]) for row in _read_csv(folder / "per_object.csv")}
+    def axis(oid: str, view: int) -> np.ndarray:
+        rec = records[oid]
+        z = read_pose(rec.path / "pose" / f"{rec.view_names[view]}.txt")[:3, 2]
+        return z / np.linalg.norm(z)
+
+    input_axes = {oid: axis(oid, view) for oid, view in inputs.items()}
     angles = {}
     for row in _read_csv(folder / "renders.csv"):
         oid, view = row["object_id"], int(row["view"])
-        rec = records[oid]
-        axis = [read_pose(rec.path / "pose" / f"{rec.view_names[v]}.txt")[:3, 2] for v in (inputs[oid], view)]
-        cos = float(np.dot(axis[0], axis[1]) / (np.linalg.norm(axis[0]) * np.linalg.norm(axis[1])))
+        cos = float(np.dot(input_axes[oid], axis(oid, view)))
         angles[(oid, view)] = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
     return angles
 

@@ -41,12 +41,11 @@ def project_points(cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
     return cam[..., :2] / z * focal[:, None, None, None] + principal[:, None, None, :]
 
 
-def in_frame(cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"], principal: Float[Tensor, "B 2"],
-             image_size: tuple[int, int]) -> Float[Tensor, "B V N"]:
-    """1.0 where a camera-frame point is in front of the camera and projects inside the ``H x W`` image
-    (``0 <= u <= W``, ``0 <= v <= H``), else 0.0."""
+def in_frame(cam: Float[Tensor, "B V N 3"], uv: Float[Tensor, "B V N 2"], image_size: tuple[int, int]
+             ) -> Float[Tensor, "B V N"]:
+    """1.0 where a camera-frame point is in front of the camera and its projection ``uv``
+    (:func:`project_points`) lies inside the ``H x W`` image (``0 <= u <= W``, ``0 <= v <= H``), else 0.0."""
     h, w = image_size
-    uv = project_points(cam, focal, principal)
     inside = (cam[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= w) & (uv[..., 1] >= 0) & (uv[..., 1] <= h)
     return inside.to(cam.dtype)
 
@@ -134,10 +133,16 @@ def resize_bilinear_matmul(x: Float[Tensor, "N C H W"], size: tuple[int, int]) -
 def pixel_aligned(maps: Float[Tensor, "B V Hf Wf C"], cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
                   principal: Float[Tensor, "B 2"], image_size: tuple[int, int]) -> Float[Tensor, "B V N C"]:
     """Features of each source view's (channels-last) map at the projection of each camera-frame point."""
+    return sample_projected(maps, project_points(cam, focal, principal), image_size)
+
+
+def sample_projected(maps: Float[Tensor, "B V Hf Wf C"], uv: Float[Tensor, "B V N 2"],
+                     image_size: tuple[int, int]) -> Float[Tensor, "B V N C"]:
+    """:func:`pixel_aligned` from projections ``uv`` already made (:func:`project_points`)."""
     b, v, hf, wf, c = maps.shape
-    grid = uv_to_grid(project_points(cam, focal, principal), image_size, (hf, wf))
+    grid = uv_to_grid(uv, image_size, (hf, wf))
     out = sample_maps(maps.reshape(b * v, hf, wf, c), grid.reshape(b * v, -1, 2))
-    return out.reshape(b, v, cam.shape[2], c)
+    return out.reshape(b, v, uv.shape[2], c)
 
 
 def rotate_dirs(dirs: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]) -> Float[Tensor, "B V N 3"]:

@@ -38,7 +38,7 @@ from depthnerf.data.symmetry import has_plane, reflect_dirs, reflect_points
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import PixelNeRFConfig
 from depthnerf.model.encoder import ImageEncoder
-from depthnerf.model.features import in_frame, pixel_aligned, rotate_dirs, to_source_frames
+from depthnerf.model.features import in_frame, project_points, rotate_dirs, sample_projected, to_source_frames
 from depthnerf.model.field import MirrorQuery, ResidualField
 
 EncoderNorm = Literal["running", "image"]
@@ -183,20 +183,18 @@ class PixelNeRF(nn.Module):
             rotated, cam = to_source_frames(points, enc.w2c)
             coords = rotated if mlp.cfg.point_frame == "rotated" else cam
             dirs_src = rotate_dirs(dirs, enc.w2c) if mlp.cfg.use_viewdirs else None
-            latent = pixel_aligned(maps, cam, enc.focal, enc.principal, enc.image_size)
+            uv = project_points(cam, enc.focal, enc.principal)
+            latent = sample_projected(maps, uv, enc.image_size)
             mirror = None
             if use_mirror:
                 rotated_m, cam_m = to_source_frames(reflect_points(points, plane), enc.w2c)
                 dirs_m = rotate_dirs(reflect_dirs(dirs, plane), enc.w2c) if mlp.cfg.use_viewdirs else None
-                flags = torch.stack([in_frame(cam, enc.focal, enc.principal, enc.image_size),
-                                     in_frame(cam_m, enc.focal, enc.principal, enc.image_size)], dim=-1)
+                uv_m = project_points(cam_m, enc.focal, enc.principal)
+                flags = torch.stack([in_frame(cam, uv, enc.image_size), in_frame(cam_m, uv_m, enc.image_size)], -1)
                 inputs_m = mlp.inputs(rotated_m if mlp.cfg.point_frame == "rotated" else cam_m, dirs_m)
                 mirror = MirrorQuery(inputs=torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1),
-                                     latent=pixel_aligned(maps_m, cam_m, enc.focal, enc.principal, enc.image_size),
-                                     gate=gate)
-                return forward(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map,
-                               mirror=mirror)
-            return forward(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map)
+                                     latent=sample_projected(maps_m, uv_m, enc.image_size), gate=gate)
+            return forward(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map, mirror=mirror)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]
                      ) -> tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]:
