@@ -9,7 +9,8 @@
 # Environment: STEPS (training steps, default: the preset's 2000), JOBS (runs in parallel, default 2, each with
 # one thread: on 2 cores, two 1-thread jobs beat one 2-thread job), STRIDE (eval view stride, default 25),
 # RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
-# mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10), FRAMING (synthetic benchmark framing,
+# mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
+# prior read at each point, --model.prior_at_point; suffixes combine, e.g. "cars-bundled-sym-pp"), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
 # 0.5 reads the SRN-framed renders exactly), GENERALISATION (1: also run scripts/generalisation_check.sh on
@@ -40,16 +41,19 @@ depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
 one_run() {
   set -euo pipefail  # not inherited through xargs: a failed training must not be evaluated
   local name=$1 cat=${1%%-*} rest=${1#*-}
-  local prior=${rest%%-*} variant=${rest#*-}
+  local prior=${rest%%-*}
+  local variants=${rest#"$prior"}
   local run="$STUDY/runs/$name" ev="$STUDY/eval/$name" log="$STUDY/logs/$name.log"
-  local steps=() extra=()
+  local steps=() extra=() variant
   [ -n "$STEPS" ] && steps=(--max-steps "$STEPS")
-  case "$rest" in
-    "$prior") ;;
-    *-sym) extra=(--model.mirror true) ;;  # mirror-symmetric conditioning (docs/RESULTS.md, "Symmetry")
-    *-dl) extra=(--schedule.depth_loss_weight "${DEPTH_LOSS:-10}") ;;  # depth as supervision ("Depth loss")
-    *) echo "unknown run variant '$variant' in $name (known: sym, dl)" >&2; return 2 ;;
-  esac
+  for variant in ${variants//-/ }; do
+    case "$variant" in
+      sym) extra+=(--model.mirror true) ;;  # mirror-symmetric conditioning (docs/RESULTS.md, "Symmetry")
+      dl) extra+=(--schedule.depth_loss_weight "${DEPTH_LOSS:-10}") ;;  # depth as supervision ("Depth loss")
+      pp) extra+=(--model.prior_at_point true) ;;  # the prior read at each point ("Prior at the point")
+      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp)" >&2; return 2 ;;
+    esac
+  done
   if [ ! -f "$ev/summary.json" ]; then
     local resume=()
     [ -f "$run/config.json" ] && resume=(--resume)

@@ -15,6 +15,10 @@ from typing import Literal
 
 from depthnerf.errors import DepthnerfError
 
+PRIOR_POINT_SCALE = 0.2
+"""Factor on the normalised prior (foreground in [-4, 4], background -5) where it enters the MLP input
+(:attr:`PixelNeRFConfig.prior_at_point`): background -1, foreground within [-0.8, 0.8]."""
+
 TRUNK_CHANNELS: dict[str, tuple[int, ...]] = {"resnet18": (64, 64, 128, 256), "resnet34": (64, 64, 128, 256)}
 """Channels of the feature stages conv1, layer1, layer2, layer3 of each supported torchvision trunk."""
 
@@ -145,3 +149,11 @@ class PixelNeRFConfig:
     (:mod:`depthnerf.data.symmetry`), through its own input and feature linears (``lin_in_mirror``,
     ``lin_z_mirror``), which also get whether the point and its mirror image project inside the source frame.
     Objects without a plane (a zero plane) skip that branch, so one model serves both."""
+    prior_at_point: bool = False
+    """Depth prior at the point (beyond the paper; off in the paper presets; depth-aware models only): the MLP
+    input also gets the normalised prior (:attr:`SourceViews.disparity <depthnerf.model.pixelnerf.SourceViews>`
+    times :data:`PRIOR_POINT_SCALE`: foreground in [-0.8, 0.8], background -1) read bilinearly at the point's
+    projection at the source image's full resolution, and mirror models also at the mirror image's projection.
+    Next to the point's own source-frame coordinates it says whether the point lies in front of, on or behind
+    the surface the input view sees (and so whether its mirror image is seen or hidden), a per-pixel cue that
+    the encoder's half-resolution, convolved features blur."""

@@ -16,6 +16,10 @@ input ``[gamma(x'), d', in_frame(x), in_frame(x')]`` and a second set of feature
 features sampled at the mirror image's projection; both are added to the direct ones, times a per-object gate
 (1 with a symmetry plane, 0 without): ``x = lin_in(u) + g lin_in_mirror(u')``, ``x += lin_z[i](z) + g
 lin_z_mirror[i](z')``. The mirror linears are initialised like their direct twins.
+
+Depth prior at the point (``PixelNeRFConfig.prior_at_point``): ``extra_inputs = 1`` more input column for
+``lin_in`` (the prior at the point's projection, appended after ``d``) and for ``lin_in_mirror`` (the prior at the
+mirror image's projection, appended after the two flags).
 """
 
 from __future__ import annotations
@@ -39,7 +43,8 @@ class MirrorQuery(TensorBundle):
     """What the mirror branch of :meth:`ResidualField.forward` gets for every point and source view."""
 
     inputs: Float[Tensor, "B V N Dm"]
-    """``[gamma(x'), d', in_frame(x), in_frame(x')]`` of the mirror image x' (Dm = d_in + 2)."""
+    """``[gamma(x'), d', in_frame(x), in_frame(x')]`` of the mirror image x' (Dm = d_in + 2), then the prior at
+    its projection for ``prior_at_point`` models (Dm = d_in + 3)."""
     latent: Float[Tensor, "B V N L"]
     """Features at the mirror image's projection (sampled ``latent_map(..., mirror=True)`` when projected)."""
     gate: Float[Tensor, " B"]
@@ -98,18 +103,20 @@ class ResidualBlock(nn.Module):
 class ResidualField(nn.Module):
     """pixelNeRF's ResnetFC conditioned on ``d_latent`` pixel-aligned feature channels."""
 
-    def __init__(self, cfg: FieldConfig, d_latent: int, *, mirror: bool = False):
+    def __init__(self, cfg: FieldConfig, d_latent: int, *, mirror: bool = False, extra_inputs: int = 0):
         super().__init__()
         self.cfg = cfg
+        self.extra_inputs = extra_inputs
+        """Input columns after ``[gamma(x), d]`` (and after the mirror flags): 1 for ``prior_at_point``."""
         self.encoding = PositionalEncoding(cfg.num_freqs, cfg.freq_factor, cfg.include_input)
-        self.lin_in = _kaiming(nn.Linear(cfg.d_in, cfg.d_hidden))
+        self.lin_in = _kaiming(nn.Linear(cfg.d_in + extra_inputs, cfg.d_hidden))
         self.blocks = nn.ModuleList([ResidualBlock(cfg.d_hidden) for _ in range(cfg.n_blocks)])
         self.n_lin_z = min(cfg.combine_layer, cfg.n_blocks)
         self.lin_z = nn.ModuleList([_kaiming(nn.Linear(d_latent, cfg.d_hidden)) for _ in range(self.n_lin_z)])
         self.mirror = mirror
         """Whether the mirror branch exists (``PixelNeRFConfig.mirror``)."""
         if mirror:
-            self.lin_in_mirror = _kaiming(nn.Linear(cfg.d_in + MIRROR_FLAGS, cfg.d_hidden))
+            self.lin_in_mirror = _kaiming(nn.Linear(cfg.d_in + MIRROR_FLAGS + extra_inputs, cfg.d_hidden))
             self.lin_z_mirror = nn.ModuleList([_kaiming(nn.Linear(d_latent, cfg.d_hidden))
                                                for _ in range(self.n_lin_z)])
         self.lin_out = _kaiming(nn.Linear(cfg.d_hidden, 4))

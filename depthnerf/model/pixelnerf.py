@@ -36,7 +36,7 @@ from depthnerf.bundles import FieldFn, TensorBundle
 from depthnerf.data.cameras import invert_pose
 from depthnerf.data.symmetry import has_plane, reflect_dirs, reflect_points
 from depthnerf.errors import DepthnerfError
-from depthnerf.model.config import PixelNeRFConfig
+from depthnerf.model.config import PRIOR_POINT_SCALE, PixelNeRFConfig
 from depthnerf.model.encoder import ImageEncoder
 from depthnerf.model.features import in_frame, project_points, rotate_dirs, sample_projected, to_source_frames
 from depthnerf.model.field import MirrorQuery, ResidualField
@@ -83,6 +83,9 @@ class EncodedViews(TensorBundle):
     """(H, W) of the source images, the frame in which (u, v) are measured."""
     symmetry_plane: Float[Tensor, "B 4"] | None = None
     """The sources' symmetry planes (:attr:`SourceViews.symmetry_plane`)."""
+    prior_map: Float[Tensor, "B V H W 1"] | None = None
+    """The normalised prior times ``PRIOR_POINT_SCALE``, channels-last at the source images' resolution, for
+    ``prior_at_point`` models (None otherwise)."""
 
 
 @dataclass(frozen=True)
@@ -125,13 +128,18 @@ class PixelNeRF(nn.Module):
 
     def __init__(self, cfg: PixelNeRFConfig, *, depth_aware: bool):
         super().__init__()
+        if cfg.prior_at_point and not depth_aware:
+            raise DepthnerfError("model config: prior_at_point reads the depth prior, but this model has none "
+                                 "(--depth none); drop --model.prior_at_point or choose a prior")
         self.cfg = cfg
         self.depth_aware = bool(depth_aware)
         """The encoder also takes the depth prior (a 4th input channel and the depth encoder)."""
         self.encoder = ImageEncoder(cfg.encoder, self.depth_aware)
         latent = cfg.encoder.latent_size(self.depth_aware)
-        self.coarse = ResidualField(cfg.coarse, latent, mirror=cfg.mirror)
-        self.fine = ResidualField(cfg.fine, latent, mirror=cfg.mirror) if cfg.fine is not None else None
+        extra = int(cfg.prior_at_point)
+        self.coarse = ResidualField(cfg.coarse, latent, mirror=cfg.mirror, extra_inputs=extra)
+        self.fine = (ResidualField(cfg.fine, latent, mirror=cfg.mirror, extra_inputs=extra)
+                     if cfg.fine is not None else None)
 
     def encode(self, src: SourceViews, *, encoder_norm: EncoderNorm = "running") -> EncodedViews:
         """Feature maps of all source views; nothing is stored on the module. ``encoder_norm`` (evaluation mode):
@@ -145,9 +153,12 @@ class PixelNeRF(nn.Module):
         feats = self.encoder(src.images.reshape(b * v, 3, h, w), disparity, objects=b,
                              image_stats=encoder_norm == "image")
         plane = src.symmetry_plane
+        prior_map = (src.disparity.permute(0, 1, 3, 4, 2).to(feats.dtype) * PRIOR_POINT_SCALE
+                     if self.cfg.prior_at_point else None)
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),
-                            image_size=(h, w), symmetry_plane=None if plane is None else plane.to(feats.dtype))
+                            image_size=(h, w), symmetry_plane=None if plane is None else plane.to(feats.dtype),
+                            prior_map=prior_map)
 
     def network(self, which: Literal["coarse", "fine"]) -> ResidualField:
         """The MLP used for a pass (the coarse one for "fine" when there is no separate fine network)."""
@@ -178,6 +189,15 @@ class PixelNeRF(nn.Module):
             maps_m = maps
         chunk = runtime.chunk_points or mlp.cfg.chunk_points
         amp_dtype = runtime.autocast
+        prior_map = enc.prior_map if self.cfg.prior_at_point else None
+        if self.cfg.prior_at_point and prior_map is None:
+            raise DepthnerfError("a prior_at_point model got EncodedViews without prior_map (encode it with this model)")
+
+        def with_prior(inputs: Tensor, uv: Tensor) -> Tensor:
+            """Append the prior at the projections ``uv`` (``prior_at_point`` models; else ``inputs`` as is)."""
+            if prior_map is None:
+                return inputs
+            return torch.cat([inputs, sample_projected(prior_map, uv, enc.image_size).to(inputs.dtype)], dim=-1)
 
         def run(points: Tensor, dirs: Tensor) -> Tensor:
             rotated, cam = to_source_frames(points, enc.w2c)
@@ -192,9 +212,11 @@ class PixelNeRF(nn.Module):
                 uv_m = project_points(cam_m, enc.focal, enc.principal)
                 flags = torch.stack([in_frame(cam, uv, enc.image_size), in_frame(cam_m, uv_m, enc.image_size)], -1)
                 inputs_m = mlp.inputs(rotated_m if mlp.cfg.point_frame == "rotated" else cam_m, dirs_m)
-                mirror = MirrorQuery(inputs=torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1),
-                                     latent=sample_projected(maps_m, uv_m, enc.image_size), gate=gate)
-            return forward(mlp.inputs(coords, dirs_src), latent, projected=mlp.cfg.lin_z_on_map, mirror=mirror)
+                inputs_m = with_prior(torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1), uv_m)
+                mirror = MirrorQuery(inputs=inputs_m, latent=sample_projected(maps_m, uv_m, enc.image_size),
+                                     gate=gate)
+            return forward(with_prior(mlp.inputs(coords, dirs_src), uv), latent, projected=mlp.cfg.lin_z_on_map,
+                           mirror=mirror)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]
                      ) -> tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]:

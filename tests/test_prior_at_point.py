@@ -1,0 +1,115 @@
+"""The depth prior read at each point (``PixelNeRFConfig.prior_at_point``): the field against a brute-force loop
+(points and mirror images projected by hand, the prior read bilinearly by hand), the default model unchanged,
+the column trains, and a model without a prior refuses the option."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from depthnerf.data.cameras import project, world_to_camera
+from depthnerf.errors import DepthnerfError
+from depthnerf.model import PixelNeRF
+from depthnerf.model.config import PRIOR_POINT_SCALE
+from tests.test_model import bilinear_border, query, randomize, small_config, sources
+
+
+def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
+    """Point by point (one source view): pixelNeRF's field, the prior at the point's projection appended to its
+    input, and for mirror models the mirror branch with the prior at the mirror image's projection."""
+    mlp = model.network(which)
+    h, w = enc.image_size
+    hf, wf = enc.features.shape[-2:]
+    plane = src.symmetry_plane
+    rgb, sigma = torch.zeros(*pts.shape), torch.zeros(pts.shape[:-1])
+    for bi in range(pts.shape[0]):
+        c2w = src.poses[bi, 0]
+        rot = c2w[:3, :3].T
+        prior = src.disparity[bi, 0] * PRIOR_POINT_SCALE  # [1 H W]
+        for ri in range(pts.shape[1]):
+            for si in range(pts.shape[2]):
+                p, v = pts[bi, ri, si], dirs[bi, ri]
+                queries = [(p, v)]
+                if model.cfg.mirror:
+                    n, d = plane[bi, :3], plane[bi, 3]
+                    queries.append((p - 2 * (p @ n - d) * n, v - 2 * (v @ n) * n))
+                feats, flags, priors = [], [], []
+                for q, _ in queries:
+                    cam = world_to_camera(q[None], c2w)[0]
+                    u, vv = project(cam[None], float(src.focal[bi]), tuple(src.principal[bi].tolist()))[0]
+                    feats.append(bilinear_border(enc.features[bi, 0], float(u) * wf / w, float(vv) * hf / h))
+                    flags.append(float(cam[2] > 0 and 0 <= u <= w and 0 <= vv <= h))
+                    priors.append(bilinear_border(prior, float(u), float(vv)))
+                x = mlp.lin_in(torch.cat([mlp.encoding(rot @ p), rot @ v, priors[0]]))
+                gate = 0.0
+                if model.cfg.mirror:
+                    gate = float(plane[bi, :3].abs().sum() > 0)
+                    pm, vm = queries[1]
+                    x = x + gate * mlp.lin_in_mirror(torch.cat([mlp.encoding(rot @ pm), rot @ vm,
+                                                                torch.tensor(flags), priors[1]]))
+                for k in range(mlp.cfg.combine_layer):
+                    x = x + mlp.lin_z[k](feats[0])
+                    if model.cfg.mirror:
+                        x = x + gate * mlp.lin_z_mirror[k](feats[1])
+                    blk = mlp.blocks[k]
+                    x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
+                for blk in mlp.blocks[mlp.cfg.combine_layer:]:
+                    x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
+                out = mlp.lin_out(torch.relu(x))
+                rgb[bi, ri, si], sigma[bi, ri, si] = torch.sigmoid(out[:3]), torch.relu(out[3])
+    return rgb, sigma
+
+
+def prior_model(mirror: bool, on_map: bool = True) -> PixelNeRF:
+    cfg = small_config(lin_z_on_map=on_map)
+    cfg.mirror, cfg.prior_at_point = mirror, True
+    return randomize(PixelNeRF(cfg, depth_aware=True))
+
+
+@pytest.mark.parametrize(("mirror", "on_map"), [(False, True), (True, True), (True, False)])
+def test_prior_at_point_matches_bruteforce_reference(mirror, on_map):
+    torch.manual_seed(0)
+    model = prior_model(mirror, on_map)
+    src = sources(b=3, v=1, size=40, prior=True)
+    src.disparity = src.disparity * 9.0 - 5.0  # the normalised prior's range: [-5, 4]
+    if mirror:
+        src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.6, 0.0, 0.8, 0.1], [0.0, 0.0, 0.0, 0.0]])
+    pts, dirs = query(b=3, r=3, s=4)
+    pts[1, 0, 0] = torch.tensor([0.4, 0.0, -3.0])  # projects (and its mirror image) outside the image: border
+    with torch.no_grad():
+        enc = model.encode(src)
+        for which in ("coarse", "fine"):
+            rgb, sigma = model.field(enc, which)(pts, dirs)
+            ref_rgb, ref_sigma = reference_field(model, enc, src, which, pts, dirs)
+            torch.testing.assert_close(rgb, ref_rgb, atol=1e-5, rtol=1e-4)
+            torch.testing.assert_close(sigma, ref_sigma, atol=1e-5, rtol=1e-4)
+    assert (sigma > 0).any() and rgb.std() > 1e-3
+
+
+def test_the_prior_column_reads_the_prior_and_trains():
+    """Changing the prior changes the field only through the new column; its weights get a gradient."""
+    torch.manual_seed(0)
+    model = prior_model(mirror=True)
+    src = sources(b=2, v=1, size=32, prior=True)
+    src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    pts, dirs = query(b=2)
+    with torch.no_grad():
+        enc = model.encode(src)
+        before = model.field(enc, "fine")(pts, dirs)
+        enc.prior_map = enc.prior_map + 0.5  # the same features, another prior at every point
+        after = model.field(enc, "fine")(pts, dirs)
+    assert (after[1] - before[1]).abs().max() > 1e-4
+    model.train()
+    rgb, sigma = model.field(model.encode(src), "coarse")(pts, dirs)
+    (rgb.sum() + sigma.sum()).backward()
+    assert model.coarse.lin_in.weight.grad[:, -1].abs().sum() > 0
+    assert model.coarse.lin_in_mirror.weight.grad[:, -1].abs().sum() > 0
+
+
+def test_off_by_default_and_refused_without_a_prior():
+    plain = PixelNeRF(small_config(), depth_aware=True)
+    assert plain.coarse.lin_in.in_features == plain.cfg.coarse.d_in  # checkpoints without the option load as-is
+    with pytest.raises(DepthnerfError, match="prior_at_point reads the depth prior"):
+        cfg = small_config()
+        cfg.prior_at_point = True
+        PixelNeRF(cfg, depth_aware=False)
