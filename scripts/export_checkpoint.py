@@ -251,6 +251,9 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
                 f"mirror image's projection; trained with {s.mirror_dropout:g} of the items without a plane. "
                 "`depthnerf eval` uses the dataset's plane (`--no-symmetry`: none), `depthnerf reconstruct "
                 "--facing DEG` a photo's (default 90, a side view; `none`: none)."] if m.mirror else []),
+             *(["- Depth prior at the point (beyond the paper, `--model.prior_at_point true`): the MLP input also "
+                "gets the normalised prior read at full resolution at each point's projection"
+                + (" and at its mirror image's" if m.mirror else "") + "."] if m.prior_at_point else []),
              f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}, {s.objects_phase1}/{s.objects_phase2} objects x "
              f"{s.rays_per_object} rays per step, bbox sampling for {s.bbox_steps} steps; seed {cfg.seed}.",
              "- Full config: the `train_config` entry of the weights' metadata "

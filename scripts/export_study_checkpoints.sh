@@ -3,14 +3,16 @@
 #   bash scripts/export_study_checkpoints.sh [STUDY_DIR]      (after scripts/run_study.sh)
 # cpu-<category>-depth = the bundled-prior run, cpu-<category>-baseline = the --depth none run,
 # cpu-<category>-sym = the bundled-prior run with mirror-symmetric conditioning (RUNS "<category>-bundled-sym").
-# PAIRS (default "none:baseline bundled:depth") picks which, e.g. PAIRS="bundled-sym:sym".
+# cpu-<category>-sympp = the same with the prior read at each point too (RUNS "<category>-bundled-sym-pp").
+# PAIRS (default "none:baseline bundled:depth") picks which, e.g. PAIRS="bundled-sym:sym" or "bundled-sym-pp:sympp".
 set -euo pipefail
 STUDY=${1:-study}
 for cat in ${CATEGORIES:-cars chairs}; do
   for pair in ${PAIRS:-none:baseline bundled:depth}; do
     run=${pair%%:*} kind=${pair#*:} prior=${pair%%-*}
     prior=${prior%%:*} extra=""
-    [[ "$run" == *-sym ]] && extra=" --model.mirror true"
+    [[ "$run" == *-sym* ]] && extra=" --model.mirror true"
+    [[ "$run" == *-pp* ]] && extra="$extra --model.prior_at_point true"
     python scripts/export_checkpoint.py --run "$STUDY/runs/$cat-$run" --name "cpu-$cat-$kind" \
       --eval-summary "$STUDY/eval/$cat-$run/summary.json" --data-root "$STUDY/data" \
       --command "depthnerf train --preset cpu-$cat --data \$DATA --depth $prior$extra --seed 0 --out $STUDY/runs/$cat-$run  # via: bash scripts/run_study.sh $STUDY"

@@ -157,3 +157,14 @@ class PixelNeRFConfig:
     Next to the point's own source-frame coordinates it says whether the point lies in front of, on or behind
     the surface the input view sees (and so whether its mirror image is seen or hidden), a per-pixel cue that
     the encoder's half-resolution, convolved features blur."""
+    rgb_at_point: bool = False
+    """Colour at the point (beyond the paper; off in the paper presets; any model): the MLP input also gets the
+    source image's RGB (mapped to [-1, 1]) read bilinearly at the point's projection at full resolution, and
+    mirror models also at the mirror image's projection (after the prior column when both are on): the colour
+    a visible point (or its visible mirror image) has, which the encoder's features carry only blurred."""
+
+    @property
+    def point_columns(self) -> int:
+        """Input columns each MLP branch gets from the source pixels at a projection: 1 for the prior
+        (``prior_at_point``) + 3 for the colour (``rgb_at_point``)."""
+        return int(self.prior_at_point) + 3 * int(self.rgb_at_point)

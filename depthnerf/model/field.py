@@ -17,9 +17,9 @@ features sampled at the mirror image's projection; both are added to the direct 
 (1 with a symmetry plane, 0 without): ``x = lin_in(u) + g lin_in_mirror(u')``, ``x += lin_z[i](z) + g
 lin_z_mirror[i](z')``. The mirror linears are initialised like their direct twins.
 
-Depth prior at the point (``PixelNeRFConfig.prior_at_point``): ``extra_inputs = 1`` more input column for
-``lin_in`` (the prior at the point's projection, appended after ``d``) and for ``lin_in_mirror`` (the prior at the
-mirror image's projection, appended after the two flags).
+Source pixels at the point (``PixelNeRFConfig.prior_at_point`` / ``rgb_at_point``): ``extra_inputs`` more input
+columns for ``lin_in`` (the prior and/or colour at the point's projection, appended after ``d``) and for
+``lin_in_mirror`` (the same at the mirror image's projection, appended after the two flags).
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ class MirrorQuery(TensorBundle):
     """What the mirror branch of :meth:`ResidualField.forward` gets for every point and source view."""
 
     inputs: Float[Tensor, "B V N Dm"]
-    """``[gamma(x'), d', in_frame(x), in_frame(x')]`` of the mirror image x' (Dm = d_in + 2), then the prior at
-    its projection for ``prior_at_point`` models (Dm = d_in + 3)."""
+    """``[gamma(x'), d', in_frame(x), in_frame(x')]`` of the mirror image x' (Dm = d_in + 2), then the source
+    pixels at its projection for ``prior_at_point`` / ``rgb_at_point`` models (``PixelNeRFConfig.point_columns``)."""
     latent: Float[Tensor, "B V N L"]
     """Features at the mirror image's projection (sampled ``latent_map(..., mirror=True)`` when projected)."""
     gate: Float[Tensor, " B"]
@@ -107,7 +107,7 @@ class ResidualField(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.extra_inputs = extra_inputs
-        """Input columns after ``[gamma(x), d]`` (and after the mirror flags): 1 for ``prior_at_point``."""
+        """Input columns after ``[gamma(x), d]`` (and after the mirror flags): ``PixelNeRFConfig.point_columns``."""
         self.encoding = PositionalEncoding(cfg.num_freqs, cfg.freq_factor, cfg.include_input)
         self.lin_in = _kaiming(nn.Linear(cfg.d_in + extra_inputs, cfg.d_hidden))
         self.blocks = nn.ModuleList([ResidualBlock(cfg.d_hidden) for _ in range(cfg.n_blocks)])

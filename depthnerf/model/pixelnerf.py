@@ -83,9 +83,9 @@ class EncodedViews(TensorBundle):
     """(H, W) of the source images, the frame in which (u, v) are measured."""
     symmetry_plane: Float[Tensor, "B 4"] | None = None
     """The sources' symmetry planes (:attr:`SourceViews.symmetry_plane`)."""
-    prior_map: Float[Tensor, "B V H W 1"] | None = None
-    """The normalised prior times ``PRIOR_POINT_SCALE``, channels-last at the source images' resolution, for
-    ``prior_at_point`` models (None otherwise)."""
+    point_map: Float[Tensor, "B V H W K"] | None = None
+    """The source pixels read at each point's projection, channels-last at the source images' resolution
+    (:meth:`PixelNeRF.point_map`; K = ``PixelNeRFConfig.point_columns``; None when K = 0)."""
 
 
 @dataclass(frozen=True)
@@ -136,7 +136,7 @@ class PixelNeRF(nn.Module):
         """The encoder also takes the depth prior (a 4th input channel and the depth encoder)."""
         self.encoder = ImageEncoder(cfg.encoder, self.depth_aware)
         latent = cfg.encoder.latent_size(self.depth_aware)
-        extra = int(cfg.prior_at_point)
+        extra = cfg.point_columns
         self.coarse = ResidualField(cfg.coarse, latent, mirror=cfg.mirror, extra_inputs=extra)
         self.fine = (ResidualField(cfg.fine, latent, mirror=cfg.mirror, extra_inputs=extra)
                      if cfg.fine is not None else None)
@@ -153,12 +153,20 @@ class PixelNeRF(nn.Module):
         feats = self.encoder(src.images.reshape(b * v, 3, h, w), disparity, objects=b,
                              image_stats=encoder_norm == "image")
         plane = src.symmetry_plane
-        prior_map = (src.disparity.permute(0, 1, 3, 4, 2).to(feats.dtype) * PRIOR_POINT_SCALE
-                     if self.cfg.prior_at_point else None)
         return EncodedViews(features=feats.reshape(b, v, *feats.shape[1:]), w2c=invert_pose(src.poses),
                             focal=src.focal.to(feats.dtype), principal=src.principal.to(feats.dtype),
                             image_size=(h, w), symmetry_plane=None if plane is None else plane.to(feats.dtype),
-                            prior_map=prior_map)
+                            point_map=self.point_map(src))
+
+    def point_map(self, src: SourceViews) -> Float[Tensor, "B V H W K"] | None:
+        """What ``prior_at_point`` / ``rgb_at_point`` models read at each projection, channels-last: the
+        normalised prior times ``PRIOR_POINT_SCALE``, then RGB mapped to [-1, 1] (None: neither option)."""
+        parts = []
+        if self.cfg.prior_at_point:
+            parts.append(src.disparity.float() * PRIOR_POINT_SCALE)
+        if self.cfg.rgb_at_point:
+            parts.append(src.images.float() * 2.0 - 1.0)
+        return torch.cat(parts, dim=2).permute(0, 1, 3, 4, 2).contiguous() if parts else None
 
     def network(self, which: Literal["coarse", "fine"]) -> ResidualField:
         """The MLP used for a pass (the coarse one for "fine" when there is no separate fine network)."""
@@ -189,15 +197,19 @@ class PixelNeRF(nn.Module):
             maps_m = maps
         chunk = runtime.chunk_points or mlp.cfg.chunk_points
         amp_dtype = runtime.autocast
-        prior_map = enc.prior_map if self.cfg.prior_at_point else None
-        if self.cfg.prior_at_point and prior_map is None:
-            raise DepthnerfError("a prior_at_point model got EncodedViews without prior_map (encode it with this model)")
+        point_map = enc.point_map if self.cfg.point_columns else None
+        if point_map is not None and point_map.shape[-1] != self.cfg.point_columns:
+            raise DepthnerfError(f"EncodedViews.point_map has {point_map.shape[-1]} channels, this model reads "
+                                 f"{self.cfg.point_columns} (encode the views with this model)")
+        if self.cfg.point_columns and point_map is None:
+            raise DepthnerfError("EncodedViews without point_map given to a model that reads the source pixels at "
+                                 "each point (encode the views with this model)")
 
-        def with_prior(inputs: Tensor, uv: Tensor) -> Tensor:
-            """Append the prior at the projections ``uv`` (``prior_at_point`` models; else ``inputs`` as is)."""
-            if prior_map is None:
+        def with_pixels(inputs: Tensor, uv: Tensor) -> Tensor:
+            """Append the source pixels at the projections ``uv`` (``point_columns`` models; else as is)."""
+            if point_map is None:
                 return inputs
-            return torch.cat([inputs, sample_projected(prior_map, uv, enc.image_size).to(inputs.dtype)], dim=-1)
+            return torch.cat([inputs, sample_projected(point_map, uv, enc.image_size).to(inputs.dtype)], dim=-1)
 
         def run(points: Tensor, dirs: Tensor) -> Tensor:
             rotated, cam = to_source_frames(points, enc.w2c)
@@ -212,10 +224,10 @@ class PixelNeRF(nn.Module):
                 uv_m = project_points(cam_m, enc.focal, enc.principal)
                 flags = torch.stack([in_frame(cam, uv, enc.image_size), in_frame(cam_m, uv_m, enc.image_size)], -1)
                 inputs_m = mlp.inputs(rotated_m if mlp.cfg.point_frame == "rotated" else cam_m, dirs_m)
-                inputs_m = with_prior(torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1), uv_m)
+                inputs_m = with_pixels(torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1), uv_m)
                 mirror = MirrorQuery(inputs=inputs_m, latent=sample_projected(maps_m, uv_m, enc.image_size),
                                      gate=gate)
-            return forward(with_prior(mlp.inputs(coords, dirs_src), uv), latent, projected=mlp.cfg.lin_z_on_map,
+            return forward(with_pixels(mlp.inputs(coords, dirs_src), uv), latent, projected=mlp.cfg.lin_z_on_map,
                            mirror=mirror)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]

@@ -1,6 +1,6 @@
-"""The depth prior read at each point (``PixelNeRFConfig.prior_at_point``): the field against a brute-force loop
-(points and mirror images projected by hand, the prior read bilinearly by hand), the default model unchanged,
-the column trains, and a model without a prior refuses the option."""
+"""The source pixels read at each point (``PixelNeRFConfig.prior_at_point`` / ``rgb_at_point``): the field against
+a brute-force loop (points and mirror images projected by hand, the prior and colour read bilinearly by hand),
+the default model unchanged, the columns train, and a model without a prior refuses ``prior_at_point``."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from tests.test_model import bilinear_border, query, randomize, small_config, so
 
 
 def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
-    """Point by point (one source view): pixelNeRF's field, the prior at the point's projection appended to its
-    input, and for mirror models the mirror branch with the prior at the mirror image's projection."""
+    """Point by point (one source view): pixelNeRF's field, the source pixels (prior, then colour) at the point's
+    projection appended to its input, and for mirror models the mirror branch with those at the mirror image's."""
     mlp = model.network(which)
     h, w = enc.image_size
     hf, wf = enc.features.shape[-2:]
@@ -25,7 +25,12 @@ def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
     for bi in range(pts.shape[0]):
         c2w = src.poses[bi, 0]
         rot = c2w[:3, :3].T
-        prior = src.disparity[bi, 0] * PRIOR_POINT_SCALE  # [1 H W]
+        pixels = []  # [K H W]: what the model reads at a projection
+        if model.cfg.prior_at_point:
+            pixels.append(src.disparity[bi, 0] * PRIOR_POINT_SCALE)
+        if model.cfg.rgb_at_point:
+            pixels.append(src.images[bi, 0] * 2 - 1)
+        pixels = torch.cat(pixels)
         for ri in range(pts.shape[1]):
             for si in range(pts.shape[2]):
                 p, v = pts[bi, ri, si], dirs[bi, ri]
@@ -33,20 +38,20 @@ def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
                 if model.cfg.mirror:
                     n, d = plane[bi, :3], plane[bi, 3]
                     queries.append((p - 2 * (p @ n - d) * n, v - 2 * (v @ n) * n))
-                feats, flags, priors = [], [], []
+                feats, flags, pixel_cols = [], [], []
                 for q, _ in queries:
                     cam = world_to_camera(q[None], c2w)[0]
                     u, vv = project(cam[None], float(src.focal[bi]), tuple(src.principal[bi].tolist()))[0]
                     feats.append(bilinear_border(enc.features[bi, 0], float(u) * wf / w, float(vv) * hf / h))
                     flags.append(float(cam[2] > 0 and 0 <= u <= w and 0 <= vv <= h))
-                    priors.append(bilinear_border(prior, float(u), float(vv)))
-                x = mlp.lin_in(torch.cat([mlp.encoding(rot @ p), rot @ v, priors[0]]))
+                    pixel_cols.append(bilinear_border(pixels, float(u), float(vv)))
+                x = mlp.lin_in(torch.cat([mlp.encoding(rot @ p), rot @ v, pixel_cols[0]]))
                 gate = 0.0
                 if model.cfg.mirror:
                     gate = float(plane[bi, :3].abs().sum() > 0)
                     pm, vm = queries[1]
                     x = x + gate * mlp.lin_in_mirror(torch.cat([mlp.encoding(rot @ pm), rot @ vm,
-                                                                torch.tensor(flags), priors[1]]))
+                                                                torch.tensor(flags), pixel_cols[1]]))
                 for k in range(mlp.cfg.combine_layer):
                     x = x + mlp.lin_z[k](feats[0])
                     if model.cfg.mirror:
@@ -60,16 +65,18 @@ def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
     return rgb, sigma
 
 
-def prior_model(mirror: bool, on_map: bool = True) -> PixelNeRF:
+def prior_model(mirror: bool, on_map: bool = True, prior: bool = True, rgb: bool = False) -> PixelNeRF:
     cfg = small_config(lin_z_on_map=on_map)
-    cfg.mirror, cfg.prior_at_point = mirror, True
+    cfg.mirror, cfg.prior_at_point, cfg.rgb_at_point = mirror, prior, rgb
     return randomize(PixelNeRF(cfg, depth_aware=True))
 
 
-@pytest.mark.parametrize(("mirror", "on_map"), [(False, True), (True, True), (True, False)])
-def test_prior_at_point_matches_bruteforce_reference(mirror, on_map):
+@pytest.mark.parametrize(("mirror", "on_map", "prior", "rgb"),
+                         [(False, True, True, False), (True, True, True, False), (True, False, True, False),
+                          (False, True, False, True), (True, True, True, True)])
+def test_pixels_at_point_match_bruteforce_reference(mirror, on_map, prior, rgb):
     torch.manual_seed(0)
-    model = prior_model(mirror, on_map)
+    model = prior_model(mirror, on_map, prior, rgb)
     src = sources(b=3, v=1, size=40, prior=True)
     src.disparity = src.disparity * 9.0 - 5.0  # the normalised prior's range: [-5, 4]
     if mirror:
@@ -96,7 +103,7 @@ def test_the_prior_column_reads_the_prior_and_trains():
     with torch.no_grad():
         enc = model.encode(src)
         before = model.field(enc, "fine")(pts, dirs)
-        enc.prior_map = enc.prior_map + 0.5  # the same features, another prior at every point
+        enc.point_map = enc.point_map + 0.5  # the same features, another prior at every point
         after = model.field(enc, "fine")(pts, dirs)
     assert (after[1] - before[1]).abs().max() > 1e-4
     model.train()
@@ -109,6 +116,10 @@ def test_the_prior_column_reads_the_prior_and_trains():
 def test_off_by_default_and_refused_without_a_prior():
     plain = PixelNeRF(small_config(), depth_aware=True)
     assert plain.coarse.lin_in.in_features == plain.cfg.coarse.d_in  # checkpoints without the option load as-is
+    assert plain.encode(sources(b=1, prior=True)).point_map is None
+    both = prior_model(mirror=True, rgb=True)
+    assert both.coarse.lin_in.in_features == both.cfg.coarse.d_in + 4
+    assert both.fine.lin_in_mirror.in_features == both.cfg.fine.d_in + 2 + 4
     with pytest.raises(DepthnerfError, match="prior_at_point reads the depth prior"):
         cfg = small_config()
         cfg.prior_at_point = True
