@@ -13,6 +13,7 @@ for cat in ${CATEGORIES:-cars chairs}; do
     prior=${prior%%:*} extra=""
     [[ "$run" == *-sym* ]] && extra=" --model.mirror true"
     [[ "$run" == *-pp* ]] && extra="$extra --model.prior_at_point true"
+    [[ "$run" == *-rgb* ]] && extra="$extra --model.rgb_at_point true"
     python scripts/export_checkpoint.py --run "$STUDY/runs/$cat-$run" --name "cpu-$cat-$kind" \
       --eval-summary "$STUDY/eval/$cat-$run/summary.json" --data-root "$STUDY/data" \
       --command "depthnerf train --preset cpu-$cat --data \$DATA --depth $prior$extra --seed 0 --out $STUDY/runs/$cat-$run  # via: bash scripts/run_study.sh $STUDY"
