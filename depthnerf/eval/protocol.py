@@ -331,6 +331,8 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
         "protocol_choices": choices.record(skipped),
         "method": cfg.method or method_label(estimator) + (
             " + mirror symmetry" if evaluator.symmetry_plane is not None else "") + (
+            " + prior at each point" if spec.model.prior_at_point else "") + (
+            " + colour at each point" if spec.model.rgb_at_point else "") + (
             f" + guided sampling ({guided.budget}/ray)" if guided is not None else ""),
         "guided_sampling": None if guided is None else guided_record(guided),
         "category": category, "split": cfg.split, "preset": spec.preset,
