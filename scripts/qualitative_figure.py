@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import sys
 from collections.abc import Sequence
@@ -294,11 +295,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--object-ids", nargs="+", default=None, help="these objects instead of the first N")
     parser.add_argument("--view", type=int, default=None, help="target view (default: first view all evals rendered)")
     parser.add_argument("--title", default=None, help="figure title")
+    parser.add_argument("--labels", nargs="+", default=None, metavar="LABEL",
+                        help="column titles of the evals' renders, one per --evals folder (default: their method)")
     args = parser.parse_args(argv)
     try:
         if args.out.suffix.lower() == ".csv":
             raise DepthnerfError(f"{args.out}: --out is the figure; its numbers go to the .csv beside it")
         evals = [load_eval_dir(p) for p in args.evals]
+        if args.labels is not None:
+            if len(args.labels) != len(evals):
+                raise DepthnerfError(f"--labels: {len(args.labels)} labels for {len(evals)} --evals folders")
+            evals = [dataclasses.replace(e, summary={**e.summary, "method": label})
+                     for e, label in zip(evals, args.labels, strict=True)]
         data_root = args.data or Path(evals[0].summary.get("data_card", {}).get("root") or ".")
         object_ids = choose_objects(evals, args.objects, args.object_ids)
         grid = build_rows(evals, data_root, object_ids, args.view)

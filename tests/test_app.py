@@ -136,7 +136,7 @@ def test_request_checks(session, tmp_path):
 
 
 def test_resolve_model_and_messages(tmp_path):
-    assert resolve_model(RunRequest(None, "car")) == "cpu-cars-sym"
+    assert resolve_model(RunRequest(None, "car")) == "cpu-cars-sym-pp"
     assert resolve_model(RunRequest(None, "chair")) == "cpu-chairs-depth"
     assert resolve_model(RunRequest(None, "car", checkpoint_path=" runs/x ")) == "runs/x"
     assert one_line(DepthnerfError("/tmp/gradio/ab/c.png: bad\nthing"), "/tmp/gradio/ab/c.png") == "error: c.png: bad thing"
@@ -154,7 +154,7 @@ def test_a_run_collects_every_output(session):
     manifest = json.loads((run / "manifest.json").read_text())
     assert manifest["settings"]["fill"] == 0.5 and manifest["settings"]["elevation"] == 25
     assert manifest["settings"]["depth_estimator"] == "bundled" and Path(manifest["checkpoint"]).name == \
-        "cpu-cars-sym.safetensors"
+        "cpu-cars-sym-pp.safetensors"
     mask = np.asarray(Image.open(out.input_mask)) > 0  # foreground ratio = fill: the longer box side is half the frame
     rows, cols = np.where(mask.any(1))[0], np.where(mask.any(0))[0]
     assert abs(max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1 - 32) <= 2

@@ -173,7 +173,7 @@ def test_shipped_checkpoints_derive_their_spec(name):
     depth_aware = not name.endswith("-baseline")
     stored = json.loads(meta[SPEC_KEY])
     assert derived.framing is None and pre.spec.framing == "srn"
-    if name.endswith("-sym"):
+    if "-sym" in name:
         assert stored["framing"] == "srn" and pre.framing_origin == "the checkpoint's inference spec"
     else:
         assert "framing" not in stored and pre.framing_origin == str(pre.path.with_suffix(".json"))
@@ -183,7 +183,8 @@ def test_shipped_checkpoints_derive_their_spec(name):
     spec = pre.spec
     assert spec.category == train.data.category and spec.resolution == train.data.resolution == 64
     assert spec.prior == train.prior and spec.depth_aware == depth_aware
-    assert spec.model.mirror == name.endswith("-sym")
+    assert spec.model.mirror == ("-sym" in name)
+    assert spec.model.prior_at_point == name.endswith("-pp")
     assert spec.render == train.render and spec.model == train.model and spec.preset == train.preset
     assert spec.z_range == {"cars": (0.8, 1.8), "chairs": (1.25, 2.75)}[spec.category]
 

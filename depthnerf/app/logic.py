@@ -60,9 +60,10 @@ EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 """Bundled example photos (``scripts/make_app_examples.py``)."""
 DEPTH_PRIORS = ("bundled", "depth-anything-v2")
 """Depth priors the page offers."""
-SHIPPED_MODELS = {"car": "cpu-cars-sym", "chair": "cpu-chairs-depth"}
+SHIPPED_MODELS = {"car": "cpu-cars-sym-pp", "chair": "cpu-chairs-depth"}
 """Page label -> the best shipped checkpoint per category (docs/RESULTS.md: the car model with mirror-symmetric
-conditioning; the chair one without, whose mesh of the app's example is one piece)."""
+conditioning and the prior read at each point; the chair one without either, whose mesh of the app's example is
+one piece)."""
 ProgressFn = Callable[[float, str], None]
 
 
