@@ -1,5 +1,5 @@
-"""The source pixels read at each point (``PixelNeRFConfig.prior_at_point`` / ``rgb_at_point``): the field against
-a brute-force loop (points and mirror images projected by hand, the prior and colour read bilinearly by hand),
+"""The source pixels read at each point (``PixelNeRFConfig.prior_at_point`` / ``rgb_at_point``) and the mirror
+branch (``PixelNeRFConfig.mirror``): the field against a brute-force loop (points and mirror images projected by hand, the prior and colour read bilinearly by hand),
 the default model unchanged, the columns train, and a model without a prior refuses ``prior_at_point``."""
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ from tests.test_model import bilinear_border, query, randomize, small_config, so
 
 def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
     """Point by point (one source view): pixelNeRF's field, the source pixels (prior, then colour) at the point's
-    projection appended to its input, and for mirror models the mirror branch with those at the mirror image's."""
+    projection appended to its input, and for mirror models the mirror branch (the mirror image projected by
+    hand, its flags, and those pixels at its projection)."""
     mlp = model.network(which)
     h, w = enc.image_size
     hf, wf = enc.features.shape[-2:]
@@ -30,7 +31,7 @@ def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
             pixels.append(src.disparity[bi, 0] * PRIOR_POINT_SCALE)
         if model.cfg.rgb_at_point:
             pixels.append(src.images[bi, 0] * 2 - 1)
-        pixels = torch.cat(pixels)
+        pixels = torch.cat(pixels) if pixels else src.images.new_zeros(0, h, w)
         for ri in range(pts.shape[1]):
             for si in range(pts.shape[2]):
                 p, v = pts[bi, ri, si], dirs[bi, ri]
@@ -65,18 +66,21 @@ def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
     return rgb, sigma
 
 
-def prior_model(mirror: bool, on_map: bool = True, prior: bool = True, rgb: bool = False) -> PixelNeRF:
+def prior_model(mirror: bool, on_map: bool = True, prior: bool = True, rgb: bool = False,
+                depth_aware: bool = True) -> PixelNeRF:
     cfg = small_config(lin_z_on_map=on_map)
     cfg.mirror, cfg.prior_at_point, cfg.rgb_at_point = mirror, prior, rgb
-    return randomize(PixelNeRF(cfg, depth_aware=True))
+    return randomize(PixelNeRF(cfg, depth_aware=depth_aware))
 
 
-@pytest.mark.parametrize(("mirror", "on_map", "prior", "rgb"),
-                         [(False, True, True, False), (True, True, True, False), (True, False, True, False),
-                          (False, True, False, True), (True, True, True, True)])
-def test_pixels_at_point_match_bruteforce_reference(mirror, on_map, prior, rgb):
+@pytest.mark.parametrize(("mirror", "on_map", "prior", "rgb", "depth_aware"),
+                         [(True, True, False, False, False), (True, False, False, False, False),  # mirror alone
+                          (False, True, True, False, True), (True, True, True, False, True),
+                          (True, False, True, False, True), (False, True, False, True, True),
+                          (True, True, True, True, True)])
+def test_field_matches_bruteforce_reference(mirror, on_map, prior, rgb, depth_aware):
     torch.manual_seed(0)
-    model = prior_model(mirror, on_map, prior, rgb)
+    model = prior_model(mirror, on_map, prior, rgb, depth_aware)
     src = sources(b=3, v=1, size=40, prior=True)
     src.disparity = src.disparity * 9.0 - 5.0  # the normalised prior's range: [-5, 4]
     if mirror:

@@ -1,5 +1,5 @@
-"""Mirror-symmetric conditioning: the plane convention, the data's symmetry, the field against a brute-force loop,
-the no-plane mode, and the training items' plane draws."""
+"""Mirror-symmetric conditioning: the plane convention, the data's symmetry, the no-plane mode, and the training
+items' plane draws (the field against a brute-force loop: tests/test_pixels_at_point.py)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,6 @@ import pytest
 import torch
 import trimesh
 
-from depthnerf.data.cameras import project, world_to_camera
 from depthnerf.data.symmetry import (
     SHAPENET_PLANE,
     dataset_plane,
@@ -24,7 +23,7 @@ from depthnerf.data.synth.cars import CAR_STYLES, build_car, sample_car
 from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, build_chair, sample_chair
 from depthnerf.errors import DepthnerfError
 from depthnerf.model import PixelNeRF
-from tests.test_model import bilinear_border, query, randomize, small_config, sources
+from tests.test_model import query, randomize, small_config, sources
 
 SYNTH_CARD = {"objects": {"bbox_diagonal": 1.0, "centre": [0.0, 0.0, 0.0], "front": "+x", "up": "+z"}}
 
@@ -91,62 +90,6 @@ def test_synthetic_objects_are_unchanged_by_their_card_plane(category, name):
     else:
         assert np.quantile(gap, 0.99) < 3e-3 and gap.mean() < 3e-4  # facets
         assert wrong.mean() > 5e-3
-
-
-def reference_mirror_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
-    """Point by point: the direct branch as pixelNeRF, plus the mirror image projected by hand."""
-    mlp = model.network(which)
-    h, w = enc.image_size
-    hf, wf = enc.features.shape[-2:]
-    plane = src.symmetry_plane
-    rgb, sigma = torch.zeros(*pts.shape), torch.zeros(pts.shape[:-1])
-    for bi in range(pts.shape[0]):
-        n, d = plane[bi, :3], plane[bi, 3]
-        gate = float(n.abs().sum() > 0)
-        c2w = src.poses[bi, 0]
-        rot = c2w[:3, :3].T
-        for ri in range(pts.shape[1]):
-            for si in range(pts.shape[2]):
-                p, v = pts[bi, ri, si], dirs[bi, ri]
-                pm = p - 2 * (p @ n - d) * n
-                vm = v - 2 * (v @ n) * n
-                feats, flags = [], []
-                for q in (p, pm):
-                    cam = world_to_camera(q[None], c2w)[0]
-                    u, vv = project(cam[None], float(src.focal[bi]), tuple(src.principal[bi].tolist()))[0]
-                    feats.append(bilinear_border(enc.features[bi, 0], float(u) * wf / w, float(vv) * hf / h))
-                    flags.append(float(cam[2] > 0 and 0 <= u <= w and 0 <= vv <= h))
-                x = mlp.lin_in(torch.cat([mlp.encoding(rot @ p), rot @ v]))
-                x = x + gate * mlp.lin_in_mirror(torch.cat([mlp.encoding(rot @ pm), rot @ vm, torch.tensor(flags)]))
-                for k in range(mlp.cfg.combine_layer):
-                    x = x + mlp.lin_z[k](feats[0]) + gate * mlp.lin_z_mirror[k](feats[1])
-                    blk = mlp.blocks[k]
-                    x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
-                for blk in mlp.blocks[mlp.cfg.combine_layer:]:
-                    x = x + blk.fc_1(torch.relu(blk.fc_0(torch.relu(x))))
-                out = mlp.lin_out(torch.relu(x))
-                rgb[bi, ri, si], sigma[bi, ri, si] = torch.sigmoid(out[:3]), torch.relu(out[3])
-    return rgb, sigma
-
-
-@pytest.mark.parametrize("on_map", [True, False])
-def test_mirror_field_matches_bruteforce_reference(on_map):
-    torch.manual_seed(0)
-    cfg = small_config(lin_z_on_map=on_map)
-    cfg.mirror = True
-    model = randomize(PixelNeRF(cfg, depth_aware=False))
-    src = sources(b=3, v=1, size=48)
-    src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.6, 0.0, 0.8, 0.1], [0.0, 0.0, 0.0, 0.0]])
-    pts, dirs = query(b=3, r=3, s=4)
-    pts[1, 0, 0] = torch.tensor([0.4, 0.0, -3.0])  # its mirror image lands far outside the image
-    with torch.no_grad():
-        enc = model.encode(src)
-        for which in ("coarse", "fine"):
-            rgb, sigma = model.field(enc, which)(pts, dirs)
-            ref_rgb, ref_sigma = reference_mirror_field(model, enc, src, which, pts, dirs)
-            torch.testing.assert_close(rgb, ref_rgb, atol=1e-5, rtol=1e-4)
-            torch.testing.assert_close(sigma, ref_sigma, atol=1e-5, rtol=1e-4)
-    assert (sigma > 0).any() and rgb.std() > 1e-3
 
 
 def test_no_plane_is_the_plain_model_and_the_branch_trains():
