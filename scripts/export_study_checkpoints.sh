@@ -3,8 +3,8 @@
 #   bash scripts/export_study_checkpoints.sh [STUDY_DIR]      (after scripts/run_study.sh)
 # cpu-<category>-depth = the bundled-prior run, cpu-<category>-baseline = the --depth none run,
 # cpu-<category>-sym = the bundled-prior run with mirror-symmetric conditioning (RUNS "<category>-bundled-sym").
-# cpu-<category>-sympp = the same with the prior read at each point too (RUNS "<category>-bundled-sym-pp").
-# PAIRS (default "none:baseline bundled:depth") picks which, e.g. PAIRS="bundled-sym:sym" or "bundled-sym-pp:sympp".
+# cpu-<category>-sym-pp = the same with the prior read at each point too (RUNS "<category>-bundled-sym-pp").
+# PAIRS (default "none:baseline bundled:depth") picks which, e.g. PAIRS="bundled-sym:sym" or "bundled-sym-pp:sym-pp".
 set -euo pipefail
 STUDY=${1:-study}
 for cat in ${CATEGORIES:-cars chairs}; do

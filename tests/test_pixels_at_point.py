@@ -1,6 +1,7 @@
 """The source pixels read at each point (``PixelNeRFConfig.prior_at_point`` / ``rgb_at_point``) and the mirror
-branch (``PixelNeRFConfig.mirror``): the field against a brute-force loop (points and mirror images projected by hand, the prior and colour read bilinearly by hand),
-the default model unchanged, the columns train, and a model without a prior refuses ``prior_at_point``."""
+branch (``PixelNeRFConfig.mirror``): the field against a brute-force loop (points and mirror images projected by
+hand, the prior and colour read bilinearly by hand), the default model unchanged, the columns train, and a model
+without a prior refuses ``prior_at_point``."""
 
 from __future__ import annotations
 

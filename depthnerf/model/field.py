@@ -106,8 +106,6 @@ class ResidualField(nn.Module):
     def __init__(self, cfg: FieldConfig, d_latent: int, *, mirror: bool = False, extra_inputs: int = 0):
         super().__init__()
         self.cfg = cfg
-        self.extra_inputs = extra_inputs
-        """Input columns after ``[gamma(x), d]`` (and after the mirror flags): ``PixelNeRFConfig.point_columns``."""
         self.encoding = PositionalEncoding(cfg.num_freqs, cfg.freq_factor, cfg.include_input)
         self.lin_in = _kaiming(nn.Linear(cfg.d_in + extra_inputs, cfg.d_hidden))
         self.blocks = nn.ModuleList([ResidualBlock(cfg.d_hidden) for _ in range(cfg.n_blocks)])

@@ -198,12 +198,10 @@ class PixelNeRF(nn.Module):
         chunk = runtime.chunk_points or mlp.cfg.chunk_points
         amp_dtype = runtime.autocast
         point_map = enc.point_map if self.cfg.point_columns else None
-        if point_map is not None and point_map.shape[-1] != self.cfg.point_columns:
-            raise DepthnerfError(f"EncodedViews.point_map has {point_map.shape[-1]} channels, this model reads "
-                                 f"{self.cfg.point_columns} (encode the views with this model)")
-        if self.cfg.point_columns and point_map is None:
-            raise DepthnerfError("EncodedViews without point_map given to a model that reads the source pixels at "
-                                 "each point (encode the views with this model)")
+        given = 0 if point_map is None else point_map.shape[-1]
+        if given != self.cfg.point_columns:
+            raise DepthnerfError(f"EncodedViews.point_map has {given} channels, this model reads the source pixels "
+                                 f"at each point through {self.cfg.point_columns} (encode the views with this model)")
 
         def with_pixels(inputs: Tensor, uv: Tensor) -> Tensor:
             """Append the source pixels at the projections ``uv`` (``point_columns`` models; else as is)."""
