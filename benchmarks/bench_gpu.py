@@ -161,9 +161,11 @@ def synthetic_batch(b: int, rays: int, res: int, depth_aware: bool, seed: int = 
     return batch, intr
 
 
-def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, step_shape: str, as_cuda: bool):
+def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, step_shape: str, as_cuda: bool,
+              compile: bool = False):
     """One optimisation step as the training loop runs it on ``device``; with ``as_cuda`` composed as on CUDA
-    (bf16 autocast, fused Adam) whatever the device: the CPU op-count proxy."""
+    (bf16 autocast, fused Adam) whatever the device: the CPU op-count proxy; ``compile``: as ``depthnerf train
+    --compile`` runs it (the fields' MLPs through ``torch.compile``)."""
     cuda = device.type == "cuda" or as_cuda
     amp = torch.autocast(device.type, dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
     keys = [ItemKey(k, 1000 + k, True) for k in range(batch.ray_origins.shape[0])]
@@ -172,7 +174,11 @@ def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, st
     except ImportError:  # a checkout from before the batched step: its loop body, verbatim in shape
         return legacy_step(model, cfg, batch, device, keys, amp, cuda)
     opt = torch.optim.Adam(model.parameters(), lr=1e-4, fused=cuda or None)
-    loss = BatchLoss(model, cfg.render, 0.0, 0.0)
+    runtime = None
+    if compile:
+        from depthnerf.train.step import compiled_fields
+        runtime = compiled_fields(model)
+    loss = BatchLoss(model, cfg.render, 0.0, 0.0, runtime)
 
     def step():
         opt.zero_grad(set_to_none=True)
@@ -226,14 +232,29 @@ def cuda_launches(fn) -> int:
     return sum(1 for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA)
 
 
+def profile_table(fn, path: str, rows: int = 30) -> None:
+    """Write ``torch.profiler``'s operator table of one ``fn()`` call, by CUDA time, to ``path``."""
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    with open(path, "w") as f:
+        f.write(prof.key_averages().table(sort_by="cuda_time_total", row_limit=rows))
+    print(f"profile: {path}")
+
+
 def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
-                 repeat: int, out: dict) -> None:
-    """Print (and put in ``out``) ms per view with the paper's sampler and guided, and the SRN eval projection."""
+                 repeat: int, out: dict, compile: bool = False, profile_dir: str | None = None) -> None:
+    """Print (and put in ``out``) ms per view with the paper's sampler and guided, and the SRN eval projection
+    (``compile``: the field MLPs through ``torch.compile``; ``profile_dir``: also profile one paper-sampler call)."""
     from depthnerf.render.precision import field_runtime, inference_policy
     from depthnerf.render.views import render_poses, render_views, view_rays
 
     model.eval()
-    policy = inference_policy(device)
+    policy = inference_policy(device, compile=compile)
+    out["view_compile"] = compile
     runtime = field_runtime(model, policy)
     src = batch.item(0).source if hasattr(batch, "source") else SourceViews(
         batch.src_images[:1], batch.src_poses[:1], batch.focal[:1], batch.principal[:1],
@@ -246,7 +267,11 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         def paper():
             render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, policy.ray_chunk, device, runtime=runtime)
         paper()
+        if compile:
+            paper()  # torch.compile(dynamic=True) may recompile on the second call's shapes
         t = timed(paper, repeat, device)
+        if profile_dir:
+            profile_table(paper, f"{profile_dir}/profile_view{'_compiled' if compile else ''}.txt")
         print(f"view  paper sampler 64+16+16, {intr.height}x{intr.width}, {views} views per call, chunk "
               f"{policy.ray_chunk}, {'bf16' if policy.autocast else 'fp32'}: {min(t) / views * 1e3:.1f} ms per view")
         out.update(view_paper_ms=min(t) / views * 1e3, view_resolution=intr.height, views_per_call=views,
@@ -271,6 +296,8 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
             render_views(coarse, fine, poses.to(device), intr, 0.8, 1.8, gcfg, chunk=policy.ray_chunk * views,
                          guide=guide)
         guided()
+        if compile:
+            guided()
         t = timed(guided, repeat, device)
         print(f"view  guided sampler (synthetic guide, {guide.occupied.float().mean():.0%} rays occupied): "
               f"{min(t) / views * 1e3:.1f} ms per view")
@@ -301,6 +328,11 @@ def main() -> None:
     p.add_argument("--breakdown", type=int, nargs="?", const=25, default=0, metavar="TOP",
                    help="CPU op count: also print it by phase, aten op, module and source (TOP rows each)")
     p.add_argument("--json", metavar="PATH", help="also write the printed figures to PATH as JSON")
+    p.add_argument("--compile", action="store_true",
+                   help="CUDA: the fields' MLPs through torch.compile, in the training step (as depthnerf train "
+                        "--compile) and in the views (as eval / reconstruct --compile)")
+    p.add_argument("--profile", metavar="DIR", help="CUDA: write torch.profiler tables of one training step and one "
+                   "paper-sampler view call to DIR/profile_{train,view}.txt")
     args = p.parse_args()
     out: dict = {}
     try:
@@ -332,13 +364,18 @@ def run(args, out: dict) -> None:
         model.encoder.to(memory_format=torch.channels_last)
     batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, depth_aware)
     batch = batch.to(device)
-    step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False)
+    step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False, compile=args.compile)
     shape = getattr(step, "shape", args.step_shape)
     out.update(device=str(device), objects=args.objects, rays=args.rays, resolution=args.resolution,
-               depth=args.depth, step_shape=shape, torch=torch.__version__)
+               depth=args.depth, step_shape=shape, torch=torch.__version__, compile=args.compile)
     if device.type == "cuda":
         out.update(gpu=torch.cuda.get_device_name(device), cuda=torch.version.cuda)
-        step()  # warm-up (allocations, cuDNN/cuBLAS handles)
+        t0 = time.perf_counter()
+        step()  # warm-up (allocations, cuDNN/cuBLAS handles; with --compile the compilation)
+        if args.compile:
+            step()
+            out["compile_warmup_s"] = time.perf_counter() - t0
+            print(f"--compile: first two steps (compilation) {out['compile_warmup_s']:.1f} s")
     print(f"paper preset ({cfg.model.encoder.backbone}, d_hidden {cfg.model.coarse.d_hidden}, "
           f"{cfg.render.sampler.n_coarse}+{cfg.render.sampler.n_importance}+{cfg.render.sampler.n_gaussian} "
           f"samples), {args.objects} objects x {args.rays} rays, {args.resolution} px, {shape} step, "
@@ -353,8 +390,11 @@ def run(args, out: dict) -> None:
         print(f"CUDA kernel launches per training step: {out['kernel_launches_per_step']}")
         out["peak_memory_gib"] = torch.cuda.max_memory_allocated() / 2**30
         print(f"peak GPU memory (training): {out['peak_memory_gib']:.2f} GiB")
+        if args.profile:
+            profile_table(step, f"{args.profile}/profile_train.txt")
         if not args.no_views:
-            view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4), out)
+            view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4), out, args.compile,
+                         args.profile)
         return
     if args.time:
         step()  # the untimed warm-up below is skipped without --time

@@ -7,8 +7,10 @@ Stages, in order (each in its own subprocesses under its own time limit; a faili
 
 - ``env``: GPU name (nvidia-smi and torch), driver, torch / CUDA / cuDNN versions, Python, CPUs, packages.
 - ``bench``: ``benchmarks/bench_gpu.py --json`` on CUDA (ms per iteration, kernel launches per step, peak memory,
-  ms per 128x128 view with the paper sampler and guided, the 704 x 250-view eval projection), baseline with views
-  and depth-aware without; on a CPU the aten op count (the launch proxy) and the CUDA figures as skipped.
+  ms per 128x128 view with the paper sampler and guided, the 704 x 250-view eval projection), baseline with views,
+  the same with ``--compile`` (training step and views), depth-aware without views, and
+  ``benchmarks/bench_gather.py`` (the feature gather's candidate kernels); on a CPU the aten op count (the launch
+  proxy) and the CUDA figures as skipped.
 - ``data``: a tiny synthetic car set made by ``depthnerf synth``.
 - ``train``: side by side, paper preset with ``--deterministic``: run ``a`` (uninterrupted), ``c`` (``a``
   again, same seed), ``b`` (killed by ``DEPTHNERF_CRASH_AT`` at a checkpoint stage, then ``--resume``d); on
@@ -54,7 +56,7 @@ from gpu_check_parts import (  # noqa: E402
 
 STAGES = ("env", "bench", "data", "train", "resume_exact", "same_seed", "fast_kernels", "pytest")
 CUDA_ONLY = {"fast_kernels"}
-LIMITS = {"env": 60, "bench": 150, "data": 90, "train": 200, "resume_exact": 60, "same_seed": 60,
+LIMITS = {"env": 60, "bench": 270, "data": 90, "train": 200, "resume_exact": 60, "same_seed": 60,
           "fast_kernels": 60, "pytest": 3600}
 
 
@@ -177,12 +179,15 @@ class Check:
                        "timed_out": r.timed_out}
             return ("ok" if r.rc == 0 else "failed"), details
         details, ok = {}, True
-        cases = [("baseline", ["--depth", "none"], 0.6), ("depth_aware", ["--depth", "bundled", "--no-views"], 1.0)]
+        gather = str(ROOT / "benchmarks" / "bench_gather.py")
+        cases = [("baseline", [bench, "--depth", "none"], 0.3),
+                 ("compiled", [bench, "--depth", "none", "--compile", "--repeat", "10"], 0.6),
+                 ("depth_aware", [bench, "--depth", "bundled", "--no-views"], 0.8), ("gather", [gather], 1.0)]
         t_end = time.time() + limit
         for name, args, share in cases:
             path = self.work / f"bench_{name}.json"
             left = t_end - time.time()
-            r = self.run([self.py, bench, *args, "--json", str(path)], left * share)
+            r = self.run([self.py, *args, "--json", str(path)], left * share)
             details[name] = {**read_json(path), "rc": r.rc, "timed_out": r.timed_out}
             if r.rc != 0:
                 details[name]["output_tail"] = r.output[-800:]
@@ -358,6 +363,12 @@ def headline(result: dict) -> str:
             keys = ("train_ms_best", "kernel_launches_per_step", "peak_memory_gib", "view_paper_ms", "view_guided_ms",
                     "eval_704x250_paper_gpu_hours", "eval_704x250_guided_gpu_hours")
             lines.append("bench baseline: " + ", ".join(f"{k} {b.get(k)}" for k in keys))
+            if "gather" in d:
+                lines.append("bench gather ms: " + ", ".join(f"{k} {v.get('ms')}" for k, v in d["gather"].items()
+                                                             if isinstance(v, dict)))
+            if "compiled" in d:
+                lines.append("bench --compile: " + ", ".join(f"{k} {d['compiled'].get(k)}"
+                                                            for k in ("compile_warmup_s", *keys)))
             lines.append(f"bench depth-aware: train_ms_best {a.get('train_ms_best')}, "
                          f"kernel_launches_per_step {a.get('kernel_launches_per_step')}")
         elif name in ("resume_exact", "same_seed", "fast_kernels") and "identical" in d:

@@ -1,19 +1,30 @@
 #!/usr/bin/env bash
-# Fetch, HERE (where pip reaches PyPI), the wheels the lent GPU machine lacks, into <checkout>/.whl (git-ignored).
-# That machine has torch 2.11 and most of the dependencies but no package registry (device README and KINDS.md);
-# of what `python -m pytest` needs, it lacks trimesh, embreex, rtree (synth, meshes) and lpips (one test).
-# Send them with the device tool's `carry: [".whl"]`; scripts/gpu_env.sh installs them there (into /tmp).
+# Fetch, HERE (where pip reaches PyPI), the packages the lent GPU machine lacks, as one xz archive of their
+# unpacked wheels: <checkout>/.whl/site.tar.xz (git-ignored, ~7 MB). That machine has torch 2.11 and most of the
+# dependencies but no package registry (device README and KINDS.md); of what `python -m pytest` needs, it lacks
+# trimesh, embreex, rtree (synth, meshes) and lpips (one test). The wheels themselves are ~16 MB (embreex's Embree
+# library alone 14.6), which with the checkout's 50 MB of tracked files passes the device tool's 64 MiB limit on
+# what travels; unpacked and xz-compressed they are ~7 MB.
+# Send it with the device tool's `carry: [".whl"]`; scripts/gpu_env.sh unpacks it there into Python's site-packages.
 #
-#   bash scripts/gpu_wheels.sh          # ~16 MB; Python 3.12, x86-64 manylinux (the GPU machine's)
+#   bash scripts/gpu_wheels.sh          # Python 3.12, x86-64 manylinux (the GPU machine's)
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")/.." && pwd)
 PYVER=${PYVER:-3.12}
 WHEELS=${WHEELS:-"trimesh==5.2.0 embreex==4.4.0.post1 rtree==1.4.1 lpips==0.1.4"}
-mkdir -p "$HERE/.whl"
+STAGE=$(mktemp -d)
+trap 'rm -rf "$STAGE"' EXIT
 # shellcheck disable=SC2086
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_24_x86_64 \
   --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 --platform manylinux1_x86_64 \
-  -d "$HERE/.whl" $WHEELS
+  -d "$STAGE/wheels" $WHEELS
+mkdir -p "$STAGE/site" "$HERE/.whl"
+for w in "$STAGE"/wheels/*.whl; do
+  python3 -m zipfile -e "$w" "$STAGE/site"  # a wheel is a zip of its installed files (purelib = platlib here)
+done
+find "$STAGE/site" -name "*.so*" -exec chmod +x {} +
+rm -f "$HERE"/.whl/*.whl  # wheels an earlier version of this script left: they would travel too
+tar -C "$STAGE/site" -cf - . | xz -9 -T2 > "$HERE/.whl/site.tar.xz"
+ls "$STAGE/wheels"
 ls -l "$HERE/.whl"
-du -sh "$HERE/.whl"

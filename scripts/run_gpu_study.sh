@@ -4,7 +4,7 @@
 # by side on one GPU for a fixed number of steps that fits MINUTES -> SRN-protocol eval on the same test objects ->
 # Table-1 style table (depthnerf compare) and paired per-object differences (scripts/paired_difference.py).
 #
-#   bash scripts/run_gpu_study.sh DIR [MINUTES]        (default 18 minutes in all; target: one H100)
+#   bash scripts/run_gpu_study.sh DIR [MINUTES]        (default 13 minutes in all: a 15-minute lease of one H100)
 #
 # Calls. One call works for at most CALL_SECONDS (default 510 s: a device-tool call is 10 minutes at most), then
 # stops its training runs with SIGTERM (each writes a checkpoint at its current step) and exits 3: run the SAME
@@ -22,8 +22,8 @@
 #     STEPS = floor(train_seconds * 1000 / (STEP_MS * RUNS))
 # where STEP_MS is the measured ms per training iteration of ONE run alone (benchmarks/bench_gpu.py --no-views,
 # run here first), or the env value STEP_MS if set. Concurrency rarely beats that sum on a GPU, so the rule errs
-# towards finishing early. bbox_steps = STEPS / 4 (the paper: 100k of 400k). Whether the default finishes in 18
-# minutes on an H100 is NOT measured yet (no GPU was available when this was written; see docs/speed.md).
+# towards finishing early. bbox_steps = STEPS / 4 (the paper: 100k of 400k). Whether the default finishes in 13
+# minutes on an H100 is NOT measured yet (docs/speed.md, "Measuring on a lent GPU").
 #
 # Environment overrides (the CPU plumbing test sets tiny values): RES (128), TRAIN_OBJECTS (200), TEST_OBJECTS
 # (20), VIEWS_TRAIN (50), VIEWS_TEST (251), STRIDE (eval view stride, 10), STEPS (skip the rule), STEP_MS, DEVICE
@@ -34,7 +34,7 @@
 # Exit status: 0 finished, 3 not finished in this call (run it again), 1 a stage failed, 2 no step rate.
 set -euo pipefail
 DIR=${1:?usage: run_gpu_study.sh DIR [MINUTES]}
-MINUTES=${2:-18}
+MINUTES=${2:-13}
 RES=${RES:-128}; TRAIN_OBJECTS=${TRAIN_OBJECTS:-200}; TEST_OBJECTS=${TEST_OBJECTS:-20}
 VIEWS_TRAIN=${VIEWS_TRAIN:-50}; VIEWS_TEST=${VIEWS_TEST:-251}; STRIDE=${STRIDE:-10}
 DEVICE=${DEVICE:-auto}; WORKERS=${WORKERS:-$(nproc)}; DATA_MIN=${DATA_MIN:-4}; EVAL_MIN=${EVAL_MIN:-3}

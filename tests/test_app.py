@@ -253,8 +253,10 @@ def test_messages_speak_the_pages_language(session, tmp_path, monkeypatch):
     monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)  # no network attempt
     bad = bad_inputs(tmp_path)
     scene, blank = bad["cluttered"][0], bad["no foreground"][0]
+    removal_hint = ("enter FILE.onnx under 'Background model'" if background_installed()
+                    else "pip install 'depthnerf[bg]'")  # the hint names what is missing: weights, or the extra
     cases = {
-        "clutter, removal on": (RunRequest(scene, "car"), "enter FILE.onnx under 'Background model'"),
+        "clutter, removal on": (RunRequest(scene, "car"), removal_hint),
         "clutter, removal off": (RunRequest(scene, "car", remove_background=False),
                                  "background removal is off (tick 'Remove background')"),
         "no object": (RunRequest(blank, "car"), "upload an RGBA cut-out of the object"),

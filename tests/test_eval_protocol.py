@@ -160,7 +160,7 @@ def test_constant_field_gives_closed_form_psnr_and_frustum_mesh(setup):
     out = setup["tmp"] / "eval_const"
     assert cli("eval", "--checkpoint", weights, "--data", setup["root"], "--out", out, "--resolution", "16",
                "--views-stride", "13", "--save-renders", "--mesh-resolution", "12", "--mesh-points", "500",
-               "--scored", "float", "--no-progress") == 0  # the closed form is of the float colour
+               "--scored", "float", "--fp32", "--no-progress") == 0  # the closed form is of the fp32 colour (CUDA: no bf16)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["resolution"] == 16 and summary["input_resolution"] == 32
     assert "16x16 (input view encoded at the training resolution 32x32)" in summary["protocol"]

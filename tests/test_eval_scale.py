@@ -46,7 +46,7 @@ def case(tmp_path_factory) -> dict:
                             with_mask=True, with_mesh=True)
     weights = save_tiny(tmp / "tiny.safetensors", tiny_config("cars", "none", resolution=16))
     args = ["eval", "--checkpoint", weights, "--data", root, "--views-stride", "30", "--mesh-resolution", "8",
-            "--mesh-points", "300", "--save-renders", "--no-progress"]
+            "--mesh-points", "300", "--save-renders", "--no-progress", "--device", "cpu"]  # gloo ranks on the CPU
     reference = tmp / "reference"
     done = depthnerf(*args, "--out", reference)
     assert done.returncode == 0, done.stderr[-3000:]

@@ -220,6 +220,27 @@ def test_batched_step_equals_the_per_object_loop(depth_aware):
     assert_grads_close(g_batched, g_looped, rel=1e-4)
 
 
+@pytest.mark.slow
+def test_compiled_fields_step_equals_the_eager_step():
+    """``depthnerf train --compile``: the fields' MLPs through ``torch.compile`` (inductor on the CPU here) give the
+    eager step's loss terms and gradients up to float32 rounding, and leave the model's modules unchanged."""
+    from depthnerf.train.step import compiled_fields
+
+    model, loss, batch, keys = tiny_setup(2, depth_aware=True)
+    eager = train_step(loss, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
+    g_eager = grads(model)
+    runtime = compiled_fields(model)
+    assert set(runtime.forwards) == {"coarse", "fine"}
+    compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, runtime)
+    torch._dynamo.utils.counters.clear()
+    fused = train_step(compiled, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 2  # coarse and fine MLPs went through dynamo
+    g_fused = grads(model)
+    torch.testing.assert_close(fused, eager, rtol=1e-5, atol=1e-7)
+    assert_grads_close(g_fused, g_eager, rel=1e-4)
+    assert type(model.coarse.forward).__name__ == "method"  # the wrapper is held by the runtime, not the module
+
+
 def test_rank_split_of_the_batched_step_equals_the_whole_batch():
     """2 ranks x 2 objects (DDP averages their gradients) equal 1 process x 4 objects."""
     model, loss, batch, keys = tiny_setup(4)
@@ -285,3 +306,37 @@ def test_cuda_deterministic_step_is_bitwise_repeatable():
     assert torch.equal(results[0][0], results[1][0])
     for k, v in results[0][1].items():
         assert torch.equal(v, results[1][1][k]), k
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA)])
+def test_resumed_fused_adam_keeps_channels_last_moments_and_steps_like_the_uninterrupted_one(device, tmp_path):
+    """Checkpoint files hold contiguous moments; loading them back must restore a channels-last parameter's
+    strides (CUDA's fused Adam refuses a layout mismatch), and the next step equals the uninterrupted run's."""
+    from depthnerf.train.checkpoint import TrainingState, load_checkpoint, save_checkpoint
+
+    torch.manual_seed(0)
+    x = torch.randn(2, 4, 8, 8, device=device).to(memory_format=torch.channels_last)
+
+    def make():
+        torch.manual_seed(1)
+        model = torch.nn.Conv2d(4, 8, 3).to(device=device, memory_format=torch.channels_last)
+        return model, torch.optim.Adam(model.parameters(), lr=1e-2, fused=True)
+
+    def step(model, opt):
+        opt.zero_grad()
+        model(x).square().mean().backward()
+        opt.step()
+
+    model, opt = make()
+    step(model, opt)
+    ckpt = save_checkpoint(tmp_path, model, opt, {"toy": 1}, TrainingState(step=1, best_psnr=0.0))
+    step(model, opt)
+
+    resumed, resumed_opt = make()
+    load_checkpoint(ckpt, resumed, resumed_opt, {"toy": 1})
+    for param in resumed.parameters():
+        for name in ("exp_avg", "exp_avg_sq"):
+            assert resumed_opt.state[param][name].stride() == param.stride(), name
+    step(resumed, resumed_opt)
+    for a, b in zip(model.parameters(), resumed.parameters(), strict=True):
+        assert torch.equal(a, b)

@@ -58,6 +58,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     p.add_argument("--deterministic", action="store_true",
                    help="deterministic algorithms (exact resume and same-seed runs on CUDA too; slower there)")
+    p.add_argument("--compile", action="store_true",
+                   help="run the fields' MLPs through torch.compile (fuses their element-wise work: fewer kernel "
+                        "launches on CUDA; compiles for a minute or more first; same results up to float rounding)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
@@ -139,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     info = setup(args.device, deterministic=args.deterministic)
     try:
         result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress,
-                       validate=validate)
+                       validate=validate, compile=args.compile)
     finally:
         teardown(info)
     if info.is_main:
@@ -152,11 +155,11 @@ def run(args: argparse.Namespace) -> int:
 
 def resume_command(args: argparse.Namespace, world: int) -> str:
     """The one command that continues this run: ``depthnerf train --out RUN --resume`` plus the flags that are
-    not stored in the run's config (device, determinism, strictness); under torchrun the same launch."""
+    not stored in the run's config (device, determinism, compilation, strictness); under torchrun the same launch."""
     cmd = ["depthnerf", "train", "--out", str(Path(args.out).resolve()), "--resume"]
     cmd += ["--device", args.device] if args.device != "auto" else []
-    cmd += [flag for flag, on in (("--deterministic", args.deterministic), ("--strict", args.strict),
-                                  ("--no-progress", args.no_progress)) if on]
+    cmd += [flag for flag, on in (("--deterministic", args.deterministic), ("--compile", args.compile),
+                                  ("--strict", args.strict), ("--no-progress", args.no_progress)) if on]
     text = shlex.join(cmd)
     if world > 1:
         per_node = int(os.environ.get("LOCAL_WORLD_SIZE", world))

@@ -271,8 +271,9 @@ class InferenceSession:
         render, guide = spec.render, None
         if guided is not None:
             render = dataclasses.replace(spec.render, guided=dataclasses.replace(guided, enabled=True))
+            disparity = None if encoded.disparity is None else encoded.disparity.to(self.device)
             guide = make_source_guide(model.field(encoded.enc, "coarse", self.runtime),
-                                      encoded.pose[None].to(self.device), encoded.intr, near, far, encoded.disparity,
+                                      encoded.pose[None].to(self.device), encoded.intr, near, far, disparity,
                                       encoded.mask.to(self.device), render, render.guided, chunk)
         elif render.guided.enabled:
             render = dataclasses.replace(render, guided=dataclasses.replace(render.guided, enabled=False))

@@ -9,12 +9,12 @@ rays per pass      4096 (``CPU_RAY_CHUNK``)    65536 (``CUDA_RAY_CHUNK``): 4 vie
                                                the views of one object render in large batches
 field points       the config's chunk_points   1,048,576 per chunk (``CUDA_POINT_CHUNK``; bounds memory at
                    (4096)                      about 8 KB per point for the paper's d_hidden 512)
-torch.compile      off                         off; ``--compile`` compiles the field MLPs (opt-in: not
-                                               measured yet, see docs/speed.md)
+torch.compile      off                         off; ``--compile`` compiles the field MLPs (opt-in; one
+                                               H100: 221 -> 145 ms per paper-sampler view, docs/speed.md)
 =================  ==========================  ============================================================
 
-The CUDA values are sized from memory arithmetic, not measured (no GPU was available when they were set);
-docs/speed.md says which GPU figures are still open. The policy is an argument, never state on the model: every
+The CUDA values are sized from memory arithmetic; their speed on one H100 is in docs/speed.md ("GPU"), with the
+profile that shows what bounds a view (the feature gather and the fields' element-wise work, not the matmuls). The policy is an argument, never state on the model: every
 inference path (``depthnerf eval``, ``depthnerf reconstruct``, the Python API ``Reconstructor``, the demo and the
 app) gets it from its :class:`~depthnerf.infer.session.InferenceSession`, which builds it once with
 :func:`inference_policy` for its device (``--fp32`` / ``--compile``), turns it once into the

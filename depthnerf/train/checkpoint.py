@@ -101,6 +101,12 @@ def _optimizer_from_files(opt: torch.optim.Optimizer, tensors: dict[str, torch.T
     for pid, st in info.get("scalars", {}).items():
         state.setdefault(int(pid), {}).update(st)
     opt.load_state_dict({"state": state, "param_groups": info["param_groups"]})
+    # Files hold contiguous tensors; a channels-last parameter's moments must have its strides again (CUDA's fused
+    # Adam refuses a layout mismatch). Same values, bit for bit.
+    for param, st in opt.state.items():
+        for name, value in st.items():
+            if torch.is_tensor(value) and value.shape == param.shape and value.stride() != param.stride():
+                st[name] = torch.empty_like(param, dtype=value.dtype).copy_(value)
 
 
 @dataclass(frozen=True)

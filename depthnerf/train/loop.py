@@ -47,7 +47,7 @@ from depthnerf.train.batching import BatchPlan, StepSampler, collate, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.items import TrainItems
 from depthnerf.train.run_log import RunLog, record_launch
-from depthnerf.train.step import BatchLoss, train_step
+from depthnerf.train.step import BatchLoss, compiled_fields, train_step
 from depthnerf.train.stop import STOP_SIGNALS, StopRequest, ValidationInterrupted, exit_code, signal_name
 from depthnerf.train.validator import Validator
 
@@ -75,8 +75,11 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
 
 
 def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True,
-          validate: Validator | None = None) -> dict:
+          validate: Validator | None = None, compile: bool = False) -> dict:
     """Train (or resume) a run in ``run_dir``; returns the final state as a dict.
+
+    ``compile``: the fields' MLPs run through ``torch.compile`` (:func:`depthnerf.train.step.compiled_fields`);
+    a setting of how to run, not stored in the run's config (same results up to float rounding).
 
     ``validate`` scores the model on the val objects every ``log.val_every`` steps (``depthnerf train`` passes
     :func:`depthnerf.eval.validation.validate`; None: no validation).
@@ -130,7 +133,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             print(note, file=sys.stderr, flush=True)
     barrier(info)
 
-    loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight)
+    loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight,
+                            compiled_fields(model) if compile else None)
     runner = DistributedDataParallel(loss_module) if info.world > 1 else loss_module
     s = cfg.schedule
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
