@@ -16,11 +16,13 @@ export PY
 export PYTHONPATH="$HERE${PYTHONPATH:+:$PYTHONPATH}"
 GPU_SITE=${GPU_SITE:-/tmp/depthnerf-gpu-site}
 if [ -f "$HERE/.whl/site.tar.xz" ] && ! "$PY" -c "import trimesh, embreex, rtree, lpips" 2>/dev/null; then
+  # Python unpacks it (its lzma module), so the machine needs no xz program
+  unpack() { "$PY" -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='tar')" "$@"; }
   SITE=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")
-  if [ -w "$SITE" ] && tar -C "$SITE" -xJf "$HERE/.whl/site.tar.xz"; then
+  if [ -w "$SITE" ] && unpack "$HERE/.whl/site.tar.xz" "$SITE"; then
     :
   else
-    mkdir -p "$GPU_SITE" && tar -C "$GPU_SITE" -xJf "$HERE/.whl/site.tar.xz" \
+    mkdir -p "$GPU_SITE" && unpack "$HERE/.whl/site.tar.xz" "$GPU_SITE" \
       || echo "gpu_env: unpacking $HERE/.whl/site.tar.xz failed" >&2
     export PYTHONPATH="$PYTHONPATH:$GPU_SITE"
   fi
