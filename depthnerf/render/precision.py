@@ -14,12 +14,13 @@ torch.compile      off                         off; ``--compile`` compiles the f
 =================  ==========================  ============================================================
 
 The CUDA values are sized from memory arithmetic; their speed on one H100 is in docs/speed.md ("GPU"), with the
-profile that shows what bounds a view (the feature gather and the fields' element-wise work, not the matmuls). The policy is an argument, never state on the model: every
-inference path (``depthnerf eval``, ``depthnerf reconstruct``, the Python API ``Reconstructor``, the demo and the
-app) gets it from its :class:`~depthnerf.infer.session.InferenceSession`, which builds it once with
-:func:`inference_policy` for its device (``--fp32`` / ``--compile``), turns it once into the
-:class:`~depthnerf.model.pixelnerf.FieldRuntime` its field calls take (:func:`field_runtime`: the compiled MLP
-forwards are wrappers that it holds) and renders ``ray_chunk`` rays per pass unless ``--chunk`` says otherwise.
+profile that shows what bounds a view (the feature gather and the fields' element-wise work, not the matmuls).
+The policy is an argument, never state on the model: every inference path (``depthnerf eval``, ``depthnerf
+reconstruct``, the Python API ``Reconstructor``, the demo and the app) gets it from its
+:class:`~depthnerf.infer.session.InferenceSession`, which builds it once with :func:`inference_policy` for its
+device (``--fp32`` / ``--compile``), turns it once into the :class:`~depthnerf.model.pixelnerf.FieldRuntime` its
+field calls take (:func:`field_runtime`: the compiled MLP forwards are wrappers that it holds) and renders
+``ray_chunk`` rays per pass unless ``--chunk`` says otherwise.
 """
 
 from __future__ import annotations
