@@ -6,6 +6,10 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -220,10 +224,8 @@ def test_batched_step_equals_the_per_object_loop(depth_aware):
     assert_grads_close(g_batched, g_looped, rel=1e-4)
 
 
-@pytest.mark.slow
-def test_compiled_fields_step_equals_the_eager_step():
-    """``depthnerf train --compile``: the fields' MLPs through ``torch.compile`` (inductor on the CPU here) give the
-    eager step's loss terms and gradients up to float32 rounding, and leave the model's modules unchanged."""
+def compiled_step_check() -> None:
+    """The body of :func:`test_compiled_fields_step_equals_the_eager_step`, run in a fresh interpreter."""
     from depthnerf.train.step import compiled_fields
 
     model, loss, batch, keys = tiny_setup(2, depth_aware=True)
@@ -239,6 +241,19 @@ def test_compiled_fields_step_equals_the_eager_step():
     torch.testing.assert_close(fused, eager, rtol=1e-5, atol=1e-7)
     assert_grads_close(g_fused, g_eager, rel=1e-4)
     assert type(model.coarse.forward).__name__ == "method"  # the wrapper is held by the runtime, not the module
+
+
+@pytest.mark.slow
+def test_compiled_fields_step_equals_the_eager_step():
+    """``depthnerf train --compile``: the fields' MLPs through ``torch.compile`` (inductor on the CPU here) give the
+    eager step's loss terms and gradients up to float32 rounding, and leave the model's modules unchanged. Run in
+    a fresh interpreter, as ``depthnerf train --compile`` runs: inductor's C++ toolchain imports setuptools, whose
+    distutils shim can fail in a process that earlier tests have filled with other imports."""
+    here = Path(__file__).resolve().parent
+    code = f"import sys; sys.path.insert(0, {str(here)!r}); import test_train_step as t; t.compiled_step_check()"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=here.parent,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
 
 
 def test_rank_split_of_the_batched_step_equals_the_whole_batch():
