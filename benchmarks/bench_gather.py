@@ -19,27 +19,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import torch
 import torch.nn.functional as F
+from bench_gpu import timed  # beside this file
 
 from depthnerf.model.features import _corners, sample_maps, sample_maps_gather
-
-
-def timed_ms(fn, repeat: int, cuda: bool) -> float:
-    """Best wall time of ``repeat`` calls, in ms (after one warm-up call)."""
-    fn()
-    best = float("inf")
-    for _ in range(repeat):
-        if cuda:
-            torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        fn()
-        if cuda:
-            torch.cuda.synchronize()
-        best = min(best, time.perf_counter() - t0)
-    return best * 1e3
 
 
 def main() -> None:
@@ -85,8 +70,8 @@ def main() -> None:
         print(f"gather of {args.points} points from a {args.size}x{args.size}x{args.channels} map on {device}:")
         for name, fn in candidates.items():
             try:
-                diff = float((fn().float().reshape(reference.shape) - reference).abs().max())
-                ms = timed_ms(fn, args.repeat, cuda)
+                diff = float((fn().float().reshape(reference.shape) - reference).abs().max())  # also the warm-up
+                ms = min(timed(fn, args.repeat, device)) * 1e3
             except RuntimeError as err:  # e.g. a dtype a kernel does not take on this device
                 out[name] = {"error": str(err).splitlines()[0]}
                 print(f"  {name:20s} failed: {out[name]['error']}")
