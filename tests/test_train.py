@@ -17,8 +17,10 @@ from pathlib import Path
 
 import pytest
 import torch
+from fixtures_checkpoints import tiny_config, tiny_model
 from fixtures_srn import make_srn_fixture
 
+from depthnerf.config_io import apply_overrides, to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, sample_pixels, step_keys
@@ -111,6 +113,23 @@ def test_checkpoint_refuses_other_model_config(tmp_path):
         ckpt.load_checkpoint(saved, torch.nn.Linear(2, 3), None, {"d": 2})
     with pytest.raises(DepthnerfError, match="shape mismatch"):
         ckpt.load_checkpoint(saved, torch.nn.Linear(2, 4), None, {"d": 1})
+
+
+def test_checkpoint_from_before_a_new_model_field_resumes_with_its_default(tmp_path):
+    """A run checkpointed before a model field existed (e.g. ``rgb_at_point``) resumes: the missing field takes its
+    default, as inference reads it; a stored value that differs from the run's config is still refused."""
+    cfg = tiny_config("cars", "none")
+    model = tiny_model(cfg)
+    opt = torch.optim.Adam(model.parameters())
+    old = to_dict(cfg.model)
+    del old["rgb_at_point"]
+    saved = ckpt.save_checkpoint(tmp_path, model, opt, old, ckpt.TrainingState(3, 20.0))
+    fresh = tiny_model(cfg, seed=1)
+    assert ckpt.load_checkpoint(saved, fresh, torch.optim.Adam(fresh.parameters()), to_dict(cfg.model)).step == 3
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), fresh.state_dict().values(), strict=True))
+    other = to_dict(apply_overrides(cfg, ["--model.prior_at_point", "true"]).model)
+    with pytest.raises(DepthnerfError, match=r"different model config \(differs in: prior_at_point\)"):
+        ckpt.load_checkpoint(saved, tiny_model(cfg), None, other)
 
 
 # ---------------------------------------------------------------- end to end

@@ -36,9 +36,10 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
-from depthnerf.pretrained.spec import SPEC_KEY
+from depthnerf.pretrained.spec import SPEC_KEY, model_config_from_dict
 from depthnerf.pretrained.weights import (  # noqa: F401 - re-exported for the run-folder code
     FORMAT,
     checkpoint_config,
@@ -181,16 +182,26 @@ def mark_best(ckpt_root: Path, ckpt_dir: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _with_defaults(stored: dict[str, Any], model: torch.nn.Module, ckpt_dir: Path) -> dict[str, Any]:
+    """A stored :class:`PixelNeRFConfig` dict as the current code reads it, as inference reads it too
+    (:func:`depthnerf.pretrained.spec.model_config_from_dict`): fields added since the checkpoint was written take
+    their defaults, which reproduce the behaviour it was trained with, and the legacy ``encoder.use_depth`` is
+    checked against the model and dropped. Anything that is not such a config is compared as stored."""
+    depth_aware = getattr(model, "depth_aware", None)
+    if not isinstance(depth_aware, bool):
+        return stored
+    try:
+        return json.loads(json.dumps(to_dict(model_config_from_dict(stored, depth_aware, str(ckpt_dir)))))
+    except DepthnerfError:
+        return stored
+
+
 def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer | None,
                     model_config: dict[str, Any]) -> TrainingState:
     """Restore weights (strictly, after checking the stored model config) and optimizer; return the state."""
     ckpt_dir = Path(ckpt_dir)
     tensors, meta = read_weights(ckpt_dir / "model.safetensors")
-    stored = checkpoint_config(meta, ckpt_dir / "model.safetensors")
-    encoder = stored.get("encoder")
-    depth_aware = getattr(model, "depth_aware", None)
-    if isinstance(encoder, dict) and encoder.get("use_depth", depth_aware) == depth_aware:
-        encoder.pop("use_depth", None)  # legacy field, derived from the prior now (depthnerf.pretrained.spec)
+    stored = _with_defaults(checkpoint_config(meta, ckpt_dir / "model.safetensors"), model, ckpt_dir)
     if stored != json.loads(json.dumps(model_config)):
         diff = sorted(k for k in set(stored) | set(model_config) if stored.get(k) != model_config.get(k))
         raise DepthnerfError(f"{ckpt_dir}: checkpoint was trained with a different model config (differs in: "
