@@ -5,6 +5,7 @@
 # cpu-<category>-sym = the bundled-prior run with mirror-symmetric conditioning (RUNS "<category>-bundled-sym").
 # cpu-<category>-sym-pp = the same with the prior read at each point too (RUNS "<category>-bundled-sym-pp").
 # PAIRS (default "none:baseline bundled:depth") picks which, e.g. PAIRS="bundled-sym:sym" or "bundled-sym-pp:sym-pp".
+# STEPS: the runs' step count when the study ran with STEPS (recorded in the cards' command), e.g. STEPS=4000.
 set -euo pipefail
 STUDY=${1:-study}
 for cat in ${CATEGORIES:-cars chairs}; do
@@ -16,6 +17,6 @@ for cat in ${CATEGORIES:-cars chairs}; do
     [[ "$run" == *-rgb* ]] && extra="$extra --model.rgb_at_point true"
     python scripts/export_checkpoint.py --run "$STUDY/runs/$cat-$run" --name "cpu-$cat-$kind" \
       --eval-summary "$STUDY/eval/$cat-$run/summary.json" --data-root "$STUDY/data" \
-      --command "depthnerf train --preset cpu-$cat --data \$DATA --depth $prior$extra --seed 0 --out $STUDY/runs/$cat-$run  # via: bash scripts/run_study.sh $STUDY"
+      --command "depthnerf train --preset cpu-$cat --data \$DATA --depth $prior$extra --seed 0${STEPS:+ --max-steps $STEPS} --out $STUDY/runs/$cat-$run  # via: ${STEPS:+STEPS=$STEPS }bash scripts/run_study.sh $STUDY"
   done
 done

@@ -21,7 +21,7 @@ from depthnerf.eval.geometry_metrics import (
     sample_surface,
     summarize_geometry,
 )
-from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, load_mesh, sample_density
+from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, keep_pieces, load_mesh, sample_density
 
 INTR = Intrinsics(focal=131.25, cx=63.5, cy=63.5, height=128, width=128)  # SRN cars at 128x128
 C2W = look_at(torch.tensor([1.1, -0.5, 0.6]))
@@ -132,6 +132,55 @@ def test_load_mesh_roundtrip_and_errors(tmp_path):
     (tmp_path / "bad.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nend_header\n")
     with pytest.raises(DepthnerfError, match="bad.ply"):
         load_mesh(tmp_path / "bad.ply")
+
+
+def _pieces_by_union_find(faces: np.ndarray) -> list[set[int]]:
+    """Brute force: faces are joined when they share an edge (an unordered vertex pair)."""
+    parent = list(range(len(faces)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    edges = [{frozenset(e) for e in itertools.combinations(f.tolist(), 2)} for f in faces]
+    for a, b in itertools.combinations(range(len(faces)), 2):
+        if edges[a] & edges[b]:
+            parent[root(a)] = root(b)
+    groups: dict[int, set[int]] = {}
+    for i in range(len(faces)):
+        groups.setdefault(root(i), set()).add(i)
+    return list(groups.values())
+
+
+def test_keep_largest_piece_matches_a_brute_force_union_find():
+    parts = [trimesh.creation.icosphere(subdivisions=1, radius=0.3).apply_translation((x, 0, 0))
+             for x in (-1.0, 1.0)] + [trimesh.creation.box((0.2, 0.2, 0.2)).apply_translation((0, 1, 0))]
+    parts.append(trimesh.creation.icosphere(subdivisions=2, radius=0.2))  # the largest: 320 faces
+    mesh = trimesh.util.concatenate(parts)
+    # two triangles meeting at a single vertex are two pieces, not one
+    corner = len(mesh.vertices)
+    mesh = trimesh.Trimesh(np.vstack([mesh.vertices, [[2, 2, 2], [3, 2, 2], [2, 3, 2], [1, 2, 2], [2, 1, 2]]]),
+                           np.vstack([mesh.faces, [[corner, corner + 1, corner + 2], [corner, corner + 3, corner + 4]]]),
+                           process=False)
+    mesh.visual.vertex_colors = np.column_stack([np.arange(len(mesh.vertices)) % 256] * 3 + [
+        np.full(len(mesh.vertices), 255)]).astype(np.uint8)
+    truth = _pieces_by_union_find(np.asarray(mesh.faces))
+    biggest = max(truth, key=len)
+    kept, pieces = keep_pieces(mesh, "largest")
+    assert (pieces.pieces, pieces.faces, pieces.kept_faces) == (len(truth), len(mesh.faces), len(biggest)) == (6, 494, 320)
+    want = {tuple(sorted(map(tuple, mesh.vertices[f].round(6).tolist()))) for f in mesh.faces[sorted(biggest)]}
+    got = {tuple(sorted(map(tuple, kept.vertices[f].round(6).tolist()))) for f in kept.faces}
+    assert got == want and len(kept.vertices) == 162  # the subdivided sphere's vertices, no stray ones
+    original = {tuple(v): tuple(c) for v, c in zip(mesh.vertices.round(6).tolist(),
+                                                    mesh.visual.vertex_colors.tolist(), strict=True)}
+    assert all(original[tuple(v)] == tuple(c) for v, c in zip(kept.vertices.round(6).tolist(),
+                                                               kept.visual.vertex_colors.tolist(), strict=True))
+    whole, counted = keep_pieces(mesh, "all")
+    assert whole is mesh and (counted.pieces, counted.kept_faces) == (6, 494)
+    assert keep_pieces(trimesh.Trimesh(), "largest")[1].pieces == 0
+    with pytest.raises(DepthnerfError, match="--mesh-keep must be one of all, largest"):
+        keep_pieces(mesh, "biggest")
 
 
 def test_nearest_distances_match_brute_force():

@@ -141,8 +141,9 @@ def test_huge_image_is_downscaled_first():
 
 def test_constant_field_reconstruction_matches_closed_forms(models):
     rec = Reconstructor.from_pretrained(models["constant"])
-    cfg = ReconstructConfig(views=4, elevation=30.0, mesh_resolution=10)
+    cfg = ReconstructConfig(views=4, elevation=30.0, mesh_resolution=10, mesh_keep="largest")
     res = rec.reconstruct(disc_photo(), config=cfg)
+    assert res.settings["mesh_pieces"] == 1 and res.settings["mesh_faces_kept"] == len(res.mesh.faces) > 0
     assert np.abs(res.views - np.array(COLOR)).max() < 1e-4 and res.opacity.min() > 1 - 1e-4
     assert res.depths.min() >= 0.8 and res.depths.max() <= 0.8 + 1.0 / 16  # first coarse bin of [0.8, 1.8]
     eyes = res.poses[:, :3, 3]
@@ -171,7 +172,7 @@ def test_cli_writes_every_listed_output(models, tmp_path, capsys):
     Image.fromarray((disc_photo()[..., 0] == 200).astype(np.uint8) * 255).save(mask)
     out = tmp_path / "out"
     assert main(["reconstruct", str(photo), "--checkpoint", str(models["run"]), "--out", str(out), "--views", "3",
-                 "--mask", str(mask), "--mesh-resolution", "8", "--no-progress"]) == 0
+                 "--mask", str(mask), "--mesh-resolution", "8", "--mesh-keep", "largest", "--no-progress"]) == 0
     assert "wrote 3 views" in capsys.readouterr().out
     manifest = json.loads((out / "manifest.json").read_text())
     files = manifest["files"]
@@ -188,6 +189,9 @@ def test_cli_writes_every_listed_output(models, tmp_path, capsys):
     with np.load(out / "depths.npz", allow_pickle=False) as d:
         assert d["depth"].shape == (3, 32, 32) and d["poses"].shape == (3, 4, 4)
     assert manifest["checkpoint_sha256"] and manifest["settings"]["views"] == 3
+    settings = manifest["settings"]
+    assert settings["mesh_keep"] == "largest"
+    assert len(ply.faces) == settings["mesh_faces_kept"] <= settings["mesh_faces_extracted"]
     assert "mask: given (value > 127 of 255 = object)" in manifest["input"]["notes"]
 
 
@@ -237,3 +241,12 @@ def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys
     assert main(["reconstruct", str(tmp_path / "photo.png"), "--checkpoint", str(models["constant"]), "--out",
                  str(tmp_path / "h"), "--guided", "5"]) == 2
     assert "--guided 5: a guided budget needs >= 6" in capsys.readouterr().err
+
+
+def test_config_names_the_flag_of_a_setting_that_cannot_work():
+    for kwargs, message in (({"mesh_keep": "most"}, "--mesh-keep must be one of all, largest, got 'most'"),
+                            ({"framing": "tight"}, "--framing must be 'auto' or 'keep', got 'tight'"),
+                            ({"fill": 1.5}, "--fill must be in (0, 1], got 1.5")):
+        with pytest.raises(DepthnerfError) as err:
+            ReconstructConfig(**kwargs)
+        assert str(err.value) == message

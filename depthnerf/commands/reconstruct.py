@@ -52,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-threshold", default="auto",
                    help="marching-cubes density level: a number, or auto (default: half the median peak density "
                         "along the opaque input rays)")
+    p.add_argument("--mesh-keep", choices=["all", "largest"], default="all",
+                   help="all pieces of the mesh (default), or only the largest connected piece; manifest.json "
+                        "records the pieces and faces either way")
     p.add_argument("--depth", "--depth-estimator", dest="depth", choices=PHOTO_ESTIMATORS,
                    help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
                         "--depth-estimator: same)")
@@ -92,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     # every flag and the output folder are checked before the model is loaded or anything rendered
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
-                            mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
+                            mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold), mesh_keep=args.mesh_keep,
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model, facing=args.facing)
     options = SessionOptions(device=resolve_device(args.device), depth=args.depth,

@@ -57,7 +57,7 @@ from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsic
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
-from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig
+from depthnerf.render.mesh import AUTO_LEVEL, MESH_KEEP, MeshConfig, keep_pieces
 from depthnerf.render.views import ViewRenders
 
 POINT_OPACITY = 0.5
@@ -89,6 +89,9 @@ class ReconstructConfig:
     """Marching-cubes samples along the frustum box's longest side (0 = no mesh)."""
     mesh_threshold: float | str = AUTO_LEVEL
     """Density level of the mesh surface, or ``"auto"`` (see :mod:`depthnerf.render.mesh`)."""
+    mesh_keep: str = "all"
+    """``all`` pieces of the mesh, or the ``largest`` connected piece only (:func:`~depthnerf.render.mesh.keep_pieces`;
+    the manifest records the pieces and the faces kept either way)."""
     max_points: int | None = 200_000
     """Largest point-cloud size (None: every point)."""
     chunk: int | None = None
@@ -118,6 +121,8 @@ class ReconstructConfig:
                 raise DepthnerfError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
         if self.mesh_resolution != 0 and self.mesh_resolution < 2:
             raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
+        if self.mesh_keep not in MESH_KEEP:
+            raise DepthnerfError(f"--mesh-keep must be one of {', '.join(MESH_KEEP)}, got {self.mesh_keep!r}")
         if self.fill is not None and not 0 < self.fill <= 1:
             raise DepthnerfError(f"--fill must be in (0, 1], got {self.fill}")
         if self.facing is not None and not math.isfinite(self.facing):
@@ -265,6 +270,7 @@ class Reconstructor:
         mesh, level = trimesh.Trimesh(), None
         if cfg.mesh_resolution > 0:
             mesh, level = self.session.mesh(encoded, MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold))
+        mesh, pieces = keep_pieces(mesh, cfg.mesh_keep)
         bar.update(1)
         bar.close()
         times["mesh_s"] = time.perf_counter() - t
@@ -282,6 +288,8 @@ class Reconstructor:
                     "guided_sampling": None if guided is None else guided.budget,
                     "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
                     "mesh_level": level and level.level, "mesh_level_rule": level and level.describe(),
+                    "mesh_keep": cfg.mesh_keep, "mesh_pieces": pieces.pieces, "mesh_faces_extracted": pieces.faces,
+                    "mesh_faces_kept": pieces.kept_faces,
                     "point_opacity": POINT_OPACITY,
                     "mesh_colors": "fine-network rgb at each vertex seen along the input camera's ray"}
         return Reconstruction(

@@ -296,6 +296,41 @@ def levels_text(levels: list[MeshLevel], resolution: int) -> str:
             + (f"; {fallback} object(s) without an opaque ray fell back to {DEFAULT_THRESHOLD:g}" if fallback else ""))
 
 
+MESH_KEEP = ("all", "largest")
+"""What an export keeps of an extracted mesh: every piece, or the largest connected piece (:func:`keep_pieces`)."""
+
+
+@dataclass(frozen=True)
+class MeshPieces:
+    """How an extracted mesh falls apart into connected pieces, and what :func:`keep_pieces` kept."""
+
+    pieces: int
+    """Connected pieces (faces joined by a shared edge) of the extracted mesh."""
+    faces: int
+    """Faces of the extracted mesh."""
+    kept_faces: int
+    """Faces of the returned mesh."""
+
+
+def keep_pieces(mesh: trimesh.Trimesh, keep: str) -> tuple[trimesh.Trimesh, MeshPieces]:
+    """``mesh`` whole (``keep="all"``) or only its largest connected piece (``"largest"``: the piece with the most
+    faces, faces being connected when they share an edge; the first such piece on a tie), with unused vertices
+    dropped, and the :class:`MeshPieces` count. An export filter on top of a clean field, never a substitute for
+    one: the field itself is unchanged."""
+    if keep not in MESH_KEEP:
+        raise DepthnerfError(f"--mesh-keep must be one of {', '.join(MESH_KEEP)}, got {keep!r}")
+    faces = len(mesh.faces)
+    if faces == 0:
+        return mesh, MeshPieces(0, 0, 0)
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=faces)
+    counts = np.bincount(labels)
+    if keep == "all" or len(counts) == 1:
+        return mesh, MeshPieces(len(counts), faces, faces)
+    main = labels == int(np.argmax(counts))
+    kept = mesh.submesh([np.flatnonzero(main)], append=True, repair=False)
+    return kept, MeshPieces(len(counts), faces, int(main.sum()))
+
+
 def load_mesh(path: Path) -> trimesh.Trimesh:
     """Read a mesh file (``mesh.ply`` of an SRN-format object) as one triangle mesh with at least one face."""
     path = Path(path)
