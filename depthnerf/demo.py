@@ -69,7 +69,7 @@ DEMO_SEED = 2718
 """``depthnerf synth --seed`` of the demo objects (training data: seed 0; bundled-depth evaluation: 1234)."""
 CATEGORIES = ("cars", "chairs")
 """Categories the demo knows, in order."""
-DEFAULT_CHECKPOINTS = {"cars": "cpu-cars-sym-pp", "chairs": "cpu-chairs-depth"}
+DEFAULT_CHECKPOINTS = {"cars": "cpu-cars-sym-pp", "chairs": "cpu-chairs-sym-pp"}
 """Shipped depth-aware checkpoint per category."""
 
 

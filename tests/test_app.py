@@ -137,7 +137,7 @@ def test_request_checks(session, tmp_path):
 
 def test_resolve_model_and_messages(tmp_path):
     assert resolve_model(RunRequest(None, "car")) == "cpu-cars-sym-pp"
-    assert resolve_model(RunRequest(None, "chair")) == "cpu-chairs-depth"
+    assert resolve_model(RunRequest(None, "chair")) == "cpu-chairs-sym-pp"
     assert resolve_model(RunRequest(None, "car", checkpoint_path=" runs/x ")) == "runs/x"
     assert one_line(DepthnerfError("/tmp/gradio/ab/c.png: bad\nthing"), "/tmp/gradio/ab/c.png") == "error: c.png: bad thing"
     assert one_line(KeyError("k"), None) == "internal error (KeyError): 'k'"

@@ -60,10 +60,9 @@ EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 """Bundled example photos (``scripts/make_app_examples.py``)."""
 DEPTH_PRIORS = ("bundled", "depth-anything-v2")
 """Depth priors the page offers."""
-SHIPPED_MODELS = {"car": "cpu-cars-sym-pp", "chair": "cpu-chairs-depth"}
-"""Page label -> the best shipped checkpoint per category (docs/RESULTS.md: the car model with mirror-symmetric
-conditioning and the prior read at each point; the chair one without either, whose mesh of the app's example is
-one piece)."""
+SHIPPED_MODELS = {"car": "cpu-cars-sym-pp", "chair": "cpu-chairs-sym-pp"}
+"""Page label -> the best shipped checkpoint per category (docs/RESULTS.md: both with mirror-symmetric
+conditioning and the prior read at each point; the chair model trained for 4000 steps)."""
 ProgressFn = Callable[[float, str], None]
 
 

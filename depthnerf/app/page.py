@@ -39,10 +39,10 @@ when "Remove background" is ticked and one is installed, else everything that di
 recentres the object at the foreground ratio, puts it on white and resizes it to the model's input; then a
 depth-aware pixelNeRF renders an orbit of novel views and extracts a mesh.
 
-**Honest note.** The shipped CPU models (`cpu-cars-sym-pp`, with mirror-symmetric conditioning, and `cpu-chairs-depth`)
-are small, were trained at 64 px on procedurally *synthesised* cars and chairs with the bundled depth network as
+**Honest note.** The shipped CPU models (`cpu-cars-sym-pp` and `cpu-chairs-sym-pp`, both with mirror-symmetric
+conditioning) are small, were trained at 64 px on procedurally *synthesised* cars and chairs with the bundled depth network as
 their prior, and have never seen a real photo: expect coarse shapes, and better results on clean renders than on
-photographs. The car model reads the side it cannot see from its mirror image, so set the object's facing. `depth-anything-v2`
+photographs. Both models read the side they cannot see from its mirror image, so set the object's facing. `depth-anything-v2`
 (when its weights are in the local Hugging Face cache, a local directory, or reachable) is a different prior
 from the one these models were trained with.
 """
