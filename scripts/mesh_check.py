@@ -25,6 +25,7 @@ import trimesh
 from PIL import Image
 
 from depthnerf.data.cameras import project, world_to_camera
+from depthnerf.render.mesh import keep_pieces
 
 
 def inside_mask(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -47,9 +48,7 @@ def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, 
     if len(mesh.faces) == 0:
         return {"faces": 0, "components": 0, "main_share": 0.0, "inside_share": 0.0, "above_share": 0.0,
                 "white_share": 0.0}
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
-    counts = np.bincount(labels)
-    main = int(np.argmax(counts))
+    pieces = keep_pieces(mesh, "largest")[1]
     centroids = mesh.triangles_center
     inside = inside_mask(centroids, c2w, intrinsics, mask)
     object_z = centroids[inside, 2] if inside.any() else centroids[:, 2]
@@ -58,8 +57,8 @@ def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, 
     colors = getattr(mesh.visual, "vertex_colors", None)
     if colors is not None and len(colors) == len(mesh.vertices):
         white = float((np.asarray(colors)[:, :3] >= 0.95 * 255).all(axis=1).mean())
-    return {"faces": int(len(mesh.faces)), "components": int(len(counts)),
-            "main_share": float(counts[main] / len(mesh.faces)), "inside_share": float(inside.mean()),
+    return {"faces": int(len(mesh.faces)), "components": pieces.pieces,
+            "main_share": pieces.kept_faces / pieces.faces, "inside_share": float(inside.mean()),
             "above_share": float((centroids[:, 2] > top + above * height).mean()), "white_share": white}
 
 

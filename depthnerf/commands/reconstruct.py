@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     # every flag and the output folder are checked before the model is loaded or anything rendered
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
-                            mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold), mesh_keep=args.mesh_keep,
+                            mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
+                            mesh_keep=args.mesh_keep,
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model, facing=args.facing)
     options = SessionOptions(device=resolve_device(args.device), depth=args.depth,

@@ -57,7 +57,7 @@ from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsic
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
-from depthnerf.render.mesh import AUTO_LEVEL, MESH_KEEP, MeshConfig, keep_pieces
+from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, check_mesh_keep, keep_pieces
 from depthnerf.render.views import ViewRenders
 
 POINT_OPACITY = 0.5
@@ -121,8 +121,7 @@ class ReconstructConfig:
                 raise DepthnerfError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
         if self.mesh_resolution != 0 and self.mesh_resolution < 2:
             raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
-        if self.mesh_keep not in MESH_KEEP:
-            raise DepthnerfError(f"--mesh-keep must be one of {', '.join(MESH_KEEP)}, got {self.mesh_keep!r}")
+        check_mesh_keep(self.mesh_keep)
         if self.fill is not None and not 0 < self.fill <= 1:
             raise DepthnerfError(f"--fill must be in (0, 1], got {self.fill}")
         if self.facing is not None and not math.isfinite(self.facing):

@@ -312,13 +312,18 @@ class MeshPieces:
     """Faces of the returned mesh."""
 
 
+def check_mesh_keep(keep: str) -> None:
+    """One line naming ``--mesh-keep`` when ``keep`` is not one of :data:`MESH_KEEP`."""
+    if keep not in MESH_KEEP:
+        raise DepthnerfError(f"--mesh-keep must be one of {', '.join(MESH_KEEP)}, got {keep!r}")
+
+
 def keep_pieces(mesh: trimesh.Trimesh, keep: str) -> tuple[trimesh.Trimesh, MeshPieces]:
     """``mesh`` whole (``keep="all"``) or only its largest connected piece (``"largest"``: the piece with the most
     faces, faces being connected when they share an edge; the first such piece on a tie), with unused vertices
     dropped, and the :class:`MeshPieces` count. An export filter on top of a clean field, never a substitute for
     one: the field itself is unchanged."""
-    if keep not in MESH_KEEP:
-        raise DepthnerfError(f"--mesh-keep must be one of {', '.join(MESH_KEEP)}, got {keep!r}")
+    check_mesh_keep(keep)
     faces = len(mesh.faces)
     if faces == 0:
         return mesh, MeshPieces(0, 0, 0)
