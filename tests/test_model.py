@@ -119,6 +119,24 @@ def test_row_gather_sampling_equals_grid_sample(size):
     assert (~inside).any() and inside.any()
 
 
+def test_inference_sampling_equals_the_fused_gather():
+    """The no-gradient path (grid_sample on channels-first maps; compiled CUDA inference) equals the fused gather,
+    also for coordinates outside the map and non-finite ones, and keeps the maps' dtype."""
+    from depthnerf.model.features import sample_maps, sample_maps_inference
+
+    gen = torch.Generator().manual_seed(1)
+    maps = torch.randn(2, 5, 7, 6, generator=gen)
+    grid = (torch.rand(2, 50, 2, generator=gen) * 2 - 1) * 1.4
+    grid[0, :4] = torch.tensor([[float("nan"), 0.3], [float("inf"), -0.2], [-float("inf"), float("nan")],
+                                [0.1, float("inf")]])
+    torch.testing.assert_close(sample_maps_inference(maps, grid), sample_maps(maps, grid))
+    half = sample_maps_inference(maps.bfloat16(), grid)
+    assert half.dtype == torch.bfloat16
+    torch.testing.assert_close(half.float(), sample_maps(maps.bfloat16().float(), grid), atol=1e-2, rtol=1e-2)
+    if torch.cuda.is_available():
+        torch.testing.assert_close(sample_maps_inference(maps.cuda(), grid.cuda()).cpu(), sample_maps(maps, grid))
+
+
 def test_positional_encoding_closed_form():
     pe = PositionalEncoding(num_freqs=6, freq_factor=1.5, include_input=True)
     assert pe.d_out == 39 and FieldConfig().d_in == 42

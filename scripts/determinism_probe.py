@@ -1,0 +1,133 @@
+"""Where do two ``--deterministic`` training runs of the same seed part? Runs the exact-resume tests' tiny
+configuration (``tests/test_train.py``'s ``CRASH_ARGS``: cpu-cars, ResNet18, 32 px, 6 steps) several times, first
+one after another, then all at once (as pytest-xdist runs the tests on one GPU), with a checkpoint after every step,
+and compares every run with the first: the first step whose logged loss terms differ, and for each checkpoint the
+weights and optimiser tensors that differ (largest absolute difference). Writes OUT_DIR/determinism_probe.json
+and prints a summary.
+
+    python scripts/determinism_probe.py OUT_DIR [--sequential 3] [--concurrent 6] [--steps 6] [--device auto] [--work DIR]
+
+On a CPU both groups should agree bit for bit (the CPU's default); on CUDA, ``--deterministic`` promises it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+import torch  # noqa: E402
+from fixtures_srn import make_srn_fixture  # noqa: E402
+from safetensors.torch import load_file  # noqa: E402
+
+from depthnerf.train.run_log import read_metrics  # noqa: E402
+
+TINY = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
+        "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--render.sampler.n_coarse", "8",
+        "--render.sampler.n_importance", "4", "--render.sampler.n_gaussian", "4", "--schedule.bbox_steps", "3",
+        "--schedule.objects_phase1", "2", "--schedule.objects_phase2", "2", "--schedule.rays_per_object", "32",
+        "--log.log_every", "1", "--no-progress"]
+"""The same sizes as tests/test_train.py's TINY."""
+
+TERMS = ("loss", "loss_coarse", "loss_fine", "loss_depth", "loss_background")
+
+
+def train_command(data: Path, out: Path, steps: int, device: str) -> list[str]:
+    return [sys.executable, "-m", "depthnerf", "train", "--preset", "cpu-cars", "--depth", "none", "--data",
+            str(data), "--out", str(out), "--max-steps", str(steps), "--checkpoint-every", "1", "--log.val_every",
+            "0", "--log.keep_last", str(steps + 1), "--deterministic", "--device", device, *TINY]
+
+
+def run_group(cmds: list[list[str]], concurrent: bool) -> list[dict]:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    results = []
+    if concurrent:
+        procs = [(time.time(), subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                                env=env)) for c in cmds]
+        for t0, p in procs:
+            _, err = p.communicate()
+            results.append({"returncode": p.returncode, "seconds": round(time.time() - t0, 1), "stderr": err[-800:]})
+    else:
+        for c in cmds:
+            t0 = time.time()
+            p = subprocess.run(c, capture_output=True, text=True, env=env)
+            results.append({"returncode": p.returncode, "seconds": round(time.time() - t0, 1),
+                            "stderr": p.stderr[-800:]})
+    return results
+
+
+def checkpoint_tensors(run: Path, step: int) -> dict[str, torch.Tensor]:
+    folder = run / "checkpoints" / f"step_{step:08d}"
+    tensors = {f"model/{k}": v for k, v in load_file(folder / "model.safetensors").items()}
+    tensors.update({f"optim/{k}": v for k, v in load_file(folder / "optimizer.safetensors").items()})
+    return tensors
+
+
+def compare(ref: Path, run: Path, steps: int) -> dict:
+    a = {m["step"]: m for m in read_metrics(ref) if "loss" in m}
+    b = {m["step"]: m for m in read_metrics(run) if "loss" in m}
+    first_loss = next((s for s in sorted(a) if any(a[s][t] != b.get(s, {}).get(t) for t in TERMS)), None)
+    terms_at_first = None if first_loss is None else {t: [a[first_loss][t], b[first_loss][t]] for t in TERMS}
+    per_step = {}
+    for step in range(1, steps + 1):
+        ta, tb = checkpoint_tensors(ref, step), checkpoint_tensors(run, step)
+        diff = {k: float((ta[k].double() - tb[k].double()).abs().max()) for k in ta if not torch.equal(ta[k], tb[k])}
+        if diff:
+            worst = sorted(diff.items(), key=lambda kv: -kv[1])
+            per_step[step] = {"differing": len(diff), "of": len(ta), "largest": worst[:6],
+                              "names": sorted(diff)[:40]}
+    first_tensor = min(per_step, default=None)
+    return {"first_differing_loss_step": first_loss, "terms_at_first": terms_at_first,
+            "first_differing_checkpoint_step": first_tensor, "checkpoints": per_step}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--sequential", type=int, default=3)
+    ap.add_argument("--concurrent", type=int, default=6)
+    ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a new temporary one)")
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    work = args.work or Path(tempfile.mkdtemp(prefix="determinism-probe-"))
+    data = make_srn_fixture(work / "srn", "cars", {"train": 4, "val": 1}, views=4, size=32, with_depth=True,
+                            with_mask=True)
+    report = {"cuda": torch.cuda.is_available(), "torch": torch.__version__,
+              "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None, "groups": {}}
+    runs = []
+    for group, n, concurrent in (("sequential", args.sequential, False), ("concurrent", args.concurrent, True)):
+        outs = [work / f"{group}_{i}" for i in range(n)]
+        t0 = time.time()
+        procs = run_group([train_command(data, o, args.steps, args.device) for o in outs], concurrent)
+        report["groups"][group] = {"seconds": round(time.time() - t0, 1), "processes": procs}
+        runs += [(group, o) for o, p in zip(outs, procs, strict=True) if p["returncode"] == 0]
+    if not runs:
+        report["error"] = "no run finished"
+    else:
+        ref = runs[0][1]
+        report["reference"] = ref.name
+        report["comparisons"] = {o.name: compare(ref, o, args.steps) for _, o in runs[1:]}
+    (args.out / "determinism_probe.json").write_text(json.dumps(report, indent=1))
+    for name, c in report.get("comparisons", {}).items():
+        print(f"{name}: first differing loss step {c['first_differing_loss_step']}, first differing checkpoint "
+              f"{c['first_differing_checkpoint_step']}"
+              + (f" ({c['checkpoints'][c['first_differing_checkpoint_step']]['largest'][:3]})"
+                 if c["first_differing_checkpoint_step"] else ""))
+    bad = [g for g, v in report["groups"].items() if any(p["returncode"] for p in v["processes"])]
+    if bad:
+        print(f"runs failed in: {bad}; see determinism_probe.json")
+
+
+if __name__ == "__main__":
+    main()
