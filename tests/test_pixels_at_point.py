@@ -133,7 +133,7 @@ def test_off_by_default_and_refused_without_a_prior():
 
 def test_checkpoint_with_both_options_evaluates_and_reconstructs(tmp_path):
     """A mirror checkpoint reading the prior and colour at each point loads from its weights alone, is evaluated
-    (the summary's method names both options) and reconstructs a photo."""
+    (the summary's method names both options, and the encoder's input scale) and reconstructs a photo."""
     import json
 
     from PIL import Image
@@ -146,14 +146,16 @@ def test_checkpoint_with_both_options_evaluates_and_reconstructs(tmp_path):
     root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 1}, views=3, size=16)
     weights = tiny_bundled(tmp_path / "depth.safetensors")
     cfg = apply_overrides(tiny_config("cars", "bundled", weights), [
-        "--model.mirror", "true", "--model.prior_at_point", "true", "--model.rgb_at_point", "true"])
+        "--model.mirror", "true", "--model.prior_at_point", "true", "--model.rgb_at_point", "true",
+        "--model.encoder.image_scale", "2"])
     ckpt = save_tiny(tmp_path / "both.safetensors", cfg)
     assert main(["depth", "--data", str(root), "--depth", "bundled", "--depth-checkpoint", str(weights),
                  "--resolution", "16", "--no-progress"]) == 0
     assert main(["eval", "--checkpoint", str(ckpt), "--data", str(root), "--out", str(tmp_path / "ev"),
                  "--no-mesh", "--no-progress"]) == 0
     summary = json.loads((tmp_path / "ev" / "summary.json").read_text())
-    assert summary["method"].endswith("+ mirror symmetry + prior at each point + colour at each point")
+    assert summary["method"].endswith("+ mirror symmetry + prior at each point + colour at each point"
+                                      " + encoder at 2x input")
     assert 5 < summary["psnr"] < 60
     photo = next((root / "cars_test").glob("*/rgb/*.png"))
     Image.open(photo).save(tmp_path / "car.png")

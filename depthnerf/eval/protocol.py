@@ -333,6 +333,9 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
             " + mirror symmetry" if evaluator.symmetry_plane is not None else "") + (
             " + prior at each point" if spec.model.prior_at_point else "") + (
             " + colour at each point" if spec.model.rgb_at_point else "") + (
+            f" + encoder at {spec.model.encoder.image_scale:g}x input" if spec.model.encoder.image_scale != 1.0
+            else "") + (
+            " + encoder without first pool" if not spec.model.encoder.use_first_pool else "") + (
             f" + guided sampling ({guided.budget}/ray)" if guided is not None else ""),
         "guided_sampling": None if guided is None else guided_record(guided),
         "category": category, "split": cfg.split, "preset": spec.preset,
