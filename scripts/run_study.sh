@@ -11,7 +11,7 @@
 # RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
 # mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
 # prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-x2" the
-# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool; suffixes combine, e.g.
+# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase; suffixes combine, e.g.
 # "cars-bundled-sym-pp"), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
@@ -56,7 +56,8 @@ one_run() {
       rgb) extra+=(--model.rgb_at_point true) ;;  # the colour read at each point (same section)
       x2) extra+=(--model.encoder.image_scale 2.0) ;;  # encoder on the input upsampled 2x ("Chairs: what was tried")
       np) extra+=(--model.encoder.use_first_pool false) ;;  # encoder without its first max-pool (same section)
-      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np)" >&2; return 2 ;;
+      nb) extra+=(--schedule.bbox_steps 0) ;;  # no bbox-sampling phase: whole images from step 0 (same section)
+      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb)" >&2; return 2 ;;
     esac
   done
   if [ ! -f "$ev/summary.json" ]; then
