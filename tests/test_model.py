@@ -95,48 +95,6 @@ def test_latent_scaling_matches_pixelnerf_formula():
     torch.testing.assert_close(edge[0, 0, 0], torch.tensor([0.0, hf - 1.0]))
 
 
-@pytest.mark.parametrize("size", [(5, 7), (1, 4)])
-def test_row_gather_sampling_equals_grid_sample(size):
-    """The fused gather equals torch's grid_sample (bilinear, align_corners=True, border), values and gradients."""
-    import torch.nn.functional as F
-
-    from depthnerf.model.features import sample_maps
-
-    hf, wf = size
-    gen = torch.Generator().manual_seed(0)
-    maps = torch.randn(3, 6, hf, wf, generator=gen, dtype=torch.float64, requires_grad=True)
-    grid = ((torch.rand(3, 40, 2, generator=gen, dtype=torch.float64) * 2 - 1) * 1.3).requires_grad_(True)
-    ref = F.grid_sample(maps, grid[:, :, None], mode="bilinear", padding_mode="border", align_corners=True)
-    ref = ref[..., 0].transpose(1, 2)
-    out = sample_maps(maps.permute(0, 2, 3, 1), grid)
-    torch.testing.assert_close(out, ref)
-    up = torch.randn(ref.shape, generator=gen, dtype=torch.float64)
-    g_ref = torch.autograd.grad((ref * up).sum(), (maps, grid))
-    g_out = torch.autograd.grad((out * up).sum(), (maps, grid))
-    torch.testing.assert_close(g_out[0], g_ref[0])
-    inside = (grid.abs() < 1).all(-1, keepdim=True).expand_as(grid)  # grid_sample's gradient at the clamp edge
-    torch.testing.assert_close(g_out[1][inside], g_ref[1][inside])   # is a convention; compare inside only
-    assert (~inside).any() and inside.any()
-
-
-def test_inference_sampling_equals_the_fused_gather():
-    """The no-gradient path (grid_sample on channels-first maps; compiled CUDA inference) equals the fused gather,
-    also for coordinates outside the map and non-finite ones, and keeps the maps' dtype."""
-    from depthnerf.model.features import sample_maps, sample_maps_inference
-
-    gen = torch.Generator().manual_seed(1)
-    maps = torch.randn(2, 5, 7, 6, generator=gen)
-    grid = (torch.rand(2, 50, 2, generator=gen) * 2 - 1) * 1.4
-    grid[0, :4] = torch.tensor([[float("nan"), 0.3], [float("inf"), -0.2], [-float("inf"), float("nan")],
-                                [0.1, float("inf")]])
-    torch.testing.assert_close(sample_maps_inference(maps, grid), sample_maps(maps, grid))
-    half = sample_maps_inference(maps.bfloat16(), grid)
-    assert half.dtype == torch.bfloat16
-    torch.testing.assert_close(half.float(), sample_maps(maps.bfloat16().float(), grid), atol=1e-2, rtol=1e-2)
-    if torch.cuda.is_available():
-        torch.testing.assert_close(sample_maps_inference(maps.cuda(), grid.cuda()).cpu(), sample_maps(maps, grid))
-
-
 def test_positional_encoding_closed_form():
     pe = PositionalEncoding(num_freqs=6, freq_factor=1.5, include_input=True)
     assert pe.d_out == 39 and FieldConfig().d_in == 42
