@@ -15,7 +15,8 @@
 # "cars-bundled-sym-pp"), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
-# 0.5 reads the SRN-framed renders exactly), GENERALISATION (1: also run scripts/generalisation_check.sh on
+# 0.5 reads the SRN-framed renders exactly), RES (images and training resolution, default 64; 128 is SRN's and the
+# paper presets'), GENERALISATION (1: also run scripts/generalisation_check.sh on
 # the checkpoints exported from this study: set CHECKPOINT_PREFIX to their name prefix; default 0).
 # The shipped cpu-* checkpoints were trained with FRAMING=legacy; re-running with the default framing and
 # re-exporting them (scripts/export_study_checkpoints.sh) moves them to the SRN framing.
@@ -27,14 +28,15 @@ RUNS=${RUNS:-"cars-none cars-bundled chairs-none chairs-bundled cars-oracle chai
 SEED=0
 FRAMING=${FRAMING:-srn}
 PIXEL_CENTER=${PIXEL_CENTER:-0.0}
-export STUDY STRIDE SEED FRAMING PIXEL_CENTER STEPS=${STEPS:-}
+RES=${RES:-64}
+export STUDY STRIDE SEED FRAMING PIXEL_CENTER RES STEPS=${STEPS:-}
 export OMP_NUM_THREADS=1
 mkdir -p "$STUDY/logs"
 
-# 1. data: 300 train / 20 val / 50 test objects per category at 64 px (the CPU presets' resolution)
+# 1. data: 300 train / 20 val / 50 test objects per category at RES px (default 64, the CPU presets' resolution)
 for cat in cars chairs; do
   depthnerf synth --category "$cat" --out "$STUDY/data" --train-objects 300 --val-objects 20 --test-objects 50 \
-    --resolution 64 --seed "$SEED" --framing "$FRAMING" --workers "$JOBS" --quiet
+    --resolution "$RES" --seed "$SEED" --framing "$FRAMING" --workers "$JOBS" --quiet
 done
 # 2. bundled depth priors for every split (oracle priors need no cache: they come from the GT depth)
 depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
@@ -64,7 +66,7 @@ one_run() {
     local resume=()
     [ -f "$run/config.json" ] && resume=(--resume)
     depthnerf train --preset "cpu-$cat" --data "$STUDY/data" --depth "$prior" --seed "$SEED" --out "$run" \
-      --data.pixel_center "$PIXEL_CENTER" "${steps[@]}" "${extra[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
+      --data.pixel_center "$PIXEL_CENTER" --data.resolution "$RES" "${steps[@]}" "${extra[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
     depthnerf eval --run "$run" --views-stride "$STRIDE" --save-renders --out "$ev" --no-progress >> "$log" 2>&1
   fi
   echo "$name done"
