@@ -26,17 +26,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import torch  # noqa: E402
+from fixtures_checkpoints import TINY_TRAIN_FLAGS  # noqa: E402
 from fixtures_srn import make_srn_fixture  # noqa: E402
 from safetensors.torch import load_file  # noqa: E402
 
 from depthnerf.train.run_log import read_metrics  # noqa: E402
-
-TINY = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
-        "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--render.sampler.n_coarse", "8",
-        "--render.sampler.n_importance", "4", "--render.sampler.n_gaussian", "4", "--schedule.bbox_steps", "3",
-        "--schedule.objects_phase1", "2", "--schedule.objects_phase2", "2", "--schedule.rays_per_object", "32",
-        "--log.log_every", "1", "--no-progress"]
-"""The same sizes as tests/test_train.py's TINY."""
 
 TERMS = ("loss", "loss_coarse", "loss_fine", "loss_depth", "loss_background")
 
@@ -44,25 +38,24 @@ TERMS = ("loss", "loss_coarse", "loss_fine", "loss_depth", "loss_background")
 def train_command(data: Path, out: Path, steps: int, device: str) -> list[str]:
     return [sys.executable, "-m", "depthnerf", "train", "--preset", "cpu-cars", "--depth", "none", "--data",
             str(data), "--out", str(out), "--max-steps", str(steps), "--checkpoint-every", "1", "--log.val_every",
-            "0", "--log.keep_last", str(steps + 1), "--deterministic", "--device", device, *TINY]
+            "0", "--log.keep_last", str(steps + 1), "--deterministic", "--device", device, *TINY_TRAIN_FLAGS]
 
 
 def run_group(cmds: list[list[str]], concurrent: bool) -> list[dict]:
+    """Run the commands all at once (``concurrent``) or one after another; each one's exit code, seconds, stderr."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    results = []
-    if concurrent:
-        procs = [(time.time(), subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                                env=env)) for c in cmds]
-        for t0, p in procs:
-            _, err = p.communicate()
-            results.append({"returncode": p.returncode, "seconds": round(time.time() - t0, 1), "stderr": err[-800:]})
-    else:
-        for c in cmds:
-            t0 = time.time()
-            p = subprocess.run(c, capture_output=True, text=True, env=env)
-            results.append({"returncode": p.returncode, "seconds": round(time.time() - t0, 1),
-                            "stderr": p.stderr[-800:]})
-    return results
+    started, results = [], []
+
+    def finish(t0: float, p: subprocess.Popen) -> dict:
+        _, err = p.communicate()
+        return {"returncode": p.returncode, "seconds": round(time.time() - t0, 1), "stderr": err[-800:]}
+
+    for c in cmds:
+        started.append((time.time(), subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                                      env=env)))
+        if not concurrent:
+            results.append(finish(*started.pop()))
+    return results + [finish(*s) for s in started]
 
 
 def checkpoint_tensors(run: Path, step: int) -> dict[str, torch.Tensor]:

@@ -19,6 +19,14 @@ from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import TrainConfig, preset, with_prior
 
+TINY_TRAIN_FLAGS = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
+                    "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--render.sampler.n_coarse", "8",
+                    "--render.sampler.n_importance", "4", "--render.sampler.n_gaussian", "4",
+                    "--schedule.bbox_steps", "3", "--schedule.objects_phase1", "2", "--schedule.objects_phase2", "2",
+                    "--schedule.rays_per_object", "32", "--log.log_every", "1", "--no-progress"]
+"""``depthnerf train`` flags that shrink the ``cpu-cars`` preset to seconds per run on 32 px data (the training
+tests' and ``scripts/determinism_probe.py``'s runs)."""
+
 
 def tiny_bundled(path: Path, input_size: int = 16) -> Path:
     """A random bundled depth network small enough for 16 px images."""

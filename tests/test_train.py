@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from fixtures_checkpoints import TINY_TRAIN_FLAGS as TINY
 from fixtures_checkpoints import tiny_config, tiny_model
 from fixtures_srn import make_srn_fixture
 
@@ -28,12 +29,6 @@ from depthnerf.train.config import preset, with_prior
 from depthnerf.train.loop import learning_rate
 from depthnerf.train.run_log import read_launches, read_metrics
 from depthnerf.train.step import background_opacity_per_object
-
-TINY = ["--data.resolution", "32", "--data.num_workers", "0", "--model.encoder.backbone", "resnet18",
-        "--model.coarse.d_hidden", "32", "--model.fine.d_hidden", "32", "--render.sampler.n_coarse", "8",
-        "--render.sampler.n_importance", "4", "--render.sampler.n_gaussian", "4", "--schedule.bbox_steps", "3",
-        "--schedule.objects_phase1", "2", "--schedule.objects_phase2", "2", "--schedule.rays_per_object", "32",
-        "--log.log_every", "1", "--no-progress"]
 
 
 def cli(*args: str, check: bool = True, env: dict | None = None) -> subprocess.CompletedProcess:
