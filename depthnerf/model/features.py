@@ -66,8 +66,8 @@ def sample_maps(maps: Float[Tensor, "BV Hf Wf C"], grid: Float[Tensor, "BV N 2"]
     channels per pixel it reads whole rows, where ``grid_sample`` on a channels-first map makes 4 strided reads
     per channel and point (measured ~4x faster forward and ~10x faster backward for C = 1536). Compiled
     (``--compile``), on CUDA and without gradients (inference), it is :func:`sample_maps_inference` instead: a
-    compiled paper-sampler view took 89 ms with it against 146 without on one H100, where eager views gained
-    nothing (226 against 230 ms; docs/speed.md). Same values either way.
+    compiled paper-sampler view took 89 ms with it against 146 without (two H100s of the same kind), where
+    eager views on one machine gained nothing (230 with it against 226 ms; docs/speed.md). Same values either way.
     """
     bv, hf, wf, c = maps.shape
     n = grid.shape[1]
