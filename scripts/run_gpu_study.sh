@@ -28,7 +28,8 @@
 # Environment overrides (the CPU plumbing test sets tiny values): RES (128), TRAIN_OBJECTS (200), TEST_OBJECTS
 # (20), VIEWS_TRAIN (50), VIEWS_TEST (251), STRIDE (eval view stride, 10), STEPS (skip the rule), STEP_MS, DEVICE
 # (auto), WORKERS (synth processes, nproc), CATEGORIES ("cars chairs"), PRIORS ("none bundled oracle"),
-# TRAIN_ARGS (extra `depthnerf train` flags, e.g. model-size overrides), MESH (0: no mesh metrics), CALL_SECONDS,
+# TRAIN_ARGS (extra `depthnerf train` flags, e.g. model-size overrides), EVAL_ARGS (extra `depthnerf eval` flags,
+# e.g. --compile or --guided), MESH (0: no mesh metrics), CALL_SECONDS,
 # CKPT_MIN, CKPT_EVERY (steps; skips the CKPT_MIN rule), RESULTS_TO (a folder, e.g. the device tool's $OUT: each
 # call ends by copying status.json, table.md, paired_*.md|json and logs.tar.gz there).
 # Exit status: 0 finished, 3 not finished in this call (run it again), 1 a stage failed, 2 no step rate.
@@ -39,7 +40,7 @@ RES=${RES:-128}; TRAIN_OBJECTS=${TRAIN_OBJECTS:-200}; TEST_OBJECTS=${TEST_OBJECT
 VIEWS_TRAIN=${VIEWS_TRAIN:-50}; VIEWS_TEST=${VIEWS_TEST:-251}; STRIDE=${STRIDE:-10}
 DEVICE=${DEVICE:-auto}; WORKERS=${WORKERS:-$(nproc)}; DATA_MIN=${DATA_MIN:-4}; EVAL_MIN=${EVAL_MIN:-3}
 CATEGORIES=${CATEGORIES:-"cars chairs"}; PRIORS=${PRIORS:-"none bundled oracle"}; TRAIN_ARGS=${TRAIN_ARGS:-}
-MESH=${MESH:-0}; SEED=0; CALL_SECONDS=${CALL_SECONDS:-510}; CKPT_MIN=${CKPT_MIN:-2}; RESUME_S=${RESUME_S:-45}
+MESH=${MESH:-0}; EVAL_ARGS=${EVAL_ARGS:-}; SEED=0; CALL_SECONDS=${CALL_SECONDS:-510}; CKPT_MIN=${CKPT_MIN:-2}; RESUME_S=${RESUME_S:-45}
 HERE=$(cd "$(dirname "$0")/.." && pwd)
 # shellcheck source=scripts/gpu_env.sh
 source "$HERE/scripts/gpu_env.sh"
@@ -181,14 +182,24 @@ done
 
 # 4. evaluate on the same test objects, 5. table and paired differences
 mesh=(--no-mesh); [ "$MESH" = 1 ] && mesh=()
-for name in "${runs[@]}"; do
+[ "$(left)" -gt 0 ] || out_of_time "evaluation"
+epids=(); enames=()
+for name in "${runs[@]}"; do  # side by side on the one device, as in training: one view alone leaves it idle
   [ -f "$DIR/eval/$name/summary.json" ] && continue
-  [ "$(left)" -gt 0 ] || out_of_time "evaluation"
+  # shellcheck disable=SC2086
   timeout --signal=TERM "$(lim)" "${DN[@]}" eval --run "$DIR/runs/$name" --views-stride "$STRIDE" --device "$DEVICE" \
-    --out "$DIR/eval/$name" "${mesh[@]}" --no-progress >> "$DIR/logs/eval-$name.log" 2>&1 \
-    || { [ "$(left)" -le 0 ] && out_of_time "evaluation of $name"; echo "eval $name failed (see $DIR/logs)" >&2
-         finish failed 1; }
+    --out "$DIR/eval/$name" "${mesh[@]}" --no-progress $EVAL_ARGS >> "$DIR/logs/eval-$name.log" 2>&1 &
+  epids+=($!); enames+=("$name")
 done
+pids=("${epids[@]}")  # a signal from outside stops these too
+fail=0
+for i in "${!epids[@]}"; do
+  rc=0; wait "${epids[$i]}" || rc=$?
+  [ $rc = 0 ] || { [ "$(left)" -le 0 ] && fail=3 && continue; echo "eval ${enames[$i]} failed (exit $rc, see $DIR/logs)" >&2
+                  [ $fail = 3 ] || fail=1; }
+done
+[ $fail = 3 ] && out_of_time "evaluation"
+[ $fail = 0 ] || finish failed 1
 evals=(); for name in "${runs[@]}"; do evals+=("$DIR/eval/$name"); done
 "${DN[@]}" compare "${evals[@]}" --reference paper --out "$DIR/table.md" || finish failed 1
 for cat in $CATEGORIES; do
