@@ -4,9 +4,9 @@
 # by side on one GPU for a fixed number of steps that fits MINUTES -> SRN-protocol eval on the same test objects ->
 # Table-1 style table (depthnerf compare) and paired per-object differences (scripts/paired_difference.py).
 #
-#   bash scripts/run_gpu_study.sh DIR [MINUTES]        (default 13 minutes in all: a 15-minute lease of one H100)
+#   bash scripts/run_gpu_study.sh DIR [MINUTES]        (default 12 minutes in all: a 15-minute lease of one H100)
 #
-# Calls. One call works for at most CALL_SECONDS (default 510 s: a device-tool call is 10 minutes at most), then
+# Calls. One call works for at most CALL_SECONDS (default 480 s: a device-tool call is 10 minutes at most), then
 # stops its training runs with SIGTERM (each writes a checkpoint at its current step) and exits 3: run the SAME
 # command again to go on. Every stage skips finished work: data (synth resumes per object), priors (a done mark),
 # the step rule (kept in DIR/study_state.env), training (--resume; runs that reached STEPS are left alone;
@@ -16,17 +16,22 @@
 # (docs/speed.md, "Measuring on a lent GPU"); with no state in DIR the study starts from the beginning and says so.
 #
 # Time budget and the step rule (computed once, in the first call, and kept). MINUTES is split as: data + priors
-# + step-rate probe ~ DATA_MIN (default 4), evaluation ~ EVAL_MIN (default 3), the restart of the runs in each
-# further call ~ RESUME_S (default 45 s), training = the rest. All RUNS (default 6) train concurrently on the one
-# GPU, so each gets about 1/RUNS of it:
+# + step-rate probe ~ DATA_MIN (default 2), evaluation, the restart of the runs in each further call ~ RESUME_S
+# (default 45 s), training = the rest. Evaluation is estimated as
+#     eval_seconds = 30 + RUNS * TEST_OBJECTS * ceil((VIEWS_TEST - 1) / STRIDE) * VIEW_MS / 1000
+# with VIEW_MS (default 200) the device's ms per 128 px view over all runs evaluating side by side (measured on one
+# H100, eager: 6 runs x 200 views in 243 s; docs/speed.md). All RUNS (default 6) train concurrently on the one GPU,
+# so each gets about 1/RUNS of it:
 #     STEPS = floor(train_seconds * 1000 / (STEP_MS * RUNS))
 # where STEP_MS is the measured ms per training iteration of ONE run alone (benchmarks/bench_gpu.py --no-views,
-# run here first), or the env value STEP_MS if set. Concurrency rarely beats that sum on a GPU, so the rule errs
-# towards finishing early. bbox_steps = STEPS / 4 (the paper: 100k of 400k). Whether the default finishes in 13
-# minutes on an H100 is NOT measured yet (docs/speed.md, "Measuring on a lent GPU").
+# run here first), or the env value STEP_MS if set. On one H100 six runs side by side made 24.4 steps/s in all, i.e.
+# 41 ms per step-run: concurrency does not beat the sum there. bbox_steps = STEPS / 4 (the paper: 100k of 400k).
+# Measured on one H100 (docs/speed.md): with STEP_MS=40 and 12 minutes the study finished in two calls, 480 s and
+# 310 s (6 x 1562 steps; data and priors 108 s).
 #
 # Environment overrides (the CPU plumbing test sets tiny values): RES (128), TRAIN_OBJECTS (200), TEST_OBJECTS
-# (20), VIEWS_TRAIN (50), VIEWS_TEST (251), STRIDE (eval view stride, 10), STEPS (skip the rule), STEP_MS, DEVICE
+# (20), VIEWS_TRAIN (50), VIEWS_TEST (251), STRIDE (eval view stride, 25: 10 views per object), STEPS (skip the
+# rule), STEP_MS, VIEW_MS, EVAL_CHUNK (rays per eval pass, 16384: one view, ~3.5 GiB per run), DEVICE
 # (auto), WORKERS (synth processes, nproc), CATEGORIES ("cars chairs"), PRIORS ("none bundled oracle"),
 # TRAIN_ARGS (extra `depthnerf train` flags, e.g. model-size overrides), EVAL_ARGS (extra `depthnerf eval` flags,
 # e.g. --compile or --guided), MESH (0: no mesh metrics), CALL_SECONDS,
@@ -35,12 +40,12 @@
 # Exit status: 0 finished, 3 not finished in this call (run it again), 1 a stage failed, 2 no step rate.
 set -euo pipefail
 DIR=${1:?usage: run_gpu_study.sh DIR [MINUTES]}
-MINUTES=${2:-13}
+MINUTES=${2:-12}
 RES=${RES:-128}; TRAIN_OBJECTS=${TRAIN_OBJECTS:-200}; TEST_OBJECTS=${TEST_OBJECTS:-20}
-VIEWS_TRAIN=${VIEWS_TRAIN:-50}; VIEWS_TEST=${VIEWS_TEST:-251}; STRIDE=${STRIDE:-10}
-DEVICE=${DEVICE:-auto}; WORKERS=${WORKERS:-$(nproc)}; DATA_MIN=${DATA_MIN:-4}; EVAL_MIN=${EVAL_MIN:-3}
+VIEWS_TRAIN=${VIEWS_TRAIN:-50}; VIEWS_TEST=${VIEWS_TEST:-251}; STRIDE=${STRIDE:-25}
+DEVICE=${DEVICE:-auto}; WORKERS=${WORKERS:-$(nproc)}; DATA_MIN=${DATA_MIN:-2}; VIEW_MS=${VIEW_MS:-200}; EVAL_CHUNK=${EVAL_CHUNK:-16384}
 CATEGORIES=${CATEGORIES:-"cars chairs"}; PRIORS=${PRIORS:-"none bundled oracle"}; TRAIN_ARGS=${TRAIN_ARGS:-}
-MESH=${MESH:-0}; EVAL_ARGS=${EVAL_ARGS:-}; SEED=0; CALL_SECONDS=${CALL_SECONDS:-510}; CKPT_MIN=${CKPT_MIN:-2}; RESUME_S=${RESUME_S:-45}
+MESH=${MESH:-0}; EVAL_ARGS=${EVAL_ARGS:-}; SEED=0; CALL_SECONDS=${CALL_SECONDS:-480}; CKPT_MIN=${CKPT_MIN:-2}; RESUME_S=${RESUME_S:-45}
 HERE=$(cd "$(dirname "$0")/.." && pwd)
 # shellcheck source=scripts/gpu_env.sh
 source "$HERE/scripts/gpu_env.sh"
@@ -132,9 +137,10 @@ if [ ! -f "$DIR/study_state.env" ]; then
     fi
     spent=$(( $(date +%s) - t_call ))
     calls=$(( (MINUTES * 60 + CALL_SECONDS - 1) / CALL_SECONDS ))
-    train_s=$(( MINUTES * 60 - EVAL_MIN * 60 - (spent > DATA_MIN * 60 ? spent : DATA_MIN * 60) - (calls - 1) * RESUME_S ))
+    eval_s=$("$PY" -c "import math; print(30 + math.ceil(${#runs[@]} * $TEST_OBJECTS * math.ceil(($VIEWS_TEST - 1) / $STRIDE) * $VIEW_MS / 1000))")
+    train_s=$(( MINUTES * 60 - eval_s - (spent > DATA_MIN * 60 ? spent : DATA_MIN * 60) - (calls - 1) * RESUME_S ))
     STEPS=$("$PY" -c "print(max(1, int($train_s * 1000 / ($STEP_MS * ${#runs[@]}))))")
-    echo "step rule: ${train_s} s of training / (${STEP_MS} ms per step x ${#runs[@]} runs) = $STEPS steps per run"
+    echo "step rule: ${train_s} s of training (${eval_s} s kept for evaluation) / (${STEP_MS} ms per step x ${#runs[@]} runs) = $STEPS steps per run"
   fi
   if [ -z "${CKPT_EVERY:-}" ]; then
     CKPT_EVERY=$STEPS
@@ -184,11 +190,11 @@ done
 mesh=(--no-mesh); [ "$MESH" = 1 ] && mesh=()
 [ "$(left)" -gt 0 ] || out_of_time "evaluation"
 epids=(); enames=()
-for name in "${runs[@]}"; do  # side by side on the one device, as in training: one view alone leaves it idle
+for name in "${runs[@]}"; do  # side by side, as in training (one H100: 203 ms per view in all, 223 one run alone)
   [ -f "$DIR/eval/$name/summary.json" ] && continue
   # shellcheck disable=SC2086
   timeout --signal=TERM "$(lim)" "${DN[@]}" eval --run "$DIR/runs/$name" --views-stride "$STRIDE" --device "$DEVICE" \
-    --out "$DIR/eval/$name" "${mesh[@]}" --no-progress $EVAL_ARGS >> "$DIR/logs/eval-$name.log" 2>&1 &
+    --chunk "$EVAL_CHUNK" --out "$DIR/eval/$name" "${mesh[@]}" --no-progress $EVAL_ARGS >> "$DIR/logs/eval-$name.log" 2>&1 &
   epids+=($!); enames+=("$name")
 done
 pids=("${epids[@]}")  # a signal from outside stops these too
