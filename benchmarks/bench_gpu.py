@@ -162,10 +162,11 @@ def synthetic_batch(b: int, rays: int, res: int, depth_aware: bool, seed: int = 
 
 
 def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, step_shape: str, as_cuda: bool,
-              compile: bool = False):
+              compile: bool = False, compile_step: bool = False):
     """One optimisation step as the training loop runs it on ``device``; with ``as_cuda`` composed as on CUDA
     (bf16 autocast, fused Adam) whatever the device: the CPU op-count proxy; ``compile``: as ``depthnerf train
-    --compile`` runs it (the fields' MLPs through ``torch.compile``)."""
+    --compile`` runs it (the fields' MLPs through ``torch.compile``); ``compile_step``: as ``--compile-step`` (the
+    whole loss as one compiled graph, CUDA graphs on CUDA)."""
     cuda = device.type == "cuda" or as_cuda
     amp = torch.autocast(device.type, dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
     keys = [ItemKey(k, 1000 + k, True) for k in range(batch.ray_origins.shape[0])]
@@ -178,7 +179,8 @@ def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, st
     if compile:
         from depthnerf.train.step import compiled_fields
         runtime = compiled_fields(model)
-    loss = BatchLoss(model, cfg.render, 0.0, 0.0, runtime)
+    loss = BatchLoss(model, cfg.render, 0.0, 0.0, runtime, "inductor") if compile_step else \
+        BatchLoss(model, cfg.render, 0.0, 0.0, runtime)
 
     def step():
         opt.zero_grad(set_to_none=True)
@@ -222,14 +224,24 @@ def timed(fn, repeat: int, device: torch.device) -> list[float]:
     return out
 
 
-def cuda_launches(fn) -> int:
+HOST_LAUNCH_CALLS = ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx",
+                     "cudaGraphLaunch", "cudaMemcpyAsync", "cudaMemsetAsync")
+"""CUDA runtime/driver calls by which the host starts work on the GPU (as the profiler names them)."""
+
+
+def cuda_launches(fn) -> tuple[int, int]:
+    """Of one ``fn()`` call: the work items the GPU ran (kernels and copies, also those inside CUDA graphs) and
+    the host's launch calls (:data:`HOST_LAUNCH_CALLS`: a replayed CUDA graph is one call for all its kernels)."""
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
         fn()
         torch.cuda.synchronize()
-    return sum(1 for e in prof.events() if e.device_type == torch.autograd.DeviceType.CUDA)
+    events = prof.events()
+    device = sum(1 for e in events if e.device_type == torch.autograd.DeviceType.CUDA)
+    host = sum(1 for e in events if e.device_type == torch.autograd.DeviceType.CPU and e.name in HOST_LAUNCH_CALLS)
+    return device, host
 
 
 def profile_table(fn, path: str, rows: int = 30) -> None:
@@ -331,6 +343,9 @@ def main() -> None:
     p.add_argument("--compile", action="store_true",
                    help="CUDA: the fields' MLPs through torch.compile, in the training step (as depthnerf train "
                         "--compile) and in the views (as eval / reconstruct --compile)")
+    p.add_argument("--compile-step", action="store_true",
+                   help="CUDA: the training step as depthnerf train --compile-step runs it (one compiled graph, "
+                        "replayed as CUDA graphs); views stay eager unless --compile")
     p.add_argument("--profile", metavar="DIR", help="CUDA: write torch.profiler tables of one training step and one "
                    "paper-sampler view call to DIR/profile_{train,view}.txt")
     args = p.parse_args()
@@ -364,18 +379,21 @@ def run(args, out: dict) -> None:
         model.encoder.to(memory_format=torch.channels_last)
     batch, intr = synthetic_batch(args.objects, args.rays, args.resolution, depth_aware)
     batch = batch.to(device)
-    step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False, compile=args.compile)
+    step = make_step(model, cfg, batch, device, args.step_shape, as_cuda=False, compile=args.compile,
+                     compile_step=args.compile_step)
     shape = getattr(step, "shape", args.step_shape)
     out.update(device=str(device), objects=args.objects, rays=args.rays, resolution=args.resolution,
-               depth=args.depth, step_shape=shape, torch=torch.__version__, compile=args.compile)
+               depth=args.depth, step_shape=shape, torch=torch.__version__, compile=args.compile,
+               compile_step=args.compile_step)
     if device.type == "cuda":
         out.update(gpu=torch.cuda.get_device_name(device), cuda=torch.version.cuda)
         t0 = time.perf_counter()
         step()  # warm-up (allocations, cuDNN/cuBLAS handles; with --compile the compilation)
-        if args.compile:
+        if args.compile or args.compile_step:
             step()
+            step()  # CUDA graphs record on the second call and replay from the third
             out["compile_warmup_s"] = time.perf_counter() - t0
-            print(f"--compile: first two steps (compilation) {out['compile_warmup_s']:.1f} s")
+            print(f"compilation: first three steps {out['compile_warmup_s']:.1f} s")
     print(f"paper preset ({cfg.model.encoder.backbone}, d_hidden {cfg.model.coarse.d_hidden}, "
           f"{cfg.render.sampler.n_coarse}+{cfg.render.sampler.n_importance}+{cfg.render.sampler.n_gaussian} "
           f"samples), {args.objects} objects x {args.rays} rays, {args.resolution} px, {shape} step, "
@@ -386,8 +404,9 @@ def run(args, out: dict) -> None:
         print(f"train iteration: {min(t) * 1e3:.1f} ms best, {statistics.median(t) * 1e3:.1f} ms median "
               f"({args.repeat} iterations)")
         out.update(train_ms_best=min(t) * 1e3, train_ms_median=statistics.median(t) * 1e3, repeat=args.repeat)
-        out["kernel_launches_per_step"] = cuda_launches(step)
-        print(f"CUDA kernel launches per training step: {out['kernel_launches_per_step']}")
+        out["kernel_launches_per_step"], out["host_launch_calls_per_step"] = cuda_launches(step)
+        print(f"CUDA kernel launches per training step: {out['kernel_launches_per_step']} run on the GPU, "
+              f"{out['host_launch_calls_per_step']} launch calls from the host")
         out["peak_memory_gib"] = torch.cuda.max_memory_allocated() / 2**30
         print(f"peak GPU memory (training): {out['peak_memory_gib']:.2f} GiB")
         if args.profile:

@@ -9,6 +9,7 @@ from depthnerf.data.cameras import Intrinsics, camera_rays, look_at, ray_distanc
 from depthnerf.render.analytic import Sphere, SphereScene
 from depthnerf.render.config import GuidedConfig, RenderConfig, SamplerConfig
 from depthnerf.render.depth_guide import build_depth_guide
+from depthnerf.render.draws import draw_paper
 from depthnerf.render.passes import evaluate_field
 from depthnerf.render.pipeline import render_image, render_rays
 from depthnerf.render.rays import RayBundle, camera_z_of_directions, rays_from_camera, rays_from_pixels
@@ -135,3 +136,40 @@ def test_field_shape_and_guide_flag_errors():
     with pytest.raises(ValueError, match="chunk"):
         render_image(SCENE, SCENE, rays, RenderConfig(), chunk=0)
     assert isinstance(rays, RayBundle)
+
+
+def test_pre_drawn_draws_are_the_samplers_own_draws_in_order():
+    """``draw_paper`` makes the draws a random render makes, in the documented order, from the same generator(s):
+    against torch's own draws by hand; with one generator per row, row ``b`` is generator ``b``'s."""
+    cfg = RenderConfig(sampler=SamplerConfig(n_coarse=6, n_importance=3, n_gaussian=2), sigma_noise_std=0.5)
+    d = draw_paper((2, 5), cfg, fine=True, sigma_noise=True, generator=torch.Generator().manual_seed(4))
+    g = torch.Generator().manual_seed(4)
+    expected = [torch.rand(2, 5, 6, generator=g), torch.randn(2, 5, 6, generator=g), torch.rand(2, 5, 3, generator=g),
+                torch.randn(2, 5, 2, generator=g), torch.randn(2, 5, 11, generator=g)]
+    got = [d.coarse_jitter, d.coarse_sigma, d.importance, d.gaussian, d.fine_sigma]
+    assert all(torch.equal(a, b) for a, b in zip(got, expected, strict=True))
+    rows = draw_paper((2, 5), cfg, fine=True, sigma_noise=True,
+                      generator=[torch.Generator().manual_seed(7), torch.Generator().manual_seed(8)])
+    for b, seed in enumerate((7, 8)):
+        alone = draw_paper((1, 5), cfg, fine=True, sigma_noise=True, generator=torch.Generator().manual_seed(seed))
+        assert torch.equal(rows.gaussian[b], alone.gaussian[0]) and torch.equal(rows.fine_sigma[b], alone.fine_sigma[0])
+    no_noise = draw_paper((2, 5), cfg, fine=False, sigma_noise=False, generator=None)
+    assert no_noise.coarse_sigma is None and no_noise.importance is None and no_noise.fine_sigma is None
+
+
+def test_a_render_given_its_draws_equals_one_that_draws_them():
+    """Training renders (density noise on): drawing up front changes nothing, bit for bit; the draws must not
+    come with a generator or a guide."""
+    rays = rays_from_camera(_camera(40, 25), INTR, 0.8, 1.8).slice(0, 50)
+    cfg = RenderConfig(sigma_noise_std=0.3)
+    own = render_rays(SCENE, SCENE, rays, cfg, train=True, generator=torch.Generator().manual_seed(2))
+    draws = draw_paper((1, 50), cfg, fine=True, sigma_noise=True, generator=torch.Generator().manual_seed(2))
+    given = render_rays(SCENE, SCENE, rays, cfg, train=True, draws=draws)
+    for a, b in ((own.coarse, given.coarse), (own.fine, given.fine)):
+        assert torch.equal(a.t, b.t) and torch.equal(a.rgb, b.rgb) and torch.equal(a.weights, b.weights)
+    other = render_rays(SCENE, SCENE, rays, cfg, train=True,
+                        draws=draw_paper((1, 50), cfg, fine=True, sigma_noise=True,
+                                         generator=torch.Generator().manual_seed(3)))
+    assert not torch.equal(other.fine.t, own.fine.t)
+    with pytest.raises(ValueError, match="pre-drawn"):
+        render_rays(SCENE, SCENE, rays, cfg, train=True, draws=draws, generator=torch.Generator())

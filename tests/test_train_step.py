@@ -243,6 +243,39 @@ def compiled_step_check() -> None:
     assert type(model.coarse.forward).__name__ == "method"  # the wrapper is held by the runtime, not the module
 
 
+def compiled_whole_step_check() -> None:
+    """The body of :func:`test_compiled_whole_step_is_one_graph_and_equals_the_eager_step` (fresh interpreter)."""
+    model, loss, batch, keys = tiny_setup(2, depth_aware=True)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    eager = train_step(loss, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
+    g_eager = grads(model)
+    stats_eager = {k: v.clone() for k, v in model.state_dict().items() if "running" in k}
+    model.load_state_dict(state)
+    compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, compile_step="aot_eager")
+    torch._dynamo.utils.counters.clear()
+    whole = train_step(compiled, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1  # encoder, render and loss: one graph
+    assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
+    torch.testing.assert_close(whole, eager, rtol=1e-5, atol=1e-7)
+    assert_grads_close(grads(model), g_eager, rel=1e-4)
+    for k, v in stats_eager.items():  # per-object BatchNorm folded its running statistics inside the graph
+        torch.testing.assert_close(model.state_dict()[k], v, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_compiled_whole_step_is_one_graph_and_equals_the_eager_step():
+    """``depthnerf train --compile-step``: :meth:`BatchLoss.losses` (encoder with per-object BatchNorm, both
+    render passes, the loss terms) traces as ONE graph with no break, and its loss terms, gradients and updated
+    running statistics equal the eager step's up to float32 rounding (fresh interpreter, as below). Backend
+    ``aot_eager``: dynamo's graph and AOT autograd's forward/backward without inductor's code generation, which
+    takes minutes on this CPU (inductor's numerics: the fields test below)."""
+    here = Path(__file__).resolve().parent
+    code = f"import sys; sys.path.insert(0, {str(here)!r}); import test_train_step as t; t.compiled_whole_step_check()"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=here.parent,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
 @pytest.mark.slow
 def test_compiled_fields_step_equals_the_eager_step():
     """``depthnerf train --compile``: the fields' MLPs through ``torch.compile`` (inductor on the CPU here) give the

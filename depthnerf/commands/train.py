@@ -58,9 +58,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     p.add_argument("--deterministic", action="store_true",
                    help="deterministic algorithms (exact resume and same-seed runs on CUDA too; slower there)")
-    p.add_argument("--compile", action="store_true",
-                   help="run the fields' MLPs through torch.compile (fuses their element-wise work: fewer kernel "
-                        "launches on CUDA; compiles for a minute or more first; same results up to float rounding)")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--compile", action="store_true",
+                     help="run the fields' MLPs through torch.compile (fuses their element-wise work: fewer kernel "
+                          "launches on CUDA; compiles for a minute or more first; same results up to float rounding)")
+    how.add_argument("--compile-step", action="store_true",
+                     help="run the whole loss (encoder, render, loss terms, forward and backward) as one "
+                          "torch.compile graph, replayed as CUDA graphs on CUDA (compiles for minutes first; same "
+                          "results up to float rounding)")
     p.add_argument("--print-config", action="store_true", help="print the resolved config as JSON and exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
@@ -142,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     info = setup(args.device, deterministic=args.deterministic)
     try:
         result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress,
-                       validate=validate, compile=args.compile)
+                       validate=validate, compile=args.compile, compile_step=args.compile_step)
     finally:
         teardown(info)
     if info.is_main:
@@ -159,6 +164,7 @@ def resume_command(args: argparse.Namespace, world: int) -> str:
     cmd = ["depthnerf", "train", "--out", str(Path(args.out).resolve()), "--resume"]
     cmd += ["--device", args.device] if args.device != "auto" else []
     cmd += [flag for flag, on in (("--deterministic", args.deterministic), ("--compile", args.compile),
+                                  ("--compile-step", args.compile_step),
                                   ("--strict", args.strict), ("--no-progress", args.no_progress)) if on]
     text = shlex.join(cmd)
     if world > 1:

@@ -89,7 +89,10 @@ class ObjectBatchNorm2d(nn.BatchNorm2d):
 def _repeat_index(sizes: list[int], groups: int, device: torch.device) -> tuple[Tensor, Tensor]:
     """For vectors of ``sizes`` concatenated into one: the gather index laying each vector out ``groups`` times
     in a row (``[groups * size]`` blocks, copy ``k`` at ``k * size``), and the index that reads such blocks back
-    as ``[groups, sum(sizes)]`` (row ``k`` = copy ``k`` of every vector)."""
+    as ``[groups, sum(sizes)]`` (row ``k`` = copy ``k`` of every vector). Computed on the host (numpy, no
+    kernel) eagerly, with :func:`_repeat_index_traced` under ``torch.compile``."""
+    if torch.compiler.is_compiling():
+        return _repeat_index_traced(sizes, groups, device)
     size = np.asarray(sizes, dtype=np.int64)
     start = np.cumsum(size) - size  # of each vector in the input; its copies start at groups * start
     block = np.repeat(np.arange(len(size)), groups * size)  # the vector of each output element
@@ -98,6 +101,22 @@ def _repeat_index(sizes: list[int], groups: int, device: torch.device) -> tuple[
     element = np.arange(int(size.sum())) - np.repeat(start, size)  # c, for each input element
     back = (np.repeat(groups * start, size) + element)[None] + np.arange(groups)[:, None] * np.repeat(size, size)
     return torch.from_numpy(out).to(device), torch.from_numpy(back).to(device)
+
+
+def _repeat_index_traced(sizes: list[int], groups: int, device: torch.device) -> tuple[Tensor, Tensor]:
+    """:func:`_repeat_index` in tensor operations of static shapes (the numpy one breaks a compiled graph into
+    pieces): output position ``p`` belongs to vector ``j``, whose copies start at ``groups * start_j``, and reads
+    its element ``(p - groups * start_j) mod size_j``."""
+    size = torch.tensor(sizes, dtype=torch.int64, device=device)
+    start = torch.cumsum(size, 0) - size
+    total = sum(sizes)
+    p = torch.arange(groups * total, device=device)
+    j = torch.searchsorted(groups * start, p, right=True) - 1
+    out = start[j] + (p - groups * start[j]) % size[j]
+    c = torch.arange(total, device=device)
+    jc = torch.searchsorted(start, c, right=True) - 1
+    back = (groups * start[jc] + c - start[jc])[None] + torch.arange(groups, device=device)[:, None] * size[jc]
+    return out, back
 
 
 class SharedRepeats:
@@ -129,12 +148,15 @@ class SharedRepeats:
             m: (params[i], params[layers + i], stat_slots[i], stat_slots[layers + i]) for i, m in enumerate(norms)}
         """Each layer's repeated tensors until the layer takes them (once)."""
 
-    @torch.no_grad()
     def fold(self) -> None:
         """Fold each layer's ``groups`` running-statistic slots into its buffers: slot ``k`` holds
         ``(1 - m) r0 + m s_k``; ``g`` successive updates give ``(1 - m)^g r0 + sum_k (1 - m)^(g - k) m s_k``."""
         if self.pending:
             raise RuntimeError(f"ObjectGroups: {len(self.pending)} planned layer(s) did not run before the fold")
+        with torch.no_grad():  # a block, not the decorator: torch.compile traces a decorated method in pieces
+            self._fold()
+
+    def _fold(self) -> None:
         g, m = self.groups, self.norms[0].momentum
         slots = self.slots[self.back]  # [g, 2 * sum(C)]
         decay = (1.0 - m) ** torch.arange(g - 1, -1, -1, dtype=slots.dtype, device=slots.device)

@@ -42,11 +42,15 @@ def evaluate_field(field: FieldFn, rays: RayBundle, t: Float[Tensor, "B R S"]
     return rgb, sigma
 
 
-def add_sigma_noise(sigma: Tensor, std: float, train: bool, generator: Generators) -> Tensor:
-    """``sigma + std * N(0, 1)`` in training when ``std > 0`` (pixelNeRF ``noise_std``), else ``sigma``."""
+def add_sigma_noise(sigma: Tensor, std: float, train: bool, generator: Generators,
+                    eps: Tensor | None = None) -> Tensor:
+    """``sigma + std * eps`` in training when ``std > 0`` (pixelNeRF ``noise_std``), else ``sigma``; ``eps ~ N(0,
+    1)`` of sigma's shape, the given one or drawn from ``generator``."""
     if not train or std <= 0:
         return sigma
-    return sigma + std * normal(tuple(sigma.shape), generator, dtype=sigma.dtype, device=sigma.device)
+    if eps is None:
+        eps = normal(tuple(sigma.shape), generator, dtype=sigma.dtype, device=sigma.device)
+    return sigma + std * eps
 
 
 def sorted_union(t: Tensor, *values: Tensor) -> tuple[Tensor, ...]:

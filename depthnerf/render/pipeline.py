@@ -21,6 +21,7 @@ import torch
 
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.depth_guide import DepthGuide
+from depthnerf.render.draws import PaperDraws, draw_paper
 from depthnerf.render.guided_sampler import render_guided
 from depthnerf.render.noise import Generators
 from depthnerf.render.passes import FieldFn, RenderOutput, add_sigma_noise, cat_results, evaluate_field
@@ -32,48 +33,58 @@ __all__ = ["FieldFn", "RenderOutput", "render_image", "render_rays"]
 
 
 def _render_paper(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: RenderConfig, train: bool,
-                  generator: Generators) -> RenderOutput:
+                  generator: Generators, draws: PaperDraws | None) -> RenderOutput:
     sc = cfg.sampler
     random = train or sc.eval_random
-    t_c = stratified_samples(rays.near, rays.far, sc.n_coarse, random=random, generator=generator)
+    if random and draws is None:
+        draws = draw_paper(tuple(rays.near.shape), cfg, fine=fine is not None, sigma_noise=train,
+                           generator=generator, dtype=rays.near.dtype, device=rays.near.device)
+    d = draws if random else PaperDraws(None, None, None, None, None)  # deterministic: the samplers draw nothing
+    t_c = stratified_samples(rays.near, rays.far, sc.n_coarse, random=random, u=d.coarse_jitter)
     rgb_c, sigma_c = evaluate_field(coarse, rays, t_c)
-    res_c = composite(t_c, rays.far, add_sigma_noise(sigma_c, cfg.sigma_noise_std, train, generator), rgb_c,
+    res_c = composite(t_c, rays.far, add_sigma_noise(sigma_c, cfg.sigma_noise_std, train, None,
+                                                     d.coarse_sigma), rgb_c,
                       white_background=cfg.white_background)
     if fine is None:
         return RenderOutput(coarse=res_c, fine=None)
     parts = [t_c]
     if sc.n_importance > 0:
         edges = uniform_bin_edges(rays.near, rays.far, sc.n_coarse)
-        parts.append(sample_pdf(edges, res_c.weights, sc.n_importance, random=random, generator=generator,
-                                epsilon=sc.pdf_epsilon))
+        parts.append(sample_pdf(edges, res_c.weights, sc.n_importance, random=random, epsilon=sc.pdf_epsilon,
+                                u=d.importance))
     if sc.n_gaussian > 0:
         center = res_c.depth.detach() if sc.detach_gaussian_center else res_c.depth
         parts.append(gaussian_samples(center, rays.near, rays.far, sc.n_gaussian, sc.gaussian_std,
-                                      random=random, generator=generator))
+                                      random=random, eps=d.gaussian))
     t_f, _ = torch.sort(torch.cat(parts, dim=-1), dim=-1)
     rgb_f, sigma_f = evaluate_field(fine, rays, t_f)
-    res_f = composite(t_f, rays.far, add_sigma_noise(sigma_f, cfg.sigma_noise_std, train, generator), rgb_f,
+    res_f = composite(t_f, rays.far, add_sigma_noise(sigma_f, cfg.sigma_noise_std, train, None,
+                                                     d.fine_sigma), rgb_f,
                       white_background=cfg.white_background)
     return RenderOutput(coarse=res_c, fine=res_f)
 
 
 def render_rays(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: RenderConfig, *, train: bool,
-                generator: Generators = None, guide: DepthGuide | None = None) -> RenderOutput:
+                generator: Generators = None, guide: DepthGuide | None = None,
+                draws: PaperDraws | None = None) -> RenderOutput:
     """Render ``B x R`` rays with the paper's sampler, or the depth-guided one if ``cfg.guided.enabled``.
 
-    ``train`` switches random sampling and sigma noise on; ``generator`` makes the draws reproducible. A
-    ``guide`` is required exactly when ``cfg.guided.enabled`` (passing one otherwise is an error, never ignored).
-    Differentiable with respect to the networks' outputs.
+    ``train`` switches random sampling and sigma noise on; ``generator`` makes the draws reproducible, or
+    ``draws`` gives them (the paper's sampler only; :func:`~depthnerf.render.draws.draw_paper` with the same
+    generator gives the same render bit for bit). A ``guide`` is required exactly when ``cfg.guided.enabled``
+    (passing one otherwise is an error, never ignored). Differentiable with respect to the networks' outputs.
     """
     if cfg.guided.enabled != (guide is not None):
         raise ValueError("render_rays: a DepthGuide must be given exactly when cfg.guided.enabled is True "
                          f"(enabled={cfg.guided.enabled}, guide given={guide is not None})")
+    if draws is not None and (guide is not None or generator is not None):
+        raise ValueError("render_rays: pre-drawn draws are for the paper's sampler, without a generator or guide")
     if guide is not None:
         if guide.t_guess.shape != rays.near.shape:
             raise ValueError(f"render_rays: guide for {tuple(guide.t_guess.shape)} rays, "
                              f"rays are {tuple(rays.near.shape)}")
         return render_guided(coarse, fine, rays, cfg, train=train, generator=generator, guide=guide)
-    return _render_paper(coarse, fine, rays, cfg, train, generator)
+    return _render_paper(coarse, fine, rays, cfg, train, generator, draws)
 
 
 @torch.no_grad()

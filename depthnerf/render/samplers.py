@@ -25,21 +25,23 @@ from depthnerf.render.noise import Generators, normal, uniform
 
 
 def _quantiles(shape: tuple[int, ...], n: int, *, random: bool, generator: Generators,
-               like: Tensor) -> Tensor:
-    """Uniform [0, 1) variates of shape ``(*shape, n)``, or the quantiles ``(k + 0.5) / n`` broadcast."""
+               like: Tensor, u: Tensor | None = None) -> Tensor:
+    """Uniform [0, 1) variates of shape ``(*shape, n)`` (``u`` if given), or the quantiles ``(k + 0.5) / n``."""
     if random:
-        return uniform((*shape, n), generator, dtype=like.dtype, device=like.device)
+        return u if u is not None else uniform((*shape, n), generator, dtype=like.dtype, device=like.device)
     mid = (torch.arange(n, dtype=like.dtype, device=like.device) + 0.5) / n
     return mid.expand(*shape, n)
 
 
 def stratified_samples(near: Float[Tensor, "*N"], far: Float[Tensor, "*N"], n: int, *, random: bool,
-                       generator: Generators = None, eval_offset: float = 0.5) -> Float[Tensor, "*N n"]:
+                       generator: Generators = None, eval_offset: float = 0.5,
+                       u: Float[Tensor, "*N n"] | None = None) -> Float[Tensor, "*N n"]:
     """One sample per equal bin of ``[near, far]``: bin ``k`` is ``[near + k h, near + (k+1) h]``, ``h = (far -
-    near) / n``; uniform inside the bin if ``random``, else at fraction ``eval_offset`` of it (0.5: the midpoint,
-    the mean of the random sample). Sorted along the last axis."""
+    near) / n``; uniform inside the bin if ``random`` (at fraction ``u``, drawn from ``generator`` unless given),
+    else at fraction ``eval_offset`` of it (0.5: the midpoint, the mean of the random sample). Sorted along the
+    last axis."""
     if random:
-        frac = uniform((*near.shape, n), generator, dtype=near.dtype, device=near.device)
+        frac = u if u is not None else uniform((*near.shape, n), generator, dtype=near.dtype, device=near.device)
     else:
         frac = torch.full((n,), eval_offset, dtype=near.dtype, device=near.device)
     s = (torch.arange(n, dtype=near.dtype, device=near.device) + frac) / n
@@ -69,19 +71,20 @@ def gap_bins(t: Float[Tensor, "*N S"], weights: Float[Tensor, "*N S"], near: Flo
 
 
 def sample_pdf(edges: Float[Tensor, "*N K+1"], weights: Float[Tensor, "*N K"], n: int, *, random: bool,
-               generator: Generators = None, epsilon: float = 1e-5) -> Float[Tensor, "*N n"]:
+               generator: Generators = None, epsilon: float = 1e-5,
+               u: Float[Tensor, "*N n"] | None = None) -> Float[Tensor, "*N n"]:
     """Inverse-CDF samples of the piecewise-constant pdf with mass ``w_k + epsilon`` on bin ``[e_k, e_{k+1}]``
     (zero-width bins get no mass, so samples never pile up on duplicate edges).
 
-    ``weights`` are detached (no gradient flows into sample positions). ``u`` is uniform (``random``) or the
-    quantiles ``(j + 0.5) / n``; the bin is ``searchsorted(cdf, u, right=True) - 1`` and the sample
+    ``weights`` are detached (no gradient flows into sample positions). ``u`` is uniform (``random``: the given
+    ``u``, else drawn from ``generator``) or the quantiles ``(j + 0.5) / n``; the bin is ``searchsorted(cdf, u, right=True) - 1`` and the sample
     ``e_k + (u - cdf_k) / p_k * (e_{k+1} - e_k)``. Not sorted.
     """
     edges = edges.detach()
     w = (weights.detach() + epsilon) * (edges[..., 1:] > edges[..., :-1])
     pdf = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
     cdf = torch.cat([torch.zeros_like(pdf[..., :1]), torch.cumsum(pdf, -1)], dim=-1).contiguous()
-    u = _quantiles(tuple(weights.shape[:-1]), n, random=random, generator=generator, like=w).contiguous()
+    u = _quantiles(tuple(weights.shape[:-1]), n, random=random, generator=generator, like=w, u=u).contiguous()
     idx = (torch.searchsorted(cdf, u, right=True) - 1).clamp(0, weights.shape[-1] - 1)
     cdf_lo = torch.gather(cdf, -1, idx)
     p = torch.gather(pdf, -1, idx)
@@ -92,11 +95,14 @@ def sample_pdf(edges: Float[Tensor, "*N K+1"], weights: Float[Tensor, "*N K"], n
 
 
 def gaussian_samples(center: Float[Tensor, "*N"], near: Float[Tensor, "*N"], far: Float[Tensor, "*N"], n: int,
-                     std: float, *, random: bool, generator: Generators = None) -> Float[Tensor, "*N n"]:
-    """``center + std * eps`` clamped to ``[near, far]``; ``eps ~ N(0, 1)`` if ``random`` else the normal
-    quantiles ``Phi^-1((k + 0.5) / n)``. Differentiable in ``center`` (pixelNeRF does not detach it)."""
+                     std: float, *, random: bool, generator: Generators = None,
+                     eps: Float[Tensor, "*N n"] | None = None) -> Float[Tensor, "*N n"]:
+    """``center + std * eps`` clamped to ``[near, far]``; ``eps ~ N(0, 1)`` if ``random`` (the given ``eps``,
+    else drawn from ``generator``), else the normal quantiles ``Phi^-1((k + 0.5) / n)``. Differentiable in
+    ``center`` (pixelNeRF does not detach it)."""
     if random:
-        eps = normal((*center.shape, n), generator, dtype=center.dtype, device=center.device)
+        eps = eps if eps is not None else normal((*center.shape, n), generator, dtype=center.dtype,
+                                                 device=center.device)
     else:
         q = (torch.arange(n, dtype=torch.float64, device=center.device) + 0.5) / n
         eps = torch.special.ndtri(q).to(center.dtype).expand(*center.shape, n)

@@ -75,11 +75,13 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
 
 
 def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True,
-          validate: Validator | None = None, compile: bool = False) -> dict:
+          validate: Validator | None = None, compile: bool = False, compile_step: bool = False) -> dict:
     """Train (or resume) a run in ``run_dir``; returns the final state as a dict.
 
     ``compile``: the fields' MLPs run through ``torch.compile`` (:func:`depthnerf.train.step.compiled_fields`);
-    a setting of how to run, not stored in the run's config (same results up to float rounding).
+    ``compile_step``: the whole loss (encoder, render, loss terms; forward and backward) runs as one compiled graph
+    (:func:`depthnerf.train.step.compiled_losses`; CUDA graphs on CUDA). Both are settings of how to run, not stored
+    in the run's config (same results up to float rounding).
 
     ``validate`` scores the model on the val objects every ``log.val_every`` steps (``depthnerf train`` passes
     :func:`depthnerf.eval.validation.validate`; None: no validation).
@@ -134,7 +136,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     barrier(info)
 
     loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight,
-                            compiled_fields(model) if compile else None)
+                            compiled_fields(model) if compile else None, "inductor" if compile_step else None)
     runner = DistributedDataParallel(loss_module) if info.world > 1 else loss_module
     s = cfg.schedule
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,

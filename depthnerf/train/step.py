@@ -19,7 +19,7 @@ device tensor; the loop reads it once per log interval. ``per_object=True`` runs
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -29,6 +29,7 @@ from torch import Tensor
 from depthnerf.model.pixelnerf import FieldRuntime, PixelNeRF
 from depthnerf.render.config import RenderConfig
 from depthnerf.render.depth_loss import ssi_depth_loss_per_image
+from depthnerf.render.draws import PaperDraws, draw_paper
 from depthnerf.render.pipeline import render_rays
 from depthnerf.render.rays import RayBundle
 from depthnerf.train.batching import ItemKey, TrainBatch, item_seed
@@ -69,23 +70,37 @@ class BatchLoss(torch.nn.Module):
     """Encode a batch's source views, render its target rays, return the losses (DDP wraps this module)."""
 
     def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float,
-                 background_weight: float = 0.0, runtime: FieldRuntime | None = None) -> None:
-        """``runtime``: how the field passes run (e.g. :func:`compiled_fields`; None: the MLPs as they are)."""
+                 background_weight: float = 0.0, runtime: FieldRuntime | None = None,
+                 compile_step: str | None = None) -> None:
+        """``runtime``: how the field passes run (e.g. :func:`compiled_fields`; None: the MLPs as they are).
+        ``compile_step``: a ``torch.compile`` backend (``"inductor"``; ``"aot_eager"`` traces without code
+        generation) through which :meth:`losses` runs (:func:`compiled_losses`); None: eagerly."""
         super().__init__()
         self.model = model
         self.render_cfg = render_cfg
         self.depth_weight = depth_weight
         self.background_weight = background_weight
         self.runtime = runtime
+        cuda = any(p.is_cuda for p in model.parameters())
+        self._losses = compiled_losses(self.losses, compile_step, cuda) if compile_step else self.losses
 
     def forward(self, batch: TrainBatch, near: float, far: float,
                 generators: Sequence[torch.Generator]) -> LossTerms:
+        """The losses of ``batch``; each object's random draws come from its generator, drawn here, before the
+        (possibly compiled) :meth:`losses`."""
+        draws = draw_paper(tuple(batch.ray_origins.shape[:2]), self.render_cfg, fine=True, sigma_noise=True,
+                           generator=list(generators), dtype=batch.ray_origins.dtype,
+                           device=batch.ray_origins.device)
+        return self._losses(batch, near, far, draws)
+
+    def losses(self, batch: TrainBatch, near: float, far: float, draws: PaperDraws) -> LossTerms:
+        """The losses of ``batch`` given the render's random draws (no generator: one traceable function)."""
         enc = self.model.encode(batch.source)
         fine_fn = self.model.field(enc, "fine", self.runtime)  # the coarse MLP when there is no separate fine one
         rays = RayBundle(batch.ray_origins, batch.ray_dirs, torch.full_like(batch.ray_origins[..., 0], near),
                          torch.full_like(batch.ray_origins[..., 0], far))
         out = render_rays(self.model.field(enc, "coarse", self.runtime), fine_fn, rays, self.render_cfg, train=True,
-                          generator=list(generators))
+                          draws=draws)
         coarse = torch.mean((out.coarse.rgb - batch.target_rgb) ** 2)  # equal rays per object: mean of means
         fine = torch.mean((out.fine.rgb - batch.target_rgb) ** 2)
         total = coarse + fine
@@ -112,6 +127,20 @@ def compiled_fields(model: PixelNeRF) -> FieldRuntime:
     to float rounding (fused element-wise kernels may round differently)."""
     compiled = {id(mlp): torch.compile(mlp.forward) for mlp in (model.coarse, model.fine) if mlp is not None}
     return FieldRuntime(forwards={which: compiled[id(model.network(which))] for which in ("coarse", "fine")})
+
+
+def compiled_losses(losses: Callable[..., LossTerms], backend: str, cuda: bool) -> Callable[..., LossTerms]:
+    """``torch.compile`` of :meth:`BatchLoss.losses` with ``backend``: encoder, both render passes and the loss
+    terms, forward and backward, as one graph (its random draws are inputs, so no generator breaks it). With
+    ``cuda`` and inductor, mode ``reduce-overhead``: the step's kernels are replayed as CUDA graphs instead of
+    launched one by one from Python. Training shapes are static within a schedule phase, so it compiles once per phase. Same values as
+    the eager step up to float rounding (fused kernels may round differently)."""
+    compiled = torch.compile(losses, backend=backend, mode="reduce-overhead" if cuda and backend == "inductor" else None)
+
+    def step(batch: TrainBatch, near: float, far: float, draws: PaperDraws) -> LossTerms:
+        torch.compiler.cudagraph_mark_step_begin()  # a new training step: earlier outputs may be overwritten
+        return compiled(batch, near, far, draws)
+    return step
 
 
 def object_generators(keys: Sequence[ItemKey], step: int, device: torch.device) -> list[torch.Generator]:
