@@ -39,11 +39,13 @@ def _render_paper(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: R
     if random and draws is None:
         draws = draw_paper(tuple(rays.near.shape), cfg, fine=fine is not None, sigma_noise=train,
                            generator=generator, dtype=rays.near.dtype, device=rays.near.device)
-    d = draws if random else PaperDraws(None, None, None, None, None)  # deterministic: the samplers draw nothing
-    t_c = stratified_samples(rays.near, rays.far, sc.n_coarse, random=random, u=d.coarse_jitter)
+    jitter, sigma_noise_c, u_importance, eps_gaussian, sigma_noise_f = (
+        (draws.coarse_jitter, draws.coarse_sigma, draws.importance, draws.gaussian, draws.fine_sigma) if random
+        else (None,) * 5)  # deterministic sampling draws nothing
+    t_c = stratified_samples(rays.near, rays.far, sc.n_coarse, random=random, u=jitter)
     rgb_c, sigma_c = evaluate_field(coarse, rays, t_c)
     res_c = composite(t_c, rays.far, add_sigma_noise(sigma_c, cfg.sigma_noise_std, train, None,
-                                                     d.coarse_sigma), rgb_c,
+                                                     sigma_noise_c), rgb_c,
                       white_background=cfg.white_background)
     if fine is None:
         return RenderOutput(coarse=res_c, fine=None)
@@ -51,15 +53,15 @@ def _render_paper(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: R
     if sc.n_importance > 0:
         edges = uniform_bin_edges(rays.near, rays.far, sc.n_coarse)
         parts.append(sample_pdf(edges, res_c.weights, sc.n_importance, random=random, epsilon=sc.pdf_epsilon,
-                                u=d.importance))
+                                u=u_importance))
     if sc.n_gaussian > 0:
         center = res_c.depth.detach() if sc.detach_gaussian_center else res_c.depth
         parts.append(gaussian_samples(center, rays.near, rays.far, sc.n_gaussian, sc.gaussian_std,
-                                      random=random, eps=d.gaussian))
+                                      random=random, eps=eps_gaussian))
     t_f, _ = torch.sort(torch.cat(parts, dim=-1), dim=-1)
     rgb_f, sigma_f = evaluate_field(fine, rays, t_f)
     res_f = composite(t_f, rays.far, add_sigma_noise(sigma_f, cfg.sigma_noise_std, train, None,
-                                                     d.fine_sigma), rgb_f,
+                                                     sigma_noise_f), rgb_f,
                       white_background=cfg.white_background)
     return RenderOutput(coarse=res_c, fine=res_f)
 
