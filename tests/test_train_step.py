@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from depthnerf.data.cameras import look_at
 from depthnerf.model import EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConfig, SourceViews
 from depthnerf.model.features import resize_bilinear_matmul, sample_maps
-from depthnerf.model.norm import ObjectBatchNorm2d, object_groups
+from depthnerf.model.norm import ObjectBatchNorm2d, _repeat_index, _repeat_index_traced, object_groups
 from depthnerf.render.config import RenderConfig, SamplerConfig
 from depthnerf.train.batching import ItemKey, TrainBatch
 from depthnerf.train.step import BatchLoss, train_step
@@ -101,6 +101,21 @@ def test_object_batchnorm_equals_one_call_per_object(views):
     torch.testing.assert_close(grouped.running_var, plain.running_var)
     assert int(grouped.num_batches_tracked) == int(plain.num_batches_tracked) == 3
     assert torch.equal(grouped(x), plain(x)) and torch.equal(grouped(x, object_groups(grouped, 1)), plain(x))
+
+
+@pytest.mark.parametrize("sizes,groups", [([3, 5, 2, 3, 5, 2], 4), ([64] * 4, 2), ([1], 3), ([7, 1, 9], 1)])
+def test_the_traced_repeat_index_equals_the_host_one_and_a_loop(sizes, groups):
+    """The per-object BatchNorm plan's gather indices: the static-shape tensor version (used under
+    ``torch.compile``) equals the host (numpy) version and a brute-force loop over vectors and copies."""
+    out, back = _repeat_index(sizes, groups, torch.device("cpu"))
+    traced = _repeat_index_traced(sizes, groups, torch.device("cpu"))
+    assert torch.equal(traced[0], out) and torch.equal(traced[1], back)
+    flat = torch.arange(sum(sizes))
+    vectors = flat.split(sizes)
+    laid_out = torch.cat([v for v in vectors for _ in range(groups)])  # each vector `groups` times in a row
+    assert torch.equal(flat[out], laid_out)
+    for k in range(groups):  # row k of the read-back = copy k of every vector
+        assert torch.equal(laid_out[back[k]], flat)
 
 
 def test_object_groups_plan_folds_every_layer_once_and_rejects_misuse():
