@@ -179,8 +179,8 @@ def make_step(model: PixelNeRF, cfg, batch: TrainBatch, device: torch.device, st
     if compile:
         from depthnerf.train.step import compiled_fields
         runtime = compiled_fields(model)
-    loss = BatchLoss(model, cfg.render, 0.0, 0.0, runtime, "inductor") if compile_step else \
-        BatchLoss(model, cfg.render, 0.0, 0.0, runtime)
+    backend = ("inductor",) if compile_step else ()  # passed only when asked: older checkouts lack the argument
+    loss = BatchLoss(model, cfg.render, 0.0, 0.0, runtime, *backend)
 
     def step():
         opt.zero_grad(set_to_none=True)

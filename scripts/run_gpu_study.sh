@@ -198,14 +198,15 @@ for name in "${runs[@]}"; do  # side by side, as in training (one H100: 203 ms p
   epids+=($!); enames+=("$name")
 done
 pids=("${epids[@]}")  # a signal from outside stops these too
-fail=0
+timed_out=0; failed=0
 for i in "${!epids[@]}"; do
   rc=0; wait "${epids[$i]}" || rc=$?
-  [ $rc = 0 ] || { [ "$(left)" -le 0 ] && fail=3 && continue; echo "eval ${enames[$i]} failed (exit $rc, see $DIR/logs)" >&2
-                  [ $fail = 3 ] || fail=1; }
+  [ $rc = 0 ] && continue
+  if [ "$(left)" -le 0 ]; then timed_out=1  # stopped by this call's limit: the next call resumes it
+  else echo "eval ${enames[$i]} failed (exit $rc, see $DIR/logs)" >&2; failed=1; fi
 done
-[ $fail = 3 ] && out_of_time "evaluation"
-[ $fail = 0 ] || finish failed 1
+[ $timed_out = 0 ] || out_of_time "evaluation"
+[ $failed = 0 ] || finish failed 1
 evals=(); for name in "${runs[@]}"; do evals+=("$DIR/eval/$name"); done
 "${DN[@]}" compare "${evals[@]}" --reference paper --out "$DIR/table.md" || finish failed 1
 for cat in $CATEGORIES; do

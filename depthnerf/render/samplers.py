@@ -77,8 +77,9 @@ def sample_pdf(edges: Float[Tensor, "*N K+1"], weights: Float[Tensor, "*N K"], n
     (zero-width bins get no mass, so samples never pile up on duplicate edges).
 
     ``weights`` are detached (no gradient flows into sample positions). ``u`` is uniform (``random``: the given
-    ``u``, else drawn from ``generator``) or the quantiles ``(j + 0.5) / n``; the bin is ``searchsorted(cdf, u, right=True) - 1`` and the sample
-    ``e_k + (u - cdf_k) / p_k * (e_{k+1} - e_k)``. Not sorted.
+    ``u``, else drawn from ``generator``) or the quantiles ``(j + 0.5) / n``; the bin is
+    ``searchsorted(cdf, u, right=True) - 1`` and the sample ``e_k + (u - cdf_k) / p_k * (e_{k+1} - e_k)``. Not
+    sorted.
     """
     edges = edges.detach()
     w = (weights.detach() + epsilon) * (edges[..., 1:] > edges[..., :-1])

@@ -133,9 +133,10 @@ def compiled_losses(losses: Callable[..., LossTerms], backend: str, cuda: bool) 
     """``torch.compile`` of :meth:`BatchLoss.losses` with ``backend``: encoder, both render passes and the loss
     terms, forward and backward, as one graph (its random draws are inputs, so no generator breaks it). With
     ``cuda`` and inductor, mode ``reduce-overhead``: the step's kernels are replayed as CUDA graphs instead of
-    launched one by one from Python. Training shapes are static within a schedule phase, so it compiles once per phase. Same values as
-    the eager step up to float rounding (fused kernels may round differently)."""
-    compiled = torch.compile(losses, backend=backend, mode="reduce-overhead" if cuda and backend == "inductor" else None)
+    launched one by one from Python. Training shapes are static within a schedule phase, so it compiles once per
+    phase. Same values as the eager step up to float rounding (fused kernels may round differently)."""
+    mode = "reduce-overhead" if cuda and backend == "inductor" else None
+    compiled = torch.compile(losses, backend=backend, mode=mode)
 
     def step(batch: TrainBatch, near: float, far: float, draws: PaperDraws) -> LossTerms:
         torch.compiler.cudagraph_mark_step_begin()  # a new training step: earlier outputs may be overwritten
