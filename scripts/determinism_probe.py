@@ -5,7 +5,8 @@ and compares every run with the first: the first step whose logged loss terms di
 weights and optimiser tensors that differ (largest absolute difference). Writes OUT_DIR/determinism_probe.json
 and prints a summary.
 
-    python scripts/determinism_probe.py OUT_DIR [--sequential 3] [--concurrent 6] [--steps 6] [--device auto] [--work DIR]
+    python scripts/determinism_probe.py OUT_DIR [--sequential 3] [--concurrent 6] [--steps 6] [--device auto]
+        [--work DIR] [--threads N]
 
 On a CPU both groups should agree bit for bit (the CPU's default); on CUDA, ``--deterministic`` promises it.
 """
@@ -41,9 +42,12 @@ def train_command(data: Path, out: Path, steps: int, device: str) -> list[str]:
             "0", "--log.keep_last", str(steps + 1), "--deterministic", "--device", device, *TINY_TRAIN_FLAGS]
 
 
-def run_group(cmds: list[list[str]], concurrent: bool) -> list[dict]:
-    """Run the commands all at once (``concurrent``) or one after another; each one's exit code, seconds, stderr."""
+def run_group(cmds: list[list[str]], concurrent: bool, threads: int | None) -> list[dict]:
+    """Run the commands all at once (``concurrent``) or one after another, with ``threads`` CPU threads each
+    (``OMP_NUM_THREADS``; None: the environment's); each one's exit code, seconds, stderr."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if threads is not None:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     started, results = [], []
 
     def finish(t0: float, p: subprocess.Popen) -> dict:
@@ -91,18 +95,22 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("--device", default="auto")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: a new temporary one)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="CPU threads per run (OMP_NUM_THREADS; default: the environment's)")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     work = args.work or Path(tempfile.mkdtemp(prefix="determinism-probe-"))
     data = make_srn_fixture(work / "srn", "cars", {"train": 4, "val": 1}, views=4, size=32, with_depth=True,
                             with_mask=True)
     report = {"cuda": torch.cuda.is_available(), "torch": torch.__version__,
-              "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None, "groups": {}}
+              "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+              "threads": args.threads or torch.get_num_threads(),
+              "groups": {}}
     runs = []
     for group, n, concurrent in (("sequential", args.sequential, False), ("concurrent", args.concurrent, True)):
         outs = [work / f"{group}_{i}" for i in range(n)]
         t0 = time.time()
-        procs = run_group([train_command(data, o, args.steps, args.device) for o in outs], concurrent)
+        procs = run_group([train_command(data, o, args.steps, args.device) for o in outs], concurrent, args.threads)
         report["groups"][group] = {"seconds": round(time.time() - t0, 1), "processes": procs}
         runs += [(group, o) for o, p in zip(outs, procs, strict=True) if p["returncode"] == 0]
     if not runs:
