@@ -1,9 +1,9 @@
 """scripts/determinism_probe.py on the CPU: two same-seed runs agree bit for bit (the CPU's promise), and the
 comparison finds a planted difference in a logged loss and in one checkpoint tensor.
 
-The runs use one thread each: with two, one CI run on a busy machine once saw the second run's step-2 loss differ,
-which 30 reruns here (quiet and loaded) did not reproduce; one thread takes the order of threaded float reductions
-out of the question this test asks (README, "What is exact where")."""
+The runs use one thread each: with two, one CI run on a busy machine once saw the two runs part at step 2, which 31
+reruns here (quiet and loaded) did not reproduce; one thread takes the order of threaded float reductions out of
+the question this test asks (README, "What is exact where")."""
 
 from __future__ import annotations
 
