@@ -98,6 +98,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None,
                     help="CPU threads per run (OMP_NUM_THREADS; default: the environment's)")
     args = ap.parse_args()
+    if args.threads is not None and args.threads < 1:
+        ap.error(f"--threads {args.threads}: give at least 1")
     args.out.mkdir(parents=True, exist_ok=True)
     work = args.work or Path(tempfile.mkdtemp(prefix="determinism-probe-"))
     data = make_srn_fixture(work / "srn", "cars", {"train": 4, "val": 1}, views=4, size=32, with_depth=True,
