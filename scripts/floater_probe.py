@@ -6,6 +6,7 @@ reports, averaged over objects:
 
 - ``psnr``: PSNR of the target views;
 - ``floaters``: floater fraction of the input-camera mesh (depthnerf.eval.geometry_metrics.floater_fraction);
+- ``floaters_near``: the part of it between the object and the input camera (``scripts/floater_sides.py``);
 - ``src_bg_opacity``: mean rendered opacity of the INPUT view's own background pixels (the input view sees empty
   space there, so any opacity on those rays is density the evidence contradicts);
 - ``src_bg_white_error``: mean |rendered colour - white| on those same pixels (what the L2 colour loss sees of
@@ -32,7 +33,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from floater_sides import AXES, side_fractions
 
+from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.depth.prior import PriorConfig, open_prior
@@ -94,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
         conditions = tuple(args.conditions)
     oracle = open_prior(PriorConfig("oracle"), data_root=args.data, resolution=spec.resolution, records=records)
     twin = batch_stats_model(model)
+    card = read_dataset_card(args.data, pre.spec.category) or {}
+    up = AXES.get(str(card.get("objects", {}).get("up", "+z")).lstrip("+"), 2)
     rows: dict[str, list[dict]] = {c: [] for c in conditions}
     for record in records:
         obj = prepare_object(session, record, protocol_views(record.num_views, args.stride))
@@ -113,9 +118,12 @@ def main(argv: list[str] | None = None) -> int:
                 mesh, _ = input_camera_mesh(net, enc, src.poses[0], src.intrinsics, near, far,
                                             MeshConfig(args.mesh_resolution, "auto"), "cpu", colored=False)
             gts = tgt.images.permute(0, 2, 3, 1)
+            geometry = GeometryConfig(n_points=20_000)
+            sides = side_fractions(mesh, gt_mesh, src.poses[0][:3, 3].double().numpy(), up, geometry)
             rows[name].append({
                 "psnr": float(np.mean([psnr(out.rgb[k].numpy(), gts[k].numpy()) for k in range(len(gts))])),
-                "floaters": floater_fraction(mesh, gt_mesh, GeometryConfig(n_points=20_000)),
+                "floaters": floater_fraction(mesh, gt_mesh, geometry),
+                "floaters_near": sides["near"],
                 "src_bg_opacity": float(own.opacity[~src.masks].mean()),
                 "src_bg_white_error": float((1.0 - own.rgb[~src.masks]).abs().mean()),
                 "tgt_bg_opacity": float(out.opacity[~tgt.masks].mean()),
@@ -124,11 +132,12 @@ def main(argv: list[str] | None = None) -> int:
               flush=True)
     means = {c: {k: float(np.mean([r[k] for r in rows[c]])) for k in rows[c][0]} for c in conditions}
     print(f"{args.checkpoint}: {len(records)} objects")
-    print("| condition | PSNR | floater fraction | input-view background opacity | its colour error "
-          "| target background opacity |")
-    print("|---|---:|---:|---:|---:|---:|")
+    print("| condition | PSNR | floater fraction | of it near the input camera | input-view background opacity "
+          "| its colour error | target background opacity |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for c, m in means.items():
-        print(f"| {c} | {m['psnr']:.2f} | {m['floaters']:.3f} | {m['src_bg_opacity']:.3f} | "
+        print(f"| {c} | {m['psnr']:.2f} | {m['floaters']:.3f} | {m['floaters_near']:.3f} | "
+              f"{m['src_bg_opacity']:.3f} | "
               f"{m['src_bg_white_error']:.4f} | {m['tgt_bg_opacity']:.3f} |")
     if args.json:
         args.json.write_text(json.dumps({"checkpoint": args.checkpoint, "objects": len(records), "means": means,
