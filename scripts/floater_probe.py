@@ -33,13 +33,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from floater_sides import AXES, side_fractions
+from floater_sides import AXES, card_up_axis, side_fractions
 
 from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.depth.prior import PriorConfig, open_prior
-from depthnerf.eval.geometry_metrics import GeometryConfig, floater_fraction
+from depthnerf.eval.geometry_metrics import GeometryConfig, floater_fraction, is_empty_mesh, sample_surface
 from depthnerf.eval.metrics import psnr
 from depthnerf.eval.objects import prepare_object, protocol_views
 from depthnerf.infer.session import InferenceSession, SessionOptions
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     oracle = open_prior(PriorConfig("oracle"), data_root=args.data, resolution=spec.resolution, records=records)
     twin = batch_stats_model(model)
     card = read_dataset_card(args.data, pre.spec.category) or {}
-    up = AXES.get(str(card.get("objects", {}).get("up", "+z")).lstrip("+"), 2)
+    up = AXES[card_up_axis(card) or "z"]
     rows: dict[str, list[dict]] = {c: [] for c in conditions}
     for record in records:
         obj = prepare_object(session, record, protocol_views(record.num_views, args.stride))
@@ -119,10 +119,11 @@ def main(argv: list[str] | None = None) -> int:
                                             MeshConfig(args.mesh_resolution, "auto"), "cpu", colored=False)
             gts = tgt.images.permute(0, 2, 3, 1)
             geometry = GeometryConfig(n_points=20_000)
-            sides = side_fractions(mesh, gt_mesh, src.poses[0][:3, 3].double().numpy(), up, geometry)
+            points = None if is_empty_mesh(mesh) else sample_surface(mesh, geometry.n_points, geometry.seed)
+            sides = side_fractions(mesh, gt_mesh, src.poses[0][:3, 3].double().numpy(), up, geometry, points)
             rows[name].append({
                 "psnr": float(np.mean([psnr(out.rgb[k].numpy(), gts[k].numpy()) for k in range(len(gts))])),
-                "floaters": floater_fraction(mesh, gt_mesh, geometry),
+                "floaters": floater_fraction(mesh, gt_mesh, geometry, points),
                 "floaters_near": sides["near"],
                 "src_bg_opacity": float(own.opacity[~src.masks].mean()),
                 "src_bg_white_error": float((1.0 - own.rgb[~src.masks]).abs().mean()),

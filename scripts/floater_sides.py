@@ -33,7 +33,7 @@ import trimesh
 
 from depthnerf.data.srn import index_split
 from depthnerf.data.srn_format import read_pose
-from depthnerf.eval.geometry_metrics import GeometryConfig, sample_surface
+from depthnerf.eval.geometry_metrics import GeometryConfig, floater_box, is_empty_mesh, sample_surface
 
 SIDES = ("near", "far", "above", "below", "lateral")
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -53,39 +53,41 @@ def classify_outside(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin:
     outside = np.any(excess > 0, axis=-1)
     axis = np.argmax(excess, axis=-1)
     rows = np.arange(len(points))
-    positive = excess_hi[rows, axis] > excess_lo[rows, axis]     # which face of that axis
+    sign = np.where(excess_hi[rows, axis] > excess_lo[rows, axis], 1.0, -1.0)   # which face of that axis
     to_camera = camera - 0.5 * (lo + hi)
     to_camera[up] = 0.0
-    horizontal = [a for a in range(3) if a != up]
     # the four horizontal faces as (axis, sign); the near face maximises sign * to_camera[axis]
-    faces = [(a, s) for a in horizontal for s in (1.0, -1.0)]
-    near = max(faces, key=lambda f: f[1] * to_camera[f[0]])
-    far = (near[0], -near[1])
-    labels = np.full(len(points), -1, dtype=np.int64)
-    for i in np.flatnonzero(outside):
-        face = (int(axis[i]), 1.0 if positive[i] else -1.0)
-        if face[0] == up:
-            labels[i] = SIDES.index("above") if face[1] > 0 else SIDES.index("below")
-        elif face == near:
-            labels[i] = SIDES.index("near")
-        elif face == far:
-            labels[i] = SIDES.index("far")
-        else:
-            labels[i] = SIDES.index("lateral")
+    faces = [(a, s) for a in range(3) if a != up for s in (1.0, -1.0)]
+    near_axis, near_sign = max(faces, key=lambda f: f[1] * to_camera[f[0]])
+    on_near_axis = axis == near_axis
+    labels = np.full(len(points), SIDES.index("lateral"), dtype=np.int64)
+    labels[on_near_axis & (sign == near_sign)] = SIDES.index("near")
+    labels[on_near_axis & (sign != near_sign)] = SIDES.index("far")
+    labels[(axis == up) & (sign > 0)] = SIDES.index("above")
+    labels[(axis == up) & (sign < 0)] = SIDES.index("below")
+    labels[~outside] = -1
     return labels
 
 
 def side_fractions(pred: trimesh.Trimesh, gt: trimesh.Trimesh, camera: np.ndarray, up: int,
-                   config: GeometryConfig | None = None) -> dict[str, float]:
+                   config: GeometryConfig | None = None,
+                   pred_points: np.ndarray | None = None) -> dict[str, float]:
     """Fraction of ``pred``'s surface samples leaving ``gt``'s grown box through each side (all 0 when empty);
-    ``config`` None = the eval's defaults."""
+    ``config`` None = the eval's defaults; ``pred_points``: ``pred``'s surface samples, when already drawn (as for
+    ``geometry_metrics.floater_fraction``)."""
     config = config or GeometryConfig()
-    if len(pred.faces) == 0 or not pred.area > 0:
+    if is_empty_mesh(pred):
         return {s: 0.0 for s in SIDES}
-    lo, hi = np.asarray(gt.bounds[0], np.float64), np.asarray(gt.bounds[1], np.float64)
-    margin = config.floater_margin * float(np.linalg.norm(hi - lo))
-    labels = classify_outside(sample_surface(pred, config.n_points, config.seed), lo, hi, margin, up, camera)
+    lo, hi, margin = floater_box(gt, config)
+    points = sample_surface(pred, config.n_points, config.seed) if pred_points is None else pred_points
+    labels = classify_outside(points, lo, hi, margin, up, camera)
     return {s: float((labels == k).mean()) for k, s in enumerate(SIDES)}
+
+
+def card_up_axis(card: dict) -> str | None:
+    """The up axis ("x", "y" or "z") a dataset card names under ``objects.up`` (sign dropped), None without one."""
+    name = str(card.get("objects", {}).get("up", "")).lstrip("+")
+    return name if name in AXES else None
 
 
 def folder_sides(folder: Path, up_flag: str | None) -> tuple[str, list[dict[str, float]]]:
@@ -96,8 +98,8 @@ def folder_sides(folder: Path, up_flag: str | None) -> tuple[str, list[dict[str,
     summary = json.loads(summary_path.read_text())
     root = Path(summary["data_card"]["root"])
     card = summary["data_card"].get("card") or {}
-    up_name = up_flag or str(card.get("objects", {}).get("up", "")).lstrip("+")
-    if up_name not in AXES:
+    up_name = up_flag or card_up_axis(card)
+    if up_name is None:
         raise SystemExit(f"error: {folder}: the dataset card names no up axis; pass --up x|y|z")
     records = {r.object_id: r for r in index_split(root, summary["category"], summary["split"],
                                                    check_files=False).objects}

@@ -3,28 +3,21 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from fixtures_scripts import load_script
 
 from depthnerf.data.cameras import look_at
 from tests.fixtures_srn import make_srn_fixture
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "angle_bins.py"
-
 
 def _load():
-    spec = importlib.util.spec_from_file_location("angle_bins", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("angle_bins")
 
 
 def _eval(folder: Path, root: Path, psnr: dict[tuple[str, int], float]) -> Path:

@@ -2,22 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import trimesh
+from fixtures_scripts import load_script
 
 from depthnerf.eval.geometry_metrics import GeometryConfig, floater_fraction, outside_box
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "floater_sides.py"
-
 
 def _load():
-    spec = importlib.util.spec_from_file_location("floater_sides", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("floater_sides")
 
 
 def test_hand_placed_points_get_their_side() -> None:

@@ -2,20 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import trimesh
-
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "mesh_check.py"
+from fixtures_scripts import load_script
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("mesh_check", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("mesh_check")
 
 
 def _camera() -> tuple[np.ndarray, np.ndarray]:

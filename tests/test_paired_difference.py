@@ -3,24 +3,17 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
+from fixtures_scripts import load_script
 from scipy import stats
-
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "paired_difference.py"
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("paired_difference", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_script("paired_difference")
 
 
 def _write(folder: Path, method: str, psnr: list[float], chamfer: list[float], views: str = "10") -> Path:

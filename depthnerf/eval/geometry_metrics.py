@@ -128,15 +128,22 @@ def floater_fraction(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: Geometr
     """Fraction of ``pred``'s surface outside ``gt``'s bounding box grown by ``config.floater_margin`` GT
     diagonals (module docstring); 0 for an empty prediction. ``pred_points``: ``pred``'s surface samples (world
     frame), when already drawn."""
-    if _is_empty(pred):
+    if is_empty_mesh(pred):
         return 0.0
-    lo, hi = np.asarray(gt.bounds[0], np.float64), np.asarray(gt.bounds[1], np.float64)
-    margin = config.floater_margin * float(np.linalg.norm(hi - lo))
+    lo, hi, margin = floater_box(gt, config)
     points = sample_surface(pred, config.n_points, config.seed) if pred_points is None else pred_points
     return float(outside_box(points, lo, hi, margin).mean())
 
 
-def _is_empty(mesh: trimesh.Trimesh) -> bool:
+def floater_box(gt: trimesh.Trimesh, config: GeometryConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(lo, hi, margin)``: ``gt``'s axis-aligned bounds and the floater margin in world units
+    (``config.floater_margin`` GT bounding-box diagonals); outside means outside ``[lo - margin, hi + margin]``."""
+    lo, hi = np.asarray(gt.bounds[0], np.float64), np.asarray(gt.bounds[1], np.float64)
+    return lo, hi, config.floater_margin * float(np.linalg.norm(hi - lo))
+
+
+def is_empty_mesh(mesh: trimesh.Trimesh) -> bool:
+    """True when the mesh has no faces or no area (an empty prediction)."""
     return len(mesh.faces) == 0 or not mesh.area > 0
 
 
@@ -144,13 +151,13 @@ def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: Geometr
                      gt_points: Float[np.ndarray, "M 3"] | None = None) -> GeometryMetrics:
     """Chamfer-L1, F-score and their parts (see the module docstring for the definitions); ``gt_points`` (world
     frame) replace the samples of ``gt``, which then only gives the normalising diagonal."""
-    if _is_empty(gt):
+    if is_empty_mesh(gt):
         raise DepthnerfError("ground-truth mesh has no surface (no faces or zero area)")
     if config.n_points < 1 or not config.tau > 0:
         raise DepthnerfError(f"geometry metrics: need n_points >= 1 and tau > 0, got {config.n_points}, {config.tau}")
     diagonal = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
     scale = diagonal if config.normalize else 1.0
-    if _is_empty(pred):
+    if is_empty_mesh(pred):
         worst = diagonal / scale
         return GeometryMetrics(worst, worst, worst, 0.0, 0.0, 0.0, config.tau, scale, True)
     pred_world = sample_surface(pred, config.n_points, config.seed)
