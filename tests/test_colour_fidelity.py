@@ -2,25 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
+from fixtures_scripts import load_script
 
 
 def _load():
-    sys.path.insert(0, str(SCRIPTS))  # the script imports angle_bins from beside it
-    try:
-        spec = importlib.util.spec_from_file_location("colour_fidelity", SCRIPTS / "colour_fidelity.py")
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-        return module
-    finally:
-        sys.path.remove(str(SCRIPTS))
+    return load_script("colour_fidelity")  # it imports angle_bins from beside it
 
 
 def test_grey_render_of_a_coloured_object_loses_all_its_chroma():

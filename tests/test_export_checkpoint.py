@@ -6,14 +6,13 @@ Runs are tiny random models written by the training checkpoint writer (``fixture
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 from fixtures_checkpoints import tiny_bundled, tiny_config, tiny_run
+from fixtures_scripts import load_script
 from safetensors import safe_open
 
 from depthnerf.cli import main as cli_main
@@ -23,16 +22,11 @@ from depthnerf.pretrained import load as pretrained
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.train import checkpoint as ckpt
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "export_checkpoint.py"
 PROTOCOL = "SRN protocol: input view 64, targets = all other 250 views with stride 25 (10 views), 2 of 2 objects"
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("export_checkpoint", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
-    spec.loader.exec_module(module)
-    return module
+    return load_script("export_checkpoint")
 
 
 @pytest.fixture(scope="module")
@@ -206,9 +200,7 @@ def test_fix_cards_rewrites_paths_not_weights(exporter, run, tmp_path):
     assert "framing" not in md
     res.card_md.write_text(md + f"\nsee {old_summary}\n")
     weights_sha = sha256_file(res.weights)
-    spec = importlib.util.spec_from_file_location("fix_checkpoint_cards", SCRIPT.parent / "fix_checkpoint_cards.py")
-    fixer = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(fixer)
+    fixer = load_script("fix_checkpoint_cards")
     assert fixer.main([str(res.card_json), "--framing", "legacy", "--relative-to", "/work"]) == 0
     fixed = json.loads(res.card_json.read_text())
     assert fixed["evaluation"]["summary"] == "study/eval/cars-bundled/summary.json"

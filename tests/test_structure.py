@@ -5,7 +5,6 @@ something training does not do is rejected when it is built."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import subprocess
 import sys
@@ -13,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from fixtures_scripts import load_script
 
 from depthnerf.cli import main
 from depthnerf.config_io import to_dict
@@ -29,10 +29,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _graph_module():
-    spec = importlib.util.spec_from_file_location("import_graph", ROOT / "scripts" / "import_graph.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("import_graph")
 
 
 def test_import_graph_is_the_stage_chain():

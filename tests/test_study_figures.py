@@ -11,14 +11,13 @@ PSNR, and the oracle prior must be ``1/z`` of the fixture's depth map.
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from fixtures_scripts import load_script
 from fixtures_srn import make_srn_fixture
 from PIL import Image
 
@@ -31,21 +30,11 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import preset, with_prior
 from depthnerf.train.run_log import RunLog
 
-SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
 TINY = ["--max-steps", "1", "--log.val_every", "0", "--data.resolution", "32", "--data.num_workers", "0",
         "--model.coarse.d_hidden", "16", "--model.fine.d_hidden", "16", "--model.encoder.backbone", "resnet18",
         "--schedule.objects_phase1", "1", "--schedule.rays_per_object", "16", "--render.sampler.n_coarse", "8",
         "--render.sampler.n_importance", "4", "--render.sampler.n_gaussian", "2", "--no-progress"]
 """Training flags of the tiny models."""
-
-
-def load_script(name: str):
-    """Import ``scripts/<name>.py`` as a module."""
-    spec = importlib.util.spec_from_file_location(f"study_{name}", SCRIPTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 curves_script = load_script("plot_training_curves")
