@@ -21,7 +21,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
+from paired_difference import t_interval
 
 from depthnerf.data.srn import index_split
 from depthnerf.data.srn_format import read_pose
@@ -80,8 +80,7 @@ def compare(base: dict, method: dict, edges: list[float]) -> list[dict]:
             a = np.array([base[k][i][m] for i in ids])
             b = np.array([method[k][i][m] for i in ids])
             d = b - a
-            se = float(d.std(ddof=1) / math.sqrt(len(d))) if len(d) > 1 else float("nan")
-            half = float(stats.t.ppf(0.975, len(d) - 1) * se) if len(d) > 1 else float("nan")
+            _, _, half = t_interval(d.tolist())
             out.append({"bin": f"{edges[k]:g}-{edges[k + 1]:g}", "metric": m, "objects": len(ids),
                         "views": int(sum(method[k][i]["views"] for i in ids)), "baseline": float(a.mean()),
                         "method": float(b.mean()), "diff": float(d.mean()), "ci95": [d.mean() - half, d.mean() + half],

@@ -90,17 +90,31 @@ def card_up_axis(card: dict) -> str | None:
     return name if name in AXES else None
 
 
-def folder_sides(folder: Path, up_flag: str | None) -> tuple[str, list[dict[str, float]]]:
-    """Per-object side fractions of one eval folder (and the up axis used)."""
+def eval_summary(folder: Path, up_flag: str | None) -> tuple[dict, str]:
+    """(``summary.json``, up axis name) of an eval folder: ``up_flag``, else the dataset card's (an error names
+    the folder when neither says)."""
     summary_path = folder / "summary.json"
     if not summary_path.is_file():
         raise SystemExit(f"error: {summary_path}: missing (not a depthnerf eval folder)")
     summary = json.loads(summary_path.read_text())
-    root = Path(summary["data_card"]["root"])
-    card = summary["data_card"].get("card") or {}
-    up_name = up_flag or card_up_axis(card)
+    up_name = up_flag or card_up_axis(summary["data_card"].get("card") or {})
     if up_name is None:
         raise SystemExit(f"error: {folder}: the dataset card names no up axis; pass --up x|y|z")
+    return summary, up_name
+
+
+def eval_mesh(folder: Path, object_id: str) -> trimesh.Trimesh:
+    """The mesh an eval extracted for one object (an error names the file when it is missing)."""
+    mesh_path = folder / "meshes" / f"{object_id}.ply"
+    if not mesh_path.is_file():
+        raise SystemExit(f"error: {mesh_path}: missing (evaluate with meshes)")
+    return trimesh.load(mesh_path, force="mesh")
+
+
+def folder_sides(folder: Path, up_flag: str | None) -> tuple[str, list[dict[str, float]]]:
+    """Per-object side fractions of one eval folder (and the up axis used)."""
+    summary, up_name = eval_summary(folder, up_flag)
+    root = Path(summary["data_card"]["root"])
     records = {r.object_id: r for r in index_split(root, summary["category"], summary["split"],
                                                    check_files=False).objects}
     with open(folder / "per_object.csv", newline="") as f:
@@ -108,12 +122,9 @@ def folder_sides(folder: Path, up_flag: str | None) -> tuple[str, list[dict[str,
     out = []
     for row in rows:
         oid = row["object_id"]
-        mesh_path = folder / "meshes" / f"{oid}.ply"
-        if not mesh_path.is_file():
-            raise SystemExit(f"error: {mesh_path}: missing (evaluate with meshes)")
         rec = records[oid]
         camera = read_pose(rec.path / "pose" / f"{rec.view_names[int(row['input_view'])]}.txt")[:3, 3]
-        pred = trimesh.load(mesh_path, force="mesh")
+        pred = eval_mesh(folder, oid)
         gt = trimesh.load(rec.path / "mesh.ply", force="mesh")
         out.append({"object_id": oid, **side_fractions(pred, gt, np.asarray(camera, np.float64), AXES[up_name])})
     return up_name, out

@@ -28,14 +28,13 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 import trimesh
-from floater_sides import AXES, card_up_axis
-from scipy import stats
+from floater_sides import AXES, eval_mesh, eval_summary
+from paired_difference import t_interval
 
 from depthnerf.data.srn import index_split
 from depthnerf.eval.geometry_metrics import (
@@ -95,14 +94,7 @@ class GroundTruth:
 def folder_scores(folder: Path, truths: dict[tuple, GroundTruth], band: float, tau: float,
                   up_flag: str | None) -> dict[str, dict[str, float]]:
     """object id -> band scores of one eval folder."""
-    summary_path = folder / "summary.json"
-    if not summary_path.is_file():
-        raise SystemExit(f"error: {summary_path}: missing (not a depthnerf eval folder)")
-    summary = json.loads(summary_path.read_text())
-    card = summary["data_card"].get("card") or {}
-    up_name = up_flag or card_up_axis(card)
-    if up_name is None:
-        raise SystemExit(f"error: {folder}: the dataset card names no up axis; pass --up x|y|z")
+    summary, up_name = eval_summary(folder, up_flag)
     key = (summary["data_card"]["root"], summary["category"], summary["split"])
     if key not in truths:
         config = GeometryConfig(depth_pixel_center=float(summary.get("dataset_pixel_center") or 0.0))
@@ -112,10 +104,7 @@ def folder_scores(folder: Path, truths: dict[tuple, GroundTruth], band: float, t
         ids = [row["object_id"] for row in csv.DictReader(f)]
     out = {}
     for oid in ids:
-        mesh_path = folder / "meshes" / f"{oid}.ply"
-        if not mesh_path.is_file():
-            raise SystemExit(f"error: {mesh_path}: missing (evaluate with meshes)")
-        pred = trimesh.load(mesh_path, force="mesh")
+        pred = eval_mesh(folder, oid)
         pred_points = (np.zeros((0, 3)) if is_empty_mesh(pred)
                        else sample_surface(pred, truth.config.n_points, truth.config.seed))
         points, lo, hi = truth.get(oid)
@@ -133,8 +122,7 @@ def paired(base: dict[str, dict[str, float]], method: dict[str, dict[str, float]
     for m in METRICS:
         a, b = np.array([base[i][m] for i in ids]), np.array([method[i][m] for i in ids])
         d = b - a
-        half = (float(stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
-                if len(d) > 1 else float("nan"))
+        _, _, half = t_interval(d.tolist())
         rows.append({"metric": m, "objects": len(ids), "baseline": float(a.mean()), "method": float(b.mean()),
                      "diff": float(d.mean()), "ci95": [float(d.mean() - half), float(d.mean() + half)],
                      "no_worse": int((d >= 0).sum())})

@@ -46,6 +46,17 @@ class PairedStat:
     exactly 0 for both)."""
 
 
+def t_interval(diffs: list[float]) -> tuple[float, float, float]:
+    """(mean, standard error, half-width of the 95% t-interval) of paired differences; the last two are NaN for
+    fewer than 2 differences, all three for none."""
+    n = len(diffs)
+    mean = sum(diffs) / n if n else float("nan")
+    if n < 2:
+        return mean, float("nan"), float("nan")
+    se = math.sqrt(sum((x - mean) ** 2 for x in diffs) / (n - 1) / n)
+    return mean, se, float(stats.t.ppf(0.975, n - 1)) * se
+
+
 def read_per_object(folder: Path) -> dict[str, dict[str, str]]:
     """Rows of ``folder/per_object.csv`` keyed by object id (an error names the file if it is missing)."""
     path = folder / "per_object.csv"
@@ -86,9 +97,7 @@ def paired(baseline: Path, method: Path, common: bool = False) -> list[PairedSta
         m = [float(other[o][metric]) for o in ids]
         d = [x - y for x, y in zip(m, b, strict=True)]
         n = len(d)
-        mean = sum(d) / n
-        se = math.sqrt(sum((x - mean) ** 2 for x in d) / (n - 1) / n)
-        half = float(stats.t.ppf(0.975, n - 1)) * se
+        mean, se, half = t_interval(d)
         wins = sum(1 for x in d if (x > 0 if higher else x < 0))
         no_worse = sum(1 for x in d if (x >= 0 if higher else x <= 0))
         out.append(PairedStat(method=method_name(method), metric=metric, n=n, baseline_mean=sum(b) / n,
