@@ -63,7 +63,7 @@ from depthnerf.reconstruct.exports import save_reconstruction, to_u8
 from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
-from depthnerf.render.mesh import AUTO_LEVEL
+from depthnerf.render.mesh_level import AUTO_LEVEL
 
 DEMO_SEED = 2718
 """``depthnerf synth --seed`` of the demo objects (training data: seed 0; bundled-depth evaluation: 1234)."""

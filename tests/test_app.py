@@ -131,6 +131,8 @@ def test_request_checks(session, tmp_path):
     out = session.run(RunRequest(example, "car", depth_prior="depth-anything-v2",
                                  depth_checkpoint=str(tmp_path / "no-da-weights")))
     assert out.message.startswith("error: ") and "no-da-weights" in out.message and "\n" not in out.message
+    out = session.run(RunRequest(example, "car", mesh_level="median"))
+    assert out.message == "error: mesh level must be one of auto, silhouette, local, got 'median'" and not out.ok
     out = session.run(RunRequest(example, "car", checkpoint_path=str(tmp_path / "nope.safetensors")))
     assert out.message.startswith("error: ") and "nope.safetensors" in out.message and "\n" not in out.message
 
@@ -170,6 +172,10 @@ def test_a_run_collects_every_output(session):
                                                  np.sort(np.stack([x, z, -y], 1), 0), atol=1e-5)
     assert "fill 0.50" in out.details and "depth prior **bundled**" in out.details
     assert calls[0][0] == 0.0 and [t for _, t in calls][-1] == "writing outputs"
+    assert manifest["settings"]["mesh_level_rule"].startswith("auto level")
+    local = session.run(RunRequest(examples()[0], "car", views=1, mesh_level="local"))
+    settings = json.loads((local.input_image.parent / "manifest.json").read_text())["settings"]
+    assert settings["mesh_level_rule"].startswith("local level: half the peak density along each input ray")
     # keep_runs=2: older run folders are deleted as new ones come
     for _ in range(2):
         session.run(RunRequest(examples()[0], "car", views=1))

@@ -21,14 +21,8 @@ from depthnerf.eval.geometry_metrics import (
     summarize_geometry,
     visible_surface_points,
 )
-from depthnerf.render.mesh import (
-    DEFAULT_THRESHOLD,
-    MeshConfig,
-    auto_level,
-    levels_text,
-    parse_level,
-    source_mesh,
-)
+from depthnerf.render.mesh import MeshConfig, source_mesh
+from depthnerf.render.mesh_level import DEFAULT_THRESHOLD, auto_level, levels_text, parse_level
 
 INTR = Intrinsics(focal=24.0, cx=7.5, cy=7.5, height=16, width=16)
 NEAR, FAR = 1.0, 3.0
@@ -81,10 +75,11 @@ def test_auto_level_falls_back_without_opaque_rays():
 
 def test_parse_level():
     assert parse_level("auto") == "auto" and parse_level(" AUTO ") == "auto" and parse_level("12.5") == 12.5
+    assert parse_level("Silhouette") == "silhouette" and parse_level("local") == "local"
     for bad in ("twenty", "-1", "0", "nan"):
         with pytest.raises(DepthnerfError, match="--mesh-threshold"):
             parse_level(bad)
-    with pytest.raises(DepthnerfError, match="mesh level must be a number or 'auto'"):
+    with pytest.raises(DepthnerfError, match="mesh level must be a number or one of auto, silhouette, local"):
         source_mesh(ball(1.0), _camera(), INTR, NEAR, FAR, MeshConfig(8, "half"))
 
 

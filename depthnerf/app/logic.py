@@ -125,6 +125,9 @@ class RunRequest:
     """Remove the background of a photo without alpha with a background model when one is installed."""
     background_model: str = ""
     """rembg model name or ONNX file ("" = ``AppConfig.background_model``, else rembg's u2net)."""
+    mesh_level: str = "auto"
+    """The mesh's level rule, one of :data:`~depthnerf.render.mesh_level.LEVEL_RULES` (the page offers ``auto``,
+    one tight piece, and ``local``, which keeps thin parts in a looser surface)."""
 
 
 @dataclass
@@ -292,6 +295,7 @@ class AppSession:
 
     def _run(self, request: RunRequest, progress: ProgressFn) -> RunOutputs:
         from depthnerf import ReconstructConfig
+        from depthnerf.render.mesh_level import LEVEL_RULES
 
         path = check_upload(request.image)
         max_views = self.config.max_views
@@ -299,6 +303,8 @@ class AppSession:
             raise DepthnerfError(f"orbit views must be within 1..{max_views}, got {request.views}")
         if request.foreground_ratio is not None and not 0.05 <= request.foreground_ratio <= 1.0:
             raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {request.foreground_ratio}")
+        if request.mesh_level not in LEVEL_RULES:
+            raise DepthnerfError(f"mesh level must be one of {', '.join(LEVEL_RULES)}, got {request.mesh_level!r}")
         checkpoint = resolve_model(request)
         progress(0.0, f"loading {checkpoint}")
         rec = self.models.get(checkpoint, request.depth_prior, request.depth_checkpoint)
@@ -306,6 +312,7 @@ class AppSession:
         mode, background_model = self.background(request)
         cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),
                                 fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
+                                mesh_threshold=request.mesh_level,
                                 progress=True, background_removal=mode, background_model=background_model,
                                 facing=None if request.facing is None else float(request.facing))
         result = rec.reconstruct(path, config=cfg)

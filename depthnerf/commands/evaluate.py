@@ -1,7 +1,7 @@
 """``depthnerf eval``: evaluate a run or checkpoint by the SRN protocol (see :mod:`depthnerf.eval.protocol`).
 
 ``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
-[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--mesh-threshold auto|X]
+[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--mesh-threshold auto|silhouette|local|X]
 [--save-renders] [--ssim uniform7|gaussian11|gaussian11-zeropad] [--scored png8|float] [--objects pixelnerf|all]
 [--overwrite] [--strict]``
 
@@ -56,8 +56,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction and Chamfer/F-score")
     p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (default 128)")
     p.add_argument("--mesh-threshold", default="auto",
-                   help="marching-cubes density level: a number, or auto (default: half the median peak density "
-                        "along the opaque input rays)")
+                   help="marching-cubes density level: a number, auto (default: half the median peak density "
+                        "along the opaque input rays), silhouette (the level whose input-view outline best matches "
+                        "the input's mask: keeps thin parts, a thicker surface) or local (half the peak along each "
+                        "input ray, between the two)")
     p.add_argument("--fscore-tau", type=float, default=0.01, help="F-score threshold in GT diagonals (0.01)")
     p.add_argument("--mesh-points", type=int, default=100_000, help="surface samples per mesh (default 100000)")
     p.add_argument("--save-renders", action="store_true", help="write renders, meshes and renders.csv")
@@ -182,7 +184,7 @@ def _run(args: argparse.Namespace, info, choices) -> int:
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
     from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.pretrained.load import load_pretrained
-    from depthnerf.render.mesh import parse_level
+    from depthnerf.render.mesh_level import parse_level
 
     out = args.out
     if out is None:

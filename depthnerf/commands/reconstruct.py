@@ -50,8 +50,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (0 = no mesh)")
     p.add_argument("--mesh-threshold", default="auto",
-                   help="marching-cubes density level: a number, or auto (default: half the median peak density "
-                        "along the opaque input rays)")
+                   help="marching-cubes density level: a number, auto (default: half the median peak density "
+                        "along the opaque input rays), silhouette (the level whose input-view outline best matches "
+                        "the input's mask: keeps thin parts, a thicker surface) or local (half the peak along each "
+                        "input ray, between the two)")
     p.add_argument("--mesh-keep", choices=["all", "largest"], default="all",
                    help="all pieces of the mesh (default), or only the largest connected piece; manifest.json "
                         "records the pieces and faces either way")
@@ -90,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.reconstruct.background import choose_remover
     from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
-    from depthnerf.render.mesh import parse_level
+    from depthnerf.render.mesh_level import parse_level
 
     # every flag and the output folder are checked before the model is loaded or anything rendered
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,

@@ -40,7 +40,7 @@ from pathlib import Path
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import GeometryConfig
 from depthnerf.eval.metrics import SSIM_WINDOWS, LpipsConfig
-from depthnerf.render.mesh import AUTO_LEVEL
+from depthnerf.render.mesh_level import AUTO_LEVEL
 
 SCORED = {"png8": "8-bit PNG renders, truncated as pixelNeRF's eval.py writes them (its paper numbers, "
                   "calc_metrics.py)",

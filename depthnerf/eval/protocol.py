@@ -91,7 +91,8 @@ from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, prepare_object, pr
 from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects
 from depthnerf.files import write_text_atomic
 from depthnerf.infer.session import InferenceSession
-from depthnerf.render.mesh import MeshConfig, levels_text
+from depthnerf.render.mesh import MeshConfig
+from depthnerf.render.mesh_level import levels_text
 from depthnerf.render.source_guide import guided_record
 
 __all__ = ["ProtocolChoices", "ProtocolConfig", "ObjectResult", "EvalOutputs", "evaluate_protocol", "method_label",

@@ -50,7 +50,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import GeometryMetrics
 from depthnerf.eval.metrics import ObjectMetrics, ViewMetrics
 from depthnerf.files import write_json_atomic
-from depthnerf.render.mesh import MeshLevel
+from depthnerf.render.mesh_level import MeshLevel
 
 OBJECTS_DIR = "objects"
 """Folder of the per-object result files, inside the evaluation's output folder."""

@@ -54,7 +54,8 @@ from depthnerf.model.conditioning import Conditioned, condition, condition_views
 from depthnerf.model.pixelnerf import ENCODER_NORMS, EncodedViews, EncoderNorm, SourceViews
 from depthnerf.pretrained.load import Pretrained, load_pretrained
 from depthnerf.render.config import GuidedConfig
-from depthnerf.render.mesh import MeshConfig, MeshLevel, input_camera_mesh
+from depthnerf.render.mesh import MeshConfig, input_camera_mesh
+from depthnerf.render.mesh_level import MeshLevel
 from depthnerf.render.precision import InferencePolicy, field_runtime, inference_policy
 from depthnerf.render.source_guide import make_source_guide
 from depthnerf.render.views import ViewRenders, render_poses
@@ -286,4 +287,4 @@ class InferenceSession:
         """Marching cubes over the encoded view's frustum box at the run's z-range (:mod:`depthnerf.render.mesh`)."""
         near, far = self.spec.z_range
         return input_camera_mesh(self.model, encoded.enc, encoded.pose, encoded.intr, near, far, cfg, self.device,
-                                 colored=colored, runtime=self.runtime)
+                                 colored=colored, runtime=self.runtime, mask=encoded.mask[0].cpu().numpy())

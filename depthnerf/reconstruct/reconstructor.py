@@ -23,10 +23,10 @@ Depth prior (depth-aware checkpoints)
 Outputs
     N views on the orbit through the input camera (rendered at ``render_resolution``, default the training one),
     their depth (ray distance, opacity-normalised) and opacity, a mesh (marching cubes over the input camera's
-    frustum box with the run's z-range, at the auto level of :mod:`depthnerf.render.mesh` unless fixed) with vertex colours = the fine
-    network's rgb at each vertex seen along the input camera's ray through it, and a point cloud = the rendered
-    depth of every orbit view unprojected where opacity > :data:`POINT_OPACITY` (at most ``max_points`` points,
-    an even subsample). :meth:`Reconstructor.save` writes them (:mod:`depthnerf.reconstruct.exports`).
+    frustum box with the run's z-range, at the auto level of :mod:`depthnerf.render.mesh_level` unless set) with
+    vertex colours = the fine network's rgb at each vertex seen along the input camera's ray through it, and a
+    point cloud = the rendered depth of every orbit view unprojected where opacity > :data:`POINT_OPACITY` (at
+    most ``max_points`` points, an even subsample). :meth:`Reconstructor.save` writes them (:mod:`depthnerf.reconstruct.exports`).
 """
 
 from __future__ import annotations
@@ -57,7 +57,8 @@ from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsic
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
-from depthnerf.render.mesh import AUTO_LEVEL, MeshConfig, check_mesh_keep, keep_pieces
+from depthnerf.render.mesh import MeshConfig, check_mesh_keep, keep_pieces
+from depthnerf.render.mesh_level import AUTO_LEVEL
 from depthnerf.render.views import ViewRenders
 
 POINT_OPACITY = 0.5
@@ -88,7 +89,8 @@ class ReconstructConfig:
     mesh_resolution: int = 128
     """Marching-cubes samples along the frustum box's longest side (0 = no mesh)."""
     mesh_threshold: float | str = AUTO_LEVEL
-    """Density level of the mesh surface, or ``"auto"`` (see :mod:`depthnerf.render.mesh`)."""
+    """Density level of the mesh surface, or a rule: ``"auto"`` or ``"silhouette"`` (the photo's mask is its
+    target; see :mod:`depthnerf.render.mesh_level`)."""
     mesh_keep: str = "all"
     """``all`` pieces of the mesh, or the ``largest`` connected piece only (:func:`~depthnerf.render.mesh.keep_pieces`;
     the manifest records the pieces and the faces kept either way)."""

@@ -19,19 +19,9 @@ Surface
     :class:`~depthnerf.errors.DepthnerfError`.
 
 Surface level
-    ``MeshConfig.threshold`` is a fixed density, or :data:`AUTO_LEVEL` (``"auto"``, the default of eval,
-    reconstruct and demo), which :func:`auto_level` resolves per object: **level = 0.5 x the median, over the input
-    camera's rays whose opacity exceeds 0.5, of the peak density along the ray** (:data:`AUTO_SAMPLES` uniform
-    samples between the run's z-near and z-far, from the same density function the mesh samples; opacity
-    ``1 - exp(-sum(sigma) * delta)``, what the volume renderer's quadrature gives for those samples). Rationale: a
-    ray that renders opaque crosses the object, so its peak density is the object's interior density there, and
-    the median over those rays is the typical interior density; half of it is the half-maximum level, the classic
-    edge definition (it puts the surface of a blurred step at the step). The rule is scale-free: sharp paper-scale
-    models (interior densities in the hundreds) get a high level, soft CPU-preset models (peaks ~5) a low one,
-    where a fixed level gives empty meshes. The median ignores a few outlier rays (floaters, glancing rays).
-    When no ray is opaque the level falls back to :data:`DEFAULT_THRESHOLD` and :class:`MeshLevel` says so.
-    :data:`DEFAULT_THRESHOLD` (20, NeRF practice being 10-50 for unit-scale scenes): a slab 0.05 thick (5% of a
-    unit-diagonal SRN object, about a chair leg) at density 20 has opacity ``1 - exp(-20 * 0.05) = 63%``.
+    ``MeshConfig.threshold`` is a fixed density or a per-object rule (``"auto"``, the default of eval, reconstruct
+    and demo; ``"silhouette"``; ``"local"``), resolved from the densities along the input camera's rays: see
+    :mod:`depthnerf.render.mesh_level`.
 """
 
 from __future__ import annotations
@@ -44,25 +34,15 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from skimage.measure import marching_cubes
 from torch import Tensor
 
-from depthnerf.data.cameras import Intrinsics, camera_rays
+from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
+from depthnerf.render.mesh_level import DEFAULT_THRESHOLD, DensityFn, MeshLevel, level_surface, query_chunks
 
-DEFAULT_THRESHOLD = 20.0
-"""Fallback density level when no input ray is opaque (see the module docstring)."""
-AUTO_LEVEL = "auto"
-"""``MeshConfig.threshold`` value asking for the per-object level of :func:`auto_level`."""
-AUTO_SAMPLES = 96
-"""Uniform samples per input ray for :func:`auto_level`."""
-OPAQUE = 0.5
-"""Rays whose opacity exceeds this count as opaque in :func:`auto_level`."""
-
-DensityFn = Callable[[Float[Tensor, "N 3"]], Float[Tensor, " N"]]
-"""World points -> volume density (a tensor of N values, or N x 1)."""
 ColorFn = Callable[[Float[Tensor, "N 3"]], Float[Tensor, "N 3"]]
 """World points -> RGB in [0, 1]."""
 
@@ -74,9 +54,9 @@ class MeshConfig:
     resolution: int = 128
     """Samples along the longest side of the grid box (voxels are cubes)."""
     threshold: float | str = DEFAULT_THRESHOLD
-    """Density level of the surface (units 1/world-distance), or :data:`AUTO_LEVEL` (see the module docstring;
-    :func:`extract_mesh` needs a number, :func:`source_mesh` resolves ``"auto"``; eval, reconstruct and demo
-    default to ``"auto"``)."""
+    """Density level of the surface (units 1/world-distance), or a rule name of
+    :mod:`depthnerf.render.mesh_level` (``"auto"``, ``"silhouette"``, ``"local"``): :func:`extract_mesh` needs a number,
+    :func:`source_mesh` resolves a rule; eval, reconstruct and demo default to ``"auto"``."""
     chunk: int = 65536
     """Points per density query (bounds memory)."""
     close_boundary: bool = True
@@ -135,23 +115,6 @@ class _Volume:
     """Camera-frame position of sample ``[0, 0, 0]``."""
 
 
-def _query_chunks(fn: Callable[[Tensor], Tensor], points_of: Callable[[int, int], Tensor], total: int,
-                  chunk: int, width: int, what: str) -> np.ndarray:
-    """Evaluate ``fn`` on ``points_of(start, stop)`` chunk by chunk; returns ``(total, width)`` float32."""
-    out = np.empty((total, width), dtype=np.float32)
-    with torch.no_grad():
-        for start in range(0, total, chunk):
-            stop = min(start + chunk, total)
-            values = torch.as_tensor(fn(points_of(start, stop))).detach().float().cpu()
-            if values.numel() != (stop - start) * width:
-                raise DepthnerfError(f"mesh extraction: {what} returned shape {tuple(values.shape)} for "
-                                     f"{stop - start} points (expected {stop - start} x {width})")
-            out[start:stop] = values.reshape(stop - start, width).numpy()
-    if not np.isfinite(out).all():
-        raise DepthnerfError(f"mesh extraction: {what} returned {int((~np.isfinite(out)).sum())} non-finite values")
-    return out
-
-
 def sample_density(density_fn: DensityFn, grid: CameraGrid, config: MeshConfig = MeshConfig(),
                    device: torch.device | str = "cpu") -> _Volume:
     """Evaluate ``density_fn`` at every grid sample (world coordinates), ``config.chunk`` points at a time."""
@@ -168,7 +131,7 @@ def sample_density(density_fn: DensityFn, grid: CameraGrid, config: MeshConfig =
         return cam @ c2w[:3, :3].T + c2w[:3, 3]
 
     total = shape[0] * shape[1] * shape[2]
-    values = _query_chunks(density_fn, points_of, total, config.chunk, 1, "density_fn")
+    values = query_chunks(density_fn, points_of, total, config.chunk, 1, "density_fn")
     return _Volume(values.reshape(shape), step, origin)
 
 
@@ -196,104 +159,24 @@ def extract_mesh(density_fn: DensityFn, grid: CameraGrid, config: MeshConfig = M
     mesh = trimesh.Trimesh(vertices=verts_world, faces=faces, process=False)
     if color_fn is not None and len(verts_world):
         pts = torch.as_tensor(verts_world, dtype=torch.float32, device=device)
-        rgb = _query_chunks(color_fn, lambda a, b: pts[a:b], len(pts), config.chunk, 3, "color_fn")
+        rgb = query_chunks(color_fn, lambda a, b: pts[a:b], len(pts), config.chunk, 3, "color_fn")
         rgba = np.concatenate([np.round(np.clip(rgb, 0, 1) * 255), np.full((len(rgb), 1), 255)], axis=1)
         mesh.visual.vertex_colors = rgba.astype(np.uint8)
     return mesh
 
 
-@dataclass(frozen=True)
-class MeshLevel:
-    """The density level a mesh was extracted at, and how it was chosen."""
-
-    level: float
-    """Marching-cubes density level."""
-    rule: str
-    """``fixed`` (given), ``auto`` (:func:`auto_level`) or ``fallback`` (auto, no opaque ray: the default)."""
-    opaque_rays: int = 0
-    """Input rays with opacity > :data:`OPAQUE` (auto rules only)."""
-    rays: int = 0
-    """Input rays examined (auto rules only)."""
-
-    def describe(self) -> str:
-        """One line for records (summary, manifest)."""
-        if self.rule == "fixed":
-            return f"fixed density level {self.level:g}"
-        if self.rule == "fallback":
-            return (f"auto level: no opaque input ray (0 of {self.rays}), fell back to density {self.level:g}")
-        return (f"auto level {self.level:.4g} = 0.5 x median peak density over {self.opaque_rays} of {self.rays} "
-                f"opaque input rays")
-
-
-def parse_level(text: str) -> float | str:
-    """``--mesh-threshold`` value: a positive number or ``auto``."""
-    if text.strip().lower() == AUTO_LEVEL:
-        return AUTO_LEVEL
-    try:
-        value = float(text)
-    except ValueError:
-        raise DepthnerfError(f"--mesh-threshold: expected a number or 'auto', got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise DepthnerfError(f"--mesh-threshold: must be a positive number or 'auto', got {text!r}")
-    return value
-
-
-def auto_level(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float, far: float,
-               samples: int = AUTO_SAMPLES, chunk: int = 65536, device: torch.device | str = "cpu",
-               ray_stride: int = 2) -> MeshLevel:
-    """Half the median peak density over the opaque rays of the camera ``(c2w, intr)`` (module docstring); the
-    rays of every ``ray_stride``-th pixel row and column (a median needs no more, and it is 4x cheaper)."""
-    if not 0 < near < far or samples < 1:
-        raise DepthnerfError(f"auto mesh level: need 0 < near < far and samples >= 1, got {near}, {far}, {samples}")
-    origins, dirs = camera_rays(torch.as_tensor(c2w, dtype=torch.float32), intr)
-    origins, dirs = origins[::ray_stride, ::ray_stride], dirs[::ray_stride, ::ray_stride]
-    origins, dirs = origins.reshape(-1, 3).to(device), dirs.reshape(-1, 3).to(device)
-    delta = (far - near) / samples
-    t = near + (torch.arange(samples, device=device, dtype=torch.float32) + 0.5) * delta  # bin midpoints
-
-    def points_of(start: int, stop: int) -> Tensor:
-        flat = torch.arange(start, stop, device=device)
-        ray, k = flat // samples, flat % samples
-        return origins[ray] + t[k, None] * dirs[ray]
-
-    rays = len(dirs)
-    sigma = _query_chunks(density_fn, points_of, rays * samples, chunk, 1, "density_fn").reshape(rays, samples)
-    opacity = 1.0 - np.exp(-np.clip(sigma, 0, None).astype(np.float64).sum(1) * delta)
-    opaque = opacity > OPAQUE
-    if not opaque.any():
-        return MeshLevel(DEFAULT_THRESHOLD, "fallback", 0, rays)
-    return MeshLevel(0.5 * float(np.median(sigma.max(1)[opaque])), "auto", int(opaque.sum()), rays)
-
-
 def source_mesh(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float, far: float,
                 config: MeshConfig = MeshConfig(), color_fn: ColorFn | None = None,
-                device: torch.device | str = "cpu") -> tuple[trimesh.Trimesh, MeshLevel]:
+                device: torch.device | str = "cpu", mask: Bool[np.ndarray, "H W"] | None = None
+                ) -> tuple[trimesh.Trimesh, MeshLevel]:
     """The mesh over the frustum box of the (input) camera ``(c2w, intr)`` between ``near`` and ``far``, at
-    ``config.threshold`` (a number, or ``"auto"`` resolved by :func:`auto_level` along that camera's rays)."""
-    if config.threshold == AUTO_LEVEL:
-        level = auto_level(density_fn, c2w, intr, near, far, chunk=config.chunk, device=device)
-    elif isinstance(config.threshold, int | float):
-        level = MeshLevel(float(config.threshold), "fixed")
-    else:
-        raise DepthnerfError(f"mesh level must be a number or 'auto', got {config.threshold!r}")
+    ``config.threshold`` (a number, or a rule of :mod:`depthnerf.render.mesh_level` resolved along that camera's
+    rays; ``mask``, the camera's object mask, is the ``silhouette`` rule's target)."""
+    level, surface_fn, value = level_surface(config.threshold, density_fn, c2w, intr, near, far, config.chunk,
+                                             device, mask)
     grid = CameraGrid.from_frustum(c2w, intr, near, far)
-    mesh = extract_mesh(density_fn, grid, replace(config, threshold=level.level), color_fn, device)
+    mesh = extract_mesh(surface_fn, grid, replace(config, threshold=value), color_fn, device)
     return mesh, level
-
-
-def levels_text(levels: list[MeshLevel], resolution: int) -> str:
-    """How several meshes were extracted, for ``summary.json`` ``mesh_status``."""
-    grid = f"on a {resolution}-sample frustum grid"
-    if not levels:
-        return "no mesh"
-    if all(lv.rule == "fixed" for lv in levels):
-        return f"marching cubes at fixed density level {levels[0].level:g} {grid}"
-    values = [lv.level for lv in levels]
-    fallback = sum(lv.rule == "fallback" for lv in levels)
-    return (f"marching cubes {grid} at the auto level per object (0.5 x median peak density over opaque input rays; "
-            f"per_object.csv mesh_level): median {float(np.median(values)):.4g}, range {min(values):.4g}-"
-            f"{max(values):.4g}"
-            + (f"; {fallback} object(s) without an opaque ray fell back to {DEFAULT_THRESHOLD:g}" if fallback else ""))
 
 
 MESH_KEEP = ("all", "largest")
@@ -370,9 +253,10 @@ def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"],
 
 def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,
                       far: float, config: MeshConfig, device: torch.device | str, colored: bool = True,
-                      runtime: FieldRuntime | None = None) -> tuple[trimesh.Trimesh, MeshLevel]:
+                      runtime: FieldRuntime | None = None, mask: Bool[np.ndarray, "H W"] | None = None
+                      ) -> tuple[trimesh.Trimesh, MeshLevel]:
     """The mesh over the input camera's frustum box (fine network density, each point seen along the input
     camera's ray through it), with the network's colour at each vertex when ``colored``; the field runs as
-    ``runtime`` says (None: the default)."""
+    ``runtime`` says (None: the default); ``mask``: the input's object mask (the ``silhouette`` level's target)."""
     density_fn, color_fn = field_queries(model, enc, c2w[:3, 3].to(device), runtime)
-    return source_mesh(density_fn, c2w, intr, near, far, config, color_fn if colored else None, device)
+    return source_mesh(density_fn, c2w, intr, near, far, config, color_fn if colored else None, device, mask)

@@ -1,0 +1,183 @@
+"""The silhouette mesh level (depthnerf.render.mesh_level): the IoU search against a brute-force loop over every
+candidate level, a closed form on a constant ball, and the case it exists for: thin parts that render opaque but
+peak below half the typical density (a table's legs) are kept, where the auto level drops them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from depthnerf.data.cameras import Intrinsics, look_at
+from depthnerf.errors import DepthnerfError
+from depthnerf.render.mesh import MeshConfig, source_mesh
+from depthnerf.render.mesh_level import (
+    DEFAULT_THRESHOLD,
+    auto_level,
+    input_ray_densities,
+    levels_text,
+    silhouette_choice,
+    silhouette_level,
+)
+
+INTR = Intrinsics(focal=96.0, cx=31.5, cy=31.5, height=64, width=64)
+NEAR, FAR = 1.0, 3.0
+
+
+def _camera(azimuth: float = 0.3, elevation: float = 0.4) -> torch.Tensor:
+    eye = 2.0 * torch.tensor([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                              np.sin(elevation)], dtype=torch.float32)
+    return look_at(eye)
+
+
+def brute_force_iou(peak: np.ndarray, opaque: np.ndarray, level: float) -> float:
+    """IoU of {peak > level} with the opaque rays, one ray at a time."""
+    inter = union = 0
+    for p, o in zip(peak, opaque, strict=True):
+        inside = p > level
+        inter += int(inside and o)
+        union += int(inside or o)
+    return inter / union
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_silhouette_choice_is_the_best_level_of_a_brute_force_search(seed):
+    rng = np.random.default_rng(seed)
+    rays = 40
+    peak = np.round(rng.gamma(2.0, 3.0, rays), 1)  # rounding makes ties between rays
+    opaque = rng.random(rays) < np.clip(peak / peak.max() + rng.normal(0, 0.2, rays), 0, 1)
+    opaque[np.argmax(peak)] = True  # at least one opaque ray
+    level, iou = silhouette_choice(peak, opaque)
+    values = np.unique(peak)
+    candidates = np.concatenate([[0.0], (values[:-1] + values[1:]) / 2, [values[-1] + 1.0]])  # every distinct set
+    best = max(brute_force_iou(peak, opaque, c) for c in candidates)
+    assert iou == pytest.approx(best, abs=1e-12)
+    assert brute_force_iou(peak, opaque, level) == pytest.approx(iou, abs=1e-12)  # the level keeps what it says
+    assert all(brute_force_iou(peak, opaque, c) < best - 1e-12 for c in candidates if c > level)  # highest maximiser
+
+
+def test_silhouette_level_of_a_constant_ball_is_half_its_density():
+    def density(p: torch.Tensor) -> torch.Tensor:
+        return torch.where(p.norm(dim=-1) < 0.5, torch.tensor(7.0), torch.tensor(0.0))
+
+    c2w = _camera()
+    level = silhouette_level(density, c2w, INTR, NEAR, FAR)
+    peak, opacity = input_ray_densities(density, c2w, INTR, NEAR, FAR, ray_stride=1)
+    hit, opaque = peak > 0, opacity > 0.5
+    assert level.rule == "silhouette" and level.level == pytest.approx(3.5)  # midpoint of the peaks 7 and 0
+    assert level.iou == pytest.approx(opaque.sum() / hit.sum())  # every hit ray kept; the grazing ones are not opaque
+    assert level.opaque_rays == level.target_rays == opaque.sum() and level.rays == 64 * 64  # every pixel's ray
+    assert level.describe().startswith("silhouette level 3.5: its input-view silhouette matches the opaque input rays")
+    assert "silhouette level per object" in levels_text([level], 48)
+
+
+def table(top: float = 40.0, legs: float = 8.0):
+    """A top (0.6 x 0.6 x 0.2, density ``top``) on four legs (radius 0.08, 0.4 long, density ``legs``), world z up."""
+    def density(p: torch.Tensor) -> torch.Tensor:
+        x, y, z = p.unbind(-1)
+        board = (x.abs() < 0.3) & (y.abs() < 0.3) & (z > 0) & (z < 0.2)
+        near_leg = ((x.abs() - 0.22) ** 2 + (y.abs() - 0.22) ** 2 < 0.08**2) & (z > -0.4) & (z <= 0)
+        return torch.where(board, torch.tensor(top), torch.where(near_leg, torch.tensor(legs), torch.tensor(0.0)))
+    return density
+
+
+def test_thin_opaque_legs_are_kept_by_the_silhouette_level_and_dropped_by_auto():
+    density, c2w = table(), _camera()
+    peak, opacity = input_ray_densities(density, c2w, INTR, NEAR, FAR, ray_stride=1)
+    legs_opaque = ((peak == 8.0) & (opacity > 0.5)).sum()
+    assert legs_opaque > 20  # the legs render opaque on many rays ...
+    auto = auto_level(density, c2w, INTR, NEAR, FAR)
+    assert auto.level == pytest.approx(20.0)  # ... but peak at 8 < half the top's 40
+    silhouette = silhouette_level(density, c2w, INTR, NEAR, FAR)
+    assert silhouette.level < 8.0 and silhouette.iou > 0.9
+    lowest = {}
+    for rule in ("auto", "silhouette"):
+        mesh, used = source_mesh(density, c2w, INTR, NEAR, FAR, MeshConfig(96, rule))
+        assert used.rule == rule and len(mesh.faces) > 0
+        lowest[rule] = mesh.vertices[:, 2].min()
+    assert lowest["auto"] > -0.05  # the top alone
+    assert lowest["silhouette"] < -0.35  # the legs down to their feet at z = -0.4
+
+
+def test_soft_legs_are_kept_when_the_target_is_the_input_mask():
+    density, c2w = table(legs=1.5), _camera()  # legs render half-transparent: 1.5 x (2 legs x 0.17) < ln 2
+    peak, opacity = input_ray_densities(density, c2w, INTR, NEAR, FAR, ray_stride=1)
+    assert not ((peak == 1.5) & (opacity > 0.5)).any()
+    without = silhouette_level(density, c2w, INTR, NEAR, FAR)
+    mask = (peak > 0).reshape(64, 64)  # the object's true silhouette: every ray that meets it
+    with_mask = silhouette_level(density, c2w, INTR, NEAR, FAR, mask)
+    assert without.level > 1.5 and with_mask.level < 1.5  # the rendered silhouette has no legs; the mask has
+    assert (with_mask.target, with_mask.target_rays, with_mask.iou) == ("mask", mask.sum(), pytest.approx(1.0))
+    assert "matches the input's mask" in with_mask.describe()
+    mesh, used = source_mesh(density, c2w, INTR, NEAR, FAR, MeshConfig(96, "silhouette"), mask=mask)
+    assert used == with_mask and mesh.vertices[:, 2].min() < -0.35
+    with pytest.raises(DepthnerfError, match="mask is 32x32 but the camera is 64x64"):
+        silhouette_level(density, c2w, INTR, NEAR, FAR, mask[::2, ::2])
+    empty = silhouette_level(density, c2w, INTR, NEAR, FAR, np.zeros_like(mask))
+    assert (empty.rule, empty.level) == ("fallback", DEFAULT_THRESHOLD)
+    assert empty.describe() == "silhouette level: the input's mask is empty, fell back to density 20"
+
+
+def test_a_haze_that_does_not_render_opaque_stays_out():
+    def density(p: torch.Tensor) -> torch.Tensor:
+        ball = torch.where(p.norm(dim=-1) < 0.4, torch.tensor(30.0), torch.tensor(0.0))
+        return ball + 0.3  # opacity of the haze alone over the 2-unit ray: 1 - e^-0.6 = 45% < 50%
+
+    c2w = _camera()
+    level = silhouette_level(density, c2w, INTR, NEAR, FAR)
+    assert 0.3 < level.level < 30.3
+    assert level.iou == pytest.approx(1.0)  # rays through the ball and only those
+
+
+def test_silhouette_level_falls_back_without_opaque_rays():
+    level = silhouette_level(lambda p: torch.full((len(p),), 0.1), _camera(), INTR, NEAR, FAR)
+    assert (level.level, level.rule, level.iou) == (DEFAULT_THRESHOLD, "fallback", None)
+
+
+def ball_and_rod(hard: bool = False):
+    """A ball (radius 0.3, density 5, logistic edge of width 0.02 unless ``hard``) above a faint rod (radius 0.1,
+    density 2, z from -0.6 to -0.25: at most 1 - e^-(2 x 0.2) = 33% opaque)."""
+    def density(p: torch.Tensor) -> torch.Tensor:
+        r = p.norm(dim=-1)
+        ball = 5.0 * ((r < 0.3).float() if hard else torch.sigmoid((0.3 - r) / 0.02))
+        x, y, z = p.unbind(-1)
+        rod = 2.0 * ((x**2 + y**2 < 0.1**2) & (z > -0.6) & (z < -0.25)).float()
+        return ball + rod
+    return density
+
+
+def test_local_level_keeps_the_faint_rod_and_the_half_maximum_sphere():
+    c2w = _camera(elevation=0.0)
+    hard_peak, _ = input_ray_densities(ball_and_rod(hard=True), c2w, INTR, NEAR, FAR, ray_stride=1)
+    mask = (hard_peak > 0).reshape(64, 64)  # the true silhouette: ball and rod
+    density, eye = ball_and_rod(), c2w[:3, 3].double().numpy()
+    meshes = {rule: source_mesh(density, c2w, INTR, NEAR, FAR, MeshConfig(128, rule), mask=mask)
+              for rule in ("auto", "silhouette", "local")}
+    level = meshes["local"][1]
+    assert level.rule == "local" and level.level == pytest.approx(2.5, rel=0.01)  # the auto level, as auto finds it
+    assert level.level == pytest.approx(meshes["auto"][1].level) and level.floor == pytest.approx(
+        meshes["silhouette"][1].level) and level.floor < 2.0  # the silhouette level lets the rod in
+    assert "within" in level.describe() and "local level per object" in levels_text([level], 128)
+    front = {}
+    for rule, (mesh, _) in meshes.items():
+        v = np.asarray(mesh.vertices)
+        front[rule] = np.linalg.norm(v - eye, axis=1).min()  # nearest surface point: the sphere's front
+        assert (v[:, 2].min() < -0.5) == (rule != "auto"), rule  # the rod, below the ball
+    def radius(level: float) -> float:  # where 5 sigmoid((0.3 - r) / 0.02) = level
+        return 0.3 + 0.02 * np.log(5.0 / level - 1.0)
+
+    distance = np.linalg.norm(eye)
+    assert front["auto"] == pytest.approx(distance - radius(meshes["auto"][1].level), abs=0.002)
+    assert front["local"] == pytest.approx(distance - radius(level.level), abs=0.002)  # as tight as auto ...
+    assert front["silhouette"] == pytest.approx(distance - radius(level.floor), abs=0.002)
+    assert front["silhouette"] < front["local"] - 0.005  # ... where one low level inflates the ball
+
+
+def test_local_level_falls_back_and_checks_the_mask():
+    from depthnerf.render.mesh_level import local_surface
+
+    flat = lambda p: torch.full((len(p),), 0.1)  # noqa: E731 - opacity 1 - e^-0.2: no opaque ray
+    level, fn, value = local_surface(flat, _camera(), INTR, NEAR, FAR)
+    assert (level.rule, level.level, value) == ("fallback", DEFAULT_THRESHOLD, DEFAULT_THRESHOLD) and fn is flat
+    with pytest.raises(DepthnerfError, match="mask has 1024 pixels but the camera has 4096"):
+        local_surface(ball_and_rod(), _camera(), INTR, NEAR, FAR, np.ones((32, 32), bool))
