@@ -181,3 +181,32 @@ def test_local_level_falls_back_and_checks_the_mask():
     assert (level.rule, level.level, value) == ("fallback", DEFAULT_THRESHOLD, DEFAULT_THRESHOLD) and fn is flat
     with pytest.raises(DepthnerfError, match="mask has 1024 pixels but the camera has 4096"):
         local_surface(ball_and_rod(), _camera(), INTR, NEAR, FAR, np.ones((32, 32), bool))
+
+
+def test_local_level_field_is_the_formula_at_pixel_centres():
+    from depthnerf.data.cameras import camera_rays
+    from depthnerf.render.mesh_level import local_surface
+
+    c2w = _camera(elevation=0.0)
+    hard_peak, _ = input_ray_densities(ball_and_rod(hard=True), c2w, INTR, NEAR, FAR, ray_stride=1)
+    mask = (hard_peak > 0).reshape(64, 64)
+    soft = ball_and_rod()
+
+    def density(p: torch.Tensor) -> torch.Tensor:
+        return soft(p) + 0.1  # a haze everywhere, so sigma / l is informative on background rays too
+
+    level, fn, value = local_surface(density, c2w, INTR, NEAR, FAR, mask)
+    peak, _ = input_ray_densities(density, c2w, INTR, NEAR, FAR, ray_stride=1)
+    peak = peak.reshape(64, 64)
+    origins, dirs = camera_rays(c2w, INTR)
+    z_axis = c2w[:3, 2]
+    for i, j in [(2, 3), (60, 5), (31, 31), *zip(*np.nonzero(mask & (peak < 2.3)), strict=True)]:
+        depth = 1.7  # camera z of the probe point on pixel (i, j)'s ray
+        point = origins[i, j] + dirs[i, j] * depth / float(dirs[i, j] @ z_axis)
+        if mask[i, j]:
+            expected = min(max(0.5 * peak[i, j], level.floor), level.level)
+        else:
+            expected = level.level  # background: the auto level, whatever the ray's peak
+        got = float(fn(point[None])[0])
+        assert got == pytest.approx(float(density(point[None])[0]) / expected, rel=1e-4), (i, j)
+    assert value == 1.0 and mask.sum() > (mask & (peak < 2.3)).sum() > 0  # some rod rays were probed

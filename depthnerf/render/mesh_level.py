@@ -34,14 +34,16 @@ silhouette of the object seen from the input camera.
 
 ``local`` (:data:`LOCAL_LEVEL`, :func:`local_surface`)
     **the half-maximum along each input ray, between the silhouette level and the auto level**: the level at a
-    point ``x`` is ``l(x) = clip(0.5 peak(x), L_silhouette, L_auto)``, ``peak(x)`` the peak density of the input
-    ray through ``x`` (the per-pixel peaks of ``silhouette``, bilinear between pixel centres; pixels outside the
-    image read the nearest border pixel), and the mesh is the surface ``sigma(x) = l(x)``, extracted as the level
-    1 of ``sigma / l``. A ray through a dense part (a seat; peak at least twice ``auto``'s level) gets ``auto``'s
-    level (the same rays and samples as ``auto``); a ray through a fainter part (a leg) gets that part's own
-    half-maximum, never below the silhouette level. So the outline seen from the input camera is the silhouette
-    rule's, and the surface along each ray is as tight as its half-maximum. :class:`MeshLevel` records ``L_auto``
-    as ``level`` and ``L_silhouette`` (or ``L_auto`` when lower) as ``floor``.
+    point ``x`` is ``l(x) = clip(0.5 peak(x), L_silhouette, L_auto)`` on the target's rays (the input's mask, else
+    the opaque rays) and ``L_auto`` on the others, ``peak(x)`` being the peak density of the input ray through
+    ``x`` (the per-pixel peaks of ``silhouette``; ``l`` is bilinear between pixel centres, and pixels outside the
+    image read the nearest border pixel). The mesh is the surface ``sigma(x) = l(x)``, extracted as the level 1 of
+    ``sigma / l``. Where the input sees background, nothing looser than ``auto`` is extracted. A ray through a
+    dense part (a seat; peak at least twice ``auto``'s level) gets ``auto``'s level, from the same rays and
+    samples as ``auto``. A ray through a fainter part (a leg) gets that part's own half-maximum, never below the
+    silhouette level. So the outline seen from the input camera follows the mask, and the surface along each ray
+    is as tight as its half-maximum. :class:`MeshLevel` records ``L_auto`` as ``level`` and ``L_silhouette`` (or
+    ``L_auto`` when lower) as ``floor``.
 
 When no ray is opaque (``silhouette`` and ``local`` with a mask: also when the mask is empty) the rules fall back
 to :data:`DEFAULT_THRESHOLD` and :class:`MeshLevel` says so.
@@ -245,7 +247,7 @@ def local_surface(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Intrin
     top = 0.5 * float(np.median(auto_rays[0][auto_rays[1]])) if auto_rays[1].any() else 0.5 * float(np.median(peak[opaque]))
     silhouette, iou = silhouette_choice(peak, target)
     floor = min(silhouette, top)
-    level_map = np.clip(0.5 * peak, floor, top).reshape(1, 1, *grid)
+    level_map = np.where(target, np.clip(0.5 * peak, floor, top), top).reshape(1, 1, *grid)  # background: auto
     levels = torch.as_tensor(level_map, dtype=torch.float32, device=device)
     pose = torch.as_tensor(c2w, dtype=torch.float32, device=device)
     scale = torch.tensor([2.0 / max(intr.width - 1, 1), 2.0 / max(intr.height - 1, 1)], device=device)
