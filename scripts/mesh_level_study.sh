@@ -21,7 +21,8 @@ one_eval() {
   set -euo pipefail
   local cat=$1 rule=$2 ev="$OUT/eval/$1-$2"
   [ -f "$ev/summary.json" ] || depthnerf eval --checkpoint "cpu-$cat-sym-pp" --data "$OUT/data" --views-stride 25 \
-    --save-renders --mesh-threshold "$rule" --out "$ev" --no-progress > "$OUT/logs/$cat-$rule.log" 2>&1
+    --save-renders --mesh-threshold "$rule" --method "cpu-$cat-sym-pp, $rule mesh level" --out "$ev" --no-progress \
+    > "$OUT/logs/$cat-$rule.log" 2>&1
   echo "$cat $rule done"
 }
 export -f one_eval
