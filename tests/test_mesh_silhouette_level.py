@@ -111,7 +111,7 @@ def test_soft_legs_are_kept_when_the_target_is_the_input_mask():
     assert "matches the input's mask" in with_mask.describe()
     mesh, used = source_mesh(density, c2w, INTR, NEAR, FAR, MeshConfig(96, "silhouette"), mask=mask)
     assert used == with_mask and mesh.vertices[:, 2].min() < -0.35
-    with pytest.raises(DepthnerfError, match="mask is 32x32 but the camera is 64x64"):
+    with pytest.raises(DepthnerfError, match="mesh level: mask is 32x32 but the camera is 64x64"):
         silhouette_level(density, c2w, INTR, NEAR, FAR, mask[::2, ::2])
     empty = silhouette_level(density, c2w, INTR, NEAR, FAR, np.zeros_like(mask))
     assert (empty.rule, empty.level) == ("fallback", DEFAULT_THRESHOLD)
@@ -179,7 +179,7 @@ def test_local_level_falls_back_and_checks_the_mask():
     flat = lambda p: torch.full((len(p),), 0.1)  # noqa: E731 - opacity 1 - e^-0.2: no opaque ray
     level, fn, value = local_surface(flat, _camera(), INTR, NEAR, FAR)
     assert (level.rule, level.level, value) == ("fallback", DEFAULT_THRESHOLD, DEFAULT_THRESHOLD) and fn is flat
-    with pytest.raises(DepthnerfError, match="mask has 1024 pixels but the camera has 4096"):
+    with pytest.raises(DepthnerfError, match="mesh level: mask is 32x32 but the camera is 64x64"):
         local_surface(ball_and_rod(), _camera(), INTR, NEAR, FAR, np.ones((32, 32), bool))
 
 

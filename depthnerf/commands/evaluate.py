@@ -1,8 +1,8 @@
 """``depthnerf eval``: evaluate a run or checkpoint by the SRN protocol (see :mod:`depthnerf.eval.protocol`).
 
 ``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
-[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M] [--mesh-threshold auto|silhouette|local|X]
-[--save-renders] [--ssim uniform7|gaussian11|gaussian11-zeropad] [--scored png8|float] [--objects pixelnerf|all]
+[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M]
+[--mesh-threshold auto|silhouette|local|X] [--save-renders] [--ssim uniform7|gaussian11|gaussian11-zeropad] [--scored png8|float] [--objects pixelnerf|all]
 [--overwrite] [--strict]``
 
 Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``

@@ -117,11 +117,11 @@ class MeshLevel:
     rays: int = 0
     """Input rays examined (rules only)."""
     iou: float | None = None
-    """``silhouette`` only: IoU of the level surface's input-view silhouette with the target rays."""
+    """``silhouette`` and ``local``: IoU of the silhouette level surface's input-view outline with the target rays."""
     target: str = ""
-    """``silhouette`` only: ``mask`` (the input's object mask) or ``opaque`` (the rendered silhouette)."""
+    """``silhouette`` and ``local``: ``mask`` (the input's object mask) or ``opaque`` (the rendered silhouette)."""
     target_rays: int = 0
-    """``silhouette`` only: rays in the target silhouette."""
+    """``silhouette`` and ``local``: rays in the target silhouette."""
     floor: float | None = None
     """``local`` only: the silhouette level, the lowest level along any ray (``level`` is the highest)."""
 
@@ -148,12 +148,13 @@ def parse_level(text: str) -> float | str:
     """``--mesh-threshold`` value: a positive number or a rule of :data:`LEVEL_RULES`."""
     if text.strip().lower() in LEVEL_RULES:
         return text.strip().lower()
+    rules = ", ".join(LEVEL_RULES)
     try:
         value = float(text)
     except ValueError:
-        raise DepthnerfError(f"--mesh-threshold: expected a number or one of {', '.join(LEVEL_RULES)}, got {text!r}") from None
+        raise DepthnerfError(f"--mesh-threshold: expected a number or one of {rules}, got {text!r}") from None
     if not (math.isfinite(value) and value > 0):
-        raise DepthnerfError(f"--mesh-threshold: must be a positive number or one of {', '.join(LEVEL_RULES)}, got {text!r}")
+        raise DepthnerfError(f"--mesh-threshold: must be a positive number or one of {rules}, got {text!r}")
     return value
 
 
@@ -191,7 +192,25 @@ def auto_level(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Intrinsic
     opaque = opacity > OPAQUE
     if not opaque.any():
         return MeshLevel(DEFAULT_THRESHOLD, "fallback", 0, len(peak))
-    return MeshLevel(0.5 * float(np.median(peak[opaque])), AUTO_LEVEL, int(opaque.sum()), len(peak))
+    return MeshLevel(half_median(peak, opaque), AUTO_LEVEL, int(opaque.sum()), len(peak))
+
+
+def half_median(peak: Float[np.ndarray, "*R"], opaque: Bool[np.ndarray, "*R"]) -> float:
+    """The ``auto`` level of these rays: half the median peak over the opaque ones (at least one)."""
+    return 0.5 * float(np.median(peak[opaque]))
+
+
+def silhouette_target(mask: Bool[np.ndarray, "H W"] | None, opaque: Bool[np.ndarray, " R"], intr: Intrinsics,
+                      ray_stride: int) -> tuple[Bool[np.ndarray, " R"], str]:
+    """``(target, name)``: the rays of every ``ray_stride``-th pixel that ``mask`` (the camera's object mask)
+    covers, ``"mask"``; without a mask the ``opaque`` rays, ``"opaque"``."""
+    if mask is None:
+        return opaque, "opaque"
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != (intr.height, intr.width):
+        raise DepthnerfError(f"mesh level: mask is {mask.shape[0]}x{mask.shape[1]} "
+                             f"but the camera is {intr.height}x{intr.width}")
+    return mask[::ray_stride, ::ray_stride].reshape(-1), "mask"
 
 
 def silhouette_choice(peak: Float[np.ndarray, " R"], opaque: np.ndarray) -> tuple[float, float]:
@@ -216,14 +235,7 @@ def silhouette_level(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Int
     opaque rays of ``(c2w, intr)`` without one (module docstring)."""
     peak, opacity = input_ray_densities(density_fn, c2w, intr, near, far, samples, chunk, device, ray_stride)
     opaque = opacity > OPAQUE
-    if mask is None:
-        target, name = opaque, "opaque"
-    else:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != (intr.height, intr.width):
-            raise DepthnerfError(f"silhouette mesh level: mask is {mask.shape[0]}x{mask.shape[1]} "
-                                 f"but the camera is {intr.height}x{intr.width}")
-        target, name = mask[::ray_stride, ::ray_stride].reshape(-1), "mask"
+    target, name = silhouette_target(mask, opaque, intr, ray_stride)
     if not target.any():
         return MeshLevel(DEFAULT_THRESHOLD, "fallback", int(opaque.sum()), len(peak), None, name, 0)
     level, iou = silhouette_choice(peak, target)
@@ -237,14 +249,12 @@ def local_surface(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Intrin
     level 1; the rules' fallback ``(fallback level, density_fn, DEFAULT_THRESHOLD)`` without an opaque ray."""
     peak, opacity = input_ray_densities(density_fn, c2w, intr, near, far, samples, chunk, device, ray_stride=1)
     opaque = opacity > OPAQUE
-    target = opaque if mask is None else np.asarray(mask, dtype=bool).reshape(-1)
-    if len(target) != len(peak):
-        raise DepthnerfError(f"local mesh level: mask has {len(target)} pixels but the camera has {len(peak)}")
+    target, name = silhouette_target(mask, opaque, intr, 1)
     if not opaque.any() or not target.any():
         return MeshLevel(DEFAULT_THRESHOLD, "fallback", int(opaque.sum()), len(peak)), density_fn, DEFAULT_THRESHOLD
     grid = (intr.height, intr.width)
-    auto_rays = (peak.reshape(grid)[::2, ::2], opaque.reshape(grid)[::2, ::2])  # auto_level's rays
-    top = 0.5 * float(np.median(auto_rays[0][auto_rays[1]])) if auto_rays[1].any() else 0.5 * float(np.median(peak[opaque]))
+    auto_peak, auto_opaque = peak.reshape(grid)[::2, ::2], opaque.reshape(grid)[::2, ::2]  # auto_level's rays
+    top = half_median(auto_peak, auto_opaque) if auto_opaque.any() else half_median(peak, opaque)
     silhouette, iou = silhouette_choice(peak, target)
     floor = min(silhouette, top)
     level_map = np.where(target, np.clip(0.5 * peak, floor, top), top).reshape(1, 1, *grid)  # background: auto
@@ -253,13 +263,12 @@ def local_surface(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Intrin
     scale = torch.tensor([2.0 / max(intr.width - 1, 1), 2.0 / max(intr.height - 1, 1)], device=device)
 
     def scaled(points: Tensor) -> Tensor:
-        uv = project(world_to_camera(points, pose), intr.focal, (intr.cx, intr.cy))  # pixel (i, j) at (u, v) = (j, i)
-        grid = (uv * scale - 1.0).reshape(1, 1, -1, 2)
-        at = torch.nn.functional.grid_sample(levels, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        uv = project(world_to_camera(points, pose), intr.focal, (intr.cx, intr.cy))  # pixel (i, j): (u, v) = (j, i)
+        at = torch.nn.functional.grid_sample(levels, (uv * scale - 1.0).reshape(1, 1, -1, 2), mode="bilinear",
+                                             padding_mode="border", align_corners=True)
         return torch.as_tensor(density_fn(points)).reshape(-1) / at.reshape(-1)
 
-    level = MeshLevel(top, LOCAL_LEVEL, int(opaque.sum()), len(peak), iou, "opaque" if mask is None else "mask",
-                      int(target.sum()), floor)
+    level = MeshLevel(top, LOCAL_LEVEL, int(opaque.sum()), len(peak), iou, name, int(target.sum()), floor)
     return level, scaled, 1.0
 
 
@@ -282,6 +291,17 @@ def level_surface(threshold: float | str, density_fn: DensityFn, c2w: Float[Tens
     return level, density_fn, level.level
 
 
+RULE_TEXTS = (
+    (LOCAL_LEVEL, "the local level per object (half the peak density along each input ray, between the silhouette "
+                  "and the auto level; per_object.csv mesh_level: the auto level"),
+    (SILHOUETTE_LEVEL, "the silhouette level per object (input-view silhouette of the surface matched to the "
+                       "input's mask or the opaque input rays"),
+    (AUTO_LEVEL, "the auto level per object (0.5 x median peak density over opaque input rays"),
+)
+"""How :func:`levels_text` names the rule of a set of meshes: the first listed that any of them used (``auto``
+for fixed and fallback levels mixed with it)."""
+
+
 def levels_text(levels: list[MeshLevel], resolution: int) -> str:
     """How several meshes were extracted, for ``summary.json`` ``mesh_status``."""
     grid = f"on a {resolution}-sample frustum grid"
@@ -290,11 +310,7 @@ def levels_text(levels: list[MeshLevel], resolution: int) -> str:
     if all(lv.rule == "fixed" for lv in levels):
         return f"marching cubes at fixed density level {levels[0].level:g} {grid}"
     rules = {lv.rule for lv in levels}
-    rule = ("the local level per object (half the peak density along each input ray, between the silhouette and "
-            "the auto level; per_object.csv mesh_level: the auto level" if LOCAL_LEVEL in rules else
-            "the silhouette level per object (input-view silhouette of the surface matched to the input's mask "
-            "or the opaque input rays" if SILHOUETTE_LEVEL in rules
-            else "the auto level per object (0.5 x median peak density over opaque input rays")
+    rule = next(text for name, text in RULE_TEXTS if name in rules or name == AUTO_LEVEL)
     values = [lv.level for lv in levels]
     fallback = sum(lv.rule == "fallback" for lv in levels)
     return (f"marching cubes {grid} at {rule}; per_object.csv mesh_level): median {float(np.median(values)):.4g}, "
