@@ -254,8 +254,14 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              *(["- Depth prior at the point (beyond the paper, `--model.prior_at_point true`): the MLP input also "
                 "gets the normalised prior read at full resolution at each point's projection"
                 + (" and at its mirror image's" if m.mirror else "") + "."] if m.prior_at_point else []),
-             f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}, {s.objects_phase1}/{s.objects_phase2} objects x "
-             f"{s.rays_per_object} rays per step, bbox sampling for {s.bbox_steps} steps; seed {cfg.seed}.",
+             f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}"
+             + (f" with a half-cosine decay to {s.lr_final:g}" if s.lr_schedule == "cosine" else "")
+             + f", {s.objects_phase1}/{s.objects_phase2} objects x {s.rays_per_object} rays per step, bbox sampling "
+             f"for {s.bbox_steps} steps; seed {cfg.seed}.",
+             *([f"- Warm start (`--init-from`): these steps continue from the network weights of "
+                f"`{card['init_from']['source']}` (step {card['init_from']['step']}, sha256 "
+                f"`{card['init_from']['sha256'][:16]}...`), with a fresh optimiser and schedule."]
+               if card.get("init_from") else []),
              "- Full config: the `train_config` entry of the weights' metadata "
              f"(`depthnerf train --preset {cfg.preset} --print-config` prints the preset).", "",
              "## Evaluation", ""]
@@ -357,6 +363,9 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     if ds:
         card.update(framing=card_framing(ds), generator=ds.get("generator"))
     card["pixel_center"] = cfg.data.pixel_center
+    if (run / "init_from.json").is_file():
+        warm = _read_json(run / "init_from.json", "run warm-start record")
+        card["init_from"] = {"source": warm.get("source"), "step": warm.get("step"), "sha256": warm.get("sha256")}
     if summary is not None:
         card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
         card["protocol"] = summary["protocol"]

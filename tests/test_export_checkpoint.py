@@ -7,6 +7,7 @@ Runs are tiny random models written by the training checkpoint writer (``fixture
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -211,3 +212,16 @@ def test_fix_cards_rewrites_paths_not_weights(exporter, run, tmp_path):
     assert "/work/" not in new_md and "see study/eval/cars-bundled/summary.json" in new_md
     assert "generator `depthnerf-synth-1/test`, framing `legacy`" in new_md and "--seed 0 --framing legacy" in new_md
     assert sha256_file(res.weights) == weights_sha
+
+
+def test_card_of_a_warm_started_run_names_its_source(exporter, run, tmp_path):
+    warm = tmp_path / "warm-run"
+    shutil.copytree(run, warm)
+    plain = exporter.export(warm, "cpu-cars-depth", tmp_path / "plain")
+    assert "init_from" not in plain.card and "Warm start" not in plain.card_md.read_text()
+    record = {"source": "cpu-cars-sym-pp", "path": "/x/cpu-cars-sym-pp.safetensors", "sha256": "ab" * 32, "step": 3500}
+    (warm / "init_from.json").write_text(json.dumps(record))
+    res = exporter.export(warm, "cpu-cars-depth", tmp_path / "ship")
+    assert res.card["init_from"] == {"source": "cpu-cars-sym-pp", "step": 3500, "sha256": "ab" * 32}
+    assert "continue from the network weights of `cpu-cars-sym-pp` (step 3500, sha256 `abababababababab...`)" \
+        in res.card_md.read_text()

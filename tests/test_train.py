@@ -25,7 +25,7 @@ from depthnerf.config_io import apply_overrides, to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, sample_pixels, step_keys
-from depthnerf.train.config import preset, with_prior
+from depthnerf.train.config import check_config, preset, with_prior
 from depthnerf.train.loop import learning_rate
 from depthnerf.train.run_log import read_launches, read_metrics
 from depthnerf.train.step import background_opacity_per_object
@@ -85,6 +85,24 @@ def test_learning_rate_schedule_closed_form():
     steps_per_epoch = 8 / s.objects_phase2
     step = s.bbox_steps + int(5 * steps_per_epoch)
     assert math.isclose(learning_rate(cfg, plan, step), s.lr * s.lr_decay ** 5)
+
+
+def test_cosine_learning_rate_closed_form_and_its_bounds():
+    cfg = apply_overrides(preset("cpu-chairs"), ["--schedule.lr_schedule", "cosine", "--schedule.lr_final", "1e-5"])
+    s = cfg.schedule
+    plan = BatchPlan(num_objects=8, seed=0, bbox_steps=s.bbox_steps, objects_phase1=s.objects_phase1,
+                     objects_phase2=s.objects_phase2)
+    mid = (s.bbox_steps + s.max_steps) // 2
+    assert learning_rate(cfg, plan, 0) == s.lr == learning_rate(cfg, plan, s.bbox_steps)
+    assert math.isclose(learning_rate(cfg, plan, mid), (s.lr + s.lr_final) / 2, rel_tol=1e-12)
+    assert math.isclose(learning_rate(cfg, plan, s.max_steps), s.lr_final, rel_tol=1e-12)
+    quarter = s.bbox_steps + (s.max_steps - s.bbox_steps) // 4
+    assert math.isclose(learning_rate(cfg, plan, quarter),
+                        s.lr_final + (s.lr - s.lr_final) * (2 + 2 ** 0.5) / 4, rel_tol=1e-12)
+    rates = [learning_rate(cfg, plan, k) for k in range(s.max_steps + 1)]
+    assert all(a >= b for a, b in zip(rates[:-1], rates[1:], strict=True))
+    with pytest.raises(DepthnerfError, match="lr_final must be <="):
+        check_config(apply_overrides(cfg, ["--schedule.lr_final", "1e-3"]))
 
 
 def test_baseline_and_depth_aware_presets_differ_only_in_the_prior_switch():
@@ -283,6 +301,38 @@ def test_compile_flag_trains_and_its_resume_command_keeps_it(data, tmp_path):
     assert stopped.returncode == 143, stopped.stderr[-2000:]
     assert sorted(losses(run)) == [1, 2] and all(math.isfinite(v) for v in losses(run).values())
     assert "--compile" in shlex.split(stop_line(stopped.stderr).split("resume with: ", 1)[1])
+
+
+def test_warm_start_takes_the_source_weights_once_and_refuses_another_network(data, uninterrupted, tmp_path):
+    source = ckpt.latest_checkpoint(uninterrupted / "checkpoints") / "model.safetensors"
+    warm = tmp_path / "warm"
+    args = [a for a in CRASH_ARGS if a != "--deterministic"]
+    args[args.index("--max-steps") + 1] = "1"
+    proc = cli(*args, "--data", str(data), "--out", str(warm), "--init-from", str(uninterrupted),
+               "--schedule.lr", "1e-12")
+    assert "warm start" in proc.stderr
+    record = json.loads((warm / "init_from.json").read_text())
+    assert record["path"] == str(source.resolve()) and record["step"] == 6
+    assert json.loads((warm / "config.json").read_text())["init_from"] == str(uninterrupted)
+    before, after = ckpt.read_weights(source)[0], final_weights(warm)
+    params = [k for k in before if "running_" not in k and "num_batches" not in k]
+    assert params and all(torch.allclose(after[k], before[k], rtol=0, atol=1e-9) for k in params)  # one 1e-12 step
+    fresh = tmp_path / "fresh"
+    cli(*args, "--data", str(data), "--out", str(fresh), "--schedule.lr", "1e-12")
+    assert not (fresh / "init_from.json").exists()
+    assert max((final_weights(fresh)[k] - before[k]).abs().max().item() for k in params) > 1e-3
+    resumed = cli("train", "--out", str(warm), "--resume", "--max-steps", "2", "--no-progress")
+    assert "warm start" not in resumed.stderr and "resumed from step 1" in resumed.stderr
+    wide = cli(*args, "--data", str(data), "--out", str(tmp_path / "wide"), "--init-from", str(source),
+               "--model.fine.d_hidden", "48", check=False)
+    assert wide.returncode == 2 and "model.fine.d_hidden = 32, the run 48" in wide.stderr
+    assert str(source) in wide.stderr and not (tmp_path / "wide" / "checkpoints").exists()
+    depth = cli(*[a if a != "none" else "oracle" for a in args], "--data", str(data), "--out", str(tmp_path / "d"),
+                "--init-from", str(source), check=False)
+    assert depth.returncode == 2 and "the run is depth-aware" in depth.stderr
+    missing = cli(*args, "--data", str(data), "--out", str(tmp_path / "m"), "--init-from", str(tmp_path / "nope"),
+                  check=False)
+    assert missing.returncode == 2 and "nope" in missing.stderr
 
 
 def test_resume_says_what_it_did_and_refuses_contradicting_flags(data, tmp_path, monkeypatch):

@@ -52,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-steps", type=int, help="total optimisation steps")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     p.add_argument("--seed", type=int, help="run seed")
+    p.add_argument("--init-from", metavar="CHECKPOINT",
+                   help="warm start: a new run's network weights from this checkpoint (shipped name or path; same "
+                        "model config and prior); step, optimiser and schedule start fresh")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its last checkpoint (or start it when it has none; "
                         "stderr says which); flags contradicting the run's config are refused")
@@ -81,6 +84,8 @@ def _apply_flags(cfg: TrainConfig, args: argparse.Namespace) -> TrainConfig:
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(Path(args.data).resolve())))
     if args.seed is not None:
         cfg = dataclasses.replace(cfg, seed=args.seed)
+    if args.init_from is not None:
+        cfg = dataclasses.replace(cfg, init_from=args.init_from)
     sched, log = cfg.schedule, cfg.log
     if args.max_steps is not None:
         sched = dataclasses.replace(sched, max_steps=args.max_steps)

@@ -77,7 +77,13 @@ class ScheduleConfig:
     rays_per_object: int = 128
     """Target rays per object per step."""
     lr_decay: float = 0.995
-    """Exponential learning-rate decay per epoch of phase 2 (1.0 = constant)."""
+    """Exponential learning-rate decay per epoch of phase 2 (1.0 = constant); ``lr_schedule="exponential"`` only."""
+    lr_schedule: Literal["exponential", "cosine"] = "exponential"
+    """``exponential``: pixelNeRF's, ``lr * lr_decay^(whole epochs of phase 2)``; ``cosine`` (beyond the paper): a
+    half cosine from ``lr`` at the start of phase 2 down to ``lr_final`` at ``max_steps`` (so a ``--resume`` with a
+    larger ``--max-steps`` stretches the remaining curve). Both hold ``lr`` through phase 1."""
+    lr_final: float = 0.0
+    """Learning rate at ``max_steps`` of the ``cosine`` schedule (0 <= lr_final <= lr)."""
     depth_loss_weight: float = 0.0
     """Weight of the scale/shift-invariant depth loss against the target view's prior (beyond the paper; 0 = off)."""
     step_shape: Literal["batched", "per-object"] = "batched"
@@ -136,6 +142,11 @@ class TrainConfig:
     """Optimisation schedule."""
     log: LogConfig = field(default_factory=LogConfig)
     """Logging, validation and checkpoints."""
+    init_from: str | None = None
+    """A warm start (beyond the paper): a checkpoint (shipped name, weights file, checkpoint or run folder,
+    :func:`depthnerf.pretrained.load.resolve_checkpoint`) whose network weights start the run; the step, the
+    optimiser and the schedule start fresh. Its model config and prior must equal the run's (checked, naming the
+    first difference). Read only when the run has no checkpoint of its own; None = random initialisation."""
 
 
 def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) -> TrainConfig:
@@ -147,7 +158,7 @@ NUMBER_RULES: dict[str, tuple[float, bool]] = {
     "data.resolution": (8, True), "data.target_views": (0, True), "data.num_workers": (0, True),
     "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
-    "schedule.lr_decay": (0, False), "schedule.depth_loss_weight": (0, True),
+    "schedule.lr_decay": (0, False), "schedule.lr_final": (0, True), "schedule.depth_loss_weight": (0, True),
     "schedule.background_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "log.log_every": (1, True), "log.val_every": (0, True),
     "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
     "log.render_chunk": (1, True)}
@@ -170,6 +181,9 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
         if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
             flag = NAMED_FLAGS.get(path, f"--{path}")
             raise DepthnerfError(f"{flag} must be {'>=' if inclusive else '>'} {bound:g}, got {value}")
+    if cfg.schedule.lr_final > cfg.schedule.lr:
+        raise DepthnerfError(f"--schedule.lr_final must be <= --schedule.lr ({cfg.schedule.lr:g}), got "
+                             f"{cfg.schedule.lr_final:g}")
     if cfg.schedule.mirror_dropout >= 1:
         raise DepthnerfError(f"--schedule.mirror_dropout must be < 1, got {cfg.schedule.mirror_dropout}")
     near, far = cfg.data.z_near, cfg.data.z_far

@@ -50,14 +50,22 @@ from depthnerf.train.run_log import RunLog, record_launch
 from depthnerf.train.step import BatchLoss, compiled_fields, train_step
 from depthnerf.train.stop import STOP_SIGNALS, StopRequest, ValidationInterrupted, exit_code, signal_name
 from depthnerf.train.validator import Validator
+from depthnerf.train.warm_start import warm_start
 
 __all__ = ["learning_rate", "train"]
 
 
 def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
-    """Constant in phase 1; ``lr * decay^(whole epochs since phase 2 began)`` afterwards."""
+    """The learning rate of ``step``: ``lr`` in phase 1; afterwards ``lr * decay^(whole epochs since phase 2
+    began)`` (``exponential``) or ``lr_final + (lr - lr_final) * (1 + cos(pi * t)) / 2`` with
+    ``t = (step - bbox_steps) / (max_steps - bbox_steps)`` (``cosine``)."""
     s = cfg.schedule
-    if step < s.bbox_steps or s.lr_decay == 1.0:
+    if step < s.bbox_steps:
+        return s.lr
+    if s.lr_schedule == "cosine":
+        t = min(1.0, (step - s.bbox_steps) / max(s.max_steps - s.bbox_steps, 1))
+        return s.lr_final + (s.lr - s.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t))
+    if s.lr_decay == 1.0:
         return s.lr
     epochs = math.floor(plan.epoch(step) - plan.epoch(s.bbox_steps))
     return s.lr * s.lr_decay ** epochs
@@ -114,6 +122,9 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
 
     torch.manual_seed(cfg.seed)
     model = PixelNeRF(cfg.model, depth_aware=cfg.prior.enabled).to(info.device)
+    warm = None
+    if latest is None and cfg.init_from is not None:
+        warm = warm_start(model, cfg.init_from, cfg.model, cfg.prior.enabled)
     if info.device.type == "cuda":
         model.encoder.to(memory_format=torch.channels_last)
     cuda = info.device.type == "cuda"
@@ -130,6 +141,10 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         _write_run_files(run_dir, cfg, prior_source, len(records), card)
+        if warm is not None:
+            write_text_atomic(run_dir / "init_from.json", warm.to_json())
+            print(f"warm start: the network's weights from {warm.path} (step {warm.step})", file=sys.stderr,
+                  flush=True)
         note = record_launch(run_dir, start, info.world, str(info.device))
         if note:
             print(note, file=sys.stderr, flush=True)

@@ -1,0 +1,62 @@
+"""Warm start: a new run's network initialised from another checkpoint's weights (``TrainConfig.init_from``).
+
+Only the weights are taken: the step, the optimiser's moments and the learning-rate schedule start fresh, so a
+warm-started run is "N more steps from that model" with its own schedule (e.g. a cosine decay that anneals a
+shipped model). The source's model config and prior must equal the run's: a different width, mirror or prior
+would load into a different function (or fail on shapes), so any difference is an error naming the first one.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from depthnerf.config_io import flat_keys, to_dict
+from depthnerf.errors import DepthnerfError
+from depthnerf.files import sha256_file
+from depthnerf.model.config import PixelNeRFConfig
+from depthnerf.pretrained.load import resolve_checkpoint
+from depthnerf.pretrained.spec import spec_from_metadata
+from depthnerf.pretrained.weights import load_state_strict, read_weights
+
+__all__ = ["WarmStart", "warm_start"]
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """Where a warm-started run's weights came from (written to the run's ``init_from.json``)."""
+
+    source: str
+    """``init_from`` as configured (a shipped name or a path)."""
+    path: str
+    """The weights file it resolved to."""
+    sha256: str
+    """SHA-256 of that file."""
+    step: int
+    """Training steps behind the source weights."""
+
+    def to_json(self) -> str:
+        return json.dumps(self.__dict__, indent=1) + "\n"
+
+
+def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, depth_aware: bool) -> WarmStart:
+    """Load ``source``'s weights into ``model`` (strictly) after checking that it is the same network."""
+    path = resolve_checkpoint(source)
+    tensors, meta = read_weights(path)
+    spec = spec_from_metadata(meta, str(path))
+    if spec.depth_aware != depth_aware:
+        kind = {True: "depth-aware", False: "a baseline (no prior)"}
+        raise DepthnerfError(f"{path}: --init-from is {kind[spec.depth_aware]}, the run is {kind[depth_aware]}; "
+                             "choose a checkpoint with the run's --depth")
+    theirs, ours = flat_keys(to_dict(spec.model)), flat_keys(to_dict(model_cfg))
+    differ = [k for k in sorted(set(theirs) | set(ours)) if theirs.get(k) != ours.get(k)]
+    if differ:
+        k = differ[0]
+        raise DepthnerfError(f"{path}: --init-from has model.{k} = {theirs.get(k)!r}, the run {ours.get(k)!r} "
+                             f"({len(differ)} model setting(s) differ); train with the checkpoint's model config")
+    load_state_strict(model, tensors, path)
+    return WarmStart(source=str(source), path=str(Path(path).resolve()), sha256=sha256_file(path),
+                     step=int(meta.get("step", 0)))
