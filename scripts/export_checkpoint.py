@@ -224,7 +224,9 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              "| field | value |", "|---|---|",
              f"| weights | `{name}.safetensors`, float16 ({card['size_bytes']:,} bytes), loaded as float32 |",
              f"| sha256 | `{card['sha256']}` |",
-             f"| training steps | {card['step']} |",
+             f"| training steps | {card['step']}"
+             + (f" (on top of a warm start from a {card['init_from']['step']}-step model)" if card.get("init_from")
+                else "") + " |",
              f"| source | run `{card['source']['run']}`, `{card['source']['file']}` (sha256 "
              f"`{card['source']['sha256'][:16]}...`) |",
              f"| fp16 round trip | max abs RGB difference {card['fp16_check']['max_abs_rgb']:.2e} "

@@ -225,3 +225,4 @@ def test_card_of_a_warm_started_run_names_its_source(exporter, run, tmp_path):
     assert res.card["init_from"] == {"source": "cpu-cars-sym-pp", "step": 3500, "sha256": "ab" * 32}
     assert "continue from the network weights of `cpu-cars-sym-pp` (step 3500, sha256 `abababababababab...`)" \
         in res.card_md.read_text()
+    assert "| training steps | 5 (on top of a warm start from a 3500-step model) |" in res.card_md.read_text()
