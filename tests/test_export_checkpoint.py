@@ -17,6 +17,7 @@ from fixtures_scripts import load_script
 from safetensors import safe_open
 
 from depthnerf.cli import main as cli_main
+from depthnerf.commands.checkpoints import describe
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import SourceViews
 from depthnerf.pretrained import load as pretrained
@@ -226,3 +227,6 @@ def test_card_of_a_warm_started_run_names_its_source(exporter, run, tmp_path):
     assert "continue from the network weights of `cpu-cars-sym-pp` (step 3500, sha256 `abababababababab...`)" \
         in res.card_md.read_text()
     assert "| training steps | 5 (on top of a warm start from a 3500-step model) |" in res.card_md.read_text()
+    listed = describe("cpu-cars-depth", res.weights)
+    assert listed["steps"] == 5 and listed["warm_start_steps"] == 3500
+    assert describe("cpu-cars-depth", plain.weights)["warm_start_steps"] is None

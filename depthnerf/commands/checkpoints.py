@@ -2,7 +2,8 @@
 
 A shipped checkpoint is ``depthnerf/checkpoints/<name>.safetensors`` (written by training or
 ``scripts/export_checkpoint.py``); ``--checkpoint <name>`` then works in ``eval`` and ``reconstruct``. Shown per
-checkpoint: name, preset, category, depth prior, training steps (all from the weights' metadata), and metrics when
+checkpoint: name, preset, category, depth prior, training steps (all from the weights' metadata; the card adds a
+warm start's steps before them), and metrics when
 recorded: the metadata key ``metrics`` (a JSON object) or a model card ``<name>.json`` next to the weights with a
 ``metrics`` object (keys such as ``psnr``, ``ssim``, plus free text under ``protocol``; ``null`` = not evaluated,
 as ``scripts/export_checkpoint.py`` writes it without ``--eval-summary``). A ``<name>.md`` model card
@@ -46,7 +47,7 @@ def describe(name: str, path: Path) -> dict:
     train = _json_field(meta.get("train_config"), f"{path} metadata 'train_config'")
     metrics = _json_field(meta.get("metrics"), f"{path} metadata 'metrics'")
     card_json, card_md = path.with_suffix(".json"), path.with_suffix(".md")
-    protocol = None
+    protocol, warm_steps = None, None
     if card_json.is_file():
         card = _json_field(card_json.read_text(), str(card_json))
         card_metrics = card.get("metrics") or {}  # null = exported without an evaluation
@@ -54,10 +55,11 @@ def describe(name: str, path: Path) -> dict:
             raise DepthnerfError(f"{card_json}: 'metrics' must be a JSON object or null")
         metrics = {**metrics, **card_metrics}
         protocol = card.get("protocol")
+        warm_steps = (card.get("init_from") or {}).get("step")  # a warm-started run: the source's steps
     return {"name": name, "path": str(path), "preset": train.get("preset", "unknown"),
             "category": train.get("data", {}).get("category", "unknown"),
             "depth_prior": train.get("prior", {}).get("estimator", "unknown"), "steps": int(meta.get("step", 0)),
-            "metrics": metrics or None, "protocol": protocol,
+            "warm_start_steps": warm_steps, "metrics": metrics or None, "protocol": protocol,
             "model_card": str(card_md) if card_md.is_file() else (str(card_json) if card_json.is_file() else None)}
 
 
@@ -78,6 +80,8 @@ def run(args: argparse.Namespace) -> int:
         metrics = ", ".join(f"{k} {v:.4g}" if isinstance(v, int | float) else f"{k} {v}"
                             for k, v in (r["metrics"] or {}).items()) or "no metrics recorded"
         print(f"{r['name']}: preset {r['preset']}, category {r['category']}, depth prior {r['depth_prior']}, "
-              f"{r['steps']} steps; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")
+              f"{r['steps']} steps"
+              + (f" after a {r['warm_start_steps']}-step warm start" if r["warm_start_steps"] else "")
+              + f"; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")
               + (f"; card {r['model_card']}" if r["model_card"] else ""))
     return 0
