@@ -132,3 +132,10 @@ def flat_keys(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             out[f"{prefix}{key}"] = value
     return out
+
+
+def differences(old: dict[str, Any], new: dict[str, Any]) -> dict[str, tuple[Any, Any]]:
+    """The dotted keys (:func:`flat_keys`) whose values differ between two nested dicts, sorted:
+    ``{key: (old value, new value)}``, None for a key one side lacks."""
+    a, b = flat_keys(old), flat_keys(new)
+    return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}

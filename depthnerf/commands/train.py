@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from depthnerf.config_io import apply_overrides, flat_keys, to_dict
+from depthnerf.config_io import apply_overrides, differences, to_dict
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
@@ -97,8 +97,7 @@ def _apply_flags(cfg: TrainConfig, args: argparse.Namespace) -> TrainConfig:
 
 def config_changes(old: TrainConfig, new: TrainConfig) -> dict[str, tuple[Any, Any]]:
     """Dotted config paths whose values differ: ``{path: (old, new)}``."""
-    a, b = flat_keys(json.loads(json.dumps(to_dict(old)))), flat_keys(json.loads(json.dumps(to_dict(new))))
-    return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
+    return differences(json.loads(json.dumps(to_dict(old))), json.loads(json.dumps(to_dict(new))))
 
 
 def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:

@@ -42,7 +42,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from depthnerf.config_io import flat_keys
+from depthnerf.config_io import differences
 from depthnerf.data.protocol import ProtocolViews, protocol_views
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.distributed import DistInfo, broadcast_from_main, gather_to_main
@@ -118,9 +118,7 @@ def decode(payload: dict, record: ObjectRecord, stride: int) -> ObjectResult:
 
 def _differences(old: dict, new: dict) -> list[str]:
     """``"key OLD there, NEW now"`` for every setting that differs (nested keys dotted)."""
-    old, new = flat_keys(old), flat_keys(new)
-    return [f"{k} {json.dumps(old.get(k))} there, {json.dumps(new.get(k))} now"
-            for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+    return [f"{k} {json.dumps(there)} there, {json.dumps(now)} now" for k, (there, now) in differences(old, new).items()]
 
 
 class ObjectStore:

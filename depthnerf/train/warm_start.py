@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from depthnerf.config_io import flat_keys, to_dict
+from depthnerf.config_io import differences, to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.config import PixelNeRFConfig
@@ -51,11 +51,10 @@ def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, 
         kind = {True: "depth-aware", False: "a baseline (no prior)"}
         raise DepthnerfError(f"{path}: --init-from is {kind[spec.depth_aware]}, the run is {kind[depth_aware]}; "
                              "choose a checkpoint with the run's --depth")
-    theirs, ours = flat_keys(to_dict(spec.model)), flat_keys(to_dict(model_cfg))
-    differ = [k for k in sorted(set(theirs) | set(ours)) if theirs.get(k) != ours.get(k)]
+    differ = differences(to_dict(spec.model), to_dict(model_cfg))
     if differ:
-        k = differ[0]
-        raise DepthnerfError(f"{path}: --init-from has model.{k} = {theirs.get(k)!r}, the run {ours.get(k)!r} "
+        k, (theirs, ours) = next(iter(differ.items()))
+        raise DepthnerfError(f"{path}: --init-from has model.{k} = {theirs!r}, the run {ours!r} "
                              f"({len(differ)} model setting(s) differ); train with the checkpoint's model config")
     load_state_strict(model, tensors, path)
     return WarmStart(source=str(source), path=str(Path(path).resolve()), sha256=sha256_file(path),
