@@ -74,12 +74,16 @@ def test_an_earlier_reconstruction_is_kept_unless_overwrite(tmp_path, capsys):
 
 
 def test_an_unusable_output_folder_fails_before_any_work(tmp_path, capsys, monkeypatch):
+    import depthnerf.infer.session as session
     import depthnerf.pretrained.load as load
 
     def never(*args, **kwargs):
         raise AssertionError("the model was loaded before the output folder was checked")
 
+    # patched where it is looked up as well: a module that first imports the name while the patch is on would keep
+    # `never` for the rest of the process (the CUDA run's worker order found that)
     monkeypatch.setattr(load, "load_pretrained", never)
+    monkeypatch.setattr(session, "load_pretrained", never)
     (tmp_path / "a_file").write_text("x")
     assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "a_file" / "out") == 2
     assert one_error(capsys) == (f"error: {tmp_path / 'a_file' / 'out'}: the output folder's parent "

@@ -32,7 +32,7 @@ def test_row_gather_sampling_equals_grid_sample(size):
 
 
 def test_inference_sampling_equals_the_fused_gather():
-    """The no-gradient path (grid_sample on channels-first maps; compiled CUDA inference) equals the fused gather,
+    """The no-gradient path (grid_sample on channels-first maps; CUDA inference) equals the fused gather,
     also for coordinates outside the map and non-finite ones, and keeps the maps' dtype."""
     from depthnerf.model.features import sample_maps, sample_maps_inference
 
@@ -47,3 +47,5 @@ def test_inference_sampling_equals_the_fused_gather():
     torch.testing.assert_close(half.float(), sample_maps(maps.bfloat16().float(), grid), atol=1e-2, rtol=1e-2)
     if torch.cuda.is_available():
         torch.testing.assert_close(sample_maps_inference(maps.cuda(), grid.cuda()).cpu(), sample_maps(maps, grid))
+        # CUDA inference takes it (eager too, not only compiled); a call with gradients keeps the fused gather
+        assert torch.equal(sample_maps(maps.cuda(), grid.cuda()), sample_maps_inference(maps.cuda(), grid.cuda()))

@@ -64,16 +64,16 @@ def sample_maps(maps: Float[Tensor, "BV Hf Wf C"], grid: Float[Tensor, "BV N 2"]
 
     Implemented as one fused gather-weighted-sum (``embedding_bag`` over the 4 corner rows): with C contiguous
     channels per pixel it reads whole rows, where ``grid_sample`` on a channels-first map makes 4 strided reads
-    per channel and point (measured ~4x faster forward and ~10x faster backward for C = 1536). Compiled
-    (``--compile``), on CUDA and without gradients (inference), it is :func:`sample_maps_inference` instead: a
-    compiled paper-sampler view took 89 ms with it against 146 without (two H100s of the same kind), where
-    eager views on one machine gained nothing (230 with it against 226 ms; docs/speed.md). Same values either way.
+    per channel and point (measured ~4x faster forward and ~10x faster backward for C = 1536). On CUDA without
+    gradients (inference) it is :func:`sample_maps_inference` instead: with ``--compile`` (compiled MLPs, this
+    gather outside the compiled region) a paper-sampler view took 89 ms with it against 143-146 without (H100s
+    of the same kind), eager views 230 against 226 ms on one machine (docs/speed.md). Same values either way.
     """
     bv, hf, wf, c = maps.shape
     n = grid.shape[1]
     if c == 0:  # a field without feature injection (combine_layer = 0)
         return maps.new_zeros(bv, n, 0)
-    if maps.is_cuda and torch.compiler.is_compiling() and not (maps.requires_grad or grid.requires_grad):
+    if maps.is_cuda and not (maps.requires_grad or grid.requires_grad):
         return sample_maps_inference(maps, grid)
     index, weight = _corners(grid, bv, hf, wf)
     if torch.are_deterministic_algorithms_enabled():
