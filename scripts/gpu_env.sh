@@ -15,7 +15,7 @@ fi
 export PY
 export PYTHONPATH="$HERE${PYTHONPATH:+:$PYTHONPATH}"
 GPU_SITE=${GPU_SITE:-/tmp/depthnerf-gpu-site}
-if [ -f "$HERE/.whl/site.tar.xz" ] && ! "$PY" -c "import trimesh, embreex, rtree, lpips" 2>/dev/null; then
+if [ -f "$HERE/.whl/site.tar.xz" ] && ! "$PY" -c "import trimesh, rtree, lpips" 2>/dev/null; then
   # Python unpacks it (its lzma module), so the machine needs no xz program
   unpack() { "$PY" -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='tar')" "$@"; }
   SITE=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['purelib'])")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, FRAMINGS
 from depthnerf.data.synth.generate import FAMILIES, SynthConfig, generate
+from depthnerf.data.synth.hits import ENGINES
 from depthnerf.data.synth.raycast import RenderConfig
 
 
@@ -36,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--family", choices=list(FAMILIES), default="standard",
                         help="shape family: standard, or heldout (car/chair styles the standard family never "
                              "draws, for generalisation checks)")
+    parser.add_argument("--raycaster", choices=list(ENGINES), default="auto",
+                        help="first-hit engine: embree (embreex; fast on a CPU), torch (brute force, on CUDA when "
+                             "there is one; needs no embreex) or auto (embree where embreex imports, else torch; "
+                             "default). The same images up to ties on shared triangle edges")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -45,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         test_objects=args.test_objects, resolution=args.resolution, seed=args.seed, workers=args.workers,
         views_train=args.views_train, views_test=args.views_test,
         render=RenderConfig(antialias=not args.no_antialias), progress=not args.quiet, framing=args.framing,
-        family=args.family,
+        family=args.family, raycaster=args.raycaster,
     )
     card = generate(config)
     counts = ", ".join(f"{k} {v}" for k, v in card["counts"].items())

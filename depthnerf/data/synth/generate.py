@@ -25,6 +25,7 @@ settings is an error (use a fresh ``--out``). The card is rebuilt from all marke
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import multiprocessing
@@ -32,7 +33,7 @@ import shutil
 import zlib
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,7 @@ from depthnerf.data.synth.chairs import (
     sample_chair,
 )
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, Framing, get_framing
+from depthnerf.data.synth.hits import ENGINES, resolve_engine
 from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
 from depthnerf.data.synth.views import (
     ViewConfig,
@@ -152,6 +154,10 @@ class SynthConfig:
     data)."""
     family: str = "standard"
     """Shape family: ``standard`` or ``heldout`` (styles the standard family never draws)."""
+    raycaster: str = "auto"
+    """First-hit engine: ``embree`` (embreex), ``torch`` (brute force; CUDA when there is one) or ``auto``
+    (embree where embreex imports, else torch). The same images up to ties on shared edges; not part of what a
+    finished object must match to be reused."""
 
     def counts(self) -> dict[str, int]:
         return {"train": self.train_objects, "val": self.val_objects, "test": self.test_objects}
@@ -250,7 +256,7 @@ def generate_object(job: ObjectJob) -> dict:
     intr = c.intrinsics()
     srn_format.write_intrinsics(folder / "intrinsics.txt", intr)
     mesh.to_trimesh().export(folder / "mesh.ply")
-    caster, rays = Raycaster(mesh), PixelRays(c.get_framing().render_intrinsics(c.resolution))
+    caster, rays = Raycaster(mesh, c.raycaster), PixelRays(c.get_framing().render_intrinsics(c.resolution))
     z_min, z_max, coverage = math.inf, 0.0, []
     for v, c2w in enumerate(poses):
         view = render_view(caster, c2w, rays, c.render)
@@ -265,7 +271,7 @@ def generate_object(job: ObjectJob) -> dict:
         coverage.append(float(view.mask.mean()))
     lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
     marker = {"object_id": job.object_id, "split": job.split, "settings": job.settings(), "style": summary,
-              "faces": int(len(mesh.faces)), "bbox_min": [round(float(x), 6) for x in lo],
+              "faces": int(len(mesh.faces)), "raycaster": caster.engine, "bbox_min": [round(float(x), 6) for x in lo],
               "bbox_max": [round(float(x), 6) for x in hi], "depth_min": round(z_min, 6), "depth_max": round(z_max, 6),
               "mask_coverage_mean": round(float(np.mean(coverage)), 6)}
     write_json_atomic(folder / MARKER, marker)
@@ -317,6 +323,12 @@ def generate(config: SynthConfig) -> dict:
                                ("--views-test", config.views_test, 1), ("--workers", config.workers, 1)):
         if value < least:
             raise DepthnerfError(f"synth: {flag} must be >= {least} (got {value})")
+    if config.raycaster not in ENGINES:
+        raise DepthnerfError(f"synth: --raycaster must be one of {', '.join(ENGINES)} (got {config.raycaster!r})")
+    if config.raycaster == "embree" and importlib.util.find_spec("embreex") is None:
+        raise DepthnerfError("synth: --raycaster embree needs embreex (pip install embreex); --raycaster torch or "
+                             "auto needs nothing more")
+    config = replace(config, raycaster=resolve_engine(config.raycaster))  # once here, not in every worker
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise DepthnerfError(f"{out}: output path exists and is not a directory")
@@ -382,7 +394,9 @@ def build_card(config: SynthConfig, spec: CategorySpec, markers: list[dict]) -> 
         "z_range": {"near": spec.z_near, "far": spec.z_far, "kind": "ray distance (pixelNeRF bounds)",
                     "measured_z_depth_min": min((d[0] for d in depth), default=None),
                     "measured_z_depth_max": max((d[1] for d in depth), default=None)},
-        "rendering": {"renderer": "trimesh + embreex ray casting, exact float64 depth on the hit triangle",
+        "rendering": {"renderer": "ray casting (first hits: embreex or brute force in torch, per object's "
+                                  "raycaster), exact float64 depth on the hit triangle",
+                      "raycasters": dict(sorted(Counter(m.get("raycaster", "embree") for m in markers).items())),
                       "antialiasing": "adaptive: RGB of edge pixels averaged over centre + 4 RGSS sub-samples; "
                                       "depth and mask from the centre ray only" if config.render.antialias
                       else "none", "background": config.render.background,

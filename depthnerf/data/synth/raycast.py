@@ -1,11 +1,10 @@
-"""Ray-cast renderer of a :class:`~depthnerf.data.synth.primitives.SynthMesh` (Intel Embree via embreex).
+"""Ray-cast renderer of a :class:`~depthnerf.data.synth.primitives.SynthMesh`.
 
-Rays are exactly those of :func:`depthnerf.data.cameras.camera_rays` (one per integer-centred pixel). Embree only
-finds *which* triangle a ray hits first; the ray distance is then recomputed in float64 on that triangle's plane,
-so z-depth is exact up to float64 rounding and reprojects between views without the float32 error of the BVH
-traversal. The embreex scene is the one ``trimesh.ray.ray_pyembree.RayMeshIntersector`` builds, used directly:
-that wrapper's per-call rescaling and re-normalisation cost more than the traversal itself (4.9 vs 2.1 ms per
-128 x 128 view, same hits), and the objects are unit-sized so its precision rescaling is not needed.
+Rays are exactly those of :func:`depthnerf.data.cameras.camera_rays` (one per integer-centred pixel). A first-hit
+engine (:mod:`depthnerf.data.synth.hits`: Intel Embree via embreex, or brute force in torch where embreex is
+missing) only finds *which* triangle a ray hits first; the ray distance is then recomputed in float64 on that
+triangle's plane, so z-depth is exact up to float64 rounding and reprojects between views without the float32
+error of the traversal.
 
 Outputs per view: RGB on a white background, z-depth (0 where no surface) and the mask, both from the centre ray
 of each pixel (exact, never blended). Anti-aliasing is adaptive supersampling of RGB only: after the centre pass,
@@ -24,10 +23,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from embreex import mesh_construction, rtcore_scene
 from jaxtyping import Bool, Float
 
 from depthnerf.data.cameras import Intrinsics, pixel_directions
+from depthnerf.data.synth.hits import first_hit_finder
 from depthnerf.data.synth.primitives import SynthMesh
 
 RGSS_OFFSETS = ((0.125, 0.375), (-0.375, 0.125), (-0.125, -0.375), (0.375, -0.125))
@@ -104,13 +103,13 @@ def _normalize_rows(v: np.ndarray) -> np.ndarray:
 
 
 class Raycaster:
-    """Embree BVH over one mesh plus the per-face data the shader needs."""
+    """A first-hit engine over one mesh plus the per-face data the shader needs; ``engine``: ``auto``, ``embree``
+    or ``torch`` (:mod:`depthnerf.data.synth.hits`)."""
 
-    def __init__(self, mesh: SynthMesh) -> None:
+    def __init__(self, mesh: SynthMesh, engine: str = "auto") -> None:
         self.mesh = mesh
-        self._scene = rtcore_scene.EmbreeScene()
-        mesh_construction.TriangleMesh(self._scene, np.ascontiguousarray(mesh.vertices, dtype=np.float32),
-                                       np.ascontiguousarray(mesh.faces, dtype=np.int32))
+        self._first_hits = first_hit_finder(mesh.vertices, mesh.faces, engine)
+        self.engine = self._first_hits.engine
         tri = mesh.vertices[mesh.faces]
         e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
         d00, d01, d11 = _dot(e1, e1), _dot(e1, e2), _dot(e2, e2)
@@ -126,7 +125,7 @@ class Raycaster:
 
     def trace(self, origins: np.ndarray, dirs: np.ndarray) -> _Hits:
         """First hit of each ray (unit ``dirs``), with the exact float64 distance on the hit triangle's plane."""
-        face = np.asarray(self._scene.run(origins.astype(np.float32), dirs.astype(np.float32)), dtype=np.int64)
+        face = self._first_hits(origins, dirs)
         hit = face >= 0
         f = face[hit]
         o, d = origins[hit], dirs[hit]
