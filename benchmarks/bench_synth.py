@@ -7,6 +7,8 @@ generator (process pool, files on disk) for train objects, wall clock including 
 load average is printed too, since other processes slow the wall-clock figures.
 
     python benchmarks/bench_synth.py --category cars --objects 12 --workers 2
+    python benchmarks/bench_synth.py --raycaster torch --objects 16 --workers 8   # the ray caster without embreex
+                                                                                 # (CUDA when there is one)
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from depthnerf.data.synth.generate import SynthConfig, category_spec, generate, 
 from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
 
 
-def breakdown(category: str, objects: int, views: int, resolution: int) -> None:
+def breakdown(category: str, objects: int, views: int, resolution: int, raycaster: str) -> None:
     torch.set_num_threads(1)
     from depthnerf.data.synth.cars import build_car, sample_car
     from depthnerf.data.synth.chairs import build_chair, sample_chair
@@ -40,7 +42,7 @@ def breakdown(category: str, objects: int, views: int, resolution: int) -> None:
             shape_rng, view_rng = object_rngs(123, category, "train", k)
             t0 = time.perf_counter()
             mesh = build_car(sample_car(shape_rng)) if category == "cars" else build_chair(sample_chair(shape_rng))
-            caster = Raycaster(mesh)
+            caster = Raycaster(mesh, raycaster)
             t_build += time.perf_counter() - t0
             poses = object_poses("train", views, category_spec(category), view_rng)
             for v, c2w in enumerate(poses):
@@ -57,21 +59,21 @@ def breakdown(category: str, objects: int, views: int, resolution: int) -> None:
                 edge.append(view.mask.mean())
     cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
     n = objects * views
-    print(f"[breakdown, 1 process] {category} {resolution}px: build+BVH {1000 * t_build / objects:.1f} ms/object, "
+    print(f"[breakdown, 1 process, {caster.engine}] {category} {resolution}px: build+BVH {1000 * t_build / objects:.1f} ms/object, "
           f"render {1000 * t_render / n:.2f} ms/view, write {1000 * t_write / n:.2f} ms/view (wall); "
           f"total {1000 * wall / n:.2f} ms/view wall, {1000 * cpu / n:.2f} ms/view CPU -> "
           f"{2 * 60 * objects / cpu:.0f} objects/min on 2 free cores; mean mask coverage {np.mean(edge):.3f}")
 
 
-def end_to_end(category: str, objects: int, workers: int, resolution: int) -> None:
+def end_to_end(category: str, objects: int, workers: int, resolution: int, raycaster: str) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         cfg = SynthConfig(category=category, out=Path(tmp), train_objects=objects, val_objects=0, test_objects=0,
-                          resolution=resolution, workers=workers, progress=False)
+                          resolution=resolution, workers=workers, progress=False, raycaster=raycaster)
         t0 = time.perf_counter()
         generate(cfg)
         dt = time.perf_counter() - t0
     views = objects * cfg.views_train
-    print(f"[end to end, {workers} workers] {category}: {objects} train objects x {cfg.views_train} views in "
+    print(f"[end to end, {workers} workers, {raycaster}] {category}: {objects} train objects x {cfg.views_train} views in "
           f"{dt:.1f} s -> {60 * objects / dt:.1f} objects/min, {1000 * dt / views:.2f} ms/view (wall, incl. "
           f"pool start-up)")
 
@@ -83,11 +85,13 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--breakdown-objects", type=int, default=3)
+    parser.add_argument("--raycaster", choices=["auto", "embree", "torch"], default="auto",
+                        help="first-hit engine (depthnerf synth --raycaster)")
     args = parser.parse_args()
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} cores")
     for category in (["cars", "chairs"] if args.category == "both" else [args.category]):
-        breakdown(category, args.breakdown_objects, 50, args.resolution)
-        end_to_end(category, args.objects, args.workers, args.resolution)
+        breakdown(category, args.breakdown_objects, 50, args.resolution, args.raycaster)
+        end_to_end(category, args.objects, args.workers, args.resolution, args.raycaster)
 
 
 if __name__ == "__main__":
