@@ -4,10 +4,14 @@
 # (seed 1, whole-image rays, a half-cosine learning rate 3e-4 -> 3e-6, 1500 steps), evaluated like the study (50 test
 # objects, view stride 25) and paired per object: annealed depth vs annealed baseline, and each against its start.
 # scripts/anneal_study.sh runs the chair pair with its other variants; this script runs one category's pair alone.
+# With SYM_PP=1 (cars), also the shipped car model's annealing: the 2000-step mirror + prior-at-point model of commit
+# c49b8f7 (FROM), continued 3000 steps the same way, which is today's cpu-cars-sym-pp; evaluated and paired against
+# its start and the pair, with a by-angle table and the figure docs/figures/cars_annealed.png.
 # Resumable: finished runs and evaluations are skipped, an interrupted run resumes from its last checkpoint.
 #
 #   bash scripts/anneal_pair_study.sh CATEGORY [OUT_DIR]   (cars | chairs; default OUT_DIR anneal-CATEGORY/, git-ignored;
 #                                                           about 1 h on 2 cores after the data)
+#   SYM_PP=1 bash scripts/anneal_pair_study.sh cars      (about 40 minutes more)
 set -euo pipefail
 CAT=${1:?usage: anneal_pair_study.sh cars|chairs [OUT_DIR]}
 case "$CAT" in cars|chairs) ;; *) echo "anneal_pair_study.sh: category must be cars or chairs, not '$CAT'" >&2; exit 2;; esac
@@ -47,3 +51,26 @@ python "$here/paired_difference.py" --baseline "$OUT/eval/$CAT-none-annealed" --
 python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-baseline" --method "$OUT/eval/$CAT-none-annealed"
 python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-depth" --method "$OUT/eval/$CAT-bundled-annealed"
 python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-baseline" --method "$OUT/eval/cpu-$CAT-depth"
+
+[ "${SYM_PP:-0}" = 1 ] || exit 0
+[ "$CAT" = cars ] || { echo "anneal_pair_study.sh: SYM_PP=1 is for cars (chairs: scripts/anneal_study.sh)" >&2; exit 2; }
+FROM=${FROM:-c49b8f7}
+START="$OUT/sym-pp-2000.safetensors"
+[ -f "$START" ] || git show "$FROM:depthnerf/checkpoints/cpu-cars-sym-pp.safetensors" > "$START"
+run="$OUT/runs/cars-bundled-sym-pp-annealed"
+[ -f "$run/checkpoints/step_00003000/model.safetensors" ] || depthnerf train --resume --preset cpu-cars \
+  --data "$OUT/data" --depth bundled --model.mirror true --model.prior_at_point true --init-from "$START" --seed 1 \
+  --schedule.bbox_steps 0 --schedule.lr_schedule cosine --schedule.lr 3e-4 --schedule.lr_final 3e-6 \
+  --max-steps 3000 --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-cars-bundled-sym-pp-annealed.log" 2>&1
+[ -f "$OUT/eval/sym-pp-2000/summary.json" ] || depthnerf eval --checkpoint "$START" --data "$OUT/data" \
+  --views-stride 25 --save-renders --out "$OUT/eval/sym-pp-2000" --no-progress > "$OUT/logs/eval-sym-pp-2000.log" 2>&1
+one_eval cars-bundled-sym-pp-annealed
+A="$OUT/eval/cars-bundled-sym-pp-annealed"
+python "$here/paired_difference.py" --baseline "$OUT/eval/sym-pp-2000" --method "$A"
+python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-cars-depth" --method "$A"
+python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-cars-baseline" --method "$A"
+python "$here/angle_bins.py" --baseline "$OUT/eval/cpu-cars-depth" --method "$A"
+python "$here/angle_bins.py" --baseline "$OUT/eval/sym-pp-2000" --method "$A"
+python "$here/qualitative_figure.py" --evals "$OUT/eval/cpu-cars-depth" "$OUT/eval/sym-pp-2000" "$A" \
+  --labels cpu-cars-depth "cpu-cars-sym-pp (2000 steps)" "annealed (+3000 steps, cosine)" --data "$OUT/data" \
+  --objects 4 --view 25 --out "$OUT/cars_annealed.png"
