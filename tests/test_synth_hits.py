@@ -49,11 +49,10 @@ def test_torch_hits_match_the_slab_closed_form_of_a_cube(shared_origin):
     n = 2000
     if shared_origin:  # a camera: one origin, rays over a cone that covers the cube and misses around it
         o = np.tile([[1.6, -1.1, 0.9]], (n, 1))
-        target = rng.uniform(-0.9, 0.9, (n, 3))
     else:
         o = rng.normal(size=(n, 3))
         o = o / np.linalg.norm(o, axis=1, keepdims=True) * rng.uniform(1.2, 3.0, (n, 1))
-        target = rng.uniform(-0.9, 0.9, (n, 3))
+    target = rng.uniform(-0.9, 0.9, (n, 3))
     d = target - o
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     expected = slab_entry(o, d, 0.5)

@@ -4,14 +4,15 @@ Two engines find the same thing; :class:`~depthnerf.data.synth.raycast.Raycaster
 float64 on the hit triangle, so the engine only decides *which* triangle is hit:
 
 - ``embree``: Intel Embree's BVH through embreex (float32 traversal; ~2 ms per 128 x 128 view on one CPU core).
-- ``torch``: brute force, every ray against every triangle (Moeller-Trumbore in float32, both faces), on CUDA
-  when there is one, else on the CPU. It needs nothing beyond torch (the lent GPU machines carry no embreex, and
-  its wheel is too large to send there). About a second per 128 x 128 view of a 10k-triangle car on one CPU core.
+- ``torch``: brute force (Moeller-Trumbore in float32, both faces; each camera's rays only against the triangles
+  whose projected boxes meet theirs), on CUDA when there is one, else on the CPU. It needs nothing beyond torch
+  (the lent GPU machines carry no embreex, and its wheel is too large to send there). About 0.5 s per 64 x 64 view
+  of a 9k-triangle car on one CPU core, against Embree's 3 ms (``benchmarks/bench_synth.py --raycaster``).
 - ``auto``: ``embree`` where embreex imports, else ``torch`` with a warning.
 
 Both engines agree on every ray up to ties: a ray through an edge or a vertex shared by two triangles may be given
 either one, and a ray grazing a silhouette within float32 rounding may hit in one and miss in the other
-(``tests/test_synth_hits.py`` measures how often on synthetic cars and chairs).
+(``tests/test_synth_hits.py`` bounds how often on synthetic cars and chairs).
 """
 
 from __future__ import annotations
@@ -95,8 +96,8 @@ class TorchHits:
     orthonormal basis of its normal plane, a point ``w`` (relative to the origin, ``w . f > 0``) projects to
     ``(w . a, w . b) / (w . f)``. A triangle in front of the origin contains a ray only if its projected bounding
     box contains the ray's projection, so each chunk of ``chunk_rays`` rays (a square tile of the projected rays)
-    is tested only against the triangles whose boxes meet the chunk's box (triangles not wholly in front are always tested). Other rays go in chunks
-    of about ``elements`` ray-triangle pairs against every triangle.
+    is tested only against the triangles whose boxes meet the chunk's box (triangles not wholly in front are
+    always tested). Other rays go in chunks of about ``elements`` ray-triangle pairs against every triangle.
     """
 
     engine = "torch"
