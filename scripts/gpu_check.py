@@ -57,7 +57,7 @@ from gpu_check_parts import (  # noqa: E402
 
 STAGES = ("env", "bench", "data", "train", "resume_exact", "same_seed", "fast_kernels", "pytest")
 CUDA_ONLY = {"fast_kernels"}
-LIMITS = {"env": 60, "bench": 270, "data": 90, "train": 200, "resume_exact": 60, "same_seed": 60,
+LIMITS = {"env": 60, "bench": 330, "data": 90, "train": 200, "resume_exact": 60, "same_seed": 60,
           "fast_kernels": 60, "pytest": 3600}
 
 
@@ -183,7 +183,7 @@ class Check:
         gather = str(ROOT / "benchmarks" / "bench_gather.py")
         cases = [("baseline", [bench, "--depth", "none"], 0.3),
                  ("compiled", [bench, "--depth", "none", "--compile", "--repeat", "10"], 0.5),
-                 ("compiled_step", [bench, "--depth", "none", "--compile-step", "--no-views", "--repeat", "10"], 0.5),
+                 ("compiled_step", [bench, "--depth", "none", "--compile-step", "--no-views", "--repeat", "10"], 0.75),
                  ("depth_aware", [bench, "--depth", "bundled", "--no-views"], 0.8), ("gather", [gather], 1.0)]
         t_end = time.time() + limit
         for name, args, share in cases:
