@@ -6,12 +6,16 @@
 # scripts/anneal_study.sh runs the chair pair with its other variants; this script runs one category's pair alone.
 # With SYM_PP=1 (cars), also the shipped car model's annealing: the 2000-step mirror + prior-at-point model of commit
 # c49b8f7 (FROM), continued 3000 steps the same way, which is today's cpu-cars-sym-pp; evaluated and paired against
-# its start and the pair, with a by-angle table and the figure docs/figures/cars_annealed.png.
+# its start and the pair, with a by-angle table and the figure docs/figures/cars_annealed.png. With PP=1, the
+# combination of the two recipes for the depth prior alone: prior at each point, then annealed.
 # Resumable: finished runs and evaluations are skipped, an interrupted run resumes from its last checkpoint.
 #
 #   bash scripts/anneal_pair_study.sh CATEGORY [OUT_DIR]   (cars | chairs; default OUT_DIR anneal-CATEGORY/, git-ignored;
 #                                                           about 1 h on 2 cores after the data)
 #   SYM_PP=1 bash scripts/anneal_pair_study.sh cars      (about 40 minutes more)
+#   PP=1 bash scripts/anneal_pair_study.sh CATEGORY      (the depth-aware run with the prior read at each point,
+#                                                         trained 2000 steps and annealed the same way, paired against
+#                                                         the annealed baseline; about 1 h more)
 set -euo pipefail
 CAT=${1:?usage: anneal_pair_study.sh cars|chairs [OUT_DIR]}
 case "$CAT" in cars|chairs) ;; *) echo "anneal_pair_study.sh: category must be cars or chairs, not '$CAT'" >&2; exit 2;; esac
@@ -52,6 +56,22 @@ python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-baseline" --m
 python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-depth" --method "$OUT/eval/$CAT-bundled-annealed"
 python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-baseline" --method "$OUT/eval/cpu-$CAT-depth"
 
+if [ "${PP:-0}" = 1 ]; then  # the depth prior read at each point, then annealed: the two recipes combined
+  pp="$OUT/runs/$CAT-bundled-pp"  # as run_study.sh's "<cat>-bundled-pp": the cpu preset, 2000 steps, seed 0
+  [ -f "$pp/checkpoints/step_00002000/model.safetensors" ] || depthnerf train --resume --preset "cpu-$CAT" \
+    --data "$OUT/data" --depth bundled --model.prior_at_point true --seed 0 --out "$pp" --no-progress \
+    > "$OUT/logs/train-$CAT-bundled-pp.log" 2>&1
+  run="$OUT/runs/$CAT-bundled-pp-annealed"  # from its best checkpoint, annealed as the pair above
+  [ -f "$run/checkpoints/step_$(printf %08d "$STEPS")/model.safetensors" ] || depthnerf train --resume \
+    --preset "cpu-$CAT" --data "$OUT/data" --depth bundled --model.prior_at_point true --init-from "$pp" --seed 1 \
+    --schedule.bbox_steps 0 --schedule.lr_schedule cosine --schedule.lr 3e-4 --schedule.lr_final 3e-6 \
+    --max-steps "$STEPS" --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-$CAT-bundled-pp-annealed.log" 2>&1
+  printf '%s\n' "$CAT-bundled-pp-annealed" "$CAT-bundled-pp" | xargs -P "$JOBS" -L 1 bash -c 'one_eval $0'
+  python "$here/paired_difference.py" --baseline "$OUT/eval/$CAT-none-annealed" --method "$OUT/eval/$CAT-bundled-pp-annealed"
+  python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-baseline" --method "$OUT/eval/$CAT-bundled-pp"
+  python "$here/paired_difference.py" --baseline "$OUT/eval/$CAT-bundled-pp" --method "$OUT/eval/$CAT-bundled-pp-annealed"
+  python "$here/angle_bins.py" --baseline "$OUT/eval/$CAT-none-annealed" --method "$OUT/eval/$CAT-bundled-pp-annealed"
+fi
 [ "${SYM_PP:-0}" = 1 ] || exit 0
 [ "$CAT" = cars ] || { echo "anneal_pair_study.sh: SYM_PP=1 is for cars (chairs: scripts/anneal_study.sh)" >&2; exit 2; }
 FROM=${FROM:-c49b8f7}

@@ -5,7 +5,10 @@ input camera; ``input_mask.png``) prints: ``components`` (connected pieces), ``m
 in the largest piece), ``inside_share`` (fraction of faces whose centroid projects inside the input's own mask:
 the object the input view shows), ``above_share`` (fraction of faces whose centroid lies above the object's top
 by more than ``--above`` of its height, default 0.10; the object = the faces projecting inside the mask) and
-``white_share`` (vertices with every colour channel >= 0.95: density the white background hides).
+``white_share`` (vertices with every colour channel >= 0.95: density the white background hides). For the faces
+off the mask, ``outside_edge_px`` gives how far their centroids project from it (pixels to the nearest mask pixel's
+centre: median, 95th percentile, and the share within ``--edge`` pixels, default 3): a mesh a little wider than the
+silhouette (within a pixel or two: the mask's own rounding, the surface's extraction) is not a floater.
 Exit 1 when any mesh misses ``--min-main-share`` (default 0.95) or has a face above the limit, so it can gate a
 release.
 
@@ -23,6 +26,7 @@ import numpy as np
 import torch
 import trimesh
 from PIL import Image
+from scipy.spatial import cKDTree
 
 from depthnerf.data.cameras import project, world_to_camera
 from depthnerf.render.mesh import keep_pieces
@@ -41,13 +45,27 @@ def inside_mask(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mas
     return out
 
 
+def edge_distance_px(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Pixels from each world point's projection (unrounded, as :func:`inside_mask` reads it) to the nearest mask
+    pixel's centre (pixel (i, j) at (u, v) = (j, i)); ``inf`` behind the camera or for an empty mask."""
+    f, cx, cy = (float(x) for x in intrinsics[:3])
+    cam = world_to_camera(torch.tensor(points, dtype=torch.float64), torch.tensor(c2w, dtype=torch.float64))
+    uv = project(cam, f, (cx, cy)).numpy()
+    out = np.full(len(points), np.inf)
+    front = cam[:, 2].numpy() > 0
+    ij = np.argwhere(mask)
+    if ij.size and front.any():
+        out[front] = cKDTree(ij[:, ::-1].astype(np.float64)).query(uv[front])[0]
+    return out
+
+
 def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray,
-                above: float) -> dict:
+                above: float, edge: float = 3.0) -> dict:
     """Components, the largest one's face share, the faces on the input's mask and those above it (module
     docstring)."""
     if len(mesh.faces) == 0:
         return {"faces": 0, "components": 0, "main_share": 0.0, "inside_share": 0.0, "above_share": 0.0,
-                "white_share": 0.0}
+                "white_share": 0.0, "outside_edge_px": None}
     pieces = keep_pieces(mesh, "largest")[1]
     centroids = mesh.triangles_center
     inside = inside_mask(centroids, c2w, intrinsics, mask)
@@ -57,9 +75,15 @@ def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, 
     colors = getattr(mesh.visual, "vertex_colors", None)
     if colors is not None and len(colors) == len(mesh.vertices):
         white = float((np.asarray(colors)[:, :3] >= 0.95 * 255).all(axis=1).mean())
+    off = None
+    if not inside.all():
+        dist = edge_distance_px(centroids[~inside], c2w, intrinsics, mask)
+        off = {"median": float(np.median(dist)), "p95": float(np.percentile(dist, 95)),
+               f"within_{edge:g}px_share": float((dist <= edge).mean())}
     return {"faces": int(len(mesh.faces)), "components": pieces.pieces,
             "main_share": pieces.kept_faces / pieces.faces, "inside_share": float(inside.mean()),
-            "above_share": float((centroids[:, 2] > top + above * height).mean()), "white_share": white}
+            "above_share": float((centroids[:, 2] > top + above * height).mean()), "white_share": white,
+            "outside_edge_px": off}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("paths", nargs="+", type=Path, help="depthnerf reconstruct output folders")
     ap.add_argument("--above", type=float, default=0.10, help="stray-face margin above the main piece (heights)")
     ap.add_argument("--min-main-share", type=float, default=0.95)
+    ap.add_argument("--edge", type=float, default=3.0, help="pixels from the mask that count as its edge")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
     reports, ok = {}, True
@@ -79,11 +104,16 @@ def main(argv: list[str] | None = None) -> int:
         cams = np.load(path / "depths.npz")
         mask = np.asarray(Image.open(path / "input_mask.png").convert("L")) > 127
         rep = mesh_report(trimesh.load(path / "mesh.ply", process=False, force="mesh"), cams["poses"][0],
-                          cams["intrinsics"], mask, args.above)
+                          cams["intrinsics"], mask, args.above, args.edge)
         reports[str(path)] = rep
         ok &= rep["main_share"] >= args.min_main_share and rep["above_share"] == 0.0
         print(f"{path}: {rep['faces']} faces, {rep['components']} components, main piece {rep['main_share']:.1%}, "
-              f"on the input's mask {rep['inside_share']:.1%}, above the object {rep['above_share']:.1%}, white vertices {rep['white_share']:.1%}")
+              f"on the input's mask {rep['inside_share']:.1%}, above the object {rep['above_share']:.1%}, "
+              f"white vertices {rep['white_share']:.1%}")
+        off = rep["outside_edge_px"]
+        if off:
+            print(f"  off the mask: {off['median']:.1f} px from it (median), {off['p95']:.1f} px (95th percentile), "
+                  f"{off[f'within_{args.edge:g}px_share']:.1%} within {args.edge:g} px")
     if args.json:
         args.json.write_text(json.dumps(reports, indent=1) + "\n")
     return 0 if ok else 1

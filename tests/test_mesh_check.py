@@ -55,3 +55,35 @@ def test_slab_above_the_object_fails_the_gate() -> None:
     dirty = mc.mesh_report(_scene(True), c2w, intr, sil, 0.10)
     assert dirty["components"] == 2 and dirty["main_share"] == 0.5  # 12 + 12 faces
     assert dirty["above_share"] == 0.5  # every slab face is 0.95 above the body's top (height 0.5)
+
+
+def test_edge_distance_matches_a_pixel_loop() -> None:
+    mc = _load()
+    c2w, intr = _camera()
+    mask = np.zeros((32, 32), dtype=bool)
+    mask[10:22, 8:24] = True
+    mask[3, 28] = True  # a lone pixel, so the nearest mask pixel is not always on the rectangle
+    pts = np.random.default_rng(1).uniform(-2.0, 2.0, size=(150, 3))
+    pts[0] = c2w[:3, 3] - (0.0, 1.0, 0.0)  # behind the camera
+    got = mc.edge_distance_px(pts, c2w, intr, mask)
+    assert np.isinf(got[0])
+    for p, g in zip(pts[1:], got[1:], strict=True):
+        x, y, z = (p - c2w[:3, 3]) @ c2w[:3, :3]
+        if z <= 0:
+            assert np.isinf(g)
+            continue
+        u, v = 32.0 * x / z + 15.5, 32.0 * y / z + 15.5
+        want = min(np.hypot(u - j, v - i) for i in range(32) for j in range(32) if mask[i, j])
+        assert abs(g - want) < 1e-9
+    assert np.isinf(mc.edge_distance_px(pts, c2w, intr, np.zeros((32, 32), bool))).all()
+
+
+def test_edge_report_tells_a_rim_from_a_slab() -> None:
+    mc = _load()
+    c2w, intr = _camera()
+    sil = np.zeros((32, 32), dtype=bool)
+    sil[14:18, 11:20] = True  # narrower than the body's face centroids (u 9.9-21.1, v 12.7-18.3), by <= 1.7 px
+    rim = mc.mesh_report(_scene(False), c2w, intr, sil, 0.10)["outside_edge_px"]
+    slab = mc.mesh_report(_scene(True), c2w, intr, sil, 0.10)["outside_edge_px"]
+    assert rim["within_3px_share"] == 1.0 and rim["p95"] <= 3.0
+    assert slab["p95"] > 5.0 and slab["within_3px_share"] < 1.0
