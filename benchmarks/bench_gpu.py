@@ -257,6 +257,14 @@ def profile_table(fn, path: str, rows: int = 30) -> None:
     print(f"profile: {path}")
 
 
+def view_source(batch: TrainBatch) -> SourceViews:
+    """The first object's source view of a training batch (older checkouts' batches had no ``item``)."""
+    if hasattr(batch, "item"):
+        return batch.item(0).source
+    return SourceViews(batch.src_images[:1], batch.src_poses[:1], batch.focal[:1], batch.principal[:1],
+                       batch.src_prior[:1] if batch.src_prior is not None else None)
+
+
 def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
                  repeat: int, out: dict, compile: bool = False, profile_dir: str | None = None) -> None:
     """Print (and put in ``out``) ms per view with the paper's sampler and guided, and the SRN eval projection
@@ -268,9 +276,7 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
     policy = inference_policy(device, compile=compile)
     out["view_compile"] = compile
     runtime = field_runtime(model, policy)
-    src = batch.item(0).source if hasattr(batch, "source") else SourceViews(
-        batch.src_images[:1], batch.src_poses[:1], batch.focal[:1], batch.principal[:1],
-        batch.src_prior[:1] if batch.src_prior is not None else None)
+    src = view_source(batch)
     az = torch.linspace(0, 2 * math.pi, views + 1)[:-1]
     poses = look_at(torch.stack([1.2 * torch.cos(az), 1.2 * torch.sin(az), torch.full_like(az, 0.5)], -1))
     with torch.no_grad():
@@ -289,6 +295,10 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         out.update(view_paper_ms=min(t) / views * 1e3, view_resolution=intr.height, views_per_call=views,
                    view_precision="bf16" if policy.autocast else "fp32")
         project(out, "paper", out["view_paper_ms"])
+        gflop = view_gflop(model, enc, poses[:1], intr, cfg, device, policy)
+        out.update(view_paper_gflop=gflop, view_paper_tflops=gflop / out["view_paper_ms"])
+        print(f"view  paper sampler: {gflop:.0f} GFLOP per view (matrix products, torch.utils.flop_counter), "
+              f"{gflop / out['view_paper_ms']:.1f} TFLOP/s achieved")
         try:
             from depthnerf.render.config import GuidedConfig
             from depthnerf.render.depth_guide import build_depth_guide
@@ -317,6 +327,32 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         project(out, "guided", out["view_guided_ms"])
 
 
+def in_place_addmm_flop(self_shape, a_shape, b_shape, *_, **__) -> int:
+    """FLOPs of ``self.addmm_(a, b)``: ``(n, k) @ (k, m)``, 2 per multiply-add (the bias add is not counted, as
+    ``torch.utils.flop_counter`` does for ``addmm``)."""
+    return 2 * a_shape[0] * a_shape[1] * b_shape[1]
+
+
+def view_gflop(model: PixelNeRF, enc, poses: torch.Tensor, intr: Intrinsics, cfg, device: torch.device,
+               policy) -> float:
+    """GFLOP of one paper-sampler view as ``torch.utils.flop_counter`` counts them (2 per multiply-add of every
+    matrix product and convolution; elementwise work is not counted), rendered eagerly with ``policy``'s chunk.
+    The fields' in-place inference products (``addmm_``, which the counter does not know) are counted as
+    ``addmm``."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from depthnerf.render.precision import field_runtime, inference_policy
+    from depthnerf.render.views import render_poses
+
+    eager = inference_policy(device, compile=False)
+    aten = torch.ops.aten
+    counter = FlopCounterMode(display=False, custom_mapping={aten.addmm_: in_place_addmm_flop})
+    with torch.no_grad(), counter:
+        render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, policy.ray_chunk, device,
+                     runtime=field_runtime(model, eager))
+    return counter.get_total_flops() / 1e9
+
+
 def project(out: dict, name: str, ms_per_view: float) -> None:
     """The SRN-protocol evaluation (704 x 250 views) projected from a per-view time, in GPU-hours."""
     hours = SRN_EVAL_VIEWS * ms_per_view / 1e3 / 3600
@@ -337,6 +373,9 @@ def main() -> None:
     p.add_argument("--time", action="store_true", help="on the CPU: also time the step (slow)")
     p.add_argument("--no-views", action="store_true", help="CUDA: training figures only")
     p.add_argument("--count-rays", type=int, default=8, help="CPU op count: rays per object (count is the same)")
+    p.add_argument("--view-flops", action="store_true",
+                   help="on the CPU: also count a paper-sampler view's FLOPs (on 16x16 rays, scaled to --resolution; "
+                        "every ray costs the same)")
     p.add_argument("--breakdown", type=int, nargs="?", const=25, default=0, metavar="TOP",
                    help="CPU op count: also print it by phase, aten op, module and source (TOP rows each)")
     p.add_argument("--json", metavar="PATH", help="also write the printed figures to PATH as JSON")
@@ -424,6 +463,20 @@ def run(args, out: dict) -> None:
         t = timed(step, 3, device)
         print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
         out.update(cpu_train_s_best=min(t), cpu_train_s_median=statistics.median(t))
+    if args.view_flops:
+        from depthnerf.render.precision import inference_policy
+
+        model.eval()
+        small_batch, small_intr = synthetic_batch(1, 8, 16, depth_aware)
+        with torch.no_grad():
+            enc = model.encode(view_source(small_batch))
+        pose = look_at(torch.tensor([[1.2, 0.0, 0.5]]))
+        gflop = view_gflop(model, enc, pose, small_intr, cfg, device, inference_policy(device))
+        gflop *= (args.resolution / 16) ** 2
+        print(f"view  paper sampler, {args.resolution}x{args.resolution}: {gflop:.0f} GFLOP per view (matrix products, "
+              "torch.utils.flop_counter; counted on 16x16 rays)")
+        out["view_paper_gflop"] = gflop
+        model.train()
     # the op sequence does not depend on the number of rays: count with few (bf16 matmuls are slow on CPUs
     # without bf16 units)
     small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, depth_aware)
