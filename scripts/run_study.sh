@@ -11,8 +11,8 @@
 # RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
 # mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
 # prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-x2" the
-# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase; suffixes combine, e.g.
-# "cars-bundled-sym-pp"), FRAMING (synthetic benchmark framing,
+# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0); suffixes combine, e.g.
+# "cars-bundled-sym-pp", "cars-bundled-pp-s1"), CATEGORIES (whose data to make, default "cars chairs"), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
 # 0.5 reads the SRN-framed renders exactly), RES (images and training resolution, default 64; 128 is SRN's and the
@@ -34,7 +34,7 @@ export OMP_NUM_THREADS=1
 mkdir -p "$STUDY/logs"
 
 # 1. data: 300 train / 20 val / 50 test objects per category at RES px (default 64, the CPU presets' resolution)
-for cat in cars chairs; do
+for cat in ${CATEGORIES:-cars chairs}; do
   depthnerf synth --category "$cat" --out "$STUDY/data" --train-objects 300 --val-objects 20 --test-objects 50 \
     --resolution "$RES" --seed "$SEED" --framing "$FRAMING" --workers "$JOBS" --quiet
 done
@@ -48,7 +48,7 @@ one_run() {
   local prior=${rest%%-*}
   local variants=${rest#"$prior"}
   local run="$STUDY/runs/$name" ev="$STUDY/eval/$name" log="$STUDY/logs/$name.log"
-  local steps=() extra=() variant
+  local steps=() extra=() variant seed=$SEED
   [ -n "$STEPS" ] && steps=(--max-steps "$STEPS")
   for variant in ${variants//-/ }; do
     case "$variant" in
@@ -59,13 +59,14 @@ one_run() {
       x2) extra+=(--model.encoder.image_scale 2.0) ;;  # encoder on the input upsampled 2x ("Chairs: what was tried")
       np) extra+=(--model.encoder.use_first_pool false) ;;  # encoder without its first max-pool (same section)
       nb) extra+=(--schedule.bbox_steps 0) ;;  # no bbox-sampling phase: whole images from step 0 (same section)
-      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb)" >&2; return 2 ;;
+      s[0-9]*) seed=${variant#s} ;;  # another training seed: the spread between runs ("A rerun does not reproduce it")
+      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb, s<N>)" >&2; return 2 ;;
     esac
   done
   if [ ! -f "$ev/summary.json" ]; then
     local resume=()
     [ -f "$run/config.json" ] && resume=(--resume)
-    depthnerf train --preset "cpu-$cat" --data "$STUDY/data" --depth "$prior" --seed "$SEED" --out "$run" \
+    depthnerf train --preset "cpu-$cat" --data "$STUDY/data" --depth "$prior" --seed "$seed" --out "$run" \
       --data.pixel_center "$PIXEL_CENTER" --data.resolution "$RES" "${steps[@]}" "${extra[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
     depthnerf eval --run "$run" --views-stride "$STRIDE" --save-renders --out "$ev" --no-progress >> "$log" 2>&1
   fi
