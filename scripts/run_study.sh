@@ -80,6 +80,9 @@ evals=()
 for name in chairs-none chairs-bundled chairs-oracle cars-none cars-bundled cars-oracle; do
   [ -f "$STUDY/eval/$name/summary.json" ] && evals+=("$STUDY/eval/$name")
 done
+if [ ${#evals[@]} -eq 0 ]; then  # e.g. RUNS="cars-bundled-pp-s1" alone: no Table-1 run to tabulate
+  echo "run_study.sh: none of Table 1's six runs is evaluated in $STUDY: no table or figures"; exit 0
+fi
 depthnerf compare "${evals[@]}" --reference paper --out "$STUDY/table.md"
 mkdir -p "$STUDY/figures"
 python scripts/plot_training_curves.py --runs "$STUDY"/runs/* --out "$STUDY/figures/training_curves.png"
