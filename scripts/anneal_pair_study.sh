@@ -28,14 +28,19 @@ mkdir -p "$OUT/logs" "$OUT/runs" "$OUT/eval"
   --val-objects 20 --test-objects 50 --resolution 64 --seed 0 --framing srn --workers "$JOBS" --quiet
 depthnerf depth --data "$OUT/data" --estimator bundled --no-progress
 
-one_run() {  # depth (none | bundled) and the shipped checkpoint it starts from
+anneal() {  # run name, the checkpoint it starts from, steps, then the run's own train flags (--depth, model options)
   set -euo pipefail
-  local run="$OUT/runs/$CAT-$1-annealed"
-  [ -f "$run/checkpoints/step_$(printf %08d "$STEPS")/model.safetensors" ] || depthnerf train --resume \
-    --preset "cpu-$CAT" --data "$OUT/data" --depth "$1" --init-from "$2" --seed 1 --schedule.bbox_steps 0 \
-    --schedule.lr_schedule cosine --schedule.lr 3e-4 --schedule.lr_final 3e-6 --max-steps "$STEPS" \
-    --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-$CAT-$1-annealed.log" 2>&1
-  echo "trained $CAT-$1-annealed"
+  local name=$1 from=$2 steps=$3
+  shift 3
+  local run="$OUT/runs/$name"
+  [ -f "$run/checkpoints/step_$(printf %08d "$steps")/model.safetensors" ] || depthnerf train --resume \
+    --preset "cpu-$CAT" --data "$OUT/data" "$@" --init-from "$from" --seed 1 --schedule.bbox_steps 0 \
+    --schedule.lr_schedule cosine --schedule.lr 3e-4 --schedule.lr_final 3e-6 --max-steps "$steps" \
+    --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-$name.log" 2>&1
+  echo "trained $name"
+}
+one_run() {  # depth (none | bundled) and the shipped checkpoint it starts from
+  anneal "$CAT-$1-annealed" "$2" "$STEPS" --depth "$1"
 }
 one_eval() {  # a run's name or a shipped checkpoint's name
   set -euo pipefail
@@ -45,7 +50,7 @@ one_eval() {  # a run's name or a shipped checkpoint's name
     --out "$ev" --no-progress > "$OUT/logs/eval-$1.log" 2>&1
   echo "evaluated $1"
 }
-export -f one_run one_eval
+export -f anneal one_run one_eval
 printf '%s\n' "none cpu-$CAT-baseline" "bundled cpu-$CAT-depth" | xargs -P "$JOBS" -L 1 bash -c 'one_run $0 $1'
 printf '%s\n' "$CAT-none-annealed" "$CAT-bundled-annealed" "cpu-$CAT-baseline" "cpu-$CAT-depth" \
   | xargs -P "$JOBS" -L 1 bash -c 'one_eval $0'
@@ -61,11 +66,8 @@ if [ "${PP:-0}" = 1 ]; then  # the depth prior read at each point, then annealed
   [ -f "$pp/checkpoints/step_00002000/model.safetensors" ] || depthnerf train --resume --preset "cpu-$CAT" \
     --data "$OUT/data" --depth bundled --model.prior_at_point true --seed 0 --out "$pp" --no-progress \
     > "$OUT/logs/train-$CAT-bundled-pp.log" 2>&1
-  run="$OUT/runs/$CAT-bundled-pp-annealed"  # from its best checkpoint, annealed as the pair above
-  [ -f "$run/checkpoints/step_$(printf %08d "$STEPS")/model.safetensors" ] || depthnerf train --resume \
-    --preset "cpu-$CAT" --data "$OUT/data" --depth bundled --model.prior_at_point true --init-from "$pp" --seed 1 \
-    --schedule.bbox_steps 0 --schedule.lr_schedule cosine --schedule.lr 3e-4 --schedule.lr_final 3e-6 \
-    --max-steps "$STEPS" --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-$CAT-bundled-pp-annealed.log" 2>&1
+  # from its best checkpoint, annealed as the pair above
+  anneal "$CAT-bundled-pp-annealed" "$pp" "$STEPS" --depth bundled --model.prior_at_point true
   printf '%s\n' "$CAT-bundled-pp-annealed" "$CAT-bundled-pp" | xargs -P "$JOBS" -L 1 bash -c 'one_eval $0'
   python "$here/paired_difference.py" --baseline "$OUT/eval/$CAT-none-annealed" --method "$OUT/eval/$CAT-bundled-pp-annealed"
   python "$here/paired_difference.py" --baseline "$OUT/eval/cpu-$CAT-baseline" --method "$OUT/eval/$CAT-bundled-pp"
@@ -77,11 +79,7 @@ fi
 FROM=${FROM:-c49b8f7}
 START="$OUT/sym-pp-2000.safetensors"
 [ -f "$START" ] || git show "$FROM:depthnerf/checkpoints/cpu-cars-sym-pp.safetensors" > "$START"
-run="$OUT/runs/cars-bundled-sym-pp-annealed"
-[ -f "$run/checkpoints/step_00003000/model.safetensors" ] || depthnerf train --resume --preset cpu-cars \
-  --data "$OUT/data" --depth bundled --model.mirror true --model.prior_at_point true --init-from "$START" --seed 1 \
-  --schedule.bbox_steps 0 --schedule.lr_schedule cosine --schedule.lr 3e-4 --schedule.lr_final 3e-6 \
-  --max-steps 3000 --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-cars-bundled-sym-pp-annealed.log" 2>&1
+anneal cars-bundled-sym-pp-annealed "$START" 3000 --depth bundled --model.mirror true --model.prior_at_point true
 [ -f "$OUT/eval/sym-pp-2000/summary.json" ] || depthnerf eval --checkpoint "$START" --data "$OUT/data" \
   --views-stride 25 --save-renders --out "$OUT/eval/sym-pp-2000" --no-progress > "$OUT/logs/eval-sym-pp-2000.log" 2>&1
 one_eval cars-bundled-sym-pp-annealed
