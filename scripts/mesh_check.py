@@ -32,27 +32,31 @@ from depthnerf.data.cameras import project, world_to_camera
 from depthnerf.render.mesh import keep_pieces
 
 
-def inside_mask(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """True for world points that project (OpenCV camera ``c2w``; ``intrinsics`` = f, cx, cy, H, W; pixel (i, j)
-    at (u, v) = (j, i); :mod:`depthnerf.data.cameras`) in front of the camera onto a mask pixel."""
-    f, cx, cy, h, w = intrinsics
+def image_points(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points in the input image: ``(uv, in_front)``, the unrounded pixel coordinates (OpenCV camera ``c2w``;
+    ``intrinsics`` = f, cx, cy, H, W; pixel (i, j) at (u, v) = (j, i); :mod:`depthnerf.data.cameras`) and whether
+    each point is in front of the camera."""
+    f, cx, cy = (float(x) for x in intrinsics[:3])
     cam = world_to_camera(torch.tensor(points, dtype=torch.float64), torch.tensor(c2w, dtype=torch.float64))
-    uv = np.round(project(cam, float(f), (float(cx), float(cy))).numpy()).astype(np.int64)
-    u, v = uv[:, 0], uv[:, 1]
-    ok = (cam[:, 2].numpy() > 0) & (u >= 0) & (u < int(w)) & (v >= 0) & (v < int(h))
+    return project(cam, f, (cx, cy)).numpy(), cam[:, 2].numpy() > 0
+
+
+def inside_mask(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """True for world points that project (:func:`image_points`) in front of the camera onto a mask pixel."""
+    h, w = int(intrinsics[3]), int(intrinsics[4])
+    uv, front = image_points(points, c2w, intrinsics)
+    u, v = np.round(uv).astype(np.int64).T
+    ok = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     out = np.zeros(len(points), dtype=bool)
     out[ok] = mask[v[ok], u[ok]]
     return out
 
 
 def edge_distance_px(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Pixels from each world point's projection (unrounded, as :func:`inside_mask` reads it) to the nearest mask
-    pixel's centre (pixel (i, j) at (u, v) = (j, i)); ``inf`` behind the camera or for an empty mask."""
-    f, cx, cy = (float(x) for x in intrinsics[:3])
-    cam = world_to_camera(torch.tensor(points, dtype=torch.float64), torch.tensor(c2w, dtype=torch.float64))
-    uv = project(cam, f, (cx, cy)).numpy()
+    """Pixels from each world point's projection (:func:`image_points`, unrounded) to the nearest mask pixel's
+    centre; ``inf`` behind the camera or for an empty mask."""
+    uv, front = image_points(points, c2w, intrinsics)
     out = np.full(len(points), np.inf)
-    front = cam[:, 2].numpy() > 0
     ij = np.argwhere(mask)
     if ij.size and front.any():
         out[front] = cKDTree(ij[:, ::-1].astype(np.float64)).query(uv[front])[0]
