@@ -295,7 +295,7 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
         out.update(view_paper_ms=min(t) / views * 1e3, view_resolution=intr.height, views_per_call=views,
                    view_precision="bf16" if policy.autocast else "fp32")
         project(out, "paper", out["view_paper_ms"])
-        gflop = view_gflop(model, enc, poses[:1], intr, cfg, device, policy)
+        gflop = paper_view_gflop(model, cfg, intr.height, device)
         out.update(view_paper_gflop=gflop, view_paper_tflops=gflop / out["view_paper_ms"])
         print(f"view  paper sampler: {gflop:.0f} GFLOP per view (matrix products, torch.utils.flop_counter), "
               f"{gflop / out['view_paper_ms']:.1f} TFLOP/s achieved")
@@ -333,12 +333,11 @@ def in_place_addmm_flop(self_shape, a_shape, b_shape, *_, **__) -> int:
     return 2 * a_shape[0] * a_shape[1] * b_shape[1]
 
 
-def view_gflop(model: PixelNeRF, enc, poses: torch.Tensor, intr: Intrinsics, cfg, device: torch.device,
-               policy) -> float:
-    """GFLOP of one paper-sampler view as ``torch.utils.flop_counter`` counts them (2 per multiply-add of every
-    matrix product and convolution; elementwise work is not counted), rendered eagerly with ``policy``'s chunk.
-    The fields' in-place inference products (``addmm_``, which the counter does not know) are counted as
-    ``addmm``."""
+def view_gflop(model: PixelNeRF, enc, poses: torch.Tensor, intr: Intrinsics, cfg, device: torch.device) -> float:
+    """GFLOP of the paper-sampler views at ``poses`` as ``torch.utils.flop_counter`` counts them (2 per
+    multiply-add of every matrix product and convolution; elementwise work is not counted), rendered eagerly with
+    ``device``'s inference policy. The fields' in-place inference products (``addmm_``, which the counter does not
+    know) are counted as ``addmm``."""
     from torch.utils.flop_counter import FlopCounterMode
 
     from depthnerf.render.precision import field_runtime, inference_policy
@@ -348,9 +347,24 @@ def view_gflop(model: PixelNeRF, enc, poses: torch.Tensor, intr: Intrinsics, cfg
     aten = torch.ops.aten
     counter = FlopCounterMode(display=False, custom_mapping={aten.addmm_: in_place_addmm_flop})
     with torch.no_grad(), counter:
-        render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, policy.ray_chunk, device,
+        render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, eager.ray_chunk, device,
                      runtime=field_runtime(model, eager))
     return counter.get_total_flops() / 1e9
+
+
+def paper_view_gflop(model: PixelNeRF, cfg, resolution: int, device: torch.device) -> float:
+    """GFLOP of one ``resolution`` x ``resolution`` paper-sampler view (:func:`view_gflop`), counted on a 16 x 16
+    view of a synthetic source and scaled by the pixel count: every ray costs the same, and the feature map (whose
+    ``lin_z`` products are counted once per view) scales with the image too."""
+    training = model.training
+    model.eval()
+    batch, intr = synthetic_batch(1, 8, 16, model.depth_aware)
+    with torch.no_grad():
+        enc = model.encode(view_source(batch.to(device)))
+    pose = look_at(torch.tensor([[1.2, 0.0, 0.5]]))
+    gflop = view_gflop(model, enc, pose, intr, cfg, device)
+    model.train(training)
+    return gflop * (resolution / 16) ** 2
 
 
 def project(out: dict, name: str, ms_per_view: float) -> None:
@@ -464,19 +478,10 @@ def run(args, out: dict) -> None:
         print(f"train iteration (CPU fp32): {min(t):.2f} s best, {statistics.median(t):.2f} s median")
         out.update(cpu_train_s_best=min(t), cpu_train_s_median=statistics.median(t))
     if args.view_flops:
-        from depthnerf.render.precision import inference_policy
-
-        model.eval()
-        small_batch, small_intr = synthetic_batch(1, 8, 16, depth_aware)
-        with torch.no_grad():
-            enc = model.encode(view_source(small_batch))
-        pose = look_at(torch.tensor([[1.2, 0.0, 0.5]]))
-        gflop = view_gflop(model, enc, pose, small_intr, cfg, device, inference_policy(device))
-        gflop *= (args.resolution / 16) ** 2
+        gflop = paper_view_gflop(model, cfg, args.resolution, device)
         print(f"view  paper sampler, {args.resolution}x{args.resolution}: {gflop:.0f} GFLOP per view (matrix products, "
               "torch.utils.flop_counter; counted on 16x16 rays)")
         out["view_paper_gflop"] = gflop
-        model.train()
     # the op sequence does not depend on the number of rays: count with few (bf16 matmuls are slow on CPUs
     # without bf16 units)
     small, _ = synthetic_batch(args.objects, args.count_rays, args.resolution, depth_aware)

@@ -38,8 +38,6 @@ def _per_point(field: torch.nn.Module) -> int:
 
 def test_view_flops_equal_the_closed_form() -> None:
     bench = _bench()
-    from depthnerf.render.precision import inference_policy
-
     cfg = with_prior(preset("cpu-cars"), "none")
     torch.manual_seed(0)
     model = PixelNeRF(cfg.model, depth_aware=False).eval()
@@ -48,7 +46,7 @@ def test_view_flops_equal_the_closed_form() -> None:
     with torch.no_grad():
         enc = model.encode(bench.view_source(batch))
     pose = bench.look_at(torch.tensor([[1.2, 0.0, 0.5]]))
-    got = bench.view_gflop(model, enc, pose, intr, cfg, torch.device("cpu"), inference_policy("cpu")) * 1e9
+    got = bench.view_gflop(model, enc, pose, intr, cfg, torch.device("cpu")) * 1e9
     sc = cfg.render.sampler
     want = 30 * (sc.n_coarse * _per_point(model.coarse)
                  + (sc.n_coarse + sc.n_importance + sc.n_gaussian) * _per_point(model.fine))
