@@ -11,7 +11,9 @@
 # RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
 # mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
 # prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-x2" the
-# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0); suffixes combine, e.g.
+# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0), "-w" the bundled prior
+# from the depth-net weights file DEPTH_WEIGHTS instead of the shipped one (--depth-checkpoint; its priors are cached
+# beside the shipped ones, keyed by the file's hash); suffixes combine, e.g.
 # "cars-bundled-sym-pp", "cars-bundled-pp-s1"), CATEGORIES (whose data to make, default "cars chairs"), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
@@ -40,6 +42,10 @@ for cat in ${CATEGORIES:-cars chairs}; do
 done
 # 2. bundled depth priors for every split (oracle priors need no cache: they come from the GT depth)
 depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
+if [ -n "${DEPTH_WEIGHTS:-}" ]; then
+  depthnerf depth --data "$STUDY/data" --estimator bundled --depth-checkpoint "$DEPTH_WEIGHTS" --no-progress
+fi
+export DEPTH_WEIGHTS=${DEPTH_WEIGHTS:-}
 
 # 3. + 4. train and evaluate each run
 one_run() {
@@ -60,7 +66,9 @@ one_run() {
       np) extra+=(--model.encoder.use_first_pool false) ;;  # encoder without its first max-pool (same section)
       nb) extra+=(--schedule.bbox_steps 0) ;;  # no bbox-sampling phase: whole images from step 0 (same section)
       s[0-9]*) seed=${variant#s} ;;  # another training seed: the spread between runs ("A rerun does not reproduce it")
-      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb, s<N>)" >&2; return 2 ;;
+      w) [ -n "$DEPTH_WEIGHTS" ] || { echo "run $name: variant 'w' needs DEPTH_WEIGHTS (a bundled depth-net file)" >&2; return 2; }
+         extra+=(--depth-checkpoint "$DEPTH_WEIGHTS") ;;  # another bundled depth net ("A depth net trained on the SRN framing")
+      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb, s<N>, w)" >&2; return 2 ;;
     esac
   done
   if [ ! -f "$ev/summary.json" ]; then

@@ -40,7 +40,13 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file, safe_open, save_file
 
-from depthnerf.depth.bundled import DEFAULT_WEIGHTS, BundledDepthNet, BundledNetConfig, save_bundled
+from depthnerf.depth.bundled import (
+    DEFAULT_WEIGHTS,
+    BundledDepthNet,
+    BundledNetConfig,
+    network_size,
+    save_bundled,
+)
 from depthnerf.depth.normalize import foreground_median_and_deviation
 
 CATEGORIES = ("cars", "chairs")
@@ -70,6 +76,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--weight-decay", type=float, default=1e-4)
     p.add_argument("--widths", type=int, nargs="+", default=list(BundledNetConfig().widths))
     p.add_argument("--unshuffle", type=int, default=BundledNetConfig().unshuffle)
+    p.add_argument("--input-size", type=int, default=None,
+                   help="network input size (longer side); default: the train images' size. When it differs, each "
+                        "batch is resized to it and the prediction back to the images' size before the loss, as "
+                        "the estimator does at inference (e.g. 128 on 64 px renders)")
     p.add_argument("--seed", type=int, default=0, help="torch seed (init, batches, augmentation)")
     p.add_argument("--threads", type=int, default=2, help="torch threads")
     p.add_argument("--save-every", type=int, default=200)
@@ -162,6 +172,16 @@ def batch(images: torch.Tensor, depths: torch.Tensor, size: int, gen: torch.Gene
     return (1.0 - (1.0 - x) * gain).clamp(0.0, 1.0), d
 
 
+def predict_at_image_size(net: BundledDepthNet, x: torch.Tensor) -> torch.Tensor:
+    """The network's disparity at the images' own size, resized in and out as ``BundledEstimator.predict`` does."""
+    height, width = x.shape[-2:]
+    size = network_size(net.config, height, width)
+    if size == (height, width):
+        return net(x)
+    x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
+    return F.interpolate(net(x)[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
+
+
 def save_state(path: Path, net: BundledDepthNet, opt: torch.optim.Optimizer, step: int, elapsed: float) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tensors = {f"net.{k}": v.detach().clone().contiguous() for k, v in net.state_dict().items()}
@@ -195,9 +215,8 @@ def train(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     images, depths = load_pack(args)
-    print(f"train data: {images.shape[0]} views of {args.train_objects} objects x {len(CATEGORIES)} categories",
-          flush=True)
-    net = BundledDepthNet(BundledNetConfig(widths=tuple(args.widths), input_size=images.shape[-1],
+    print(f"train data: {images.shape[0]} views at {images.shape[-1]} px of {len(CATEGORIES)} categories", flush=True)
+    net = BundledDepthNet(BundledNetConfig(widths=tuple(args.widths), input_size=args.input_size or images.shape[-1],
                                            unshuffle=args.unshuffle))
     opt = torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     step, elapsed = (load_state(args.state, net, opt) if args.resume and args.state.is_file() else (0, 0.0))
@@ -214,7 +233,7 @@ def train(args: argparse.Namespace) -> None:
         for group in opt.param_groups:
             group["lr"] = lr
         x, d = batch(images, depths, args.batch_size, gen)
-        loss = ssi_loss(net(x), d)
+        loss = ssi_loss(predict_at_image_size(net, x), d)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -228,8 +247,10 @@ def train(args: argparse.Namespace) -> None:
     save_state(args.state, net, opt, step, elapsed)
     net.eval()
     notes = {
-        "training_data": f"depthnerf synth train split, cars + chairs, {args.train_objects} objects each, "
-                         f"seed {args.data_seed}, framing {args.framing}, {images.shape[0]} views",
+        "training_data": "depthnerf synth train split, cars + chairs, "
+                         + ("the objects in --data, " if args.skip_synth else f"{args.train_objects} objects each, ")
+                         + f"seed {args.data_seed}, framing {args.framing}, {images.shape[0]} views at "
+                         f"{images.shape[-1]} px, network input {net.config.input_size} px",
         "training": f"{step} steps x batch {args.batch_size}, AdamW lr {args.lr}, {elapsed / 60:.1f} min, "
                     f"final loss {running:.4f}",
         "command": "python " + " ".join([Path(sys.argv[0]).as_posix(), *sys.argv[1:]]),
