@@ -63,6 +63,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--framing", choices=("legacy", "srn"), default="legacy",
                    help="depthnerf synth --framing of the train (and --eval-seed test) data; legacy (default) is "
                         "the shipped weights' framing")
+    p.add_argument("--resolution", type=int, default=128,
+                   help="depthnerf synth --resolution of the train (and --eval-seed test) data (default 128; 64 is the "
+                        "CPU study's, whose images reach the network upsampled: see --input-size)")
     p.add_argument("--synth-workers", type=int, default=2, help="depthnerf synth --workers")
     p.add_argument("--skip-synth", action="store_true", help="use the data in --data as it is (no synth call)")
     p.add_argument("--out", type=Path, default=DEFAULT_WEIGHTS, help="where to write the final weights")
@@ -89,10 +92,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def synth(category: str, out: Path, train: int, test: int, seed: int, workers: int, framing: str) -> None:
+def synth(category: str, out: Path, train: int, test: int, seed: int, workers: int, framing: str,
+          resolution: int) -> None:
     cmd = [sys.executable, "-m", "depthnerf", "synth", "--category", category, "--out", str(out),
            "--train-objects", str(train), "--val-objects", "0", "--test-objects", str(test), "--seed", str(seed),
-           "--workers", str(workers), "--framing", framing]
+           "--workers", str(workers), "--framing", framing, "--resolution", str(resolution)]
     print("+", " ".join(cmd[2:]), flush=True)
     subprocess.run(cmd, check=True)
 
@@ -103,7 +107,8 @@ def load_pack(args: argparse.Namespace) -> tuple[torch.Tensor, torch.Tensor]:
     from depthnerf.data.srn import index_split, load_object
 
     for category in CATEGORIES if not args.skip_synth else ():  # synth resumes: completes a partial run
-        synth(category, args.data, args.train_objects, 0, args.data_seed, args.synth_workers, args.framing)
+        synth(category, args.data, args.train_objects, 0, args.data_seed, args.synth_workers, args.framing,
+              args.resolution)
     records = [r for c in CATEGORIES for r in index_split(args.data, c, "train", check_files=False).objects]
     key = json.dumps(sorted(f"{r.category}/{r.object_id}/{r.num_views}" for r in records))
     pack = args.data / PACK_NAME
@@ -266,7 +271,8 @@ def evaluate(args: argparse.Namespace) -> None:
     suffix = "" if args.framing == "legacy" else f"_{args.framing}"
     test_root = args.data.parent / f"{args.data.name}_test_seed{args.eval_seed}{suffix}"
     for category in CATEGORIES:
-        synth(category, test_root, 0, args.eval_objects, args.eval_seed, args.synth_workers, args.framing)
+        synth(category, test_root, 0, args.eval_objects, args.eval_seed, args.synth_workers, args.framing,
+              args.resolution)
     result = evaluate_depth(DepthEvalConfig(data_root=test_root, estimator="bundled", checkpoint=str(args.out),
                                             split="test", use_cache=False))
     print(json.dumps({k: v for k, v in result.as_dict().items() if k != "provenance"}, indent=2))
