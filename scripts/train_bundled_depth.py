@@ -22,7 +22,10 @@ Reproduce the shipped weights (see ``depthnerf/depth/weights/MODEL_CARD.md`` for
     python scripts/train_bundled_depth.py --data data/bundled_depth --train-objects 150
 
 The shipped weights were trained on the legacy framing (``--framing legacy``, the default here, so the command
-above reproduces them); ``--framing srn --data data/bundled_depth_srn`` trains on the SRN-framed benchmark.
+above reproduces them); ``--framing srn`` trains on the SRN-framed benchmark. The CPU study feeds the network 64 px
+renders upsampled to its 128 px input; ``--resolution 64 --train-objects 300 --input-size 128`` trains on exactly
+that (the study's train objects, resized in and out as at inference; the model card's "Retrained on the SRN
+framing").
 """
 
 from __future__ import annotations
