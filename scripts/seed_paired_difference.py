@@ -86,10 +86,8 @@ def welch_interval(a: list[float], b: list[float]) -> tuple[float, float] | None
 
 def seed_paired(baseline: list[Path], method: list[Path]) -> list[SeedStat]:
     """The statistics above for every metric all the evaluations have."""
-    base, meth = load_arm(baseline), load_arm(method)
-    if set(base[0]) != set(meth[0]) or any(base[0][o]["views"] != meth[0][o]["views"] for o in base[0]):
-        raise SystemExit(f"error: {method[0]}/per_object.csv: objects or views differ from "
-                         f"{baseline[0]}/per_object.csv")
+    arms = load_arm(baseline + method)  # every folder of both arms against the first baseline folder
+    base, meth = arms[:len(baseline)], arms[len(baseline):]
     out = []
     for metric, higher in METRICS.items():
         ids = [o for o in sorted(base[0]) if all(r[o].get(metric) for r in base + meth)]

@@ -47,7 +47,7 @@ from depthnerf.depth.bundled import (
     DEFAULT_WEIGHTS,
     BundledDepthNet,
     BundledNetConfig,
-    network_size,
+    predict_at_image_size,
     save_bundled,
 )
 from depthnerf.depth.normalize import foreground_median_and_deviation
@@ -178,16 +178,6 @@ def batch(images: torch.Tensor, depths: torch.Tensor, size: int, gen: torch.Gene
     d = torch.where(flip[:, None, None], d.flip(-1), d)
     gain = 0.8 + 0.4 * torch.rand(size, 3, 1, 1, generator=gen)
     return (1.0 - (1.0 - x) * gain).clamp(0.0, 1.0), d
-
-
-def predict_at_image_size(net: BundledDepthNet, x: torch.Tensor) -> torch.Tensor:
-    """The network's disparity at the images' own size, resized in and out as ``BundledEstimator.predict`` does."""
-    height, width = x.shape[-2:]
-    size = network_size(net.config, height, width)
-    if size == (height, width):
-        return net(x)
-    x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
-    return F.interpolate(net(x)[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
 
 
 def save_state(path: Path, net: BundledDepthNet, opt: torch.optim.Optimizer, step: int, elapsed: float) -> None:

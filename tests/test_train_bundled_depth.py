@@ -17,7 +17,7 @@ def _net(input_size: int) -> BundledDepthNet:
 
 
 def test_training_prediction_is_the_estimators_prediction() -> None:
-    """64 px images through a 128 px network: resized in and out exactly as ``BundledEstimator.predict`` does."""
+    """64 px images through a 128 px network: the trainer and the estimator share ``predict_at_image_size``."""
     net = _net(128)
     images = torch.rand(2, 3, 64, 64)
     estimator = BundledEstimator(net, PriorProvenance("bundled", None, "0" * 64, 128, "MIT"), "cpu")

@@ -123,6 +123,18 @@ def network_size(config: BundledNetConfig, height: int, width: int) -> tuple[int
     return max(m, round(height * scale / m) * m), max(m, round(width * scale / m) * m)
 
 
+def predict_at_image_size(network: BundledDepthNet, images: Float[Tensor, "B 3 H W"]) -> Float[Tensor, "B H W"]:
+    """Disparity at the images' own size: resized (bilinear, antialiased) to :func:`network_size`, run, and resized
+    back (bilinear). Inference (:meth:`BundledEstimator.predict`) and training (``scripts/train_bundled_depth.py``)
+    both go through here, so the network is trained on what it sees at inference."""
+    height, width = images.shape[-2:]
+    size = network_size(network.config, height, width)
+    if size == (height, width):
+        return network(images)
+    x = F.interpolate(images, size=size, mode="bilinear", align_corners=False, antialias=True)
+    return F.interpolate(network(x)[:, None], size=(height, width), mode="bilinear", align_corners=False)[:, 0]
+
+
 def save_bundled(net: BundledDepthNet, path: Path, notes: dict[str, str] | None = None) -> None:
     """Write weights + config atomically (:func:`depthnerf.files.write_bytes_atomic`)."""
     state = {k: v.detach().float().cpu().contiguous() for k, v in net.state_dict().items()
@@ -190,12 +202,6 @@ class BundledEstimator(FrozenNetworkEstimator):
     def predict(self, images: Float[Tensor, "B 3 H W"],
                 depths: Float[Tensor, "B H W"] | None = None) -> Float[Tensor, "B H W"]:
         """Relative disparity at the images' resolution (``depths`` is ignored)."""
-        height, width = self.image_size(images)
-        size = network_size(self.network.config, height, width)
+        self.image_size(images)  # checks the shape
         x = images.detach().float().clamp(0.0, 1.0).to(self.device)
-        if (height, width) != size:
-            x = F.interpolate(x, size=size, mode="bilinear", align_corners=False, antialias=True)
-        disp = self.network(x)[:, None]
-        if (height, width) != size:
-            disp = F.interpolate(disp, size=(height, width), mode="bilinear", align_corners=False)
-        return disp[:, 0].float().cpu()
+        return predict_at_image_size(self.network, x).float().cpu()
