@@ -240,8 +240,9 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              "upper-hemisphere views per object (exact z-depth, masks and meshes exist for every view).",
              f"- Dataset split sizes: {', '.join(f'{k} {v}' for k, v in ds.get('counts', {}).items()) or 'unknown'}"
              "; no val/test object is used for training.",
-             f"- Depth prior: `{est}`" + (f" (weights sha256 `{str(prior.get('weights_hash'))[:16]}...`, "
-                                         f"licence {prior.get('licence')})" if prior and est != "none" else "")
+             f"- Depth prior: `{est}`" + (f", weights `{card['depth_weights']}`" if card.get("depth_weights") else "")
+             + (f" (sha256 `{str(prior.get('weights_hash'))[:16]}...`, "
+                f"licence {prior.get('licence')})" if prior and est != "none" else "")
              + ".", "",
              "## Model and preset", "",
              f"- Encoder: {m.encoder.backbone} trunk, {m.encoder.num_layers} feature stages"
@@ -283,7 +284,7 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
     data_root = card.get("data_root") or (ev or {}).get("data_root") or data_card.get("root", "data/synth")
     reproduce = [f"DATA={data_root}", synth_command(ds, cat)]
     if est in CACHED_ESTIMATORS:
-        reproduce.append(depth_command(Path("$DATA"), est, cfg.prior.checkpoint, cfg.data.resolution,
+        reproduce.append(depth_command(Path("$DATA"), est, card.get("depth_weights"), cfg.data.resolution,
                                        category=cat))
     reproduce.append(card.get("command") or f"depthnerf train --preset {cfg.preset} --data $DATA --depth {est} "
                      f"--out runs/{name}  # --command not given at export: check the config in the weights")
@@ -356,6 +357,7 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     os.chmod(staged, 0o644)  # shared package data (the writer's temporary file may be private)
     os.replace(staged, weights)
     card = {"name": name, "preset": cfg.preset, "depth_estimator": cfg.prior.estimator,
+            "depth_weights": exported.spec.prior.checkpoint,
             "category": cfg.data.category, "resolution": cfg.data.resolution, "step": exported.step,
             "sha256": exported.sha256, "size_bytes": weights.stat().st_size, "dtype": "float16",
             "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},

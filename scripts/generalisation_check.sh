@@ -5,7 +5,7 @@
 #   bash scripts/generalisation_check.sh [OUT_DIR]        (default: study/generalisation, git-ignored)
 #
 # Per category: OBJECTS test objects of `depthnerf synth --family FAMILY --seed SEED --framing FRAMING` at 64 px
-# (the CPU checkpoints' resolution), their bundled depth priors, `depthnerf eval` of cpu-<cat>-depth and
+# (the CPU checkpoints' resolution), the depth priors cpu-<cat>-depth reads, `depthnerf eval` of cpu-<cat>-depth and
 # cpu-<cat>-baseline (SRN protocol: input view 64, every STRIDE-th other view), then
 # scripts/paired_difference.py (depth - baseline) into OUT_DIR/paired_<cat>.{md,json}.
 #
@@ -35,10 +35,8 @@ for cat in $CATEGORIES; do
   depthnerf synth --category "$cat" --out "$DATA" --train-objects 0 --val-objects 0 --test-objects "$OBJECTS" \
     --resolution 64 --seed "$SEED" --family "$FAMILY" --framing "$FRAMING" --quiet
 done
-# shellcheck disable=SC2086
-depthnerf depth --data "$DATA" --estimator bundled --splits test $(printf -- '--category %s ' $CATEGORIES) \
-  --no-progress
 for cat in $CATEGORIES; do
+  depthnerf depth --data "$DATA" --for "$PREFIX-$cat-depth" --splits test --category "$cat" --no-progress
   for kind in baseline depth; do
     ev="$OUT/eval/$PREFIX-$cat-$kind"
     [ -f "$ev/summary.json" ] || depthnerf eval --checkpoint "$PREFIX-$cat-$kind" --data "$DATA" --split test \

@@ -32,10 +32,9 @@ for cat in $cats; do
   depthnerf synth --category "$cat" --out "$DATA" --train-objects 0 --val-objects 0 --test-objects "$OBJECTS" \
     --resolution 64 --seed "$SEED" --framing "$FRAMING" --quiet
 done
-# shellcheck disable=SC2046
-depthnerf depth --data "$DATA" --estimator bundled --splits test $(printf -- '--category %s ' $cats) --no-progress
 for ck in $CHECKPOINTS; do
   cat=$(echo "$ck" | cut -d- -f2)
+  depthnerf depth --data "$DATA" --for "$ck" --splits test --category "$cat" --no-progress
   for mode in trained shifted; do
     ev="$OUT/eval/$ck-$mode"
     extra=()

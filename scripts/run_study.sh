@@ -12,14 +12,16 @@
 # mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
 # prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-x2" the
 # encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0), "-w" the bundled prior
-# from the depth-net weights file DEPTH_WEIGHTS instead of the shipped one (--depth-checkpoint; its priors are cached
-# beside the shipped ones, keyed by the file's hash); suffixes combine, e.g.
+# from the depth net DEPTH_WEIGHTS (a weights file or a shipped net's name) instead of BUNDLED_NET (--depth-checkpoint;
+# its priors are cached beside the others, keyed by the file's hash); suffixes combine, e.g.
 # "cars-bundled-sym-pp", "cars-bundled-pp-s1"), CATEGORIES (whose data to make, default "cars chairs"), FRAMING (synthetic benchmark framing,
 # default srn: framed as SRN's renders, docs/data.md; `legacy` reproduces the data of the shipped cpu-*
 # checkpoints), PIXEL_CENTER (the runs' data.pixel_center, default 0.0 = the paper presets' pixelNeRF reading;
 # 0.5 reads the SRN-framed renders exactly), RES (images and training resolution, default 64; 128 is SRN's and the
 # paper presets'), GENERALISATION (1: also run scripts/generalisation_check.sh on
-# the checkpoints exported from this study: set CHECKPOINT_PREFIX to their name prefix; default 0).
+# the checkpoints exported from this study: set CHECKPOINT_PREFIX to their name prefix; default 0), BUNDLED_NET (the
+# shipped bundled depth net of the "bundled" runs, default srn; the sections of docs/RESULTS.md measured before srn
+# shipped used legacy, depthnerf/depth/weights/MODEL_CARD.md).
 # The shipped cpu-* checkpoints were trained with FRAMING=legacy; re-running with the default framing and
 # re-exporting them (scripts/export_study_checkpoints.sh) moves them to the SRN framing.
 set -euo pipefail
@@ -31,7 +33,8 @@ SEED=0
 FRAMING=${FRAMING:-srn}
 PIXEL_CENTER=${PIXEL_CENTER:-0.0}
 RES=${RES:-64}
-export STUDY STRIDE SEED FRAMING PIXEL_CENTER RES STEPS=${STEPS:-}
+BUNDLED_NET=${BUNDLED_NET:-srn}
+export BUNDLED_NET STUDY STRIDE SEED FRAMING PIXEL_CENTER RES STEPS=${STEPS:-}
 export OMP_NUM_THREADS=1
 mkdir -p "$STUDY/logs"
 
@@ -41,7 +44,7 @@ for cat in ${CATEGORIES:-cars chairs}; do
     --resolution "$RES" --seed "$SEED" --framing "$FRAMING" --workers "$JOBS" --quiet
 done
 # 2. bundled depth priors for every split (oracle priors need no cache: they come from the GT depth)
-depthnerf depth --data "$STUDY/data" --estimator bundled --no-progress
+depthnerf depth --data "$STUDY/data" --estimator bundled --depth-checkpoint "$BUNDLED_NET" --no-progress
 if [ -n "${DEPTH_WEIGHTS:-}" ]; then
   depthnerf depth --data "$STUDY/data" --estimator bundled --depth-checkpoint "$DEPTH_WEIGHTS" --no-progress
 fi
@@ -54,7 +57,8 @@ one_run() {
   local prior=${rest%%-*}
   local variants=${rest#"$prior"}
   local run="$STUDY/runs/$name" ev="$STUDY/eval/$name" log="$STUDY/logs/$name.log"
-  local steps=() extra=() variant seed=$SEED
+  local steps=() extra=() variant seed=$SEED net=()
+  [ "$prior" = bundled ] && net=(--depth-checkpoint "$BUNDLED_NET")
   [ -n "$STEPS" ] && steps=(--max-steps "$STEPS")
   for variant in ${variants//-/ }; do
     case "$variant" in
@@ -66,8 +70,8 @@ one_run() {
       np) extra+=(--model.encoder.use_first_pool false) ;;  # encoder without its first max-pool (same section)
       nb) extra+=(--schedule.bbox_steps 0) ;;  # no bbox-sampling phase: whole images from step 0 (same section)
       s[0-9]*) seed=${variant#s} ;;  # another training seed: the spread between runs ("A rerun does not reproduce it")
-      w) [ -n "$DEPTH_WEIGHTS" ] || { echo "run $name: variant 'w' needs DEPTH_WEIGHTS (a bundled depth-net file)" >&2; return 2; }
-         extra+=(--depth-checkpoint "$DEPTH_WEIGHTS") ;;  # another bundled depth net ("A depth net trained on the SRN framing")
+      w) [ -n "$DEPTH_WEIGHTS" ] || { echo "run $name: variant 'w' needs DEPTH_WEIGHTS (a bundled depth net)" >&2; return 2; }
+         net=(--depth-checkpoint "$DEPTH_WEIGHTS") ;;  # another bundled depth net ("A depth net trained on the SRN framing")
       *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb, s<N>, w)" >&2; return 2 ;;
     esac
   done
@@ -75,7 +79,7 @@ one_run() {
     local resume=()
     [ -f "$run/config.json" ] && resume=(--resume)
     depthnerf train --preset "cpu-$cat" --data "$STUDY/data" --depth "$prior" --seed "$seed" --out "$run" \
-      --data.pixel_center "$PIXEL_CENTER" --data.resolution "$RES" "${steps[@]}" "${extra[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
+      --data.pixel_center "$PIXEL_CENTER" --data.resolution "$RES" "${steps[@]}" "${extra[@]}" "${net[@]}" "${resume[@]}" --no-progress >> "$log" 2>&1
     depthnerf eval --run "$run" --views-stride "$STRIDE" --save-renders --out "$ev" --no-progress >> "$log" 2>&1
   fi
   echo "$name done"

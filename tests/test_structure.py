@@ -17,7 +17,7 @@ from fixtures_scripts import load_script
 from depthnerf.cli import main
 from depthnerf.config_io import to_dict
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, ESTIMATORS, PHOTO_ESTIMATORS, estimator_entry
-from depthnerf.depth.prior import PriorConfig
+from depthnerf.depth.prior import PriorConfig, portable_prior
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.load import load_pretrained, shipped_checkpoints
@@ -163,23 +163,26 @@ def test_legacy_use_depth_is_checked_then_dropped():
 def test_shipped_checkpoints_derive_their_spec(name):
     """The stored spec equals the one derived from the training config, which is how checkpoints written before
     specs existed are read; the framing, which the -depth / -baseline specs predate, is derived once at load from
-    the checkpoint card beside the weights (the -sym ones store it)."""
+    the checkpoint card beside the weights when the spec predates it; the prior names its weights by their hash
+    (``portable_prior``)."""
     pre = load_pretrained(name)
     meta = read_weights(pre.path)[1]
     derived = spec_from_metadata({k: v for k, v in meta.items() if k != SPEC_KEY}, "w")
     depth_aware = not name.endswith("-baseline")
     stored = json.loads(meta[SPEC_KEY])
     assert derived.framing is None and pre.spec.framing == "srn"
-    if "-sym" in name:
+    if "framing" in stored:
         assert stored["framing"] == "srn" and pre.framing_origin == "the checkpoint's inference spec"
     else:
-        assert "framing" not in stored and pre.framing_origin == str(pre.path.with_suffix(".json"))
-    assert dataclasses.replace(derived, prior_weights_hash=pre.spec.prior_weights_hash, framing="srn") == pre.spec
+        assert pre.framing_origin == str(pre.path.with_suffix(".json"))
+    named = portable_prior(derived.prior, pre.spec.prior_weights_hash)
+    assert dataclasses.replace(derived, prior_weights_hash=pre.spec.prior_weights_hash, framing="srn",
+                               prior=named) == pre.spec
     assert (pre.spec.prior_weights_hash is not None) == depth_aware  # only the stored spec has it
     train = from_dict_config(json.loads(meta["train_config"]))
     spec = pre.spec
     assert spec.category == train.data.category and spec.resolution == train.data.resolution == 64
-    assert spec.prior == train.prior and spec.depth_aware == depth_aware
+    assert spec.prior == portable_prior(train.prior, spec.prior_weights_hash) and spec.depth_aware == depth_aware
     assert spec.model.mirror == ("-sym" in name)
     assert spec.model.prior_at_point == name.endswith("-pp")
     assert spec.render == train.render and spec.model == train.model and spec.preset == train.preset

@@ -35,6 +35,17 @@ def _json_field(text: str | None, where: str) -> dict:
     return value
 
 
+def _depth_weights(meta: dict[str, str], where: str) -> str | None:
+    """The depth weights the checkpoint reads, named portably (None: no prior, or no spec to say)."""
+    from depthnerf.depth.prior import portable_prior
+    from depthnerf.pretrained.spec import SPEC_KEY, spec_from_json
+
+    if SPEC_KEY not in meta:
+        return None
+    spec = spec_from_json(meta[SPEC_KEY], where)
+    return portable_prior(spec.prior, spec.prior_weights_hash).checkpoint if spec.depth_aware else None
+
+
 def describe(name: str, path: Path) -> dict:
     """The model-card summary of one shipped checkpoint (metadata only, the weights are not loaded)."""
     from safetensors import SafetensorError, safe_open
@@ -57,6 +68,7 @@ def describe(name: str, path: Path) -> dict:
         protocol = card.get("protocol")
         warm_steps = (card.get("init_from") or {}).get("step")  # a warm-started run: the source's steps
     return {"name": name, "path": str(path), "preset": train.get("preset", "unknown"),
+            "depth_weights": _depth_weights(meta, str(path)),
             "category": train.get("data", {}).get("category", "unknown"),
             "depth_prior": train.get("prior", {}).get("estimator", "unknown"), "steps": int(meta.get("step", 0)),
             "warm_start_steps": warm_steps, "metrics": metrics or None, "protocol": protocol,
@@ -79,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     for r in rows:
         metrics = ", ".join(f"{k} {v:.4g}" if isinstance(v, int | float) else f"{k} {v}"
                             for k, v in (r["metrics"] or {}).items()) or "no metrics recorded"
-        print(f"{r['name']}: preset {r['preset']}, category {r['category']}, depth prior {r['depth_prior']}, "
+        print(f"{r['name']}: preset {r['preset']}, category {r['category']}, depth prior {r['depth_prior']}"
+              + (f" ({r['depth_weights']} weights)" if r.get("depth_weights") else "") + ", "
               f"{r['steps']} steps"
               + (f" after a {r['warm_start_steps']}-step warm start" if r["warm_start_steps"] else "")
               + f"; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")

@@ -1,8 +1,10 @@
 """``depthnerf depth``: precompute monocular depth priors into the dataset's cache.
 
-``depthnerf depth --data DIR --depth {bundled,depth-anything-v2} [--depth-checkpoint HUB_ID_OR_DIR]
+``depthnerf depth --data DIR --depth {bundled,depth-anything-v2} [--depth-checkpoint WEIGHTS]
 [--splits train val test] [--category C] [--batch-size N] [--resolution R] [--device cpu] [--strict]``
-(``--estimator`` / ``--checkpoint``: older spellings of ``--depth`` / ``--depth-checkpoint``, kept as aliases)
+(``--estimator`` / ``--checkpoint``: older spellings of ``--depth`` / ``--depth-checkpoint``, kept as aliases), or
+``depthnerf depth --data DIR --for CHECKPOINT [...]``: the prior that checkpoint reads (what
+``depthnerf eval --checkpoint CHECKPOINT`` needs).
 
 Writes ``DIR/depth_priors/<estimator>-<hash12>-<res>/<category>_<split>/<object_id>.safetensors`` plus a
 ``manifest.json`` (see :mod:`depthnerf.depth.cache`); resumable (finished objects are skipped), atomic writes.
@@ -22,12 +24,17 @@ DEFAULT_SPLITS = ("train", "val", "test")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root holding <category>_<split>/ folders")
-    parser.add_argument("--depth", "--estimator", dest="depth", choices=ESTIMATORS, required=True,
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--depth", "--estimator", dest="depth", choices=ESTIMATORS,
                         help="depth prior (estimator) to cache (--estimator: an older spelling, kept as an alias)")
+    source.add_argument("--for", dest="for_checkpoint", metavar="CHECKPOINT", default=None,
+                        help="cache the prior this checkpoint reads (shipped name, weights file or run folder): its "
+                             "estimator and weights, at its resolution unless --resolution says otherwise")
     parser.add_argument("--depth-checkpoint", "--checkpoint", dest="depth_checkpoint", default=None,
-                        help="estimator weights: hub id or local directory (depth-anything-v2), weights file "
-                             "(bundled); default: the backend's default (--checkpoint: an older spelling, kept as "
-                             "an alias; it names the estimator's weights, never a model)")
+                        help="estimator weights: hub id or local directory (depth-anything-v2), shipped net's "
+                             "name or weights file (bundled: srn, the default; legacy); default: the backend's default "
+                             "(--checkpoint: an older spelling, kept as an alias; it names the estimator's weights, "
+                             "never a model)")
     parser.add_argument("--splits", nargs="+", choices=DEFAULT_SPLITS, default=None,
                         help="splits to process (default: train val test, those that exist)")
     parser.add_argument("--category", action="append", default=None,
@@ -41,7 +48,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="check every file of the splits first; a problem in an optional part is an error too")
 
 
+def _prior_of_checkpoint(args: argparse.Namespace) -> None:
+    """``--for CHECKPOINT``: the estimator, weights and resolution come from the checkpoint's spec."""
+    from depthnerf.errors import DepthnerfError
+    from depthnerf.pretrained.load import load_pretrained
+
+    if args.depth_checkpoint is not None:
+        raise DepthnerfError("--for takes the weights from the checkpoint; drop --depth-checkpoint")
+    spec = load_pretrained(args.for_checkpoint).spec
+    args.depth, args.depth_checkpoint = spec.prior.estimator, spec.prior.checkpoint
+    args.resolution = args.resolution or spec.resolution
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.for_checkpoint is not None:
+        _prior_of_checkpoint(args)
     if args.depth not in CACHED_ESTIMATORS:
         print(f"estimator '{args.depth}' needs no cache "
               f"({'computed from depth/ on the fly' if args.depth == 'oracle' else 'no depth prior'})")

@@ -12,10 +12,18 @@ backend.
 Inference (:class:`BundledEstimator`): images are resized (bilinear, antialiased) so the longer side is
 ``input_size`` and both sides are multiples of ``config.multiple``, run through the network, and the output is
 resized back to the image (bilinear). Weights are a safetensors file whose metadata holds the JSON of
-:class:`BundledNetConfig` (key ``config``) and free-form training notes; default
-``depthnerf/depth/weights/bundled_depth.safetensors`` (see ``MODEL_CARD.md`` there; trained by
-``scripts/train_bundled_depth.py`` on the synthetic benchmark's train split only). The weights hash is the
-SHA-256 of the file.
+:class:`BundledNetConfig` (key ``config``) and free-form training notes. The weights hash is the SHA-256 of the
+file.
+
+Shipped nets (:data:`SHIPPED_NETS`, ``depthnerf/depth/weights``, ``MODEL_CARD.md`` there; both trained by
+``scripts/train_bundled_depth.py`` on the synthetic benchmark's train split only). A ``--depth-checkpoint`` is
+one of their names or a weights file; a name is what checkpoints and caches record, so they stay portable:
+
+``srn`` (the default, :data:`DEFAULT_NET`)
+    trained on SRN-framed 64 px renders, resized to 128 px as :func:`predict_at_image_size` does.
+``legacy``
+    the first net, trained on the legacy framing at 128 px; the depth-aware checkpoints trained before ``srn``
+    existed read it (their recorded weights hash names it: :func:`shipped_net_named_by_hash`).
 """
 
 from __future__ import annotations
@@ -36,8 +44,18 @@ from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_files, write_bytes_atomic
 
-DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "bundled_depth.safetensors"
-"""Where the shipped weights live inside the package."""
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+"""Where the shipped nets live inside the package."""
+
+SHIPPED_NETS: dict[str, Path] = {"srn": WEIGHTS_DIR / "bundled_depth_srn.safetensors",
+                                 "legacy": WEIGHTS_DIR / "bundled_depth.safetensors"}
+"""The shipped nets by name (module docstring)."""
+
+DEFAULT_NET = "srn"
+"""The net a ``bundled`` prior without a ``--depth-checkpoint`` reads."""
+
+DEFAULT_WEIGHTS = SHIPPED_NETS[DEFAULT_NET]
+"""The default net's weights file."""
 
 LICENCE = "MIT (depthnerf; trained only on the procedurally generated synthetic benchmark)"
 """Licence of the bundled weights."""
@@ -145,10 +163,26 @@ def save_bundled(net: BundledDepthNet, path: Path, notes: dict[str, str] | None 
     write_bytes_atomic(path, save(state, metadata=metadata))  # shared data: 0644
 
 
+def shipped_net_name(checkpoint: str | os.PathLike | None) -> str | None:
+    """The shipped net ``checkpoint`` names (None: the default), else None (a weights file)."""
+    if checkpoint is None:
+        return DEFAULT_NET
+    return str(checkpoint) if str(checkpoint) in SHIPPED_NETS else None
+
+
+def shipped_net_named_by_hash(weights_hash: str) -> str | None:
+    """The name of the shipped net whose file has SHA-256 ``weights_hash`` (None: no shipped net has it)."""
+    for name, path in SHIPPED_NETS.items():
+        if path.is_file() and sha256_files([path], names=False) == weights_hash:
+            return name
+    return None
+
+
 def _weights_path(checkpoint: str | os.PathLike | None) -> Path:
-    path = Path(checkpoint).expanduser() if checkpoint else DEFAULT_WEIGHTS
+    name = shipped_net_name(checkpoint)
+    path = SHIPPED_NETS[name] if name is not None else Path(checkpoint).expanduser()
     if not path.is_file():
-        hint = " (reproduce with: python scripts/train_bundled_depth.py)" if path == DEFAULT_WEIGHTS else ""
+        hint = " (reproduce with: python scripts/train_bundled_depth.py)" if name is not None else ""
         raise DepthnerfError(f"{path}: bundled depth weights not found{hint}")
     return path
 
@@ -182,7 +216,7 @@ def bundled_provenance(checkpoint: str | os.PathLike | None = None) -> PriorProv
             size = BundledNetConfig.from_json((handle.metadata() or {})["config"]).input_size
     except (SafetensorError, OSError, KeyError, ValueError, TypeError):
         raise DepthnerfError(f"{path}: unreadable bundled depth weights or missing 'config' metadata") from None
-    shown = None if checkpoint is None else str(path.resolve())
+    shown = shipped_net_name(checkpoint) or str(path.resolve())
     return PriorProvenance("bundled", shown, sha256_files([path], names=False), size, LICENCE)
 
 
@@ -194,7 +228,7 @@ class BundledEstimator(FrozenNetworkEstimator):
 
     @classmethod
     def load(cls, checkpoint: str | os.PathLike | None = None, device: str = "cpu") -> BundledEstimator:
-        """Load the shipped weights (or another file written by :func:`save_bundled`)."""
+        """Load a shipped net by name (None: the default) or a file written by :func:`save_bundled`."""
         net, _ = load_bundled_net(checkpoint)
         return cls(net, bundled_provenance(checkpoint), device)
 

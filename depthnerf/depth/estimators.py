@@ -12,7 +12,7 @@ Backends (``ESTIMATORS``):
     local directory, default ``depth-anything/Depth-Anything-V2-Base-hf`` (the paper's).
 ``bundled``
     The project's small U-Net shipped in ``depthnerf/depth/weights`` (:mod:`depthnerf.depth.bundled`); the
-    offline default.
+    offline default. Checkpoint = a shipped net's name (``srn``, the default; ``legacy``) or a weights file.
 ``oracle``
     Ground truth: ``1 / z`` on the foreground and 0 on the background, from the dataset's ``depth/`` z-maps. It
     needs the depths (``needs_depth``), so it cannot run on a bare photo.
@@ -33,7 +33,7 @@ from depthnerf.depth.backend import (
     oracle_disparity,
     oracle_provenance,
 )
-from depthnerf.depth.bundled import BundledEstimator, bundled_provenance
+from depthnerf.depth.bundled import BundledEstimator, bundled_provenance, shipped_net_named_by_hash
 from depthnerf.depth.depth_anything import DepthAnythingEstimator, depth_anything_provenance
 from depthnerf.errors import DepthnerfError
 
@@ -56,13 +56,17 @@ class EstimatorEntry:
     """Provenance without loading the network (hashes the weights)."""
     load: Callable[[str | None, str], DepthEstimator | None]
     """``load(checkpoint, device)``: the frozen estimator."""
+    shipped_name: Callable[[str], str | None] = lambda weights_hash: None
+    """The name of the shipped weights with this SHA-256 (a ``--depth-checkpoint`` that works on any install),
+    None when none ships (``bundled``: :func:`~depthnerf.depth.bundled.shipped_net_named_by_hash`)."""
 
 
 _REGISTRY = (
     EstimatorEntry("depth-anything-v2", cached=True, photo=True, describe=depth_anything_provenance,
                    load=lambda ckpt, device: DepthAnythingEstimator.load(ckpt, device=device)),
     EstimatorEntry("bundled", cached=True, photo=True, describe=bundled_provenance,
-                   load=lambda ckpt, device: BundledEstimator.load(ckpt, device=device)),
+                   load=lambda ckpt, device: BundledEstimator.load(ckpt, device=device),
+                   shipped_name=shipped_net_named_by_hash),
     EstimatorEntry("oracle", cached=False, photo=False, describe=lambda ckpt: oracle_provenance(),
                    load=lambda ckpt, device: OracleEstimator()),
     EstimatorEntry("none", cached=False, photo=False, describe=lambda ckpt: None, load=lambda ckpt, device: None),

@@ -15,6 +15,12 @@ Sources
     ``depthnerf eval`` reads for the same image. ``oracle`` runs live only on views that come with ground-truth
     depth.
     ``none``: no prior (the pixelNeRF baseline): ``disparity`` returns None.
+
+Which weights a model was trained with is recorded twice: the prior's ``checkpoint`` (a name or a path, as given)
+and the SHA-256 of the weights (``prior_weights_hash`` in a checkpoint's spec, ``weights_hash`` in a run's
+``prior.json``). The hash decides: :func:`portable_prior` renames the weights to the shipped ones with that hash
+(so a checkpoint trained on a file that has since shipped, or on a default that has since changed, reads the
+same weights on any install), and :func:`weights_mismatch` is the check made where the prior is opened.
 """
 
 from __future__ import annotations
@@ -151,6 +157,26 @@ class LivePrior(PriorSource):
     @property
     def provenance(self) -> dict[str, Any]:
         return self.estimator.provenance.as_dict()
+
+
+def portable_prior(prior: PriorConfig, weights_hash: str | None) -> PriorConfig:
+    """``prior`` with its weights named as shipped when ``weights_hash`` is a shipped file's of its estimator
+    (:attr:`~depthnerf.depth.estimators.EstimatorEntry.shipped_name`); otherwise ``prior`` itself."""
+    if not prior.enabled or not weights_hash:
+        return prior
+    name = estimator_entry(prior.estimator).shipped_name(weights_hash)
+    return prior if name is None else PriorConfig(prior.estimator, name)
+
+
+def weights_mismatch(prior_source: PriorSource, weights_hash: str | None, where: str) -> str | None:
+    """One line saying that ``prior_source`` serves other weights than ``weights_hash`` (the weights a model or
+    run was trained with, ``where``), or None when they agree or nothing was recorded."""
+    served = (prior_source.provenance or {}).get("weights_hash")
+    if not weights_hash or served is None or served == weights_hash:
+        return None
+    named = prior_source.config.checkpoint or "its default weights"
+    return (f"{where}: trained on '{prior_source.config.estimator}' weights sha256 {weights_hash[:12]}..., but "
+            f"{named} has sha256 {served[:12]}...")
 
 
 def open_prior(prior: PriorConfig, *, data_root: str | os.PathLike | None = None, resolution: int = 128,

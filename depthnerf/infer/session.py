@@ -14,7 +14,9 @@ prior source
     (:attr:`SessionOptions.inputs`): ``dataset`` reads the dataset's prior cache at the training resolution
     (``depthnerf eval``); ``photos`` runs the estimator live on photos (``Reconstructor``, the app); ``views``
     runs it live on dataset-like views and rounds its output as the cache stores it, so the model sees what
-    ``depthnerf eval`` feeds it (the demo; ``oracle`` reads their ground-truth depth).
+    ``depthnerf eval`` feeds it (the demo; ``oracle`` reads their ground-truth depth). Its weights are checked
+    against the ones the model was trained with (:func:`~depthnerf.depth.prior.weights_mismatch`): other
+    weights are an error, or a warning when ``--depth-checkpoint`` asked for them.
 device policy
     :attr:`InferenceSession.policy` (:func:`~depthnerf.render.precision.inference_policy` of the device: bf16
     autocast, large ray chunks and point chunks on CUDA, fp32 and 4096 rays on the CPU; ``fp32`` / ``compile``
@@ -35,6 +37,7 @@ checkpoint and no overrides, so it takes no session.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,11 +51,12 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import ObjectRecord, ObjectViews, load_object
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
-from depthnerf.depth.prior import PriorConfig, PriorSource, open_prior
+from depthnerf.depth.prior import PriorConfig, PriorSource, open_prior, weights_mismatch
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.conditioning import Conditioned, condition, condition_views
 from depthnerf.model.pixelnerf import ENCODER_NORMS, EncodedViews, EncoderNorm, SourceViews
 from depthnerf.pretrained.load import Pretrained, load_pretrained
+from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, input_camera_mesh
 from depthnerf.render.mesh_level import MeshLevel
@@ -186,6 +190,18 @@ class InferenceSession:
         self.chunk = options.chunk or self.policy.ray_chunk
         self.runtime = field_runtime(self.model, self.policy)
         self.prior_source = self._open_prior(options)
+        self._check_prior_weights(trained, options)
+
+    def _check_prior_weights(self, trained: InferenceSpec, options: SessionOptions) -> None:
+        if self.spec.prior.estimator != trained.prior.estimator:
+            return  # another prior altogether (an ablation): nothing to compare
+        mismatch = weights_mismatch(self.prior_source, trained.prior_weights_hash, self.name)
+        if mismatch is None:
+            return
+        if options.depth_checkpoint is None:
+            raise DepthnerfError(f"{mismatch}; pass --depth-checkpoint with the weights it was trained on")
+        warnings.warn(f"{mismatch}: --depth-checkpoint feeds the model other priors than it was trained on",
+                      stacklevel=3)
 
     def _open_prior(self, options: SessionOptions) -> PriorSource:
         if options.inputs == "dataset":

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from depthnerf.data.synth.framing import checkpoint_framing
+from depthnerf.depth.prior import portable_prior
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import PixelNeRF
@@ -92,6 +93,7 @@ def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") 
     if inference.framing is None:  # written before the spec held the framing: derived once, here
         framing, origin = checkpoint_framing(path, data_root, inference.category)
         inference = replace(inference, framing=framing)
+    inference = replace(inference, prior=portable_prior(inference.prior, inference.prior_weights_hash))
     model = PixelNeRF(inference.model, depth_aware=inference.depth_aware)
     load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
     model.to(device).eval()

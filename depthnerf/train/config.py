@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 from depthnerf.config_io import from_dict
 from depthnerf.data.srn import category_defaults
-from depthnerf.depth.prior import PriorConfig
+from depthnerf.depth.prior import PriorConfig, portable_prior
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.pretrained.spec import InferenceSpec, model_config_from_dict
@@ -272,8 +272,9 @@ def z_range(cfg: TrainConfig) -> tuple[float, float]:
 def inference_spec(cfg: TrainConfig, prior_weights_hash: str | None = None, framing: str | None = None
                    ) -> InferenceSpec:
     """What a checkpoint of this run stores so that evaluation and reconstruction never read the training config
-    (``framing``: the training data's, :func:`depthnerf.data.synth.framing.dataset_framing`)."""
+    (``framing``: the training data's, :func:`depthnerf.data.synth.framing.dataset_framing`); the prior names its
+    weights portably (:func:`~depthnerf.depth.prior.portable_prior`)."""
     near, far = z_range(cfg)
-    return InferenceSpec(model=cfg.model, render=cfg.render, prior=cfg.prior, category=cfg.data.category,
-                         resolution=cfg.data.resolution, z_near=near, z_far=far, pixel_center=cfg.data.pixel_center,
-                         framing=framing, prior_weights_hash=prior_weights_hash, preset=cfg.preset)
+    return InferenceSpec(model=cfg.model, render=cfg.render, prior=portable_prior(cfg.prior, prior_weights_hash),
+                         category=cfg.data.category, resolution=cfg.data.resolution, z_near=near, z_far=far,
+                         pixel_center=cfg.data.pixel_center, framing=framing, prior_weights_hash=prior_weights_hash, preset=cfg.preset)

@@ -19,6 +19,7 @@ the returned state then names the signal (``stopped_by``). Every start and resum
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import math
 import signal
@@ -36,7 +37,7 @@ from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
-from depthnerf.depth.prior import PriorSource, open_prior
+from depthnerf.depth.prior import PriorSource, open_prior, portable_prior, weights_mismatch
 from depthnerf.distributed import DistInfo, barrier
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
@@ -71,6 +72,15 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
     return s.lr * s.lr_decay ** epochs
 
 
+def _trained_weights_hash(run_dir: Path) -> str | None:
+    """The prior's weights hash a run recorded in its ``prior.json`` (None: none recorded, or no prior)."""
+    try:
+        recorded = json.loads((run_dir / "prior.json").read_text()).get("weights_hash")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return recorded if isinstance(recorded, str) else None
+
+
 def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int,
                      card: dict | None) -> None:
     write_text_atomic(run_dir / "config.json", json.dumps(to_dict(cfg), indent=1) + "\n")
@@ -102,7 +112,12 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
                              "continue it or choose another --out")
     root, cat = Path(cfg.data.root), cfg.data.category
     records = index_split(root, cat, "train").objects
+    trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
+    cfg = dataclasses.replace(cfg, prior=portable_prior(cfg.prior, trained_hash))
     prior_source = open_prior(cfg.prior, data_root=root, resolution=cfg.data.resolution, records=records)
+    mismatch = weights_mismatch(prior_source, trained_hash, str(run_dir / "prior.json"))
+    if mismatch is not None:
+        raise DepthnerfError(f"{mismatch}; restore the weights the run began with to resume it")
     val_records = []
     if cfg.log.val_every > 0 and info.is_main and validate is not None:
         try:
