@@ -1,6 +1,7 @@
 """``depthnerf app`` in a real headless browser: Debian's Chromium driven by selenium through its chromedriver.
 
-The app runs in a subprocess on a free localhost port (2 orbit views by default and a 24-sample mesh to stay quick). One
+The app runs in a subprocess on a free localhost port (2 orbit views by default and a 24-sample mesh to stay quick;
+the app's default 64-sample mesh when it writes the screenshot). One
 tab uploads a non-image file and a photo on a cluttered background (one-line messages, the RGBA hint), then a
 bundled example and reconstructs it while a second tab picks the other example from the page's list, asks for
 its reconstruction and must show its queue position; then the orbit video (a real MP4), the GIF, the 3D viewer and the three downloads must be on the page.
@@ -66,8 +67,9 @@ def server(tmp_path_factory):
     env = {**os.environ, "GRADIO_ANALYTICS_ENABLED": "False", "GRADIO_TEMP_DIR": str(tmp / "gradio"),
            "TMPDIR": str(tmp / "tmp"), "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     log = open(tmp / "server.log", "w")  # noqa: SIM115 - closed below
+    mesh = "64" if os.environ.get("DEPTHNERF_APP_SCREENSHOT") else "24"  # the screenshot shows the app's default
     proc = subprocess.Popen([sys.executable, "-m", "depthnerf", "app", "--port", str(port), "--views", "2",
-                             "--mesh-resolution", "24"], stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp)
+                             "--mesh-resolution", mesh], stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp)
     url = f"http://127.0.0.1:{port}/"
     deadline = time.monotonic() + 180
     while True:

@@ -243,7 +243,9 @@ def test_checkpoints_lists_shipped_or_says_none(setup, capsys, monkeypatch, tmp_
     monkeypatch.setattr(pretrained, "SHIPPED_DIR", shipped)
     assert cli("checkpoints") == 0
     line = capsys.readouterr().out
-    assert "tiny-cars-depth: preset cpu-cars, category cars, depth prior bundled, 1 steps; psnr 12.5" in line
+    weights = Path(json.loads((setup["depth"] / "prior.json").read_text())["checkpoint"]).name
+    assert (f"tiny-cars-depth: preset cpu-cars, category cars, depth prior bundled ({weights} weights), 1 steps; "
+            "psnr 12.5") in line
     assert cli("checkpoints", "--json") == 0
     assert json.loads(capsys.readouterr().out)[0]["metrics"] == {"psnr": 12.5}
     assert load_pretrained("tiny-cars-depth").step == 1  # the name resolves in eval / reconstruct too

@@ -183,6 +183,7 @@ def build_page(session: AppSession) -> gr.Blocks:
                                      elem_id="video", height=260)
                     gif = gr.Image(label="Orbit (GIF)", interactive=False, elem_id="gif", height=260)
                 viewer = gr.Model3D(label="Mesh (drag to rotate)", clear_color=(1.0, 1.0, 1.0, 1.0),
+                                    camera_position=(45, 65, None),  # a three-quarter view from above
                                     elem_id="viewer", height=360)
                 downloads = gr.File(label="Downloads: mesh GLB, mesh PLY, point cloud PLY", file_count="multiple",
                                     interactive=False, elem_id="downloads")

@@ -36,7 +36,8 @@ def _json_field(text: str | None, where: str) -> dict:
 
 
 def _depth_weights(meta: dict[str, str], where: str) -> str | None:
-    """The depth weights the checkpoint reads, named portably (None: no prior, or no spec to say)."""
+    """The depth weights the checkpoint reads: a shipped net's name, else the file or hub id as recorded (None: no
+    prior, or no spec to say)."""
     from depthnerf.depth.prior import portable_prior
     from depthnerf.pretrained.spec import SPEC_KEY, spec_from_json
 
@@ -92,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         metrics = ", ".join(f"{k} {v:.4g}" if isinstance(v, int | float) else f"{k} {v}"
                             for k, v in (r["metrics"] or {}).items()) or "no metrics recorded"
         print(f"{r['name']}: preset {r['preset']}, category {r['category']}, depth prior {r['depth_prior']}"
-              + (f" ({r['depth_weights']} weights)" if r.get("depth_weights") else "") + ", "
+              + (f" ({Path(r['depth_weights']).name} weights)" if r.get("depth_weights") else "") + ", "
               f"{r['steps']} steps"
               + (f" after a {r['warm_start_steps']}-step warm start" if r["warm_start_steps"] else "")
               + f"; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")
