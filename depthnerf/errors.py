@@ -19,9 +19,16 @@ class DataNote(DataWarning):
     """Something in a dataset that is ignored on purpose (entries the layout does not know); one line."""
 
 
+class UsageWarning(UserWarning):
+    """A choice the user made on purpose that departs from how a model was trained (e.g. other depth weights
+    through ``--depth-checkpoint``); one line naming the checkpoint."""
+
+
 def format_data_warning(message: Warning | str, category: type[Warning]) -> str | None:
-    """How the CLI prints a :class:`DataWarning` (``warning: ...``) or :class:`DataNote` (``note: ...``);
-    ``None`` for any other warning (printed the default way)."""
+    """How the CLI prints a :class:`DataWarning` or :class:`UsageWarning` (``warning: ...``) or a
+    :class:`DataNote` (``note: ...``); ``None`` for any other warning (printed the default way)."""
+    if issubclass(category, UsageWarning):
+        return f"warning: {message}"
     if not issubclass(category, DataWarning):
         return None
     return f"{'note' if issubclass(category, DataNote) else 'warning'}: {message}"

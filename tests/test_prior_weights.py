@@ -4,7 +4,7 @@
 - :func:`portable_prior` renames weights to the shipped net with their hash, whatever path or default recorded them.
 - Every shipped depth-aware checkpoint reads, by default, exactly the weights it was trained with.
 - A session whose prior serves other weights than the checkpoint recorded refuses (one line); an explicit
-  ``--depth-checkpoint`` to other weights warns instead.
+  ``--depth-checkpoint`` to other weights warns instead, printed by the CLI as one ``warning:`` line.
 - A resumed run whose prior now serves other weights than its ``prior.json`` recorded refuses.
 """
 
@@ -25,7 +25,7 @@ from depthnerf.cli import main
 from depthnerf.config_io import to_dict
 from depthnerf.depth.bundled import DEFAULT_NET, SHIPPED_NETS, bundled_provenance, load_bundled_net
 from depthnerf.depth.prior import PriorConfig, portable_prior
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DepthnerfError, UsageWarning
 from depthnerf.files import sha256_files
 from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.pretrained.load import load_pretrained, shipped_checkpoints
@@ -104,7 +104,7 @@ def test_session_checks_the_weights_against_the_recorded_hash(tmp_path):
                                              rf"{file_hash(a)[:12]}\.\.\., but .*b.safetensors has sha256 "
                                              rf"{file_hash(b)[:12]}.*pass --depth-checkpoint"):
         InferenceSession(stale, SessionOptions(inputs="photos"))
-    with pytest.warns(UserWarning, match="other priors than it was trained on"):
+    with pytest.warns(UsageWarning, match="other priors than it was trained on"):
         InferenceSession(good, SessionOptions(inputs="photos", depth_checkpoint=str(b)))
     InferenceSession(good, SessionOptions(inputs="photos", depth="bundled", depth_checkpoint=str(a)))
 
@@ -143,3 +143,18 @@ def test_depth_for_a_checkpoint_caches_what_it_reads(tmp_path):
     assert [p.name for p in (root / "depth_priors").iterdir()] == [f"bundled-{file_hash(a)[:12]}-16"]
     InferenceSession(ckpt, options)
     assert quiet("depth", "--data", root, "--for", ckpt, "--depth-checkpoint", a, "--no-progress") == 2
+
+
+def test_cli_prints_the_override_warning_as_one_line(tmp_path):
+    a = tiny_bundled(tmp_path / "a.safetensors", input_size=16)
+    b = tiny_bundled(tmp_path / "b.safetensors", input_size=32)
+    ckpt = spec_checkpoint(tmp_path / "m.safetensors", a, file_hash(a))
+    photo = Path(__file__).resolve().parents[1] / "depthnerf" / "app" / "examples" / "car_rgba.png"
+    err = io.StringIO()
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+        assert main(["reconstruct", str(photo), "--checkpoint", str(ckpt), "--depth-checkpoint", str(b), "--views",
+                     "1", "--mesh-resolution", "0", "--out", str(tmp_path / "out"), "--no-progress"]) == 0
+    lines = [line for line in err.getvalue().splitlines() if "other priors" in line]
+    assert len(lines) == 1 and lines[0].startswith(f"warning: {ckpt}: trained on 'bundled' weights sha256 "
+                                                   f"{file_hash(a)[:12]}")
+    assert f"{file_hash(b)[:12]}" in lines[0]

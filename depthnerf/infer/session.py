@@ -52,7 +52,7 @@ from depthnerf.data.srn import ObjectRecord, ObjectViews, load_object
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.depth.prior import PriorConfig, PriorSource, open_prior, weights_mismatch
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DepthnerfError, UsageWarning
 from depthnerf.model.conditioning import Conditioned, condition, condition_views
 from depthnerf.model.pixelnerf import ENCODER_NORMS, EncodedViews, EncoderNorm, SourceViews
 from depthnerf.pretrained.load import Pretrained, load_pretrained
@@ -201,7 +201,7 @@ class InferenceSession:
         if options.depth_checkpoint is None:
             raise DepthnerfError(f"{mismatch}; pass --depth-checkpoint with the weights it was trained on")
         warnings.warn(f"{mismatch}: --depth-checkpoint feeds the model other priors than it was trained on",
-                      stacklevel=3)
+                      UsageWarning, stacklevel=3)
 
     def _open_prior(self, options: SessionOptions) -> PriorSource:
         if options.inputs == "dataset":
