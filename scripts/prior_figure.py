@@ -1,7 +1,7 @@
 """Depth priors side by side: input view, ground-truth disparity and each bundled depth net's prediction.
 
     python scripts/prior_figure.py --data study/data --categories cars chairs --objects 3 --view 64 \
-        --weights shipped=default srn=bundled_depth_srn.safetensors --out docs/figures/depth_net_priors.png
+        --weights legacy=legacy srn=srn --out docs/figures/depth_net_priors.png
 
 Each panel shows disparity (larger = closer) on the view's foreground only, coloured by its own range (a relative
 prior has no scale), so the panels compare shape, not values. The AbsRel under each prediction is the view's
@@ -28,12 +28,14 @@ from depthnerf.depth.metrics import affine_invariant_scores  # noqa: E402
 
 
 def parse_weights(items: list[str]) -> list[tuple[str, str | None]]:
-    """``label=path`` pairs; the path ``default`` is the shipped file."""
+    """``label=weights`` pairs: a shipped net's name (``srn``, ``legacy``), a weights file, or ``default`` (the
+    default net)."""
     out = []
     for item in items:
         label, sep, path = item.partition("=")
         if not sep or not label or not path:
-            raise SystemExit(f"error: --weights {item!r}: expected LABEL=PATH (PATH 'default' for the shipped net)")
+            raise SystemExit(f"error: --weights {item!r}: expected LABEL=WEIGHTS (a shipped net's "
+                             "name, a weights file, or 'default')")
         out.append((label, None if path == "default" else path))
     return out
 
@@ -46,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--objects", type=int, default=3, help="first N objects per category")
     p.add_argument("--view", type=int, default=64, help="view index (64: the SRN protocol's input view)")
-    p.add_argument("--weights", nargs="+", default=["shipped=default"], help="LABEL=PATH of each bundled net")
+    p.add_argument("--weights", nargs="+", default=["shipped=default"], help="LABEL=WEIGHTS of each bundled net (a shipped net's name, a weights file or 'default')")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
     nets = [(label, BundledEstimator.load(path)) for label, path in parse_weights(args.weights)]
