@@ -40,6 +40,7 @@ from depthnerf.data import srn_format
 from depthnerf.data.card import INTEGER_CENTRED
 from depthnerf.data.srn import ObjectRecord, index_split, load_object
 from depthnerf.depth.cache import CachedPriorStore, PriorStore, object_path
+from depthnerf.depth.prior import PriorConfig, portable_prior
 from depthnerf.errors import DepthnerfError
 
 PRIOR_CMAP = "magma"
@@ -167,17 +168,39 @@ def choose_view(evals: Sequence[EvalDir], object_id: str, view: int | None) -> i
     return common[0]
 
 
+def prior_key(ev: EvalDir) -> tuple[str, str | None]:
+    """``(estimator, weights hash)`` of a depth-aware eval: the evals that read the same prior share a column."""
+    provenance = ev.summary.get("depth_prior_provenance")
+    return ev.summary["depth_prior"], provenance.get("weights_hash") if isinstance(provenance, dict) else None
+
+
 def open_prior_store(ev: EvalDir, data_root: Path) -> PriorStore:
-    """The prior store of a depth-aware eval, from its summary's estimator, weights and resolution."""
+    """The prior store of a depth-aware eval, from its summary's estimator, weights and resolution; the weights
+    are named by the hash the summary recorded (:func:`~depthnerf.depth.prior.portable_prior`: a summary written
+    when its weights were the default names none), and a cache of other weights is an error."""
     summary_path = ev.path / "summary.json"
     provenance = ev.summary.get("depth_prior_provenance")
     if not isinstance(provenance, dict) or "resolution" not in provenance:
         raise DepthnerfError(f"{summary_path}: no depth_prior_provenance with a resolution for its depth prior")
-    store = PriorStore.open(data_root, ev.summary["depth_prior"], provenance.get("checkpoint"),
-                            resolution=int(provenance["resolution"]))
+    prior = portable_prior(PriorConfig(ev.summary["depth_prior"], provenance.get("checkpoint")),
+                           provenance.get("weights_hash"))
+    store = PriorStore.open(data_root, prior.estimator, prior.checkpoint, resolution=int(provenance["resolution"]))
     if store is None:
         raise DepthnerfError(f"{summary_path}: depth prior 'none' has no prior to show")
+    served, recorded = store.provenance.get("weights_hash"), provenance.get("weights_hash")
+    if recorded and served != recorded:
+        raise DepthnerfError(f"{summary_path}: the eval read '{prior.estimator}' weights sha256 {recorded[:12]}..., "
+                             f"the prior found for it has {str(served)[:12]}...; pass the depth weights it used")
     return store
+
+
+def prior_label(key: tuple[str, str | None], store: PriorStore, keys: list[tuple[str, str | None]]) -> str:
+    """``depth prior (ESTIMATOR)``, with the weights' name when two columns share the estimator."""
+    estimator = key[0]
+    if sum(k[0] == estimator for k in keys) == 1:
+        return f"depth prior ({estimator})"
+    named = store.provenance.get("checkpoint") or str(key[1])[:12]
+    return f"depth prior ({estimator}, {Path(str(named)).name})"
 
 
 def prior_source(store: PriorStore, record: ObjectRecord) -> str:
@@ -216,11 +239,12 @@ def build_rows(evals: Sequence[EvalDir], data_root: Path, object_ids: Sequence[s
     if len(categories) > 1:
         raise DepthnerfError(f"{first.path}: eval folders cover different category/split pairs {sorted(categories)}")
     records = _record_index(data_root, first)
-    priors: dict[str, EvalDir] = {}
+    priors: dict[tuple[str, str | None], EvalDir] = {}
     for e in evals:
         if e.summary["depth_prior"] != "none":
-            priors.setdefault(e.summary["depth_prior"], e)
-    stores = {name: open_prior_store(e, data_root) for name, e in priors.items()}
+            priors.setdefault(prior_key(e), e)
+    stores = {key: open_prior_store(e, data_root) for key, e in priors.items()}
+    labels = {key: prior_label(key, store, list(stores)) for key, store in stores.items()}
     input_res = int(first.summary["input_resolution"])
     grid = []
     for object_id in object_ids:
@@ -236,10 +260,10 @@ def build_rows(evals: Sequence[EvalDir], data_root: Path, object_ids: Sequence[s
         target = choose_view(evals, object_id, view)
         src_view = load_object(record, [src], resolution=input_res, pixel_center=INTEGER_CENTRED)  # pixels only
         cells = [Cell("input view", src_view.images[0].permute(1, 2, 0).numpy(), src, str(record.rgb_path(src)))]
-        for name, store in stores.items():
+        for key, store in stores.items():
             disparity = store.load(record, [src])[0].numpy()
             mask = src_view.masks[0].numpy() if disparity.shape == tuple(src_view.masks.shape[1:]) else None
-            cells.append(Cell(f"depth prior ({name})", colorize(disparity, mask), src, prior_source(store, record)))
+            cells.append(Cell(labels[key], colorize(disparity, mask), src, prior_source(store, record)))
         gt = first.renders[(object_id, target)].gt
         cells.append(Cell("ground truth", srn_format.read_rgb(gt), target, str(gt)))
         for e in evals:

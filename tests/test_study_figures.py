@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from depthnerf.data import srn_format
 from depthnerf.data.srn import index_split
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import sha256_files
 from depthnerf.train.config import preset, with_prior
 from depthnerf.train.run_log import RunLog
 
@@ -195,3 +197,28 @@ def test_qualitative_figure_default_view_and_errors(evals, capsys, tmp_path):
     assert qual_script.main(["--evals", str(bare), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert f"{bare / 'renders.csv'}: missing; rerun depthnerf eval with --save-renders" in err
+
+
+def test_qualitative_figure_keys_priors_by_their_weights(evals, capsys, tmp_path):
+    """Two evals of the same estimator with other weights get a prior column each, named by their weights; a
+    summary whose recorded weights hash the cache it names does not serve is an error."""
+    torch.manual_seed(5)
+    other = tmp_path / "other.safetensors"
+    save_bundled(BundledDepthNet(BundledNetConfig(widths=(8, 8, 8), input_size=32, unshuffle=1)), other)
+    assert cli_main(["depth", "--data", str(evals["root"]), "--depth", "bundled", "--depth-checkpoint", str(other),
+                     "--splits", "test", "--no-progress"]) == 0
+    second = tmp_path / "eval-other"
+    shutil.copytree(evals["bundled"], second)
+    summary = json.loads((second / "summary.json").read_text())
+    summary["depth_prior_provenance"].update(checkpoint=str(other), weights_hash=sha256_files([other], names=False))
+    (second / "summary.json").write_text(json.dumps(summary))
+    out = tmp_path / "two.png"
+    assert qual_script.main(["--evals", str(evals["bundled"]), str(second), "--data", str(evals["root"]),
+                             "--out", str(out), "--objects", "1", "--labels", "a", "b"]) == 0
+    columns = [r["column"] for r in read_csv(out.with_suffix(".csv"))]
+    assert columns[:3] == ["input view", "depth prior (bundled, bundled.safetensors)",
+                           "depth prior (bundled, other.safetensors)"]
+    summary["depth_prior_provenance"]["weights_hash"] = "0" * 64  # names other.safetensors, records other weights
+    (second / "summary.json").write_text(json.dumps(summary))
+    assert qual_script.main(["--evals", str(second), "--data", str(evals["root"]), "--out", str(out)]) == 2
+    assert "the eval read 'bundled' weights sha256 000000000000..." in capsys.readouterr().err
