@@ -154,7 +154,8 @@ def test_checkpoints_command_lists_card_metrics(exporter, run, tmp_path, monkeyp
     assert cli_main(["checkpoints"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 2
-    assert lines[0].startswith("cpu-cars-depth: preset cpu-cars, category cars, depth prior bundled, 5 steps; "
+    assert lines[0].startswith("cpu-cars-depth: preset cpu-cars, category cars, depth prior bundled "
+                               "(bundled.safetensors weights), 5 steps; "
                                "psnr 23.46, ssim 0.9123, chamfer_l1 0.0456, fscore 0.5")
     assert PROTOCOL in lines[0] and "cpu-cars-depth.md" in lines[0]
     assert "cpu-chairs-baseline: preset cpu-chairs" in lines[1] and "no metrics recorded" in lines[1]

@@ -32,7 +32,7 @@ def test_figure_has_a_row_per_view_and_a_panel_per_net(tmp_path: Path, capsys) -
 def test_bad_weights_view_and_category_are_errors(tmp_path: Path) -> None:
     data = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 1}, views=2, size=16, with_depth=True)
     out = str(tmp_path / "fig.png")
-    with pytest.raises(SystemExit, match="expected LABEL=PATH"):
+    with pytest.raises(SystemExit, match="expected LABEL=WEIGHTS"):
         prior_figure.main(["--data", str(data), "--categories", "cars", "--weights", "nolabel", "--out", out])
     with pytest.raises(SystemExit, match="no view 5"):
         prior_figure.main(["--data", str(data), "--categories", "cars", "--view", "5", "--out", out])
