@@ -48,7 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--split", default="test")
     p.add_argument("--objects", type=int, default=3, help="first N objects per category")
     p.add_argument("--view", type=int, default=64, help="view index (64: the SRN protocol's input view)")
-    p.add_argument("--weights", nargs="+", default=["shipped=default"], help="LABEL=WEIGHTS of each bundled net (a shipped net's name, a weights file or 'default')")
+    p.add_argument("--weights", nargs="+", default=["shipped=default"],
+                   help="LABEL=WEIGHTS of each bundled net (a shipped net's name, a weights file or 'default')")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
     nets = [(label, BundledEstimator.load(path)) for label, path in parse_weights(args.weights)]

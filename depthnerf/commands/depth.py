@@ -32,7 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "estimator and weights, at its resolution unless --resolution says otherwise")
     parser.add_argument("--depth-checkpoint", "--checkpoint", dest="depth_checkpoint", default=None,
                         help="estimator weights: hub id or local directory (depth-anything-v2), shipped net's "
-                             "name or weights file (bundled: srn, the default; legacy); default: the backend's default "
+                             "name or weights file (bundled: srn, the default; legacy); default: the backend's "
+                             "default "
                              "(--checkpoint: an older spelling, kept as an alias; it names the estimator's weights, "
                              "never a model)")
     parser.add_argument("--splits", nargs="+", choices=DEFAULT_SPLITS, default=None,

@@ -48,8 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", help="run folder (config, metrics.jsonl, TensorBoard events, checkpoints/)")
     p.add_argument("--depth", choices=ESTIMATORS,
                    help="depth prior: none = pixelNeRF baseline; default: the preset's")
-    p.add_argument("--depth-checkpoint", help="depth estimator weights: hub id or local dir (depth-anything-v2), a shipped net's "
-                        "name (bundled: srn, the default; legacy) or a weights file")
+    p.add_argument("--depth-checkpoint",
+                   help="depth estimator weights: hub id or local dir (depth-anything-v2), a shipped net's name "
+                        "(bundled: srn, the default; legacy) or a weights file")
     p.add_argument("--max-steps", type=int, help="total optimisation steps")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     p.add_argument("--seed", type=int, help="run seed")

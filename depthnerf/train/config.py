@@ -277,4 +277,5 @@ def inference_spec(cfg: TrainConfig, prior_weights_hash: str | None = None, fram
     near, far = z_range(cfg)
     return InferenceSpec(model=cfg.model, render=cfg.render, prior=portable_prior(cfg.prior, prior_weights_hash),
                          category=cfg.data.category, resolution=cfg.data.resolution, z_near=near, z_far=far,
-                         pixel_center=cfg.data.pixel_center, framing=framing, prior_weights_hash=prior_weights_hash, preset=cfg.preset)
+                         pixel_center=cfg.data.pixel_center, framing=framing,
+                         prior_weights_hash=prior_weights_hash, preset=cfg.preset)
