@@ -15,12 +15,14 @@ resized back to the image (bilinear). Weights are a safetensors file whose metad
 :class:`BundledNetConfig` (key ``config``) and free-form training notes. The weights hash is the SHA-256 of the
 file.
 
-Shipped nets (:data:`SHIPPED_NETS`, ``depthnerf/depth/weights``, ``MODEL_CARD.md`` there; both trained by
+Shipped nets (:data:`SHIPPED_NETS`, ``depthnerf/depth/weights``, ``MODEL_CARD.md`` there; all trained by
 ``scripts/train_bundled_depth.py`` on the synthetic benchmark's train split only). A ``--depth-checkpoint`` is
 one of their names or a weights file; a name is what checkpoints and caches record, so they stay portable:
 
 ``srn`` (the default, :data:`DEFAULT_NET`)
-    trained on SRN-framed 64 px renders, resized to 128 px as :func:`predict_at_image_size` does.
+    trained on SRN-framed 64 px renders, resized to 128 px as :func:`predict_at_image_size` does (8000 steps).
+``srn-18k``
+    the same data and command for 18000 steps; more accurate, and what ``cpu-cars-depth`` reads.
 ``legacy``
     the first net, trained on the legacy framing at 128 px; the depth-aware checkpoints trained before ``srn``
     existed read it (their recorded weights hash names it: :func:`shipped_net_named_by_hash`).
@@ -48,6 +50,7 @@ WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Where the shipped nets live inside the package."""
 
 SHIPPED_NETS: dict[str, Path] = {"srn": WEIGHTS_DIR / "bundled_depth_srn.safetensors",
+                                 "srn-18k": WEIGHTS_DIR / "bundled_depth_srn18k.safetensors",
                                  "legacy": WEIGHTS_DIR / "bundled_depth.safetensors"}
 """The shipped nets by name (module docstring)."""
 
