@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, ESTIMATORS
 from depthnerf.depth.precompute import PrecomputeConfig, precompute_priors
 
@@ -32,8 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "estimator and weights, at its resolution unless --resolution says otherwise")
     parser.add_argument("--depth-checkpoint", "--checkpoint", dest="depth_checkpoint", default=None,
                         help="estimator weights: hub id or local directory (depth-anything-v2), shipped net's "
-                             "name or weights file (bundled: srn, the default; legacy); default: the backend's "
-                             "default "
+                             f"name or weights file (bundled: {shipped_nets_text()}); default: the backend's default "
                              "(--checkpoint: an older spelling, kept as an alias; it names the estimator's weights, "
                              "never a model)")
     parser.add_argument("--splits", nargs="+", choices=DEFAULT_SPLITS, default=None,

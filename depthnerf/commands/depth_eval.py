@@ -18,6 +18,7 @@ import argparse
 import json
 from pathlib import Path
 
+from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.depth.evaluate import DepthEvalConfig, evaluate_depth
 from depthnerf.files import write_text_atomic
@@ -29,8 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth", "--estimator", dest="depth", choices=ESTIMATORS, required=True,
                         help="depth prior (estimator) to score (--estimator: an older spelling, kept as an alias)")
     parser.add_argument("--depth-checkpoint", "--checkpoint", dest="depth_checkpoint", default=None,
-                        help="estimator weights: hub id / local directory / shipped net's name (bundled: srn, "
-                             "legacy) / weights file (--checkpoint: an older spelling, kept as an alias; it names "
+                        help="estimator weights: hub id / local directory / shipped net's name (bundled: "
+                             f"{shipped_nets_text()}) / weights file (--checkpoint: an older spelling, kept as an alias; it names "
                              "the estimator's weights, never a model)")
     parser.add_argument("--category", action="append", default=None, help="only this category (repeatable)")
     parser.add_argument("--json", type=Path, default=None, help="write the scores as JSON to this file")

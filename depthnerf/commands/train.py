@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from depthnerf.config_io import apply_overrides, differences, to_dict
+from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
@@ -50,7 +51,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="depth prior: none = pixelNeRF baseline; default: the preset's")
     p.add_argument("--depth-checkpoint",
                    help="depth estimator weights: hub id or local dir (depth-anything-v2), a shipped net's name "
-                        "(bundled: srn, the default; legacy) or a weights file")
+                        f"(bundled: {shipped_nets_text()}) or a weights file")
     p.add_argument("--max-steps", type=int, help="total optimisation steps")
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     p.add_argument("--seed", type=int, help="run seed")

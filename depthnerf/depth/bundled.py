@@ -173,6 +173,11 @@ def shipped_net_name(checkpoint: str | os.PathLike | None) -> str | None:
     return str(checkpoint) if str(checkpoint) in SHIPPED_NETS else None
 
 
+def shipped_nets_text() -> str:
+    """The shipped nets' names for help texts, the default marked, e.g. ``srn (the default), srn-18k, legacy``."""
+    return ", ".join(f"{name} (the default)" if name == DEFAULT_NET else name for name in SHIPPED_NETS)
+
+
 def shipped_net_named_by_hash(weights_hash: str) -> str | None:
     """The name of the shipped net whose file has SHA-256 ``weights_hash`` (None: no shipped net has it)."""
     for name, path in SHIPPED_NETS.items():
