@@ -11,7 +11,9 @@
 # RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
 # mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
 # prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-x2" the
-# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0), "-w" the bundled prior
+# encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0), "-an" (last) the run
+# without "-an" trained first, then warm-started from its best checkpoint and annealed as scripts/anneal_pair_study.sh
+# does (ANNEAL_STEPS, default 1500, of a cosine learning rate 3e-4 -> 3e-6, whole-image rays, seed 1), "-w" the bundled prior
 # from the depth net DEPTH_WEIGHTS (a weights file or a shipped net's name) instead of BUNDLED_NET (--depth-checkpoint;
 # its priors are cached beside the others, keyed by the file's hash); suffixes combine, e.g.
 # "cars-bundled-sym-pp", "cars-bundled-pp-s1"), CATEGORIES (whose data to make, default "cars chairs"), FRAMING (synthetic benchmark framing,
@@ -70,9 +72,14 @@ one_run() {
       np) extra+=(--model.encoder.use_first_pool false) ;;  # encoder without its first max-pool (same section)
       nb) extra+=(--schedule.bbox_steps 0) ;;  # no bbox-sampling phase: whole images from step 0 (same section)
       s[0-9]*) seed=${variant#s} ;;  # another training seed: the spread between runs ("A rerun does not reproduce it")
+      an) [ "${name%-an}" != "$name" ] || { echo "run $name: variant 'an' must come last" >&2; return 2; }
+          one_run "${name%-an}"  # the run it starts from, trained and evaluated first
+          extra+=(--init-from "$STUDY/runs/${name%-an}" --schedule.bbox_steps 0 --schedule.lr_schedule cosine
+                  --schedule.lr 3e-4 --schedule.lr_final 3e-6 --log.val_every 0)
+          steps=(--max-steps "${ANNEAL_STEPS:-1500}"); seed=1 ;;  # annealed ("The depth prior alone, annealed")
       w) [ -n "$DEPTH_WEIGHTS" ] || { echo "run $name: variant 'w' needs DEPTH_WEIGHTS (a bundled depth net)" >&2; return 2; }
          net=(--depth-checkpoint "$DEPTH_WEIGHTS") ;;  # another bundled depth net ("A depth net trained on the SRN framing")
-      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb, s<N>, w)" >&2; return 2 ;;
+      *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb, s<N>, w, an)" >&2; return 2 ;;
     esac
   done
   if [ ! -f "$ev/summary.json" ]; then

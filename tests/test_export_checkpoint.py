@@ -231,3 +231,13 @@ def test_card_of_a_warm_started_run_names_its_source(exporter, run, tmp_path):
     listed = describe("cpu-cars-depth", res.weights)
     assert listed["steps"] == 5 and listed["warm_start_steps"] == 3500
     assert describe("cpu-cars-depth", plain.weights)["warm_start_steps"] is None
+
+
+def test_warm_start_from_a_run_folder_is_written_relative(exporter, run, tmp_path):
+    warm = tmp_path / "warm-run"
+    shutil.copytree(run, warm)
+    start = tmp_path / "runs" / "cars-bundled-w"  # init_from.json records a run folder by its absolute path
+    (warm / "init_from.json").write_text(json.dumps({"source": str(start), "sha256": "cd" * 32, "step": 2000}))
+    res = exporter.export(warm, "cpu-cars-depth", tmp_path / "ship", base=tmp_path)
+    assert res.card["init_from"]["source"] == "runs/cars-bundled-w"
+    assert str(tmp_path) not in res.card_md.read_text()
