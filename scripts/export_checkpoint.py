@@ -369,10 +369,9 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     card["pixel_center"] = cfg.data.pixel_center
     if (run / "init_from.json").is_file():
         warm = _read_json(run / "init_from.json", "run warm-start record")
-        source = warm.get("source")  # a shipped checkpoint's name, or a path: written relative like the others
-        if isinstance(source, str) and Path(source).is_absolute():
-            source = portable_path(Path(source), base)
-        card["init_from"] = {"source": source, "step": warm.get("step"), "sha256": warm.get("sha256")}
+        # a shipped checkpoint's name (kept as is) or a path (written relative, like the card's other paths)
+        card["init_from"] = {"source": portable_path(warm.get("source"), base), "step": warm.get("step"),
+                             "sha256": warm.get("sha256")}
     if summary is not None:
         card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
         card["protocol"] = summary["protocol"]
