@@ -251,6 +251,24 @@ def test_checkpoints_lists_shipped_or_says_none(setup, capsys, monkeypatch, tmp_
     assert load_pretrained("tiny-cars-depth").step == 1  # the name resolves in eval / reconstruct too
 
 
+def test_retired_checkpoint_name_points_to_its_card(setup, capsys, monkeypatch, tmp_path):
+    """A name whose weights no longer ship is one line naming its kept card, in eval and in the listing; a retired
+    card does not make its name loadable."""
+    from depthnerf.pretrained import load as pretrained
+
+    shipped = tmp_path / "shipped"
+    (shipped / "retired").mkdir(parents=True)
+    card = shipped / "retired" / "old-cars-sym.md"
+    card.write_text("# old-cars-sym\n")
+    monkeypatch.setattr(pretrained, "SHIPPED_DIR", shipped)
+    assert cli("eval", "--checkpoint", "old-cars-sym", "--out", str(tmp_path / "out")) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "old-cars-sym: a retired checkpoint" in err and str(card) in err
+    assert cli("checkpoints") == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1].endswith("retired): old-cars-sym")
+    assert not (tmp_path / "out").exists()
+
+
 def test_pixel_center_is_trained_recorded_and_overridable(setup):
     """``--data.pixel_center`` reaches the checkpoint; eval uses the trained value unless ``--pixel-center``
     overrides it (then other rays are rendered and scored), and the summary records both."""

@@ -7,7 +7,8 @@ warm start's steps before them), and metrics when
 recorded: the metadata key ``metrics`` (a JSON object) or a model card ``<name>.json`` next to the weights with a
 ``metrics`` object (keys such as ``psnr``, ``ssim``, plus free text under ``protocol``; ``null`` = not evaluated,
 as ``scripts/export_checkpoint.py`` writes it without ``--eval-summary``). A ``<name>.md`` model card
-is pointed to. Nothing is downloaded; with no checkpoint shipped the command says so and exits 0.
+is pointed to. Retired checkpoints (cards kept in ``depthnerf/checkpoints/retired/``, weights no longer shipped) are
+named on a last line of the text listing. Nothing is downloaded; with no checkpoint shipped the command says so and exits 0.
 """
 
 from __future__ import annotations
@@ -88,7 +89,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"no checkpoints are shipped with this version of depthnerf ({pretrained.SHIPPED_DIR} holds no "
               "*.safetensors). Train one with 'depthnerf train' and pass its run folder or a weights file to "
               "--checkpoint.")
-        return 0
     for r in rows:
         metrics = ", ".join(f"{k} {v:.4g}" if isinstance(v, int | float) else f"{k} {v}"
                             for k, v in (r["metrics"] or {}).items()) or "no metrics recorded"
@@ -98,4 +98,8 @@ def run(args: argparse.Namespace) -> int:
               + (f" after a {r['warm_start_steps']}-step warm start" if r["warm_start_steps"] else "")
               + f"; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")
               + (f"; card {r['model_card']}" if r["model_card"] else ""))
+    retired = pretrained.retired_checkpoints()
+    if retired:
+        cards = pretrained.SHIPPED_DIR / "retired"
+        print(f"retired (weights no longer shipped; cards in {cards}): {', '.join(retired)}")
     return 0

@@ -2,7 +2,8 @@
 
 ``--checkpoint`` (eval, reconstruct, the Python API) accepts, in this order:
 1. a shipped checkpoint name (``depthnerf checkpoints`` lists them, e.g. ``cpu-cars-depth``): a file
-   ``depthnerf/checkpoints/<name>.safetensors`` inside the package;
+   ``depthnerf/checkpoints/<name>.safetensors`` inside the package (a retired name, whose weights no longer ship
+   but whose card stays in ``depthnerf/checkpoints/retired/``, is an error pointing to that card);
 2. a ``.safetensors`` weights file written by training or by ``scripts/export_checkpoint.py``;
 3. a checkpoint directory (``RUN/checkpoints/step_XXXXXXXX`` or ``.../best``);
 4. a run directory: its ``checkpoints/best`` if validation ran, else its latest checkpoint.
@@ -40,6 +41,12 @@ def shipped_checkpoints() -> dict[str, Path]:
     return {p.stem: p for p in sorted(SHIPPED_DIR.glob("*.safetensors"))}
 
 
+def retired_checkpoints() -> dict[str, Path]:
+    """Names and model cards of the checkpoints that shipped once and no longer do: ``SHIPPED_DIR/retired/<name>.md``
+    (beside its ``.json``) says what replaced each one and gives the commands that rebuild it."""
+    return {p.stem: p for p in sorted((SHIPPED_DIR / "retired").glob("*.md"))}
+
+
 def resolve_checkpoint(checkpoint: str | Path) -> Path:
     """The weights file ``checkpoint`` names: a shipped name or a path (see the module docstring)."""
     shipped = shipped_checkpoints()
@@ -58,6 +65,10 @@ def resolve_checkpoint(checkpoint: str | Path) -> Path:
         if latest is not None:
             return latest / "model.safetensors"
         raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")
+    retired = retired_checkpoints()
+    if isinstance(checkpoint, str) and checkpoint in retired:
+        raise DepthnerfError(f"{checkpoint}: a retired checkpoint, no longer shipped with depthnerf; its card "
+                             f"{retired[checkpoint]} names what replaced it and the commands that rebuild it")
     names = ", ".join(shipped) or "none shipped"
     raise DepthnerfError(f"{checkpoint}: not a checkpoint file, checkpoint folder, run folder or shipped name "
                          f"({names})")

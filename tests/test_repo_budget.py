@@ -1,0 +1,51 @@
+"""What the repository carries: it must stay small enough to travel to a lent GPU machine (docs/speed.md, "Measuring
+on a lent GPU": the working tree that travels is capped at 64 MiB, and the wheels archive and a run's files need
+room beside it), and every checkpoint that stopped shipping keeps a card that says what replaced it."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from depthnerf.pretrained.load import retired_checkpoints, shipped_checkpoints
+
+ROOT = Path(__file__).resolve().parent.parent
+TRAVEL_LIMIT = 64_000_000
+"""The device tool's cap on the working tree that travels, bytes: its README says 64 MiB; read here as 64 MB, the
+stricter reading (a lease refused 66.9 MB and accepted 61.5 MB)."""
+HEADROOM = 4_000_000
+"""Kept free under that cap for the carried wheels archive (``.whl``, about 1 MB) and untracked run files."""
+
+
+def _tracked_files() -> list[Path]:
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("not a git checkout")
+    out = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
+    return [ROOT / name for name in out.decode().split("\0") if name]
+
+
+def test_tracked_files_leave_room_under_the_gpu_travel_limit():
+    sizes = {p: p.stat().st_size for p in _tracked_files() if p.is_file()}
+    total = sum(sizes.values())
+    largest = ", ".join(f"{p.relative_to(ROOT)} {s / 1e6:.1f} MB"
+                        for p, s in sorted(sizes.items(), key=lambda kv: -kv[1])[:3])
+    assert total <= TRAVEL_LIMIT - HEADROOM, (
+        f"tracked files hold {total / 1e6:.1f} MB, over the {(TRAVEL_LIMIT - HEADROOM) / 1e6:.0f} MB budget "
+        f"(largest: {largest})")
+
+
+def test_retired_checkpoints_keep_cards_naming_a_shipped_replacement():
+    retired, shipped = retired_checkpoints(), shipped_checkpoints()
+    assert retired, "no retired cards found: package data or the retired folder moved"
+    for name, card in retired.items():
+        assert name not in shipped
+        assert card.with_suffix(".json").is_file()
+        note = card.read_text().split("\n\n")[1]
+        assert note.startswith("> **Retired: the weights no longer ship.**")
+        replacements = set(re.findall(r"`(cpu-[a-z0-9-]+)`", note)) - {name}
+        assert replacements and replacements <= set(shipped), f"{card}: names no shipped replacement"
+        assert f'RUNS="{name.split("-")[1]}-bundled-sym"' in note  # the rebuild command
