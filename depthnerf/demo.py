@@ -58,7 +58,7 @@ from depthnerf.eval.metrics import object_metrics
 from depthnerf.eval.objects import prepare_object
 from depthnerf.files import write_text_atomic
 from depthnerf.infer.session import InferenceSession, SessionOptions
-from depthnerf.pretrained.load import resolve_checkpoint, shipped_checkpoints
+from depthnerf.pretrained.load import RECOMMENDED, resolve_checkpoint, shipped_checkpoints
 from depthnerf.reconstruct.exports import save_reconstruction, to_u8
 from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
@@ -69,8 +69,8 @@ DEMO_SEED = 2718
 """``depthnerf synth --seed`` of the demo objects (training data: seed 0; bundled-depth evaluation: 1234)."""
 CATEGORIES = ("cars", "chairs")
 """Categories the demo knows, in order."""
-DEFAULT_CHECKPOINTS = {"cars": "cpu-cars-sym-pp", "chairs": "cpu-chairs-sym-pp"}
-"""Shipped depth-aware checkpoint per category."""
+DEFAULT_CHECKPOINTS = {category: RECOMMENDED[category] for category in CATEGORIES}
+"""Shipped checkpoint per category: the best one (:data:`~depthnerf.pretrained.load.RECOMMENDED`)."""
 
 
 @dataclass(frozen=True)

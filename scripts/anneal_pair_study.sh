@@ -23,6 +23,7 @@ OUT=${2:-anneal-$CAT}
 JOBS=${JOBS:-2}
 STEPS=${STEPS:-1500}
 export CAT OUT STEPS OMP_NUM_THREADS=1
+source "$(dirname "$0")/anneal_recipe.sh"
 mkdir -p "$OUT/logs" "$OUT/runs" "$OUT/eval"
 [ -f "$OUT/data/${CAT}_card.json" ] || depthnerf synth --category "$CAT" --out "$OUT/data" --train-objects 300 \
   --val-objects 20 --test-objects 50 --resolution 64 --seed 0 --framing srn --workers "$JOBS" --quiet
@@ -33,10 +34,10 @@ anneal() {  # run name, the checkpoint it starts from, steps, then the run's own
   local name=$1 from=$2 steps=$3
   shift 3
   local run="$OUT/runs/$name"
+  anneal_flags "$from"  # scripts/anneal_recipe.sh
   [ -f "$run/checkpoints/step_$(printf %08d "$steps")/model.safetensors" ] || depthnerf train --resume \
-    --preset "cpu-$CAT" --data "$OUT/data" "$@" --init-from "$from" --seed 1 --schedule.bbox_steps 0 \
-    --schedule.lr_schedule cosine --schedule.lr 3e-4 --schedule.lr_final 3e-6 --max-steps "$steps" \
-    --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-$name.log" 2>&1
+    --preset "cpu-$CAT" --data "$OUT/data" "$@" --seed "$ANNEAL_SEED" "${ANNEAL_FLAGS[@]}" --max-steps "$steps" \
+    --out "$run" --no-progress > "$OUT/logs/train-$name.log" 2>&1
   echo "trained $name"
 }
 one_run() {  # depth (none | bundled) and the shipped checkpoint it starts from

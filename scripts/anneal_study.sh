@@ -12,6 +12,7 @@ OUT=${1:-anneal}
 JOBS=${JOBS:-2}
 FROM=${FROM:-0fb4e8c}   # the commit whose cpu-chairs-sym-pp is the 4000-step model
 export OUT OMP_NUM_THREADS=1
+source "$(dirname "$0")/anneal_recipe.sh"
 mkdir -p "$OUT/logs" "$OUT/runs" "$OUT/eval"
 [ -f "$OUT/data/chairs_card.json" ] || depthnerf synth --category chairs --out "$OUT/data" --train-objects 300 \
   --val-objects 20 --test-objects 50 --resolution 64 --seed 0 --framing srn --workers "$JOBS" --quiet
@@ -23,10 +24,10 @@ one_run() {  # name depth init lr lr_final steps objects; names *-sym-pp* / anne
   set -euo pipefail
   local run="$OUT/runs/$1" model=()
   [[ "$1" == anneal-* || "$1" == *sym-pp* ]] && model=(--model.mirror true --model.prior_at_point true)
+  anneal_flags "$3" "$4" "$5"  # scripts/anneal_recipe.sh
   [ -f "$run/checkpoints/step_$(printf %08d "$6")/model.safetensors" ] || depthnerf train --resume --preset cpu-chairs \
-    --data "$OUT/data" --depth "$2" "${model[@]}" --init-from "$3" --seed 1 --schedule.bbox_steps 0 \
-    --schedule.lr_schedule cosine --schedule.lr "$4" --schedule.lr_final "$5" --max-steps "$6" \
-    --schedule.objects_phase2 "$7" --log.val_every 0 --out "$run" --no-progress > "$OUT/logs/train-$1.log" 2>&1
+    --data "$OUT/data" --depth "$2" "${model[@]}" --seed "$ANNEAL_SEED" "${ANNEAL_FLAGS[@]}" --max-steps "$6" \
+    --schedule.objects_phase2 "$7" --out "$run" --no-progress > "$OUT/logs/train-$1.log" 2>&1
   echo "trained $1"
 }
 one_eval() {  # name (a run) or a shipped checkpoint name

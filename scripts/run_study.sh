@@ -12,8 +12,8 @@
 # mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
 # prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-x2" the
 # encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0), "-an" (last) the run
-# without "-an" trained first, then warm-started from its best checkpoint and annealed as scripts/anneal_pair_study.sh
-# does (ANNEAL_STEPS, default 1500, of a cosine learning rate 3e-4 -> 3e-6, whole-image rays, seed 1), "-w" the bundled prior
+# without "-an" trained first, then warm-started from its best checkpoint and annealed by the recipe of scripts/anneal_recipe.sh
+# (ANNEAL_STEPS, default 1500, of a cosine learning rate 3e-4 -> 3e-6, whole-image rays, seed 1), "-w" the bundled prior
 # from the depth net DEPTH_WEIGHTS (a weights file or a shipped net's name) instead of BUNDLED_NET (--depth-checkpoint;
 # its priors are cached beside the others, keyed by the file's hash); suffixes combine, e.g.
 # "cars-bundled-sym-pp", "cars-bundled-pp-s1"), CATEGORIES (whose data to make, default "cars chairs"), FRAMING (synthetic benchmark framing,
@@ -38,6 +38,7 @@ RES=${RES:-64}
 BUNDLED_NET=${BUNDLED_NET:-srn}
 export BUNDLED_NET STUDY STRIDE SEED FRAMING PIXEL_CENTER RES STEPS=${STEPS:-}
 export OMP_NUM_THREADS=1
+source "$(dirname "$0")/anneal_recipe.sh"
 mkdir -p "$STUDY/logs"
 
 # 1. data: 300 train / 20 val / 50 test objects per category at RES px (default 64, the CPU presets' resolution)
@@ -74,9 +75,8 @@ one_run() {
       s[0-9]*) seed=${variant#s} ;;  # another training seed: the spread between runs ("A rerun does not reproduce it")
       an) [ "${name%-an}" != "$name" ] || { echo "run $name: variant 'an' must come last" >&2; return 2; }
           one_run "${name%-an}"  # the run it starts from, trained and evaluated first
-          extra+=(--init-from "$STUDY/runs/${name%-an}" --schedule.bbox_steps 0 --schedule.lr_schedule cosine
-                  --schedule.lr 3e-4 --schedule.lr_final 3e-6 --log.val_every 0)
-          steps=(--max-steps "${ANNEAL_STEPS:-1500}"); seed=1 ;;  # annealed ("The depth prior alone, annealed")
+          anneal_flags "$STUDY/runs/${name%-an}"; extra+=("${ANNEAL_FLAGS[@]}")  # scripts/anneal_recipe.sh
+          steps=(--max-steps "${ANNEAL_STEPS:-1500}"); seed=$ANNEAL_SEED ;;
       w) [ -n "$DEPTH_WEIGHTS" ] || { echo "run $name: variant 'w' needs DEPTH_WEIGHTS (a bundled depth net)" >&2; return 2; }
          net=(--depth-checkpoint "$DEPTH_WEIGHTS") ;;  # another bundled depth net ("A depth net trained on the SRN framing")
       *) echo "unknown run variant '$variant' in $name (known: sym, dl, pp, rgb, x2, np, nb, s<N>, w, an)" >&2; return 2 ;;

@@ -18,10 +18,13 @@ INSTALL_HINT = "depthnerf app needs gradio, which is not installed: pip install 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from depthnerf.pretrained.load import RECOMMENDED
+
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=7860, help="TCP port (default 7860)")
     p.add_argument("--checkpoint", nargs="+", action="extend", metavar="NAME_OR_PATH",
-                   help="checkpoints offered in the model menu (default: cpu-cars-sym-pp cpu-chairs-sym-pp)")
+                   help="checkpoints offered in the model menu (default: the best shipped one per category, "
+                        f"{' '.join(RECOMMENDED.values())})")
     p.add_argument("--share", action="store_true", help="also create a public Gradio share link (off by default)")
     p.add_argument("--views", type=int, default=8, help="default number of orbit views (default 8)")
     p.add_argument("--max-views", type=int, default=36, help="largest number of orbit views (default 36)")

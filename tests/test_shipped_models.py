@@ -1,9 +1,11 @@
-"""What the repository carries: it must stay small enough to travel to a lent GPU machine (docs/speed.md, "Measuring
-on a lent GPU": the working tree that travels is capped at 64 MiB, and the wheels archive and a run's files need
-room beside it), and every checkpoint that stopped shipping keeps a card that says what replaced it."""
+"""The shipped models as a set: the repository that carries them stays small enough to travel to a lent GPU machine
+(docs/speed.md, "Measuring on a lent GPU": the working tree that travels is capped at 64 MiB, and the wheels
+archive and a run's files need room beside it), every checkpoint that stopped shipping keeps a card that says what
+replaced it, and the demo and the app default to the best shipped model of each category."""
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -11,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from depthnerf.pretrained.load import retired_checkpoints, shipped_checkpoints
+from depthnerf.pretrained.load import RECOMMENDED, retired_checkpoints, shipped_checkpoints
 
 ROOT = Path(__file__).resolve().parent.parent
 TRAVEL_LIMIT = 64_000_000
@@ -49,3 +51,23 @@ def test_retired_checkpoints_keep_cards_naming_a_shipped_replacement():
         replacements = set(re.findall(r"`(cpu-[a-z0-9-]+)`", note)) - {name}
         assert replacements and replacements <= set(shipped), f"{card}: names no shipped replacement"
         assert f'RUNS="{name.split("-")[1]}-bundled-sym"' in note  # the rebuild command
+
+
+def _card(path: Path) -> dict:
+    return json.loads(path.with_suffix(".json").read_text())
+
+
+def test_demo_and_app_default_to_the_best_shipped_model_per_category():
+    from depthnerf.app.logic import SHIPPED_MODELS
+    from depthnerf.demo import DEFAULT_CHECKPOINTS
+
+    shipped = shipped_checkpoints()
+    assert set(DEFAULT_CHECKPOINTS.values()) == set(SHIPPED_MODELS.values()) == set(RECOMMENDED.values())
+    for category, name in RECOMMENDED.items():
+        best = _card(shipped[name])
+        assert best["category"] == category
+        rivals = {other: _card(path) for other, path in shipped.items() if other != name}
+        same = {other: card["metrics"]["psnr"] for other, card in rivals.items()
+                if card["category"] == category and card.get("protocol") == best["protocol"] and card["metrics"]}
+        assert same, f"no other {category} model evaluated on {name}'s protocol to rank it against"
+        assert best["metrics"]["psnr"] > max(same.values()), f"{name} is not the best shipped {category} model: {same}"
