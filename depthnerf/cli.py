@@ -46,6 +46,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == chosen:
             _command_module(name).add_arguments(p)
+            p.set_defaults(subcommand_parser=p)  # its usage line goes with an error about its arguments
     return parser
 
 
@@ -70,8 +71,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     module = _command_module(args.command)
+    command_parser = vars(args).pop("subcommand_parser", parser)
     if extra and not getattr(module, "ACCEPTS_OVERRIDES", False):
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        command_parser.error(f"unrecognized arguments: {' '.join(extra)}")
     args.overrides = extra
     try:
         with warnings.catch_warnings():

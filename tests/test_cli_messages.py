@@ -190,3 +190,13 @@ def test_a_busy_port_is_refused_before_anything_is_served(capsys):
             out, err = capsys.readouterr()
             assert out == "" and err == f"error: {line}\n"  # nothing loaded, nothing "serving"
     check_port("127.0.0.1", port)  # free again
+
+
+def test_an_unknown_flag_is_named_with_its_subcommand(capsys):
+    """A flag the subcommand does not know is reported by that subcommand, with its usage, not the top level's."""
+    with pytest.raises(SystemExit) as stop:
+        main(["checkpoints", "--bogus"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: depthnerf checkpoints") and err.strip().endswith(
+        "depthnerf checkpoints: error: unrecognized arguments: --bogus")
