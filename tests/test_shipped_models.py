@@ -12,32 +12,57 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from fixtures_scripts import load_script
 
 from depthnerf.pretrained.load import RECOMMENDED, retired_checkpoints, shipped_checkpoints
 
 ROOT = Path(__file__).resolve().parent.parent
-TRAVEL_LIMIT = 64_000_000
-"""The device tool's cap on the working tree that travels, bytes: its README says 64 MiB; read here as 64 MB, the
-stricter reading (a lease refused 66.9 MB and accepted 61.5 MB)."""
 HEADROOM = 4_000_000
-"""Kept free under that cap for the carried wheels archive (``.whl``, about 1 MB) and untracked run files."""
+"""Kept free under the travel limit (``scripts/travel_size.py``) for the carried wheels archive (``.whl``, about
+1 MB) and a run's untracked files."""
 
 
-def _tracked_files() -> list[Path]:
+def _travel():
     if shutil.which("git") is None or not (ROOT / ".git").exists():
         pytest.skip("not a git checkout")
-    out = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, check=True).stdout
-    return [ROOT / name for name in out.decode().split("\0") if name]
+    return load_script("travel_size")
 
 
 def test_tracked_files_leave_room_under_the_gpu_travel_limit():
-    sizes = {p: p.stat().st_size for p in _tracked_files() if p.is_file()}
-    total = sum(sizes.values())
+    travel = _travel()
+    sizes = {p: p.stat().st_size for p in travel.git_files(ROOT)}
+    total, budget = sum(sizes.values()), travel.LIMIT_BYTES - HEADROOM
     largest = ", ".join(f"{p.relative_to(ROOT)} {s / 1e6:.1f} MB"
                         for p, s in sorted(sizes.items(), key=lambda kv: -kv[1])[:3])
-    assert total <= TRAVEL_LIMIT - HEADROOM, (
-        f"tracked files hold {total / 1e6:.1f} MB, over the {(TRAVEL_LIMIT - HEADROOM) / 1e6:.0f} MB budget "
-        f"(largest: {largest})")
+    assert total <= budget, f"tracked files hold {total / 1e6:.1f} MB, over the {budget / 1e6:.0f} MB budget " \
+                            f"(largest: {largest})"
+
+
+def test_travel_size_sums_what_a_call_sends(tmp_path, capsys, monkeypatch):
+    """Tracked, untracked-not-ignored and carried files count; ignored ones that are not carried do not; over the
+    limit is exit 1, a missing carried path an error."""
+    travel = _travel()
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
+    (repo / ".gitignore").write_text("runs/\n.whl/\n")
+    (repo / "tracked.bin").write_bytes(b"t" * 1000)
+    subprocess.run(["git", "add", "."], cwd=repo, check=True)
+    (repo / "new.txt").write_bytes(b"u" * 300)
+    (repo / "runs").mkdir()
+    (repo / "runs" / "big.bin").write_bytes(b"r" * 50_000)
+    (repo / ".whl" / "site").mkdir(parents=True)
+    (repo / ".whl" / "site" / "a.tar").write_bytes(b"w" * 200)
+    parts = travel.travel_parts(repo, [".whl"])
+    names = {k: sorted(p.name for p in v) for k, v in parts.items()}
+    assert names == {"tracked": [".gitignore", "tracked.bin"], "untracked, not ignored": ["new.txt"],
+                     "carried": ["a.tar"]}
+    assert travel.main(["--root", str(repo), ".whl"]) == 0
+    monkeypatch.setattr(travel, "LIMIT_BYTES", 1000)
+    assert travel.main(["--root", str(repo), ".whl"]) == 1
+    assert "would be REFUSED" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no-such: a carried path that does not exist"):
+        travel.main(["--root", str(repo), "no-such"])
 
 
 def test_retired_checkpoints_keep_cards_naming_a_shipped_replacement():
