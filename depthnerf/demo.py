@@ -58,7 +58,8 @@ from depthnerf.eval.metrics import object_metrics
 from depthnerf.eval.objects import prepare_object
 from depthnerf.files import write_text_atomic
 from depthnerf.infer.session import InferenceSession, SessionOptions
-from depthnerf.pretrained.load import RECOMMENDED, resolve_checkpoint, shipped_checkpoints
+from depthnerf.pretrained.load import resolve_checkpoint, shipped_checkpoints
+from depthnerf.pretrained.recommended import RECOMMENDED
 from depthnerf.reconstruct.exports import save_reconstruction, to_u8
 from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
@@ -70,7 +71,7 @@ DEMO_SEED = 2718
 CATEGORIES = ("cars", "chairs")
 """Categories the demo knows, in order."""
 DEFAULT_CHECKPOINTS = {category: RECOMMENDED[category] for category in CATEGORIES}
-"""Shipped checkpoint per category: the best one (:data:`~depthnerf.pretrained.load.RECOMMENDED`)."""
+"""Shipped checkpoint per category: the best one (:data:`~depthnerf.pretrained.recommended.RECOMMENDED`)."""
 
 
 @dataclass(frozen=True)

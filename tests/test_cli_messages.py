@@ -8,6 +8,8 @@ import importlib.util
 import json
 import os
 import socket
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -200,3 +202,12 @@ def test_an_unknown_flag_is_named_with_its_subcommand(capsys):
     err = capsys.readouterr().err
     assert err.startswith("usage: depthnerf checkpoints") and err.strip().endswith(
         "depthnerf checkpoints: error: unrecognized arguments: --bogus")
+
+
+def test_app_help_does_not_import_torch():
+    """``depthnerf app`` builds its parser (the default models in its help) without torch, so ``--help`` and the
+    missing-extra message stay instant."""
+    probe = ("import sys; from depthnerf.cli import build_parser; build_parser(['app']); "
+             "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 from fixtures_scripts import load_script
 
-from depthnerf.pretrained.load import RECOMMENDED, retired_checkpoints, shipped_checkpoints
+from depthnerf.pretrained.load import retired_checkpoints, shipped_checkpoints
+from depthnerf.pretrained.recommended import RECOMMENDED
 
 ROOT = Path(__file__).resolve().parent.parent
 HEADROOM = 4_000_000

@@ -55,14 +55,14 @@ import numpy as np
 
 from depthnerf.app.messages import check_upload, display_name, one_line
 from depthnerf.errors import DepthnerfError
-from depthnerf.pretrained.load import RECOMMENDED
+from depthnerf.pretrained.recommended import RECOMMENDED
 
 EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 """Bundled example photos (``scripts/make_app_examples.py``)."""
 DEPTH_PRIORS = ("bundled", "depth-anything-v2")
 """Depth priors the page offers."""
 SHIPPED_MODELS = {"car": RECOMMENDED["cars"], "chair": RECOMMENDED["chairs"]}
-"""Page label -> the best shipped checkpoint per category (:data:`~depthnerf.pretrained.load.RECOMMENDED`)."""
+"""Page label -> the best shipped checkpoint per category (:data:`~depthnerf.pretrained.recommended.RECOMMENDED`)."""
 ProgressFn = Callable[[float, str], None]
 
 

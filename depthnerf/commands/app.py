@@ -18,7 +18,7 @@ INSTALL_HINT = "depthnerf app needs gradio, which is not installed: pip install 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from depthnerf.pretrained.load import RECOMMENDED
+    from depthnerf.pretrained.recommended import RECOMMENDED
 
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=7860, help="TCP port (default 7860)")

@@ -32,11 +32,6 @@ from depthnerf.pretrained.weights import latest_checkpoint, load_state_strict, r
 
 SHIPPED_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
 """Where the package's own checkpoints live."""
-RECOMMENDED = {"cars": "cpu-cars-sym-pp", "chairs": "cpu-chairs-sym-pp"}
-"""The best shipped checkpoint per category, used by default by ``depthnerf demo`` and ``depthnerf app``: of the
-shipped models evaluated on the same protocol, the one with the highest PSNR (its card's ``metrics``), which also
-passes the mesh gate on the app's photos (docs/RESULTS.md, Table 1 and the mesh gate). A model shipped later that
-beats one replaces it here (``tests/test_shipped_models.py`` checks the ranking)."""
 SPEC_FRAMING = "the checkpoint's inference spec"
 """``Pretrained.framing_origin`` of a checkpoint whose spec states its framing."""
 
