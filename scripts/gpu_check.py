@@ -9,7 +9,8 @@ Stages, in order (each in its own subprocesses under its own time limit; a faili
 - ``bench``: ``benchmarks/bench_gpu.py --json`` on CUDA (ms per iteration, kernel launches per step, peak memory,
   ms per 128x128 view with the paper sampler and guided, the 704 x 250-view eval projection), baseline with views,
   the same with ``--compile`` (training step and views), with ``--compile-step`` (the step as one compiled
-  graph, CUDA graphs; no views), depth-aware without views, and
+  graph, CUDA graphs; no views), ``benchmarks/bench_view_variants.py`` (ms per view with a bf16 residual stream
+  and with ``max-autotune`` compilation, against fp32 renders), depth-aware without views, and
   ``benchmarks/bench_gather.py`` (the feature gather's candidate kernels); on a CPU the aten op count (the launch
   proxy) and the CUDA figures as skipped.
 - ``data``: a tiny synthetic car set made by ``depthnerf synth``.
@@ -26,7 +27,8 @@ GPU_CHECK_SECONDS (total budget: 450 / 900), GPU_CHECK_TIMEOUT_<STAGE> (seconds)
 /tmp/depthnerf-gpu-check, emptied first), GPU_CHECK_STEPS (200 / 6), GPU_CHECK_CKPT_EVERY (50 / 2),
 GPU_CHECK_CRASH (state@<2 x CKPT_EVERY>), GPU_CHECK_RES (128 / 32), GPU_CHECK_OBJECTS (8 / 2), GPU_CHECK_VIEWS
 (24 / 4), GPU_CHECK_PRESET (paper-cars), GPU_CHECK_DEPTH (oracle), GPU_CHECK_TRAIN_ARGS (extra train flags;
-CPU: tiny model sizes), GPU_CHECK_PYTEST_ARGS (instead of the whole suite), GPU_CHECK_PYTEST_WORKERS.
+CPU: tiny model sizes), GPU_CHECK_PYTEST_ARGS (instead of the whole suite), GPU_CHECK_PYTEST_WORKERS,
+GPU_CHECK_BENCH_CASES (CUDA: some of the bench stage's cases, e.g. ``compiled_step view_variants``; default all).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gpu_check_parts import (  # noqa: E402
     ROOT,
     Proc,
+    bench_cases,
     env_probe_code,
     pytest_summary,
     signal_group,
@@ -181,14 +184,22 @@ class Check:
             return ("ok" if r.rc == 0 else "failed"), details
         details, ok = {}, True
         gather = str(ROOT / "benchmarks" / "bench_gather.py")
+        variants = str(ROOT / "benchmarks" / "bench_view_variants.py")
         cases = [("baseline", [bench, "--depth", "none"], 0.3),
                  ("compiled", [bench, "--depth", "none", "--compile", "--repeat", "10"], 0.5),
                  ("compiled_step", [bench, "--depth", "none", "--compile-step", "--no-views", "--repeat", "10"], 0.75),
+                 ("view_variants", [variants, "--budget-s", "{budget}"], 0.7),
                  ("depth_aware", [bench, "--depth", "bundled", "--no-views"], 0.8), ("gather", [gather], 1.0)]
+        try:
+            cases = bench_cases(cases, os.environ.get("GPU_CHECK_BENCH_CASES", ""))
+        except ValueError as e:
+            return "failed", {"error": str(e)}
         t_end = time.time() + limit
         for name, args, share in cases:
             path = self.work / f"bench_{name}.json"
             left = t_end - time.time()
+            # a case that takes a budget starts no new variant after 70% of its time limit (each compiles first)
+            args = [a.replace("{budget}", f"{0.7 * left * share:.0f}") for a in args]
             r = self.run([self.py, *args, "--json", str(path)], left * share)
             details[name] = {**read_json(path), "rc": r.rc, "timed_out": r.timed_out}
             if r.rc != 0:
@@ -376,6 +387,9 @@ def headline(result: dict) -> str:
                     f"{k} {d['compiled_step'].get(k)}" for k in ("compile_warmup_s", "train_ms_best",
                                                                 "kernel_launches_per_step", "host_launch_calls_per_step",
                                                                 "peak_memory_gib")))
+            for variant, row in d.get("view_variants", {}).get("variants", {}).items():
+                lines.append(f"bench view {variant}: " + (row.get("skipped") or ", ".join(
+                    f"{k} {row.get(k)}" for k in ("ms_per_view", "warmup_s", "psnr_vs_fp32"))))
             lines.append(f"bench depth-aware: train_ms_best {a.get('train_ms_best')}, "
                          f"kernel_launches_per_step {a.get('kernel_launches_per_step')}")
         elif name in ("resume_exact", "same_seed", "fast_kernels") and "identical" in d:

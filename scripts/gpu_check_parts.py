@@ -79,6 +79,20 @@ print(json.dumps(d))
 """
 
 
+def bench_cases(cases: list[tuple[str, list[str], float]], chosen: str) -> list[tuple[str, list[str], float]]:
+    """The bench stage's cases that ``chosen`` names (``GPU_CHECK_BENCH_CASES``: names separated by spaces or
+    commas; empty: all), in the stage's order, the last one given all the time left (share 1.0). An unknown name
+    is a ValueError naming it."""
+    names = chosen.replace(",", " ").split()
+    if not names:
+        return cases
+    unknown = sorted(set(names) - {name for name, _, _ in cases})
+    if unknown:
+        raise ValueError(f"GPU_CHECK_BENCH_CASES: unknown cases {unknown}; known: {[c[0] for c in cases]}")
+    picked = [case for case in cases if case[0] in names]
+    return [*picked[:-1], (*picked[-1][:2], 1.0)]
+
+
 def train_plan(py: str, work: Path, s: dict, cuda: bool) -> dict[str, tuple[list[str], dict, list[str] | None]]:
     """name -> (command, extra environment, command run after it exits or None): ``a`` uninterrupted, ``c`` the
     same again, ``b`` killed by the checkpoint writer's hook then resumed (all ``--deterministic``); on CUDA also

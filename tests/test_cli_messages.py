@@ -99,6 +99,20 @@ def test_an_unusable_output_folder_fails_before_any_work(tmp_path, capsys, monke
         assert "cannot write the output folder" in one_error(capsys)
 
 
+def test_precision_flags_the_device_cannot_run_are_refused_before_loading(tmp_path, capsys, monkeypatch):
+    import depthnerf.infer.session as session
+
+    monkeypatch.setattr(session, "load_pretrained", lambda *a, **k: pytest.fail("loaded before the flags' check"))
+    out = tmp_path / "o"
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--device", "cpu", "--bf16-residual") == 2
+    assert one_error(capsys) == ("error: --bf16-residual is a CUDA setting (bf16 autocast); on cpu the fields render "
+                                 "in fp32")
+    assert not out.exists()
+    with pytest.raises(SystemExit):
+        main(["eval", "--checkpoint", "cpu-cars-depth", "--data", str(tmp_path), "--compile-mode", "fast"])
+    assert "argument --compile-mode: invalid choice: 'fast'" in capsys.readouterr().err
+
+
 def test_a_baseline_checkpoint_refuses_a_depth_prior(tmp_path, capsys):
     assert reconstruct(CAR, "--checkpoint", "cpu-cars-baseline", "--depth", "bundled", "--out", tmp_path / "o") == 2
     assert one_error(capsys) == ("error: cpu-cars-baseline: a baseline checkpoint (trained without a depth prior) "

@@ -135,3 +135,13 @@ def test_the_comparison_sees_one_changed_loss_and_one_changed_tensor(check, tmp_
     d = parts.compare(src, copy)
     assert d["identical"] is False and d["steps_differing"] == 1 and d["first_differing_step"] == 1
     assert d["model"]["differing"] == 1 and d["model"]["first_differing"] == [name] and d["optimizer"]["differing"] == 0
+
+
+def test_bench_cases_keep_the_stage_order_and_give_the_last_the_rest():
+    cases = [("baseline", ["a"], 0.3), ("compiled_step", ["b"], 0.75), ("view_variants", ["c"], 0.7),
+             ("gather", ["d"], 1.0)]
+    assert parts.bench_cases(cases, "") == cases
+    assert parts.bench_cases(cases, "view_variants,compiled_step") == [("compiled_step", ["b"], 0.75),
+                                                                        ("view_variants", ["c"], 1.0)]
+    with pytest.raises(ValueError, match=r"unknown cases \['views'\]"):
+        parts.bench_cases(cases, "compiled_step views")

@@ -61,7 +61,7 @@ def simulated_gpu(monkeypatch):
     """Every session's device policy is CUDA's (the CPU computes it)."""
     asked = []
 
-    def policy(device, *, fp32=False, compile=False):
+    def policy(device, *, fp32=False, compile=False, **_):
         asked.append(torch.device(device).type)
         return SIMULATED_GPU
     monkeypatch.setattr(session_module, "inference_policy", policy)

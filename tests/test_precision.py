@@ -9,6 +9,8 @@ import pytest
 import torch
 from test_model import query, randomize, small_config, sources
 
+import depthnerf.render.precision as precision
+from depthnerf.errors import DepthnerfError
 from depthnerf.model import PixelNeRF
 from depthnerf.model.pixelnerf import FieldRuntime
 from depthnerf.render.precision import CPU_RAY_CHUNK, CUDA_POINT_CHUNK, field_runtime, inference_policy
@@ -20,6 +22,63 @@ def test_policy_per_device():
     cuda = inference_policy("cuda")
     assert cuda.autocast == torch.bfloat16 and cuda.ray_chunk > cpu.ray_chunk and cuda.point_chunk == CUDA_POINT_CHUNK
     assert inference_policy("cuda", fp32=True).autocast is None
+    assert cuda.residual is None and cuda.compile_mode == "default" and not cuda.compile
+    assert inference_policy("cuda", bf16_residual=True).residual == torch.bfloat16
+    tuned = inference_policy("cuda", compile_mode="max-autotune-no-cudagraphs")
+    assert tuned.compile and tuned.compile_mode == "max-autotune-no-cudagraphs"  # the mode implies --compile
+
+
+@pytest.mark.parametrize("device, flags, line", [
+    ("cpu", {"bf16_residual": True}, "--bf16-residual is a CUDA setting (bf16 autocast); on cpu the fields "
+                                     "render in fp32"),
+    ("cuda", {"bf16_residual": True, "fp32": True}, "--bf16-residual keeps the residual stream in bf16 under bf16 "
+                                                    "autocast; --fp32 turns autocast off: pass one of them"),
+    ("cuda", {"compile_mode": "fastest"}, "--compile-mode must be one of default, reduce-overhead, max-autotune, "
+                                          "max-autotune-no-cudagraphs, got 'fastest'"),
+])
+def test_flags_a_device_cannot_run_are_one_line(device, flags, line):
+    with pytest.raises(DepthnerfError) as err:
+        inference_policy(device, **flags)
+    assert str(err.value) == line
+
+
+def test_the_compile_mode_reaches_torch_compile(monkeypatch):
+    """``--compile-mode`` is what ``torch.compile`` gets (no compilation here: the call is recorded)."""
+    asked = []
+    monkeypatch.setattr(precision.torch, "compile", lambda fn, **kw: asked.append(kw) or fn)
+    model = PixelNeRF(small_config(), depth_aware=False)
+    field_runtime(model, inference_policy("cpu", compile_mode="max-autotune-no-cudagraphs"))
+    assert asked == [{"dynamic": True, "mode": "max-autotune-no-cudagraphs"}] * 2  # coarse and fine
+    asked.clear()
+    field_runtime(model, inference_policy("cpu", compile=True))
+    assert [kw["mode"] for kw in asked] == ["default", "default"]
+
+
+@torch.no_grad()
+def test_a_bf16_residual_stream_stays_within_bf16_rounding():
+    """The CUDA opt-in ``--bf16-residual``, on the CPU: under bf16 autocast the residual stream is kept in bf16.
+    The outputs stay fp32 and within bf16 rounding of the fp32 field, and differ from the fp32-stream bf16 ones
+    (so the setting took effect); the runtime leaves nothing on the model."""
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
+    enc = model.encode(sources())
+    pts, dirs = query(r=9, s=5)
+    ref_rgb, ref_sigma = model.field(enc, "fine")(pts, dirs)
+    amp_rgb, amp_sigma = model.field(enc, "fine", FieldRuntime(autocast=torch.bfloat16))(pts, dirs)
+    runtime = FieldRuntime(autocast=torch.bfloat16, residual=torch.bfloat16, chunk_points=11)
+    rgb, sigma = model.field(enc, "fine", runtime)(pts, dirs)
+    assert rgb.dtype == torch.float32 and sigma.dtype == torch.float32
+    torch.testing.assert_close(rgb, ref_rgb, rtol=0, atol=3e-2)
+    torch.testing.assert_close(sigma, ref_sigma, rtol=5e-2, atol=5e-2)
+    assert not torch.equal(rgb, amp_rgb) or not torch.equal(sigma, amp_sigma)
+    assert model.field(enc, "fine")(pts, dirs)[0].equal(ref_rgb)
+
+
+def test_the_residual_dtype_is_refused_with_autograd():
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
+    field = model.network("fine")
+    inputs, latent = torch.zeros(1, 1, 3, field.lin_in.in_features), torch.zeros(1, 1, 3, field.lin_z[0].in_features)
+    with pytest.raises(ValueError, match="inference setting"):
+        field(inputs, latent, projected=False, residual_dtype=torch.bfloat16)
 
 
 @torch.no_grad()

@@ -33,7 +33,7 @@ import torch
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
-from depthnerf.render.config import DEFAULT_BUDGET
+from depthnerf.render.config import COMPILE_MODES, DEFAULT_BUDGET
 
 COLLECTIVE_TIMEOUT = timedelta(hours=6)
 """How long rank 0 waits for the slowest rank's share of the objects before the merge (multi-process runs)."""
@@ -98,12 +98,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="mirror models: the objects' symmetry plane n.x = d in the world frame (default: the "
                         "dataset card's, else ShapeNet's x = 0)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
-    p.add_argument("--fp32", action="store_true", help="render in fp32 on CUDA too (default there: bf16 autocast)")
-    p.add_argument("--compile", action="store_true",
-                   help="torch.compile the field MLPs (opt-in; compile time is paid once per process)")
+    add_precision_flags(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
                    help="a problem in an optional part of the data (depth/, mask/, mesh.ply) is an error")
+
+
+def add_precision_flags(p: argparse.ArgumentParser) -> None:
+    """How the fields render on the device (``eval`` and ``reconstruct``; depthnerf.render.precision)."""
+    p.add_argument("--fp32", action="store_true", help="render in fp32 on CUDA too (default there: bf16 autocast)")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the field MLPs (opt-in; compile time is paid once per process)")
+    p.add_argument("--compile-mode", choices=COMPILE_MODES, metavar="MODE",
+                   help="torch.compile mode for --compile (implies it): " + ", ".join(COMPILE_MODES)
+                        + "; max-autotune* fuse the element-wise work into Triton matrix products on CUDA "
+                          "(compiles for minutes first)")
+    p.add_argument("--bf16-residual", action="store_true",
+                   help="CUDA: keep the field MLPs' residual stream in bf16 under bf16 autocast (half its memory "
+                        "traffic; renders differ by bf16 rounding; opt-in)")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -211,7 +223,8 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         progress=not args.no_progress, overwrite=args.overwrite)
     session = InferenceSession(pre, SessionOptions(
         device=device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset", data_root=data,
-        fp32=args.fp32, compile=args.compile, chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
+        fp32=args.fp32, compile=args.compile, compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,
+        chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
         encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
         symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane)))
     result = evaluate_protocol(session, out, cfg, info)

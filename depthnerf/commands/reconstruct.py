@@ -14,7 +14,7 @@ import argparse
 import math
 from pathlib import Path
 
-from depthnerf.commands.evaluate import guided_request, resolve_device
+from depthnerf.commands.evaluate import add_precision_flags, guided_request, resolve_device
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
@@ -68,9 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
     p.add_argument("--chunk", type=int, help="rays per render pass (default 4096 on CPU, 65536 on CUDA)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
-    p.add_argument("--fp32", action="store_true", help="render in fp32 on CUDA too (default there: bf16 autocast)")
-    p.add_argument("--compile", action="store_true",
-                   help="torch.compile the field MLPs (opt-in; compile time is paid once per process)")
+    add_precision_flags(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -103,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
                             background_model=args.background_model, facing=args.facing)
     options = SessionOptions(device=resolve_device(args.device), depth=args.depth,
                              depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
+                             compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,
                              chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples))
     check_output_dir(args.out, args.overwrite)
     # a background model the flags name loads (or fails in one line) before the NeRF does

@@ -255,6 +255,7 @@ def _settings(session: InferenceSession, cfg: ProtocolConfig, data_root: Path, c
             "guided": None if guided is None else guided_record(guided), "lpips": lpips_ok,
             "lpips_net": cfg.lpips.net, "pixel_center": spec.pixel_center, "device": session.device.type,
             "autocast": str(session.policy.autocast), "point_chunk": session.policy.point_chunk,
+            **({"residual": str(session.policy.residual)} if session.policy.residual is not None else {}),
             **({"encoder_norm": session.options.encoder_norm} if session.options.encoder_norm != "running" else {}),
             **({"symmetry_plane": None if session.options.symmetry_plane is None
                 else list(session.options.symmetry_plane), "symmetry": session.options.symmetry}

@@ -60,7 +60,7 @@ from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, input_camera_mesh
 from depthnerf.render.mesh_level import MeshLevel
-from depthnerf.render.precision import InferencePolicy, field_runtime, inference_policy
+from depthnerf.render.precision import InferencePolicy, check_precision_flags, field_runtime, inference_policy
 from depthnerf.render.source_guide import make_source_guide
 from depthnerf.render.views import ViewRenders, render_poses
 
@@ -92,6 +92,10 @@ class SessionOptions:
     """Render in fp32 where the device's policy would use bf16 autocast (``--fp32``)."""
     compile: bool = False
     """``torch.compile`` the field MLPs (``--compile``)."""
+    compile_mode: str | None = None
+    """``--compile-mode``: the ``torch.compile`` mode (implies :attr:`compile`); None: torch's default."""
+    bf16_residual: bool = False
+    """``--bf16-residual``: keep the MLPs' residual stream in bf16 under CUDA's bf16 autocast."""
     chunk: int | None = None
     """Rays per render pass (``--chunk``); None: the device policy's."""
     guided: GuidedConfig | None = None
@@ -101,7 +105,7 @@ class SessionOptions:
     """``--pixel-center``: read data with another pixel-centre convention; None: the checkpoint's."""
     policy: InferencePolicy | None = None
     """The device policy itself (e.g. another device's, simulated); None: the policy of :attr:`device` with
-    :attr:`fp32` and :attr:`compile`."""
+    :attr:`fp32`, :attr:`compile`, :attr:`compile_mode` and :attr:`bf16_residual`."""
     encoder_norm: EncoderNorm = "running"
     """``--encoder-norm``: the encoder's BatchNorm statistics at inference, ``running`` (pixelNeRF) or the input
     ``image``'s own, as training normalises each object (:meth:`PixelNeRF.encode`)."""
@@ -115,11 +119,19 @@ class SessionOptions:
         """One line naming the flag when a value cannot work (checked before anything loads)."""
         if self.chunk is not None and self.chunk < 1:
             raise DepthnerfError(f"--chunk must be >= 1, got {self.chunk}")
+        if self.policy is None:  # a flag combination the device cannot run fails here, not after loading
+            check_precision_flags(self.device, fp32=self.fp32, compile_mode=self.compile_mode,
+                                  bf16_residual=self.bf16_residual)
         if self.encoder_norm not in ENCODER_NORMS:
             raise DepthnerfError(f"--encoder-norm must be one of {', '.join(ENCODER_NORMS)}, "
                                  f"got {self.encoder_norm!r}")
         if self.inputs not in ("photos", "views", "dataset"):
             raise DepthnerfError(f"SessionOptions.inputs must be photos, views or dataset, got {self.inputs!r}")
+
+    def device_policy(self) -> InferencePolicy:
+        """:attr:`policy`, or the policy of :attr:`device` with these options' flags."""
+        return self.policy or inference_policy(self.device, fp32=self.fp32, compile=self.compile,
+                                               compile_mode=self.compile_mode, bf16_residual=self.bf16_residual)
 
 
 def resolve_prior(trained: PriorConfig, depth: str | None, depth_checkpoint: str | None, *, photos: bool,
@@ -186,7 +198,7 @@ class InferenceSession:
             pixel_center=trained.pixel_center if options.pixel_center is None else options.pixel_center,
             render=trained.render if guided is None else dataclasses.replace(trained.render, guided=guided))
         """The resolved spec (module docstring); ``pretrained.spec`` is the checkpoint's own."""
-        self.policy = options.policy or inference_policy(self.device, fp32=options.fp32, compile=options.compile)
+        self.policy = options.policy or options.device_policy()
         self.chunk = options.chunk or self.policy.ray_chunk
         self.runtime = field_runtime(self.model, self.policy)
         self.prior_source = self._open_prior(options)

@@ -93,10 +93,11 @@ class ResidualBlock(nn.Module):
 
     def forward_(self, x: Float[Tensor, "N D"]) -> Float[Tensor, "N D"]:
         """Inference only (no autograd): same result, updates ``x`` in place with fewer memory passes. Under
-        bf16 autocast the linears run in bf16 while the residual stream ``x`` stays fp32."""
+        bf16 autocast the linears run in bf16 and the residual stream ``x`` keeps its own dtype (fp32, or bf16
+        with ``residual_dtype``, :meth:`ResidualField.forward`)."""
         h = F.linear(x.clamp_min(0.0), self.fc_0.weight, self.fc_0.bias).relu_()
-        if h.dtype == x.dtype:
-            return x.addmm_(h, self.fc_1.weight.t()).add_(self.fc_1.bias)
+        if h.dtype == x.dtype:  # fp32 throughout, or a bf16 stream under bf16 autocast (addmm_ is not autocast)
+            return x.addmm_(h, self.fc_1.weight.t().to(x.dtype)).add_(self.fc_1.bias)
         return x.add_(F.linear(h, self.fc_1.weight)).add_(self.fc_1.bias)
 
 
@@ -139,18 +140,26 @@ class ResidualField(nn.Module):
         return torch.cat([enc, dirs], dim=-1) if self.cfg.use_viewdirs else enc
 
     def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"], *,
-                projected: bool, mirror: MirrorQuery | None = None) -> Float[Tensor, "B N 4"]:
+                projected: bool, mirror: MirrorQuery | None = None,
+                residual_dtype: torch.dtype | None = None) -> Float[Tensor, "B N 4"]:
         """Raw outputs (rgb logits, sigma pre-activation). ``latent`` is either the sampled features
         (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z); ``mirror``
-        (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike."""
+        (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike.
+
+        ``residual_dtype``: without autograd, the dtype the residual stream ``x`` is kept in (None: the inputs'
+        dtype, fp32). ``torch.bfloat16`` under bf16 autocast halves the stream's memory traffic, at the cost of
+        rounding the stream to 8 mantissa bits after every addition (docs/speed.md). With autograd it must be
+        None: training keeps the fp32 stream."""
         b, v, n, _ = inputs.shape
         d = self.cfg.d_hidden
         x = self.lin_in(inputs.reshape(b * v * n, -1))
         z = latent.reshape(b * v * n, -1)
         z_parts = z.split(d, dim=1) if projected else None  # split's backward is one cat, not zero-fill + add
         inplace = not torch.is_grad_enabled()
+        if residual_dtype is not None and not inplace:
+            raise ValueError("residual_dtype is an inference setting: training keeps the fp32 residual stream")
         if inplace:
-            x = x.to(inputs.dtype)  # the residual stream stays fp32 under autocast
+            x = x.to(residual_dtype or inputs.dtype)  # under autocast the stream stays fp32 unless residual_dtype
         zm, zm_parts, gate = None, None, None
         if mirror is not None:
             if not self.mirror:

@@ -97,6 +97,9 @@ class FieldRuntime:
     """Without autograd, queries run under ``torch.autocast(device, this dtype)`` (None: as called)."""
     chunk_points: int | None = None
     """Without autograd, points per MLP call (None: the field config's ``chunk_points``)."""
+    residual: torch.dtype | None = None
+    """Without autograd, the dtype of the MLPs' residual stream (None: fp32; ``torch.bfloat16`` with bf16
+    ``autocast``: :meth:`ResidualField.forward`'s ``residual_dtype``)."""
     forwards: Mapping[str, Callable[..., Tensor]] = field(default_factory=dict)
     """What runs in place of a pass's MLP forward, by pass (``"coarse"``, ``"fine"``): e.g. a ``torch.compile``
     wrapper of it, held here by the caller (the module is not changed); a pass not listed calls its MLP."""
@@ -209,7 +212,7 @@ class PixelNeRF(nn.Module):
                 return inputs
             return torch.cat([inputs, sample_projected(point_map, uv, enc.image_size).to(inputs.dtype)], dim=-1)
 
-        def run(points: Tensor, dirs: Tensor) -> Tensor:
+        def run(points: Tensor, dirs: Tensor, grad: bool) -> Tensor:
             rotated, cam = to_source_frames(points, enc.w2c)
             coords = rotated if mlp.cfg.point_frame == "rotated" else cam
             dirs_src = rotate_dirs(dirs, enc.w2c) if mlp.cfg.use_viewdirs else None
@@ -226,7 +229,7 @@ class PixelNeRF(nn.Module):
                 mirror = MirrorQuery(inputs=inputs_m, latent=sample_projected(maps_m, uv_m, enc.image_size),
                                      gate=gate)
             return forward(with_pixels(mlp.inputs(coords, dirs_src), uv), latent, projected=mlp.cfg.lin_z_on_map,
-                           mirror=mirror)
+                           mirror=mirror, residual_dtype=None if grad else runtime.residual)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]
                      ) -> tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]:
@@ -241,9 +244,9 @@ class PixelNeRF(nn.Module):
                    else contextlib.nullcontext())
             with amp:
                 if grad or r * s <= chunk:
-                    raw = run(pts, dirs_pp)
+                    raw = run(pts, dirs_pp, grad)
                 else:
-                    raw = torch.cat([run(pts[:, i:i + chunk], dirs_pp[:, i:i + chunk])
+                    raw = torch.cat([run(pts[:, i:i + chunk], dirs_pp[:, i:i + chunk], grad)
                                      for i in range(0, r * s, chunk)], dim=1)
             raw = raw.to(points.dtype)  # under bf16 autocast the MLP runs in bf16; the renderer gets fp32
             return torch.sigmoid(raw[..., :3]).reshape(b, r, s, 3), F.relu(raw[..., 3]).reshape(b, r, s)

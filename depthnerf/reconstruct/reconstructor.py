@@ -150,7 +150,8 @@ class Reconstructor:
         """Load a shipped name, weights file, checkpoint folder or run folder (``load_pretrained``) into a session
         on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
         checkpoint's prior, ``options`` are further :class:`~depthnerf.infer.session.SessionOptions` (``fp32``,
-        ``compile``, ``chunk``, ``guided``, ``pixel_center``, ``policy``, ``inputs``)."""
+        ``compile``, ``compile_mode``, ``bf16_residual``, ``chunk``, ``guided``, ``pixel_center``, ``policy``,
+        ``inputs``)."""
         return cls(InferenceSession(checkpoint, SessionOptions(device=device, depth=depth_estimator,
                                                                depth_checkpoint=depth_checkpoint, **options)))
 

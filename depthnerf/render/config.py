@@ -9,6 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+"""``torch.compile`` modes of the field MLPs at inference (``--compile-mode``; inductor's own names):
+:func:`depthnerf.render.precision.field_runtime` compiles with the one a policy names."""
 
 @dataclass
 class SamplerConfig:

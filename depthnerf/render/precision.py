@@ -10,7 +10,12 @@ rays per pass      4096 (``CPU_RAY_CHUNK``)    65536 (``CUDA_RAY_CHUNK``): 4 vie
 field points       the config's chunk_points   1,048,576 per chunk (``CUDA_POINT_CHUNK``; bounds memory at
                    (4096)                      about 8 KB per point for the paper's d_hidden 512)
 torch.compile      off                         off; ``--compile`` compiles the field MLPs (opt-in; one
-                                               H100: 221 -> 145 ms per paper-sampler view, docs/speed.md)
+                                               H100: 230 -> 91 ms per paper-sampler view, docs/speed.md);
+                                               ``--compile-mode`` picks inductor's mode (e.g.
+                                               ``max-autotune-no-cudagraphs``: Triton matrix products with
+                                               the element-wise work fused into them)
+residual stream    fp32                        fp32; ``--bf16-residual`` keeps the MLPs' residual stream in
+                                               bf16 (opt-in: half its memory traffic, rounded to bf16)
 =================  ==========================  ============================================================
 
 The CUDA values are sized from memory arithmetic; their speed on one H100 is in docs/speed.md ("GPU"), with the
@@ -18,7 +23,7 @@ profile that shows what bounds a view (the feature gather and the fields' elemen
 The policy is an argument, never state on the model: every inference path (``depthnerf eval``, ``depthnerf
 reconstruct``, the Python API ``Reconstructor``, the demo and the app) gets it from its
 :class:`~depthnerf.infer.session.InferenceSession`, which builds it once with :func:`inference_policy` for its
-device (``--fp32`` / ``--compile``), turns it once into the :class:`~depthnerf.model.pixelnerf.FieldRuntime` its
+device (``--fp32`` / ``--compile`` / ``--compile-mode`` / ``--bf16-residual``), turns it once into the :class:`~depthnerf.model.pixelnerf.FieldRuntime` its
 field calls take (:func:`field_runtime`: the compiled MLP forwards are wrappers that it holds) and renders
 ``ray_chunk`` rays per pass unless ``--chunk`` says otherwise.
 """
@@ -29,7 +34,9 @@ from dataclasses import dataclass
 
 import torch
 
+from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import FieldRuntime, PixelNeRF
+from depthnerf.render.config import COMPILE_MODES
 
 CPU_RAY_CHUNK = 4096
 """Rays per render pass on the CPU (the value every CPU figure in docs/speed.md was measured with)."""
@@ -51,26 +58,52 @@ class InferencePolicy:
     """Field points per chunk (None = the field config's ``chunk_points``)."""
     compile: bool
     """Field MLPs run through ``torch.compile`` wrappers."""
+    compile_mode: str = "default"
+    """The wrappers' ``torch.compile`` mode (:data:`COMPILE_MODES`)."""
+    residual: torch.dtype | None = None
+    """Dtype of the MLPs' residual stream (None: fp32; :attr:`FieldRuntime.residual`)."""
 
 
-def inference_policy(device: torch.device | str, *, fp32: bool = False, compile: bool = False) -> InferencePolicy:
-    """The policy for ``device`` (see the module table)."""
+def check_precision_flags(device: torch.device | str, *, fp32: bool = False, compile_mode: str | None = None,
+                          bf16_residual: bool = False) -> None:
+    """One line naming the flag when a combination cannot run on ``device`` (``--compile-mode`` not one of
+    :data:`COMPILE_MODES`; ``--bf16-residual`` without bf16 autocast: on the CPU or with ``--fp32``)."""
+    if compile_mode is not None and compile_mode not in COMPILE_MODES:
+        raise DepthnerfError(f"--compile-mode must be one of {', '.join(COMPILE_MODES)}, got {compile_mode!r}")
+    if bf16_residual and torch.device(device).type != "cuda":
+        raise DepthnerfError(f"--bf16-residual is a CUDA setting (bf16 autocast); on {torch.device(device).type} "
+                             "the fields render in fp32")
+    if bf16_residual and fp32:
+        raise DepthnerfError("--bf16-residual keeps the residual stream in bf16 under bf16 autocast; "
+                             "--fp32 turns autocast off: pass one of them")
+
+
+def inference_policy(device: torch.device | str, *, fp32: bool = False, compile: bool = False,
+                     compile_mode: str | None = None, bf16_residual: bool = False) -> InferencePolicy:
+    """The policy for ``device`` (see the module table). ``compile_mode`` implies ``compile``; the flags are
+    checked by :func:`check_precision_flags`."""
+    check_precision_flags(device, fp32=fp32, compile_mode=compile_mode, bf16_residual=bf16_residual)
+    compile = compile or compile_mode is not None
+    mode = compile_mode or "default"
     if torch.device(device).type == "cuda":
         return InferencePolicy(autocast=None if fp32 else torch.bfloat16, ray_chunk=CUDA_RAY_CHUNK,
-                               point_chunk=CUDA_POINT_CHUNK, compile=compile)
-    return InferencePolicy(autocast=None, ray_chunk=CPU_RAY_CHUNK, point_chunk=None, compile=compile)
+                               point_chunk=CUDA_POINT_CHUNK, compile=compile, compile_mode=mode,
+                               residual=torch.bfloat16 if bf16_residual else None)
+    return InferencePolicy(autocast=None, ray_chunk=CPU_RAY_CHUNK, point_chunk=None, compile=compile,
+                           compile_mode=mode)
 
 
 def field_runtime(model: PixelNeRF, policy: InferencePolicy | None) -> FieldRuntime:
     """What ``model.field`` takes to render under ``policy`` (None: the default runtime, as the model is): its
-    autocast dtype and point chunk and, with ``policy.compile``, ``torch.compile`` wrappers of the MLPs' forwards,
+    autocast dtype, point chunk and residual dtype and, with ``policy.compile``, ``torch.compile`` wrappers of the MLPs' forwards,
     held by the returned runtime (the modules are not changed). Build it once per model and keep it: each
     wrapper compiles on its first calls."""
     if policy is None:
         return FieldRuntime()
     forwards = {}
     if policy.compile:
-        compiled = {id(mlp): torch.compile(mlp.forward, dynamic=True)
+        compiled = {id(mlp): torch.compile(mlp.forward, dynamic=True, mode=policy.compile_mode)
                     for mlp in (model.coarse, model.fine) if mlp is not None}
         forwards = {which: compiled[id(model.network(which))] for which in ("coarse", "fine")}
-    return FieldRuntime(autocast=policy.autocast, chunk_points=policy.point_chunk, forwards=forwards)
+    return FieldRuntime(autocast=policy.autocast, chunk_points=policy.point_chunk, residual=policy.residual,
+                        forwards=forwards)
