@@ -101,7 +101,12 @@ def apply_overrides(cfg: T, pairs: list[str]) -> T:
             value, i = pairs[i + 1], i + 2
         items.append((key[2:].replace("-", "_"), value))
     for path, value in items:
-        cfg = _set_path(cfg, path.split("."), value, path)
+        try:
+            cfg = _set_path(cfg, path.split("."), value, path)
+        except DepthnerfError as err:  # a config's own check (``__post_init__``): name the flag that broke it
+            if str(err).startswith(f"--{path}"):
+                raise
+            raise DepthnerfError(f"--{path} {value}: {err}") from None
     return cfg
 
 

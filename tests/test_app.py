@@ -67,7 +67,8 @@ def bad_inputs(tmp: Path) -> dict[str, tuple[Path | None, str]]:
         "1x1": (_write(tmp / "dot.png", Image.new("RGB", (1, 1), (9, 9, 9))),
                 "error: dot.png: image is 1x1 px; at least 16 px per side are needed"),
         "no foreground": (_write(tmp / "blank.png", Image.new("RGB", (64, 48), (250, 250, 250))),
-                          "error: blank.png: no object found (the mask is empty)"),
+                          "error: blank.png: no object found (every pixel has the border's colour); upload an RGBA "
+                          "cut-out"),
         "cluttered": (_write(tmp / "scene.jpg", Image.fromarray(noise), quality=95),
                       "error: scene.jpg: the background is not a plain colour"),
         "gif": (_write(tmp / "anim.gif", car), "error: anim.gif: GIF images are not supported; use a PNG, JPEG or WebP photo"),

@@ -113,6 +113,61 @@ def test_precision_flags_the_device_cannot_run_are_refused_before_loading(tmp_pa
     assert "argument --compile-mode: invalid choice: 'fast'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("flag, value, line", [
+    ("--focal", "0", "--focal must be > 0, got 0.0"), ("--radius", "0", "--radius must be > 0, got 0.0"),
+    ("--radius", "nan", "--radius must be > 0, got nan"),
+    ("--elevation", "90", "--elevation must be within [-89, 89] degrees, got 90.0")])
+def test_camera_flags_are_named_and_zero_is_not_the_default(tmp_path, capsys, flag, value, line):
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "o", flag, value, *QUICK) == 2
+    assert one_error(capsys) == f"error: {line}"
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused(tmp_path, capsys):
+    """A damaged file (or a diverged run) would render black images: refused at load, naming the tensor."""
+    from safetensors import safe_open
+    from safetensors.torch import load_file, save_file
+
+    from depthnerf.pretrained.load import load_pretrained
+
+    src = load_pretrained("cpu-cars-depth").path
+    with safe_open(str(src), framework="pt") as f:
+        meta = f.metadata()
+    tensors = load_file(str(src))
+    floats = sorted(k for k, t in tensors.items() if t.is_floating_point())
+    name = floats[len(floats) // 2]
+    tensors[name].view(-1)[:3] = float("nan")
+    bad = tmp_path / "bad.safetensors"
+    save_file(tensors, str(bad), metadata=meta)
+    assert reconstruct(CAR, "--checkpoint", bad, "--out", tmp_path / "o", *QUICK) == 2
+    assert one_error(capsys) == (f"error: {bad}: tensor {name} holds 3 non-finite values (NaN or inf): the file is "
+                                 "damaged, or the run that wrote it diverged")
+
+
+def test_resume_into_a_folder_without_a_run_says_so_when_the_data_is_missing(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # the preset's default data root does not exist here
+    assert main(["train", "--out", str(tmp_path / "runs" / "typo"), "--resume", "--device", "cpu"]) == 2
+    err = one_error(capsys)
+    assert err.endswith(f"(--resume found no checkpoint in {tmp_path / 'runs' / 'typo'}, so a new run would start "
+                        "there: check --out)"), err
+
+
+def test_guided_before_the_image_says_how_to_write_it(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["reconstruct", "--checkpoint", "cpu-cars-depth", "--out", str(tmp_path / "o"), "--guided", str(CAR)])
+    assert (f"argument --guided: expected a sample budget (an integer), got '{CAR}'; for the default budget put "
+            "--guided after the image, or write --guided 48") in capsys.readouterr().err
+
+
+def test_facing_on_a_model_without_the_mirror_branch_is_a_note(tmp_path, capsys):
+    for facing, noted in ((["--facing", "0"], True), ([], False)):
+        out = tmp_path / f"o{len(facing)}"
+        assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--mesh-resolution", "0",
+                           *facing, *QUICK) == 0
+        err = capsys.readouterr().err
+        assert ("note: --facing has no effect: cpu-cars-depth has no mirror-symmetric conditioning" in err) == noted
+
+
 def test_a_baseline_checkpoint_refuses_a_depth_prior(tmp_path, capsys):
     assert reconstruct(CAR, "--checkpoint", "cpu-cars-baseline", "--depth", "bundled", "--out", tmp_path / "o") == 2
     assert one_error(capsys) == ("error: cpu-cars-baseline: a baseline checkpoint (trained without a depth prior) "
@@ -138,6 +193,7 @@ def test_the_cli_and_the_app_refuse_the_same_formats(tmp_path, capsys):
     (["--checkpoint-every", "0"], "--checkpoint-every must be >= 1, got 0"),
     (["--schedule.lr", "-1"], "--schedule.lr must be > 0, got -1.0"),
     (["--schedule.rays_per_object", "0"], "--schedule.rays_per_object must be >= 1, got 0"),
+    (["--model.coarse.d_hidden", "-4"], "--model.coarse.d_hidden -4: model config: field.d_hidden must be >= 1, got -4"),
 ])
 def test_train_numbers_are_checked_before_the_run_folder_exists(tmp_path, capsys, flags, line):
     assert main(["train", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "run"), *flags]) == 2
@@ -190,6 +246,14 @@ def test_inspect_names_a_file_given_for_the_data_folder(tmp_path, capsys):
 def test_synth_names_only_the_offending_flag(tmp_path, capsys, flag, value, least):
     assert main(["synth", "--category", "cars", "--out", str(tmp_path / "d"), flag, value]) == 2
     assert one_error(capsys) == f"error: synth: {flag} must be >= {least} (got {value})"
+
+
+def test_synth_with_no_objects_at_all_is_refused(tmp_path, capsys):
+    assert main(["synth", "--category", "cars", "--out", str(tmp_path / "d"), "--train-objects", "0",
+                 "--val-objects", "0", "--test-objects", "0"]) == 2
+    assert one_error(capsys) == ("error: synth: --train-objects, --val-objects and --test-objects are all 0: nothing "
+                                 "to make")
+    assert not (tmp_path / "d").exists()
 
 
 def test_a_busy_port_is_refused_before_anything_is_served(capsys):

@@ -146,3 +146,19 @@ def test_source_frame_geometry_stays_fp32_under_autocast():
     for a, b in zip(out, ref, strict=True):
         assert a.dtype == torch.float32 and torch.equal(a, b)
     assert torch.equal(g_out, g_ref)
+
+
+@torch.no_grad()
+def test_a_compiled_field_keeps_the_bf16_residual_stream():
+    """``--compile`` with ``--bf16-residual``: the MLP forward traced by dynamo (backend ``aot_eager``: the graph
+    without inductor's code generation, seconds on the CPU) gives the eager bf16-stream field's values."""
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
+    enc = model.encode(sources())
+    pts, dirs = query(r=9, s=5)
+    eager = FieldRuntime(autocast=torch.bfloat16, residual=torch.bfloat16)
+    forwards = {w: torch.compile(model.network(w).forward, dynamic=True, backend="aot_eager")
+                for w in ("coarse", "fine")}
+    compiled = dataclasses.replace(eager, forwards=forwards)
+    for a, b in zip(model.field(enc, "fine", compiled)(pts, dirs), model.field(enc, "fine", eager)(pts, dirs),
+                    strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)

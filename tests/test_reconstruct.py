@@ -128,6 +128,15 @@ def test_bad_photos(tmp_path):
         assert "\n" not in str(info.value)
     with pytest.raises(DepthnerfError, match="mask is 10x10 but the image is 40x40"):
         prepare_photo(disc_photo(40, 40, (20, 20), 8), np.ones((10, 10), np.uint8), 32)
+    with pytest.raises(DepthnerfError, match="^image must be a file path, a PIL image or a numpy array, got int$"):
+        prepare_photo(5, None, 32)
+    # an empty mask is named as the mask's fault, a transparent cut-out as the alpha channel's
+    with pytest.raises(DepthnerfError, match=r"^mask: the mask marks no object \(no pixel above 127 of 255\)$"):
+        prepare_photo(disc_photo(40, 40, (20, 20), 8), np.zeros((40, 40), np.uint8), 32)
+    clear = np.zeros((40, 40, 4), np.uint8)
+    clear[..., :3] = 200
+    with pytest.raises(DepthnerfError, match=r"no object found \(the alpha channel is transparent everywhere\)$"):
+        prepare_photo(clear, None, 32)
 
 
 def test_huge_image_is_downscaled_first():

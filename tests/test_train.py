@@ -350,6 +350,8 @@ def test_resume_says_what_it_did_and_refuses_contradicting_flags(data, tmp_path,
     assert other.returncode == 2 and "schedule.lr" in other.stderr
     resumed = cli(*base, "--data", str(data), "--out", str(run), "--max-steps", "3", "--resume")
     assert f"resumed from step 2 ({run / 'checkpoints' / 'step_00000002'})" in resumed.stderr
+    same = cli("train", "--out", str(run), "--resume", "--max-steps", "2")  # below the run's step: said, not silent
+    assert "nothing to train: the run is at step 3, --max-steps is 2 (pass a larger --max-steps" in same.stderr
 
 
 def test_relative_data_run_resumes_from_another_directory(data, tmp_path):

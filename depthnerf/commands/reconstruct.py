@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 from depthnerf.commands.evaluate import add_precision_flags, guided_request, resolve_device
@@ -43,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--framing", choices=["auto", "keep"], default="auto",
                    help="auto: crop around the object to the training fill; keep: only pad to square")
     p.add_argument("--fill", type=float, help="object's longer side / frame side with --framing auto")
-    p.add_argument("--facing", type=_facing, default=90.0, metavar="DEG|none",
+    p.add_argument("--facing", type=_facing, default=argparse.SUPPRESS, metavar="DEG|none",
                    help="mirror models: which way the object's front points, degrees from the camera towards the "
                         "image's right (0 = facing the camera, 90 = facing right, 270 = left; default 90, a side "
                         "view); none = no symmetry plane")
@@ -61,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
                         "--depth-estimator: same)")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
-    p.add_argument("--guided", type=int, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
+    p.add_argument("--guided", type=_budget, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
                    help="render with depth-guided sampling, BUDGET samples per occupied ray "
                         f"(default {DEFAULT_BUDGET})")
     p.add_argument("--guided-align-samples", type=int, default=32,
@@ -70,6 +71,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
     add_precision_flags(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _budget(text: str) -> int:
+    """``--guided``'s optional sample budget; a word that is not a number is most likely the image path."""
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a sample budget (an integer), got {text!r}; for the default budget put --guided after the "
+            f"image, or write --guided {DEFAULT_BUDGET}") from None
 
 
 def _facing(text: str) -> float | None:
@@ -89,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.reconstruct.background import choose_remover
     from depthnerf.reconstruct.exports import check_output_dir
-    from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+    from depthnerf.reconstruct.reconstructor import DEFAULT_FACING, ReconstructConfig, Reconstructor
     from depthnerf.render.mesh_level import parse_level
 
     # every flag and the output folder are checked before the model is loaded or anything rendered
@@ -98,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
                             mesh_keep=args.mesh_keep,
                             progress=not args.no_progress, background_removal=args.background_removal,
-                            background_model=args.background_model, facing=args.facing)
+                            background_model=args.background_model,
+                            facing=getattr(args, "facing", DEFAULT_FACING))
     options = SessionOptions(device=resolve_device(args.device), depth=args.depth,
                              depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
                              compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,
@@ -113,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: {note}")
     if rec.session.model.cfg.mirror:
         print(f"note: symmetry {result.settings['symmetry']}")
+    elif hasattr(args, "facing"):
+        print(f"note: --facing has no effect: {args.checkpoint} has no mirror-symmetric conditioning", file=sys.stderr)
     mesh = manifest["mesh"]
     made = (f"mesh ({mesh['faces']} faces{', empty' if mesh['empty'] else ''})" if mesh["made"]
             else "no mesh (--mesh-resolution 0)")

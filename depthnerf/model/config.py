@@ -59,7 +59,8 @@ class EncoderConfig:
         if not self.image_scale > 0:
             raise DepthnerfError(f"model config: encoder.image_scale must be > 0, got {self.image_scale}")
         if self.depth_channels < 1 or self.depth_hidden < 1:
-            raise DepthnerfError("model config: encoder.depth_channels and depth_hidden must be >= 1")
+            raise DepthnerfError(f"model config: encoder.depth_channels and depth_hidden must be >= 1, got "
+                                 f"{self.depth_channels} and {self.depth_hidden}")
 
     @property
     def trunk_channels(self) -> int:
@@ -112,8 +113,10 @@ class FieldConfig:
     and keep activations cache-resident; with autograd everything is one batch."""
 
     def __post_init__(self) -> None:
-        if self.d_hidden < 1 or self.n_blocks < 1 or self.num_freqs < 0 or self.chunk_points < 1:
-            raise DepthnerfError("model config: field d_hidden, n_blocks, chunk_points must be >= 1, num_freqs >= 0")
+        for name, least in (("d_hidden", 1), ("n_blocks", 1), ("chunk_points", 1), ("num_freqs", 0)):
+            if getattr(self, name) < least:
+                raise DepthnerfError(f"model config: field.{name} must be >= {least}, "
+                                     f"got {getattr(self, name)}")
         if not 0 <= self.combine_layer <= self.n_blocks:
             raise DepthnerfError(f"model config: field.combine_layer must be in 0..n_blocks={self.n_blocks}, "
                                  f"got {self.combine_layer}")

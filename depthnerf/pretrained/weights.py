@@ -32,7 +32,8 @@ def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], st
 
 
 def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
-    """Load a weights file written by :func:`save_weights`: ``(tensors, metadata)``; errors name the file."""
+    """Load a weights file written by :func:`save_weights`: ``(tensors, metadata)``; errors name the file (also
+    for NaN or inf values, which a damaged file or a diverged run leaves and which would render black images)."""
     path = Path(path)
     if not path.is_file():
         raise DepthnerfError(f"{path}: checkpoint weights file not found")
@@ -46,6 +47,11 @@ def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
         raise DepthnerfError(f"{path}: not a readable safetensors checkpoint ({err})") from None
     if meta.get("format") != FORMAT:
         raise DepthnerfError(f"{path}: not a depthnerf checkpoint (format {meta.get('format')!r}, expected {FORMAT})")
+    for name, tensor in tensors.items():
+        bad = int((~torch.isfinite(tensor)).sum()) if tensor.is_floating_point() else 0
+        if bad:
+            raise DepthnerfError(f"{path}: tensor {name} holds {bad} non-finite values (NaN or inf): the file is "
+                                 "damaged, or the run that wrote it diverged")
     return tensors, meta
 
 

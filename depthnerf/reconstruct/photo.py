@@ -121,6 +121,8 @@ def _open(source: str | Path | Image.Image, name: str) -> Image.Image:
 def read_photo(source: ImageLike, notes: list[str]) -> tuple[np.ndarray, np.ndarray | None, tuple[int, int]]:
     """``(rgb [H, W, 3], alpha [H, W] or None, (H, W) as read)`` in [0, 1], grayscale replicated, images
     larger than :data:`MAX_SIDE` downscaled (see the module docstring); ``notes`` collects what was done."""
+    if not isinstance(source, str | Path | np.ndarray | Image.Image):
+        raise DepthnerfError(f"image must be a file path, a PIL image or a numpy array, got {type(source).__name__}")
     name = str(source) if isinstance(source, str | Path) else "image"
     im = None if isinstance(source, np.ndarray) else _open(source, name)
     if im is None:
@@ -194,7 +196,11 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
                      f"more than {BACKGROUND_TOLERANCE}")
         check_plain_background(out, ring, name, hint)
     if not out.any():
-        raise DepthnerfError(f"{name}: no object found (the mask is empty); pass a mask (--mask)")
+        if mask is not None:
+            raise DepthnerfError(f"{where}: the mask marks no object (no pixel above 127 of 255)")
+        if alpha is not None:
+            raise DepthnerfError(f"{name}: no object found (the alpha channel is transparent everywhere)")
+        raise DepthnerfError(f"{name}: no object found (every pixel has the border's colour); pass a mask (--mask)")
     return out
 
 

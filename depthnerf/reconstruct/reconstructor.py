@@ -124,6 +124,11 @@ class ReconstructConfig:
         if self.mesh_resolution != 0 and self.mesh_resolution < 2:
             raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
         check_mesh_keep(self.mesh_keep)
+        for name, value in (("radius", self.radius), ("focal", self.focal)):
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise DepthnerfError(f"--{name} must be > 0, got {value}")
+        if not (math.isfinite(self.elevation) and -89.0 <= self.elevation <= 89.0):
+            raise DepthnerfError(f"--elevation must be within [-89, 89] degrees, got {self.elevation}")
         if self.fill is not None and not 0 < self.fill <= 1:
             raise DepthnerfError(f"--fill must be in (0, 1], got {self.fill}")
         if self.facing is not None and not math.isfinite(self.facing):
@@ -200,7 +205,9 @@ class Reconstructor:
             radius, focal, image_size = cfg.radius, cfg.focal, RELEASE_SIZE
         else:
             cat = category_defaults(spec.category)  # unknown category: an error asking for both
-            radius, focal, image_size = cfg.radius or cat.camera_radius, cfg.focal or cat.focal, cat.image_size
+            radius = cfg.radius if cfg.radius is not None else cat.camera_radius
+            focal = cfg.focal if cfg.focal is not None else cat.focal
+            image_size = cat.image_size
         fill = cfg.fill if cfg.fill is not None else self.default_fill
         if background is None:
             background = self.background_remover(cfg.background_removal, cfg.background_model)

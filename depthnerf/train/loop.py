@@ -111,7 +111,13 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         raise DepthnerfError(f"{run_dir}: already holds a run (last checkpoint {latest.name}); pass --resume to "
                              "continue it or choose another --out")
     root, cat = Path(cfg.data.root), cfg.data.category
-    records = index_split(root, cat, "train").objects
+    try:
+        records = index_split(root, cat, "train").objects
+    except DepthnerfError as err:
+        if resume and latest is None:  # most likely a mistyped --out: say so, not only what the data lacks
+            raise DepthnerfError(f"{err} (--resume found no checkpoint in {run_dir}, so a new run would start "
+                                 "there: check --out)") from None
+        raise
     trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
     cfg = dataclasses.replace(cfg, prior=portable_prior(cfg.prior, trained_hash))
     prior_source = open_prior(cfg.prior, data_root=root, resolution=cfg.data.resolution, records=records)
@@ -153,6 +159,9 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
         print(f"resumed from step {start} ({latest})" if latest is not None else
               f"started a new run in {run_dir} ({'no checkpoint found' if resume else 'new folder'})",
               file=sys.stderr, flush=True)
+        if start >= cfg.schedule.max_steps:
+            print(f"nothing to train: the run is at step {start}, --max-steps is {cfg.schedule.max_steps} (pass a "
+                  "larger --max-steps to continue it)", file=sys.stderr, flush=True)
     if info.is_main:
         run_dir.mkdir(parents=True, exist_ok=True)
         _write_run_files(run_dir, cfg, prior_source, len(records), card)

@@ -319,6 +319,8 @@ def generate(config: SynthConfig) -> dict:
     for name, n in config.counts().items():
         if n < 0:
             raise DepthnerfError(f"synth: --{name}-objects must be >= 0 (got {n})")
+    if not any(config.counts().values()):
+        raise DepthnerfError("synth: --train-objects, --val-objects and --test-objects are all 0: nothing to make")
     for flag, value, least in (("--resolution", config.resolution, 8), ("--views-train", config.views_train, 1),
                                ("--views-test", config.views_test, 1), ("--workers", config.workers, 1)):
         if value < least:
