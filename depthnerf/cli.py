@@ -2,7 +2,8 @@
 
 Each subcommand lives in ``depthnerf/commands/<module>.py`` and exposes ``add_arguments(parser)`` and
 ``run(args) -> int``; modules are imported lazily so ``depthnerf --help`` stays fast. A
-:class:`~depthnerf.errors.DepthnerfError` becomes one line ``error: ...`` on stderr and exit status 2.
+:class:`~depthnerf.errors.DepthnerfError` becomes one line ``error: ...`` on stderr and exit status 2, and so
+does a flag the parser refuses (:class:`OneLineParser`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,14 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line like every other error of the package (``error: PROG:
+    message``, exit status 2), pointing to ``--help`` instead of printing the usage block."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {self.prog}: {message} ({self.prog} --help lists its options)\n")
+
+
 def _command_module(name: str):
     module, _ = SUBCOMMANDS[name]
     return importlib.import_module(f"depthnerf.commands.{module}")
@@ -38,7 +47,7 @@ def _command_module(name: str):
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     """The top-level parser; only the selected subcommand's module is imported."""
-    parser = argparse.ArgumentParser(prog="depthnerf", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="depthnerf", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"depthnerf {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     chosen = next((a for a in argv if not a.startswith("-")), None)
@@ -46,7 +55,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == chosen:
             _command_module(name).add_arguments(p)
-            p.set_defaults(subcommand_parser=p)  # its usage line goes with an error about its arguments
+            p.set_defaults(subcommand_parser=p)  # an error about its arguments names it
     return parser
 
 
