@@ -8,6 +8,9 @@ the ``--baseline`` on the objects both scored in that bin: mean difference, 95% 
 
     python scripts/angle_bins.py --baseline study/eval/cars-bundled --method study/eval/cars-bundled-sym \
         [--bins 0 45 90 135 180] [--json OUT.json]
+
+A folder whose ``renders.csv`` is not the one its ``summary.json`` was written with (an earlier evaluation's, left
+behind) is refused; so is a missing folder or file: one ``error:`` line, exit status 2.
 """
 
 from __future__ import annotations
@@ -23,26 +26,77 @@ from pathlib import Path
 import numpy as np
 from paired_difference import t_interval
 
-from depthnerf.data.srn import index_split
+from depthnerf.data.protocol import protocol_views
+from depthnerf.data.srn import ObjectRecord, index_split
 from depthnerf.data.srn_format import read_pose
+from depthnerf.errors import DepthnerfError
 
 METRICS = ("psnr", "ssim")
 
 
 def _read_csv(path: Path) -> list[dict[str, str]]:
     if not path.is_file():
-        raise SystemExit(f"error: {path}: missing (run depthnerf eval with --save-renders)")
+        raise DepthnerfError(f"{path}: missing (run depthnerf eval with --save-renders --out {path.parent})")
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
 
 
+def read_summary(folder: Path) -> dict:
+    """``folder/summary.json`` (a one-line error when the folder or the file is missing or unreadable)."""
+    path = folder / "summary.json"
+    if not folder.is_dir():
+        raise DepthnerfError(f"{folder}: no such eval folder (run depthnerf eval --save-renders --out {folder})")
+    if not path.is_file():
+        raise DepthnerfError(f"{path}: missing (run depthnerf eval --save-renders --out {folder})")
+    try:
+        summary = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise DepthnerfError(f"{path}: unreadable ({err})") from None
+    if not isinstance(summary, dict) or not isinstance(summary.get("data_card"), dict):
+        raise DepthnerfError(f"{path}: not an eval summary (no data_card)")
+    return summary
+
+
+def read_renders(folder: Path, summary: dict, records: dict[str, ObjectRecord]) -> list[dict[str, str]]:
+    """The rows of ``folder/renders.csv``, refused (one line) unless they are the views the summary's evaluation
+    scored: the summary names ``renders.csv`` (written with ``--save-renders``), and the file lists exactly the
+    objects of ``per_object.csv`` with each object's protocol targets at the summary's ``views_stride``. A
+    renders.csv an earlier evaluation left behind fails this."""
+    path = folder / "renders.csv"
+    redo = f"re-run depthnerf eval --save-renders --overwrite --out {folder}"
+    if summary.get("renders_csv") != path.name:
+        raise DepthnerfError(f"{path}: not written by the evaluation of {folder / 'summary.json'} (it records no "
+                             f"renders.csv: evaluated without --save-renders); {redo}")
+    stride = summary.get("views_stride", 1)
+    objects = [row["object_id"] for row in _read_csv(folder / "per_object.csv")]
+    rows = _read_csv(path)
+    views: dict[str, list[int]] = defaultdict(list)
+    for row in rows:
+        views[row["object_id"]].append(int(row["view"]))
+    if sorted(views) != sorted(objects):
+        raise DepthnerfError(f"{path}: lists {len(views)} objects, {folder / 'per_object.csv'} {len(objects)} "
+                             f"(other objects): a renders.csv of another evaluation; {redo}")
+    for oid in objects:
+        if oid not in records:
+            raise DepthnerfError(f"{folder / 'summary.json'}: object {oid} is not in the dataset it names "
+                                 f"({summary['data_card'].get('root')})")
+        expected = protocol_views(records[oid].num_views, stride).targets
+        if tuple(sorted(views[oid])) != expected:
+            raise DepthnerfError(f"{path}: object {oid} has views {sorted(views[oid])[:4]}..., not the "
+                                 f"{len(expected)} targets of views_stride {stride} that summary.json records: a "
+                                 f"renders.csv of another evaluation; {redo}")
+    return rows
+
+
 def view_angles(folder: Path) -> dict[tuple[str, int], float]:
     """(object id, view) -> degrees between the view's optical axis and its object's input view's."""
-    summary = json.loads((folder / "summary.json").read_text())
+    summary = read_summary(folder)
     root = Path(summary["data_card"]["root"])
     records = {r.object_id: r for r in index_split(root, summary["category"], summary["split"],
                                                    check_files=False).objects}
     inputs = {row["object_id"]: int(row["input_view"]) for row in _read_csv(folder / "per_object.csv")}
+    rows = read_renders(folder, summary, records)
+
     def axis(oid: str, view: int) -> np.ndarray:
         rec = records[oid]
         z = read_pose(rec.path / "pose" / f"{rec.view_names[view]}.txt")[:3, 2]
@@ -50,7 +104,7 @@ def view_angles(folder: Path) -> dict[tuple[str, int], float]:
 
     input_axes = {oid: axis(oid, view) for oid, view in inputs.items()}
     angles = {}
-    for row in _read_csv(folder / "renders.csv"):
+    for row in rows:
         oid, view = row["object_id"], int(row["view"])
         cos = float(np.dot(input_axes[oid], axis(oid, view)))
         angles[(oid, view)] = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
@@ -95,9 +149,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bins", type=float, nargs="+", default=[0, 45, 90, 135, 180], help="bin edges, degrees")
     ap.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = ap.parse_args(argv)
+    try:
+        return _run(args)
+    except DepthnerfError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
     edges = sorted(args.bins)
     if len(edges) < 2 or edges[0] < 0 or edges[-1] > 180:
-        raise SystemExit("error: --bins needs >= 2 edges within 0..180")
+        raise DepthnerfError("--bins needs >= 2 edges within 0..180")
     angles = view_angles(args.baseline)
     base = binned(args.baseline, edges, angles)
     report = {}

@@ -214,3 +214,43 @@ if __name__ == "__main__":
         print(json.dumps(compare(*map(Path, sys.argv[2:]))))
     else:
         raise SystemExit("usage: gpu_check_parts.py compare RUN_A RUN_B [KILLED_METRICS] | digest")
+
+
+def headline(result: dict) -> str:
+    """The figures a person looks for first, a few lines (the device tool shows the end of the output)."""
+    st = result["stages"]
+    dev = result.get("device", {})
+    lines = [f"device: {dev.get('gpu_name') or 'no GPU'} ({dev.get('nvidia_smi', '-')}), torch {dev.get('torch')}, "
+             f"CUDA {dev.get('torch_cuda')}"]
+    for name, entry in st.items():
+        d = entry.get("details", {})
+        if name == "bench" and "baseline" in d:
+            b, a = d["baseline"], d.get("depth_aware", {})
+            keys = ("train_ms_best", "kernel_launches_per_step", "peak_memory_gib", "view_paper_ms", "view_guided_ms",
+                    "eval_704x250_paper_gpu_hours", "eval_704x250_guided_gpu_hours")
+            lines.append("bench baseline: " + ", ".join(f"{k} {b.get(k)}" for k in keys))
+            if "gather" in d:
+                lines.append("bench gather ms: " + ", ".join(f"{k} {v.get('ms')}" for k, v in d["gather"].items()
+                                                             if isinstance(v, dict)))
+            if "compiled" in d:
+                lines.append("bench --compile: " + ", ".join(f"{k} {d['compiled'].get(k)}"
+                                                            for k in ("compile_warmup_s", *keys)))
+            if "compiled_step" in d:
+                lines.append("bench --compile-step: " + ", ".join(
+                    f"{k} {d['compiled_step'].get(k)}" for k in ("compile_warmup_s", "train_ms_best",
+                                                                "kernel_launches_per_step", "host_launch_calls_per_step",
+                                                                "peak_memory_gib")))
+            for variant, row in d.get("view_variants", {}).get("variants", {}).items():
+                lines.append(f"bench view {variant}: " + (row.get("skipped") or ", ".join(
+                    f"{k} {row.get(k)}" for k in ("ms_per_view", "warmup_s", "psnr_vs_fp32"))))
+            lines.append(f"bench depth-aware: train_ms_best {a.get('train_ms_best')}, "
+                         f"kernel_launches_per_step {a.get('kernel_launches_per_step')}")
+        elif name in ("resume_exact", "same_seed", "fast_kernels") and "identical" in d:
+            lines.append(f"{name}: identical {d['identical']}, steps differing {d['steps_differing']}, "
+                         f"max rel loss diff {d['max_rel_loss_diff']}")
+        elif name == "pytest" and "counts" in d:
+            lines.append(f"pytest: {d['counts']}, not run (budget) {d['not_run_budget']}, not reached "
+                         f"{d['not_reached']}; rerun {len(d['rerun_files'])} files: {' '.join(d['rerun_files'][:8]) or '-'}"
+                         f"{' ...' if len(d['rerun_files']) > 8 else ''}")
+            lines += [f"  FAILED {f['id']}" for f in d["failures"][:15]]
+    return "\n".join(lines)

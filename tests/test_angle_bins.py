@@ -23,7 +23,8 @@ def _load():
 def _eval(folder: Path, root: Path, psnr: dict[tuple[str, int], float]) -> Path:
     folder.mkdir(parents=True)
     (folder / "summary.json").write_text(json.dumps({"data_card": {"root": str(root)}, "category": "cars",
-                                                     "split": "test"}))
+                                                     "split": "test", "views_stride": 1,
+                                                     "renders_csv": "renders.csv"}))
     ids = sorted({oid for oid, _ in psnr})
     with open(folder / "per_object.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["object_id", "input_view"])
@@ -64,3 +65,49 @@ def test_bins_follow_the_camera_angle_and_pair_per_object(tmp_path):
     assert far["wins"] == 2 and far["objects"] == 3 and far["views"] == 3
     assert mod.main(["--baseline", str(b), "--method", str(m), "--json", str(tmp_path / "o.json")]) == 0
     assert json.loads((tmp_path / "o.json").read_text())[str(m)][0]["bin"] == "0-45"
+
+
+def _folders(tmp_path: Path) -> tuple[Path, Path]:
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 2}, views=4, size=8)
+    ids = sorted(p.name for p in (root / "cars_test").iterdir())
+    psnr = {(oid, v): 20.0 + v for oid in ids for v in (1, 2, 3)}
+    return _eval(tmp_path / "base", root, psnr), _eval(tmp_path / "method", root, psnr)
+
+
+def _main_error(mod, capsys, *argv: str) -> str:
+    assert mod.main([str(a) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err
+
+
+def test_missing_folder_or_file_is_one_error_line(tmp_path, capsys):
+    mod = _load()
+    b, m = _folders(tmp_path)
+    err = _main_error(mod, capsys, "--baseline", tmp_path / "missing", "--method", m)
+    assert f"{tmp_path / 'missing'}: no such eval folder" in err
+    (m / "summary.json").unlink()
+    assert f"{m / 'summary.json'}: missing" in _main_error(mod, capsys, "--baseline", b, "--method", m)
+    (b / "per_object.csv").unlink()
+    assert f"{b / 'per_object.csv'}: missing" in _main_error(mod, capsys, "--baseline", b, "--method", b)
+    assert "--bins needs" in _main_error(mod, capsys, "--baseline", b, "--method", b, "--bins", "0", "200")
+
+
+def test_renders_csv_of_another_evaluation_is_refused(tmp_path, capsys):
+    """A renders.csv the summary does not name (evaluated without --save-renders), or whose views are not the
+    summary's views_stride targets, is an earlier evaluation's: refused in one line."""
+    mod = _load()
+    b, m = _folders(tmp_path)
+    assert mod.main(["--baseline", str(b), "--method", str(m)]) == 0
+    capsys.readouterr()
+    summary = json.loads((m / "summary.json").read_text())
+    (m / "summary.json").write_text(json.dumps({**summary, "renders_csv": None}))
+    err = _main_error(mod, capsys, "--baseline", b, "--method", m)
+    assert f"{m / 'renders.csv'}: not written by the evaluation of {m / 'summary.json'}" in err
+    (m / "summary.json").write_text(json.dumps({**summary, "views_stride": 2}))  # targets (1, 3), renders 1, 2, 3
+    err = _main_error(mod, capsys, "--baseline", b, "--method", m)
+    assert "not the 2 targets of views_stride 2" in err and "renders.csv of another evaluation" in err
+    (m / "summary.json").write_text(json.dumps(summary))
+    with open(m / "per_object.csv", "a", newline="") as f:
+        f.write("0123456789abcdef0123456789abcdef,0\n")
+    assert "(other objects)" in _main_error(mod, capsys, "--baseline", b, "--method", m)

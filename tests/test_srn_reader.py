@@ -137,6 +137,22 @@ def test_discover_categories_ignores_other_folders(tmp_path: Path):
         srn.discover_categories(tmp_path / "nope")
 
 
+def test_split_ignores_macos_zip_residue_and_hidden_folders(tmp_path: Path):
+    """``__MACOSX/`` (what macOS's zip leaves beside the archived folders) and hidden folders inside a split folder
+    are not objects; any other folder without intrinsics.txt still is, and is an error."""
+    root = make_srn_fixture(tmp_path, splits={"test": 2})
+    ids = sorted(p.name for p in (root / "cars_test").iterdir())
+    for residue in ("__MACOSX", ".Trash"):
+        obj = root / "cars_test" / residue / ids[0]
+        (obj / "rgb").mkdir(parents=True)
+        (obj / "._intrinsics.txt").write_bytes(b"\x00\x05\x16\x07")  # AppleDouble header, not intrinsics
+    index = srn.index_split(root, "cars", "test")
+    assert [o.object_id for o in index.objects] == ids and not index.skipped
+    (root / "cars_test" / "MACOSX").mkdir()
+    with pytest.raises(DepthnerfError, match=r"MACOSX/intrinsics\.txt"):
+        srn.index_split(root, "cars", "test")
+
+
 def _block_object(tmp_path: Path, size: int = 64) -> srn.ObjectRecord:
     """One white 64x64 view (SRN-style intrinsics) with a black 4x4 block at rows 8-11, columns 20-23."""
     obj = first_object(make_srn_fixture(tmp_path, splits={"train": 1}, views=1, size=size))

@@ -3,7 +3,8 @@
 Each argument is a ``summary.json`` written by ``depthnerf eval``, an eval output directory holding one, or a run
 directory holding ``eval/*/summary.json`` (all of them). Rows are methods (the summaries' ``method``), column
 groups the categories (Chairs PSNR, SSIM, Cars PSNR, SSIM, ...), plus Chamfer-L1 / F-score / LPIPS columns when
-present; see :mod:`depthnerf.eval.table` for the summary contract. ``--reference paper`` adds the paper's Table 1
+present (marked ``(N/M meshes empty)`` where predicted meshes were empty: worst-case values, not measured); see
+:mod:`depthnerf.eval.table` for the summary contract. ``--reference paper`` adds the paper's Table 1
 rows, labelled as reported in the paper on the real SRN data. The table goes to stdout, and to ``--out`` too.
 
 Summaries scored with different protocol choices (SSIM variant, 8-bit or float renders, an object one left out

@@ -139,6 +139,33 @@ def guided_request(budget: int | None, align_samples: int):
     return None if budget is None else guided_config(budget, align_samples)
 
 
+def check_flags(args: argparse.Namespace) -> None:
+    """One line naming the flag when ``--pixel-center``, ``--mesh-points``, ``--fscore-tau`` or
+    ``--symmetry-plane`` cannot work (checked before anything loads)."""
+    from depthnerf.data.symmetry import normalized_plane
+
+    if args.pixel_center is not None and not 0 <= args.pixel_center < 1:  # NaN fails too
+        raise DepthnerfError(f"--pixel-center must be in [0, 1) (a principal-point shift of a fraction of a pixel: "
+                             f"0.0 = pixelNeRF's reading, 0.5 = Blender's), got {args.pixel_center}")
+    if args.mesh_points < 1:
+        raise DepthnerfError(f"--mesh-points must be >= 1, got {args.mesh_points}")
+    if not args.fscore_tau > 0:
+        raise DepthnerfError(f"--fscore-tau must be > 0 (a distance in GT diagonals), got {args.fscore_tau}")
+    if args.symmetry_plane is not None:
+        normalized_plane(args.symmetry_plane, "--symmetry-plane")
+
+
+def symmetry_note(args: argparse.Namespace, mirror: bool, checkpoint: str) -> str | None:
+    """The ``note:`` line for ``--symmetry-plane`` / ``--no-symmetry`` on a model without the mirror branch (they
+    change nothing there), else None."""
+    flags = [f for f, given in (("--symmetry-plane", args.symmetry_plane is not None),
+                                ("--no-symmetry", args.no_symmetry)) if given]
+    if mirror or not flags:
+        return None
+    return (f"note: {' and '.join(flags)} {'have' if len(flags) > 1 else 'has'} no effect: {checkpoint} has no "
+            "mirror-symmetric conditioning (it was not trained with --model.mirror true)")
+
+
 def _choices(args: argparse.Namespace):
     from depthnerf.eval.config import ProtocolChoices
 
@@ -176,10 +203,18 @@ def check_category(data: Path, category: str | None, split: str, trained: str, c
                              f"{held[0]} to score it on {held[0]} anyway")
 
 
+def empty_meshes_text(summary: dict) -> str:
+    """`` (N of M meshes empty)`` after the geometry figures when predicted meshes were empty (their Chamfer-L1 and
+    F-score are worst-case values, not measured), else ``""``."""
+    empty = summary.get("empty_predictions") or 0
+    return f" ({empty} of {summary.get('geometry_objects', '?')} meshes empty)" if empty else ""
+
+
 def run(args: argparse.Namespace) -> int:
     from depthnerf.distributed import teardown
     from depthnerf.eval.shards import RefusedOnMain
 
+    check_flags(args)
     choices = _choices(args)
     info = _process(args.device)
     try:
@@ -206,6 +241,9 @@ def _run(args: argparse.Namespace, info, choices) -> int:
     device = info.device
     guided = guided_request(args.guided, args.guided_align_samples)
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
+    note = symmetry_note(args, pre.model.cfg.mirror, str(args.run or args.checkpoint))
+    if note is not None and info.is_main:
+        print(note, file=sys.stderr, flush=True)
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
@@ -232,7 +270,7 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         return 0
     s = result.summary
     lp = f"{s['lpips']:.4f}" if s["lpips"] is not None else s["lpips_status"]
-    geo = (f", Chamfer-L1 {s['chamfer_l1']:.4f}, F-score@{s['fscore_tau']} {s['fscore']:.3f}"
+    geo = (f", Chamfer-L1 {s['chamfer_l1']:.4f}, F-score@{s['fscore_tau']} {s['fscore']:.3f}{empty_meshes_text(s)}"
            if s.get("chamfer_l1") is not None else f", mesh: {s['mesh_status']}")
     print(f"{s['method']} / {s['category']}: PSNR {s['psnr']:.3f}, SSIM {s['ssim']:.4f}, LPIPS {lp}{geo} "
           f"({s['objects']} objects, {s['views']} views, {s['timing']['total_s']:.1f} s)")

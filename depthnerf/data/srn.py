@@ -7,7 +7,8 @@ Layout (file formats in :mod:`depthnerf.data.srn_format`)::
 
 with ``split`` in :data:`SPLITS`. SRN quirk: the public chairs train set sits one level deeper,
 ``chairs_train/chairs_2.0_train/<object_id>/``; :func:`split_dir` resolves ``<c>_<s>/<c>_2.0_<s>/`` for every
-category and split. Every sub-folder of a split folder is an object (plain files there are ignored).
+category and split. Every sub-folder of a split folder is an object (plain files there are ignored), except hidden
+ones (``.name``) and macOS zip residue (:data:`IGNORED_FOLDERS`).
 
 Conventions, as in pixelNeRF's ``SRNDataset`` unless said otherwise:
 
@@ -77,6 +78,9 @@ CATEGORY_DEFAULTS: Mapping[str, CategoryDefaults] = MappingProxyType({
     "chairs": CategoryDefaults(z_near=1.25, z_far=2.75, camera_radius=2.0, focal=131.25, image_size=128),
 })
 """Known SRN categories (read-only mapping)."""
+IGNORED_FOLDERS: frozenset[str] = frozenset({"__MACOSX"})
+"""Folders of a split folder that are never objects (besides hidden ones): ``__MACOSX`` is the resource-fork
+residue macOS's zip writes next to the archived folders."""
 
 
 def category_defaults(name: str) -> CategoryDefaults:
@@ -100,6 +104,12 @@ def split_dir(root: Path, category: str, split: str) -> Path:
     base = Path(root) / f"{category}_{split}"
     nested = base / f"{category}_2.0_{split}"
     return nested if nested.is_dir() else base
+
+
+def ignored_folder(name: str) -> bool:
+    """True for a folder of a split folder that is never an object: hidden (``.name``) or in
+    :data:`IGNORED_FOLDERS`."""
+    return name.startswith(".") or name in IGNORED_FOLDERS
 
 
 def discover_categories(root: Path) -> list[str]:
@@ -188,7 +198,7 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
                                  f"{category}_{split}/)")
         problem = "is a file, not a split folder" if folder.exists() else "split folder does not exist"
         raise DepthnerfError(f"{folder}: {problem}")
-    object_dirs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
+    object_dirs = sorted(p for p in folder.iterdir() if p.is_dir() and not ignored_folder(p.name))
     if not object_dirs:
         raise DepthnerfError(f"{folder}: empty split (no object folders)")
     index = SplitIndex(category=category, split=split, path=folder, objects=[], skipped=[])

@@ -154,7 +154,8 @@ def geometry_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, config: Geometr
     if is_empty_mesh(gt):
         raise DepthnerfError("ground-truth mesh has no surface (no faces or zero area)")
     if config.n_points < 1 or not config.tau > 0:
-        raise DepthnerfError(f"geometry metrics: need n_points >= 1 and tau > 0, got {config.n_points}, {config.tau}")
+        raise DepthnerfError(f"geometry metrics: need GeometryConfig.n_points >= 1 and tau > 0 (depthnerf eval "
+                             f"--mesh-points, --fscore-tau), got n_points={config.n_points}, tau={config.tau}")
     diagonal = float(np.linalg.norm(gt.bounds[1] - gt.bounds[0]))
     scale = diagonal if config.normalize else 1.0
     if is_empty_mesh(pred):

@@ -45,12 +45,19 @@ non-finite dataset metric is an error, never written.
 Outputs in ``OUT_DIR`` (rewritten at the end of every run): ``summary.json`` (what ``depthnerf compare`` reads, see
 :mod:`depthnerf.eval.table`), ``per_object.csv``, and with ``save_renders``: ``renders/<object_id>/<view>.png``,
 predicted meshes ``meshes/<object_id>.ply`` and ``renders.csv`` (``object_id,view,render_path,gt_path,psnr,ssim``;
-paths relative to ``OUT_DIR`` unless absolute). ``gt_path`` is the dataset's own image when targets are scored at
+paths relative to ``OUT_DIR`` unless absolute; ``summary.json`` ``renders_csv`` names it, null without
+``save_renders``). ``gt_path`` is the dataset's own image when targets are scored at
 its native resolution (read it with :func:`depthnerf.data.srn_format.read_rgb`, which composites alpha on
 white), else an 8-bit copy of the resized ground truth in ``gt/`` (then recomputed metrics differ by 8-bit
 quantisation of the ground truth as well as of the render). Renders are 8-bit PNGs (truncated, the image
 scored, with the default ``--scored png8``; rounded with ``--scored float``), so metrics recomputed from them
 match exactly (png8) or within 8-bit quantisation (float). ``objects/``: the per-object result files.
+``--overwrite`` deletes exactly these outputs of an earlier evaluation first
+(:func:`depthnerf.eval.shards.remove_outputs`).
+
+Empty predicted meshes (the density never reaches the level) get worst-case geometry values
+(:mod:`depthnerf.eval.geometry_metrics`); ``empty_predictions`` counts them, ``mesh_status`` says so first, and
+``depthnerf eval`` / ``depthnerf compare`` mark the figures they print.
 """
 
 from __future__ import annotations
@@ -125,6 +132,8 @@ class _Evaluator:
                  out_dir: Path, category: str) -> None:
         self.session, self.cfg, self.lpips, self.eval_res, self.out_dir = session, cfg, lpips, eval_res, out_dir
         self.symmetry_plane, self.symmetry_from = session.dataset_symmetry(category)
+        if self.symmetry_plane is not None and session.options.symmetry_plane is not None:
+            self.symmetry_from = "--symmetry-plane"  # the session's override, which eval's flag sets
         self.png8 = cfg.choices.scored == "png8"
         self.metrics_cfg = ImageMetricsConfig(quantize_pred=self.png8, ssim_window=cfg.choices.ssim)
 
@@ -209,6 +218,19 @@ def _per_object_row(r: ObjectResult) -> dict:
                          "recall")},
             "empty_mesh": "" if g is None else int(g.empty_prediction), "seconds": f"{sum(r.seconds.values()):.3f}",
             "mesh_level": _fmt(r.mesh_level.level if r.mesh_level else None)}
+
+
+def mesh_status(empty: int, meshed: int, total: int) -> str:
+    """The head of ``summary.json`` ``mesh_status`` (the extraction levels follow it): ``ok`` with how many of
+    ``total`` objects have ``mesh.ply``, unless predicted meshes were empty (then their worst-case Chamfer-L1 and
+    F-score are in the means, :mod:`depthnerf.eval.geometry_metrics`), which it says first."""
+    have = f"{meshed} of {total} objects have mesh.ply; "
+    if empty == 0:
+        return f"ok: {have}"
+    if empty == meshed:
+        return (f"every predicted mesh is empty ({empty} of {meshed}): Chamfer-L1 and F-score are the worst-case "
+                f"values, not a measured surface; {have}")
+    return f"{empty} of {meshed} predicted meshes empty (worst-case values in the means); {have}"
 
 
 def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: str, category: str, stride: int,
@@ -317,8 +339,8 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     if geo:
         summary.update(summarize_geometry(geo, cfg.geometry))
         summary["geometry_objects"] = len(geo)
-        summary["mesh_status"] = (f"ok: {len(geo)} of {len(results)} objects have mesh.ply; "
-                                  + levels_text([r.mesh_level for r in results if r.mesh_level], cfg.mesh_resolution))
+        summary["mesh_status"] = mesh_status(summary["empty_predictions"], len(geo), len(results)) + levels_text(
+            [r.mesh_level for r in results if r.mesh_level], cfg.mesh_resolution)
     else:
         summary.update({"chamfer_l1": None, "fscore": None, "fscore_tau": None, "floater_fraction": None,
                         "geometry_objects": 0})
@@ -367,6 +389,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     per_object = out_dir / "per_object.csv"
     _write_csv(per_object, PER_OBJECT_COLUMNS, [_per_object_row(r) for r in results])
     renders = None
+    summary["renders_csv"] = None  # no renders.csv of this evaluation (one found there is another's)
     if cfg.save_renders:
         renders = out_dir / "renders.csv"
         _write_csv(renders, ("object_id", "view", "render_path", "gt_path", "psnr", "ssim"),

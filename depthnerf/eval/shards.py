@@ -13,7 +13,9 @@ Resume
     :func:`evaluate_objects` skips the objects whose file is there, so a killed evaluation restarted with the same
     arguments computes only the rest, and the merged outputs equal an uninterrupted run's (the stored floats
     round-trip exactly through JSON; only timings differ). A restart with other settings, once an object is
-    finished, is a one-line error naming what differs, unless ``--overwrite`` (which deletes the object files).
+    finished, is a one-line error naming what differs, unless ``--overwrite``, which first deletes everything an
+    earlier evaluation wrote there (:func:`remove_outputs`: the object files, ``summary.json``,
+    ``per_object.csv``, ``renders.csv`` and the PNGs and meshes of ``--save-renders``), and nothing else.
 
 Sharding
     Rank 0 checks the folder and sends every rank the same list of unfinished objects (in dataset order); rank
@@ -58,6 +60,11 @@ SETTINGS_FILE = "settings.json"
 """What the results in :data:`OBJECTS_DIR` were computed with."""
 FORMAT = "depthnerf-eval-object-1"
 """Format tag of a per-object result file."""
+OUTPUT_FILES = ("summary.json", "per_object.csv", "renders.csv")
+"""Files an evaluation writes at the top of its output folder (:mod:`depthnerf.eval.protocol`)."""
+OUTPUT_TREES = (("renders", "*/*.png"), ("gt", "*/*.png"), ("meshes", "*.ply"))
+"""(folder, pattern) of the files ``--save-renders`` writes in the output folder: ``renders/<object_id>/<view>.png``,
+``gt/<object_id>/<view>.png`` and ``meshes/<object_id>.ply``."""
 CRASH_STAGE = "eval-object"
 """``DEPTHNERF_CRASH_AT`` stage of the test hook (module docstring)."""
 
@@ -121,6 +128,29 @@ def _differences(old: dict, new: dict) -> list[str]:
     return [f"{k} {json.dumps(there)} there, {json.dumps(now)} now" for k, (there, now) in differences(old, new).items()]
 
 
+def remove_outputs(out_dir: Path) -> int:
+    """Delete what an evaluation writes in ``out_dir`` (:data:`OBJECTS_DIR`'s result, settings and stray
+    temporary files, :data:`OUTPUT_FILES`, the :data:`OUTPUT_TREES` files) and the folders that leaves empty;
+    any other file stays. Returns how many files were deleted."""
+    out_dir = Path(out_dir)
+    doomed = [p for name in OUTPUT_FILES for p in (out_dir / name, *out_dir.glob(f".{name}.*.tmp"))]
+    objects = out_dir / OBJECTS_DIR
+    doomed += [*objects.glob("*.json"), *objects.glob(".*.tmp")]
+    folders = [objects]
+    for name, pattern in OUTPUT_TREES:
+        doomed += (out_dir / name).glob(pattern)
+        folders += [*(p for p in (out_dir / name).glob("*") if p.is_dir()), out_dir / name]
+    removed = 0
+    for path in doomed:
+        if path.is_file() or path.is_symlink():
+            path.unlink()
+            removed += 1
+    for folder in folders:  # deepest first: object folders before their parents
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+    return removed
+
+
 class ObjectStore:
     """The per-object result files of one evaluation (module docstring)."""
 
@@ -137,12 +167,12 @@ class ObjectStore:
 
     def prepare(self, overwrite: bool) -> None:
         """Check an earlier evaluation's settings (a one-line error when they differ and objects are finished,
-        unless ``overwrite``), delete its files with ``overwrite``, and record the current settings."""
+        unless ``overwrite``), delete all its outputs with ``overwrite`` (:func:`remove_outputs`), and record the
+        current settings."""
         settings_path = self.dir / SETTINGS_FILE
         files = self._object_files()
         if overwrite:
-            for path in files:
-                path.unlink()
+            remove_outputs(self.dir.parent)
         elif files and settings_path.is_file():
             try:
                 old = json.loads(settings_path.read_text())

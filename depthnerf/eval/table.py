@@ -4,7 +4,9 @@ Input contract: ``summary.json`` written by ``depthnerf eval`` into its output d
 least ``psnr``, ``ssim`` (numbers), ``objects``, ``views`` (counts) and the provenance ``checkpoint_sha256``,
 ``preset``, ``category``, ``depth_prior``, ``method`` (the row label) and ``protocol`` (text); optional numbers
 ``chamfer_l1``, ``fscore`` (with optional ``fscore_tau``), ``floater_fraction`` and ``lpips`` (null = not
-available).
+available), and optional counts ``empty_predictions`` / ``geometry_objects``: when predicted meshes were empty their
+geometry cells read e.g. ``1.0000 (2/2 meshes empty)`` (worst-case values, not measured surfaces) and the
+provenance line says so.
 
 A path given to :func:`find_summaries` is a summary file, an eval output directory (``DIR/summary.json``) or a run
 directory (``DIR/eval/*/summary.json``). Rows are methods (first-seen order), column groups are categories
@@ -45,6 +47,8 @@ COLUMNS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("chamfer_l1", "CD-L1", 4),
 """(key, header, decimals) of every metric column, in order."""
 MISSING = "—"
 """Cell text when a method has no value for a column."""
+GEOMETRY_KEYS = ("chamfer_l1", "fscore", "floater_fraction")
+"""Columns measured on the predicted meshes (marked when some were empty)."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +71,17 @@ class EvalSummary:
     """``checkpoint_sha256``, ``preset``, ``depth_prior``, ``protocol`` (and ``fscore_tau`` when given)."""
     choices: RecordedChoices | None = None
     """The protocol choices it was scored with (:func:`depthnerf.eval.config.recorded_choices`)."""
+    empty_meshes: int = 0
+    """Predicted meshes that were empty (``empty_predictions``: worst-case values in the geometry means)."""
+    meshed_objects: int | None = None
+    """Objects with geometry metrics (``geometry_objects``; None when the summary does not say)."""
+
+    def empty_text(self) -> str:
+        """``2/2 meshes empty`` when predicted meshes were empty, else ``""``."""
+        if not self.empty_meshes:
+            return ""
+        of = f"/{self.meshed_objects}" if self.meshed_objects is not None else ""
+        return f"{self.empty_meshes}{of} meshes empty"
 
 
 def _number(path: Path, data: dict, key: str, optional: bool) -> float | None:
@@ -102,12 +117,17 @@ def load_summary(path: Path) -> EvalSummary:
     for key in ("method", "category"):
         if not isinstance(data[key], str) or not data[key].strip():
             raise DepthnerfError(f"{path}: '{key}' must be a non-empty string, got {data[key]!r}")
+    for key in ("empty_predictions", "geometry_objects"):
+        value = data.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 0):
+            raise DepthnerfError(f"{path}: '{key}' must be a non-negative integer or null, got {value!r}")
     provenance = {k: str(data[k]) for k in ("checkpoint_sha256", "preset", "depth_prior", "protocol")}
     if data.get("fscore_tau") is not None:
         provenance["fscore_tau"] = str(data["fscore_tau"])
     return EvalSummary(path=path, method=data["method"].strip(), category=data["category"].strip().lower(),
                        metrics=metrics, objects=counts["objects"], views=counts["views"], provenance=provenance,
-                       choices=recorded_choices(path, data))
+                       choices=recorded_choices(path, data), empty_meshes=data.get("empty_predictions") or 0,
+                       meshed_objects=data.get("geometry_objects"))
 
 
 def find_summaries(path: Path) -> list[Path]:
@@ -139,6 +159,15 @@ def _fmt(value: float | None, decimals: int) -> str:
     return MISSING if value is None else f"{value:.{decimals}f}"
 
 
+def _metric_cell(s: EvalSummary, key: str, decimals: int) -> str:
+    """A measured row's cell: the value, marked when it is a geometry figure and predicted meshes were empty."""
+    value = s.metrics.get(key)
+    text = _fmt(value, decimals)
+    if value is not None and key in GEOMETRY_KEYS and s.empty_meshes:
+        text += f" ({s.empty_text()})"
+    return text
+
+
 def markdown_table(summaries: Sequence[EvalSummary], reference: bool = False) -> str:
     """The Markdown table (with a provenance list under it) for the given summaries."""
     cells: dict[tuple[str, str], EvalSummary] = {}
@@ -163,7 +192,7 @@ def markdown_table(summaries: Sequence[EvalSummary], reference: bool = False) ->
                    if key in ("psnr", "ssim") else MISSING for cat, key, _, _ in columns]
             lines.append(f"| {name} — {PAPER_LABEL} | " + " | ".join(row) + " |")
     for method in methods:
-        row = [_fmt(cells[(method, cat)].metrics.get(key), dec) if (method, cat) in cells else MISSING
+        row = [_metric_cell(cells[(method, cat)], key, dec) if (method, cat) in cells else MISSING
                for cat, key, _, dec in columns]
         lines.append(f"| {_cell(method)} | " + " | ".join(row) + " |")
     if summaries:
@@ -171,6 +200,9 @@ def markdown_table(summaries: Sequence[EvalSummary], reference: bool = False) ->
         for s in summaries:
             prov = s.provenance
             tau = f", F-score tau {prov['fscore_tau']}" if "fscore_tau" in prov else ""
+            if s.empty_meshes:
+                tau += (f"; {s.empty_text()}: their Chamfer-L1 / F-score are worst-case values, not measured "
+                        "surfaces")
             lines.append(f"- {s.method} / {s.category}: {s.objects} objects, {s.views} views; preset "
                          f"{prov['preset']}, depth prior {prov['depth_prior']}, checkpoint "
                          f"{prov['checkpoint_sha256'][:12]}; protocol: {prov['protocol']}{tau} ({s.path})")

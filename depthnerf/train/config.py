@@ -49,7 +49,8 @@ class DataConfig:
     ``(j + c, i + c)``. 0.0 = pixelNeRF's reading (every paper preset: faithful reproduction, half a pixel off
     Blender/SRN renders); 0.5 = Blender's convention, exact for SRN and ``depthnerf synth --framing srn`` data.
     Applied once where views are loaded (a principal-point shift, :meth:`Intrinsics.with_pixel_center`), so rays
-    and feature projection agree; eval, reconstruct and the demo use the value the checkpoint was trained with."""
+    and feature projection agree; eval, reconstruct and the demo use the value the checkpoint was trained with.
+    Must lie in ``[0, 1)`` (:func:`check_config`)."""
     symmetry_plane: tuple[float, ...] | None = None
     """The objects' mirror-symmetry plane ``nx,ny,nz,d`` in the world frame, read by mirror models
     (``--model.mirror true``) only; None = the dataset card's, else ShapeNet's left-right plane x = 0
@@ -186,6 +187,9 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
                              f"{cfg.schedule.lr_final:g}")
     if cfg.schedule.mirror_dropout >= 1:
         raise DepthnerfError(f"--schedule.mirror_dropout must be < 1, got {cfg.schedule.mirror_dropout}")
+    if not 0 <= cfg.data.pixel_center < 1:  # NaN fails too
+        raise DepthnerfError(f"--data.pixel_center must be in [0, 1) (a principal-point shift of a fraction of a "
+                             f"pixel: 0.0 = pixelNeRF's reading, 0.5 = Blender's), got {cfg.data.pixel_center}")
     near, far = cfg.data.z_near, cfg.data.z_far
     if near is not None and far is not None and not 0 <= near < far:
         raise DepthnerfError(f"--data.z_near / --data.z_far must satisfy 0 <= z_near < z_far, got {near}, {far}")

@@ -1,0 +1,149 @@
+"""``depthnerf eval`` inputs and outputs at their edges: what ``--overwrite`` deletes, flag values that cannot work
+(one line naming the flag, before anything loads), symmetry flags on a model without the mirror branch, and
+evaluations whose predicted meshes are all empty (eval's line and ``depthnerf compare`` say so).
+
+Tiny random checkpoints (tests/fixtures_checkpoints.py) on a 16 px sphere fixture with meshes: an evaluation takes
+seconds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from fixtures_checkpoints import save_tiny, tiny_config
+from fixtures_srn import make_srn_fixture
+
+from depthnerf.cli import main
+from depthnerf.config_io import apply_overrides
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.table import load_summary, markdown_table
+from depthnerf.train.config import check_config, preset
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory) -> dict[str, Path]:
+    """Two test spheres (4 views, 16 px, with mesh.ply) and a plain and a mirror checkpoint."""
+    tmp = tmp_path_factory.mktemp("evalinputs")
+    root = make_srn_fixture(tmp / "data", "cars", splits={"test": 2}, views=4, size=16, with_mesh=True,
+                            with_mask=True)
+    cfg = tiny_config("cars", "none")
+    return {"tmp": tmp, "root": root, "plain": save_tiny(tmp / "plain.safetensors", cfg),
+            "mirror": save_tiny(tmp / "mirror.safetensors", apply_overrides(cfg, ["--model.mirror", "true"]))}
+
+
+def _eval(case: dict, out: Path, *flags: str, checkpoint: str = "plain") -> int:
+    return main(["eval", "--checkpoint", str(case[checkpoint]), "--data", str(case["root"]), "--out", str(out),
+                 "--mesh-resolution", "8", "--mesh-points", "200", "--no-progress", *[str(f) for f in flags]])
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err
+
+
+def _files(folder: Path) -> set[str]:
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*")}
+
+
+def test_overwrite_removes_every_output_of_the_earlier_evaluation_and_nothing_else(case, capsys):
+    out = case["tmp"] / "overwrite"
+    assert _eval(case, out, "--save-renders", "--resolution", "32") == 0  # 32 px: gt/ copies are written too
+    before = _files(out)
+    assert {"renders.csv", "gt", "meshes", "renders", "per_object.csv", "summary.json"} <= before
+    assert sum(name.startswith("renders/") and name.endswith(".png") for name in before) == 2 * 3
+    (out / "notes.txt").write_text("mine")
+    (out / "renders" / "keep.txt").write_text("mine too")
+    (out / "objects" / ".stale.json.123.tmp").write_text("{")  # a killed writer's leftover
+    assert _eval(case, out, "--views-stride", "2", "--overwrite") == 0
+    capsys.readouterr()
+    objects = {f"objects/{p.name}" for p in (case["root"] / "cars_test").iterdir()}
+    assert _files(out) == {"notes.txt", "renders", "renders/keep.txt", "objects", "objects/settings.json",
+                           *{f"{o}.json" for o in objects}, "per_object.csv", "summary.json"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["views_stride"] == 2 and summary["views"] == 2 * 2 and summary["renders_csv"] is None
+
+
+@pytest.mark.parametrize("flags, text", [
+    (["--pixel-center", "7"], "--pixel-center must be in [0, 1)"),
+    (["--pixel-center", "-100"], "--pixel-center must be in [0, 1)"),
+    (["--pixel-center", "1"], "--pixel-center must be in [0, 1)"),
+    (["--pixel-center", "nan"], "--pixel-center must be in [0, 1)"),
+    (["--fscore-tau", "-1"], "--fscore-tau must be > 0"),
+    (["--fscore-tau", "0"], "--fscore-tau must be > 0"),
+    (["--mesh-points", "0"], "--mesh-points must be >= 1"),
+    (["--symmetry-plane", "0", "0", "0", "0"], "--symmetry-plane: a symmetry plane is 4 finite numbers"),
+])
+def test_flag_values_that_cannot_work_are_refused_before_anything_loads(tmp_path, capsys, flags, text):
+    """A checkpoint path that does not exist: were the flag checked after loading, the error would be about it."""
+    assert main(["eval", "--checkpoint", str(tmp_path / "no-such.safetensors"), "--out", str(tmp_path / "out"),
+                 *flags]) == 2
+    err = _one_error_line(capsys)
+    assert text in err and "--data.symmetry_plane" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_train_config_refuses_a_pixel_centre_outside_0_1(tmp_path, capsys):
+    cfg = preset("cpu-cars")
+    for good in ("0", "0.5", "0.999"):
+        assert check_config(apply_overrides(cfg, ["--data.pixel_center", good])).data.pixel_center == float(good)
+    for bad in ("7", "-0.5", "1", "nan"):
+        with pytest.raises(DepthnerfError, match=r"--data\.pixel_center must be in \[0, 1\)"):
+            check_config(apply_overrides(cfg, ["--data.pixel_center", bad]))
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--data.pixel_center", "7"]) == 2
+    assert "--data.pixel_center must be in [0, 1)" in _one_error_line(capsys)
+    assert not (tmp_path / "run").exists()
+
+
+def test_symmetry_flags_on_a_model_without_the_mirror_branch_are_a_note(case, capsys):
+    plain = _eval(case, case["tmp"] / "sym_plain", "--no-mesh", "--symmetry-plane", "0", "1", "0", "0")
+    assert plain == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("note:")]
+    assert len(err) == 1 and "--symmetry-plane has no effect" in err[0]
+    assert "no mirror-symmetric conditioning" in err[0] and str(case["plain"]) in err[0]
+    assert _eval(case, case["tmp"] / "sym_plain2", "--no-mesh", "--no-symmetry") == 0
+    assert "note: --no-symmetry has no effect" in capsys.readouterr().err
+    # a mirror model takes the plane, says which flag gave it, and gets no note
+    assert _eval(case, case["tmp"] / "sym_mirror", "--no-mesh", "--symmetry-plane", "0", "2", "0", "0",
+                 checkpoint="mirror") == 0
+    assert "note:" not in capsys.readouterr().err
+    summary = json.loads((case["tmp"] / "sym_mirror" / "summary.json").read_text())
+    assert summary["symmetry_plane"] == [0.0, 1.0, 0.0, 0.0] and summary["symmetry_plane_source"] == "--symmetry-plane"
+
+
+def test_all_empty_meshes_are_said_in_eval_line_summary_and_compare(case, capsys):
+    """A density level no point reaches leaves every predicted mesh empty: worst-case Chamfer-L1 1 and F-score 0,
+    which the printed line, mesh_status and the compare table must not pass off as measured."""
+    out = case["tmp"] / "empty"
+    assert _eval(case, out, "--mesh-threshold", "1e12") == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert "Chamfer-L1 1.0000, F-score@0.01 0.000 (2 of 2 meshes empty)" in line
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["empty_predictions"] == 2 and summary["geometry_objects"] == 2
+    assert summary["chamfer_l1"] == 1.0 and summary["fscore"] == 0.0
+    assert summary["mesh_status"].startswith("every predicted mesh is empty (2 of 2)")
+    assert main(["compare", str(out)]) == 0
+    table = capsys.readouterr().out
+    row = next(ln for ln in table.splitlines() if ln.startswith("| pixelNeRF"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3:6] == ["1.0000 (2/2 meshes empty)", "0.000 (2/2 meshes empty)", "0.000 (2/2 meshes empty)"]
+    assert "2/2 meshes empty: their Chamfer-L1 / F-score are worst-case values" in table
+
+
+def test_compare_marks_partly_empty_meshes_and_leaves_full_ones_plain(tmp_path):
+    base = {"psnr": 20.0, "ssim": 0.8, "objects": 3, "views": 9, "checkpoint_sha256": "ab" * 32, "preset": "p",
+            "category": "cars", "depth_prior": "none", "protocol": "t", "chamfer_l1": 0.05, "fscore": 0.5}
+    paths = []
+    for name, extra in (("a", {"empty_predictions": 1, "geometry_objects": 3}),
+                        ("b", {"empty_predictions": 0, "geometry_objects": 3}), ("c", {})):
+        paths.append(tmp_path / f"{name}.json")
+        paths[-1].write_text(json.dumps({**base, "method": name, **extra}))
+    rows = {ln.split("|")[1].strip(): [c.strip() for c in ln.strip("|").split("|")[1:]]
+            for ln in markdown_table([load_summary(p) for p in paths]).splitlines() if ln.startswith("| ")}
+    assert rows["a"][2:] == ["0.0500 (1/3 meshes empty)", "0.500 (1/3 meshes empty)"]
+    assert rows["b"][2:] == rows["c"][2:] == ["0.0500", "0.500"]
+    paths[0].write_text(json.dumps({**base, "method": "a", "empty_predictions": -1}))
+    with pytest.raises(DepthnerfError, match="'empty_predictions' must be a non-negative integer"):
+        load_summary(paths[0])
