@@ -130,6 +130,14 @@ def test_bad_photos(tmp_path):
         prepare_photo(disc_photo(40, 40, (20, 20), 8), np.ones((10, 10), np.uint8), 32)
     with pytest.raises(DepthnerfError, match="^image must be a file path, a PIL image or a numpy array, got int$"):
         prepare_photo(5, None, 32)
+    # a photo given as the mask gets a note; a real (binary) mask does not
+    photo = disc_photo(40, 40, (20, 20), 8)
+    as_mask = np.linspace(0, 255, 40 * 40).reshape(40, 40).astype(np.uint8)
+    noted = prepare_photo(photo, as_mask, 32).notes
+    assert any("are neither dark nor bright (a photo rather than a mask?)" in n for n in noted), noted
+    binary = np.zeros((40, 40), np.uint8)
+    binary[10:30, 10:30] = 255
+    assert not any("neither dark nor bright" in n for n in prepare_photo(photo, binary, 32).notes)
     # an empty mask is named as the mask's fault, a transparent cut-out as the alpha channel's
     with pytest.raises(DepthnerfError, match=r"^mask: the mask marks no object \(no pixel above 127 of 255\)$"):
         prepare_photo(disc_photo(40, 40, (20, 20), 8), np.zeros((40, 40), np.uint8), 32)

@@ -64,6 +64,10 @@ DEFAULT_FILL = 0.62
 PHOTO_FORMATS = {"PNG": "PNG", "JPEG": "JPEG", "MPO": "JPEG", "WEBP": "WebP"}
 """Accepted photo file formats: Pillow's format name -> the name shown (MPO: a camera's multi-picture JPEG)."""
 ImageLike = str | Path | np.ndarray | Image.Image
+MASK_DARK = 32
+"""A given mask's values <= this (or >= 255 - this) count as dark (bright); a mask is mostly one or the other."""
+MASK_GREY_SHARE = 0.1
+"""A given mask with more than this share of values between dark and bright gets a note (it may be a photo)."""
 
 
 @dataclass
@@ -182,7 +186,12 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
             raise DepthnerfError(f"{where}: mask is {im.width}x{im.height} but the image is "
                                  f"{(source_size or (height, width))[1]}x{(source_size or (height, width))[0]}")
         notes.append("mask: given (value > 127 of 255 = object)")
-        out = np.asarray(im) > 127
+        values = np.asarray(im)
+        grey = float(((values > MASK_DARK) & (values < 255 - MASK_DARK)).mean())
+        if grey > MASK_GREY_SHARE:
+            notes.append(f"mask: {grey:.0%} of its pixels are neither dark nor bright (a photo rather than a mask?); "
+                         "check input_mask.png")
+        out = values > 127
     elif alpha is not None:
         notes.append(f"mask: alpha > {ALPHA_THRESHOLD}")
         out = alpha > ALPHA_THRESHOLD
