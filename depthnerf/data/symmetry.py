@@ -62,11 +62,12 @@ def plane_from_card(card: dict, where: str) -> tuple[float, float, float, float]
     return normalized_plane((*left.tolist(), float(left @ centre)), where)
 
 
-def dataset_plane(root: str | Path, category: str,
-                  override: tuple[float, ...] | None = None) -> tuple[tuple[float, float, float, float], str]:
-    """The symmetry plane of a dataset and where it came from (see the module docstring)."""
+def dataset_plane(root: str | Path, category: str, override: tuple[float, ...] | None = None,
+                  flag: str = "--data.symmetry_plane") -> tuple[tuple[float, float, float, float], str]:
+    """The symmetry plane of a dataset and where it came from (see the module docstring); ``flag`` names the
+    setting that gave ``override`` (in its errors and as its source)."""
     if override is not None:
-        return normalized_plane(override, "--data.symmetry_plane"), "--data.symmetry_plane"
+        return normalized_plane(override, flag), flag
     card = read_dataset_card(root, category)
     if card is not None:
         plane = plane_from_card(card, str(card_path(root, category)))

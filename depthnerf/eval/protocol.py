@@ -132,8 +132,6 @@ class _Evaluator:
                  out_dir: Path, category: str) -> None:
         self.session, self.cfg, self.lpips, self.eval_res, self.out_dir = session, cfg, lpips, eval_res, out_dir
         self.symmetry_plane, self.symmetry_from = session.dataset_symmetry(category)
-        if self.symmetry_plane is not None and session.options.symmetry_plane is not None:
-            self.symmetry_from = "--symmetry-plane"  # the session's override, which eval's flag sets
         self.png8 = cfg.choices.scored == "png8"
         self.metrics_cfg = ImageMetricsConfig(quantize_pred=self.png8, ssim_window=cfg.choices.ssim)
 

@@ -263,7 +263,7 @@ class InferenceSession:
             return None, "off (--no-symmetry)"
         if self.options.symmetry_plane is None and self.options.data_root is None:
             raise DepthnerfError("a mirror model on dataset views needs the dataset root or a symmetry plane")
-        return dataset_plane(self.options.data_root or ".", category, self.options.symmetry_plane)
+        return dataset_plane(self.options.data_root or ".", category, self.options.symmetry_plane, "--symmetry-plane")
 
     @torch.no_grad()
     def encode(self, image: Float[torch.Tensor, "1 3 H W"], mask: Bool[torch.Tensor, "1 H W"],
