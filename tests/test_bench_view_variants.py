@@ -53,3 +53,25 @@ def test_the_speed_variants_run_on_a_named_cpu(tmp_path):
     for row in rows.values():
         assert row["ms_per_view"] > 0 and 0 < row["max_abs_diff_vs_fp32"] < 0.05
     assert rows["eager"]["max_abs_diff_vs_fp32"] != rows["eager+bf16res"]["max_abs_diff_vs_fp32"]
+
+
+def test_a_bf16_residual_evaluation_is_not_resumed_as_another(tmp_path):
+    """The residual dtype is part of what an evaluation's results depend on: it is recorded, and resuming a
+    bf16-stream evaluation with the default policy is refused (its objects would mix two precisions)."""
+    import torch
+
+    from depthnerf.errors import DepthnerfError
+    from depthnerf.render.precision import CPU_RAY_CHUNK, InferencePolicy
+
+    data = make_srn_fixture(tmp_path / "data", splits={"test": 1}, views=66, size=16, with_depth=True)
+    ckpt = tiny_checkpoint(tmp_path / "tiny.safetensors")
+    policy = InferencePolicy(autocast=torch.bfloat16, ray_chunk=CPU_RAY_CHUNK, point_chunk=None, compile=False,
+                             residual=torch.bfloat16)
+    cfg = ProtocolConfig(views_stride=30, max_objects=1, mesh=False, progress=False)
+    out = tmp_path / "eval"
+    evaluate_protocol(InferenceSession(ckpt, SessionOptions(device="cpu", inputs="dataset", data_root=data,
+                                                            policy=policy)), out, cfg)
+    assert json.loads((out / "objects" / "settings.json").read_text())["residual"] == "torch.bfloat16"
+    default = InferenceSession(ckpt, SessionOptions(device="cpu", inputs="dataset", data_root=data))
+    with pytest.raises(DepthnerfError, match="residual"):
+        evaluate_protocol(default, out, cfg)
