@@ -22,6 +22,7 @@ stream, and the per-object PSNR differences against fp32:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import statistics
@@ -122,15 +123,13 @@ def accuracy(args, out: dict) -> None:
     from depthnerf.eval.config import ProtocolConfig
     from depthnerf.eval.protocol import evaluate_protocol
     from depthnerf.infer.session import InferenceSession, SessionOptions
-    from depthnerf.render.precision import CPU_RAY_CHUNK
 
     device = torch.device(args.device or ("cuda" if torch.cuda.is_available() else "cpu"))
-    chunk = CPU_RAY_CHUNK if device.type == "cpu" else inference_policy(device).ray_chunk
+    own = inference_policy(device)  # the device's chunks; the precision is what varies
     policies = {
-        "fp32": InferencePolicy(autocast=None, ray_chunk=chunk, point_chunk=None, compile=False),
-        "bf16": InferencePolicy(autocast=torch.bfloat16, ray_chunk=chunk, point_chunk=None, compile=False),
-        "bf16+bf16res": InferencePolicy(autocast=torch.bfloat16, ray_chunk=chunk, point_chunk=None, compile=False,
-                                        residual=torch.bfloat16),
+        "fp32": dataclasses.replace(own, autocast=None),
+        "bf16": dataclasses.replace(own, autocast=torch.bfloat16),
+        "bf16+bf16res": dataclasses.replace(own, autocast=torch.bfloat16, residual=torch.bfloat16),
     }
     cfg = ProtocolConfig(views_stride=args.views_stride, max_objects=args.objects, mesh=False, progress=False)
     per_object: dict[str, dict[str, float]] = {}

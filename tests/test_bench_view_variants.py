@@ -4,6 +4,7 @@ checkpoint and objects (its fp32 row is the CPU policy's eval, exactly), and the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -61,12 +62,11 @@ def test_a_bf16_residual_evaluation_is_not_resumed_as_another(tmp_path):
     import torch
 
     from depthnerf.errors import DepthnerfError
-    from depthnerf.render.precision import CPU_RAY_CHUNK, InferencePolicy
+    from depthnerf.render.precision import inference_policy
 
     data = make_srn_fixture(tmp_path / "data", splits={"test": 1}, views=66, size=16, with_depth=True)
     ckpt = tiny_checkpoint(tmp_path / "tiny.safetensors")
-    policy = InferencePolicy(autocast=torch.bfloat16, ray_chunk=CPU_RAY_CHUNK, point_chunk=None, compile=False,
-                             residual=torch.bfloat16)
+    policy = dataclasses.replace(inference_policy("cpu"), autocast=torch.bfloat16, residual=torch.bfloat16)
     cfg = ProtocolConfig(views_stride=30, max_objects=1, mesh=False, progress=False)
     out = tmp_path / "eval"
     evaluate_protocol(InferenceSession(ckpt, SessionOptions(device="cpu", inputs="dataset", data_root=data,

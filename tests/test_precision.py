@@ -13,12 +13,18 @@ import depthnerf.render.precision as precision
 from depthnerf.errors import DepthnerfError
 from depthnerf.model import PixelNeRF
 from depthnerf.model.pixelnerf import FieldRuntime
-from depthnerf.render.precision import CPU_RAY_CHUNK, CUDA_POINT_CHUNK, field_runtime, inference_policy
+from depthnerf.render.precision import (
+    CPU_POINT_CHUNK,
+    CPU_RAY_CHUNK,
+    CUDA_POINT_CHUNK,
+    field_runtime,
+    inference_policy,
+)
 
 
 def test_policy_per_device():
     cpu = inference_policy("cpu")
-    assert cpu.autocast is None and cpu.ray_chunk == CPU_RAY_CHUNK == 4096 and cpu.point_chunk is None
+    assert cpu.autocast is None and cpu.ray_chunk == CPU_RAY_CHUNK == 4096 and cpu.point_chunk == CPU_POINT_CHUNK
     cuda = inference_policy("cuda")
     assert cuda.autocast == torch.bfloat16 and cuda.ray_chunk > cpu.ray_chunk and cuda.point_chunk == CUDA_POINT_CHUNK
     assert inference_policy("cuda", fp32=True).autocast is None
@@ -82,13 +88,17 @@ def test_the_residual_dtype_is_refused_with_autograd():
 
 
 @torch.no_grad()
-def test_cpu_runtime_changes_no_bit_and_bf16_stays_close():
+def test_cpu_runtime_is_fp32_in_its_point_chunks_and_bf16_stays_close():
     model = randomize(PixelNeRF(small_config(), depth_aware=False))
     enc = model.encode(sources())
     pts, dirs = query(r=9, s=5)
     ref_rgb, ref_sigma = model.field(enc, "fine")(pts, dirs)
     rgb, sigma = model.field(enc, "fine", field_runtime(model, inference_policy("cpu")))(pts, dirs)
-    assert torch.equal(rgb, ref_rgb) and torch.equal(sigma, ref_sigma)
+    # the CPU runtime is fp32 in CPU_POINT_CHUNK chunks: exactly that, and the config's chunking to fp32 rounding
+    own = model.field(enc, "fine", FieldRuntime(chunk_points=CPU_POINT_CHUNK))(pts, dirs)
+    assert torch.equal(rgb, own[0]) and torch.equal(sigma, own[1])
+    torch.testing.assert_close(rgb, ref_rgb, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(sigma, ref_sigma, rtol=1e-5, atol=1e-5)
     # the CUDA settings' logic, on the CPU: bf16 autocast and another point chunk (fp32 outputs, bf16 accuracy)
     rgb, sigma = model.field(enc, "fine", FieldRuntime(autocast=torch.bfloat16, chunk_points=11))(pts, dirs)
     assert rgb.dtype == torch.float32 and sigma.dtype == torch.float32

@@ -19,7 +19,7 @@ prior source
     weights are an error, or a warning when ``--depth-checkpoint`` asked for them.
 device policy
     :attr:`InferenceSession.policy` (:func:`~depthnerf.render.precision.inference_policy` of the device: bf16
-    autocast, large ray chunks and point chunks on CUDA, fp32 and 4096 rays on the CPU; ``fp32`` / ``compile``
+    autocast, large ray chunks and point chunks on CUDA, fp32, 4096 rays and 16,384 points on the CPU; ``fp32`` / ``compile``
     flags), the :class:`~depthnerf.model.pixelnerf.FieldRuntime` it makes (:attr:`runtime`, built once: it holds
     the compiled MLP forwards with ``compile``) and the rays per pass (:attr:`chunk`: ``SessionOptions.chunk``,
     else the policy's). Explicit arguments of every render call, never state on the model.

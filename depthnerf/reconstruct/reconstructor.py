@@ -12,7 +12,7 @@ Camera
 Session
     A Reconstructor is a thin user of an :class:`~depthnerf.infer.session.InferenceSession` on photos: the
     checkpoint's spec with the caller's overrides, the prior source, the device policy (bf16 and large ray chunks
-    on CUDA, fp32 and 4096 rays on the CPU) and the guided setup are resolved there, once, for the CLI, the
+    on CUDA, fp32, 4096 rays and 16,384 points on the CPU) and the guided setup are resolved there, once, for the CLI, the
     Python API, the demo and the app alike.
 Depth prior (depth-aware checkpoints)
     The checkpoint's estimator run live on the prepared image at the training resolution (the session's

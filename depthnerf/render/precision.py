@@ -1,14 +1,14 @@
 """Inference speed policy in one place: device -> autocast dtype, ray chunk, field point chunk, torch.compile.
 
 =================  ==========================  ============================================================
-setting            CPU (unchanged numerics)    CUDA
+setting            CPU (fp32)                  CUDA
 =================  ==========================  ============================================================
 field precision    fp32                        bf16 autocast (linears in bf16; residual stream, features'
                                                sampling weights and rgb/sigma fp32); ``--fp32`` turns it off
 rays per pass      4096 (``CPU_RAY_CHUNK``)    65536 (``CUDA_RAY_CHUNK``): 4 views of 128x128 per pass, so
                                                the views of one object render in large batches
-field points       the config's chunk_points   1,048,576 per chunk (``CUDA_POINT_CHUNK``; bounds memory at
-                   (4096)                      about 8 KB per point for the paper's d_hidden 512)
+field points       16,384 per chunk            1,048,576 per chunk (``CUDA_POINT_CHUNK``; bounds memory at
+                   (``CPU_POINT_CHUNK``)       about 8 KB per point for the paper's d_hidden 512)
 torch.compile      off                         off; ``--compile`` compiles the field MLPs (opt-in; one
                                                H100: 230 -> 91 ms per paper-sampler view, docs/speed.md);
                                                ``--compile-mode`` picks inductor's mode (e.g.
@@ -40,6 +40,12 @@ from depthnerf.render.config import COMPILE_MODES
 
 CPU_RAY_CHUNK = 4096
 """Rays per render pass on the CPU (the value every CPU figure in docs/speed.md was measured with)."""
+CPU_POINT_CHUNK = 16384
+"""Field points per MLP call on the CPU at inference. The models' own ``chunk_points`` (4096) is slower with two
+threads: one photo (``cpu-cars-sym-pp``, 8 views and a 64-sample mesh) took 6.33 s best, 7.42 median with it
+against 5.11 / 5.37 s with 16384 on 2 threads, and 8.24 / 8.34 against 7.81 / 8.21 s on one
+(``OMP_NUM_THREADS=N python benchmarks/bench_point_chunk.py --rounds 3``; 32768 was no better on 2 threads and
+slower on one)."""
 CUDA_RAY_CHUNK = 65536
 """Rays per render pass on CUDA."""
 CUDA_POINT_CHUNK = 1 << 20
@@ -89,7 +95,7 @@ def inference_policy(device: torch.device | str, *, fp32: bool = False, compile:
         return InferencePolicy(autocast=None if fp32 else torch.bfloat16, ray_chunk=CUDA_RAY_CHUNK,
                                point_chunk=CUDA_POINT_CHUNK, compile=compile, compile_mode=mode,
                                residual=torch.bfloat16 if bf16_residual else None)
-    return InferencePolicy(autocast=None, ray_chunk=CPU_RAY_CHUNK, point_chunk=None, compile=compile,
+    return InferencePolicy(autocast=None, ray_chunk=CPU_RAY_CHUNK, point_chunk=CPU_POINT_CHUNK, compile=compile,
                            compile_mode=mode)
 
 
