@@ -17,8 +17,9 @@ from depthnerf.data.srn import ObjectRecord, load_object
 from depthnerf.depth.prior import DatasetViews, PriorSource
 from depthnerf.eval.metrics import object_metrics
 from depthnerf.model.conditioning import condition
-from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.model.pixelnerf import FieldRuntime, PixelNeRF
 from depthnerf.pretrained.spec import InferenceSpec
+from depthnerf.render.precision import inference_policy
 from depthnerf.render.views import render_views
 
 
@@ -43,6 +44,9 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: Pr
     (``progress(1)`` after each record); ``symmetry_plane``: the objects' mirror plane (mirror models)."""
     was_training = model.training
     model.eval()
+    # the device's field point chunk (on the CPU larger than the config's, which is slower there); the precision
+    # stays the model's: validation scores the fp32 model on every device
+    runtime = FieldRuntime(chunk_points=inference_policy(device, fp32=True).point_chunk)
     scores, images = [], {}
     resolution, (near, far), render_cfg = spec.resolution, spec.z_range, spec.render
     try:
@@ -54,7 +58,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: Pr
                              where=DatasetViews(record, (src,)), symmetry_plane=symmetry_plane)
             disparity = cond.disparity
             enc = model.encode(cond.inputs)
-            out = render_views(model.field(enc, "coarse"), model.field(enc, "fine"),
+            out = render_views(model.field(enc, "coarse", runtime), model.field(enc, "fine", runtime),
                                obj.poses[1:].to(device), obj.intrinsics, near, far, render_cfg, chunk=chunk)
             preds = out.rgb.cpu().numpy()
             gts = obj.images[1:].permute(0, 2, 3, 1).numpy()
