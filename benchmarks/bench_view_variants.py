@@ -35,7 +35,9 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
 from bench_gpu import synthetic_batch, timed, view_source  # noqa: E402
+from paired_difference import read_per_object  # noqa: E402
 
 from depthnerf.data.cameras import look_at  # noqa: E402
 from depthnerf.render.precision import InferencePolicy, field_runtime, inference_policy  # noqa: E402
@@ -142,10 +144,7 @@ def accuracy(args, out: dict) -> None:
             t0 = time.perf_counter()
             result = evaluate_protocol(session, Path(tmp) / name, cfg)
             out["seconds"][name] = time.perf_counter() - t0
-            rows = (Path(tmp) / name / "per_object.csv").read_text().splitlines()
-            head = rows[0].split(",")
-            per_object[name] = {r.split(",")[head.index("object_id")]: float(r.split(",")[head.index("psnr")])
-                                for r in rows[1:]}
+            per_object[name] = {k: float(row["psnr"]) for k, row in read_per_object(Path(tmp) / name).items()}
             out["psnr"][name] = result.summary["psnr"]
             print(f"{name:13s} PSNR {result.summary['psnr']:.4f} ({out['seconds'][name]:.0f} s)")
     for name in ("bf16", "bf16+bf16res"):
