@@ -49,6 +49,15 @@ def wait_until_serving(url: str, proc: subprocess.Popen, timeout: float) -> None
     raise SystemExit(f"the app did not serve {url} within {timeout} s")
 
 
+def reconstruct_arguments(image, checkpoint: str, fill: float, views: int) -> dict:
+    """Keyword arguments of the page's ``/reconstruct`` endpoint for one photo: the model menu's checkpoint, the
+    fill it was trained at, ``views`` orbit views, the empty text fields (which have no default in the API) and
+    every other field at the page's default. Named, so a field added to the page cannot shift them;
+    ``tests/test_app.py`` checks them against the page's API."""
+    return {"image": image, "model": checkpoint, "ckpt_path": "", "prior_ckpt": "", "bg_model": "", "ratio": fill,
+            "views": views}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=8, help="orbit views per request (app default 8)")
@@ -57,7 +66,9 @@ def main() -> None:
     args = parser.parse_args()
     from gradio_client import Client, handle_file
 
+    from depthnerf import Reconstructor
     from depthnerf.app.logic import examples
+    from depthnerf.pretrained.recommended import RECOMMENDED
 
     print(f"cpus {os.cpu_count()}, OMP_NUM_THREADS {os.environ.get('OMP_NUM_THREADS', 'unset')}, "
           f"load average (1 min) {os.getloadavg()[0]:.2f}")
@@ -76,11 +87,12 @@ def main() -> None:
             print(f"app serving after {time.perf_counter() - t0:.1f} s (imports, first checkpoint loaded)")
             client = Client(url, verbose=False)
             for example in examples():
-                model = "cpu-cars-depth" if example.name.startswith("car") else "cpu-chairs-depth"
+                checkpoint = RECOMMENDED["cars" if example.name.startswith("car") else "chairs"]
+                fill = Reconstructor.from_pretrained(checkpoint).default_fill
                 for k in range(args.repeats):
                     t = time.perf_counter()
-                    out = client.predict(handle_file(str(example)), model, "", "bundled", "",
-                                         0.65 if "cars" in model else 0.6, 20, args.views, api_name="/reconstruct")
+                    out = client.predict(**reconstruct_arguments(handle_file(str(example)), checkpoint, fill,
+                                                                 args.views), api_name="/reconstruct")
                     wall = time.perf_counter() - t
                     status, details = out[0], out[7]
                     done = re.search(r"done in ([0-9.]+) s", status)

@@ -348,3 +348,22 @@ def test_the_temporary_run_folder_is_removed_on_sigterm(monkeypatch, capsys, tmp
     printed = re.search(r"runs are written to (\S+)\)", capsys.readouterr().out)
     assert printed and Path(printed.group(1)).parent == tmp_path and not Path(printed.group(1)).exists()
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_the_app_benchmark_calls_the_reconstruct_endpoint_by_its_parameter_names(session):
+    """``benchmarks/bench_app.py`` names real parameters of the page's ``/reconstruct`` API and gives every one
+    without a default (the client refuses a call without them), so a field added to the page cannot shift its
+    call."""
+    pytest.importorskip("gradio", reason="gradio is not installed (pip install -e '.[app]')")
+    from depthnerf.app.page import build_page
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_app.py"
+    spec = importlib.util.spec_from_file_location("bench_app", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    given = bench.reconstruct_arguments("photo.png", "cpu-chairs-sym-pp", 0.43, 8)
+    parameters = build_page(session).get_api_info()["named_endpoints"]["/reconstruct"]["parameters"]
+    names = {p["parameter_name"] for p in parameters}
+    required = {p["parameter_name"] for p in parameters if not p.get("parameter_has_default")}
+    assert set(given) <= names, set(given) - names
+    assert required <= set(given), required - set(given)

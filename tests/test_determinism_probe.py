@@ -3,7 +3,7 @@ comparison finds a planted difference in a logged loss and in one checkpoint ten
 
 The runs use one thread each: with two, one CI run on a busy machine once saw the two runs part at step 2, which 31
 reruns here (quiet and loaded) did not reproduce; one thread takes the order of threaded float reductions out of
-the question this test asks (README, "What is exact where")."""
+the question this test asks (docs/training.md, "What is exact where")."""
 
 from __future__ import annotations
 
