@@ -58,6 +58,7 @@ from depthnerf.eval.metrics import object_metrics
 from depthnerf.eval.objects import prepare_object
 from depthnerf.files import write_text_atomic
 from depthnerf.infer.session import InferenceSession, SessionOptions
+from depthnerf.pretrained.hub import is_hub_reference
 from depthnerf.pretrained.load import resolve_checkpoint, shipped_checkpoints
 from depthnerf.pretrained.recommended import RECOMMENDED
 from depthnerf.reconstruct.exports import save_reconstruction, to_u8
@@ -136,7 +137,8 @@ def load_checkpoint_for(category: str, checkpoint: str, device: torch.device | s
     try:
         resolve_checkpoint(checkpoint)
     except DepthnerfError:
-        if checkpoint in DEFAULT_CHECKPOINTS.values() or not Path(checkpoint).exists():
+        if checkpoint in DEFAULT_CHECKPOINTS.values() or not (is_hub_reference(checkpoint)
+                                                              or Path(checkpoint).exists()):
             shipped = ", ".join(shipped_checkpoints()) or "none"
             raise DepthnerfError(f"checkpoint '{checkpoint}' for {category} is not installed (shipped: {shipped}); "
                                  "'depthnerf checkpoints' lists the shipped ones, or pass "

@@ -42,7 +42,8 @@ COLLECTIVE_TIMEOUT = timedelta(hours=6)
 def add_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--run", type=Path, help="run folder (uses checkpoints/best, else the latest checkpoint)")
-    src.add_argument("--checkpoint", help="weights file, checkpoint folder or shipped name (depthnerf checkpoints)")
+    src.add_argument("--checkpoint", help="weights file, checkpoint folder, shipped name (depthnerf checkpoints) or "
+                     "Hub file hf://OWNER/REPO[/FILE][@REVISION]")
     p.add_argument("--data", type=Path, help="dataset root (default: the run's training data root)")
     p.add_argument("--category", help="category folder prefix (default: the run's)")
     p.add_argument("--split", default="test", choices=["train", "val", "test"], help="split (default test)")

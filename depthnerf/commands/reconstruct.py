@@ -24,7 +24,8 @@ from depthnerf.render.config import DEFAULT_BUDGET
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("image", type=Path, help="input photo (RGB, RGBA or grayscale)")
     p.add_argument("--checkpoint", required=True,
-                   help="model weights: weights file, checkpoint/run folder or shipped name")
+                   help="model weights: weights file, checkpoint/run folder, shipped name or Hub file "
+                        "hf://OWNER/REPO[/FILE][@REVISION]")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (manifest.json lists every file); checked before any work")
     p.add_argument("--overwrite", action="store_true",

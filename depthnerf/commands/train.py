@@ -56,7 +56,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     p.add_argument("--seed", type=int, help="run seed")
     p.add_argument("--init-from", metavar="CHECKPOINT",
-                   help="warm start: a new run's network weights from this checkpoint (shipped name or path; same "
+                   help="warm start: a new run's network weights from this checkpoint (shipped name, path or "
+                        "hf://OWNER/REPO; same "
                         "model config and prior); step, optimiser and schedule start fresh")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its last checkpoint (or start it when it has none; "

@@ -30,6 +30,7 @@ from torch import Tensor
 from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_files
+from depthnerf.hub_access import hub_reachable
 
 DEFAULT_CHECKPOINT = "depth-anything/Depth-Anything-V2-Base-hf"
 """The paper's estimator (Depth Anything V2 Base, relative depth)."""
@@ -95,25 +96,6 @@ def _processor_size(path: Path) -> int | None:
     return size if isinstance(size, int) else None
 
 
-def _hub_reachable(timeout: float = 5.0) -> bool:
-    """False when ``HF_HUB_OFFLINE`` is set or the hub's host does not answer a TCP connect within ``timeout``
-    seconds (saves the minutes of retries ``from_pretrained`` spends offline)."""
-    import socket
-    from urllib.parse import urlparse
-
-    from huggingface_hub import constants
-
-    if constants.HF_HUB_OFFLINE:
-        return False
-    url = urlparse(constants.ENDPOINT)
-    try:
-        socket.create_connection((url.hostname, url.port or (443 if url.scheme == "https" else 80)),
-                                 timeout=timeout).close()
-    except OSError:
-        return False
-    return True
-
-
 class DepthAnythingEstimator(FrozenNetworkEstimator):
     """Frozen Depth Anything V2 (any size) from ``transformers`` (``network``, with its image ``processor``);
     see the module docstring."""
@@ -136,7 +118,7 @@ class DepthAnythingEstimator(FrozenNetworkEstimator):
         attempts = [True] if local is not None else [True, False]  # local files / HF cache first, then the hub
         reason = ""
         for local_only in attempts:
-            if not local_only and not _hub_reachable():
+            if not local_only and not hub_reachable():
                 reason = "not in the local Hugging Face cache and the hub is unreachable"
                 break
             try:

@@ -6,7 +6,9 @@
    but whose card stays in ``depthnerf/checkpoints/retired/``, is an error pointing to that card);
 2. a ``.safetensors`` weights file written by training or by ``scripts/export_checkpoint.py``;
 3. a checkpoint directory (``RUN/checkpoints/step_XXXXXXXX`` or ``.../best``);
-4. a run directory: its ``checkpoints/best`` if validation ran, else its latest checkpoint.
+4. a run directory: its ``checkpoints/best`` if validation ran, else its latest checkpoint;
+5. a Hugging Face Hub file, ``hf://OWNER/REPO[/FILE][@REVISION]`` (:mod:`depthnerf.pretrained.hub`), fetched
+   into the Hugging Face cache and then read as a local weights file.
 
 The weights' metadata carries the inference spec (:mod:`depthnerf.pretrained.spec`; derived from the stored
 model and training configs for checkpoints written before specs existed, and its framing derived here for specs
@@ -27,6 +29,7 @@ from depthnerf.depth.prior import portable_prior
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import PixelNeRF
+from depthnerf.pretrained.hub import fetch_hub_checkpoint, is_hub_reference
 from depthnerf.pretrained.spec import InferenceSpec, spec_from_metadata
 from depthnerf.pretrained.weights import latest_checkpoint, load_state_strict, read_weights
 
@@ -52,6 +55,8 @@ def resolve_checkpoint(checkpoint: str | Path) -> Path:
     shipped = shipped_checkpoints()
     if isinstance(checkpoint, str) and checkpoint in shipped:
         return shipped[checkpoint]
+    if is_hub_reference(checkpoint):
+        return fetch_hub_checkpoint(checkpoint)
     path = Path(checkpoint)
     if path.is_file():
         return path
@@ -70,8 +75,8 @@ def resolve_checkpoint(checkpoint: str | Path) -> Path:
         raise DepthnerfError(f"{checkpoint}: a retired checkpoint, no longer shipped with depthnerf; its card "
                              f"{retired[checkpoint]} names what replaced it and the commands that rebuild it")
     names = ", ".join(shipped) or "none shipped"
-    raise DepthnerfError(f"{checkpoint}: not a checkpoint file, checkpoint folder, run folder or shipped name "
-                         f"({names})")
+    raise DepthnerfError(f"{checkpoint}: not a checkpoint file, checkpoint folder, run folder, shipped name "
+                         f"({names}) or Hub file (hf://OWNER/REPO)")
 
 
 @dataclass

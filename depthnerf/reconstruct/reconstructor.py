@@ -152,8 +152,8 @@ class Reconstructor:
     def from_pretrained(cls, checkpoint: str | Path | Pretrained, device: torch.device | str = "cpu",
                         depth_estimator: str | None = None, depth_checkpoint: str | None = None,
                         **options: Any) -> Reconstructor:
-        """Load a shipped name, weights file, checkpoint folder or run folder (``load_pretrained``) into a session
-        on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
+        """Load a shipped name, weights file, checkpoint folder, run folder or Hub file (``hf://OWNER/REPO``;
+        ``load_pretrained``) into a session on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
         checkpoint's prior, ``options`` are further :class:`~depthnerf.infer.session.SessionOptions` (``fp32``,
         ``compile``, ``compile_mode``, ``bf16_residual``, ``chunk``, ``guided``, ``pixel_center``, ``policy``,
         ``inputs``)."""
