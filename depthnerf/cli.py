@@ -47,7 +47,8 @@ def _command_module(name: str):
 
 def build_parser(argv: list[str]) -> argparse.ArgumentParser:
     """The top-level parser; only the selected subcommand's module is imported."""
-    parser = OneLineParser(prog="depthnerf", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="depthnerf", description="Single-image 3D object reconstruction with a depth-aware "
+                           "pixelNeRF. Start with `depthnerf demo`; `depthnerf COMMAND --help` for each command.")
     parser.add_argument("--version", action="version", version=f"depthnerf {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     chosen = next((a for a in argv if not a.startswith("-")), None)

@@ -8,6 +8,7 @@ mesh have closed forms), an ``oracle``-prior one and a baseline one.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -259,6 +260,24 @@ def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys
                  str(tmp_path / "h"), "--guided", "5"]) == 2
     assert "--guided 5: a guided budget needs >= 6" in capsys.readouterr().err
 
+
+
+def test_the_python_api_takes_a_guided_budget_as_the_cli_does(models):
+    """``guided=12`` (session or per call) is ``--guided 12``; ``True`` the default budget; other values one line."""
+    rec = Reconstructor.from_pretrained(models["constant"], guided=12)
+    assert rec.session.guided == dataclasses.replace(guided_config(12), enabled=True)
+    assert Reconstructor.from_pretrained(models["constant"], guided=True).session.guided.budget == DEFAULT_BUDGET
+    assert Reconstructor.from_pretrained(models["constant"], guided=False).session.guided is None
+    res = rec.reconstruct(disc_photo(), config=ReconstructConfig(views=2, mesh_resolution=0))
+    assert res.settings["guided_sampling"] == 12
+    plain = rec.reconstruct(disc_photo(), config=ReconstructConfig(views=2, mesh_resolution=0, guided=False))
+    assert plain.settings["guided_sampling"] is None
+    per_call = Reconstructor.from_pretrained(models["constant"]).reconstruct(
+        disc_photo(), config=ReconstructConfig(views=2, mesh_resolution=0, guided=24))
+    assert per_call.settings["guided_sampling"] == 24
+    with pytest.raises(DepthnerfError) as err:
+        Reconstructor.from_pretrained(models["constant"], guided="fast")
+    assert str(err.value).startswith("guided='fast': give a budget") and "\n" not in str(err.value)
 
 def test_config_names_the_flag_of_a_setting_that_cannot_work():
     for kwargs, message in (({"mesh_keep": "most"}, "--mesh-keep must be one of all, largest, got 'most'"),

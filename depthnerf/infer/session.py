@@ -61,7 +61,7 @@ from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, input_camera_mesh
 from depthnerf.render.mesh_level import MeshLevel
 from depthnerf.render.precision import InferencePolicy, check_precision_flags, field_runtime, inference_policy
-from depthnerf.render.source_guide import make_source_guide
+from depthnerf.render.source_guide import as_guided, make_source_guide
 from depthnerf.render.views import ViewRenders, render_poses
 
 Inputs = Literal["photos", "views", "dataset"]
@@ -98,9 +98,10 @@ class SessionOptions:
     """``--bf16-residual``: keep the MLPs' residual stream in bf16 under CUDA's bf16 autocast."""
     chunk: int | None = None
     """Rays per render pass (``--chunk``); None: the device policy's."""
-    guided: GuidedConfig | None = None
-    """Depth-guided sampling (``--guided``: :func:`~depthnerf.render.source_guide.guided_config`); None: the
-    checkpoint's own sampler."""
+    guided: GuidedConfig | int | bool | None = None
+    """Depth-guided sampling (``--guided [BUDGET]``): a budget (samples per occupied ray), True for the default
+    budget or a :class:`GuidedConfig` (:func:`~depthnerf.render.source_guide.as_guided`); None: the checkpoint's
+    own sampler."""
     pixel_center: float | None = None
     """``--pixel-center``: read data with another pixel-centre convention; None: the checkpoint's."""
     policy: InferencePolicy | None = None
@@ -191,7 +192,8 @@ class InferenceSession:
             raise DepthnerfError("a session on dataset inputs needs the dataset root (SessionOptions.data_root)")
         prior = resolve_prior(trained.prior, options.depth, options.depth_checkpoint,
                               photos=options.inputs == "photos", where=self.name)
-        guided = None if options.guided is None else dataclasses.replace(options.guided, enabled=True)
+        guided = as_guided(options.guided)
+        guided = None if guided is None else dataclasses.replace(guided, enabled=True)
         self.spec = dataclasses.replace(
             trained, prior=prior,
             prior_weights_hash=trained.prior_weights_hash if prior == trained.prior else None,

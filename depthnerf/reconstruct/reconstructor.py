@@ -59,6 +59,7 @@ from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, check_mesh_keep, keep_pieces
 from depthnerf.render.mesh_level import AUTO_LEVEL
+from depthnerf.render.source_guide import as_guided
 from depthnerf.render.views import ViewRenders
 
 POINT_OPACITY = 0.5
@@ -98,9 +99,10 @@ class ReconstructConfig:
     """Largest point-cloud size (None: every point)."""
     chunk: int | None = None
     """Rays per render pass; None: the session's (the device policy's: 4096 on the CPU, 65536 on CUDA)."""
-    guided: GuidedConfig | None = None
-    """Render with depth-guided sampling (:func:`~depthnerf.render.source_guide.guided_config`); None: the
-    session's guided setup (by default the checkpoint's own sampler)."""
+    guided: GuidedConfig | int | bool | None = None
+    """Render with depth-guided sampling: a budget, True for the default one, or a :class:`GuidedConfig`
+    (:func:`~depthnerf.render.source_guide.as_guided`); False: the checkpoint's own sampler; None: the session's
+    guided setup (by default the checkpoint's own sampler)."""
     progress: bool = False
     """Show a progress bar (stderr)."""
     background_removal: str = "auto"
@@ -257,7 +259,7 @@ class Reconstructor:
     def render(self, encoded: EncodedView, poses: Float[torch.Tensor, "N 4 4"], intr: Intrinsics,
                cfg: ReconstructConfig, on_group: Callable[[int], Any] | None = None) -> ViewRenders:
         """Render ``poses`` of an encoded view at ``intr`` (depth-guided with ``cfg.guided`` or the session's)."""
-        guided = self.session.guided if cfg.guided is None else cfg.guided
+        guided = self.session.guided if cfg.guided is None else as_guided(cfg.guided, "ReconstructConfig.guided")
         return self.session.render(encoded, poses, intr, guided=guided, chunk=cfg.chunk, on_group=on_group)
 
     @torch.no_grad()
@@ -267,7 +269,7 @@ class Reconstructor:
         """The orbit ``poses`` rendered at ``render_intr``, the mesh of the input frustum and the point cloud."""
         spec = self.session.spec
         near, far = spec.z_range
-        guided = self.session.guided if cfg.guided is None else cfg.guided
+        guided = self.session.guided if cfg.guided is None else as_guided(cfg.guided, "ReconstructConfig.guided")
         times: dict[str, float] = {}
         bar = tqdm(total=len(poses) + 1, desc="reconstruct", unit="step", file=sys.stderr, disable=not cfg.progress)
         t = time.perf_counter()

@@ -34,8 +34,8 @@ from depthnerf.render.depth_guide import DepthGuide, align_disparity_to_depth, b
 from depthnerf.render.pipeline import FieldFn, render_image
 from depthnerf.render.rays import RayBundle, camera_z_of_directions, rays_from_camera
 
-__all__ = ["DEFAULT_BUDGET", "MIN_BUDGET", "SourceGuide", "guided_config", "guided_record", "make_source_guide",
-           "source_depth"]
+__all__ = ["DEFAULT_BUDGET", "MIN_BUDGET", "SourceGuide", "as_guided", "guided_config", "guided_record",
+           "make_source_guide", "source_depth"]
 
 MIN_BUDGET = 6
 """Fewest samples per occupied ray a guided budget may have (one per occupied-ray count, and more)."""
@@ -66,6 +66,22 @@ def guided_config(budget: int = DEFAULT_BUDGET, align_samples: int = 32, base: G
     return dataclasses.replace(base or GuidedConfig(), enabled=True, n_uniform=n_uniform, n_window=n_window,
                                n_importance=n_importance, n_gaussian=n_gaussian, n_empty=n_empty,
                                n_empty_importance=n_empty_importance, align_samples=align_samples)
+
+
+def as_guided(value: GuidedConfig | int | bool | None, where: str = "guided") -> GuidedConfig | None:
+    """A guided request as the Python API takes it: a :class:`GuidedConfig` as it is, a budget (``guided=48``, the
+    CLI's ``--guided 48``) through :func:`guided_config`, ``True`` at the default budget, ``None`` / ``False`` for
+    none; anything else is a one-line error naming ``where``."""
+    if value is None or value is False:
+        return None
+    if value is True:
+        return guided_config()
+    if isinstance(value, GuidedConfig):
+        return value
+    if isinstance(value, int):
+        return guided_config(value)
+    raise DepthnerfError(f"{where}={value!r}: give a budget (samples per occupied ray, e.g. {DEFAULT_BUDGET}), True "
+                         f"for the default budget, a GuidedConfig, or None")
 
 
 def guided_record(guided: GuidedConfig) -> dict[str, Any]:
