@@ -307,10 +307,15 @@ def main() -> None:
         os.environ["DEPTHNERF_MALLOC_TUNING"] = "0"
     print(f"setting {args.setting}: {setting}; clock {args.clock}, {args.threads} threads")
     ctx = mp.get_context("spawn")
+    failed = []
     for name in args.cases:
         proc = ctx.Process(target=_run_case, args=(name, args, setting))
         proc.start()
         proc.join()
+        if proc.exitcode != 0:  # a case's traceback is on stderr; the run still goes on to the other cases
+            failed.append(f"{name} (exit {proc.exitcode})")
+    if failed:
+        raise SystemExit(f"error: cases failed: {', '.join(failed)}")
 
 
 if __name__ == "__main__":

@@ -42,6 +42,6 @@ for cat in $CATEGORIES; do
     [ -f "$ev/summary.json" ] || depthnerf eval --checkpoint "$PREFIX-$cat-$kind" --data "$DATA" --split test \
       --views-stride "$STRIDE" "${mesh[@]}" --out "$ev" --no-progress
   done
-  python scripts/paired_difference.py --baseline "$OUT/eval/$PREFIX-$cat-baseline" \
+  python "$(dirname "$0")/paired_difference.py" --baseline "$OUT/eval/$PREFIX-$cat-baseline" \
     --method "$OUT/eval/$PREFIX-$cat-depth" --json "$OUT/paired_$cat.json" | tee "$OUT/paired_$cat.md"
 done

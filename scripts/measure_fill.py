@@ -44,7 +44,7 @@ def main() -> int:
                                 "--train-objects", str(args.objects), "--val-objects", "0", "--test-objects", "0",
                                 "--resolution", str(args.resolution), "--framing", framing, "--quiet"], check=True)
                 fills = mask_fills(sorted((root / f"{category}_train").glob("*/mask/*.png")))
-                table = FRAMINGS[framing].fill(category)
+                table = FRAMINGS[framing].fill(category, float("nan"))  # nan: not measured yet
                 print(f"{framing:7s} {category:7s} median fill {np.median(fills):.3f} over {len(fills)} masks "
                       f"(10th-90th percentile {np.percentile(fills, 10):.3f}-{np.percentile(fills, 90):.3f}); "
                       f"Framing.fill: {table}")

@@ -46,7 +46,8 @@ def main(argv: list[str] | None = None) -> int:
                 return 2
             obj = prepare_object(session, rec, protocol_views(rec.num_views, 25))
             _, color_fn = field_queries(pre.model, obj.encoded.enc, obj.source.poses[0, :3, 3])
-            parts = sorted(trimesh.load(mesh_path).split(only_watertight=False), key=lambda m: -len(m.vertices))
+            mesh = trimesh.load(mesh_path, force="mesh")  # an empty eval mesh loads as an empty Trimesh
+            parts = sorted(mesh.split(only_watertight=False), key=lambda m: -len(m.vertices))
             cells = []
             for part in parts[:4]:
                 rgb = color_fn(torch.as_tensor(part.vertices, dtype=torch.float32)).numpy().mean(0)

@@ -42,6 +42,6 @@ for ck in $CHECKPOINTS; do
     [ -f "$ev/summary.json" ] || depthnerf eval --checkpoint "$ck" --data "$DATA" --category "$cat" --split test \
       --views-stride "$STRIDE" --no-mesh "${extra[@]}" --out "$ev" --no-progress
   done
-  python scripts/paired_difference.py --baseline "$OUT/eval/$ck-trained" --method "$OUT/eval/$ck-shifted" \
+  python "$(dirname "$0")/paired_difference.py" --baseline "$OUT/eval/$ck-trained" --method "$OUT/eval/$ck-shifted" \
     --json "$OUT/paired_$ck.json" | tee "$OUT/paired_$ck.md"
 done

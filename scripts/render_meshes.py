@@ -43,6 +43,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {file}: no mesh", file=sys.stderr)
             return 2
         mesh = trimesh.load(file, process=False, force="mesh")
+        if len(mesh.faces) == 0:
+            print(f"error: {file}: empty mesh (no faces)", file=sys.stderr)
+            return 2
         faces = mesh.faces[:: max(1, len(mesh.faces) // args.max_faces)]
         colors = np.asarray(mesh.visual.vertex_colors)[faces[:, 0], :3] / 255.0
         lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)

@@ -1,0 +1,173 @@
+"""Smoke runs of the benchmarks and scripts no other test runs, so that one broken by a change elsewhere
+fails here instead of on its next manual use: each runs as a subprocess (one thread) on tiny inputs and must
+exit 0 and print its key line; a few small scripts run their ``main()`` in this process, where starting Python
+would cost more than their work. The sizes only reach the code paths; no figure is checked.
+
+Left out, and why: ``benchmarks/bench_gather.py`` (a CUDA comparison), ``scripts/make_app_examples.py`` and
+the study shell scripts (minutes of synthesis, training or evaluation even at their smallest), and
+``benchmarks/bench_depth.py`` (a fixed 3 s timing loop; the estimators it times are tested elsewhere)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import trimesh
+from fixtures_checkpoints import save_tiny, tiny_config, tiny_run
+from fixtures_scripts import load_script
+from fixtures_srn import make_srn_fixture
+from PIL import Image
+from test_bench_guided import tiny_checkpoint
+
+from depthnerf.data.srn import index_split
+from depthnerf.data.synth.framing import FRAMINGS
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run_script(script: str, *args: object) -> subprocess.CompletedProcess:
+    """``python <script> args`` from the repository root on one thread; asserts it exits 0."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, str(ROOT / script), *map(str, args)], capture_output=True,
+                          text=True, env=env, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, (f"{script} exited {proc.returncode}:\n{proc.stdout[-1500:]}\n"
+                                  f"{proc.stderr[-3000:]}")
+    return proc
+
+
+def run_main(monkeypatch, capsys, name: str, *args: object) -> tuple[object, str]:
+    """``scripts/<name>.py``'s ``main()`` in this process with ``args`` as its command line: its return value
+    and what it printed."""
+    module = load_script(name)
+    monkeypatch.setattr(sys, "argv", [f"{name}.py", *map(str, args)])
+    capsys.readouterr()
+    return module.main(), capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> dict[str, Path]:
+    """Two 16 px test objects of 66 views (input view 64) with depth, masks and meshes, a random depth-aware
+    checkpoint (oracle prior) and a random baseline one."""
+    tmp = tmp_path_factory.mktemp("smoke")
+    data = make_srn_fixture(tmp / "data", "cars", {"test": 2}, views=66, size=16, with_depth=True,
+                            with_mask=True, with_mesh=True)
+    return {"tmp": tmp, "data": data, "depth": tiny_checkpoint(tmp / "depth.safetensors"),
+            "plain": save_tiny(tmp / "plain.safetensors", tiny_config("cars", "none"))}
+
+
+def coloured_box() -> trimesh.Trimesh:
+    box = trimesh.creation.box(extents=(0.4, 0.2, 0.1))
+    box.visual.vertex_colors = np.tile([200, 40, 40, 255], (len(box.vertices), 1))
+    return box
+
+
+def empty_mesh() -> trimesh.Trimesh:
+    """What ``depthnerf eval`` writes for an object with no surface."""
+    return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=int))
+
+
+def test_checkpoint_framing_prints_the_shipped_models_framing(monkeypatch, capsys):
+    code, out = run_main(monkeypatch, capsys, "checkpoint_framing", "cpu-cars-depth")
+    assert code == 0 and out.strip() in FRAMINGS
+
+
+def test_synth_contact_sheet(tiny, monkeypatch, capsys):
+    sheet = tiny["tmp"] / "sheet.png"
+    _, out = run_main(monkeypatch, capsys, "synth_contact_sheet", tiny["data"] / "cars_test", "--view", "64",
+                      "--depth", "--out", sheet)
+    width, height = Image.open(sheet).size
+    assert out.strip() == f"wrote {sheet} ({width}x{height})" and height == 2 * 16  # RGB tiles over depth
+
+
+def test_bench_mesh():
+    proc = run_script("benchmarks/bench_mesh.py", "--resolution", "16", "--repeats", "1", "--points", "500")
+    assert "geometry_metrics (500 points per mesh)" in proc.stdout
+
+
+def test_bench_eval():
+    proc = run_script("benchmarks/bench_eval.py", "--views", "1", "--resolution", "8", "--mesh-resolution",
+                      "8", "--threads", "1")
+    assert "render 1 views" in proc.stdout and "total for one object" in proc.stdout
+
+
+def test_bench_synth():
+    proc = run_script("benchmarks/bench_synth.py", "--category", "cars", "--objects", "1", "--workers", "1",
+                      "--resolution", "16", "--breakdown-objects", "1")
+    assert "[breakdown, 1 process" in proc.stdout and "[end to end, 1 workers" in proc.stdout
+
+
+def test_bench_model():
+    proc = run_script("benchmarks/bench_model.py", "--setting", "cpu-64-r18", "--cases", "view", "--threads",
+                      "1", "--repeat", "1", "--view-sizes", "8")
+    assert "view  8x8 fp32" in proc.stdout and "[view: peak RSS" in proc.stdout
+
+
+def test_bench_point_chunk(tiny):
+    proc = run_script("benchmarks/bench_point_chunk.py", "--checkpoint", tiny["plain"], "--chunks", "4096",
+                      "--rounds", "1", "--views", "1", "--mesh-resolution", "8")
+    assert "point chunk   4096:" in proc.stdout
+
+
+def test_bench_api_vs_cli(tiny):
+    """The ``api`` case (its script is a string no linter reads); ``cli`` would cost another process."""
+    proc = run_script("benchmarks/bench_api_vs_cli.py", "--checkpoint", tiny["plain"], "--views", "1",
+                      "--mesh-resolution", "8", "--threads", "1", "--cases", "api")
+    assert any(line.startswith("api ") and "reconstruct" in line for line in proc.stdout.splitlines())
+
+
+def test_floater_probe(tiny):
+    out = tiny["tmp"] / "floaters.json"
+    proc = run_script("scripts/floater_probe.py", "--checkpoint", tiny["depth"], "--data", tiny["data"],
+                      "--objects", "1", "--stride", "65", "--mesh-resolution", "8", "--json", out)
+    assert "| as-trained |" in proc.stdout and "| no-mask-prior |" in proc.stdout
+    result = json.loads(out.read_text())
+    assert result["objects"] == 1 and len(result["means"]) == 5
+
+
+def test_mesh_components_of_a_mesh_and_an_empty_one(tiny):
+    run = tiny_run(tiny["tmp"] / "runs" / "tiny", tiny_config("cars", "none"))
+    meshes = tiny["tmp"] / "eval" / "tiny" / "meshes"  # the default --eval-root: RUN/../../eval
+    meshes.mkdir(parents=True)
+    first, second = (r.object_id for r in index_split(tiny["data"], "cars", "test").objects)
+    coloured_box().export(meshes / f"{first}.ply")
+    empty_mesh().export(meshes / f"{second}.ply")
+    proc = run_script("scripts/mesh_components.py", run, "--data", tiny["data"], "--objects", "2")
+    assert f"tiny {first}: 1 components; 8 verts at" in proc.stdout
+    assert f"tiny {second}: 0 components" in proc.stdout
+
+
+def test_render_meshes(tiny, capsys):
+    pytest.importorskip("matplotlib", reason="matplotlib is not installed (pip install -e '.[figures]')")
+    box, empty, out = tiny["tmp"] / "box.ply", tiny["tmp"] / "empty.ply", tiny["tmp"] / "meshes.png"
+    coloured_box().export(box)
+    proc = run_script("scripts/render_meshes.py", box, "--labels", "box", "--out", out)
+    assert f"wrote {out}" in proc.stdout and out.is_file()
+    empty_mesh().export(empty)
+    assert load_script("render_meshes").main([str(empty), "--out", str(tiny["tmp"] / "none.png")]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {empty}: empty mesh (no faces)"
+
+
+def test_measure_fill(monkeypatch, capsys):
+    """Its ``depthnerf synth`` calls run in this process too (four more processes would cost more than the
+    rest of this file); one 16 px object per framing and category."""
+    from depthnerf.cli import main as cli_main
+
+    fill = load_script("measure_fill")
+
+    def synth(cmd: list[str], check: bool) -> None:
+        assert cmd[1:4] == ["-m", "depthnerf", "synth"] and check
+        assert cli_main(cmd[3:]) == 0
+
+    monkeypatch.setattr(fill, "subprocess", SimpleNamespace(run=synth))
+    monkeypatch.setattr(sys, "argv", ["measure_fill.py", "--objects", "1", "--resolution", "16"])
+    assert fill.main() == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "median fill" in line]
+    assert len(lines) == 2 * len(FRAMINGS)
+    table = FRAMINGS["srn"].fill("cars", float("nan"))
+    assert any(line.startswith("srn     cars") and line.endswith(f"Framing.fill: {table}") for line in lines)
