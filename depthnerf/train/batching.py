@@ -20,6 +20,7 @@ from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from depthnerf.bundles import TensorBundle
+from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import SourceViews
 
 _MIX = 0x9E3779B97F4A7C15
@@ -75,6 +76,20 @@ class BatchPlan:
             out.append(int(self._perm(epoch)[off]))
         return out
 
+
+def check_world_split(bbox_steps: int, objects_phase1: int, objects_phase2: int, max_steps: int, world: int) -> None:
+    """Refuse, in one line, a world size that a global batch the run will use does not divide (every rank takes an
+    equal share of each step's objects, so the result does not depend on how the batch is split)."""
+    used = ([("objects_phase1", objects_phase1)] if bbox_steps > 0 else []) + \
+        ([("objects_phase2", objects_phase2)] if max_steps > bbox_steps else [])
+    for name, size in used:
+        if size % world:
+            sizes = sorted({n for _, n in used})
+            fits = [k for k in range(1, min(sizes) + 1) if all(n % k == 0 for n in sizes)]
+            raise DepthnerfError(
+                f"--schedule.{name} {size}: a global batch of {size} objects does not split over {world} ranks; "
+                f"launch {', '.join(map(str, fits))} processes, or raise the batch sizes (--schedule.objects_phase1 / "
+                f"--schedule.objects_phase2: a departure from the preset)")
 
 def shard(items: Sequence[T], rank: int, world: int) -> list[T]:
     """The contiguous slice of a global batch that ``rank`` of ``world`` processes (sizes must divide)."""

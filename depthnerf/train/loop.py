@@ -44,7 +44,7 @@ from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.batching import BatchPlan, StepSampler, collate, step_keys
+from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.items import TrainItems
 from depthnerf.train.run_log import RunLog, record_launch
@@ -105,6 +105,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     :func:`depthnerf.eval.validation.validate`; None: no validation).
     """
     run_dir = Path(run_dir)
+    sched = cfg.schedule
+    check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world)
     ckpt_root = run_dir / "checkpoints"
     latest = ckpt.latest_checkpoint(ckpt_root) if ckpt_root.exists() else None
     if latest is not None and not resume:
