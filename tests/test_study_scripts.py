@@ -74,3 +74,29 @@ def test_run_study_rejects_an_unknown_variant(recorder, tmp_path):
                           capture_output=True, text=True)
     assert done.returncode != 0 and "unknown run variant 'zz' in cars-bundled-zz" in done.stderr
     assert not _train_calls(calls)
+
+
+def test_reanneal_study_continues_the_shipped_model_at_two_rates_and_scores_both_seeds(recorder, tmp_path):
+    env, calls = recorder
+    fake_python = Path(env["PATH"].split(os.pathsep)[0]) / "python"
+    fake_python.write_text('#!/usr/bin/env bash\necho "python $*" >> "$CALLS"\n')
+    fake_python.chmod(fake_python.stat().st_mode | stat.S_IEXEC)
+    out = tmp_path / "re"
+    done = subprocess.run(["bash", str(SCRIPTS / "reanneal_study.sh"), str(out)], env=env, capture_output=True,
+                          text=True)
+    assert done.returncode == 0, done.stderr
+    lines = calls.read_text().splitlines()
+    synth = [line.split() for line in lines if line.startswith("synth ")]
+    assert [_flag(a, "--seed") for a in synth] == ["0", "4242"]
+    assert _flag(synth[0], "--train-objects") == "300" and _flag(synth[0], "--test-objects") == "50"
+    trains = sorted(_train_calls(calls), key=lambda a: _flag(a, "--schedule.lr"))
+    assert [_flag(a, "--schedule.lr") for a in trains] == ["1e-4", "3e-4"]
+    assert [_flag(a, "--schedule.lr_final") for a in trains] == ["1e-6", "3e-6"]
+    for args in trains:
+        assert _flag(args, "--init-from") == "cpu-cars-sym-pp" and _flag(args, "--seed") == "2"
+        assert _flag(args, "--max-steps") == "3000" and _flag(args, "--model.mirror") == "true"
+        assert _flag(args, "--model.prior_at_point") == "true" and _flag(args, "--depth-checkpoint") == "srn"
+    evals = [line.split() for line in lines if line.startswith("eval ")]
+    assert sorted(_flag(a, "--out") for a in evals) == sorted(
+        f"{out}/{where}/{name}" for where in ("eval", "eval-unseen") for name in ("shipped", "lr3e-4", "lr1e-4"))
+    assert sum(line.startswith("python ") and "paired_difference.py" in line for line in lines) == 2
