@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-objects", type=int, default=None, help="at most N objects per category")
     parser.add_argument("--max-views", type=int, default=None, help="at most N evenly spaced views per object")
     parser.add_argument("--batch-size", type=int, default=16, help="images per estimator call (default 16)")
-    parser.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    parser.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda or cuda:N")
     parser.add_argument("--no-cache", action="store_true", help="always run the estimator, ignore any cache")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
