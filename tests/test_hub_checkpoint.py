@@ -113,3 +113,27 @@ def test_the_cli_names_the_reference_in_one_line(tmp_path):
     assert proc.returncode == 2, proc.stderr
     lines = proc.stderr.strip().splitlines()
     assert lines[-1].startswith("error: hf://alice/depthnerf-cars: not in the local Hugging Face cache"), lines
+
+
+def test_a_hub_folder_round_trips_through_the_cache(offline_cache, tmp_path, capsys):
+    """``scripts/hub_folder.py`` lays a checkpoint out as a model repository; that repository, as the Hub would
+    serve it, loads as ``hf://OWNER/REPO`` to the same weights, with a card that starts with the Hub's header."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "hub_folder", Path(__file__).resolve().parents[1] / "scripts" / "hub_folder.py")
+    hub_folder = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hub_folder)
+    weights = save_tiny(tmp_path / "tiny-chairs.safetensors", tiny_config("chairs", "none"))
+    folder = tmp_path / "repo"
+    assert hub_folder.main([str(weights), str(folder)]) == 0
+    card = (folder / "README.md").read_text()
+    assert card.startswith("---\nlibrary_name: depthnerf\nlicense: mit\n") and "- chairs\n- baseline\n---" in card
+    assert "# tiny-chairs" in card  # no card beside the weights: one made from the spec
+    cached_repo(offline_cache, "alice/tiny-chairs", {p.name: p for p in folder.iterdir()})
+    assert load_pretrained("hf://alice/tiny-chairs").sha256 == load_pretrained(weights).sha256
+    assert hub_folder.main([str(weights), str(folder)]) == 2
+    assert "already exists" in capsys.readouterr().err
+    (tmp_path / "tiny-chairs.md").write_text("# my card\n")
+    assert hub_folder.main([str(weights), str(tmp_path / "repo2")]) == 0
+    assert (tmp_path / "repo2" / "README.md").read_text().endswith("---\n\n# my card\n")
