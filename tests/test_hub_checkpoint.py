@@ -63,7 +63,7 @@ def test_references_name_a_repository_file_and_revision(reference, expect):
     ("hf://alice/dn/pytorch_model.bin@main", "nothing is unpickled"),
 ])
 def test_malformed_references_are_one_line(reference, says):
-    with pytest.raises(DepthnerfError, match=None) as err:
+    with pytest.raises(DepthnerfError) as err:
         parse_hub_reference(reference)
     assert says in str(err.value) and str(err.value).startswith(reference) and "\n" not in str(err.value)
 

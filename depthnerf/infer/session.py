@@ -19,10 +19,10 @@ prior source
     weights are an error, or a warning when ``--depth-checkpoint`` asked for them.
 device policy
     :attr:`InferenceSession.policy` (:func:`~depthnerf.render.precision.inference_policy` of the device: bf16
-    autocast, large ray chunks and point chunks on CUDA, fp32, 4096 rays and 16,384 points on the CPU; ``fp32`` / ``compile``
-    flags), the :class:`~depthnerf.model.pixelnerf.FieldRuntime` it makes (:attr:`runtime`, built once: it holds
-    the compiled MLP forwards with ``compile``) and the rays per pass (:attr:`chunk`: ``SessionOptions.chunk``,
-    else the policy's). Explicit arguments of every render call, never state on the model.
+    autocast, large ray chunks and point chunks on CUDA, fp32, 4096 rays and 16,384 points on the CPU; ``fp32`` /
+    ``compile`` flags), the :class:`~depthnerf.model.pixelnerf.FieldRuntime` it makes (:attr:`runtime`, built
+    once: it holds the compiled MLP forwards with ``compile``) and the rays per pass (:attr:`chunk`:
+    ``SessionOptions.chunk``, else the policy's). Explicit arguments of every render call, never state on the model.
 guided setup
     ``spec.render.guided``: the caller's :class:`~depthnerf.render.config.GuidedConfig` (None: the checkpoint's own
     sampler); :meth:`render` builds each object's source guide from it.

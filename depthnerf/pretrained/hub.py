@@ -2,7 +2,8 @@
 
 A checkpoint is one ``.safetensors`` file that carries its inference spec (what training writes in
 ``RUN/checkpoints/*/model.safetensors``, or ``scripts/export_checkpoint.py``), so publishing one is uploading that
-file to a model repository (e.g. ``hf upload OWNER/REPO model.safetensors``, with the model card as ``README.md``).
+file to a model repository as ``model.safetensors``, with its card as ``README.md`` (``scripts/hub_folder.py`` lays
+both out).
 Wherever a checkpoint is accepted (``--checkpoint`` of ``eval`` / ``reconstruct`` / ``app``, ``--init-from``,
 ``Reconstructor.from_pretrained``), ``hf://OWNER/REPO`` names the repository's ``model.safetensors``;
 ``hf://OWNER/REPO/sub/dir/cars.safetensors`` another file in it, and a trailing ``@REVISION`` a branch, tag or

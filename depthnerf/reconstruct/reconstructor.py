@@ -12,8 +12,8 @@ Camera
 Session
     A Reconstructor is a thin user of an :class:`~depthnerf.infer.session.InferenceSession` on photos: the
     checkpoint's spec with the caller's overrides, the prior source, the device policy (bf16 and large ray chunks
-    on CUDA, fp32, 4096 rays and 16,384 points on the CPU) and the guided setup are resolved there, once, for the CLI, the
-    Python API, the demo and the app alike.
+    on CUDA, fp32, 4096 rays and 16,384 points on the CPU) and the guided setup are resolved there, once, for the
+    CLI, the Python API, the demo and the app alike.
 Depth prior (depth-aware checkpoints)
     The checkpoint's estimator run live on the prepared image at the training resolution (the session's
     :class:`~depthnerf.depth.prior.PriorSource`), normalised over the mask by the conditioning stage
@@ -155,10 +155,10 @@ class Reconstructor:
                         depth_estimator: str | None = None, depth_checkpoint: str | None = None,
                         **options: Any) -> Reconstructor:
         """Load a shipped name, weights file, checkpoint folder, run folder or Hub file (``hf://OWNER/REPO``;
-        ``load_pretrained``) into a session on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` / ``--depth-checkpoint``) override the
-        checkpoint's prior, ``options`` are further :class:`~depthnerf.infer.session.SessionOptions` (``fp32``,
-        ``compile``, ``compile_mode``, ``bf16_residual``, ``chunk``, ``guided``, ``pixel_center``, ``policy``,
-        ``inputs``)."""
+        ``load_pretrained``) into a session on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` /
+        ``--depth-checkpoint``) override the checkpoint's prior, ``options`` are further
+        :class:`~depthnerf.infer.session.SessionOptions` (``fp32``, ``compile``, ``compile_mode``, ``bf16_residual``,
+        ``chunk``, ``guided``, ``pixel_center``, ``policy``, ``inputs``)."""
         return cls(InferenceSession(checkpoint, SessionOptions(device=device, depth=depth_estimator,
                                                                depth_checkpoint=depth_checkpoint, **options)))
 
@@ -256,10 +256,15 @@ class Reconstructor:
         mirror models, :meth:`symmetry`)."""
         return self.session.encode(image, mask, pose, intr, depth=depth, symmetry_plane=symmetry_plane)
 
+    def _guided(self, cfg: ReconstructConfig) -> GuidedConfig | None:
+        """The guided setup of one call: ``cfg.guided`` (:func:`~depthnerf.render.source_guide.as_guided`), or the
+        session's when it is None."""
+        return self.session.guided if cfg.guided is None else as_guided(cfg.guided, "ReconstructConfig.guided")
+
     def render(self, encoded: EncodedView, poses: Float[torch.Tensor, "N 4 4"], intr: Intrinsics,
                cfg: ReconstructConfig, on_group: Callable[[int], Any] | None = None) -> ViewRenders:
         """Render ``poses`` of an encoded view at ``intr`` (depth-guided with ``cfg.guided`` or the session's)."""
-        guided = self.session.guided if cfg.guided is None else as_guided(cfg.guided, "ReconstructConfig.guided")
+        guided = self._guided(cfg)
         return self.session.render(encoded, poses, intr, guided=guided, chunk=cfg.chunk, on_group=on_group)
 
     @torch.no_grad()
@@ -269,7 +274,7 @@ class Reconstructor:
         """The orbit ``poses`` rendered at ``render_intr``, the mesh of the input frustum and the point cloud."""
         spec = self.session.spec
         near, far = spec.z_range
-        guided = self.session.guided if cfg.guided is None else as_guided(cfg.guided, "ReconstructConfig.guided")
+        guided = self._guided(cfg)
         times: dict[str, float] = {}
         bar = tqdm(total=len(poses) + 1, desc="reconstruct", unit="step", file=sys.stderr, disable=not cfg.progress)
         t = time.perf_counter()

@@ -91,6 +91,7 @@ def check_world_split(bbox_steps: int, objects_phase1: int, objects_phase2: int,
                 f"launch {', '.join(map(str, fits))} processes, or raise the batch sizes (--schedule.objects_phase1 / "
                 f"--schedule.objects_phase2: a departure from the preset)")
 
+
 def shard(items: Sequence[T], rank: int, world: int) -> list[T]:
     """The contiguous slice of a global batch that ``rank`` of ``world`` processes (sizes must divide)."""
     if len(items) % world:
