@@ -10,7 +10,8 @@
 # stops its training runs with SIGTERM (each writes a checkpoint at its current step) and exits 3: run the SAME
 # command again to go on. Every stage skips finished work: data (synth resumes per object), priors (a done mark),
 # the step rule (kept in DIR/study_state.env), training (--resume; runs that reached STEPS are left alone;
-# checkpoints every CKPT_MIN minutes of training, default 2, so a call killed from outside loses at most that),
+# checkpoints every CKPT_MIN minutes of training, default 2, so a call killed from outside loses at most that;
+# the runs read the training views from one store of decoded views, DIR/views, built when they first start),
 # evaluation (per-object results resume; a finished summary.json is kept), then the table. Exit 0: finished.
 # State lives in DIR: on a lent GPU machine DIR survives only while the machine stays warm between calls
 # (docs/speed.md, "Measuring on a lent GPU"); with no state in DIR the study starts from the beginning and says so.
@@ -162,7 +163,7 @@ for name in "${runs[@]}"; do
   # shellcheck disable=SC2086
   "${DN[@]}" train --preset "paper-$cat" --data "$DIR/data" --depth "$prior" --seed "$SEED" --out "$DIR/runs/$name" \
     --resume --device "$DEVICE" --max-steps "$STEPS" --checkpoint-every "$CKPT_EVERY" --schedule.bbox_steps "$BBOX" \
-    --data.resolution "$RES" --data.num_workers 2 --log.val_every 0 --log.log_every 50 --no-progress $TRAIN_ARGS \
+    --data.resolution "$RES" --data.num_workers 2 --data.view_store "$DIR/views" --log.val_every 0 --log.log_every 50 --no-progress $TRAIN_ARGS \
     >> "$DIR/logs/train-$name.log" 2>&1 &
   pids+=($!); names+=("$name")
 done

@@ -4,8 +4,8 @@ exit 0 and print its key line; a few small scripts run their ``main()`` in this 
 would cost more than their work. The sizes only reach the code paths; no figure is checked.
 
 Left out, and why: ``benchmarks/bench_gather.py`` (a CUDA comparison), ``scripts/make_app_examples.py`` and
-the study shell scripts (minutes of synthesis, training or evaluation even at their smallest), and
-``benchmarks/bench_depth.py`` (a fixed 3 s timing loop; the estimators it times are tested elsewhere)."""
+the study shell scripts other than ``gpu_compile_train.sh`` (minutes of synthesis, training or evaluation even at
+their smallest), and ``benchmarks/bench_depth.py`` (a fixed 3 s timing loop; the estimators it times are tested elsewhere)."""
 
 from __future__ import annotations
 
@@ -171,3 +171,29 @@ def test_measure_fill(monkeypatch, capsys):
     assert len(lines) == 2 * len(FRAMINGS)
     table = FRAMINGS["srn"].fill("cars", float("nan"))
     assert any(line.startswith("srn     cars") and line.endswith(f"Framing.fill: {table}") for line in lines)
+
+
+def test_bench_loader(tmp_path):
+    data = make_srn_fixture(tmp_path / "data", "cars", {"train": 2}, views=5, size=16, with_mask=True)
+    out = tmp_path / "loader.json"
+    proc = run_script("benchmarks/bench_loader.py", "--data", data, "--resolution", 16, "--steps", 2, "--workers", 1,
+                      "--json", out)
+    assert "view store: built in" in proc.stdout
+    paths = json.loads(out.read_text())["paths"]
+    assert set(paths) == {"files", "view_store"} and "loader_ms_per_step_1_workers" in paths["view_store"]
+
+
+def test_gpu_compile_train_script_on_the_cpu(tmp_path):
+    """The lease script's store run, shrunk to the CPU: it trains, and its JSON has the run's figures."""
+    tiny = ("--model.encoder.backbone resnet18 --model.coarse.d_hidden 16 --model.fine.d_hidden 16 "
+            "--render.sampler.n_coarse 4 --render.sampler.n_importance 2 --render.sampler.n_gaussian 2 "
+            "--schedule.objects_phase1 2 --schedule.objects_phase2 2 --schedule.rays_per_object 16")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "WORK": str(tmp_path / "work"), "RUNS": "eager-store",
+           "DEVICE": "cpu", "RES": "32", "VIEWS": "3", "STEPS": "2", "WORKERS": "0", "SECONDS_EACH": "200",
+           "TRAIN_ARGS": tiny}
+    proc = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_compile_train.sh"), str(tmp_path / "out")],
+                          capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    run = json.loads((tmp_path / "out" / "compile_train.json").read_text())["eager-store"]
+    assert run["rc_wall"][1] == "rc=0" and run["last_step"] == 2 and run["ms_per_step"] > 0
+    assert "view store " in (tmp_path / "out" / "compile_train_logs.txt").read_text()

@@ -34,7 +34,7 @@ from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict
 ACCEPTS_OVERRIDES = True
 
 CHANGEABLE_ON_RESUME = ("schedule.max_steps", "schedule.step_shape", "data.root", "data.num_workers",
-                        "log.checkpoint_every", "log.keep_last", "log.log_every")
+                        "data.view_store", "log.checkpoint_every", "log.keep_last", "log.log_every")
 """Config fields a ``--resume`` may change: where the data lives and how long/how observably to train, never
 what is trained (the batches, model, prior and schedule of the steps already taken)."""
 

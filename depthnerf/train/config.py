@@ -59,6 +59,11 @@ class DataConfig:
     """Target views loaded per object and step (0 = all views but the source, as pixelNeRF)."""
     num_workers: int = 2
     """DataLoader worker processes (0 = load in the main process)."""
+    view_store: str = ""
+    """Folder of the training views decoded once (:mod:`depthnerf.data.view_store`; built or brought up to date
+    when training starts, reusable across runs at the same resolution); items then read only the pixels their
+    rays hit instead of decoding every view of each object from PNG (the same batches, to the bit; measured in
+    docs/speed.md, "The training loop's data"). "" = decode the PNG files every step."""
 
 
 @dataclass

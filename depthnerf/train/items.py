@@ -13,6 +13,7 @@ from torch.utils.data import Dataset
 
 from depthnerf.data.cameras import pixel_directions
 from depthnerf.data.srn import ObjectRecord, load_object
+from depthnerf.data.view_store import StoredObject, ViewStore
 from depthnerf.depth.prior import DatasetViews, PriorSource
 from depthnerf.model.conditioning import condition
 from depthnerf.train.batching import ItemKey, TrainBatch, pick_views, sample_pixels
@@ -23,8 +24,8 @@ class TrainItems(Dataset):
 
     def __init__(self, records: Sequence[ObjectRecord], prior_source: PriorSource, *, resolution: int,
                  target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0,
-                 symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0
-                 ) -> None:
+                 symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0,
+                 view_store: ViewStore | None = None) -> None:
         self.records = list(records)
         self.prior_source = prior_source
         self.resolution = resolution
@@ -36,6 +37,8 @@ class TrainItems(Dataset):
         """The objects' plane (mirror models; None: sources carry none)."""
         self.mirror_dropout = mirror_dropout
         """Fraction of items conditioned with the zero ("no plane") plane instead."""
+        self.view_store = view_store
+        """Decoded views to read instead of the PNG files (the same items, to the bit); None: decode the files."""
 
     def __len__(self) -> int:
         return len(self.records)
@@ -44,29 +47,37 @@ class TrainItems(Dataset):
         record = self.records[key.object_index]
         gen = torch.Generator().manual_seed(key.seed)
         src, targets = pick_views(record.num_views, self.target_views, gen)
-        obj = load_object(record, [src, *targets], resolution=self.resolution, pixel_center=self.pixel_center)
-        tgt = slice(1, None)
+        if self.view_store is not None:  # indices into the stored object are the record's view indices
+            obj, where = self.view_store.open(record), [src, *targets]
+        else:  # only these views are decoded, in this order
+            obj = StoredObject.from_views(load_object(record, [src, *targets], resolution=self.resolution,
+                                                      pixel_center=self.pixel_center))
+            where = list(range(1 + len(targets)))
+        tgt = torch.tensor(where[1:])
         view, row, col = sample_pixels(self.rays, (len(targets), *obj.masks.shape[1:]),
                                        obj.bboxes[tgt] if key.use_bbox else None, gen)
         dirs_cam = pixel_directions(obj.intrinsics)[row, col]  # [R 3]
         rot = obj.poses[tgt][view, :3, :3]  # [R 3 3]
         dirs = torch.einsum("rij,rj->ri", rot, dirs_cam)
         origins = obj.poses[tgt][view, :3, 3]
+        target_rgb, target_fg = obj.pixels(tgt[view], row, col)
         # the conditioning stage's own bundle (B = 1, V = 1); the target views' prior, made by the same stage,
         # feeds the optional depth loss
         plane = None
         if self.symmetry_plane is not None:  # drawn last, so the views and rays are a plain model's
             dropped = bool(torch.rand((), generator=gen) < self.mirror_dropout)
             plane = (0.0, 0.0, 0.0, 0.0) if dropped else self.symmetry_plane
-        source = condition(self.prior_source, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics,
+        src_image, src_mask = obj.views(where[:1])
+        source = condition(self.prior_source, src_image, src_mask, obj.poses[where[:1]], obj.intrinsics,
                            where=DatasetViews(record, (src,)), symmetry_plane=plane).inputs
         target_prior = None
         if self.target_priors and source.disparity is not None:
-            targets_in = condition(self.prior_source, obj.images[tgt], obj.masks[tgt], obj.poses[tgt], obj.intrinsics,
+            tgt_images, tgt_masks = obj.views(where[1:])
+            targets_in = condition(self.prior_source, tgt_images, tgt_masks, obj.poses[tgt], obj.intrinsics,
                                    where=DatasetViews(record, tuple(targets))).inputs
             target_prior = targets_in.disparity[0, :, 0][view, row, col][None]
         return TrainBatch(
             source=source, ray_origins=origins[None], ray_dirs=dirs[None],
-            target_rgb=obj.images[tgt][view, :, row, col][None], target_prior=target_prior,
-            target_fg=obj.masks[tgt][view, row, col][None], target_cos=dirs_cam[:, 2][None],
+            target_rgb=target_rgb[None], target_prior=target_prior, target_fg=target_fg[None],
+            target_cos=dirs_cam[:, 2][None],
         )

@@ -37,6 +37,7 @@ from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
+from depthnerf.data.view_store import ViewStore
 from depthnerf.depth.prior import PriorSource, open_prior, portable_prior, weights_mismatch
 from depthnerf.distributed import DistInfo, barrier
 from depthnerf.errors import DepthnerfError
@@ -90,6 +91,25 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
     data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
                  "resolution": cfg.data.resolution, "dataset_card": card}
     write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
+
+
+def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | None:
+    """The run's view store, brought up to date (None without ``data.view_store``). Each rank builds or checks
+    its share of the objects; after a barrier every rank builds what it still lacks (the others' shares, where
+    the ranks do not share a disk)."""
+    if not cfg.data.view_store:
+        return None
+    t0 = time.perf_counter()
+    store = ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center)
+    counts = store.ensure(records, rank=info.rank, world=info.world, progress=info.is_main)
+    barrier(info)
+    store.ensure(records, check_all=False)
+    if info.is_main:
+        share = f" (rank 0's share of {len(records)})" if info.world > 1 else ""
+        print(f"view store {store.root}: {counts['built']} objects decoded, {counts['rebuilt']} changed since and "
+              f"decoded again, {counts['reused']} reused{share}, {time.perf_counter() - t0:.1f} s",
+              file=sys.stderr, flush=True)
+    return store
 
 
 def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True,
@@ -185,7 +205,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
                        pixel_center=cfg.data.pixel_center, symmetry_plane=plane,
-                       mirror_dropout=s.mirror_dropout)
+                       mirror_dropout=s.mirror_dropout, view_store=_view_store(cfg, records, info))
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
