@@ -1,7 +1,7 @@
-"""Smoke runs of the benchmarks and scripts no other test runs, so that one broken by a change elsewhere
-fails here instead of on its next manual use: each runs as a subprocess (one thread) on tiny inputs and must
-exit 0 and print its key line; a few small scripts run their ``main()`` in this process, where starting Python
-would cost more than their work. The sizes only reach the code paths; no figure is checked.
+"""Smoke runs of the benchmarks and scripts no other test runs, so that one broken by a change elsewhere fails here
+instead of on its next manual use: each runs as a subprocess (one thread) on tiny inputs and must exit 0 and print
+its key line; a few small scripts run their ``main()`` in this process, where starting Python would cost more than
+their work. The sizes only reach the code paths; no figure is checked.
 
 Left out, and why: ``benchmarks/bench_gather.py`` (a CUDA comparison), ``scripts/make_app_examples.py`` and
 the study shell scripts other than ``gpu_compile_train.sh`` (minutes of synthesis, training or evaluation even at
