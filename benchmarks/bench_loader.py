@@ -44,7 +44,8 @@ def main() -> None:
     p.add_argument("--data", type=Path, help="dataset root (default: make synthetic cars in a temporary folder)")
     p.add_argument("--category", default="cars")
     p.add_argument("--preset", default="paper-cars")
-    p.add_argument("--depth", default="none", choices=["none", "oracle"], help="prior (oracle reads depth/)")
+    p.add_argument("--depth", default="none", choices=["none", "oracle", "bundled"],
+                   help="prior (oracle reads depth/; bundled reads the cache, made first if missing)")
     p.add_argument("--resolution", type=int, default=128)
     p.add_argument("--objects", type=int, default=4, help="synthetic objects to make without --data")
     p.add_argument("--views", type=int, default=50, help="views per synthetic object (SRN train: 50)")
@@ -60,6 +61,9 @@ def main() -> None:
         root = Path(tmp.name) / "data"
         synth(root, args.resolution, args.objects, args.views)
     cfg = preset(args.preset)
+    if args.depth == "bundled" and not (root / "depth_priors").exists():
+        subprocess.run([sys.executable, "-m", "depthnerf", "depth", "--data", str(root), "--depth", "bundled",
+                        "--resolution", str(args.resolution)], check=True)
     records = index_split(root, args.category, "train").objects
     prior = open_prior(cfg.prior.override(depth=args.depth), data_root=root, resolution=args.resolution,
                        records=records)

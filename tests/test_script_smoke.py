@@ -3,9 +3,10 @@ instead of on its next manual use: each runs as a subprocess (one thread) on tin
 its key line; a few small scripts run their ``main()`` in this process, where starting Python would cost more than
 their work. The sizes only reach the code paths; no figure is checked.
 
-Left out, and why: ``benchmarks/bench_gather.py`` (a CUDA comparison), ``scripts/make_app_examples.py`` and
-the study shell scripts other than ``gpu_compile_train.sh`` (minutes of synthesis, training or evaluation even at
-their smallest), and ``benchmarks/bench_depth.py`` (a fixed 3 s timing loop; the estimators it times are tested elsewhere)."""
+Left out, and why: ``benchmarks/bench_gather.py`` (a CUDA comparison), ``scripts/make_app_examples.py`` and the
+study shell scripts other than ``gpu_compile_train.sh`` (minutes of synthesis, training or evaluation even at their
+smallest), and ``benchmarks/bench_depth.py`` (a fixed 3 s timing loop; the estimators it times are tested
+elsewhere)."""
 
 from __future__ import annotations
 

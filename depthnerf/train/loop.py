@@ -94,10 +94,14 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
 
 
 def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | None:
-    """The run's view store, brought up to date (None without ``data.view_store``). Each rank builds or checks
-    its share of the objects; after a barrier every rank builds what it still lacks (the others' shares, where
-    the ranks do not share a disk)."""
+    """The run's view store, brought up to date (None without ``data.view_store``, with a hint on CUDA). Each rank
+    builds or checks its share of the objects; after a barrier every rank builds what it still lacks (the others'
+    shares, where the ranks do not share a disk)."""
     if not cfg.data.view_store:
+        if info.device.type == "cuda" and info.is_main:
+            print("data: each item decodes its object's views from PNG, which can hold a GPU back; "
+                  "--data.view_store DIR decodes them once (docs/training.md, \"Decoded views\")", file=sys.stderr,
+                  flush=True)
         return None
     t0 = time.perf_counter()
     store = ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center)
