@@ -1,16 +1,17 @@
 """Seconds from an upload to the page's novel views in ``depthnerf app``, through its HTTP API, on this machine.
 
-    python benchmarks/bench_app.py [--views 8] [--mesh-resolution 64] [--repeats 2]
+    python benchmarks/bench_app.py [--views 8] [--mesh-resolution 64] [--repeats 2] [--plain]
 
-Starts ``depthnerf app`` (a subprocess on a free localhost port, the shipped checkpoints, the app's defaults:
-8 orbit views, a 64-sample mesh), waits until it serves (printed: start-up seconds, which include loading the
-first checkpoint), then for each bundled example uploads it with ``gradio_client`` and calls the page's
-``/reconstruct`` endpoint, i.e. exactly what the Reconstruct button does. Printed per call: wall seconds from the
-start of the upload to the response (which carries the orbit video, GIF, mesh and downloads: the novel views are
-complete by then, so this bounds "upload -> first novel views" from above), the server's own "done in" seconds,
-and its per-stage timings. The first call per checkpoint also loads it (the car's was preloaded at start-up);
-the best of ``--repeats`` is the steady state. Also printed: CPU count, torch threads (``OMP_NUM_THREADS``
-is passed through) and the 1-minute load average before and after, since other work on the machine slows it.
+Starts ``depthnerf app`` (a subprocess on a free localhost port, the shipped checkpoints, the app's defaults: 8
+orbit views, a 64-sample mesh, depth-guided rendering unless --plain), waits until it serves (printed: start-up
+seconds, which include loading the first checkpoint), then for each bundled example uploads it with
+``gradio_client`` and calls the page's ``/reconstruct`` endpoint, i.e. exactly what the Reconstruct button does.
+Printed per call: wall seconds from the start of the upload to the response (which carries the orbit video, GIF,
+mesh and downloads: the novel views are complete by then, so this bounds "upload -> first novel views" from above),
+the server's own "done in" seconds, and its per-stage timings. The first call per checkpoint also loads it (the
+car's was preloaded at start-up); the best of ``--repeats`` is the steady state. Also printed: CPU count, torch
+threads (``OMP_NUM_THREADS`` is passed through) and the 1-minute load average before and after, since other work on
+the machine slows it.
 """
 
 from __future__ import annotations
@@ -49,13 +50,13 @@ def wait_until_serving(url: str, proc: subprocess.Popen, timeout: float) -> None
     raise SystemExit(f"the app did not serve {url} within {timeout} s")
 
 
-def reconstruct_arguments(image, checkpoint: str, fill: float, views: int) -> dict:
+def reconstruct_arguments(image, checkpoint: str, fill: float, views: int, guided: bool = True) -> dict:
     """Keyword arguments of the page's ``/reconstruct`` endpoint for one photo: the model menu's checkpoint, the
-    fill it was trained at, ``views`` orbit views, the empty text fields (which have no default in the API) and
-    every other field at the page's default. Named, so a field added to the page cannot shift them;
+    fill it was trained at, ``views`` orbit views, depth-guided rendering or not, the empty text fields (which
+    have no default in the API) and every other field at the page's default. Named, so a field added to the page cannot shift them;
     ``tests/test_app.py`` checks them against the page's API."""
     return {"image": image, "model": checkpoint, "ckpt_path": "", "prior_ckpt": "", "bg_model": "", "ratio": fill,
-            "views": views}
+            "views": views, "guided": guided}
 
 
 def main() -> None:
@@ -63,6 +64,8 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=8, help="orbit views per request (app default 8)")
     parser.add_argument("--mesh-resolution", type=int, default=64, help="app --mesh-resolution (default 64)")
     parser.add_argument("--repeats", type=int, default=2, help="calls per example (default 2)")
+    parser.add_argument("--plain", action="store_true",
+                        help="untick the page's depth-guided rendering (the checkpoint's own sampler)")
     args = parser.parse_args()
     from gradio_client import Client, handle_file
 
@@ -92,7 +95,8 @@ def main() -> None:
                 for k in range(args.repeats):
                     t = time.perf_counter()
                     out = client.predict(**reconstruct_arguments(handle_file(str(example)), checkpoint, fill,
-                                                                 args.views), api_name="/reconstruct")
+                                                                 args.views, not args.plain),
+                                         api_name="/reconstruct")
                     wall = time.perf_counter() - t
                     status, details = out[0], out[7]
                     done = re.search(r"done in ([0-9.]+) s", status)

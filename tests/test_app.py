@@ -177,6 +177,12 @@ def test_a_run_collects_every_output(session):
     local = session.run(RunRequest(examples()[0], "car", views=1, mesh_level="local"))
     settings = json.loads((local.input_image.parent / "manifest.json").read_text())["settings"]
     assert settings["mesh_level_rule"].startswith("local level: half the peak density along each input ray")
+    # the page renders depth-guided by default; unticked, with the checkpoint's own sampler
+    assert manifest["settings"]["guided_sampling"] == 48 and "depth-guided sampling (48 samples" in out.details
+    assert settings["guided_sampling"] == 48
+    plain = session.run(RunRequest(examples()[0], "car", views=1, guided=False))
+    assert not json.loads((plain.input_image.parent / "manifest.json").read_text())["settings"]["guided_sampling"]
+    assert "the model's own sampler" in plain.details
     # keep_runs=2: older run folders are deleted as new ones come
     for _ in range(2):
         session.run(RunRequest(examples()[0], "car", views=1))

@@ -128,6 +128,10 @@ class RunRequest:
     mesh_level: str = "auto"
     """The mesh's level rule, one of :data:`~depthnerf.render.mesh_level.LEVEL_RULES` (the page offers ``auto``,
     one tight piece, and ``local``, which keeps thin parts in a looser surface)."""
+    guided: bool = True
+    """Render the orbit with depth-guided sampling at its default budget (``ReconstructConfig.guided``): on the
+    shipped app models within 0.04 dB of their own sampler and about twice as fast (docs/RESULTS.md, "Depth-guided
+    sampling on the shipped checkpoints"); False: the checkpoint's own sampler."""
 
 
 @dataclass
@@ -314,7 +318,8 @@ class AppSession:
                                 fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
                                 mesh_threshold=request.mesh_level,
                                 progress=True, background_removal=mode, background_model=background_model,
-                                facing=None if request.facing is None else float(request.facing))
+                                facing=None if request.facing is None else float(request.facing),
+                                guided=bool(request.guided))
         result = rec.reconstruct(path, config=cfg)
         progress(0.95, "writing outputs")
         run_dir = self._new_run_dir()
@@ -343,7 +348,9 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
                              f"({settings['background_model_licence']})" if settings.get("background_model")
                              else "the alpha channel or the border colour decided (no background model ran)"),
         f"**Camera** elevation {settings['elevation']:g} deg, radius {settings['radius']:g}, "
-        f"fill {settings['fill']:.2f}, {settings['views']} orbit views",
+        f"fill {settings['fill']:.2f}, {settings['views']} orbit views, "
+        + (f"depth-guided sampling ({settings['guided_sampling']} samples per ray)" if settings.get("guided_sampling")
+           else "the model's own sampler"),
         f"**Symmetry** {settings.get('symmetry', 'off: the model has no mirror-symmetric conditioning')}",
         ("**Mesh** none (--mesh-resolution 0)" if not manifest["mesh"].get("made", True) else
          f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else ""))

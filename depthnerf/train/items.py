@@ -47,13 +47,14 @@ class TrainItems(Dataset):
         record = self.records[key.object_index]
         gen = torch.Generator().manual_seed(key.seed)
         src, targets = pick_views(record.num_views, self.target_views, gen)
-        if self.view_store is not None:  # indices into the stored object are the record's view indices
-            obj, where = self.view_store.open(record), [src, *targets]
+        # pos: where the source and the targets sit in obj's arrays
+        if self.view_store is not None:  # every view, at the record's view indices
+            obj, pos = self.view_store.open(record), [src, *targets]
         else:  # only these views are decoded, in this order
             obj = StoredObject.from_views(load_object(record, [src, *targets], resolution=self.resolution,
                                                       pixel_center=self.pixel_center))
-            where = list(range(1 + len(targets)))
-        tgt = torch.tensor(where[1:])
+            pos = list(range(1 + len(targets)))
+        tgt = torch.tensor(pos[1:])
         view, row, col = sample_pixels(self.rays, (len(targets), *obj.masks.shape[1:]),
                                        obj.bboxes[tgt] if key.use_bbox else None, gen)
         dirs_cam = pixel_directions(obj.intrinsics)[row, col]  # [R 3]
@@ -67,12 +68,12 @@ class TrainItems(Dataset):
         if self.symmetry_plane is not None:  # drawn last, so the views and rays are a plain model's
             dropped = bool(torch.rand((), generator=gen) < self.mirror_dropout)
             plane = (0.0, 0.0, 0.0, 0.0) if dropped else self.symmetry_plane
-        src_image, src_mask = obj.views(where[:1])
-        source = condition(self.prior_source, src_image, src_mask, obj.poses[where[:1]], obj.intrinsics,
+        src_image, src_mask = obj.views(pos[:1])
+        source = condition(self.prior_source, src_image, src_mask, obj.poses[pos[:1]], obj.intrinsics,
                            where=DatasetViews(record, (src,)), symmetry_plane=plane).inputs
         target_prior = None
         if self.target_priors and source.disparity is not None:
-            tgt_images, tgt_masks = obj.views(where[1:])
+            tgt_images, tgt_masks = obj.views(pos[1:])
             targets_in = condition(self.prior_source, tgt_images, tgt_masks, obj.poses[tgt], obj.intrinsics,
                                    where=DatasetViews(record, tuple(targets))).inputs
             target_prior = targets_in.disparity[0, :, 0][view, row, col][None]
