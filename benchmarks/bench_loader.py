@@ -84,7 +84,7 @@ def main() -> None:
     result = {"data": str(root), "objects": len(records), "views_per_object": records[0].num_views,
               "resolution": args.resolution, "preset": args.preset, "depth": args.depth,
               "store_build_s": round(build_s, 2), "store_counts": counts, "store_mb": round(size_mb, 1),
-              "objects_per_step": plan.batch_size(s.bbox_steps), "paths": {}}
+              "objects_per_step": plan.batch_size(0), "paths": {}}
     for name, items in paths.items():
         items[keys[0]]  # first touch: imports, page cache
         times = []

@@ -10,14 +10,16 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import secrets
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 
 def temporary_sibling(path: Path) -> Path:
-    """The temporary name used for an atomic write of ``path`` (hidden, unique per process)."""
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    """The temporary name used for an atomic write of ``path`` (hidden; unique per call, also across machines and
+    containers whose processes share a file system and a process id)."""
+    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
 
 
 def write_text_atomic(path: Path, text: str) -> None:

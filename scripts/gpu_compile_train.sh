@@ -7,8 +7,9 @@
 # of steps (--max-steps STEPS, default 400; the run is stopped by `timeout` with SIGTERM, which checkpoints), with
 # WORKERS data workers (default 2; DEVICE, RES and extra TRAIN_ARGS for a smoke run elsewhere), and writes
 # OUT_DIR/compile_train.json: per run the steps done, the median rays_per_s over the second half of its logged
-# steps (metrics.jsonl) and the ms per step it makes (rays per step from the run's config.json), the first and
-# last loss, and the exit code; the logs go to OUT_DIR/compile_train_logs.txt.
+# steps (metrics.jsonl) and the median ms per step over them (each step's rays from the run's config.json: phase
+# 1's objects before schedule.bbox_steps, phase 2's after), the first and last loss, and the exit code; the logs
+# go to OUT_DIR/compile_train_logs.txt.
 set -u
 OUT=${1:?usage: gpu_compile_train.sh OUT_DIR}
 HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -25,7 +26,7 @@ for run in $RUNS; do
   case "$run" in compiled*) extra+=(--compile-step) ;; esac
   case "$run" in *-store) extra+=(--data.view_store "$WORK/store") ;; esac
   s0=$SECONDS
-  timeout -s TERM "$SECONDS_EACH" "$PY" -m depthnerf train --preset paper-cars --data "$WORK/data" --depth oracle \
+  timeout -s TERM -k 30 "$SECONDS_EACH" "$PY" -m depthnerf train --preset paper-cars --data "$WORK/data" --depth oracle \
     --seed 0 --max-steps "$STEPS" --checkpoint-every 100000 --device "$DEVICE" --log.val_every 0 --log.log_every 1 \
     --no-progress --data.resolution "$RES" --data.num_workers "$WORKERS" --out "$WORK/runs/$run" "${extra[@]}" \
     "${TRAIN_ARGS[@]}" >>"$LOG" 2>&1
@@ -45,11 +46,17 @@ for run in sys.argv[3:]:
     half = rates[len(rates) // 2:]
     cfg_path = work / "runs" / run / "config.json"
     sched = json.loads(cfg_path.read_text())["schedule"] if cfg_path.exists() else {}
-    rays = sched.get("objects_phase2", 0) * sched.get("rays_per_object", 0)
+
+    def step_rays(step):  # the logged step k ran step index k - 1: phase 1 (bbox) below bbox_steps
+        phase = "objects_phase1" if step - 1 < sched.get("bbox_steps", 0) else "objects_phase2"
+        return sched.get(phase, 0) * sched.get("rays_per_object", 0)
+
+    timed = [r for r in rows if r.get("rays_per_s")]
+    ms = [1e3 * step_rays(r["step"]) / r["rays_per_s"] for r in timed[len(timed) // 2:]]
     res[run] = {"rc_wall": rc_line, "steps_logged": len(rows),
                 "last_step": rows[-1]["step"] if rows else None,
                 "median_rays_per_s_second_half": statistics.median(half) if half else None,
-                "ms_per_step": 1e3 * rays / statistics.median(half) if half and rays else None,
+                "ms_per_step": statistics.median(ms) if ms and all(ms) else None,
                 "first_loss": rows[0]["loss"] if rows else None, "last_loss": rows[-1]["loss"] if rows else None,
                 "keys": sorted(rows[-1]) if rows else []}
 out.write_text(json.dumps(res, indent=1))

@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -138,8 +139,8 @@ def test_missing_and_damaged_objects_are_one_line(tmp_path):
         store.open(records[0])
 
 
-def cli(*args: str) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "depthnerf", *args], capture_output=True, text=True)
+def cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    proc = subprocess.run([sys.executable, "-m", "depthnerf", *args], capture_output=True, text=True, cwd=cwd)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc
 
@@ -151,10 +152,12 @@ def test_a_run_trained_from_the_store_equals_the_run_trained_from_the_files(tmp_
     base = ["train", "--preset", "cpu-cars", "--depth", "none", "--data", str(root), "--log.val_every", "0",
             "--checkpoint-every", "2", *TINY, *(["--deterministic"] if torch.cuda.is_available() else [])]
     cli(*base, "--max-steps", "4", "--out", str(tmp_path / "files"))
-    store = ["--data.view_store", str(tmp_path / "store"), "--data.num_workers", "1"]
-    first = cli(*base, *store, "--max-steps", "2", "--out", str(tmp_path / "stored"))
+    store = ["--data.view_store", "store", "--data.num_workers", "1"]  # relative to the first run's folder
+    first = cli(*base, *store, "--max-steps", "2", "--out", str(tmp_path / "stored"), cwd=tmp_path)
     assert "view store " in first.stderr and "3 objects decoded" in first.stderr
-    again = cli("train", "--out", str(tmp_path / "stored"), "--resume", "--max-steps", "4", *store[:2])
+    saved = json.loads((tmp_path / "stored" / "config.json").read_text())["data"]["view_store"]
+    assert saved == str((tmp_path / "store").resolve())
+    again = cli("train", "--out", str(tmp_path / "stored"), "--resume", "--max-steps", "4")  # from elsewhere
     assert "0 objects decoded, 0 changed since and decoded again, 3 reused" in again.stderr
 
     def curve(run: Path) -> dict[int, float]:
@@ -192,19 +195,91 @@ def test_pixels_and_views_index_like_the_loaded_tensors(tmp_path):
 
 
 def test_runs_that_start_together_share_one_store(tmp_path):
-    """Four processes build the same store at once (as the GPU study's runs do): all succeed and the store is
-    whole; a folder left without its meta.json is decoded again."""
-    root = make_srn_fixture(tmp_path / "srn", splits={"train": 6}, views=4, size=16)
-    code = ("import sys; from depthnerf.data.srn import index_split; from depthnerf.data.view_store import ViewStore; "
-            "ViewStore(sys.argv[2], 16, 0.5).ensure(index_split(sys.argv[1], 'cars', 'train').objects)")
-    procs = [subprocess.Popen([sys.executable, "-c", code, str(root), str(tmp_path / "store")],
-                              stderr=subprocess.PIPE, text=True) for _ in range(4)]
-    for proc in procs:
-        assert proc.wait(timeout=120) == 0, proc.stderr.read()
+    """Four processes build the same store at once, released together (as the GPU study's runs start): all
+    succeed and the store is whole, with no temporary folder left; a folder left without its meta.json is decoded
+    again."""
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 12}, views=4, size=16)
+    go = tmp_path / "go"
+    code = ("import sys, time, pathlib; from depthnerf.data.srn import index_split; "
+            "from depthnerf.data.view_store import ViewStore; records = index_split(sys.argv[1], 'cars', 'train').objects\n"
+            "while not pathlib.Path(sys.argv[3]).exists(): time.sleep(0.005)\n"
+            "print(ViewStore(sys.argv[2], 16, 0.5).ensure(records))")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(root), str(tmp_path / "store"), str(go)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(4)]
+    time.sleep(3)  # every process has imported and indexed by now, and waits for the flag
+    go.touch()
+    outs = [proc.communicate(timeout=120) for proc in procs]
+    assert all(proc.returncode == 0 for proc in procs), [err for _, err in outs]
+    counts = [eval(out) for out, _ in outs]  # noqa: S307 - a dict printed by the child
+    assert all(sum(c.values()) == 12 for c in counts)
     records = index_split(root, "cars", "train").objects
     store = ViewStore(tmp_path / "store", 16, 0.5)
-    assert store.ensure(records) == {"built": 0, "rebuilt": 0, "reused": 6}
+    assert store.ensure(records) == {"built": 0, "rebuilt": 0, "reused": 12}
     assert not [p for p in (tmp_path / "store" / "cars_train").iterdir() if p.name.startswith(".")]
     (store.object_dir(records[2]) / "meta.json").unlink()
-    assert store.ensure(records) == {"built": 1, "rebuilt": 0, "reused": 5}
+    assert store.ensure(records) == {"built": 1, "rebuilt": 0, "reused": 11}
     store.open(records[2])
+
+
+def test_the_dataset_itself_or_a_foreign_folder_is_never_a_store(tmp_path):
+    """Naming the data folder (or any folder with other things in it) as the store is refused before anything is
+    written, and a store never replaces an object folder that holds anything but its own files."""
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 2}, views=3, size=16)
+    records = index_split(root, "cars", "train").objects
+    before = sorted(str(p.relative_to(root)) for p in root.rglob("*"))
+    with pytest.raises(DepthnerfError, match=r"srn: not empty and not a view store \(it holds cars_train\)"):
+        ViewStore(root, 16, 0.5).ensure(records)
+    assert sorted(str(p.relative_to(root)) for p in root.rglob("*")) == before
+    store = ViewStore(tmp_path / "store", 16, 0.5)
+    store.ensure(records)
+    (store.object_dir(records[0]) / "meta.json").unlink()
+    (store.object_dir(records[0]) / "notes.txt").write_text("mine")
+    with pytest.raises(DepthnerfError, match=r"not a view store object \(it holds .*notes\.txt.*refusing"):
+        store.ensure(records)
+    assert (store.object_dir(records[0]) / "notes.txt").read_text() == "mine"
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(DepthnerfError, match=r"afile: is a file, not a folder for --data.view_store"):
+        ViewStore(tmp_path / "afile", 16, 0.5).ensure(records)
+
+
+def test_an_object_rebuilt_from_other_data_under_a_run_is_refused(tmp_path):
+    """Two datasets with the same object ids share one store: the second rebuilds the objects, and the first
+    run's next read of them stops with one line instead of training on the other dataset's views."""
+    first = make_srn_fixture(tmp_path / "a", splits={"train": 2}, views=3, size=16)
+    second = make_srn_fixture(tmp_path / "b", splits={"train": 2}, views=3, size=16)
+    scramble_colours(second, seed=5)
+    store_a = ViewStore(tmp_path / "store", 16, 0.5)
+    records_a = index_split(first, "cars", "train").objects
+    store_a.ensure(records_a)
+    store_a.open(records_a[0])
+    counts = ViewStore(tmp_path / "store", 16, 0.5).ensure(index_split(second, "cars", "train").objects)
+    assert counts["rebuilt"] == 2
+    with pytest.raises(DepthnerfError, match=r"rebuilt from other files since this run started"):
+        store_a.open(records_a[0])
+
+
+def test_each_rank_checks_every_object_after_the_barrier(tmp_path):
+    """Ranks that do not share a disk: an object changed in another rank's share is still decoded again by the
+    full check that follows the barrier (depthnerf.train.loop._view_store)."""
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 2}, views=3, size=16)
+    records = index_split(root, "cars", "train").objects
+    store = ViewStore(tmp_path / "store", 16, 0.5)
+    store.ensure(records)
+    path = records[0].rgb_path(1)
+    srn_format.write_rgb(path, 1.0 - np.asarray(srn_format.read_rgb(path)))
+    os.utime(path, ns=(1, 1))
+    assert store.ensure(records, rank=1, world=2) == {"built": 0, "rebuilt": 0, "reused": 1}
+    assert store.ensure(records) == {"built": 0, "rebuilt": 1, "reused": 1}
+
+
+def test_a_damaged_meta_file_is_one_line(tmp_path):
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 1}, views=3, size=16)
+    records = index_split(root, "cars", "train").objects
+    store = ViewStore(tmp_path / "store", 16, 0.5)
+    store.ensure(records)
+    (store.object_dir(records[0]) / "meta.json").write_text("[1, 2]")
+    with pytest.raises(DepthnerfError, match=r"missing from the view store"):
+        ViewStore(tmp_path / "store", 16, 0.5).open(records[0])
+    (store.object_dir(records[0]) / "meta.json").write_text('{"views": 3, "fingerprint": "x"}')
+    with pytest.raises(DepthnerfError, match=r"unreadable view store object .*intrinsics"):
+        ViewStore(tmp_path / "store", 16, 0.5).open(records[0])

@@ -122,7 +122,7 @@ def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
     if "data.root" in changes:
         old, new = changes["data.root"]
         print(f"resume: reading the data from --data {new} (the run's config said {old})", file=sys.stderr)
-    return check_config(cfg)
+    return check_config(_absolute_store(cfg))
 
 
 def resolve_config(args: argparse.Namespace) -> TrainConfig:
@@ -131,7 +131,15 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
         return _resume_config(args, Path(args.out) / "config.json")
     cfg = _apply_flags(preset(args.preset or DEFAULT_PRESET), args)
     root = Path(cfg.data.root)
-    return check_config(dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root.resolve()))))
+    return check_config(_absolute_store(dataclasses.replace(cfg, data=dataclasses.replace(cfg.data,
+                                                                                        root=str(root.resolve())))))
+
+
+def _absolute_store(cfg: TrainConfig) -> TrainConfig:
+    """``data.view_store`` as an absolute path (so that ``--resume`` from another folder finds the same store)."""
+    store = cfg.data.view_store
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, view_store=str(Path(store).resolve()))
+                               ) if store else cfg
 
 
 def run(args: argparse.Namespace) -> int:

@@ -22,7 +22,10 @@ either way. An object folder is written under a temporary name and renamed, so a
 
 Stale detection: an object's fingerprint is the SHA-256 of its view names and the size and modification time of its
 ``intrinsics.txt`` and of each RGB, pose and mask file. A changed dataset rebuilds the changed objects (and says how
-many); a store made at another resolution or pixel centre is refused in one line.
+many); a store made at another resolution or pixel centre is refused in one line. A run keeps the fingerprints it
+found at start-up and refuses an object rebuilt from other files since (two datasets with the same object ids
+sharing one store). The folder named as a store must be new, empty or a store; an object folder holding anything but
+the store's files is never replaced.
 """
 
 from __future__ import annotations
@@ -32,7 +35,9 @@ import json
 import os
 import shutil
 import sys
+import tempfile
 import time
+import uuid
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -124,26 +129,55 @@ def _exact_uint8(images: np.ndarray) -> np.ndarray | None:
     return u8 if np.array_equal(u8.astype(np.float32) / 255.0, images) else None
 
 
+STORE_FILES = frozenset({"images.npy", "masks.npy", "poses.npy", "bboxes.npy", "meta.json"})
+"""What an object folder of a store holds; a folder holding anything else is never replaced."""
+
+
+def _save_durably(path: Path, array: np.ndarray) -> None:
+    with open(path, "wb") as handle:
+        np.save(handle, array)
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
 class ViewStore:
-    """A view store folder for one resolution and pixel centre (see the module docstring)."""
+    """A view store folder for one resolution and pixel centre (see the module docstring).
+
+    :meth:`ensure` remembers each object's fingerprint, and :meth:`open` (also in DataLoader workers, which get a
+    copy) refuses an object rebuilt from other files since: a run never trains on views that changed under it.
+    """
 
     def __init__(self, root: str | os.PathLike, resolution: int, pixel_center: float) -> None:
         self.root = Path(root)
         self.resolution = resolution
         self.pixel_center = pixel_center
+        self.expected: dict[str, str] = {}
+        """Object key -> the fingerprint :meth:`ensure` found or wrote."""
 
     def object_dir(self, record: ObjectRecord) -> Path:
         """Folder of one object's arrays."""
         return self.root / f"{record.category}_{record.split}" / record.object_id
 
     def _check_manifest(self) -> None:
-        """Write the manifest of a new store; refuse one made for another resolution, pixel centre or format."""
+        """Write the manifest of a new store; refuse one made for another resolution, pixel centre or format, and
+        a folder that holds other things (the dataset itself, say: the store would replace its object folders)."""
         want = {"format": STORE_FORMAT, "resolution": self.resolution, "pixel_center": self.pixel_center}
         path = self.root / "manifest.json"
+        if self.root.exists() and not self.root.is_dir():
+            raise DepthnerfError(f"{self.root}: is a file, not a folder for --data.view_store")
         if not path.exists():
-            self.root.mkdir(parents=True, exist_ok=True)
-            write_json_atomic(path, want)
-            return
+            others = sorted(p.name for p in self.root.iterdir() if not p.name.startswith(".")) \
+                if self.root.is_dir() else []
+            if others and not path.exists():  # checked again: another process may have just made this store
+                raise DepthnerfError(f"{self.root}: not empty and not a view store (it holds {', '.join(others[:3])}"
+                                     f"{', ...' if len(others) > 3 else ''}); name an empty or new folder for "
+                                     "--data.view_store, never the dataset's")
+            if not path.exists():
+                try:
+                    write_json_atomic(path, want)
+                except OSError as err:
+                    raise DepthnerfError(f"{path}: cannot write the view store manifest ({err})") from None
+                return
         try:
             have = json.loads(path.read_text())
         except (OSError, ValueError) as err:
@@ -154,62 +188,71 @@ class ViewStore:
 
     def _meta(self, record: ObjectRecord) -> dict | None:
         try:
-            return json.loads((self.object_dir(record) / "meta.json").read_text())
+            meta = json.loads((self.object_dir(record) / "meta.json").read_text())
         except (OSError, ValueError):
             return None
+        return meta if isinstance(meta, dict) else None
 
-    def write(self, record: ObjectRecord, fingerprint: str, replace: bool = False) -> None:
-        """Decode every view of ``record`` and write its folder (atomically: temporary folder, then rename).
+    def write(self, record: ObjectRecord, fingerprint: str, replace: bool = False) -> bool:
+        """Decode every view of ``record`` and write its folder (atomically: temporary folder, then rename);
+        returns whether this folder is the one in the store now.
 
         ``replace``: the folder there is stale and is moved aside first; without it a folder that another process
-        finished in the meantime is kept and this one dropped (runs that share a store may start together)."""
+        finished in the meantime is kept and this one dropped (runs that share a store may start together). A
+        folder holding anything but the store's files is never replaced."""
         obj = load_object(record, resolution=self.resolution, pixel_center=self.pixel_center)
-        images = obj.images.permute(0, 2, 3, 1).contiguous().numpy()
-        stored = _exact_uint8(images)
+        decoded = obj.images.permute(0, 2, 3, 1).contiguous().numpy()
+        exact = _exact_uint8(decoded)
+        images = decoded if exact is None else exact
         final = self.object_dir(record)
-        tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir(parents=True)
-        np.save(tmp / "images.npy", images if stored is None else stored)
-        np.save(tmp / "masks.npy", obj.masks.numpy())
-        np.save(tmp / "poses.npy", obj.poses.numpy())
-        np.save(tmp / "bboxes.npy", obj.bboxes.numpy())
         i = obj.intrinsics
-        meta = {"fingerprint": fingerprint, "views": record.num_views, "images": str((images if stored is None
-                                                                                       else stored).dtype),
+        meta = {"fingerprint": fingerprint, "views": record.num_views, "images": str(images.dtype),
                 "intrinsics": {"focal": i.focal, "cx": i.cx, "cy": i.cy, "height": i.height, "width": i.width}}
-        write_json_atomic(tmp / "meta.json", meta)
-        if replace and final.exists():
-            old = final.with_name(f".{final.name}.old-{os.getpid()}")
-            final.rename(old)
-            shutil.rmtree(old, ignore_errors=True)
+        try:
+            final.parent.mkdir(parents=True, exist_ok=True)
+            tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
+            for name, array in (("images", images), ("masks", obj.masks.numpy()), ("poses", obj.poses.numpy()),
+                                ("bboxes", obj.bboxes.numpy())):
+                _save_durably(tmp / f"{name}.npy", array)
+            write_json_atomic(tmp / "meta.json", meta)
+            if replace and final.exists():
+                held = {p.name for p in final.iterdir()}
+                if not held <= STORE_FILES:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                    raise DepthnerfError(f"{final}: not a view store object (it holds {', '.join(sorted(held))}); "
+                                         "refusing to replace it")
+                old = final.with_name(f".{final.name}.old-{uuid.uuid4().hex}")
+                final.rename(old)
+                shutil.rmtree(old, ignore_errors=True)
+        except OSError as err:
+            raise DepthnerfError(f"{final}: cannot write the view store object ({err})") from None
         try:
             tmp.rename(final)
         except OSError:  # another process wrote the same object first: theirs is as good
             shutil.rmtree(tmp, ignore_errors=True)
             if self._meta(record) is None:
-                raise
+                raise DepthnerfError(f"{final}: cannot write the view store object (the folder exists and is not "
+                                     "one); delete it") from None
+            return False
+        return True
 
-    def ensure(self, records: Sequence[ObjectRecord], *, rank: int = 0, world: int = 1, check_all: bool = True,
+    def ensure(self, records: Sequence[ObjectRecord], *, rank: int = 0, world: int = 1,
                progress: bool = False) -> dict[str, int]:
-        """Build the objects of ``records[rank::world]`` that are missing or stale; with ``check_all``, their
-        fingerprints are compared (else only that each object exists). Returns counts ``built`` / ``rebuilt`` /
-        ``reused``."""
+        """Build the objects of ``records[rank::world]`` that are missing or stale (their fingerprints compared);
+        returns counts ``built`` / ``rebuilt`` / ``reused`` (an object another process wrote first is reused)."""
         self._check_manifest()
         counts = {"built": 0, "rebuilt": 0, "reused": 0}
         share = list(records)[rank::world]
         t0, last = time.perf_counter(), time.perf_counter()
         for n, record in enumerate(share):
             meta = self._meta(record)
-            if meta is not None and not check_all:
-                counts["reused"] += 1
-                continue
             fingerprint = object_fingerprint(record)
+            self.expected[str(self.object_dir(record))] = fingerprint
             if meta is not None and meta.get("fingerprint") == fingerprint:
                 counts["reused"] += 1
                 continue
-            self.write(record, fingerprint, replace=meta is not None or self.object_dir(record).exists())
-            counts["rebuilt" if meta is not None else "built"] += 1
+            ours = self.write(record, fingerprint, replace=meta is not None or self.object_dir(record).exists())
+            counts["reused" if not ours else "rebuilt" if meta is not None else "built"] += 1
             if progress and time.perf_counter() - last > 10:
                 last = time.perf_counter()
                 print(f"view store {self.root}: {n + 1}/{len(share)} objects ({last - t0:.0f} s)", file=sys.stderr,
@@ -217,15 +260,21 @@ class ViewStore:
         return counts
 
     def open(self, record: ObjectRecord) -> StoredObject:
-        """One object's arrays, memory-mapped (a missing or unreadable object is one line naming it)."""
+        """One object's arrays, memory-mapped (a missing, unreadable or changed object is one line naming it)."""
         folder = self.object_dir(record)
         meta = self._meta(record)
         if meta is None:
-            raise DepthnerfError(f"{folder}: missing from the view store (it is built when training starts)")
+            raise DepthnerfError(f"{folder}: missing from the view store (it is built when training starts; is "
+                                 "another run rebuilding it?)")
+        expected = self.expected.get(str(folder))
+        if expected is not None and meta.get("fingerprint") != expected:
+            raise DepthnerfError(f"{folder}: rebuilt from other files since this run started (does a run on other "
+                                 "data share this --data.view_store?); give each dataset its own store")
         try:
             arrays = {n: np.load(folder / f"{n}.npy", mmap_mode="r", allow_pickle=False)
                       for n in ("images", "masks", "poses", "bboxes")}
-        except (OSError, ValueError) as err:
+            intrinsics = Intrinsics(**meta["intrinsics"])
+        except (OSError, ValueError, KeyError, TypeError) as err:
             raise DepthnerfError(f"{folder}: unreadable view store object ({err}); delete the folder to rebuild it"
                                  ) from None
         if arrays["images"].shape[0] != record.num_views or meta.get("views") != record.num_views:
@@ -233,5 +282,4 @@ class ViewStore:
                                  f"{record.num_views}; delete the folder to rebuild it")
         return StoredObject(images=arrays["images"], masks=arrays["masks"],
                             poses=torch.from_numpy(np.array(arrays["poses"])),
-                            bboxes=torch.from_numpy(np.array(arrays["bboxes"])),
-                            intrinsics=Intrinsics(**meta["intrinsics"]))
+                            bboxes=torch.from_numpy(np.array(arrays["bboxes"])), intrinsics=intrinsics)

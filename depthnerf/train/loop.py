@@ -107,7 +107,7 @@ def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | 
     store = ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center)
     counts = store.ensure(records, rank=info.rank, world=info.world, progress=info.is_main)
     barrier(info)
-    store.ensure(records, check_all=False)
+    store.ensure(records)  # fingerprints only, where the ranks share a disk; the others' shares, where not
     if info.is_main:
         share = f" (rank 0's share of {len(records)})" if info.world > 1 else ""
         print(f"view store {store.root}: {counts['built']} objects decoded, {counts['rebuilt']} changed since and "
