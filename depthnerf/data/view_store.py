@@ -31,6 +31,7 @@ the store's files is never replaced.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import shutil
@@ -51,7 +52,7 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.records import ObjectRecord
 from depthnerf.data.srn import ObjectViews, load_object
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_json_atomic
+from depthnerf.files import write_bytes_atomic, write_json_atomic
 
 STORE_FORMAT = 1
 """Version of the layout above; a store of another version is refused."""
@@ -134,10 +135,9 @@ STORE_FILES = frozenset({"images.npy", "masks.npy", "poses.npy", "bboxes.npy", "
 
 
 def _save_durably(path: Path, array: np.ndarray) -> None:
-    with open(path, "wb") as handle:
-        np.save(handle, array)
-        handle.flush()
-        os.fsync(handle.fileno())
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    write_bytes_atomic(path, buffer.getvalue())
 
 
 class ViewStore:
