@@ -100,6 +100,15 @@ def gather_to_main(obj: Any, info: DistInfo) -> list[Any] | None:
     return out
 
 
+def all_ranks(obj: Any, info: DistInfo) -> list[Any]:
+    """Every rank's picklable ``obj``, in rank order, on every rank (a barrier too); ``[obj]`` alone."""
+    if info.world == 1:
+        return [obj]
+    out: list[Any] = [None] * info.world
+    dist.all_gather_object(out, obj)
+    return out
+
+
 def broadcast_from_main(obj: Any, info: DistInfo) -> Any:
     """Rank 0's picklable ``obj`` on every rank (what the other ranks pass is ignored)."""
     if info.world == 1:

@@ -283,3 +283,45 @@ def test_a_damaged_meta_file_is_one_line(tmp_path):
     (store.object_dir(records[0]) / "meta.json").write_text('{"views": 3, "fingerprint": "x"}')
     with pytest.raises(DepthnerfError, match=r"unreadable view store object .*intrinsics"):
         ViewStore(tmp_path / "store", 16, 0.5).open(records[0])
+
+
+RANK_CODE = """
+import sys, torch, torch.distributed as dist
+from depthnerf.data.srn import index_split
+from depthnerf.distributed import DistInfo
+from depthnerf.errors import DepthnerfError
+from depthnerf.train.config import preset
+from depthnerf.train.loop import _view_store
+import dataclasses
+rank, port, root, store = int(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
+dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
+cfg = preset("cpu-cars")
+cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, resolution=16, pixel_center=0.5, view_store=store))
+try:
+    _view_store(cfg, index_split(root, "cars", "train").objects, DistInfo(rank, 2, torch.device("cpu")))
+    print("no error")
+except DepthnerfError as err:
+    print(f"error: {err}")
+"""
+
+
+def test_a_rank_that_cannot_build_its_share_stops_every_rank(tmp_path):
+    """Rank 1 cannot build its share: both ranks stop with its one line (naming the rank) instead of rank 0
+    waiting at a barrier for a rank that died."""
+    import socket
+
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 2}, views=3, size=16)
+    records = index_split(root, "cars", "train").objects
+    ViewStore(tmp_path / "st", 16, 0.5).ensure([])  # an empty store, then a folder it must not replace
+    foreign = tmp_path / "st" / "cars_train" / records[1].object_id  # records[1::2] is rank 1's share
+    foreign.mkdir(parents=True)
+    (foreign / "notes.txt").write_text("mine")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    procs = [subprocess.Popen([sys.executable, "-c", RANK_CODE, str(r), str(port), str(root), str(tmp_path / "st")],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    outs = [p.communicate(timeout=120)[0].strip() for p in procs]
+    for out in outs:
+        assert out.startswith("error: ") and f"{foreign}: not a view store object" in out, outs
+        assert out.endswith("(rank 1)"), outs

@@ -39,7 +39,7 @@ from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
 from depthnerf.data.view_store import ViewStore
 from depthnerf.depth.prior import PriorSource, open_prior, portable_prior, weights_mismatch
-from depthnerf.distributed import DistInfo, barrier
+from depthnerf.distributed import DistInfo, all_ranks, barrier
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF
@@ -105,8 +105,15 @@ def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | 
         return None
     t0 = time.perf_counter()
     store = ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center)
-    counts = store.ensure(records, rank=info.rank, world=info.world, progress=info.is_main)
-    barrier(info)
+    counts, failed = {}, None
+    try:
+        counts = store.ensure(records, rank=info.rank, world=info.world, progress=info.is_main)
+    except DepthnerfError as err:  # every rank learns of it (instead of waiting at a barrier) and stops with it
+        failed = str(err)
+    failures = [f"{msg} (rank {r})" if info.world > 1 else msg for r, msg in enumerate(all_ranks(failed, info))
+                if msg is not None]
+    if failures:
+        raise DepthnerfError(failures[0])
     store.ensure(records)  # fingerprints only, where the ranks share a disk; the others' shares, where not
     if info.is_main:
         share = f" (rank 0's share of {len(records)})" if info.world > 1 else ""
