@@ -95,8 +95,9 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
 
 def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | None:
     """The run's view store, brought up to date (None without ``data.view_store``, with a hint on CUDA). Each rank
-    builds or checks its share of the objects; after a barrier every rank builds what it still lacks (the others'
-    shares, where the ranks do not share a disk)."""
+    builds or checks its share of the objects; once every rank has reported (a rank that failed stops them all with
+    its message), every rank checks every object and builds what it still lacks (the others' shares, where the
+    ranks do not share a disk)."""
     if not cfg.data.view_store:
         if info.device.type == "cuda" and info.is_main:
             print("data: each item decodes its object's views from PNG, which can hold a GPU back; "
