@@ -325,3 +325,21 @@ def test_a_rank_that_cannot_build_its_share_stops_every_rank(tmp_path):
     for out in outs:
         assert out.startswith("error: ") and f"{foreign}: not a view store object" in out, outs
         assert out.endswith("(rank 1)"), outs
+
+
+def test_a_killed_builds_leftovers_are_swept_after_an_hour(tmp_path):
+    from depthnerf.data.view_store import LEFTOVER_AGE_S
+
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 1}, views=3, size=16)
+    records = index_split(root, "cars", "train").objects
+    store = ViewStore(tmp_path / "store", 16, 0.5)
+    store.ensure(records)
+    split = store.object_dir(records[0]).parent
+    old, live = split / ".abc.tmp-x1", split / ".abc.tmp-x2"
+    for folder in (old, live):
+        folder.mkdir()
+        (folder / "images.npy").write_bytes(b"partial")
+    stale = time.time() - LEFTOVER_AGE_S - 10
+    os.utime(old, (stale, stale))
+    store.ensure(records)
+    assert not old.exists() and live.exists()  # a build that may still be running is left alone

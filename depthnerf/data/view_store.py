@@ -25,7 +25,7 @@ Stale detection: an object's fingerprint is the SHA-256 of its view names and th
 many); a store made at another resolution or pixel centre is refused in one line. A run keeps the fingerprints it
 found at start-up and refuses an object rebuilt from other files since (two datasets with the same object ids
 sharing one store). The folder named as a store must be new, empty or a store; an object folder holding anything but
-the store's files is never replaced.
+the store's files is never replaced; temporary folders that a killed build left are removed after an hour.
 """
 
 from __future__ import annotations
@@ -129,6 +129,10 @@ def _exact_uint8(images: np.ndarray) -> np.ndarray | None:
     u8 = u.astype(np.uint8)
     return u8 if np.array_equal(u8.astype(np.float32) / 255.0, images) else None
 
+
+LEFTOVER_AGE_S = 3600.0
+"""Temporary folders (``.<id>.tmp-*``, ``.<id>.old-*``) older than this are a killed build's and are removed; a
+live build of one object takes about a second."""
 
 STORE_FILES = frozenset({"images.npy", "masks.npy", "poses.npy", "bboxes.npy", "meta.json"})
 """What an object folder of a store holds; a folder holding anything else is never replaced."""
@@ -243,6 +247,7 @@ class ViewStore:
         self._check_manifest()
         counts = {"built": 0, "rebuilt": 0, "reused": 0}
         share = list(records)[rank::world]
+        self._sweep({self.object_dir(record).parent for record in share})
         t0, last = time.perf_counter(), time.perf_counter()
         for n, record in enumerate(share):
             meta = self._meta(record)
@@ -258,6 +263,20 @@ class ViewStore:
                 print(f"view store {self.root}: {n + 1}/{len(share)} objects ({last - t0:.0f} s)", file=sys.stderr,
                       flush=True)
         return counts
+
+    def _sweep(self, folders: set[Path]) -> None:
+        """Remove what killed builds left in ``folders`` (temporary object folders older than
+        :data:`LEFTOVER_AGE_S`)."""
+        cutoff = time.time() - LEFTOVER_AGE_S
+        for folder in folders:
+            if not folder.is_dir():
+                continue
+            for left in [*folder.glob(".*.tmp-*"), *folder.glob(".*.old-*")]:
+                try:
+                    if left.is_dir() and left.stat().st_mtime < cutoff:
+                        shutil.rmtree(left, ignore_errors=True)
+                except OSError:
+                    pass  # another process removed it first
 
     def open(self, record: ObjectRecord) -> StoredObject:
         """One object's arrays, memory-mapped (a missing, unreadable or changed object is one line naming it)."""
