@@ -343,3 +343,22 @@ def test_a_killed_builds_leftovers_are_swept_after_an_hour(tmp_path):
     os.utime(old, (stale, stale))
     store.ensure(records)
     assert not old.exists() and live.exists()  # a build that may still be running is left alone
+
+
+def test_ranks_on_separate_disks_each_end_with_every_object(tmp_path):
+    """Two ranks, each with its own store folder (no shared disk): after start-up each store holds every object,
+    its own share built in the first pass and the other rank's in the second."""
+    import socket
+
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 3}, views=3, size=16)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    stores = [tmp_path / f"disk{r}" for r in (0, 1)]
+    procs = [subprocess.Popen([sys.executable, "-c", RANK_CODE, str(r), str(port), str(root), str(stores[r])],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for r in (0, 1)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert [out.strip() for out, _ in outs] == ["no error", "no error"], outs
+    records = index_split(root, "cars", "train").objects
+    for store in stores:
+        assert ViewStore(store, 16, 0.5).ensure(records) == {"built": 0, "rebuilt": 0, "reused": 3}

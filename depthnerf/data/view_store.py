@@ -101,9 +101,10 @@ class StoredObject:
         return self._float(self.images[v, r, c]), torch.from_numpy(np.array(self.masks[v, r, c]))
 
 
-def object_fingerprint(record: ObjectRecord) -> str:
+def store_fingerprint(record: ObjectRecord) -> str:
     """SHA-256 of the view names and the size and modification time of ``intrinsics.txt`` and every RGB, pose and
-    mask file."""
+    mask file (not :func:`depthnerf.depth.cache.object_fingerprint`, which covers the RGB files alone: the store
+    also holds poses, masks and intrinsics)."""
     digest = hashlib.sha256()
     st = (record.path / "intrinsics.txt").stat()
     digest.update(f"intrinsics:{st.st_size}:{st.st_mtime_ns}\n".encode())
@@ -172,11 +173,11 @@ class ViewStore:
         if not path.exists():
             others = sorted(p.name for p in self.root.iterdir() if not p.name.startswith(".")) \
                 if self.root.is_dir() else []
-            if others and not path.exists():  # checked again: another process may have just made this store
-                raise DepthnerfError(f"{self.root}: not empty and not a view store (it holds {', '.join(others[:3])}"
-                                     f"{', ...' if len(others) > 3 else ''}); name an empty or new folder for "
-                                     "--data.view_store, never the dataset's")
-            if not path.exists():
+            if not path.exists():  # checked again after listing: another process may have just made this store
+                if others:
+                    raise DepthnerfError(f"{self.root}: not empty and not a view store (it holds "
+                                         f"{', '.join(others[:3])}{', ...' if len(others) > 3 else ''}); name an "
+                                         "empty or new folder for --data.view_store, never the dataset's")
                 try:
                     write_json_atomic(path, want)
                 except OSError as err:
@@ -251,7 +252,7 @@ class ViewStore:
         t0, last = time.perf_counter(), time.perf_counter()
         for n, record in enumerate(share):
             meta = self._meta(record)
-            fingerprint = object_fingerprint(record)
+            fingerprint = store_fingerprint(record)
             self.expected[str(self.object_dir(record))] = fingerprint
             if meta is not None and meta.get("fingerprint") == fingerprint:
                 counts["reused"] += 1

@@ -96,7 +96,7 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
 def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | None:
     """The run's view store, brought up to date (None without ``data.view_store``, with a hint on CUDA). Each rank
     builds or checks its share of the objects; once every rank has reported (a rank that failed stops them all with
-    its message), every rank checks every object and builds what it still lacks (the others' shares, where the
+    its message), every rank checks the other ranks' shares too and builds what it still lacks there (where the
     ranks do not share a disk)."""
     if not cfg.data.view_store:
         if info.device.type == "cuda" and info.is_main:
@@ -115,7 +115,8 @@ def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | 
                 if msg is not None]
     if failures:
         raise DepthnerfError(failures[0])
-    store.ensure(records)  # fingerprints only, where the ranks share a disk; the others' shares, where not
+    others = [record for i, record in enumerate(records) if i % info.world != info.rank]  # the others' shares
+    store.ensure(others)  # fingerprints only, where the ranks share a disk; built here, where not
     if info.is_main:
         share = f" (rank 0's share of {len(records)})" if info.world > 1 else ""
         print(f"view store {store.root}: {counts['built']} objects decoded, {counts['rebuilt']} changed since and "
