@@ -7,8 +7,11 @@
 # travels (64 MB, measured: 66.9 MB refused); there `depthnerf synth` casts rays with torch on CUDA instead
 # (`--raycaster auto`, depthnerf/data/synth/hits.py), and the one test that compares the two engines skips.
 # Send it with the device tool's `carry: [".whl"]`; scripts/gpu_env.sh unpacks it there into Python's site-packages.
+# scripts/gpu_checkpoint.sh makes 15,000 views there and wants Embree: with the tracked files at 54.4 MB the archive
+# with embreex (6.4 MB) fits (60.8 MB in all, `python scripts/travel_size.py .whl`):
 #
 #   bash scripts/gpu_wheels.sh          # Python 3.12, x86-64 manylinux (the GPU machine's)
+#   WHEELS="trimesh==5.2.0 rtree==1.4.1 lpips==0.1.4 embreex==4.4.0.post1" bash scripts/gpu_wheels.sh
 set -euo pipefail
 HERE=$(cd "$(dirname "$0")/.." && pwd)
 PYVER=${PYVER:-3.12}

@@ -14,6 +14,7 @@ import json
 import os
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -205,3 +206,36 @@ def test_gpu_compile_train_script_on_the_cpu(tmp_path):
     ms = [1e3 * (2 if m["step"] <= 3 else 4) * 16 / m["rays_per_s"] for m in logged]
     assert run["ms_per_step"] == pytest.approx(float(np.median(ms[2:])), rel=1e-9)
     assert "view store " in (tmp_path / "out" / "compile_train_logs.txt").read_text()
+
+
+def test_gpu_checkpoint_script_on_the_cpu(tmp_path):
+    """The lease script that trains a checkpoint to ship, shrunk to the CPU and to ~40 s: the probe is stopped by
+    its time limit and checkpoints, the main run starts from its weights with the planned cosine schedule, and the
+    archive holds what evaluation and export read, without optimiser states."""
+    tiny = ("--model.encoder.backbone resnet18 --model.coarse.d_hidden 16 --model.fine.d_hidden 16 "
+            "--render.sampler.n_coarse 4 --render.sampler.n_importance 2 --render.sampler.n_gaussian 2 "
+            "--schedule.objects_phase1 2 --schedule.objects_phase2 2 --schedule.bbox_steps 3 "
+            "--schedule.rays_per_object 16 --log.log_every 1")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "WORK": str(tmp_path / "work"), "DEVICE": "cpu", "RES": "32",
+           "TRAIN_OBJECTS": "2", "VIEWS": "3", "SYNTH_WORKERS": "1", "DATA_WORKERS": "0", "SECONDS_TOTAL": "45",
+           "PROBE_SECONDS": "14", "RESERVE_S": "2", "START_S": "6", "TRAIN_ARGS": tiny}
+    out = tmp_path / "out"
+    proc = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_checkpoint.sh"), str(out)], capture_output=True,
+                          text=True, env=env, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    res = json.loads((out / "gpu_checkpoint.json").read_text())
+    assert res["stages"]["data"]["rc"] == 0 and res["stages"]["priors"]["rc"] == 0
+    assert res["stages"]["probe"]["rc"] == 124 and res["runs"]["probe"]["last_step"] > 3  # stopped by its limit
+    assert res["probe_ms_per_step"] > 0 and res["main_steps_planned"] > 0 and res["runs"]["main"]["last_step"] > 0
+    with tarfile.open(out / "run.tar.gz") as tar:
+        tar.extractall(tmp_path / "unpacked", filter="data")
+    main = tmp_path / "unpacked" / "main"
+    cfg = json.loads((main / "config.json").read_text())
+    assert cfg["schedule"]["lr_schedule"] == "cosine" and cfg["schedule"]["max_steps"] == res["main_steps_planned"]
+    assert cfg["model"]["mirror"] and cfg["model"]["prior_at_point"]
+    latest = (main / "checkpoints" / "latest").read_text().strip()
+    assert latest == res["runs"]["main"]["checkpoint"]
+    assert [p.name for p in (main / "checkpoints").iterdir() if p.is_dir()] == [latest]
+    assert sorted(p.name for p in (main / "checkpoints" / latest).iterdir()) == ["model.safetensors", "state.json"]
+    assert "probe" in json.loads((main / "init_from.json").read_text())["source"]
+    assert not list((tmp_path / "unpacked").rglob("optimizer.safetensors"))
