@@ -242,7 +242,7 @@ def test_inspect_names_a_file_given_for_the_data_folder(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("flag", "value", "least"), [("--resolution", "7", 8), ("--workers", "0", 1),
-                                                      ("--views-test", "0", 1)])
+                                                      ("--views-test", "0", 1), ("--seed", "-1", 0)])
 def test_synth_names_only_the_offending_flag(tmp_path, capsys, flag, value, least):
     assert main(["synth", "--category", "cars", "--out", str(tmp_path / "d"), flag, value]) == 2
     assert one_error(capsys) == f"error: synth: {flag} must be >= {least} (got {value})"

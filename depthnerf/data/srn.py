@@ -112,8 +112,33 @@ def ignored_folder(name: str) -> bool:
     return name.startswith(".") or name in IGNORED_FOLDERS
 
 
+def _root_above(split_folder: Path) -> Path:
+    """The dataset root above a split folder (one level more for SRN's nested ``<c>_<s>/<c>_2.0_<s>/``)."""
+    return split_folder.parent.parent if "_2.0_" in split_folder.name else split_folder.parent
+
+
+def wrong_level(root: Path) -> str | None:
+    """One error line when ``root`` is a split or an object folder rather than a dataset root (``--data`` a level
+    or two too deep), else None."""
+    root = Path(root)
+    if not root.is_dir():
+        return None
+    category, _, split = root.name.rpartition("_")
+    if split in SPLITS and category and (root / f"{category}_2.0_{split}").is_dir():
+        level, above = "split", root.parent
+    elif (root / "intrinsics.txt").is_file() or (root / "rgb").is_dir():
+        level, above = "object", _root_above(root.parent)
+    elif any((p / "intrinsics.txt").is_file() for p in root.iterdir() if p.is_dir()):
+        level, above = "split", _root_above(root)
+    else:
+        return None
+    return (f"{root}: is {'an' if level == 'object' else 'a'} {level} folder, not a dataset root; pass the folder "
+            f"that holds the <category>_<split>/ folders (here probably {above})")
+
+
 def discover_categories(root: Path) -> list[str]:
-    """Sorted category names found as ``<category>_<split>`` folders directly under ``root``."""
+    """Sorted category names found as ``<category>_<split>`` folders directly under ``root`` (an error when
+    ``root`` is a split or object folder: :func:`wrong_level`)."""
     root = Path(root)
     if root.exists() and not root.is_dir():
         raise DepthnerfError(f"{root}: is a file, not a dataset folder (pass the folder that holds the "
@@ -125,6 +150,10 @@ def discover_categories(root: Path) -> list[str]:
         category, _, split = entry.name.rpartition("_")
         if entry.is_dir() and category and split in SPLITS and not entry.name.startswith("."):
             found.add(category)
+    if not found or any(c.endswith("_2.0") for c in found):  # "chairs_2.0": root is SRN's chairs_train/
+        hint = wrong_level(root)
+        if hint is not None:
+            raise DepthnerfError(hint)
     return sorted(found)
 
 
@@ -196,6 +225,11 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
         if Path(root).exists() and not Path(root).is_dir():
             raise DepthnerfError(f"{root}: is a file, not a dataset folder (pass the folder that holds "
                                  f"{category}_{split}/)")
+        if not Path(root).exists():
+            raise DepthnerfError(f"{root}: dataset folder does not exist")
+        hint = wrong_level(root)
+        if hint is not None:
+            raise DepthnerfError(hint)
         problem = "is a file, not a split folder" if folder.exists() else "split folder does not exist"
         raise DepthnerfError(f"{folder}: {problem}")
     object_dirs = sorted(p for p in folder.iterdir() if p.is_dir() and not ignored_folder(p.name))

@@ -28,11 +28,14 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
+
+NOT_AN_IMAGE = "not an image: the file is empty or of a format Pillow does not know"
+"""Why a file that Pillow cannot identify is unreadable (its own message repeats the path)."""
 
 RIGID_TOL = 1e-3
 """Tolerance on ``R^T R = I``, ``det R = 1`` and the last row ``[0 0 0 1]`` of a pose."""
@@ -45,13 +48,19 @@ def read_intrinsics(path: Path) -> Intrinsics:
         lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read intrinsics ({err.strerror or err})") from None
+    except UnicodeDecodeError:
+        raise DepthnerfError(f"{path}: malformed intrinsics (not a text file)") from None
     try:
         focal, cx, cy = (float(x) for x in lines[0][:3])
-        height, width = (int(float(x)) for x in lines[-1][:2])
-        if len(lines) < 2 or len(lines[-1]) < 2:
+        size = [float(x) for x in lines[-1][:2]]
+        if len(lines) < 2 or len(size) < 2:
             raise ValueError
     except (ValueError, IndexError):
         raise DepthnerfError(f"{path}: malformed intrinsics (expected 'f cx cy 0.' ... 'H W')") from None
+    if not all(np.isfinite(size)) or not all(x.is_integer() for x in size):
+        raise DepthnerfError(f"{path}: image size '{' '.join(lines[-1][:2])}' on the last line is not two whole "
+                             "numbers 'H W'")
+    height, width = (int(x) for x in size)
     if not all(np.isfinite([focal, cx, cy])) or focal <= 0 or height <= 0 or width <= 0:
         raise DepthnerfError(f"{path}: invalid intrinsics values f={focal} c=({cx},{cy}) size={height}x{width}")
     return Intrinsics(focal=focal, cx=cx, cy=cy, height=height, width=width)
@@ -100,6 +109,8 @@ def read_rgb(path: Path) -> np.ndarray:
             mode = im.mode
     except FileNotFoundError:
         raise DepthnerfError(f"{path}: image file is missing") from None
+    except UnidentifiedImageError:
+        raise DepthnerfError(f"{path}: unreadable image ({NOT_AN_IMAGE})") from None
     except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable image ({err})") from None
     if arr.dtype == np.uint8:
@@ -268,16 +279,25 @@ def write_depth(path: Path, depth: np.ndarray) -> None:
         zf.writestr(info, buf.getvalue())
 
 
+def mask_not_png(path: Path, image_format: str) -> str:
+    """The error line for a mask file that is not a PNG (a JPEG's compression noise makes background pixels
+    non-zero, i.e. object)."""
+    return (f"{path}: mask is a {image_format} file, not a PNG (masks are read from lossless PNG only: a lossy "
+            "format turns background pixels into object); re-save it as PNG")
+
+
 def read_mask(path: Path) -> np.ndarray:
     """Read a mask PNG of any bit depth and mode as a boolean ``H x W`` array.
 
-    A pixel is object when its colour is non-zero (any channel; palette images by their palette colour); where
+    Any other format (a JPEG named ``.png``) is an error. A pixel is object when its colour is non-zero (any channel; palette images by their palette colour); where
     the image has alpha, a fully transparent pixel is background. (Pillow reads 16-bit *colour* PNGs at 8-bit
     precision, so there a value below 256 reads as 0; 16-bit grey keeps full precision.)
     """
     path = Path(path)
     try:
         with Image.open(path) as im:
+            if im.format != "PNG":
+                raise DepthnerfError(mask_not_png(path, str(im.format)))
             im.load()
             if im.mode in ("P", "PA", "CMYK", "YCbCr", "HSV"):
                 im = im.convert("RGBA")
@@ -285,6 +305,8 @@ def read_mask(path: Path) -> np.ndarray:
             arr = np.asarray(im)
     except FileNotFoundError:
         raise DepthnerfError(f"{path}: mask file is missing") from None
+    except UnidentifiedImageError:
+        raise DepthnerfError(f"{path}: unreadable mask ({NOT_AN_IMAGE})") from None
     except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable mask ({err})") from None
     if arr.ndim == 2:

@@ -20,10 +20,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from depthnerf.data.records import ObjectCheck, ObjectRecord, SplitIndex
-from depthnerf.data.srn_format import check_empty_depth, read_depth, read_pose, read_rgb
+from depthnerf.data.srn_format import (
+    NOT_AN_IMAGE,
+    check_empty_depth,
+    mask_not_png,
+    read_depth,
+    read_pose,
+    read_rgb,
+)
 from depthnerf.data.srn_parts import PART_LABELS, PartReport
 from depthnerf.errors import DepthnerfError
 
@@ -51,6 +58,8 @@ def image_header(path: Path, what: str = "image") -> tuple[tuple[int, int], str]
                 im.verify()
     except FileNotFoundError:
         raise DepthnerfError(f"{path}: {what} file is missing") from None
+    except UnidentifiedImageError:
+        raise DepthnerfError(f"{path}: unreadable {what} ({NOT_AN_IMAGE})") from None
     except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable {what} ({err})") from None
     return (height, width), name
@@ -83,6 +92,13 @@ def _size_checked(path: Path, what: str, expected: tuple[int, int], intrinsics: 
     return name
 
 
+def _mask_format(path: Path, expected: tuple[int, int], intrinsics: Path) -> str:
+    name = _size_checked(path, "mask", expected, intrinsics)
+    if not name.startswith("PNG "):
+        raise DepthnerfError(mask_not_png(path, name.split()[0]))
+    return name
+
+
 def _depth_format(name: str) -> str:
     return "16-bit PNG" if name.endswith(".png") else Path(name).suffix
 
@@ -106,7 +122,7 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
         rgb[_size_checked(record.rgb_path(view), "image", expected, intrinsics)] += 1
         if masks_ok:
             try:
-                masks[_size_checked(record.mask_path(view), "mask", expected, intrinsics)] += 1
+                masks[_mask_format(record.mask_path(view), expected, intrinsics)] += 1
             except DepthnerfError as err:
                 report.add_error("mask", record.mask_path(view), err)
                 masks_ok = False

@@ -24,8 +24,9 @@ Stale detection: an object's fingerprint is the SHA-256 of its view names and th
 ``intrinsics.txt`` and of each RGB, pose and mask file. A changed dataset rebuilds the changed objects (and says how
 many); a store made at another resolution or pixel centre is refused in one line. A run keeps the fingerprints it
 found at start-up and refuses an object rebuilt from other files since (two datasets with the same object ids
-sharing one store). The folder named as a store must be new, empty or a store; an object folder holding anything but
-the store's files is never replaced; temporary folders that a killed build left are removed after an hour.
+sharing one store). The folder named as a store must be new, empty or a store, and outside the dataset's split
+folders (there it would read as an object); an object folder holding anything but the store's files is never
+replaced; temporary folders that a killed build left are removed after an hour.
 """
 
 from __future__ import annotations
@@ -245,6 +246,11 @@ class ViewStore:
                progress: bool = False) -> dict[str, int]:
         """Build the objects of ``records[rank::world]`` that are missing or stale (their fingerprints compared);
         returns counts ``built`` / ``rebuilt`` / ``reused`` (an object another process wrote first is reused)."""
+        for split_folder in sorted({Path(record.path).parent for record in records}):
+            if self.root.resolve().is_relative_to(split_folder.resolve()):
+                raise DepthnerfError(f"{self.root}: inside the split folder {split_folder}, where the store would be "
+                                     "read as an object of the dataset; name a folder outside it for "
+                                     "--data.view_store")
         self._check_manifest()
         counts = {"built": 0, "rebuilt": 0, "reused": 0}
         share = list(records)[rank::world]

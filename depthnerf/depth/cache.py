@@ -11,9 +11,12 @@ image side length the priors were computed at. Each object file holds one tensor
 ``view_names`` order, and string metadata: ``fingerprint``, ``weights_hash``, ``estimator``, ``resolution``,
 ``views``. Files are written to a temporary name and renamed, so a crash never leaves a partial file.
 
-Stale detection: an object's *fingerprint* is the SHA-256 of the view names and the byte sizes of their RGB files
-plus the bytes of the first RGB file; a regenerated or edited dataset changes it, and loading then fails instead
-of silently reusing the old priors. A missing, partial, stale or other-estimator cache is a
+Stale detection: an object's *fingerprint* is the SHA-256 of the view names and the bytes of their RGB files
+(reading them costs about what the file checks of ``index_split`` already spend on them); a regenerated or edited
+dataset changes it, even when every file keeps its size (uncompressed PNGs), and loading then fails instead of
+silently reusing the old priors; copying the dataset does not. Caches written before this fingerprint (view names,
+RGB file sizes and the first file's bytes; no ``rgb-bytes:`` prefix) are still checked the way they were made, so
+they are not recomputed. A missing, partial, stale or other-estimator cache is a
 :class:`~depthnerf.errors.DepthnerfError` naming the exact ``depthnerf depth ...`` command that makes it.
 
 ``oracle`` priors need no cache (computed from ``depth/`` on the fly) but are served through the same
@@ -71,8 +74,32 @@ def depth_command(data_root: Path, estimator: str, checkpoint: str | None, resol
     return " ".join(parts)
 
 
+FINGERPRINT_SCHEME = "rgb-bytes"
+"""Prefix of :func:`object_fingerprint`; a stored fingerprint without it is the earlier scheme
+(:func:`_sizes_fingerprint`)."""
+
+
+def _rgb_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise DepthnerfError(f"{path}: image file is missing") from None
+    except OSError as err:
+        raise DepthnerfError(f"{path}: cannot read image ({err.strerror or err})") from None
+
+
 def object_fingerprint(record: Any) -> str:
-    """SHA-256 of the view names, their RGB file sizes and the first RGB file's bytes (see module docstring)."""
+    """``rgb-bytes:`` + the SHA-256 of the view names and the bytes of their RGB files (see the module docstring)."""
+    digest = hashlib.sha256()
+    for index, name in enumerate(record.view_names):
+        data = _rgb_bytes(Path(record.rgb_path(index)))
+        digest.update(f"{name}:{len(data)}\n".encode())
+        digest.update(hashlib.sha256(data).digest())
+    return f"{FINGERPRINT_SCHEME}:{digest.hexdigest()}"
+
+
+def _sizes_fingerprint(record: Any) -> str:
+    """The earlier fingerprint: SHA-256 of the view names, their RGB file sizes and the first RGB file's bytes."""
     digest = hashlib.sha256()
     for index, name in enumerate(record.view_names):
         path = Path(record.rgb_path(index))
@@ -82,8 +109,25 @@ def object_fingerprint(record: Any) -> str:
             raise DepthnerfError(f"{path}: image file is missing") from None
         digest.update(f"{name}:{size}\n".encode())
     if record.view_names:
-        digest.update(Path(record.rgb_path(0)).read_bytes())
+        digest.update(_rgb_bytes(Path(record.rgb_path(0))))
     return digest.hexdigest()
+
+
+def fingerprint_matches(stored: str | None, record: Any, current: str | None = None) -> bool:
+    """Whether a cache entry's stored fingerprint is ``record``'s now, under the scheme it was written with
+    (``current``: :func:`object_fingerprint` of ``record`` when the caller has it already)."""
+    if not isinstance(stored, str):
+        return False
+    if stored.startswith(f"{FINGERPRINT_SCHEME}:"):
+        return stored == (current or object_fingerprint(record))
+    return stored == _sizes_fingerprint(record)
+
+
+def missing_depth(record: Any) -> str:
+    """Why ``record`` has no ground-truth depth, to end an error line: no ``depth/``, or the first problem that
+    made its ``depth/`` unusable (the warning the indexer gave)."""
+    issue = next((i for i in getattr(record, "issues", ()) if i.part == "depth" and i.disables), None)
+    return "none found" if issue is None else f"its depth/ is not usable ({issue.text})"
 
 
 def storage_dtype(disparity: Float[Tensor, "V H W"]) -> torch.dtype:
@@ -173,7 +217,8 @@ class OraclePriorStore(PriorStore):
         from depthnerf.data.srn import load_object
 
         if not record.has_depth:
-            raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, none found")
+            raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, "
+                                 f"{missing_depth(record)}")
         views = self._check_views(record, views, Path(record.path))
         obj = load_object(record, views, resolution=self.resolution, with_depth=True,
                           pixel_center=INTEGER_CENTRED)  # depth pixels only
@@ -182,7 +227,8 @@ class OraclePriorStore(PriorStore):
     def check(self, records: Sequence[Any]) -> None:
         for record in records:
             if not record.has_depth:
-                raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, none found")
+                raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, "
+                                     f"{missing_depth(record)}")
 
 
 class CachedPriorStore(PriorStore):
@@ -234,7 +280,7 @@ class CachedPriorStore(PriorStore):
         if meta.get("weights_hash") != self._provenance.weights_hash or meta.get("resolution") != str(
                 self.resolution):
             raise DepthnerfError(f"{path}: depth prior made by other weights or resolution; run: {cmd}")
-        if meta.get("fingerprint") != object_fingerprint(record):
+        if not fingerprint_matches(meta.get("fingerprint"), record):
             raise DepthnerfError(f"{path}: depth prior is stale (the object's images changed since it was "
                                  f"computed); run: {cmd}")
         self._verified.add(key)

@@ -14,14 +14,14 @@ AbsRel against it.
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import torch
 from tqdm import tqdm
 
-from depthnerf.depth.cache import PriorStore
+from depthnerf.depth.cache import PriorStore, missing_depth
 from depthnerf.depth.estimators import describe_estimator, make_estimator
 from depthnerf.depth.metrics import affine_invariant_scores
 from depthnerf.depth.precompute import predict_views
@@ -116,7 +116,7 @@ def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
         records.extend(objects[: cfg.max_objects] if cfg.max_objects else objects)
     for record in records:
         if not record.has_depth:
-            raise DepthnerfError(f"{record.path}: no depth/ folder; depth-eval needs ground-truth z-depth")
+            raise DepthnerfError(f"{record.path}: depth-eval needs ground-truth z-depth, {missing_depth(record)}")
     resolution = records[0].intrinsics.height
     same_size = all(r.intrinsics.height == resolution for r in records)
     store = None
@@ -133,7 +133,9 @@ def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
                disable=not cfg.progress)
     for record in bar:
         views = _view_subset(record.num_views, cfg.max_views)
-        obj = load_object(record, views, with_depth=True, pixel_center=INTEGER_CENTRED)  # pixels only
+        # pixels and depth only: masks are never read (the foreground is depth > 0)
+        obj = load_object(replace(record, has_mask=False), views, with_depth=True,
+                          pixel_center=INTEGER_CENTRED)
         if store is not None:
             disparity = store.load(record, views)
         else:

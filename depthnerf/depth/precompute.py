@@ -9,7 +9,7 @@ records the provenance and, per ``<category>_<split>``, how many objects are don
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -18,6 +18,7 @@ from tqdm import tqdm
 from depthnerf import __version__
 from depthnerf.depth.cache import (
     cache_dir,
+    fingerprint_matches,
     object_fingerprint,
     object_path,
     read_object_metadata,
@@ -130,7 +131,7 @@ def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
     summary = PrecomputeSummary(cache_dir=root, missing_splits=missing)
     manifest_path = root / "manifest.json"
     manifest = {"provenance": provenance.as_dict(), "resolution": resolution, "depthnerf": __version__,
-                "fingerprint": "sha256 of view names + RGB file sizes + first RGB file bytes", "splits": {}}
+                "fingerprint": "sha256 of view names + RGB file bytes", "splits": {}}
     if manifest_path.is_file():
         import json
 
@@ -153,15 +154,17 @@ def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
         path = object_path(root, record)
         fingerprint = object_fingerprint(record)
         meta = read_object_metadata(path)
-        if meta is not None and (meta.get("fingerprint"), meta.get("weights_hash"), meta.get("resolution")) == (
-                fingerprint, provenance.weights_hash, str(resolution)):
+        if meta is not None and fingerprint_matches(meta.get("fingerprint"), record, fingerprint) and (
+                meta.get("weights_hash"), meta.get("resolution")) == (provenance.weights_hash, str(resolution)):
             summary.skipped += 1
         else:
             summary.stale += meta is not None
             if estimator is None:  # loaded (and the manifest written) only once there is work to do
                 estimator = make_estimator(cfg.estimator, cfg.checkpoint, device=cfg.device)
                 write_json_atomic(manifest_path, manifest)
-            views = load_object(record, resolution=resolution, pixel_center=INTEGER_CENTRED)  # pixels only
+            # pixels only: masks are never read, so a bad optional mask/ (a warning elsewhere) cannot stop this
+            views = load_object(replace(record, has_mask=False), resolution=resolution,
+                                pixel_center=INTEGER_CENTRED)
             disparity = predict_views(estimator, views.images, None, cfg.batch_size)
             write_object_priors(path, disparity, {
                 "fingerprint": fingerprint, "weights_hash": provenance.weights_hash,

@@ -322,7 +322,8 @@ def generate(config: SynthConfig) -> dict:
     if not any(config.counts().values()):
         raise DepthnerfError("synth: --train-objects, --val-objects and --test-objects are all 0: nothing to make")
     for flag, value, least in (("--resolution", config.resolution, 8), ("--views-train", config.views_train, 1),
-                               ("--views-test", config.views_test, 1), ("--workers", config.workers, 1)):
+                               ("--views-test", config.views_test, 1), ("--workers", config.workers, 1),
+                               ("--seed", config.seed, 0)):
         if value < least:
             raise DepthnerfError(f"synth: {flag} must be >= {least} (got {value})")
     if config.raycaster not in ENGINES:

@@ -1,0 +1,163 @@
+"""Mistakes a user makes with SRN-format data, each found by the audit of the data reader: every one is one line
+naming the file (or the folder) and the problem, or a warning costing only the optional part, never a traceback,
+a silent wrong value or a silently reused stale prior."""
+
+from __future__ import annotations
+
+import io
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from fixtures_srn import first_object, make_srn_fixture
+from PIL import Image
+
+from depthnerf.cli import main
+from depthnerf.data import srn_format
+from depthnerf.data.srn import index_split, load_object
+from depthnerf.data.view_store import ViewStore
+from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
+from depthnerf.depth.cache import PriorStore, object_fingerprint
+from depthnerf.errors import DataWarning, DepthnerfError
+
+INTRINSICS = "8.2 8. 8. 0.\n0. 0. 0.\n1.\n{}\n"
+
+
+@pytest.mark.parametrize(("content", "problem"), [
+    (b"\xe3\x81\x00\xff binary", "malformed intrinsics (not a text file)"),
+    (INTRINSICS.format("16.5 16").encode(), "image size '16.5 16' on the last line is not two whole numbers 'H W'"),
+    (INTRINSICS.format("nan 16").encode(), "image size 'nan 16' on the last line is not two whole numbers 'H W'"),
+])
+def test_bad_intrinsics_are_one_line(tmp_path: Path, content: bytes, problem: str, capsys):
+    root = make_srn_fixture(tmp_path, splits={"train": 1})
+    path = first_object(root) / "intrinsics.txt"
+    path.write_bytes(content)
+    with pytest.raises(DepthnerfError, match=re.escape(problem)):
+        srn_format.read_intrinsics(path)
+    assert main(["inspect", "--data", str(root)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {path}: {problem}"
+    path.write_text(INTRINSICS.format("16. 16"))  # a whole number written as a float is still one
+    assert srn_format.read_intrinsics(path).height == 16
+
+
+def test_data_one_or_two_levels_too_deep_names_the_root(tmp_path: Path, capsys):
+    root = make_srn_fixture(tmp_path / "srn", category="chairs", splits={"train": 1, "test": 1})
+    nested = root / "chairs_train" / "chairs_2.0_train"
+    for data, level in ((root / "chairs_train", "a split"), (nested, "a split"), (root / "chairs_test", "a split"),
+                        (next(nested.iterdir()), "an object")):
+        expected = f"error: {data}: is {level} folder, not a dataset root; "
+        assert main(["inspect", "--data", str(data)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(expected) and err.rstrip().endswith(f"(here probably {root})"), err
+        assert main(["depth", "--data", str(data), "--depth", "bundled", "--no-progress"]) == 2
+        assert capsys.readouterr().err.startswith(expected)
+        with pytest.raises(DepthnerfError, match="folder, not a dataset root"):  # what train and eval call
+            index_split(data, "chairs", "train")
+    assert not (root / "chairs_train" / "depth_priors").exists()  # no cache written into the split folder
+    with pytest.raises(DepthnerfError, match="dataset folder does not exist"):
+        index_split(tmp_path / "nowhere", "cars", "train")
+
+
+def test_depth_priors_are_made_when_an_optional_mask_is_bad(tmp_path: Path, capsys):
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 1}, views=2, with_mask=True)
+    bad = first_object(root) / "mask" / "000001.png"
+    bad.write_bytes(bad.read_bytes()[:60])  # truncated: train and inspect go on without mask/, with a warning
+    torch.manual_seed(0)
+    weights = tmp_path / "w.safetensors"
+    save_bundled(BundledDepthNet(BundledNetConfig(widths=(4, 6, 8), input_size=16)), weights)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
+        assert main(["depth", "--data", str(root), "--depth", "bundled", "--depth-checkpoint", str(weights),
+                     "--no-progress"]) == 0
+        records = index_split(root, "cars", "train").objects
+    assert "1 objects computed" in capsys.readouterr().out
+    PriorStore.open(root, "bundled", str(weights), resolution=16).check(records)
+
+
+def test_oracle_prior_names_why_depth_is_unusable(tmp_path: Path):
+    root = make_srn_fixture(tmp_path, splits={"train": 1}, with_depth=True)
+    bad = first_object(root) / "depth" / "000001.npz"
+    srn_format.write_depth(bad, np.full((16, 16), np.nan, dtype=np.float32))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DataWarning)
+        records = index_split(root, "cars", "train").objects
+    store = PriorStore.open(root, "oracle", resolution=16)
+    with pytest.raises(DepthnerfError) as err:
+        store.check(records)
+    assert str(err.value) == (f"{first_object(root)}: the 'oracle' prior needs ground-truth depth/ maps, its depth/ "
+                              f"is not usable ({bad}: depth map holds NaN or inf (256 of 256 pixels))")
+    with pytest.raises(DepthnerfError, match="needs ground-truth depth/ maps, none found"):
+        PriorStore.open(root, "oracle", resolution=16).check(
+            index_split(make_srn_fixture(tmp_path / "b", splits={"train": 1}), "cars", "train").objects)
+
+
+def test_a_jpeg_mask_is_refused_not_read_as_a_wider_mask(tmp_path: Path):
+    root = make_srn_fixture(tmp_path, splits={"train": 1}, with_mask=True)
+    path = first_object(root) / "mask" / "000001.png"
+    buffer = io.BytesIO()
+    Image.open(path).save(buffer, "JPEG", quality=75)  # ringing makes black background pixels non-zero
+    path.write_bytes(buffer.getvalue())
+    problem = f"{path}: mask is a JPEG file, not a PNG"
+    with pytest.raises(DepthnerfError, match="mask is a JPEG file, not a PNG"):
+        srn_format.read_mask(path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        record = index_split(root, "cars", "train").objects[0]
+    assert not record.has_mask and [str(w.message).split(" (")[0] for w in caught] == [problem]
+    with pytest.raises(DepthnerfError, match="mask is a JPEG file"):
+        index_split(root, "cars", "train", strict=True)
+
+
+def test_an_empty_image_file_is_one_plain_line(tmp_path: Path, capsys):
+    root = make_srn_fixture(tmp_path, splits={"train": 1})
+    path = first_object(root) / "rgb" / "000001.png"
+    path.write_bytes(b"")
+    expected = f"{path}: unreadable image (not an image: the file is empty or of a format Pillow does not know)"
+    assert main(["inspect", "--data", str(root)]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {expected}"
+    record = index_split(root, "cars", "train", check_files=False).objects[0]
+    with pytest.raises(DepthnerfError) as err:
+        load_object(record, pixel_center=0.0)
+    assert str(err.value) == expected
+
+
+def test_a_view_store_inside_a_split_folder_is_refused(tmp_path: Path):
+    root = make_srn_fixture(tmp_path, splits={"train": 1})
+    records = index_split(root, "cars", "train").objects
+    for folder in (root / "cars_train" / "store", first_object(root) / "store"):
+        with pytest.raises(DepthnerfError, match="inside the split folder .* read as an object"):
+            ViewStore(folder, 16, 0.0).ensure(records)
+        assert not folder.exists()
+    assert ViewStore(root / "store", 16, 0.0).ensure(records)["built"] == 1  # beside the splits: fine
+    assert [r.object_id for r in index_split(root, "cars", "train").objects] == [records[0].object_id]
+
+
+def test_a_prior_goes_stale_when_an_image_changes_but_keeps_its_size(tmp_path: Path):
+    root = make_srn_fixture(tmp_path, splits={"train": 1})
+    obj = first_object(root)
+    for path in (obj / "rgb").iterdir():  # uncompressed PNGs: the file size depends on the image size only
+        Image.open(path).save(path, compress_level=0)
+    record = index_split(root, "cars", "train").objects[0]
+    before = object_fingerprint(record)
+    path = obj / "rgb" / "000001.png"
+    size = path.stat().st_size
+    Image.open(path).rotate(90).save(path, compress_level=0)
+    assert path.stat().st_size == size and object_fingerprint(record) != before
+
+
+def test_a_cache_made_with_the_earlier_fingerprint_is_checked_as_it_was_made(tmp_path):
+    """Caches written before the byte-wise fingerprint (view names, RGB sizes, the first file's bytes) are kept, not
+    recomputed, and still go stale when an image changes size; new entries carry the ``rgb-bytes:`` scheme."""
+    from depthnerf.depth.cache import _sizes_fingerprint, fingerprint_matches
+
+    root = make_srn_fixture(tmp_path / "d", "cars", {"train": 1}, views=3, size=16)
+    record = index_split(root, "cars", "train").objects[0]
+    legacy, current = _sizes_fingerprint(record), object_fingerprint(record)
+    assert current.startswith("rgb-bytes:") and fingerprint_matches(current, record)
+    assert fingerprint_matches(legacy, record) and not fingerprint_matches(None, record)
+    path = Path(record.rgb_path(1))
+    Image.new("RGB", (16, 16), (10, 200, 30)).save(path, compress_level=9)  # another size
+    assert not fingerprint_matches(legacy, record) and not fingerprint_matches(current, record)
