@@ -4,7 +4,8 @@ Configs are nested dataclasses whose fields carry type hints (``int``, ``float``
 ``X | None``, ``tuple[int, ...]``, ``Literal[...]`` or another config dataclass). Overrides name a field by its dotted
 path from the root (``--model.field.d_hidden 256``) and are parsed to the field's type; an unknown path or a
 value that does not parse is a :class:`~depthnerf.errors.DepthnerfError` naming it. Loading a dict is strict too:
-an unknown key is an error, never silently dropped.
+an unknown key is an error, never silently dropped, and a value of the wrong type (a string for a number, a name
+outside a ``Literal``) is an error naming its path.
 """
 
 from __future__ import annotations
@@ -56,8 +57,6 @@ def _parse_value(text: str, hint: Any, where: str) -> Any:
 def _coerce(value: Any, hint: Any, where: str) -> Any:
     """Coerce a JSON value into ``hint`` (nested dataclasses included), strictly."""
     if dataclasses.is_dataclass(hint):
-        if not isinstance(value, dict):
-            raise DepthnerfError(f"{where}: expected a mapping for {hint.__name__}")
         return from_dict(hint, value, where)
     origin, args = get_origin(hint), get_args(hint)
     if origin in (typing.Union, types.UnionType):
@@ -65,16 +64,26 @@ def _coerce(value: Any, hint: Any, where: str) -> Any:
             return None
         inner = [a for a in args if a is not type(None)]
         return _coerce(value, inner[0], where)
+    if origin is Literal:
+        if value not in args:
+            raise DepthnerfError(f"{where}: {value!r} is not one of {', '.join(map(str, args))}")
+        return value
     if origin is tuple:
+        if not isinstance(value, list | tuple):
+            raise DepthnerfError(f"{where}: expected a list, got {value!r}")
         elem = args[0] if args else Any
         return tuple(_coerce(v, elem, where) for v in value)
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if hint in (int, float, str, bool) and type(value) is not hint:  # bool is no int here, int no str
+        raise DepthnerfError(f"{where}: expected {hint.__name__}, got {value!r}")
     return value
 
 
 def from_dict(cls: type[T], data: dict[str, Any], where: str = "config") -> T:
     """Build ``cls`` from a dict produced by :func:`to_dict`; unknown keys are an error."""
+    if not isinstance(data, dict):
+        raise DepthnerfError(f"{where}: expected a mapping for {cls.__name__}")
     hints = get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names

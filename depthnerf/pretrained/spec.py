@@ -78,6 +78,8 @@ class InferenceSpec:
 
 def model_config_from_dict(data: dict[str, Any], depth_aware: bool, where: str) -> PixelNeRFConfig:
     """A model config from JSON, applying the legacy ``encoder.use_depth`` rule (module docstring)."""
+    if not isinstance(data, dict):
+        raise DepthnerfError(f"{where}: expected a mapping for PixelNeRFConfig")
     data = copy.deepcopy(data)
     encoder = data.get("encoder")
     if isinstance(encoder, dict) and "use_depth" in encoder:
@@ -116,7 +118,7 @@ def spec_from_train_config(train: dict[str, Any], model: dict[str, Any], where: 
         raise DepthnerfError(f"{where}: training config lacks data.category/resolution or the prior") from None
     if near is None or far is None:
         defaults = category_defaults(category)
-        near, far = (near or defaults.z_near), (far or defaults.z_far)
+        near, far = (defaults.z_near if near is None else near), (defaults.z_far if far is None else far)
     return InferenceSpec(model=model_config_from_dict(model, prior.enabled, f"{where} model config"),
                          render=from_dict(RenderConfig, train.get("render", {}), where=f"{where} render"),
                          prior=prior, category=category, resolution=resolution, z_near=float(near), z_far=float(far),

@@ -91,12 +91,14 @@ def latest_checkpoint(ckpt_root: Path) -> Path | None:
     ckpt_root = Path(ckpt_root)
     pointer = ckpt_root / "latest"
     named = None
-    if pointer.is_file():
-        named = ckpt_root / pointer.read_text().strip()
-        if not (named / "state.json").is_file():
-            raise DepthnerfError(f"{pointer}: points at {named.name}, which is incomplete or missing")
     complete = sorted(p for p in ckpt_root.glob("step_*") if (p / "state.json").is_file())
     newest = complete[-1] if complete else None
+    if pointer.is_file():
+        text = pointer.read_text().strip()
+        named = ckpt_root / text
+        if not text or "/" in text or not (named / "state.json").is_file():
+            fix = f"; delete it to use the newest complete one, {newest.name}" if newest is not None else ""
+            raise DepthnerfError(f"{pointer}: names {text!r}, which is not a complete checkpoint in {ckpt_root}{fix}")
     if named is None or (newest is not None and newest.name > named.name):
         return newest
     return named

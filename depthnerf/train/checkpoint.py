@@ -11,7 +11,10 @@ Layout of a run's ``checkpoints/`` folder::
 
 A checkpoint directory only appears under its final name once every file in it is written and fsynced, so a
 process killed at any moment leaves either the previous state or the new one, never a half-written checkpoint.
-Nothing here unpickles: tensors go through safetensors, everything else through JSON.
+A write that fails (a full disk) removes its temporary folder and is one :class:`DepthnerfError` line. A kill
+between a checkpoint and its copy to ``best/`` is mended when the run resumes (:func:`restore_best`, from the
+``best_step`` the state records). Nothing here unpickles: tensors go through safetensors, everything else through
+JSON.
 
 Crash test hook: with ``DEPTHNERF_CRASH_AT=STAGE@STEP`` in the environment the process SIGKILLs itself at
 ``STAGE`` of the checkpoint write of step ``STEP`` (one of :data:`CRASH_STAGES`), so a test can kill training at
@@ -34,11 +37,11 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 
 from depthnerf.config_io import to_dict
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_text_atomic
+from depthnerf.files import write_bytes_atomic, write_text_atomic
 from depthnerf.pretrained.spec import SPEC_KEY, model_config_from_dict
 from depthnerf.pretrained.weights import (  # noqa: F401 - re-exported for the run-folder code
     FORMAT,
@@ -120,6 +123,9 @@ class TrainingState:
     """Best validation PSNR so far (-inf before the first validation)."""
     world_size: int = 1
     """Processes (torchrun ranks) of the run that wrote the checkpoint (1 in state files that predate it)."""
+    best_step: int | None = None
+    """The step whose checkpoint scored ``best_psnr`` (what ``best/`` holds; None: no validation yet, or a state
+    file that predates it)."""
 
 
 def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -135,36 +141,70 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
     ckpt_root.mkdir(parents=True, exist_ok=True)
     name = f"step_{state.step:08d}"
     tmp = ckpt_root / f".{name}.{os.getpid()}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    extra = {"train_config": json.dumps(train_config, sort_keys=True)} if train_config is not None else {}
-    if spec_json is not None:
-        extra[SPEC_KEY] = spec_json
-    save_weights(tmp / "model.safetensors", model, model_config, step=state.step, extra=extra)
-    crash_point("weights", state.step)
-    opt_tensors, opt_info = _optimizer_to_files(optimizer)
-    save_file(opt_tensors, str(tmp / "optimizer.safetensors"))
-    with open(tmp / "optimizer.safetensors", "rb") as f:
-        os.fsync(f.fileno())
-    crash_point("optimizer", state.step)
-    best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
-    payload = {"step": state.step, "best_psnr": best, "world_size": state.world_size, "optimizer": opt_info}
-    write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1, allow_nan=False))
-    _fsync_dir(tmp)
-    crash_point("state", state.step)
     final = ckpt_root / name
-    if final.exists():
-        shutil.rmtree(final)
-    os.replace(tmp, final)
-    _fsync_dir(ckpt_root)
-    crash_point("renamed", state.step)
-    write_text_atomic(ckpt_root / "latest", name + "\n")
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        _write_checkpoint_files(tmp, model, optimizer, model_config, state, train_config, spec_json)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+        _fsync_dir(ckpt_root)
+        crash_point("renamed", state.step)
+        write_text_atomic(ckpt_root / "latest", name + "\n")
+    except (OSError, SafetensorError) as err:  # e.g. a full disk: the run keeps its previous checkpoint
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise DepthnerfError(f"{final}: could not write the checkpoint ({err}); the run keeps its last complete "
+                             "checkpoint: make room (or mend the folder) and continue it with --resume") from None
+    except BaseException:  # a second Ctrl+C: no temporary folder left behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     crash_point("latest", state.step)
     steps = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())
     for old in steps[:-keep_last] if keep_last > 0 else []:
         shutil.rmtree(old, ignore_errors=True)
     crash_point("pruned", state.step)
     return final
+
+
+def _write_checkpoint_files(tmp: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                            model_config: dict[str, Any], state: TrainingState, train_config: dict[str, Any] | None,
+                            spec_json: str | None) -> None:
+    """The files of one checkpoint into its temporary folder ``tmp`` (each written atomically and fsynced)."""
+    extra = {"train_config": json.dumps(train_config, sort_keys=True)} if train_config is not None else {}
+    if spec_json is not None:
+        extra[SPEC_KEY] = spec_json
+    save_weights(tmp / "model.safetensors", model, model_config, step=state.step, extra=extra)
+    crash_point("weights", state.step)
+    opt_tensors, opt_info = _optimizer_to_files(optimizer)
+    write_bytes_atomic(tmp / "optimizer.safetensors", save(opt_tensors))
+    crash_point("optimizer", state.step)
+    best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
+    payload = {"step": state.step, "best_psnr": best, "best_step": state.best_step, "world_size": state.world_size,
+               "optimizer": opt_info}
+    write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1, allow_nan=False))
+    _fsync_dir(tmp)
+    crash_point("state", state.step)
+
+
+def restore_best(ckpt_root: Path, state: TrainingState) -> str | None:
+    """On resume: remove the temporary folders a killed writer left, and when ``best/`` does not hold the state's
+    ``best_step`` (a kill between that checkpoint and its copy, or during the copy) copy it there now; returns a
+    one-line note when it did."""
+    ckpt_root = Path(ckpt_root)
+    for stray in [*ckpt_root.glob(".step_*.tmp"), *ckpt_root.glob(".best.*.tmp")]:
+        shutil.rmtree(stray, ignore_errors=True)
+    source = ckpt_root / f"step_{state.best_step:08d}" if state.best_step is not None else None
+    try:
+        held = json.loads((ckpt_root / "best" / "state.json").read_text()).get("step")
+    except (OSError, ValueError, AttributeError):
+        held = None
+    if source is None or held == state.best_step or not (source / "state.json").is_file():
+        return None
+    mark_best(ckpt_root, source)
+    for stray in ckpt_root.glob(".best.*.old"):
+        shutil.rmtree(stray, ignore_errors=True)
+    return f"restored {ckpt_root / 'best'} from {source.name} (a kill had interrupted its copy)"
 
 
 def mark_best(ckpt_root: Path, ckpt_dir: Path) -> None:
@@ -207,16 +247,24 @@ def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.opt
         raise DepthnerfError(f"{ckpt_dir}: checkpoint was trained with a different model config (differs in: "
                              f"{', '.join(diff)}); resume with the run's own config")
     load_state_strict(model, tensors, ckpt_dir / "model.safetensors")
+    where = ckpt_dir / "state.json"
     try:
-        payload = json.loads((ckpt_dir / "state.json").read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise DepthnerfError(f"{ckpt_dir / 'state.json'}: unreadable training state ({err})") from None
+        payload = json.loads(where.read_text())
+        best, best_step = payload["best_psnr"], payload.get("best_step")  # older files: an unused "extra" mapping
+        state = TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best),
+                              world_size=int(payload.get("world_size", 1)),
+                              best_step=None if best_step is None else int(best_step))
+        opt_info = payload["optimizer"] if optimizer is not None else None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:  # JSONDecodeError is a ValueError
+        raise DepthnerfError(f"{where}: unreadable training state ({type(err).__name__}: {err})") from None
     if optimizer is not None:
         try:
             opt_tensors = load_file(str(ckpt_dir / "optimizer.safetensors"))
         except (SafetensorError, OSError) as err:
             raise DepthnerfError(f"{ckpt_dir / 'optimizer.safetensors'}: unreadable optimizer state ({err})") from None
-        _optimizer_from_files(optimizer, opt_tensors, payload["optimizer"])
-    best = payload["best_psnr"]  # older state files also hold an unused "extra" mapping: ignored
-    return TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best),
-                         world_size=int(payload.get("world_size", 1)))
+        try:
+            _optimizer_from_files(optimizer, opt_tensors, opt_info)
+        except (ValueError, KeyError, TypeError, AttributeError) as err:
+            raise DepthnerfError(f"{ckpt_dir}: optimizer state does not fit the model ({type(err).__name__}: "
+                                 f"{err})") from None
+    return state

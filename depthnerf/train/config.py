@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from depthnerf.config_io import from_dict
-from depthnerf.data.srn import category_defaults
+from depthnerf.config_io import flat_keys, from_dict, to_dict
+from depthnerf.data.srn import CATEGORY_DEFAULTS, category_defaults
 from depthnerf.depth.prior import PriorConfig, portable_prior
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
@@ -167,7 +168,9 @@ NUMBER_RULES: dict[str, tuple[float, bool]] = {
     "schedule.lr_decay": (0, False), "schedule.lr_final": (0, True), "schedule.depth_loss_weight": (0, True),
     "schedule.background_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "log.log_every": (1, True), "log.val_every": (0, True),
     "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
-    "log.render_chunk": (1, True)}
+    "log.render_chunk": (1, True), "render.sampler.n_coarse": (1, True), "render.sampler.n_importance": (0, True),
+    "render.sampler.n_gaussian": (0, True), "render.sampler.gaussian_std": (0, True),
+    "render.sampler.pdf_epsilon": (0, True)}
 """Config path -> (bound, inclusive): the value must be ``>= bound`` (inclusive) or ``> bound``."""
 NAMED_FLAGS = {"schedule.max_steps": "--max-steps", "log.checkpoint_every": "--checkpoint-every"}
 """Config paths that have a named ``depthnerf train`` flag (the others are set as ``--section.field``)."""
@@ -196,8 +199,15 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
         raise DepthnerfError(f"--data.pixel_center must be in [0, 1) (a principal-point shift of a fraction of a "
                              f"pixel: 0.0 = pixelNeRF's reading, 0.5 = Blender's), got {cfg.data.pixel_center}")
     near, far = cfg.data.z_near, cfg.data.z_far
-    if near is not None and far is not None and not 0 <= near < far:
-        raise DepthnerfError(f"--data.z_near / --data.z_far must satisfy 0 <= z_near < z_far, got {near}, {far}")
+    if (near is not None and far is not None) or cfg.data.category in CATEGORY_DEFAULTS:
+        near, far = z_range(cfg)  # an unset bound is the category's (an unknown category fails later, naming it)
+        if not 0 <= near < far:
+            unset = " (an unset one is the category's SRN value)" if None in (cfg.data.z_near, cfg.data.z_far) else ""
+            raise DepthnerfError(f"--data.z_near / --data.z_far must satisfy 0 <= z_near < z_far, got {near}, "
+                                 f"{far}{unset}")
+    for path, value in flat_keys(to_dict(cfg)).items():  # inf, or NaN where no rule above would train nonsense or fail mid-run
+        if isinstance(value, float) and not math.isfinite(value):
+            raise DepthnerfError(f"{NAMED_FLAGS.get(path, f'--{path}')} must be a finite number, got {value}")
     if cfg.render.guided.enabled:
         raise DepthnerfError("--render.guided.enabled: depth-guided sampling is an inference-time renderer "
                              "(depthnerf eval/reconstruct --guided); training renders with the paper's sampler")
@@ -260,6 +270,8 @@ def from_dict_config(data: dict[str, Any], where: str = "config.json") -> TrainC
     ``model.encoder.use_depth``: accepted when it agrees with ``prior`` and dropped
     (:func:`depthnerf.pretrained.spec.model_config_from_dict`).
     """
+    if not isinstance(data, dict):
+        raise DepthnerfError(f"{where}: expected a mapping for TrainConfig")
     data = copy.deepcopy(data)
     prior = from_dict(PriorConfig, data.get("prior", {}), where=f"{where}.prior")
     model = data.pop("model", None)
@@ -275,7 +287,8 @@ def z_range(cfg: TrainConfig) -> tuple[float, float]:
     if cfg.data.z_near is not None and cfg.data.z_far is not None:
         return cfg.data.z_near, cfg.data.z_far
     d = category_defaults(cfg.data.category)
-    return (cfg.data.z_near or d.z_near), (cfg.data.z_far or d.z_far)
+    near, far = cfg.data.z_near, cfg.data.z_far  # 0.0 is a bound like any other, not "unset"
+    return (d.z_near if near is None else near), (d.z_far if far is None else far)
 
 
 def inference_spec(cfg: TrainConfig, prior_weights_hash: str | None = None, framing: str | None = None

@@ -48,7 +48,7 @@ from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.items import TrainItems
-from depthnerf.train.run_log import RunLog, record_launch
+from depthnerf.train.run_log import RunLog, check_run_dir, record_launch, run_lock
 from depthnerf.train.step import BatchLoss, compiled_fields, train_step
 from depthnerf.train.stop import STOP_SIGNALS, StopRequest, ValidationInterrupted, exit_code, signal_name
 from depthnerf.train.validator import Validator
@@ -80,6 +80,19 @@ def _trained_weights_hash(run_dir: Path) -> str | None:
     except (OSError, ValueError, AttributeError):
         return None
     return recorded if isinstance(recorded, str) else None
+
+
+def _check_same_objects(run_dir: Path, root: Path, count: int) -> None:
+    """On resume: the data must hold as many training objects as the run trained on (its ``data_card.json``), else
+    its batches (a function of seed, step and object count) would silently change; a moved copy passes."""
+    path = run_dir / "data_card.json"
+    try:
+        trained = json.loads(path.read_text()).get("train_objects")
+    except (OSError, ValueError, AttributeError):
+        return  # no record to compare with
+    if isinstance(trained, int) and trained != count:
+        raise DepthnerfError(f"{path}: the run trained on {trained} training objects, but {root} holds {count}; "
+                             "resume with --data naming the run's own data, or choose another --out for a new run")
 
 
 def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int,
@@ -129,6 +142,9 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
           validate: Validator | None = None, compile: bool = False, compile_step: bool = False) -> dict:
     """Train (or resume) a run in ``run_dir``; returns the final state as a dict.
 
+    ``run_dir`` must be new, empty or a run folder (:func:`~depthnerf.train.run_log.check_run_dir`); rank 0
+    holds its lock (:func:`~depthnerf.train.run_log.run_lock`) from before it writes anything until it returns.
+
     ``compile``: the fields' MLPs run through ``torch.compile`` (:func:`depthnerf.train.step.compiled_fields`);
     ``compile_step``: the whole loss (encoder, render, loss terms; forward and backward) runs as one compiled graph
     (:func:`depthnerf.train.step.compiled_losses`; CUDA graphs on CUDA). Both are settings of how to run, not stored
@@ -137,7 +153,14 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     ``validate`` scores the model on the val objects every ``log.val_every`` steps (``depthnerf train`` passes
     :func:`depthnerf.eval.validation.validate`; None: no validation).
     """
-    run_dir = Path(run_dir)
+    with contextlib.ExitStack() as hold:
+        return _train(cfg, Path(run_dir), info, hold, resume=resume, progress=progress, validate=validate,
+                      compile=compile, compile_step=compile_step)
+
+
+def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.ExitStack, *, resume: bool,
+           progress: bool, validate: Validator | None, compile: bool, compile_step: bool) -> dict:
+    """:func:`train`'s body; ``hold`` keeps the run's lock until :func:`train` returns."""
     sched = cfg.schedule
     check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world)
     ckpt_root = run_dir / "checkpoints"
@@ -145,6 +168,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     if latest is not None and not resume:
         raise DepthnerfError(f"{run_dir}: already holds a run (last checkpoint {latest.name}); pass --resume to "
                              "continue it or choose another --out")
+    check_run_dir(run_dir, latest is not None)
     root, cat = Path(cfg.data.root), cfg.data.category
     try:
         records = index_split(root, cat, "train").objects
@@ -153,6 +177,12 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             raise DepthnerfError(f"{err} (--resume found no checkpoint in {run_dir}, so a new run would start "
                                  "there: check --out)") from None
         raise
+    single = next((r for r in records if r.num_views < 2), None)
+    if single is not None:  # pixelNeRF's items need a source view and at least one other view as the target
+        raise DepthnerfError(f"{single.path}: has {single.num_views} view; a training object needs at least 2 (a "
+                             "source and a target); remove it from the train split")
+    if latest is not None:
+        _check_same_objects(run_dir, root, len(records))
     trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
     cfg = dataclasses.replace(cfg, prior=portable_prior(cfg.prior, trained_hash))
     prior_source = open_prior(cfg.prior, data_root=root, resolution=cfg.data.resolution, records=records)
@@ -198,7 +228,10 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
             print(f"nothing to train: the run is at step {start}, --max-steps is {cfg.schedule.max_steps} (pass a "
                   "larger --max-steps to continue it)", file=sys.stderr, flush=True)
     if info.is_main:
-        run_dir.mkdir(parents=True, exist_ok=True)
+        hold.enter_context(run_lock(run_dir))  # before the first write: a second process stops here
+        restored = ckpt.restore_best(ckpt_root, state) if latest is not None else None
+        if restored:
+            print(restored, file=sys.stderr, flush=True)
         _write_run_files(run_dir, cfg, prior_source, len(records), card)
         if warm is not None:
             write_text_atomic(run_dir / "init_from.json", warm.to_json())
@@ -229,7 +262,7 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
     per_object = s.step_shape == "per-object"
     model.train()
-    step, best, last_saved = start, state.best_psnr, None
+    step, best, best_step, last_saved = start, state.best_psnr, state.best_step, None
     saved_step, stopping = None, False
     t_last, rays_since = time.perf_counter(), 0
     with StopRequest(info) as stop:
@@ -274,15 +307,15 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
                     log.log(step, {"val_psnr": res.psnr, "val_ssim": res.ssim}, prefix="val")
                     log.images(step, res.images)
                     improved = res.psnr > best
-                    best = max(best, res.psnr)
+                    best, best_step = (res.psnr, step) if improved else (best, best_step)
             if info.is_main and (step % cfg.log.checkpoint_every == 0 or step == s.max_steps or improved):
-                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, best, cfg, spec, info)
+                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, (best, best_step), cfg, spec, info)
                 saved_step = step
                 if improved:
                     ckpt.mark_best(ckpt_root, last_saved)
             stopping = stop.requested()  # after the step's checkpoint: a signal during its write counts too
             if info.is_main and stopping and saved_step != step:
-                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, best, cfg, spec, info)
+                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, (best, best_step), cfg, spec, info)
                 saved_step = step
             if stopping:
                 break
@@ -298,9 +331,10 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
 
 
 def _save(ckpt_root: Path, model: PixelNeRF, optimizer: torch.optim.Optimizer, model_cfg: dict, step: int,
-          best: float, cfg: TrainConfig, spec: InferenceSpec, info: DistInfo) -> Path:
-    """The run checkpoint of ``step`` (:func:`depthnerf.train.checkpoint.save_checkpoint`)."""
-    state = ckpt.TrainingState(step=step, best_psnr=best, world_size=info.world)
+          best: tuple[float, int | None], cfg: TrainConfig, spec: InferenceSpec, info: DistInfo) -> Path:
+    """The run checkpoint of ``step`` (:func:`depthnerf.train.checkpoint.save_checkpoint`); ``best``: the best
+    validation PSNR so far and its step."""
+    state = ckpt.TrainingState(step=step, best_psnr=best[0], best_step=best[1], world_size=info.world)
     return ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg, state, keep_last=cfg.log.keep_last,
                                 train_config=to_dict(cfg), spec_json=spec.to_json())
 

@@ -1,6 +1,7 @@
 """A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step), TensorBoard events and
 ``launches.jsonl`` (one JSON object per start or resume of the run: the step it started from, the world size =
-number of torchrun ranks, the device and the time).
+number of torchrun ranks, the device and the time); and the run folder's guards: :func:`check_run_dir` (a new run
+goes into a new, empty or run folder only) and :func:`run_lock` (one process trains a run at a time).
 
 On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
 its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s``, so the logged curves of a resumed
@@ -9,15 +10,29 @@ run are exactly those of an uninterrupted one.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
+
+try:
+    import fcntl
+except ImportError:  # not a POSIX system: no lock (run_lock then guards nothing)
+    fcntl = None
+
+RUN_ENTRIES = frozenset({"config.json", "prior.json", "data_card.json", "init_from.json", "metrics.jsonl",
+                         "launches.jsonl", "tb", "checkpoints", "eval"})
+"""What training writes into a run folder, and ``depthnerf eval --run``'s default output (hidden files aside: atomic
+writes' temporaries and the lock)."""
 
 
 def _clean(value: Any) -> Any:
@@ -112,3 +127,45 @@ def read_launches(run_dir: Path) -> list[dict[str, Any]]:
         except json.JSONDecodeError:
             continue  # a line cut by a kill
     return out
+
+
+def check_run_dir(run_dir: Path, has_checkpoint: bool) -> None:
+    """Refuse a ``--out`` that is a file, holds a ``checkpoints`` file, or (for a run without a checkpoint of its
+    own) is a folder holding anything training does not write: training there would overwrite or mix with it."""
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise DepthnerfError(f"{run_dir}: --out is a file, not a run folder; choose another --out")
+    if (run_dir / "checkpoints").exists() and not (run_dir / "checkpoints").is_dir():
+        raise DepthnerfError(f"{run_dir / 'checkpoints'}: is a file, not a run's checkpoints folder; choose another "
+                             "--out")
+    if has_checkpoint or not run_dir.is_dir():
+        return
+    foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_ENTRIES and not p.name.startswith("."))
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise DepthnerfError(f"{run_dir}: --out is a folder that is not a run (it holds {shown}); choose a new or "
+                             "empty folder")
+
+
+@contextlib.contextmanager
+def run_lock(run_dir: Path) -> Iterator[None]:
+    """Hold ``RUN_DIR/.lock`` (an advisory ``flock``, released when the process ends, however it ends) while a
+    process trains the run; a second process on the same run (say, a job launched again while the first still
+    runs) stops with one line instead of interleaving its steps with the first's."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if fcntl is None:
+        yield
+        return
+    fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise DepthnerfError(f"{run_dir}: another process is training this run; wait for it to end (or stop "
+                                 "it) before resuming") from None
+        except OSError:  # a file system without flock (e.g. Lustre mounted without it): train unguarded
+            pass
+        yield
+    finally:
+        os.close(fd)

@@ -1,0 +1,206 @@
+"""Training under user mistakes: nonsense settings, damaged run files, the wrong folder or data, a full disk, a
+second process on the same run, a kill between a checkpoint and its ``best`` copy. Each is one ``error:`` line
+(exit 2) or is mended, never a traceback, a silently changed run or a lost checkpoint."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from fixtures_checkpoints import TINY_TRAIN_FLAGS as TINY
+from fixtures_srn import make_srn_fixture
+
+from depthnerf.cli import main
+from depthnerf.config_io import apply_overrides, to_dict
+from depthnerf.errors import DepthnerfError
+from depthnerf.pretrained.spec import spec_from_train_config
+from depthnerf.train import checkpoint as ckpt
+from depthnerf.train.config import check_config, from_dict_config, inference_spec, preset, z_range
+from depthnerf.train.run_log import run_lock
+
+BASE = ["train", "--preset", "cpu-cars", "--depth", "none", "--log.val_every", "0", "--device", "cpu", *TINY]
+
+
+def one_error(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return make_srn_fixture(tmp_path_factory.mktemp("srn"), "cars", {"train": 2, "val": 1}, views=3, size=32)
+
+
+def _checked(*flags: str):
+    return check_config(apply_overrides(preset("cpu-cars"), list(flags)))
+
+
+@pytest.mark.parametrize(("flags", "said"), [
+    (("--schedule.lr", "inf"), "--schedule.lr must be a finite number, got inf"),  # was a traceback at step 1
+    (("--data.z_far", "1e400"), "--data.z_far must be a finite number, got inf"),
+    (("--data.z_near", "2"), "got 2.0, 1.8 (an unset one is the category's SRN value)"),  # trained near > far
+    (("--render.sampler.n_coarse", "0"), "--render.sampler.n_coarse must be >= 1, got 0"),  # was a traceback
+    (("--render.sampler.n_importance", "-1"), "--render.sampler.n_importance must be >= 0"),  # trained silently
+    (("--render.sampler.gaussian_std", "-1"), "--render.sampler.gaussian_std must be >= 0"),
+])
+def test_nonsense_settings_are_refused_when_the_config_is_built(flags, said):
+    with pytest.raises(DepthnerfError, match=None) as err:
+        _checked(*flags)
+    assert said in str(err.value)
+
+
+def test_a_zero_near_bound_is_used_not_replaced_by_the_default():
+    cfg = _checked("--data.z_near", "0")
+    assert z_range(cfg) == (0.0, 1.8) and inference_spec(cfg).z_near == 0.0  # was 0.8: the flag silently ignored
+    train = to_dict(cfg)
+    spec = spec_from_train_config(train, to_dict(cfg.model), "old.safetensors")  # checkpoints without a spec
+    assert spec.z_range == (0.0, 1.8)
+
+
+@pytest.mark.parametrize(("edit", "said"), [
+    (lambda d: d["schedule"].update(lr="x"), "config.json.schedule.lr: expected float, got 'x'"),
+    (lambda d: d["schedule"].update(max_steps=6.0), "config.json.schedule.max_steps: expected int, got 6.0"),
+    (lambda d: d["schedule"].update(lr_schedule="linear"), "'linear' is not one of exponential, cosine"),
+    (lambda d: d["data"].update(num_workers=True), "config.json.data.num_workers: expected int, got True"),
+    (lambda d: d["log"].update(val_views=3), "config.json.log.val_views: expected a list, got 3"),
+    (lambda d: d.update(model=5), "config.json.model: expected a mapping for PixelNeRFConfig"),
+    (lambda d: d.update(prior=[1]), "config.json.prior: expected a mapping for PriorConfig"),
+])
+def test_a_damaged_run_config_is_one_line(edit, said):
+    stored = json.loads(json.dumps(to_dict(preset("cpu-cars"))))
+    assert from_dict_config(json.loads(json.dumps(stored))) == preset("cpu-cars")
+    edit(stored)
+    with pytest.raises(DepthnerfError) as err:
+        from_dict_config(stored)
+    assert said in str(err.value)
+    with pytest.raises(DepthnerfError, match="expected a mapping for TrainConfig"):
+        from_dict_config([])
+
+
+def _tiny_checkpoint(root: Path, step: int, best_step: int | None = None) -> Path:
+    torch.manual_seed(step)
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters())
+    model(torch.ones(1, 3)).sum().backward()
+    opt.step()
+    state = ckpt.TrainingState(step=step, best_psnr=12.0, best_step=best_step)
+    return ckpt.save_checkpoint(root, model, opt, {"toy": 1}, state, keep_last=5)
+
+
+@pytest.mark.parametrize("payload", ["{}", "[]", '{"step": "x", "best_psnr": null, "optimizer": {}}',
+                                     '{"step": 1, "best_psnr": null, "optimizer": {"param_groups": 3}}'])
+def test_a_damaged_training_state_is_one_line(tmp_path, payload):
+    saved = _tiny_checkpoint(tmp_path, 1)
+    (saved / "state.json").write_text(payload)
+    model = torch.nn.Linear(3, 2)
+    with pytest.raises(DepthnerfError, match="state.json: unreadable training state|optimizer state does not fit"):
+        ckpt.load_checkpoint(saved, model, torch.optim.Adam(model.parameters()), {"toy": 1})
+
+
+def test_a_full_disk_during_a_checkpoint_write_keeps_the_last_one_and_no_temporary(tmp_path, monkeypatch):
+    first = _tiny_checkpoint(tmp_path, 1)
+
+    def full(path, *args, **kwargs):
+        (Path(path).parent / "model.safetensors").write_bytes(b"partial")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(ckpt, "save_weights", full)
+    with pytest.raises(DepthnerfError, match=r"step_00000002: could not write the checkpoint \(\[Errno 28\] No sp"):
+        _tiny_checkpoint(tmp_path, 2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest", "step_00000001"]  # no .step_*.tmp left
+    assert ckpt.latest_checkpoint(tmp_path) == first
+
+
+def test_out_must_be_a_new_empty_or_run_folder(data, tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("notes")
+    assert main([*BASE, "--data", str(data), "--out", str(a_file), "--max-steps", "1"]) == 2
+    assert one_error(capsys) == f"error: {a_file}: --out is a file, not a run folder; choose another --out"
+    other = tmp_path / "papers"
+    other.mkdir()
+    (other / "config.json").write_text('{"not": "a run"}')
+    (other / "draft.tex").write_text("x")
+    assert main([*BASE, "--data", str(data), "--out", str(other), "--max-steps", "1"]) == 2
+    assert "--out is a folder that is not a run (it holds draft.tex)" in one_error(capsys)
+    assert main([*BASE, "--data", str(data), "--out", str(other), "--max-steps", "1", "--resume"]) == 2
+    assert f"{other / 'config.json'}: unknown field(s) not" in one_error(capsys)
+    assert (other / "config.json").read_text() == '{"not": "a run"}' and sorted(os.listdir(other)) == [
+        "config.json", "draft.tex"]
+    odd = tmp_path / "odd"
+    odd.mkdir()
+    (odd / "checkpoints").write_text("x")
+    assert main([*BASE, "--data", str(data), "--out", str(odd), "--max-steps", "1"]) == 2
+    assert "checkpoints: is a file" in one_error(capsys)
+
+
+def test_resume_on_other_data_or_beside_a_running_process_is_refused(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main([*BASE, "--data", str(data), "--out", str(run), "--max-steps", "1"]) == 0
+    capsys.readouterr()
+    card = (run / "data_card.json").read_text()
+    bigger = make_srn_fixture(tmp_path / "bigger", "cars", {"train": 3}, views=3, size=32)
+    assert main(["train", "--out", str(run), "--resume", "--data", str(bigger), "--max-steps", "2"]) == 2
+    assert one_error(capsys).endswith(f"data_card.json: the run trained on 2 training objects, but {bigger} holds 3; "
+                                      "resume with --data naming the run's own data, or choose another --out for a "
+                                      "new run")
+    assert (run / "data_card.json").read_text() == card  # the record of what it trained on is kept
+    with run_lock(run):  # another process (the lock is per open file, so this process counts as another)
+        assert main(["train", "--out", str(run), "--resume", "--max-steps", "2", "--no-progress"]) == 2
+    assert one_error(capsys) == f"error: {run}: another process is training this run; wait for it to end (or stop " \
+                                "it) before resuming"
+    assert main(["train", "--out", str(run), "--resume", "--max-steps", "2", "--no-progress"]) == 0
+
+
+def test_a_kill_between_a_checkpoint_and_its_best_copy_is_mended_on_resume(data, tmp_path, capsys):
+    run = tmp_path / "run"
+    args = [*BASE, "--data", str(data), "--out", str(run), "--max-steps", "3", "--checkpoint-every", "2",
+            "--log.val_every", "2", "--log.val_objects", "1", "--log.val_views", "1", "--log.keep_last", "1"]
+    killed = subprocess.run([sys.executable, "-m", "depthnerf", *args], capture_output=True, text=True,
+                            env={**os.environ, "DEPTHNERF_CRASH_AT": "best-copied@2"})
+    assert killed.returncode == -9, killed.stderr[-2000:]
+    assert not (run / "checkpoints" / "best").exists()  # step 2 improved on nothing, and its copy was cut short
+    with pytest.MonkeyPatch.context() as mp:  # validation never improves on step 2 again: only the mend makes best/
+        mp.setattr("depthnerf.eval.validation.validate", _worse_validation)
+        assert main([*args, "--resume"]) == 0
+    assert f"restored {run / 'checkpoints' / 'best'} from step_00000002" in capsys.readouterr().err
+    best = run / "checkpoints" / "best"
+    assert json.loads((best / "state.json").read_text())["step"] == 2
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["best", "latest", "step_00000003"]
+
+
+def _worse_validation(*args, **kwargs):
+    from depthnerf.eval.validation import ValidationResult
+
+    return ValidationResult(psnr=-1.0, ssim=0.0, images={})
+
+
+@pytest.mark.parametrize("text", ["", "zzz", "../.."])
+def test_a_damaged_latest_pointer_names_what_it_says_and_the_way_out(tmp_path, text):
+    _tiny_checkpoint(tmp_path, 1)
+    (tmp_path / "latest").write_text(text + "\n")
+    with pytest.raises(DepthnerfError) as err:  # was "points at <the checkpoints folder's own name>"
+        ckpt.latest_checkpoint(tmp_path)
+    assert str(err.value) == (f"{tmp_path / 'latest'}: names {text!r}, which is not a complete checkpoint in "
+                              f"{tmp_path}; delete it to use the newest complete one, step_00000001")
+
+
+def test_a_training_object_with_one_view_is_one_line(tmp_path, capsys):
+    """pixelNeRF's items need a source and a target view: a one-view object stops training before anything is
+    written, naming it (it used to fail in a loader worker with an indexing traceback, and then hang)."""
+    data = make_srn_fixture(tmp_path / "d", "cars", {"train": 2}, views=3, size=16)
+    obj = sorted((data / "cars_train").iterdir())[0]
+    for sub in ("rgb", "pose"):
+        for f in sorted((obj / sub).iterdir())[1:]:
+            f.unlink()
+    code = main(["train", "--preset", "cpu-cars", "--data", str(data), "--depth", "none", "--out",
+                 str(tmp_path / "r"), "--max-steps", "2", "--device", "cpu", "--log.val_every", "0"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{obj}: has 1 view; a training object needs at least 2" in err
+    assert not (tmp_path / "r").exists()
