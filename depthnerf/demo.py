@@ -276,6 +276,10 @@ def run_demo(cfg: DemoConfig, device: torch.device | str = "cpu") -> dict:
         raise DepthnerfError(f"--categories: choose from {', '.join(CATEGORIES)} (got {', '.join(unknown) or 'none'})")
     if cfg.views_stride < 1 or cfg.turntable_views < 1 or cfg.mesh_resolution < 2:
         raise DepthnerfError("--views-stride and --turntable-views must be >= 1, --mesh-resolution >= 2")
+    if cfg.seed < 0:
+        raise DepthnerfError(f"--seed must be >= 0 (a synthesis seed), got {cfg.seed}")
+    if cfg.out.exists() and not cfg.out.is_dir():
+        raise DepthnerfError(f"{cfg.out}: --out is a file, not a folder")
     checkpoints = {c: cfg.checkpoints.get(c, DEFAULT_CHECKPOINTS[c]) for c in cfg.categories}
     loaded = {}
     for category, checkpoint in checkpoints.items():  # every checkpoint loads before any work starts

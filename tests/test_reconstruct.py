@@ -228,11 +228,13 @@ def test_baseline_has_no_prior_and_other_resolution(models, tmp_path, monkeypatc
 
 def test_bad_checkpoints(models, tmp_path, capsys):
     (tmp_path / "notes.txt").write_text("hello")
+    photo = tmp_path / "photo.png"  # a real photo: a missing one is refused before the checkpoint loads
+    Image.fromarray(disc_photo()).save(photo)
     cases = [(tmp_path / "notes.txt", "not a readable safetensors checkpoint"),
              (models["weights"], "not a depthnerf checkpoint"),
              (models["oracle"], "which a photo does not have; pass --depth ")]
     for path, text in cases:
-        assert main(["reconstruct", "photo.png", "--checkpoint", str(path), "--out", str(tmp_path / "o")]) == 2
+        assert main(["reconstruct", str(photo), "--checkpoint", str(path), "--out", str(tmp_path / "o")]) == 2
         err = capsys.readouterr().err
         assert text in err and err.count("\n") == 1
     rec = Reconstructor.from_pretrained(models["oracle"], depth_estimator="bundled",

@@ -22,6 +22,8 @@ PAGE_WORDS = (
     (r"--background-model ([^\s;,)]+):", r"background model \1:"),
     (r"--fill", "the foreground ratio"),
     (r"--views", "orbit views"),
+    (r"--elevation", "the elevation"),
+    (r"--facing", "the object facing"),
 )
 """(pattern, replacement): the command-line flags that messages suggest, in the page's words."""
 
@@ -68,6 +70,8 @@ def check_upload(image: str | Path | None) -> Path:
         raise DepthnerfError("no image: upload a PNG, JPEG or WebP photo, or pick an example")
     path = Path(image)
     name = display_name(path)
+    if path.is_dir():
+        raise DepthnerfError(f"{name}: is a folder, not an image file")
     if not path.is_file():
         raise DepthnerfError(f"{name}: file not found")
     try:

@@ -42,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("gradio") is None:
         raise DepthnerfError(INSTALL_HINT)
     from depthnerf.app.logic import SHIPPED_MODELS, AppConfig, check_port
+    from depthnerf.commands.evaluate import resolve_device
 
     if not 1 <= args.views <= args.max_views:
         raise DepthnerfError(f"--views must be within 1..--max-views ({args.max_views}), got {args.views}")
@@ -49,11 +50,19 @@ def run(args: argparse.Namespace) -> int:
         raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {args.mesh_resolution}")
     if not 0 < args.port < 65536:
         raise DepthnerfError(f"--port must be within 1..65535, got {args.port}")
+    device = resolve_device(args.device)  # a device that is not there: one line, not the first model's traceback
+    if args.work_dir is not None:  # a file or a folder that cannot be made: one line
+        if args.work_dir.exists() and not args.work_dir.is_dir():
+            raise DepthnerfError(f"{args.work_dir}: --work-dir is a file, not a folder")
+        try:
+            args.work_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise DepthnerfError(f"{args.work_dir}: cannot create --work-dir ({err.strerror or err})") from None
     check_port(args.host, args.port)  # before gradio is imported and the first model loaded
     config = AppConfig(host=args.host, port=args.port,
                        checkpoints=tuple(args.checkpoint or SHIPPED_MODELS.values()), share=args.share,
                        views=args.views, max_views=args.max_views, mesh_resolution=args.mesh_resolution,
-                       device=args.device, work_dir=args.work_dir, allow_checkpoint_paths=not args.share,
+                       device=str(device), work_dir=args.work_dir, allow_checkpoint_paths=not args.share,
                        background_model=args.background_model)
     from depthnerf.app.page import serve
 

@@ -232,6 +232,7 @@ def _run(args: argparse.Namespace, info, choices) -> int:
     from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
     from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.pretrained.load import load_pretrained
+    from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.render.mesh_level import parse_level
 
     out = args.out
@@ -239,8 +240,16 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         if args.run is None:
             raise DepthnerfError("--out OUT_DIR is required with --checkpoint")
         out = args.run / "eval" / args.split
+    check_output_dir(out, overwrite=True)  # a file or an unwritable folder fails before anything loads
     device = info.device
     guided = guided_request(args.guided, args.guided_align_samples)
+    cfg = ProtocolConfig(  # every protocol flag is checked here, before the checkpoint and the data load
+        split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
+        resolution=args.resolution, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
+        mesh_threshold=parse_level(args.mesh_threshold),
+        geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
+        choices=choices, method=args.method, lpips=LpipsConfig(trunk_path=args.lpips_trunk),
+        progress=not args.no_progress, overwrite=args.overwrite)
     pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
     note = symmetry_note(args, pre.model.cfg.mirror, str(args.run or args.checkpoint))
     if note is not None and info.is_main:
@@ -253,13 +262,6 @@ def _run(args: argparse.Namespace, info, choices) -> int:
         from depthnerf.data.srn import index_split
 
         index_split(data, args.category or pre.spec.category, args.split, strict=True)
-    cfg = ProtocolConfig(
-        split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
-        resolution=args.resolution, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
-        mesh_threshold=parse_level(args.mesh_threshold),
-        geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
-        choices=choices, method=args.method, lpips=LpipsConfig(trunk_path=args.lpips_trunk),
-        progress=not args.no_progress, overwrite=args.overwrite)
     session = InferenceSession(pre, SessionOptions(
         device=device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset", data_root=data,
         fp32=args.fp32, compile=args.compile, compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,

@@ -101,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.reconstruct.background import choose_remover
     from depthnerf.reconstruct.exports import check_output_dir
+    from depthnerf.reconstruct.photo import check_image_file
     from depthnerf.reconstruct.reconstructor import DEFAULT_FACING, ReconstructConfig, Reconstructor
     from depthnerf.render.mesh_level import parse_level
 
@@ -117,6 +118,9 @@ def run(args: argparse.Namespace) -> int:
                              compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,
                              chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples))
     check_output_dir(args.out, args.overwrite)
+    check_image_file(args.image)  # a missing or non-image photo / mask fails before any model loads
+    if args.mask is not None:
+        check_image_file(args.mask, "mask")
     # a background model the flags name loads (or fails in one line) before the NeRF does
     background = choose_remover(args.background_removal, args.background_model)
     rec = Reconstructor(InferenceSession(args.checkpoint, options))

@@ -39,7 +39,7 @@ from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import GeometryConfig
-from depthnerf.eval.metrics import SSIM_WINDOWS, LpipsConfig
+from depthnerf.eval.metrics import SSIM_WINDOW_SIDE, SSIM_WINDOWS, LpipsConfig
 from depthnerf.render.mesh_level import AUTO_LEVEL
 
 SCORED = {"png8": "8-bit PNG renders, truncated as pixelNeRF's eval.py writes them (its paper numbers, "
@@ -132,6 +132,18 @@ class ProtocolConfig:
     overwrite: bool = False
     """Discard the finished objects of an earlier evaluation in the output folder instead of resuming it (an
     evaluation with other settings there is refused without it)."""
+
+    def __post_init__(self) -> None:
+        """One line naming the ``depthnerf eval`` flag when a value cannot work (checked before anything loads)."""
+        for flag, value, least in (("--views-stride", self.views_stride, 1), ("--max-objects", self.max_objects, 1),
+                                   ("--mesh-resolution", self.mesh_resolution, 2)):
+            if value is not None and value < least:
+                raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
+        if self.resolution is not None:
+            side = max(8, SSIM_WINDOW_SIDE.get(self.choices.ssim, 8))
+            if self.resolution < side:
+                raise DepthnerfError(f"--resolution must be >= {side} (SSIM {self.choices.ssim}), got "
+                                     f"{self.resolution}")
 
 
 @dataclass(frozen=True)

@@ -299,12 +299,6 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     pre, spec = session.pretrained, session.spec
     data_root, out_dir = Path(session.options.data_root), Path(out_dir)
     category = cfg.category or spec.category
-    if cfg.views_stride < 1:
-        raise DepthnerfError(f"--views-stride must be >= 1, got {cfg.views_stride}")
-    if cfg.max_objects is not None and cfg.max_objects < 1:
-        raise DepthnerfError(f"--max-objects must be >= 1, got {cfg.max_objects}")
-    if cfg.mesh_resolution < 2:
-        raise DepthnerfError(f"--mesh-resolution must be >= 2, got {cfg.mesh_resolution}")
     all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
     card = read_dataset_card(data_root, category)
     # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
@@ -316,7 +310,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
                              f"{choices.objects}")
     records = kept[: cfg.max_objects] if cfg.max_objects else kept
     input_res = spec.resolution
-    eval_res = cfg.resolution or input_res
+    eval_res = input_res if cfg.resolution is None else cfg.resolution  # 0 is refused by ProtocolConfig
     side = max(8, SSIM_WINDOW_SIDE[choices.ssim])
     if eval_res < side:
         raise DepthnerfError(f"--resolution must be >= {side} (SSIM {choices.ssim}), got {eval_res}")
@@ -324,7 +318,12 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     estimator, guided = spec.prior.estimator, session.guided
     lpips = load_lpips(cfg.lpips, device)
     lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        if out_dir.exists() and not out_dir.is_dir():
+            raise NotADirectoryError(0, "a file, not a folder")
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DepthnerfError(f"{out_dir}: cannot use it as the output folder ({err.strerror or err})") from None
     evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category)
     store = ObjectStore(out_dir, _settings(session, cfg, data_root, category, eval_res, lpips is not None))
     results, counts = evaluate_objects(records, evaluator, store, info, cfg.views_stride, overwrite=cfg.overwrite,

@@ -175,8 +175,8 @@ class ObjectStore:
             remove_outputs(self.dir.parent)
         elif files and settings_path.is_file():
             try:
-                old = json.loads(settings_path.read_text())
-            except (OSError, json.JSONDecodeError) as err:
+                old = json.loads(settings_path.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as err:  # ValueError: not JSON, or not UTF-8 text
                 raise DepthnerfError(f"{settings_path}: unreadable ({err}); pass --overwrite to start "
                                      "over") from None
             diff = _differences(old, self.settings) if isinstance(old, dict) else ["not a JSON object"]

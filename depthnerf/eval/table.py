@@ -97,11 +97,13 @@ def load_summary(path: Path) -> EvalSummary:
     """Read and check one ``summary.json``."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read summary ({err.strerror or err})") from None
     except json.JSONDecodeError as err:
         raise DepthnerfError(f"{path}: not valid JSON ({err.msg} at line {err.lineno})") from None
+    except UnicodeDecodeError as err:
+        raise DepthnerfError(f"{path}: not a JSON text file (byte {err.start} is not UTF-8)") from None
     if not isinstance(data, dict):
         raise DepthnerfError(f"{path}: summary must be a JSON object")
     missing = [k for k in REQUIRED_KEYS if k not in data]

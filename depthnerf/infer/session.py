@@ -118,6 +118,12 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         """One line naming the flag when a value cannot work (checked before anything loads)."""
+        try:
+            device = torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise DepthnerfError(f"device {self.device!r}: not a torch device (use 'cpu' or 'cuda')") from None
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise DepthnerfError(f"device {self.device!r}: no CUDA GPU is available to this process; use 'cpu'")
         if self.chunk is not None and self.chunk < 1:
             raise DepthnerfError(f"--chunk must be >= 1, got {self.chunk}")
         if self.policy is None:  # a flag combination the device cannot run fails here, not after loading

@@ -3,10 +3,11 @@
 Input photo (assumption: ONE object, roughly centred, on a plain background)
     A PNG, JPEG or WebP file (:data:`PHOTO_FORMATS`; other formats, GIF animations included, are refused with one
     line, by ``depthnerf reconstruct`` and the app alike; arrays and in-memory images are taken as they are);
-    grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
-    images larger than :data:`MAX_SIDE` px are first downscaled (box filter) so the longer side is ``MAX_SIDE``
-    (noted). Mask, in order: the given mask (non-zero = object, same size as the image); else the alpha channel
-    (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
+    a file with an EXIF orientation tag (a camera's portrait JPEG) is turned upright as viewers show it, and so
+    is a mask file (noted); grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
+    images larger than :data:`MAX_SIDE` px are first downscaled (box filter, aspect ratio kept) so the longer side
+    is ``MAX_SIDE`` (noted). Mask, in order: the given mask (non-zero = object, same size as the upright image);
+    else the alpha channel (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
     (:mod:`depthnerf.reconstruct.background`), its foreground score as the alpha (then as for alpha; the RGBA
     cut-out is kept in :attr:`PreparedImage.cutout`); else the *background colour* = the per-channel median
     of the image border (a ring ``max(1, 2%)`` of the shorter side wide) and object = pixels whose largest channel
@@ -40,7 +41,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from jaxtyping import Bool, Float
-from PIL import Image
+from PIL import Image, ImageOps
 
 from depthnerf.data.srn import mask_bboxes
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, get_framing
@@ -64,6 +65,8 @@ DEFAULT_FILL = 0.62
 PHOTO_FORMATS = {"PNG": "PNG", "JPEG": "JPEG", "MPO": "JPEG", "WEBP": "WebP"}
 """Accepted photo file formats: Pillow's format name -> the name shown (MPO: a camera's multi-picture JPEG)."""
 ImageLike = str | Path | np.ndarray | Image.Image
+EXIF_ORIENTATION = 0x0112
+"""The EXIF tag that says how a file's stored pixels are turned for display (1: as stored)."""
 MASK_DARK = 32
 """A given mask's values <= this (or >= 255 - this) count as dark (bright); a mask is mostly one or the other."""
 MASK_GREY_SHARE = 0.1
@@ -103,12 +106,48 @@ def check_photo_format(fmt: str | None, name: str) -> None:
         raise DepthnerfError(f"{name}: {fmt} images are not supported; use a PNG, JPEG or WebP photo")
 
 
-def _open(source: str | Path | Image.Image, name: str) -> Image.Image:
+def upright(im: Image.Image, notes: list[str] | None = None, what: str = "image") -> Image.Image:
+    """A file's image as viewers show it: turned / mirrored by its EXIF orientation tag (a camera's portrait JPEG
+    stores landscape pixels and this tag), noted in ``notes``; unchanged without a tag."""
+    try:
+        orientation = im.getexif().get(EXIF_ORIENTATION, 1)
+    except (OSError, ValueError, SyntaxError):  # an unreadable EXIF block: the pixels as stored
+        return im
+    if orientation not in range(2, 9):
+        return im
+    if notes is not None:
+        notes.append(f"{what}: turned upright by its EXIF orientation tag ({orientation})")
+    return ImageOps.exif_transpose(im)
+
+
+def check_image_file(path: str | Path, what: str = "image") -> None:
+    """Fail at once, before any model loads, when ``path`` cannot be the photo (``what="image"``: missing, a
+    folder, not an image, not a :data:`PHOTO_FORMATS` format, a side below :data:`MIN_SIDE`) or the mask
+    (``what="mask"``); only the header is read (a truncated file fails when :func:`prepare_photo` reads it)."""
+    name = str(path)
+    try:
+        with Image.open(path) as im:
+            size = im.size
+            if what == "image":
+                check_photo_format(im.format, name)
+    except FileNotFoundError:
+        raise DepthnerfError(f"{name}: {what} file not found") from None
+    except IsADirectoryError:
+        raise DepthnerfError(f"{name}: is a folder, not {'an image' if what == 'image' else 'a mask'} file") from None
+    except (OSError, ValueError, Image.DecompressionBombError) as err:
+        raise DepthnerfError(f"{name}: unreadable {what} ({err})") from None
+    if what == "image" and min(size) < MIN_SIDE:
+        raise DepthnerfError(f"{name}: image is {size[0]}x{size[1]} px; at least {MIN_SIDE} px per side are needed")
+
+
+def _open(source: str | Path | Image.Image, name: str, notes: list[str]) -> Image.Image:
     try:
         im = source if isinstance(source, Image.Image) else Image.open(source)
         if not isinstance(source, Image.Image):
             check_photo_format(im.format, name)
         im.load()
+        if not isinstance(source, Image.Image):
+            im = upright(im, notes)
     except FileNotFoundError:
         raise DepthnerfError(f"{name}: image file not found") from None
     except IsADirectoryError:
@@ -128,7 +167,7 @@ def read_photo(source: ImageLike, notes: list[str]) -> tuple[np.ndarray, np.ndar
     if not isinstance(source, str | Path | np.ndarray | Image.Image):
         raise DepthnerfError(f"image must be a file path, a PIL image or a numpy array, got {type(source).__name__}")
     name = str(source) if isinstance(source, str | Path) else "image"
-    im = None if isinstance(source, np.ndarray) else _open(source, name)
+    im = None if isinstance(source, np.ndarray) else _open(source, name, notes)
     if im is None:
         arr = np.asarray(source)
         if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] not in (1, 2, 3, 4)):
@@ -141,7 +180,7 @@ def read_photo(source: ImageLike, notes: list[str]) -> tuple[np.ndarray, np.ndar
     small = size
     if max(size) > MAX_SIDE:
         scale = MAX_SIDE / max(size)
-        small = (max(MIN_SIDE, round(size[0] * scale)), max(MIN_SIDE, round(size[1] * scale)))
+        small = (max(1, round(size[0] * scale)), max(1, round(size[1] * scale)))  # the aspect ratio kept
         notes.append(f"downscaled from {size[1]}x{size[0]} to {small[1]}x{small[0]} (box filter) first")
         if im is not None:
             im = im.resize((small[1], small[0]), Image.Resampling.BOX)
@@ -174,11 +213,13 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
         where = "mask" if isinstance(mask, np.ndarray | Image.Image) else str(mask)
         try:
             im = Image.fromarray(np.asarray(mask)) if isinstance(mask, np.ndarray) else (
-                mask if isinstance(mask, Image.Image) else Image.open(mask))
+                mask if isinstance(mask, Image.Image) else upright(Image.open(mask), notes, "mask"))
             im = im.convert("L")
         except FileNotFoundError:
             raise DepthnerfError(f"{where}: mask file not found") from None
-        except (OSError, ValueError, TypeError) as err:
+        except IsADirectoryError:
+            raise DepthnerfError(f"{where}: is a folder, not a mask file") from None
+        except (OSError, ValueError, TypeError, Image.DecompressionBombError) as err:
             raise DepthnerfError(f"{where}: unreadable mask ({err})") from None
         if source_size is not None and (im.height, im.width) == source_size != (height, width):
             im = im.resize((width, height), Image.Resampling.BOX)
