@@ -5,17 +5,23 @@ backend is NCCL on CUDA (one GPU per process, ``LOCAL_RANK`` picks it) and gloo 
 Training: rank 0 alone logs, validates and checkpoints (PyTorch DDP). Evaluation: every rank scores its share of
 the objects and rank 0 merges them (:func:`gather_to_main`, :func:`broadcast_from_main`). A neutral module: any
 stage may use it.
+
+A rank that stops (its own one-line error, a kill) breaks the other ranks' next collective; :func:`peer_failure`
+turns that into one line on those ranks too, instead of a backend traceback.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any
 
 import torch
 import torch.distributed as dist
+from torch import nn
 
 from depthnerf.errors import DepthnerfError
 
@@ -116,3 +122,79 @@ def broadcast_from_main(obj: Any, info: DistInfo) -> Any:
     box = [obj if info.is_main else None]
     dist.broadcast_object_list(box, src=0)
     return box[0]
+
+
+def _is_collective_failure(err: BaseException) -> bool:
+    """Whether ``err`` is a process-group backend's failure (a peer gone, a timeout), not a bug of the caller's:
+    NCCL and the store raise ``DistError`` subclasses, gloo a plain ``RuntimeError`` naming its source file."""
+    return isinstance(err, dist.DistError) or (isinstance(err, RuntimeError) and "gloo" in str(err))
+
+
+@contextlib.contextmanager
+def peer_failure(info: DistInfo, what: str) -> Iterator[None]:
+    """Turn a collective that fails because another rank stopped into one :class:`DepthnerfError` line naming
+    this rank and ``what`` it was doing (the rank that stopped printed why); anything else passes through."""
+    try:
+        yield
+    except (RuntimeError, dist.DistError) as err:
+        if info.world == 1 or not _is_collective_failure(err):
+            raise
+        text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        said = text.split("] ", 1)[-1].split(". ", 1)[0][:160]  # gloo: "[file:line] what. Advice..."
+        raise DepthnerfError(f"rank {info.rank} of {info.world}: another rank stopped while this one was {what}; "
+                             f"the rank that stopped says why ({said})") from None
+
+
+class NormMerge:
+    """Running BatchNorm statistics of a DDP step as one process training the whole batch would have them.
+
+    DDP alone keeps rank 0's statistics, of its share of the batch only, so they (and every evaluation, which
+    uses them) would depend on the number of ranks. Each step, :meth:`state` before it, :meth:`merge` after it:
+    every rank started from the same state and updated it with its own share (rank ``r``'s share is the ``r``-th
+    slice of the global batch); the merge sets every rank's statistics to all ranks' updates made one after
+    another in rank order, up to float rounding. With momentum ``m`` and ``k`` updates per rank,
+    ``a = (1 - m)^k``, rank ``r`` holds ``a * before + d_r``, so the merge is ``a^N * before + sum_r a^(N-1-r) d_r``
+    and the update counts grow by ``N * k``. One all-gather of the statistics, no host synchronisation; nothing
+    for one process. Layers without a momentum (cumulative averages) are left as DDP leaves them.
+    """
+
+    def __init__(self, model: nn.Module, info: DistInfo) -> None:
+        self.info = info
+        self.norms = [m for m in model.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)
+                      and m.track_running_stats and m.running_mean is not None and m.momentum is not None]
+        """The layers merged (a fixed order)."""
+        self.sizes = [m.num_features for m in self.norms] * 2
+        device = self.norms[0].running_mean.device if self.norms else torch.device("cpu")
+        self._repeats = torch.tensor(self.sizes, device=device)
+        self._base = torch.tensor([1.0 - m.momentum for m in self.norms] * 2, device=device)
+        self.active = info.world > 1 and bool(self.norms)
+        """Whether there is anything to merge."""
+
+    def _stats(self) -> list[torch.Tensor]:
+        return [m.running_mean for m in self.norms] + [m.running_var for m in self.norms]
+
+    def state(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The running means and variances as one new flat tensor, and the update counts (None: inactive)."""
+        if not self.active:
+            return None
+        with torch.no_grad():
+            return torch.cat(self._stats()), torch.stack([m.num_batches_tracked for m in self.norms])
+
+    def merge(self, before: tuple[torch.Tensor, torch.Tensor] | None) -> None:
+        """Merge the ranks' updates since :meth:`state` returned ``before`` (class docstring)."""
+        if before is None:
+            return
+        stats, counts = before
+        mine, now = self.state()
+        with torch.no_grad():
+            gathered = [torch.empty_like(mine) for _ in range(self.info.world)]
+            dist.all_gather(gathered, mine)
+            updates = (now - counts).repeat(2)
+            keep = torch.repeat_interleave(self._base.to(mine.dtype) ** updates, self._repeats,
+                                           output_size=mine.numel())
+            merged = stats
+            for theirs in gathered:
+                merged = keep * merged + (theirs - keep * stats)
+            torch._foreach_copy_(self._stats(), list(merged.split(self.sizes)))
+            torch._foreach_copy_([m.num_batches_tracked for m in self.norms],
+                                 list((counts + self.info.world * (now - counts)).unbind()))

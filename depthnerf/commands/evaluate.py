@@ -212,14 +212,15 @@ def empty_meshes_text(summary: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from depthnerf.distributed import teardown
+    from depthnerf.distributed import peer_failure, teardown
     from depthnerf.eval.shards import RefusedOnMain
 
     check_flags(args)
     choices = _choices(args)
     info = _process(args.device)
     try:
-        return _run(args, info, choices)
+        with peer_failure(info, "evaluating (the finished objects are kept: the same command continues)"):
+            return _run(args, info, choices)
     except RefusedOnMain:
         return 2  # rank 0 prints why
     finally:

@@ -5,8 +5,10 @@ Per step: the global batch of objects comes from :class:`~depthnerf.train.batchi
 renders the rank's objects in one batch, each with its own BatchNorm statistics and generator (so a rank's result
 does not depend on which other objects share its batch: 2 ranks x 2 objects equal 1 process x 4 objects). The
 loss is pixelNeRF's: mean squared error of the coarse plus the fine colour (plus the optional depth loss);
-gradients are averaged across ranks by DDP. BatchNorm running statistics (used only in eval mode) are not
-synchronised on CPU (SyncBatchNorm needs a GPU); DDP keeps rank 0's.
+gradients are averaged across ranks by DDP. BatchNorm running statistics (used only in eval mode) are merged
+after each step as one process updating them with the whole batch would have them
+(:class:`~depthnerf.distributed.NormMerge`), so they too do not depend on the number of ranks. A rank that stops
+(its own error, a kill) stops the others with one line each (:func:`~depthnerf.distributed.peer_failure`).
 
 On CUDA: bf16 autocast, fused Adam, channels-last encoder, pinned host batches, and the loss terms stay on the
 device until a log step reads them (the only host synchronisation of the loop besides validation/checkpoints).
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import inspect
 import json
 import math
 import signal
@@ -39,7 +42,7 @@ from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
 from depthnerf.data.view_store import ViewStore
 from depthnerf.depth.prior import PriorSource, open_prior, portable_prior, weights_mismatch
-from depthnerf.distributed import DistInfo, all_ranks, barrier
+from depthnerf.distributed import DistInfo, NormMerge, all_ranks, barrier, peer_failure
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF
@@ -153,7 +156,8 @@ def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = Fal
     ``validate`` scores the model on the val objects every ``log.val_every`` steps (``depthnerf train`` passes
     :func:`depthnerf.eval.validation.validate`; None: no validation).
     """
-    with contextlib.ExitStack() as hold:
+    with contextlib.ExitStack() as hold, peer_failure(info, "training (the run keeps its last checkpoint: "
+                                                      "--resume continues it)"):
         return _train(cfg, Path(run_dir), info, hold, resume=resume, progress=progress, validate=validate,
                       compile=compile, compile_step=compile_step)
 
@@ -244,7 +248,12 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
 
     loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight,
                             compiled_fields(model) if compile else None, "inductor" if compile_step else None)
-    runner = DistributedDataParallel(loss_module) if info.world > 1 else loss_module
+    # buffers: merged after each step (NormMerge), not rank 0's broadcast before each forward (the flag's newer name
+    # where torch has it)
+    no_sync = "forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(
+        DistributedDataParallel).parameters else "broadcast_buffers"
+    runner = DistributedDataParallel(loss_module, **{no_sync: False}) if info.world > 1 else loss_module
+    norms = NormMerge(model, info)
     s = cfg.schedule
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
                      objects_phase1=s.objects_phase1, objects_phase2=s.objects_phase2)
@@ -273,8 +282,10 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             batch = batch.to(info.device, non_blocking=True)
             keys = step_keys(plan, step, info.rank, info.world)
             optimizer.zero_grad(set_to_none=True)
+            before = norms.state()
             terms = train_step(runner, batch, keys, step, near, far, info.device, amp=amp, per_object=per_object,
                                distributed=info.world > 1)
+            norms.merge(before)
             optimizer.step()
             step += 1
             ckpt.crash_point("step", step)

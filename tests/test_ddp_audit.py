@@ -1,0 +1,115 @@
+"""Multi-process training and evaluation (2 gloo processes on the CPU, launched by hand: ``RANK`` /
+``WORLD_SIZE`` / ``MASTER_ADDR`` / ``MASTER_PORT``, so each process can get its own crash hook).
+
+BatchNorm running statistics (what evaluation normalises with) must not depend on the number of ranks: 2 ranks x
+1 object per step equal 1 process x 2 objects to float rounding (DDP alone kept rank 0's, of its share only:
+resuming a run with another world size moved evaluation by 0.25 dB). A rank that stops (killed, or its own error)
+must stop the other rank with one line, not a gloo traceback.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from fixtures_checkpoints import TINY_TRAIN_FLAGS as TINY
+from fixtures_checkpoints import save_tiny, tiny_config
+from fixtures_srn import make_srn_fixture
+
+from depthnerf.distributed import DistInfo, peer_failure
+from depthnerf.errors import DepthnerfError
+from depthnerf.train import checkpoint as ckpt
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def two_ranks(args: list[str], env: tuple[dict, dict] = ({}, {})) -> list[subprocess.CompletedProcess]:
+    """``python -m depthnerf ARGS`` as ranks 0 and 1 of one gloo job (``env``: each rank's extra variables)."""
+    port = str(free_port())
+    procs = [subprocess.Popen([sys.executable, "-m", "depthnerf", *map(str, args)], cwd=ROOT, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "RANK": str(r),
+                                   "LOCAL_RANK": str(r), "WORLD_SIZE": "2", "LOCAL_WORLD_SIZE": "2",
+                                   "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": port, **env[r]})
+             for r in (0, 1)]
+    outs = []
+    for p in procs:
+        out, err = p.communicate(timeout=120)  # a hang fails the test
+        outs.append(subprocess.CompletedProcess(p.args, p.returncode, out, err))
+    return outs
+
+
+def error_lines(stderr: str) -> list[str]:
+    return [line for line in stderr.splitlines() if line.strip() and "Warning" not in line
+            and not line.startswith(("started a new run", "  "))]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return make_srn_fixture(tmp_path_factory.mktemp("srn"), "cars", {"train": 4, "test": 3}, views=4, size=32)
+
+
+def train_args(data: Path, out: Path) -> list[str]:
+    return ["train", "--preset", "cpu-cars", "--depth", "none", "--data", data, "--max-steps", "2",
+            "--log.val_every", "0", "--device", "cpu", *TINY, "--schedule.step_shape", "per-object", "--out", out]
+
+
+def test_batchnorm_statistics_of_two_ranks_equal_one_process(data, tmp_path):
+    single = subprocess.run([sys.executable, "-m", "depthnerf", *map(str, train_args(data, tmp_path / "one"))],
+                            cwd=ROOT, capture_output=True, text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert single.returncode == 0, single.stderr[-2000:]
+    ranks = two_ranks(train_args(data, tmp_path / "two"))
+    assert all(r.returncode == 0 for r in ranks), ranks[0].stderr[-2000:] + ranks[1].stderr[-2000:]
+    one, two = (ckpt.read_weights(ckpt.latest_checkpoint(tmp_path / run / "checkpoints") / "model.safetensors")[0]
+                for run in ("one", "two"))
+    stats = [k for k in one if "running_" in k or "num_batches" in k]
+    assert stats
+    for key in stats:  # before: rank 0's share alone (20-80% apart, half the update count)
+        assert torch.allclose(one[key].double(), two[key].double(), rtol=1e-5, atol=1e-6), key
+
+
+def test_a_killed_rank_stops_the_other_training_rank_with_one_line(data, tmp_path):
+    rank0, rank1 = two_ranks(train_args(data, tmp_path / "run"), env=({}, {"DEPTHNERF_CRASH_AT": "step@1"}))
+    assert rank1.returncode == -9
+    assert rank0.returncode == 2, rank0.stderr[-2000:]
+    lines = error_lines(rank0.stderr)
+    assert len(lines) == 1 and lines[0].startswith("error: rank 0 of 2: another rank stopped while this one was "
+                                                   "training"), rank0.stderr[-2000:]
+
+
+def test_a_killed_rank_stops_the_other_evaluating_rank_with_one_line(data, tmp_path):
+    weights = save_tiny(tmp_path / "tiny.safetensors", tiny_config("cars", "none", resolution=16))
+    args = ["eval", "--checkpoint", weights, "--data", data, "--no-mesh", "--no-progress", "--device", "cpu",
+            "--out", tmp_path / "eval"]
+    rank0, rank1 = two_ranks(args, env=({"DEPTHNERF_CRASH_AT": "eval-object@1"}, {}))
+    assert rank0.returncode == -9
+    assert rank1.returncode == 2, rank1.stderr[-2000:]
+    lines = error_lines(rank1.stderr)
+    assert len(lines) == 1 and lines[0].startswith("error: rank 1 of 2: another rank stopped while this one was "
+                                                   "evaluating"), rank1.stderr[-2000:]
+
+
+def test_peer_failure_turns_only_backend_failures_into_one_line():
+    info = DistInfo(rank=1, world=2, device=torch.device("cpu"))
+    gloo = ("[/pytorch/third_party/gloo/gloo/transport/tcp/pair.cc:561] Connection closed by peer [127.0.0.1]:1. "
+            "This is typically caused by a remote worker crashing.")
+    with pytest.raises(DepthnerfError, match=r"^rank 1 of 2: .* \(Connection closed by peer \[127.0.0.1\]:1\)$"):
+        with peer_failure(info, "training"):
+            raise RuntimeError(gloo)
+    with pytest.raises(RuntimeError, match="a bug"):  # not a backend's failure: the traceback stays
+        with peer_failure(info, "training"):
+            raise RuntimeError("a bug")
+    with pytest.raises(RuntimeError, match="gloo"):  # one process: nothing to blame on another rank
+        with peer_failure(DistInfo(rank=0, world=1, device=torch.device("cpu")), "training"):
+            raise RuntimeError(gloo)
