@@ -20,7 +20,7 @@ from depthnerf.app.logic import background_installed
 from depthnerf.cli import main
 from depthnerf.data.synth.framing import get_framing
 from depthnerf.errors import DepthnerfError
-from depthnerf.reconstruct.background import BackgroundRemover, choose_remover
+from depthnerf.reconstruct.background import BackgroundRemover, choose_remover, download_command
 from depthnerf.reconstruct.photo import prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
 
@@ -90,7 +90,7 @@ def test_the_mask_is_the_models_output(photo, models):
 def test_the_default_model_is_read_from_rembgs_model_folder(photo, models, tmp_path, monkeypatch):
     path, truth = photo
     monkeypatch.setenv("U2NET_HOME", str(tmp_path))
-    shutil.copyfile(models["dark"], tmp_path / "u2net.onnx")  # where `rembg d u2net` puts it
+    shutil.copyfile(models["dark"], tmp_path / "u2net.onnx")  # where rembg's download_models puts it
     prep = prepare_photo(path, None, 64, background=choose_remover("auto"))
     assert iou(prep.cutout[..., 3] > 0.5, truth) > 0.95
     assert any("by the u2net model" in n for n in prep.notes)
@@ -136,7 +136,8 @@ def test_without_rembg_the_cluttered_photo_says_how_to_install_it(photo, tmp_pat
     err = one_line_error(capsys, reconstruct(path, tmp_path / "out"))
     assert err.startswith(f"error: {path}: {CLUTTER}")
     assert ("background removal needs rembg, which is not installed: pip install 'depthnerf[bg]', then "
-            "`rembg d u2net` for its weights; or use an RGBA cut-out") in err
+            "`python -c \"from rembg.bg import download_models; download_models(['u2net'])\"` for its weights; "
+            "or use an RGBA cut-out") in err
     assert not (tmp_path / "out").exists()
     err = one_line_error(capsys, reconstruct(path, tmp_path / "out", "--background-removal", "on"))
     assert err.startswith(f"error: {path}: background removal needs rembg")
@@ -146,7 +147,7 @@ def test_without_weights_the_cluttered_photo_says_how_to_get_them(photo, models,
     path, _ = photo
     err = one_line_error(capsys, reconstruct(path, tmp_path / "out"))
     assert err.startswith(f"error: {path}: {CLUTTER}") and "the background model u2net is not downloaded: run " \
-        "`rembg d u2net` where there is internet" in err and "--background-model FILE.onnx" in err
+        f"`{download_command('u2net')}` where there is internet" in err and "--background-model FILE.onnx" in err
     err = one_line_error(capsys, reconstruct(path, tmp_path / "out", "--background-model", "isnet-general-use"))
     assert err.startswith("error: the background model isnet-general-use is not downloaded")
     err = one_line_error(capsys, reconstruct(path, tmp_path / "out", "--background-removal", "off",

@@ -49,7 +49,8 @@ from the one these models were trained with.
 
 CLUTTER_HINT = """**Cluttered background?** The border-colour mask only works on a plain background. Cut the object out
 (a PNG or WebP with a transparent background) and upload that RGBA image above, or let a background model do it:
-install it where the page runs (`pip install 'depthnerf[bg]'`, then `rembg d u2net` for its weights) and tick
+install it where the page runs (`pip install 'depthnerf[bg]'`, then
+`python -c "from rembg.bg import download_models; download_models(['u2net'])"` for its weights) and tick
 **Remove background**."""
 
 LOCAL = ("127.0.0.1", "localhost", "::1")

@@ -36,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "when rembg and the model are installed, pip install 'depthnerf[bg]'), on, off")
     p.add_argument("--background-model", metavar="NAME_OR_FILE",
                    help=f"rembg model name ({', '.join(NAMED_MODELS)}; default {DEFAULT_MODEL}) from rembg's model "
-                        "folder (`rembg d NAME` downloads one there), or a U^2-Net-style .onnx file")
+                        "folder (rembg's download_models fetches one there), or a U^2-Net-style .onnx file")
     p.add_argument("--views", type=int, default=36, help="novel views on the orbit (default 36)")
     p.add_argument("--elevation", type=float, default=20.0, help="input camera elevation, degrees (default 20)")
     p.add_argument("--radius", type=float, help="camera distance (default: the training category's)")

@@ -7,7 +7,7 @@ Library
     was the alternative: the background-removal checkpoints there (BiRefNet, RMBG) run their own Python code
     from the hub (``trust_remote_code``), which this package never does.
 Model (``--background-model NAME_OR_FILE``; :data:`DEFAULT_MODEL` when not given)
-    A name from :data:`NAMED_MODELS`, read from rembg's model folder, where ``rembg d NAME`` puts it (``~/.u2net``
+    A name from :data:`NAMED_MODELS`, read from rembg's model folder, where :func:`download_command` puts it (``~/.u2net``
     or ``~/.rembg/models/NAME``; ``U2NET_HOME`` moves it); or an ONNX file with U^2-Net's interface (rembg's
     ``u2net_custom``: one RGB input resized to 320x320 with ImageNet mean and std, the first channel of the first
     output a foreground score, min-max normalised). Nothing is downloaded here: a missing model is a one-line
@@ -56,6 +56,12 @@ INSTALL = "pip install 'depthnerf[bg]'"
 """How to install the extra."""
 
 
+def download_command(name: str) -> str:
+    """The shell command that fetches a named model into rembg's folder (the function ``rembg d NAME`` calls; that
+    command itself needs rembg's ``[cli]`` extra, which ``depthnerf[bg]`` leaves out)."""
+    return f"python -c \"from rembg.bg import download_models; download_models(['{name}'])\""
+
+
 class BackgroundRemover:
     """A loaded background-removal model (a rembg session), or the reason there is none (:meth:`unavailable`)."""
 
@@ -102,7 +108,7 @@ def _import_rembg():
     if missing:
         raise DepthnerfError(f"background removal needs {' and '.join(missing)}, which "
                              f"{'is' if len(missing) == 1 else 'are'} not installed: {INSTALL}, then "
-                             f"`rembg d {DEFAULT_MODEL}` for its weights")
+                             f"`{download_command(DEFAULT_MODEL)}` for its weights")
     # rembg imports pymatting, whose numba code starts numba's OpenMP pool beside torch's and resets torch's thread
     # count: torch's small ops then ran 15-40x slower here. numba's own thread pool and torch's count restored
     # avoid that (the user's NUMBA_THREADING_LAYER wins).
@@ -174,13 +180,13 @@ def load_remover(model: str | None = None) -> BackgroundRemover:
         return BackgroundRemover(session, path.name, "see the model's card")
     found = _named_file(sessions_class, name)
     if found is None:
-        raise DepthnerfError(f"the background model {name} is not downloaded: run `rembg d {name}` where there is "
+        raise DepthnerfError(f"the background model {name} is not downloaded: run `{download_command(name)}` where there is "
                              "internet, or pass --background-model FILE.onnx")
     try:
         session = new_session(name, sess_opts=_session_options(), providers=["CPUExecutionProvider"])
     except Exception as err:  # noqa: BLE001 - a corrupt download
         raise DepthnerfError(f"{found}: not a loadable {name} model ({' '.join(str(err).split())[:200]}); "
-                             f"delete it and run `rembg d {name}` again") from None
+                             f"delete it and run `{download_command(name)}` again") from None
     return BackgroundRemover(session, name, NAMED_MODELS[name])
 
 
