@@ -148,3 +148,18 @@ def test_agreeing_protocol_choices_are_stated_under_the_table(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.endswith("Protocol choices of every measured row: SSIM uniform7, png8 renders scored, left out "
                         "(pixelNeRF cannot load them): w.\n")
+
+
+def test_rows_over_different_samples_are_printed_with_a_warning(tmp_path, capsys):
+    """Same protocol choices, but one chairs row scored 3 objects x 150 views and the other 2 x 20: the table is
+    printed, and stderr says which category's rows average different samples; equal samples say nothing."""
+    a = _summary(tmp_path / "a" / "summary.json", "baseline", "chairs", 21.0, 0.87)
+    b = _summary(tmp_path / "b" / "summary.json", "depth-aware", "chairs", 22.0, 0.9, objects=2, views=20)
+    c = _summary(tmp_path / "c" / "summary.json", "baseline", "cars", 20.0, 0.8)
+    assert main(["compare", str(a), str(b), str(c)]) == 0
+    out, err = capsys.readouterr()
+    assert "depth-aware" in out and err == ("warning: the chairs rows were scored on different samples (2 objects x "
+                                            "20 views; 3 objects x 150 views): their means are not over the same "
+                                            "views\n")
+    assert main(["compare", str(a), str(c)]) == 0
+    assert capsys.readouterr().err == ""

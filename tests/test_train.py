@@ -352,6 +352,8 @@ def test_resume_says_what_it_did_and_refuses_contradicting_flags(data, tmp_path,
     assert f"resumed from step 2 ({run / 'checkpoints' / 'step_00000002'})" in resumed.stderr
     same = cli("train", "--out", str(run), "--resume", "--max-steps", "2")  # below the run's step: said, not silent
     assert "nothing to train: the run is at step 3, --max-steps is 2 (pass a larger --max-steps" in same.stderr
+    result = json.loads(same.stdout.strip().splitlines()[-1])  # the run's own checkpoint, not null
+    assert result["step"] == 3 and result["checkpoint"] == str(run / "checkpoints" / "step_00000003")
 
 
 def test_relative_data_run_resumes_from_another_directory(data, tmp_path):

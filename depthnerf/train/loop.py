@@ -337,7 +337,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
         log.close()
     barrier(info)
     return {"step": step, "best_val_psnr": best if math.isfinite(best) else None,  # strict JSON: no -Infinity
-            "checkpoint": str(last_saved) if last_saved else None, "stopped_by": stopped_by,
+            "checkpoint": str(last_saved or latest) if (last_saved or latest) else None,  # nothing trained: the run's
+            "stopped_by": stopped_by,
             "exit_code": exit_code(stop.signum) if stopped_by else 0}
 
 
