@@ -60,6 +60,9 @@ DEFAULT_NET = "srn"
 DEFAULT_WEIGHTS = SHIPPED_NETS[DEFAULT_NET]
 """The default net's weights file."""
 
+FORMAT = "depthnerf-bundled-depth-v1"
+"""The ``format`` metadata entry :func:`save_bundled` writes (files without one are read too)."""
+
 LICENCE = "MIT (depthnerf; trained only on the procedurally generated synthetic benchmark)"
 """Licence of the bundled weights."""
 
@@ -88,9 +91,14 @@ class BundledNetConfig:
 
     @classmethod
     def from_json(cls, text: str) -> BundledNetConfig:
+        """Parse :meth:`to_json`; ``KeyError`` / ``ValueError`` / ``TypeError`` for anything else, also for sizes
+        no network can have (no levels, or a width, ``input_size`` or ``unshuffle`` below 1)."""
         raw = json.loads(text)
-        return cls(widths=tuple(int(w) for w in raw["widths"]), input_size=int(raw["input_size"]),
-                   context=bool(raw["context"]), unshuffle=int(raw["unshuffle"]))
+        config = cls(widths=tuple(int(w) for w in raw["widths"]), input_size=int(raw["input_size"]),
+                     context=bool(raw["context"]), unshuffle=int(raw["unshuffle"]))
+        if not config.widths or min(config.widths + (config.input_size, config.unshuffle)) < 1:
+            raise ValueError(f"impossible bundled net sizes {config}")
+        return config
 
 
 def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
@@ -162,7 +170,7 @@ def save_bundled(net: BundledDepthNet, path: Path, notes: dict[str, str] | None 
              if v.dtype.is_floating_point}
     state.update({k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()
                   if not v.dtype.is_floating_point})
-    metadata = {"config": net.config.to_json(), "format": "depthnerf-bundled-depth-v1", **(notes or {})}
+    metadata = {"config": net.config.to_json(), "format": FORMAT, **(notes or {})}
     write_bytes_atomic(path, save(state, metadata=metadata))  # shared data: 0644
 
 
@@ -189,41 +197,66 @@ def shipped_net_named_by_hash(weights_hash: str) -> str | None:
 def _weights_path(checkpoint: str | os.PathLike | None) -> Path:
     name = shipped_net_name(checkpoint)
     path = SHIPPED_NETS[name] if name is not None else Path(checkpoint).expanduser()
+    if name is not None and not path.is_file():
+        raise DepthnerfError(f"{path}: bundled depth weights not found (reproduce with: python "
+                             "scripts/train_bundled_depth.py)")
+    if path.is_dir():
+        raise DepthnerfError(f"{path}: a directory; bundled depth weights are one .safetensors file or a shipped "
+                             f"net's name ({shipped_nets_text()})")
     if not path.is_file():
-        hint = " (reproduce with: python scripts/train_bundled_depth.py)" if name is not None else ""
-        raise DepthnerfError(f"{path}: bundled depth weights not found{hint}")
+        raise DepthnerfError(f"{checkpoint}: not found: neither a shipped bundled net ({shipped_nets_text()}) nor a "
+                             "weights file")
     return path
+
+
+def _read_config(path: Path) -> tuple[BundledNetConfig, dict[str, str]]:
+    """The config and metadata of a bundled weights file; one line naming the file when it is not one."""
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = dict(handle.metadata() or {})
+    except (SafetensorError, OSError) as err:
+        raise DepthnerfError(f"{path}: unreadable bundled depth weights (not a safetensors file: {err})") from None
+    kind = metadata.get("format", FORMAT)
+    if kind != FORMAT:
+        hint = ("; a depthnerf model checkpoint goes to --checkpoint, not --depth-checkpoint"
+                if kind.startswith("depthnerf-checkpoint") else "")
+        raise DepthnerfError(f"{path}: a {kind!r} safetensors file, not bundled depth weights ({FORMAT}){hint}")
+    if "config" not in metadata:
+        raise DepthnerfError(f"{path}: a safetensors file without a bundled depth net's 'config' metadata (not "
+                             "written by save_bundled: another network's weights?)")
+    try:
+        return BundledNetConfig.from_json(metadata["config"]), metadata
+    except (KeyError, ValueError, TypeError, AttributeError):
+        raise DepthnerfError(f"{path}: bundled depth weights lack a valid 'config' metadata entry") from None
 
 
 def load_bundled_net(checkpoint: str | os.PathLike | None = None) -> tuple[BundledDepthNet, dict[str, str]]:
     """The network (eval mode, frozen) and the file's metadata; errors name the file."""
     path = _weights_path(checkpoint)
+    config, metadata = _read_config(path)
     try:
-        with safe_open(str(path), framework="pt") as handle:
-            metadata = dict(handle.metadata() or {})
         state = load_file(str(path))
-        config = BundledNetConfig.from_json(metadata["config"])
     except (SafetensorError, OSError) as err:
         raise DepthnerfError(f"{path}: unreadable bundled depth weights ({err})") from None
-    except (KeyError, ValueError, TypeError):
-        raise DepthnerfError(f"{path}: bundled depth weights lack a valid 'config' metadata entry") from None
     net = BundledDepthNet(config)
-    try:
-        net.load_state_dict(state)
-    except RuntimeError as err:
-        first = str(err).splitlines()[0]
-        raise DepthnerfError(f"{path}: weights do not match the config in the file ({first})") from None
+    own = net.state_dict()
+    missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
+    shapes = [k for k in own if k in state and own[k].shape != state[k].shape]
+    if missing or unexpected or shapes:
+        example = (missing or unexpected or shapes)[0]
+        raise DepthnerfError(f"{path}: weights do not match the config in the file ({len(missing)} tensors missing, "
+                             f"{len(unexpected)} unexpected, {len(shapes)} of another shape, e.g. {example})")
+    bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
+    if bad:
+        raise DepthnerfError(f"{path}: tensor {bad[0]} holds non-finite values (NaN or inf): damaged weights")
+    net.load_state_dict(state)
     return net.eval().requires_grad_(False), metadata
 
 
 def bundled_provenance(checkpoint: str | os.PathLike | None = None) -> PriorProvenance:
     """Provenance of the bundled weights (SHA-256 of the file) without building the network."""
     path = _weights_path(checkpoint)
-    try:
-        with safe_open(str(path), framework="pt") as handle:
-            size = BundledNetConfig.from_json((handle.metadata() or {})["config"]).input_size
-    except (SafetensorError, OSError, KeyError, ValueError, TypeError):
-        raise DepthnerfError(f"{path}: unreadable bundled depth weights or missing 'config' metadata") from None
+    size = _read_config(path)[0].input_size
     shown = shipped_net_name(checkpoint) or str(path.resolve())
     return PriorProvenance("bundled", shown, sha256_files([path], names=False), size, LICENCE)
 

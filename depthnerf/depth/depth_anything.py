@@ -3,7 +3,12 @@
 Loading: ``checkpoint`` is a local directory (loaded with ``local_files_only=True``, never touching the network)
 or a Hugging Face hub id (default ``depth-anything/Depth-Anything-V2-Base-hf``, the paper's model), first looked
 up in the local Hugging Face cache, then on the hub; when neither works (offline) a
-:class:`~depthnerf.errors.DepthnerfError` says how to pass a local directory instead.
+:class:`~depthnerf.errors.DepthnerfError` says how to pass a local directory instead. Only ``*.safetensors``
+weights are read (``use_safetensors=True``: a ``pytorch_model.bin`` is never unpickled), the config must be a
+relative Depth Anything model (``model_type`` ``depth_anything``, ``depth_estimation_type`` ``relative``: a metric
+model outputs depth, not disparity), and the model's weights must be in the file with their shapes (weights that
+would leave more than a tenth of the model at its random initialisation are refused as another network's, a few
+missing tensors are a warning); each failure is one line naming the source.
 
 Inference: the checkpoint's own image processor (``AutoImageProcessor``; for DA-V2: keep the aspect ratio, resize
 so the sides are multiples of the 14-pixel patch, ImageNet mean/std) prepares a batch of ``[0, 1]`` images; the
@@ -21,14 +26,19 @@ Licences: Depth-Anything-V2-Small is Apache-2.0; Depth-Anything-V2-Base and -Lar
 from __future__ import annotations
 
 import hashlib
+import json
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
 from jaxtyping import Float
+from safetensors import SafetensorError
 from torch import Tensor
 
 from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DepthnerfError, UsageWarning
 from depthnerf.files import sha256_files
 from depthnerf.hub_access import hub_reachable
 
@@ -67,7 +77,9 @@ def _local_dir(checkpoint: str) -> Path | None:
 def _hash_local_dir(path: Path) -> str:
     weights = sorted(path.glob("*.safetensors"))
     if not weights:
-        raise DepthnerfError(f"{path}: no *.safetensors weights in the checkpoint directory")
+        pickled = " (pytorch_model.bin is never read: it would be unpickled; convert it to safetensors)" \
+            if (path / "pytorch_model.bin").is_file() else ""
+        raise DepthnerfError(f"{path}: no *.safetensors weights in the checkpoint directory{pickled}")
     configs = [path / name for name in HASHED_CONFIGS if (path / name).is_file()]
     return sha256_files(weights + configs)
 
@@ -85,8 +97,6 @@ def depth_anything_provenance(checkpoint: str | None = None) -> PriorProvenance:
 
 
 def _processor_size(path: Path) -> int | None:
-    import json
-
     try:
         size = json.loads((path / "preprocessor_config.json").read_text()).get("size", {})
     except (OSError, ValueError):
@@ -94,6 +104,66 @@ def _processor_size(path: Path) -> int | None:
     if isinstance(size, dict):
         return size.get("height") or size.get("shortest_edge")
     return size if isinstance(size, int) else None
+
+
+def _check_local_config(path: Path) -> None:
+    """A one-line error naming ``path/config.json`` when it is missing, not JSON or names no model type (what
+    ``transformers`` would report as an unrecognised model)."""
+    file = path / "config.json"
+    if not file.is_file():
+        raise DepthnerfError(f"{file}: missing; a Depth Anything checkpoint directory holds what save_pretrained "
+                             "writes (config.json, model.safetensors, preprocessor_config.json)")
+    try:
+        data = json.loads(file.read_text())
+    except (OSError, ValueError):  # UnicodeDecodeError is a ValueError
+        raise DepthnerfError(f"{file}: not a valid JSON file") from None
+    if not isinstance(data, dict) or "model_type" not in data:
+        raise DepthnerfError(f"{file}: no 'model_type' entry (not a transformers model config)")
+
+
+def _check_config(config, source: str) -> None:
+    """Refuse a config that is not a relative Depth Anything model (module docstring)."""
+    model_type = getattr(config, "model_type", None)
+    if model_type != "depth_anything":
+        raise DepthnerfError(f"{source}: config.json is a {model_type!r} model, not Depth Anything "
+                             "('depth_anything'); pass a Depth Anything V2 checkpoint")
+    kind = getattr(config, "depth_estimation_type", "relative")
+    if kind != "relative":
+        raise DepthnerfError(f"{source}: a {kind} Depth Anything model (it outputs depth, not the relative disparity "
+                             f"the prior is); pass a relative one such as {DEFAULT_CHECKPOINT}")
+
+
+REFUSED_SHARE = 0.1
+"""Share of the model's tensors missing from (or mis-shaped in) the weights above which they are refused as another
+network's; below it (a few keys a ``transformers`` version names differently) they load with a warning."""
+
+
+def _check_loading_info(info: dict, source: str, total: int) -> None:
+    """Refuse weights that would leave a real part of the model at its random initialisation (missing or mis-shaped
+    tensors: more than :data:`REFUSED_SHARE` of the model's ``total``); warn about fewer."""
+    missing, mismatched = list(info.get("missing_keys") or ()), list(info.get("mismatched_keys") or ())
+    if not (missing or mismatched):
+        return
+    example = missing[0] if missing else mismatched[0]
+    example = example[0] if isinstance(example, tuple) else example
+    counts = f"{len(missing)} of its {total} tensors missing, {len(mismatched)} of another shape, e.g. {example}"
+    if len(missing) + len(mismatched) > REFUSED_SHARE * max(total, 1):
+        raise DepthnerfError(f"{source}: the weights do not fit the Depth Anything model of its config.json "
+                             f"({counts}): weights of another network?")
+    warnings.warn(f"{source}: {counts}; those stay at their initial values", UsageWarning, stacklevel=3)
+
+
+@contextmanager
+def _quiet_transformers() -> Iterator[None]:
+    """``transformers`` logs only errors inside (its verbosity is restored after)."""
+    from transformers.utils import logging as hf_logging
+
+    previous = hf_logging.get_verbosity()
+    hf_logging.set_verbosity_error()
+    try:
+        yield
+    finally:
+        hf_logging.set_verbosity(previous)
 
 
 class DepthAnythingEstimator(FrozenNetworkEstimator):
@@ -109,11 +179,13 @@ class DepthAnythingEstimator(FrozenNetworkEstimator):
     @classmethod
     def load(cls, checkpoint: str | None = None, device: str = "cpu") -> DepthAnythingEstimator:
         """Load from a local directory or a hub id (see the module docstring)."""
-        from transformers import AutoImageProcessor, AutoModelForDepthEstimation
+        from transformers import AutoConfig, AutoImageProcessor, AutoModelForDepthEstimation
 
         checkpoint = checkpoint or DEFAULT_CHECKPOINT
         provenance = depth_anything_provenance(checkpoint)
         local = _local_dir(checkpoint)
+        if local is not None:
+            _check_local_config(local)
         source = str(local) if local is not None else checkpoint
         attempts = [True] if local is not None else [True, False]  # local files / HF cache first, then the hub
         reason = ""
@@ -125,10 +197,17 @@ class DepthAnythingEstimator(FrozenNetworkEstimator):
                 kwargs = {"local_files_only": local_only}
                 if local is None:
                     kwargs["revision"] = DEFAULT_REVISION
+                config = AutoConfig.from_pretrained(source, **kwargs)
+                _check_config(config, source)
+                with _quiet_transformers():  # its multi-line load report: refused in one line below instead
+                    model, info = AutoModelForDepthEstimation.from_pretrained(
+                        source, config=config, use_safetensors=True, output_loading_info=True,
+                        ignore_mismatched_sizes=True, **kwargs)  # mis-shaped: refused just below
+                _check_loading_info(info, source, len(model.state_dict()))
                 processor = AutoImageProcessor.from_pretrained(source, **kwargs)
-                model = AutoModelForDepthEstimation.from_pretrained(source, **kwargs)
                 return cls(model, processor, provenance, device)
-            except (OSError, ValueError) as err:  # missing files / offline hub / wrong model type
+            except (OSError, ValueError, RuntimeError, SafetensorError) as err:  # missing or damaged files,
+                # offline hub, undecodable JSON, weights of another size
                 reason = (str(err).strip().splitlines() or [type(err).__name__])[0].split(". ")[0]
         if local is not None:
             raise DepthnerfError(f"{local}: not a loadable Depth Anything checkpoint ({reason})")

@@ -36,7 +36,8 @@ def is_hub_reference(checkpoint: object) -> bool:
 
 def parse_hub_reference(reference: str) -> tuple[str, str, str | None]:
     """``hf://OWNER/REPO[/FILE][@REVISION]`` -> ``(repo_id, filename, revision or None)``; a malformed reference
-    (no owner or repository, an empty revision, a file that is not ``.safetensors``) is a one-line error."""
+    (no owner or repository, an empty revision, a ``.`` or ``..`` segment, a file that is not ``.safetensors``)
+    is a one-line error."""
     body = reference[len(HUB_PREFIX):]
     revision = None
     if "@" in body:
@@ -46,6 +47,9 @@ def parse_hub_reference(reference: str) -> tuple[str, str, str | None]:
     parts = [p for p in body.split("/") if p]
     if len(parts) < 2:
         raise DepthnerfError(f"{reference}: a Hub checkpoint is hf://OWNER/REPO[/FILE][@REVISION]")
+    if any(p in (".", "..") for p in parts):
+        raise DepthnerfError(f"{reference}: '.' and '..' are not allowed in a Hub path "
+                             "(hf://OWNER/REPO[/FILE][@REVISION])")
     filename = "/".join(parts[2:]) or HUB_DEFAULT_FILE
     if not filename.endswith(".safetensors"):
         raise DepthnerfError(f"{reference}: {filename} is not a .safetensors file; only safetensors checkpoints "

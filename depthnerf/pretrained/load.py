@@ -18,13 +18,14 @@ naming the file, never a partial load).
 
 from __future__ import annotations
 
+import difflib
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 
-from depthnerf.data.synth.framing import checkpoint_framing
+from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing
 from depthnerf.depth.prior import portable_prior
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
@@ -75,8 +76,10 @@ def resolve_checkpoint(checkpoint: str | Path) -> Path:
         raise DepthnerfError(f"{checkpoint}: a retired checkpoint, no longer shipped with depthnerf; its card "
                              f"{retired[checkpoint]} names what replaced it and the commands that rebuild it")
     names = ", ".join(shipped) or "none shipped"
+    close = difflib.get_close_matches(str(checkpoint), [*shipped, *retired], n=1)
+    hint = f"; did you mean {close[0]}?" if close else ""
     raise DepthnerfError(f"{checkpoint}: not a checkpoint file, checkpoint folder, run folder, shipped name "
-                         f"({names}) or Hub file (hf://OWNER/REPO)")
+                         f"({names}) or Hub file (hf://OWNER/REPO){hint}")
 
 
 @dataclass
@@ -104,17 +107,29 @@ def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") 
     """Load a checkpoint (shipped name or path) into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
     path = resolve_checkpoint(checkpoint)
     tensors, meta = read_weights(path)
-    inference, data_root = spec_from_metadata(meta, str(path)), _data_root(meta)
+    try:
+        inference = spec_from_metadata(meta, str(path))
+    except DepthnerfError as err:  # a check of the spec's own (its prior's name) that does not name the file
+        if str(path) in str(err):
+            raise
+        raise DepthnerfError(f"{path}: inference spec: {err}") from None
+    data_root = _data_root(meta)
     origin = SPEC_FRAMING
     if inference.framing is None:  # written before the spec held the framing: derived once, here
         framing, origin = checkpoint_framing(path, data_root, inference.category)
         inference = replace(inference, framing=framing)
+    if inference.framing not in FRAMINGS:
+        raise DepthnerfError(f"{path}: inference spec names framing {inference.framing!r} (expected one of "
+                             f"{', '.join(FRAMINGS)})")
+    step = meta.get("step", "0")
+    if not step.isdigit():
+        raise DepthnerfError(f"{path}: metadata 'step' is {step!r}, not a step count")
     inference = replace(inference, prior=portable_prior(inference.prior, inference.prior_weights_hash))
     model = PixelNeRF(inference.model, depth_aware=inference.depth_aware)
     load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
     model.to(device).eval()
     return Pretrained(model=model, spec=inference, path=path, sha256=sha256_file(path),
-                      step=int(meta.get("step", 0)), data_root=data_root, framing_origin=origin)
+                      step=int(step), data_root=data_root, framing_origin=origin)
 
 
 def _data_root(meta: dict[str, str]) -> str | None:
