@@ -151,6 +151,13 @@ def test_resume_on_other_data_or_beside_a_running_process_is_refused(data, tmp_p
                                       "resume with --data naming the run's own data, or choose another --out for a "
                                       "new run")
     assert (run / "data_card.json").read_text() == card  # the record of what it trained on is kept
+    other = make_srn_fixture(tmp_path / "other", "cars", {"train": 2}, views=3, size=32)
+    for i, obj in enumerate(sorted((other / "cars_train").iterdir())):  # as many objects, other ids
+        obj.rename(obj.with_name(f"other{i}"))
+    assert main(["train", "--out", str(run), "--resume", "--data", str(other), "--max-steps", "2"]) == 2
+    assert one_error(capsys).endswith(f"data_card.json: the run trained on other training objects (other object "
+                                      f"ids) than {other} holds; resume with --data naming the run's own data, or "
+                                      "choose another --out for a new run")
     with run_lock(run):  # another process (the lock is per open file, so this process counts as another)
         assert main(["train", "--out", str(run), "--resume", "--max-steps", "2", "--no-progress"]) == 2
     assert one_error(capsys) == f"error: {run}: another process is training this run; wait for it to end (or stop " \

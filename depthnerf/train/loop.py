@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import inspect
 import json
 import math
@@ -85,27 +86,39 @@ def _trained_weights_hash(run_dir: Path) -> str | None:
     return recorded if isinstance(recorded, str) else None
 
 
-def _check_same_objects(run_dir: Path, root: Path, count: int) -> None:
-    """On resume: the data must hold as many training objects as the run trained on (its ``data_card.json``), else
-    its batches (a function of seed, step and object count) would silently change; a moved copy passes."""
+def _object_ids_digest(records: list) -> str:
+    """SHA-256 of the training objects' ids in the order the batches index them."""
+    return hashlib.sha256("\n".join(r.object_id for r in records).encode()).hexdigest()
+
+
+def _check_same_objects(run_dir: Path, root: Path, records: list) -> None:
+    """On resume: the data must hold the training objects the run trained on (its ``data_card.json``: their number,
+    and their ids where recorded), else its batches (a function of seed, step and object index) would silently
+    change; a moved copy passes."""
     path = run_dir / "data_card.json"
     try:
-        trained = json.loads(path.read_text()).get("train_objects")
+        card = json.loads(path.read_text())
+        trained, ids = card.get("train_objects"), card.get("train_object_ids_sha256")
     except (OSError, ValueError, AttributeError):
         return  # no record to compare with
-    if isinstance(trained, int) and trained != count:
-        raise DepthnerfError(f"{path}: the run trained on {trained} training objects, but {root} holds {count}; "
-                             "resume with --data naming the run's own data, or choose another --out for a new run")
+    again = "resume with --data naming the run's own data, or choose another --out for a new run"
+    if isinstance(trained, int) and trained != len(records):
+        raise DepthnerfError(f"{path}: the run trained on {trained} training objects, but {root} holds "
+                             f"{len(records)}; {again}")
+    if isinstance(ids, str) and ids != _object_ids_digest(records):
+        raise DepthnerfError(f"{path}: the run trained on other training objects (other object ids) than {root} "
+                             f"holds; {again}")
 
 
-def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, n_train: int,
+def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource, records: list,
                      card: dict | None) -> None:
     write_text_atomic(run_dir / "config.json", json.dumps(to_dict(cfg), indent=1) + "\n")
     prior = {"estimator": cfg.prior.estimator, **(prior_source.provenance or {})}
     write_text_atomic(run_dir / "prior.json", json.dumps(prior, indent=1, default=str) + "\n")
     root = Path(cfg.data.root)
-    data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": n_train,
-                 "resolution": cfg.data.resolution, "dataset_card": card}
+    data_card = {"root": str(root.resolve()), "category": cfg.data.category, "train_objects": len(records),
+                 "train_object_ids_sha256": _object_ids_digest(records), "resolution": cfg.data.resolution,
+                 "dataset_card": card}
     write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
 
 
@@ -186,7 +199,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
         raise DepthnerfError(f"{single.path}: has {single.num_views} view; a training object needs at least 2 (a "
                              "source and a target); remove it from the train split")
     if latest is not None:
-        _check_same_objects(run_dir, root, len(records))
+        _check_same_objects(run_dir, root, records)
     trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
     cfg = dataclasses.replace(cfg, prior=portable_prior(cfg.prior, trained_hash))
     prior_source = open_prior(cfg.prior, data_root=root, resolution=cfg.data.resolution, records=records)
@@ -236,7 +249,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
         restored = ckpt.restore_best(ckpt_root, state) if latest is not None else None
         if restored:
             print(restored, file=sys.stderr, flush=True)
-        _write_run_files(run_dir, cfg, prior_source, len(records), card)
+        _write_run_files(run_dir, cfg, prior_source, records, card)
         if warm is not None:
             write_text_atomic(run_dir / "init_from.json", warm.to_json())
             print(f"warm start: the network's weights from {warm.path} (step {warm.step})", file=sys.stderr,
