@@ -211,3 +211,17 @@ def test_a_training_object_with_one_view_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and f"{obj}: has 1 view; a training object needs at least 2" in err
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(("flags", "says"), [
+    (["--log.val_objects", "0"], "--log.val_objects must be >= 1 with --log.val_every > 0"),
+    (["--log.val_views", ""], "--log.val_views must name at least one view index >= 0 with --log.val_every > 0"),
+    (["--log.val_views", "0,-1"], "--log.val_views must name at least one view index >= 0"),
+])
+def test_a_validation_that_would_score_nothing_is_refused(tmp_path, capsys, flags, says):
+    """Validation over no objects (a numpy warning and a NaN PSNR) or no views (a silent fallback view) is one line
+    up front; without validation the same settings are accepted."""
+    args = ["train", "--preset", "cpu-cars", "--out", str(tmp_path / "r"), "--print-config", *flags]
+    assert main([*args, "--log.val_every", "5"]) == 2
+    assert says in one_error(capsys)
+    assert main([*args, "--log.val_every", "0"]) == 0

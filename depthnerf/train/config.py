@@ -208,6 +208,13 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
     for path, value in flat_keys(to_dict(cfg)).items():  # inf, or NaN where no rule above would train nonsense or fail mid-run
         if isinstance(value, float) and not math.isfinite(value):
             raise DepthnerfError(f"{NAMED_FLAGS.get(path, f'--{path}')} must be a finite number, got {value}")
+    if cfg.log.val_every > 0:  # validation would score nothing, or fall back to a view nobody asked for
+        without = "with --log.val_every > 0 (pass --log.val_every 0 to train without validation)"
+        if cfg.log.val_objects < 1:
+            raise DepthnerfError(f"--log.val_objects must be >= 1 {without}, got {cfg.log.val_objects}")
+        if not cfg.log.val_views or min(cfg.log.val_views) < 0:
+            raise DepthnerfError(f"--log.val_views must name at least one view index >= 0 {without}, got "
+                                 f"{list(cfg.log.val_views)}")
     if cfg.render.guided.enabled:
         raise DepthnerfError("--render.guided.enabled: depth-guided sampling is an inference-time renderer "
                              "(depthnerf eval/reconstruct --guided); training renders with the paper's sampler")
