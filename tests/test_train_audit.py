@@ -128,7 +128,8 @@ def test_out_must_be_a_new_empty_or_run_folder(data, tmp_path, capsys):
     (other / "config.json").write_text('{"not": "a run"}')
     (other / "draft.tex").write_text("x")
     assert main([*BASE, "--data", str(data), "--out", str(other), "--max-steps", "1"]) == 2
-    assert "--out is a folder that is not a run (it holds draft.tex)" in one_error(capsys)
+    assert one_error(capsys) == (f"error: {other / 'config.json'}: not a depthnerf run's config, and a run in "
+                                 f"{other} would overwrite it; choose another --out")
     assert main([*BASE, "--data", str(data), "--out", str(other), "--max-steps", "1", "--resume"]) == 2
     assert f"{other / 'config.json'}: unknown field(s) not" in one_error(capsys)
     assert (other / "config.json").read_text() == '{"not": "a run"}' and sorted(os.listdir(other)) == [
@@ -138,6 +139,11 @@ def test_out_must_be_a_new_empty_or_run_folder(data, tmp_path, capsys):
     (odd / "checkpoints").write_text("x")
     assert main([*BASE, "--data", str(data), "--out", str(odd), "--max-steps", "1"]) == 2
     assert "checkpoints: is a file" in one_error(capsys)
+    logged = tmp_path / "job"  # a cluster job's log redirected into the run folder before training starts
+    logged.mkdir()
+    (logged / "slurm.log").write_text("starting\n")
+    assert main([*BASE, "--data", str(data), "--out", str(logged), "--max-steps", "1", "--resume"]) == 0
+    assert (logged / "slurm.log").read_text() == "starting\n" and (logged / "checkpoints").is_dir()
 
 
 def test_resume_on_other_data_or_beside_a_running_process_is_refused(data, tmp_path, capsys):

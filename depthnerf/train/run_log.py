@@ -1,7 +1,7 @@
 """A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step), TensorBoard events and
 ``launches.jsonl`` (one JSON object per start or resume of the run: the step it started from, the world size =
 number of torchrun ranks, the device and the time); and the run folder's guards: :func:`check_run_dir` (a new run
-goes into a new, empty or run folder only) and :func:`run_lock` (one process trains a run at a time).
+never overwrites a ``config.json`` that is not a run's) and :func:`run_lock` (one process trains a run at a time).
 
 On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
 its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s``, so the logged curves of a resumed
@@ -29,10 +29,8 @@ try:
 except ImportError:  # not a POSIX system: no lock (run_lock then guards nothing)
     fcntl = None
 
-RUN_ENTRIES = frozenset({"config.json", "prior.json", "data_card.json", "init_from.json", "metrics.jsonl",
-                         "launches.jsonl", "tb", "checkpoints", "eval"})
-"""What training writes into a run folder, and ``depthnerf eval --run``'s default output (hidden files aside: atomic
-writes' temporaries and the lock)."""
+RUN_CONFIG_KEYS = frozenset({"preset", "data", "model", "schedule"})
+"""Keys every run's ``config.json`` holds (how :func:`check_run_dir` tells a run's config from another file)."""
 
 
 def _clean(value: Any) -> Any:
@@ -131,20 +129,24 @@ def read_launches(run_dir: Path) -> list[dict[str, Any]]:
 
 def check_run_dir(run_dir: Path, has_checkpoint: bool) -> None:
     """Refuse a ``--out`` that is a file, holds a ``checkpoints`` file, or (for a run without a checkpoint of its
-    own) is a folder holding anything training does not write: training there would overwrite or mix with it."""
+    own) holds a ``config.json`` that is not a depthnerf run's: training would overwrite it. Other files (a job's
+    log redirected into the folder, notes) are left alone and allowed: training writes none of their names."""
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise DepthnerfError(f"{run_dir}: --out is a file, not a run folder; choose another --out")
     if (run_dir / "checkpoints").exists() and not (run_dir / "checkpoints").is_dir():
         raise DepthnerfError(f"{run_dir / 'checkpoints'}: is a file, not a run's checkpoints folder; choose another "
                              "--out")
-    if has_checkpoint or not run_dir.is_dir():
+    config = run_dir / "config.json"
+    if has_checkpoint or not config.exists():
         return
-    foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in RUN_ENTRIES and not p.name.startswith("."))
-    if foreign:
-        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-        raise DepthnerfError(f"{run_dir}: --out is a folder that is not a run (it holds {shown}); choose a new or "
-                             "empty folder")
+    try:
+        data = json.loads(config.read_text())
+    except (OSError, ValueError):
+        data = None
+    if not (isinstance(data, dict) and RUN_CONFIG_KEYS <= set(data)):
+        raise DepthnerfError(f"{config}: not a depthnerf run's config, and a run in {run_dir} would overwrite it; "
+                             "choose another --out")
 
 
 @contextlib.contextmanager
