@@ -146,7 +146,7 @@ def test_out_must_be_a_new_empty_or_run_folder(data, tmp_path, capsys):
     assert (logged / "slurm.log").read_text() == "starting\n" and (logged / "checkpoints").is_dir()
 
 
-def test_resume_on_other_data_or_beside_a_running_process_is_refused(data, tmp_path, capsys):
+def test_resume_on_other_data_or_beside_a_running_process_is_refused(data, tmp_path, capsys, monkeypatch):
     run = tmp_path / "run"
     assert main([*BASE, "--data", str(data), "--out", str(run), "--max-steps", "1"]) == 0
     capsys.readouterr()
@@ -164,6 +164,7 @@ def test_resume_on_other_data_or_beside_a_running_process_is_refused(data, tmp_p
     assert one_error(capsys).endswith(f"data_card.json: the run trained on other training objects (other object "
                                       f"ids) than {other} holds; resume with --data naming the run's own data, or "
                                       "choose another --out for a new run")
+    monkeypatch.setattr("depthnerf.train.run_log.LOCK_WAIT_S", 2.0)  # the wait for a crashed node's lease, shortened
     with run_lock(run):  # another process (the lock is per open file, so this process counts as another)
         assert main(["train", "--out", str(run), "--resume", "--max-steps", "2", "--no-progress"]) == 2
     assert one_error(capsys) == f"error: {run}: another process is training this run; wait for it to end (or stop " \
@@ -231,3 +232,19 @@ def test_a_validation_that_would_score_nothing_is_refused(tmp_path, capsys, flag
     assert main([*args, "--log.val_every", "5"]) == 2
     assert says in one_error(capsys)
     assert main([*args, "--log.val_every", "0"]) == 0
+
+
+def test_the_run_lock_waits_for_a_lock_released_meanwhile(tmp_path):
+    """A lock held elsewhere (a crashed node's, until its lease ends) is waited for: released after ~1 s, it is
+    taken; held past the wait, one line."""
+    import threading
+
+    with run_lock(tmp_path, wait_s=0):
+        with pytest.raises(DepthnerfError, match="another process is training this run"):
+            with run_lock(tmp_path, wait_s=0):
+                pass
+    holder = run_lock(tmp_path)
+    holder.__enter__()
+    threading.Timer(1.0, holder.__exit__, (None, None, None)).start()
+    with run_lock(tmp_path, wait_s=10):
+        pass

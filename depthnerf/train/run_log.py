@@ -29,6 +29,8 @@ try:
 except ImportError:  # not a POSIX system: no lock (run_lock then guards nothing)
     fcntl = None
 
+LOCK_WAIT_S = 120.0
+"""How long :func:`run_lock` waits for a held lock before it gives up (an NFS lease after a node crash: 90 s)."""
 RUN_CONFIG_KEYS = frozenset({"preset", "data", "model", "schedule"})
 """Keys every run's ``config.json`` holds (how :func:`check_run_dir` tells a run's config from another file)."""
 
@@ -150,24 +152,31 @@ def check_run_dir(run_dir: Path, has_checkpoint: bool) -> None:
 
 
 @contextlib.contextmanager
-def run_lock(run_dir: Path) -> Iterator[None]:
+def run_lock(run_dir: Path, wait_s: float | None = None) -> Iterator[None]:
     """Hold ``RUN_DIR/.lock`` (an advisory ``flock``, released when the process ends, however it ends) while a
     process trains the run; a second process on the same run (say, a job launched again while the first still
-    runs) stops with one line instead of interleaving its steps with the first's."""
+    runs) stops with one line instead of interleaving its steps with the first's. It first waits up to ``wait_s``
+    (default :data:`LOCK_WAIT_S`) for the lock: a shared file system may hold a crashed node's lock until its lease
+    ends, and a requeued job should not fail on that."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if fcntl is None:
         yield
         return
     fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+    deadline = time.monotonic() + (LOCK_WAIT_S if wait_s is None else wait_s)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise DepthnerfError(f"{run_dir}: another process is training this run; wait for it to end (or stop "
-                                 "it) before resuming") from None
-        except OSError:  # a file system without flock (e.g. Lustre mounted without it): train unguarded
-            pass
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    raise DepthnerfError(f"{run_dir}: another process is training this run; wait for it to end (or "
+                                         "stop it) before resuming") from None
+                time.sleep(1.0)
+            except OSError:  # a file system without flock (e.g. Lustre mounted without it): train unguarded
+                break
         yield
     finally:
         os.close(fd)
