@@ -36,7 +36,7 @@ def main() -> None:
     from depthnerf.data.srn import index_split
     from depthnerf.data.view_store import ViewStore
     from depthnerf.depth.prior import open_prior
-    from depthnerf.train.batching import BatchPlan, StepSampler, collate, step_keys
+    from depthnerf.train.batching import BatchPlan, StepSampler, collate_packed, step_keys
     from depthnerf.train.config import preset
     from depthnerf.train.items import TrainItems
 
@@ -95,12 +95,13 @@ def main() -> None:
         row = {"ms_per_item_median": round(1e3 * statistics.median(times), 2),
                "ms_per_item_mean": round(1e3 * statistics.fmean(times), 2)}
         if args.workers > 0:
-            loader = DataLoader(items, batch_sampler=StepSampler(plan, 0, args.steps * 4), collate_fn=collate,
+            loader = DataLoader(items, batch_sampler=StepSampler(plan, 0, args.steps * 4), collate_fn=collate_packed,
                                 num_workers=args.workers, prefetch_factor=4)
             it = iter(loader)
             next(it)
             t, n = time.perf_counter(), 0
-            for _ in it:
+            for packed in it:
+                packed.to("cpu")  # what the training loop does with a worker's batch: views of its bytes
                 n += 1
             row[f"loader_ms_per_step_{args.workers}_workers"] = round(1e3 * (time.perf_counter() - t) / max(n, 1), 1)
         result["paths"][name] = row

@@ -362,3 +362,36 @@ def test_ranks_on_separate_disks_each_end_with_every_object(tmp_path):
     records = index_split(root, "cars", "train").objects
     for store in stores:
         assert ViewStore(store, 16, 0.5).ensure(records) == {"built": 0, "rebuilt": 0, "reused": 3}
+
+
+@pytest.mark.parametrize("target_priors", [False, True])
+def test_a_packed_batch_unpacks_to_the_same_tensors_in_one_storage(tmp_path, target_priors):
+    """What a DataLoader worker sends (``collate_packed``): one byte tensor; unpacked, every field equals the
+    collated batch's (dtype, shape, bits), None fields stay None, and all tensors view one storage (one pin, one
+    host-to-device copy); it crosses a process boundary as one shared-memory segment."""
+    import io
+    import pickle
+    from multiprocessing.reduction import ForkingPickler
+
+    import torch.multiprocessing  # noqa: F401 - registers the shared-memory reductions
+
+    from depthnerf.train.batching import PackedBatch, collate
+
+    root = make_srn_fixture(tmp_path / "srn", splits={"train": 3}, views=5, size=16, with_depth=True,
+                            with_mask=True)
+    files, _, keys, *_ = items_pair(root, tmp_path / "store", 16, "oracle", target_priors)
+    batch = collate([files[k] for k in keys[:3]])
+    packed = PackedBatch.pack(batch)
+    sent = io.BytesIO()
+    ForkingPickler(sent).dump(packed)  # as a worker's queue pickles it
+    for unpacked in (packed.to("cpu"), pickle.loads(sent.getvalue()).to("cpu")):
+        x, y = tensors(batch), tensors(unpacked)
+        for name in x:
+            if x[name] is None:
+                assert y[name] is None, name
+            else:
+                assert x[name].dtype == y[name].dtype and x[name].shape == y[name].shape, name
+                assert torch.equal(x[name], y[name]), name
+        storages = {t.untyped_storage().data_ptr() for t in y.values() if t is not None}
+        assert len(storages) == 1
+    assert packed.flat.dtype == torch.uint8 and packed.flat.dim() == 1

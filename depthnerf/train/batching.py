@@ -172,6 +172,62 @@ def collate(items: list[TrainBatch]) -> TrainBatch:
     return TrainBatch.cat(items, dim=0)
 
 
+PACK_ALIGN = 16
+"""Byte alignment of each tensor in a :class:`PackedBatch` (so that every dtype can be viewed in place)."""
+
+
+@dataclass(frozen=True)
+class PackedBatch:
+    """A :class:`TrainBatch` as one flat byte tensor and its layout: what a DataLoader worker sends. A batch of
+    separate tensors crosses the process boundary as one shared-memory segment per tensor (measured here: ~3.4 ms
+    to receive a paper-preset batch of 9 tensors, more than building it from a view store); packed, it is one
+    segment, one pinned copy and one host-to-device copy. :meth:`to` gives the batch back, every tensor a view of
+    the copied bytes: the same values, bit for bit."""
+
+    flat: Tensor
+    """uint8: each tensor's bytes in :meth:`TensorBundle.map` order, each starting at a multiple of
+    :data:`PACK_ALIGN`."""
+    skeleton: TrainBatch
+    """The batch with every tensor replaced by a ``meta`` tensor of its shape and dtype (plain values kept)."""
+
+    @classmethod
+    def pack(cls, batch: TrainBatch) -> PackedBatch:
+        """The packed form of ``batch`` (CPU tensors)."""
+        parts: list[Tensor] = []
+        skeleton = batch.map(lambda x: parts.append(x) or torch.empty(x.shape, dtype=x.dtype, device="meta"))
+        sizes = [x.numel() * x.element_size() for x in parts]
+        starts = [0]
+        for size in sizes[:-1]:
+            starts.append(starts[-1] + -(-size // PACK_ALIGN) * PACK_ALIGN)
+        flat = torch.empty(starts[-1] + sizes[-1] if parts else 0, dtype=torch.uint8)
+        for x, start, size in zip(parts, starts, sizes, strict=True):
+            flat[start:start + size] = x.contiguous().reshape(-1).view(torch.uint8)
+        return cls(flat, skeleton)
+
+    def pin_memory(self) -> PackedBatch:
+        """Page-locked copy (the DataLoader's ``pin_memory=True`` calls this)."""
+        return PackedBatch(self.flat.pin_memory(), self.skeleton)
+
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> TrainBatch:
+        """The batch on ``device``: one copy of the bytes, then views."""
+        flat = self.flat.to(device, non_blocking=non_blocking)
+        offset = 0
+
+        def view(meta: Tensor) -> Tensor:
+            nonlocal offset
+            size = meta.numel() * meta.element_size()
+            out = flat[offset:offset + size].view(meta.dtype).reshape(meta.shape)
+            offset += -(-size // PACK_ALIGN) * PACK_ALIGN
+            return out
+
+        return self.skeleton.map(view)
+
+
+def collate_packed(items: list[TrainBatch]) -> PackedBatch:
+    """:func:`collate`, packed for the trip from a DataLoader worker (:class:`PackedBatch`)."""
+    return PackedBatch.pack(collate(items))
+
+
 def step_keys(plan: BatchPlan, step: int, rank: int = 0, world: int = 1) -> list[ItemKey]:
     """The item keys this rank builds at ``step``."""
     objs = plan.objects(step)

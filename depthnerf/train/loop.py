@@ -49,7 +49,7 @@ from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate, step_keys
+from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate_packed, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.items import TrainItems
 from depthnerf.train.run_log import RunLog, check_run_dir, record_launch, run_lock
@@ -275,7 +275,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                        pixel_center=cfg.data.pixel_center, symmetry_plane=plane,
                        mirror_dropout=s.mirror_dropout, view_store=_view_store(cfg, records, info))
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
-                        collate_fn=collate, num_workers=cfg.data.num_workers, pin_memory=cuda,
+                        collate_fn=collate_packed, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
                         worker_init_fn=_ignore_stop_signals if cfg.data.num_workers else None)
     log = RunLog(run_dir, start) if info.is_main else None
