@@ -20,7 +20,7 @@ from depthnerf.model import EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConf
 from depthnerf.model.features import resize_bilinear_matmul, sample_maps
 from depthnerf.model.norm import ObjectBatchNorm2d, _repeat_index, _repeat_index_traced, object_groups
 from depthnerf.render.config import RenderConfig, SamplerConfig
-from depthnerf.train.batching import ItemKey, TrainBatch
+from depthnerf.train.batching import ItemKey, PackedBatch, TrainBatch
 from depthnerf.train.step import BatchLoss, train_step
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
@@ -268,7 +268,8 @@ def compiled_whole_step_check() -> None:
     model.load_state_dict(state)
     compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, compile_step="aot_eager")
     torch._dynamo.utils.counters.clear()
-    whole = train_step(compiled, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
+    packed = PackedBatch.pack(batch).to("cpu")  # as the loop gets it from a worker: the fields view one storage
+    whole = train_step(compiled, packed, keys, 3, 0.8, 1.8, torch.device("cpu"))
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1  # encoder, render and loss: one graph
     assert not torch._dynamo.utils.counters["graph_break"], dict(torch._dynamo.utils.counters["graph_break"])
     torch.testing.assert_close(whole, eager, rtol=1e-5, atol=1e-7)
