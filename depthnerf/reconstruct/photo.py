@@ -34,6 +34,8 @@ Framing rule (``framing="auto"``)
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,40 +122,41 @@ def upright(im: Image.Image, notes: list[str] | None = None, what: str = "image"
     return ImageOps.exif_transpose(im)
 
 
+@contextmanager
+def _read_errors(name: str, what: str, *more: type[Exception]) -> Iterator[None]:
+    """Reading the photo (``what="image"``) or a mask file named ``name`` inside: a missing file, a folder or an
+    unreadable file (``more``: other exception types that mean unreadable) becomes one line naming it."""
+    try:
+        yield
+    except FileNotFoundError:
+        raise DepthnerfError(f"{name}: {what} file not found") from None
+    except IsADirectoryError:
+        raise DepthnerfError(f"{name}: is a folder, not {'an image' if what == 'image' else 'a mask'} file") from None
+    except (OSError, ValueError, Image.DecompressionBombError, *more) as err:
+        raise DepthnerfError(f"{name}: unreadable {what} ({err})") from None
+
+
 def check_image_file(path: str | Path, what: str = "image") -> None:
     """Fail at once, before any model loads, when ``path`` cannot be the photo (``what="image"``: missing, a
     folder, not an image, not a :data:`PHOTO_FORMATS` format, a side below :data:`MIN_SIDE`) or the mask
     (``what="mask"``); only the header is read (a truncated file fails when :func:`prepare_photo` reads it)."""
     name = str(path)
-    try:
-        with Image.open(path) as im:
-            size = im.size
-            if what == "image":
-                check_photo_format(im.format, name)
-    except FileNotFoundError:
-        raise DepthnerfError(f"{name}: {what} file not found") from None
-    except IsADirectoryError:
-        raise DepthnerfError(f"{name}: is a folder, not {'an image' if what == 'image' else 'a mask'} file") from None
-    except (OSError, ValueError, Image.DecompressionBombError) as err:
-        raise DepthnerfError(f"{name}: unreadable {what} ({err})") from None
+    with _read_errors(name, what), Image.open(path) as im:
+        size = im.size
+        if what == "image":
+            check_photo_format(im.format, name)
     if what == "image" and min(size) < MIN_SIDE:
         raise DepthnerfError(f"{name}: image is {size[0]}x{size[1]} px; at least {MIN_SIDE} px per side are needed")
 
 
 def _open(source: str | Path | Image.Image, name: str, notes: list[str]) -> Image.Image:
-    try:
+    with _read_errors(name, "image"):
         im = source if isinstance(source, Image.Image) else Image.open(source)
         if not isinstance(source, Image.Image):
             check_photo_format(im.format, name)
         im.load()
         if not isinstance(source, Image.Image):
             im = upright(im, notes)
-    except FileNotFoundError:
-        raise DepthnerfError(f"{name}: image file not found") from None
-    except IsADirectoryError:
-        raise DepthnerfError(f"{name}: is a folder, not an image file") from None
-    except (OSError, ValueError, Image.DecompressionBombError) as err:
-        raise DepthnerfError(f"{name}: unreadable image ({err})") from None
     if im.mode in ("P", "PA", "CMYK", "YCbCr", "HSV", "LAB", "RGBa", "La"):
         return im.convert("RGBA")
     if im.mode == "1" or im.mode.startswith("I;16"):
@@ -211,16 +214,10 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
     height, width = rgb.shape[:2]
     if mask is not None:
         where = "mask" if isinstance(mask, np.ndarray | Image.Image) else str(mask)
-        try:
+        with _read_errors(where, "mask", TypeError):  # TypeError: an array Pillow cannot take
             im = Image.fromarray(np.asarray(mask)) if isinstance(mask, np.ndarray) else (
                 mask if isinstance(mask, Image.Image) else upright(Image.open(mask), notes, "mask"))
             im = im.convert("L")
-        except FileNotFoundError:
-            raise DepthnerfError(f"{where}: mask file not found") from None
-        except IsADirectoryError:
-            raise DepthnerfError(f"{where}: is a folder, not a mask file") from None
-        except (OSError, ValueError, TypeError, Image.DecompressionBombError) as err:
-            raise DepthnerfError(f"{where}: unreadable mask ({err})") from None
         if source_size is not None and (im.height, im.width) == source_size != (height, width):
             im = im.resize((width, height), Image.Resampling.BOX)
         if (im.height, im.width) != (height, width):
