@@ -45,6 +45,7 @@ from torch import Tensor, nn
 from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_files, write_bytes_atomic
+from depthnerf.state_dicts import check_finite, load_state_strict
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Where the shipped nets live inside the package."""
@@ -239,17 +240,8 @@ def load_bundled_net(checkpoint: str | os.PathLike | None = None) -> tuple[Bundl
     except (SafetensorError, OSError) as err:
         raise DepthnerfError(f"{path}: unreadable bundled depth weights ({err})") from None
     net = BundledDepthNet(config)
-    own = net.state_dict()
-    missing, unexpected = sorted(set(own) - set(state)), sorted(set(state) - set(own))
-    shapes = [k for k in own if k in state and own[k].shape != state[k].shape]
-    if missing or unexpected or shapes:
-        example = (missing or unexpected or shapes)[0]
-        raise DepthnerfError(f"{path}: weights do not match the config in the file ({len(missing)} tensors missing, "
-                             f"{len(unexpected)} unexpected, {len(shapes)} of another shape, e.g. {example})")
-    bad = [k for k, v in state.items() if v.is_floating_point() and not torch.isfinite(v).all()]
-    if bad:
-        raise DepthnerfError(f"{path}: tensor {bad[0]} holds non-finite values (NaN or inf): damaged weights")
-    net.load_state_dict(state)
+    check_finite(state, path, "damaged weights")
+    load_state_strict(net, state, path, "weights do not match the config in the file")
     return net.eval().requires_grad_(False), metadata
 
 

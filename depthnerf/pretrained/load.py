@@ -32,7 +32,8 @@ from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.hub import fetch_hub_checkpoint, is_hub_reference
 from depthnerf.pretrained.spec import InferenceSpec, spec_from_metadata
-from depthnerf.pretrained.weights import latest_checkpoint, load_state_strict, read_weights
+from depthnerf.pretrained.weights import latest_checkpoint, read_weights
+from depthnerf.state_dicts import load_state_strict
 
 SHIPPED_DIR = Path(__file__).resolve().parent.parent / "checkpoints"
 """Where the package's own checkpoints live."""

@@ -17,6 +17,7 @@ from safetensors.torch import load_file, save
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_bytes_atomic
+from depthnerf.state_dicts import check_finite
 
 FORMAT = "depthnerf-checkpoint-1"
 """Format tag stored in every weights file's metadata."""
@@ -47,11 +48,7 @@ def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
         raise DepthnerfError(f"{path}: not a readable safetensors checkpoint ({err})") from None
     if meta.get("format") != FORMAT:
         raise DepthnerfError(f"{path}: not a depthnerf checkpoint (format {meta.get('format')!r}, expected {FORMAT})")
-    for name, tensor in tensors.items():
-        bad = int((~torch.isfinite(tensor)).sum()) if tensor.is_floating_point() else 0
-        if bad:
-            raise DepthnerfError(f"{path}: tensor {name} holds {bad} non-finite values (NaN or inf): the file is "
-                                 "damaged, or the run that wrote it diverged")
+    check_finite(tensors, path, "the file is damaged, or the run that wrote it diverged")
     return tensors, meta
 
 
@@ -61,25 +58,6 @@ def checkpoint_config(meta: dict[str, str], path: Path) -> dict[str, Any]:
         return json.loads(meta["config"])
     except (KeyError, json.JSONDecodeError):
         raise DepthnerfError(f"{path}: checkpoint metadata has no valid model config") from None
-
-
-def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: Path) -> None:
-    """Load weights with every key and shape checked; a mismatch is a one-line error naming the file."""
-    own = module.state_dict()
-    missing = sorted(set(own) - set(tensors))
-    unexpected = sorted(set(tensors) - set(own))
-    shapes = [k for k in own if k in tensors and own[k].shape != tensors[k].shape]
-    if missing or unexpected or shapes:
-        parts = []
-        if missing:
-            parts.append(f"missing {len(missing)} tensors (e.g. {missing[0]})")
-        if unexpected:
-            parts.append(f"unexpected {len(unexpected)} tensors (e.g. {unexpected[0]})")
-        if shapes:
-            k = shapes[0]
-            parts.append(f"shape mismatch for {k}: file {tuple(tensors[k].shape)} vs model {tuple(own[k].shape)}")
-        raise DepthnerfError(f"{path}: checkpoint does not match the model config: {'; '.join(parts)}")
-    module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()}, strict=True)
 
 
 def latest_checkpoint(ckpt_root: Path) -> Path | None:

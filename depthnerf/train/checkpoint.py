@@ -47,10 +47,10 @@ from depthnerf.pretrained.weights import (  # noqa: F401 - re-exported for the r
     FORMAT,
     checkpoint_config,
     latest_checkpoint,
-    load_state_strict,
     read_weights,
     save_weights,
 )
+from depthnerf.state_dicts import load_state_strict
 
 CRASH_STAGES = ("weights", "optimizer", "state", "renamed", "latest", "pruned", "best-copied", "best-moved")
 """Points of a checkpoint write where ``DEPTHNERF_CRASH_AT`` can kill the process: after the weights / optimizer /

@@ -20,7 +20,8 @@ from depthnerf.files import sha256_file
 from depthnerf.model.config import PixelNeRFConfig
 from depthnerf.pretrained.load import resolve_checkpoint
 from depthnerf.pretrained.spec import spec_from_metadata
-from depthnerf.pretrained.weights import load_state_strict, read_weights
+from depthnerf.pretrained.weights import read_weights
+from depthnerf.state_dicts import load_state_strict
 
 __all__ = ["WarmStart", "warm_start"]
 

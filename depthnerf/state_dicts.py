@@ -1,0 +1,42 @@
+"""Named tensors read from a weights file, checked before they go into a module: every value finite, every key and
+shape the module's. One mechanism for the pixelNeRF checkpoints (:mod:`depthnerf.pretrained.weights`) and the
+bundled depth net (:mod:`depthnerf.depth.bundled`); each mismatch is one :class:`DepthnerfError` line naming the
+file. A neutral module: any stage may use it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from depthnerf.errors import DepthnerfError
+
+
+def check_finite(tensors: dict[str, torch.Tensor], path: Path, why: str) -> None:
+    """One line naming ``path`` and the first tensor that holds NaN or inf, ending with ``why`` (what that means
+    for this kind of file)."""
+    for name, tensor in tensors.items():
+        bad = int((~torch.isfinite(tensor)).sum()) if tensor.is_floating_point() else 0
+        if bad:
+            raise DepthnerfError(f"{path}: tensor {name} holds {bad} non-finite values (NaN or inf): {why}")
+
+
+def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: Path,
+                      mismatch: str = "checkpoint does not match the model config") -> None:
+    """Load weights with every key and shape checked; a mismatch is one line naming the file, ``mismatch`` (what
+    does not fit what), then the missing, unexpected and mis-shaped tensors."""
+    own = module.state_dict()
+    missing = sorted(set(own) - set(tensors))
+    unexpected = sorted(set(tensors) - set(own))
+    shapes = [k for k in own if k in tensors and own[k].shape != tensors[k].shape]
+    if missing or unexpected or shapes:
+        parts = []
+        if missing:
+            parts.append(f"missing {len(missing)} tensors (e.g. {missing[0]})")
+        if unexpected:
+            parts.append(f"unexpected {len(unexpected)} tensors (e.g. {unexpected[0]})")
+        if shapes:
+            k = shapes[0]
+            parts.append(f"shape mismatch for {k}: file {tuple(tensors[k].shape)} vs model {tuple(own[k].shape)}")
+        raise DepthnerfError(f"{path}: {mismatch}: {'; '.join(parts)}")
+    module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()}, strict=True)
