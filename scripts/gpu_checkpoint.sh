@@ -56,19 +56,7 @@ train() {  # train RUN_NAME SECONDS FLAGS...: one run under timeout (SIGTERM che
     --log.log_every 25 --no-progress --data.resolution "$RES" --data.num_workers "$DATA_WORKERS" \
     --data.view_store "$WORK/store" --out "$WORK/runs/$run" "${MODEL_ARGS[@]}" "$@" "${TRAIN_ARGS[@]}"
 }
-ms_per_step() {  # median ms per step over the second half of a run's logged steps (its config's rays per step)
-  "$PY" - "$WORK/runs/$1" <<'PY'
-import json, statistics, sys
-from pathlib import Path
-run = Path(sys.argv[1])
-sched = json.loads((run / "config.json").read_text())["schedule"]
-rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
-rows = [r for r in rows if r.get("rays_per_s")]
-rays = lambda step: sched["rays_per_object"] * sched["objects_phase1" if step - 1 < sched["bbox_steps"] else "objects_phase2"]
-ms = [1e3 * rays(r["step"]) / r["rays_per_s"] for r in rows[len(rows) // 2:]]
-print(f"{statistics.median(ms):.3f}" if ms else "")
-PY
-}
+ms_per_step() { "$PY" "$HERE/scripts/step_rate.py" "$WORK/runs/$1"; }  # median ms per step, 2nd half
 latest_weights() { echo "$WORK/runs/$1/checkpoints/$(cat "$WORK/runs/$1/checkpoints/latest")/model.safetensors"; }
 
 stage data "$PY" -m depthnerf synth --category "$CATEGORY" --out "$WORK/data" --train-objects "$TRAIN_OBJECTS" \
@@ -97,7 +85,7 @@ if [ -f "$WORK/runs/main/checkpoints/latest" ]; then  # the run folders, less op
   rm -f "$WORK/pack/main/checkpoints/$keep/optimizer.safetensors"
   tar -C "$WORK/pack" -czf "$OUT/run.tar.gz" main probe
 fi
-MAIN_MS=$( [ -f "$WORK/runs/main/metrics.jsonl" ] && ms_per_step main 2>>"$LOG")
+MAIN_MS=$(ms_per_step main 2>>"$LOG")
 "$PY" - "$WORK" "$OUT/gpu_checkpoint.json" "${MS:-}" "${MAIN_MS:-}" "$STEPS" "$CATEGORY" "$((SECONDS - T0))" <<'PY'
 import json, sys
 from pathlib import Path

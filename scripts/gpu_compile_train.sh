@@ -7,9 +7,8 @@
 # of steps (--max-steps STEPS, default 400; the run is stopped by `timeout` with SIGTERM, which checkpoints), with
 # WORKERS data workers (default 2; DEVICE, RES and extra TRAIN_ARGS for a smoke run elsewhere), and writes
 # OUT_DIR/compile_train.json: per run the steps done, the median rays_per_s over the second half of its logged
-# steps (metrics.jsonl) and the median ms per step over them (each step's rays from the run's config.json: phase
-# 1's objects before schedule.bbox_steps, phase 2's after), the first and last loss, and the exit code; the logs
-# go to OUT_DIR/compile_train_logs.txt.
+# steps (metrics.jsonl) and the median ms per step over them (scripts/step_rate.py), the first and last loss, and
+# the exit code; the logs go to OUT_DIR/compile_train_logs.txt.
 set -u
 OUT=${1:?usage: gpu_compile_train.sh OUT_DIR}
 HERE=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
@@ -32,31 +31,24 @@ for run in $RUNS; do
     "${TRAIN_ARGS[@]}" >>"$LOG" 2>&1
   echo "$run rc=$? wall=$((SECONDS - s0))" | tee -a "$LOG" >"$WORK/$run.rc"
 done
-"$PY" - "$WORK" "$OUT/compile_train.json" $RUNS <<'PY'
+"$PY" - "$WORK" "$OUT/compile_train.json" "$HERE/scripts" $RUNS <<'PY'
 import json, statistics, sys
 from pathlib import Path
+sys.path.insert(0, sys.argv[3])
+from step_rate import ms_per_step  # scripts/step_rate.py
 work, out = Path(sys.argv[1]), Path(sys.argv[2])
 res = {}
-for run in sys.argv[3:]:
+for run in sys.argv[4:]:
     rc_line = (work / f"{run}.rc").read_text().split() if (work / f"{run}.rc").exists() else []
     m = work / "runs" / run / "metrics.jsonl"
     rows = [json.loads(x) for x in m.read_text().splitlines()] if m.exists() else []
     rows = [r for r in rows if "loss" in r]
     rates = [r["rays_per_s"] for r in rows if r.get("rays_per_s")]
     half = rates[len(rates) // 2:]
-    cfg_path = work / "runs" / run / "config.json"
-    sched = json.loads(cfg_path.read_text())["schedule"] if cfg_path.exists() else {}
-
-    def step_rays(step):  # the logged step k ran step index k - 1: phase 1 (bbox) below bbox_steps
-        phase = "objects_phase1" if step - 1 < sched.get("bbox_steps", 0) else "objects_phase2"
-        return sched.get(phase, 0) * sched.get("rays_per_object", 0)
-
-    timed = [r for r in rows if r.get("rays_per_s")]
-    ms = [1e3 * step_rays(r["step"]) / r["rays_per_s"] for r in timed[len(timed) // 2:]]
     res[run] = {"rc_wall": rc_line, "steps_logged": len(rows),
                 "last_step": rows[-1]["step"] if rows else None,
                 "median_rays_per_s_second_half": statistics.median(half) if half else None,
-                "ms_per_step": statistics.median(ms) if ms and all(ms) else None,
+                "ms_per_step": ms_per_step(work / "runs" / run),
                 "first_loss": rows[0]["loss"] if rows else None, "last_loss": rows[-1]["loss"] if rows else None,
                 "keys": sorted(rows[-1]) if rows else []}
 out.write_text(json.dumps(res, indent=1))
