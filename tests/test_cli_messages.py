@@ -75,6 +75,29 @@ def test_an_earlier_reconstruction_is_kept_unless_overwrite(tmp_path, capsys):
     assert json.loads((out / "manifest.json").read_text())["settings"]["views"] == 1
 
 
+def test_a_failed_overwrite_leaves_the_earlier_reconstruction_as_it_was(tmp_path, capsys, monkeypatch):
+    import errno
+
+    import depthnerf.reconstruct.exports as exports
+
+    out = tmp_path / "out"
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--mesh-resolution", "0", *QUICK) == 0
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+
+    def disk_full(*args, **kwargs):  # the turntable comes after the views and depths: a half-written folder
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(exports.iio, "imwrite", disk_full)
+    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--overwrite", "--views", "3",
+                       "--mesh-resolution", "0", "--no-progress") == 2
+    err = one_error(capsys)
+    assert err == (f"error: {out}: cannot write the reconstruction (No space left on device); the earlier "
+                   "reconstruction there is left as it was")
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before  # no staging folder left, no file changed, no third view
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+
+
 def test_an_unusable_output_folder_fails_before_any_work(tmp_path, capsys, monkeypatch):
     import depthnerf.infer.session as session
     import depthnerf.pretrained.load as load

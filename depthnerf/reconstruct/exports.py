@@ -22,8 +22,12 @@ Layout of ``OUT`` (every path in ``manifest.json`` is relative to ``OUT``)::
     manifest.json                 all of the above + checkpoint, settings, notes and timings
 
 These names (:data:`OUTPUT_NAMES`, :data:`NUMBERED_OUTPUTS`) are the files a reconstruction owns in ``OUT``:
-writing one first removes an earlier reconstruction's (so no stale frame of a longer orbit survives) and leaves
-every other file alone. :func:`check_output_dir` is what ``depthnerf reconstruct`` runs before any work: the
+writing one removes an earlier reconstruction's (so no stale frame of a longer orbit survives) and leaves every
+other file alone. Every file is first written into a hidden staging folder in ``OUT`` (:data:`STAGING_PREFIX`);
+only when all of them are written are the earlier outputs removed and the new ones renamed into place,
+``manifest.json`` last. So a failure while writing (a full disk, a bad mesh export, Ctrl-C) leaves an earlier
+reconstruction as it was and removes the staging folder; ``manifest.json`` present means the folder is complete.
+(A process killed outright may leave its staging folder behind; it is hidden, and nothing reads it.) :func:`check_output_dir` is what ``depthnerf reconstruct`` runs before any work: the
 folder must be creatable and writable, and may hold an earlier reconstruction only with ``--overwrite``.
 """
 
@@ -33,6 +37,7 @@ import importlib.util
 import json
 import os
 import re
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -57,6 +62,8 @@ OUTPUT_NAMES = ("manifest.json", "input.png", "input_mask.png", "cutout.png", "d
 """Files a reconstruction writes at the top of its folder."""
 NUMBERED_OUTPUTS = {"views": re.compile(r"view_\d{3,}\.png"), "depths": re.compile(r"depth_\d{3,}\.png")}
 """Sub-folder -> the per-view files a reconstruction writes there."""
+STAGING_PREFIX = ".depthnerf-staging-"
+"""Name prefix of the hidden folder in ``OUT`` that a reconstruction is written into before it is moved into place."""
 
 
 def earlier_outputs(out: Path) -> list[Path]:
@@ -121,16 +128,47 @@ def depth_image(depth: np.ndarray, opacity: np.ndarray, near: float, far: float)
 
 
 def save_reconstruction(result: Reconstruction, out_dir: Path, provenance: dict[str, Any]) -> dict[str, Any]:
-    """Write every output of ``result`` into ``out_dir`` (layout in the module docstring); returns the manifest."""
+    """Write every output of ``result`` into ``out_dir`` (layout in the module docstring) through a staging folder,
+    so that an earlier reconstruction there is replaced only once the new one is complete; returns the manifest."""
     t0 = time.perf_counter()
     out = Path(out_dir)
     try:
-        if out.is_dir():
-            clear_outputs(out)
-        (out / "views").mkdir(parents=True, exist_ok=True)
-        (out / "depths").mkdir(exist_ok=True)
+        out.mkdir(parents=True, exist_ok=True)
+        stage = Path(tempfile.mkdtemp(dir=out, prefix=STAGING_PREFIX))
     except OSError as err:
         raise DepthnerfError(f"{out}: cannot create the output folder ({err.strerror or err})") from None
+    try:
+        try:
+            manifest = write_outputs(result, stage, provenance, t0)
+        except OSError as err:
+            kept = "; the earlier reconstruction there is left as it was" if earlier_outputs(out) else ""
+            raise DepthnerfError(f"{out}: cannot write the reconstruction ({err.strerror or err}){kept}") from None
+        try:
+            move_into_place(stage, out)
+        except OSError as err:
+            raise DepthnerfError(f"{out}: cannot move the reconstruction into place ({err.strerror or err}); the "
+                                 "folder has no manifest.json, so it is incomplete: run again with --overwrite") from None
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    return manifest
+
+
+def move_into_place(stage: Path, out: Path) -> None:
+    """Replace the reconstruction in ``out`` by the complete one in ``stage``: the earlier ``manifest.json`` goes
+    first and the new one comes last, so a manifest is only ever beside the files it lists."""
+    (out / "manifest.json").unlink(missing_ok=True)
+    clear_outputs(out)
+    staged = sorted(p.relative_to(stage) for p in stage.rglob("*") if p.is_file())
+    for rel in sorted(staged, key=lambda r: r.as_posix() == "manifest.json"):
+        (out / rel).parent.mkdir(exist_ok=True)
+        os.replace(stage / rel, out / rel)
+
+
+def write_outputs(result: Reconstruction, out: Path, provenance: dict[str, Any], t0: float) -> dict[str, Any]:
+    """Write every output of ``result`` into the empty folder ``out``; returns the manifest (``save_s`` counted from
+    ``t0``)."""
+    (out / "views").mkdir()
+    (out / "depths").mkdir()
     near, far = result.settings["z_range"]
     files: dict[str, Any] = {}
     Image.fromarray(to_u8(result.input.image)).save(out / "input.png")
