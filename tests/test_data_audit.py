@@ -161,3 +161,78 @@ def test_a_cache_made_with_the_earlier_fingerprint_is_checked_as_it_was_made(tmp
     path = Path(record.rgb_path(1))
     Image.new("RGB", (16, 16), (10, 200, 30)).save(path, compress_level=9)  # another size
     assert not fingerprint_matches(legacy, record) and not fingerprint_matches(current, record)
+
+
+def test_jpeg_rgb_under_a_png_name_is_read_with_one_warning_per_split(tmp_path: Path, capsys):
+    """JPEG bytes in ``rgb/*.png`` of two objects: read as the JPEG Pillow decodes, one warning for the split that
+    names the first file and counts both; ``strict`` refuses it."""
+    from depthnerf.data.validate import summarize_split
+
+    root = make_srn_fixture(tmp_path, splits={"train": 2}, views=3)
+    folder = root / "cars_train"
+    objects = sorted(p for p in folder.iterdir() if p.is_dir())
+    paths = [objects[0] / "rgb" / "000001.png", objects[1] / "rgb" / "000002.png"]
+    for path in paths:
+        buffer = io.BytesIO()
+        Image.open(path).convert("RGB").save(buffer, "JPEG", quality=75)
+        path.write_bytes(buffer.getvalue())
+    expected = f"{folder}: 2 rgb files hold JPEG data under a .png name (first: {paths[0]}); read as JPEG (lossy)"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        index = index_split(root, "cars", "train")
+    assert [(w.category, str(w.message)) for w in caught] == [(DataWarning, expected)]
+    assert summarize_split(index).warnings == [expected]
+    for record, path in zip(index.objects, paths, strict=True):
+        with Image.open(path) as im:
+            assert im.format == "JPEG"
+            pil = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+        views = load_object(record, [record.view_names.index(path.stem)], pixel_center=0.0)
+        assert np.array_equal(views.images[0].permute(1, 2, 0).numpy(), pil)
+    with pytest.raises(DepthnerfError, match=re.escape(f"{paths[0]}: image holds JPEG data under a .png name")):
+        index_split(root, "cars", "train", strict=True)
+    assert main(["inspect", "--data", str(root)]) == 0
+    assert capsys.readouterr().err.strip() == f"warning: {expected}"
+
+
+def test_a_legacy_prior_entry_is_checked_without_hashing_every_image(tmp_path: Path, monkeypatch):
+    """``depthnerf depth`` (and the store's check) compute the byte-wise fingerprint for ``rgb-bytes:`` entries
+    and for entries they write, never to check an entry of the earlier scheme."""
+    from safetensors.torch import load_file
+
+    from depthnerf.depth import cache, precompute
+    from depthnerf.depth.precompute import PrecomputeConfig, precompute_priors
+
+    root = make_srn_fixture(tmp_path / "d", "cars", {"train": 2}, views=3, size=16)
+    torch.manual_seed(0)
+    weights = tmp_path / "w.safetensors"
+    save_bundled(BundledDepthNet(BundledNetConfig(widths=(4, 6, 8), input_size=16)), weights)
+    cfg = PrecomputeConfig(data_root=root, estimator="bundled", checkpoint=str(weights), splits=("train",),
+                           progress=False)
+    summary = precompute_priors(cfg)
+    assert summary.computed == 2
+    records = index_split(root, "cars", "train").objects
+    legacy, current = records
+    path = cache.object_path(summary.cache_dir, legacy)
+    meta = cache.read_object_metadata(path)
+    cache.write_object_priors(path, load_file(str(path))["disparity"],
+                              {**meta, "fingerprint": cache._sizes_fingerprint(legacy)})
+    hashed = []
+    real = cache.object_fingerprint
+
+    def counting(record):
+        hashed.append(record.object_id)
+        return real(record)
+
+    monkeypatch.setattr(cache, "object_fingerprint", counting)
+    monkeypatch.setattr(precompute, "object_fingerprint", counting)
+    summary = precompute_priors(cfg)
+    assert (summary.computed, summary.skipped, hashed) == (0, 2, [current.object_id])
+    hashed.clear()
+    PriorStore.open(root, "bundled", str(weights), resolution=16).check(records)
+    assert hashed == [current.object_id]
+    hashed.clear()
+    Image.new("RGB", (16, 16), (10, 200, 30)).save(legacy.rgb_path(1), compress_level=9)  # the legacy entry is stale
+    summary = precompute_priors(cfg)
+    assert (summary.computed, summary.stale, summary.skipped) == (1, 1, 1)
+    assert hashed == [legacy.object_id, current.object_id]  # rewritten in the byte-wise scheme
+    assert cache.read_object_metadata(path)["fingerprint"] == real(legacy)

@@ -37,6 +37,9 @@ class ObjectCheck:
     """Views per depth format (``.npz``, ``.npy``, ``16-bit PNG``; usable depth only)."""
     issues: tuple[PartIssue, ...] = ()
     """Problems found in the optional parts (the parts they name are off for the object)."""
+    rgb_not_png: tuple[tuple[str, Path], ...] = ()
+    """``(format, file)`` of every ``rgb/`` image that holds other data than PNG (e.g. ``("JPEG", .../000000.png)``);
+    such images are read as what they hold, with one warning per split."""
 
 
 @dataclass(frozen=True)

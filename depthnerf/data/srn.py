@@ -53,7 +53,7 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.card import INTEGER_CENTRED
 from depthnerf.data.records import SPLITS, ObjectRecord, SplitIndex
 from depthnerf.data.srn_parts import PartReport
-from depthnerf.data.validate import check_object
+from depthnerf.data.validate import check_object, warn_rgb_not_png
 from depthnerf.errors import DepthnerfError
 
 
@@ -217,8 +217,10 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
     every pose, opens every image header and reads every depth map (see
     :func:`~depthnerf.data.validate.check_object`). A bad required file raises :class:`DepthnerfError`, or with
     ``skip_bad`` its object is left out and listed in ``skipped``. A bad optional part is off for its object, with
-    a :class:`~depthnerf.errors.DataWarning` (grouped per split), or with ``strict`` an error. A split without
-    usable objects is an error. ``progress`` shows a tqdm bar on stderr (when it is a terminal).
+    a :class:`~depthnerf.errors.DataWarning` (grouped per split), or with ``strict`` an error. A checked ``rgb/``
+    image holding other data than PNG (a JPEG under a ``.png`` name) is read as what it holds, with one warning
+    per split (first file, count), or with ``strict`` an error. A split without usable objects is an error.
+    ``progress`` shows a tqdm bar on stderr (when it is a terminal).
     """
     folder = split_dir(root, category, split)
     if not folder.is_dir():
@@ -254,6 +256,7 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
     if not index.objects:
         raise DepthnerfError(f"{folder}: no usable objects ({len(index.skipped)} skipped; first: {index.skipped[0]})")
     srn_parts.warn_split(folder, [o.issues for o in index.objects], Counter(n for o in index.objects for n in o.ignored))
+    warn_rgb_not_png(index)
     return index
 
 

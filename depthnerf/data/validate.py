@@ -6,7 +6,9 @@ corrupted files are caught, at ~1/5 of the cost of a decode). It checks that eve
 ``H x W`` that ``intrinsics.txt`` states, reads every depth map whole (shape, NaN/inf, negative, all zero), and
 reads the header of ``mesh.ply``. Bad required files raise :class:`~depthnerf.errors.DepthnerfError` with one line
 naming the file; a bad optional part is reported as a :class:`~depthnerf.data.srn_parts.PartIssue` (or raises,
-with ``strict``). It also counts the file formats it saw.
+with ``strict``). It also counts the file formats it saw; an ``rgb/`` image that holds other data than PNG (a JPEG
+saved under a ``.png`` name), found from the header it opens anyway, is listed for one warning per split
+(:func:`warn_rgb_not_png`), or raises with ``strict``.
 
 The *camera radius* of a view is the norm of its pose translation (the distance of the camera from the world
 origin, where SRN objects are centred).
@@ -15,6 +17,7 @@ origin, where SRN objects are centred).
 from __future__ import annotations
 
 import re
+import warnings
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,10 +35,13 @@ from depthnerf.data.srn_format import (
     read_rgb,
 )
 from depthnerf.data.srn_parts import PART_LABELS, PartReport
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DataWarning, DepthnerfError
 
 PNG_COLOUR_TYPES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey+alpha", 6: "RGBA"}
 """PNG ``IHDR`` colour types, as format names spell them."""
+
+LOSSY_FORMATS = frozenset({"JPEG", "MPO"})
+"""Image formats (Pillow's names) whose pixels are not the ones that were rendered (``MPO``: a camera's JPEG)."""
 
 
 def _format_name(head: bytes, im: Image.Image) -> str:
@@ -92,11 +98,31 @@ def _size_checked(path: Path, what: str, expected: tuple[int, int], intrinsics: 
     return name
 
 
+def not_png(name: str) -> str | None:
+    """The file format (``"JPEG"``) of an :func:`image_header` format name when the file is not PNG data, else
+    None: what a mask (refused) or an RGB image (read, with a warning) saved under a ``.png`` name really holds."""
+    return None if name.startswith("PNG ") else name.split()[0]
+
+
+def _lossy(fmt: str) -> str:
+    """`` (lossy)`` for a format in :data:`LOSSY_FORMATS`, to end a message; else ``""``."""
+    return " (lossy)" if fmt in LOSSY_FORMATS else ""
+
+
 def _mask_format(path: Path, expected: tuple[int, int], intrinsics: Path) -> str:
     name = _size_checked(path, "mask", expected, intrinsics)
-    if not name.startswith("PNG "):
-        raise DepthnerfError(mask_not_png(path, name.split()[0]))
+    if (fmt := not_png(name)) is not None:
+        raise DepthnerfError(mask_not_png(path, fmt))
     return name
+
+
+def _rgb_format(path: Path, expected: tuple[int, int], intrinsics: Path, strict: bool) -> tuple[str, str | None]:
+    """Format name of an RGB image and, when it is not PNG data, its real format (an error with ``strict``)."""
+    name = _size_checked(path, "image", expected, intrinsics)
+    fmt = not_png(name)
+    if fmt is not None and strict:
+        raise DepthnerfError(f"{path}: image holds {fmt} data under a .png name{_lossy(fmt)}; re-save it as PNG")
+    return name, fmt
 
 
 def _depth_format(name: str) -> str:
@@ -107,19 +133,24 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
     """Read every pose, open every image/mask header, read every depth map and the mesh header of ``record``.
 
     A bad required file raises on the first one; a bad optional part is reported once (its first bad file) in
-    ``issues`` and not checked further, or raises with ``strict``.
+    ``issues`` and not checked further, or raises with ``strict``. RGB images that are not PNG data are listed in
+    ``rgb_not_png`` (the first one raises with ``strict``).
     """
     intr = record.intrinsics
     expected = (intr.height, intr.width)
     intrinsics = record.path / "intrinsics.txt"
     report = PartReport(strict)
     radii = []
+    rgb_not_png: list[tuple[str, Path]] = []
     rgb, masks, depths = Counter(), Counter(), Counter()
     masks_ok, depths_ok = record.has_mask, record.has_depth
     for view in range(record.num_views):
         pose = read_pose(record.pose_path(view))
         radii.append(float(np.linalg.norm(pose[:3, 3])))
-        rgb[_size_checked(record.rgb_path(view), "image", expected, intrinsics)] += 1
+        name, fmt = _rgb_format(record.rgb_path(view), expected, intrinsics, strict)
+        rgb[name] += 1
+        if fmt is not None:
+            rgb_not_png.append((fmt, record.rgb_path(view)))
         if masks_ok:
             try:
                 masks[_mask_format(record.mask_path(view), expected, intrinsics)] += 1
@@ -143,7 +174,26 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
             report.add_error("mesh", record.mesh_path, err)
     return ObjectCheck(num_views=record.num_views, radius_min=min(radii), radius_max=max(radii),
                        rgb_formats=dict(rgb), mask_formats=dict(masks) if masks_ok else {},
-                       depth_formats=dict(depths) if depths_ok else {}, issues=tuple(report.issues))
+                       depth_formats=dict(depths) if depths_ok else {}, issues=tuple(report.issues),
+                       rgb_not_png=tuple(rgb_not_png))
+
+
+def rgb_not_png_lines(index: SplitIndex) -> list[str]:
+    """One line per format of the RGB files of ``index``'s checked objects that hold other data than PNG under
+    their ``.png`` name: the split folder, how many files, the first one, and how they are read."""
+    found: dict[str, list[Path]] = {}
+    for record in index.objects:
+        check = index.checks.get(record.object_id)
+        for fmt, path in check.rgb_not_png if check is not None else ():
+            found.setdefault(fmt, []).append(path)
+    return [f"{index.path}: {len(paths):,} rgb {'file holds' if len(paths) == 1 else 'files hold'} {fmt} data under "
+            f"a .png name (first: {paths[0]}); read as {fmt}{_lossy(fmt)}" for fmt, paths in found.items()]
+
+
+def warn_rgb_not_png(index: SplitIndex) -> None:
+    """Warn once per format (:func:`rgb_not_png_lines`) about the RGB files of a split that are not PNG data."""
+    for line in rgb_not_png_lines(index):
+        warnings.warn(line, DataWarning, stacklevel=3)
 
 
 @dataclass(frozen=True)
@@ -232,7 +282,7 @@ def summarize_split(index: SplitIndex) -> SplitSummary:
                                  if o.has_mask and o.object_id in index.checks),
         unusable={part: n for part in PART_LABELS
                   if (n := sum(any(i.part == part and i.disables for i in o.issues) for o in objs))},
-        warnings=[issue.message for issue in index.issues],
+        warnings=[issue.message for issue in index.issues] + rgb_not_png_lines(index),
         ignored=dict(sorted(Counter(name for o in objs for name in o.ignored).items())),
     )
 

@@ -16,7 +16,8 @@ Stale detection: an object's *fingerprint* is the SHA-256 of the view names and 
 dataset changes it, even when every file keeps its size (uncompressed PNGs), and loading then fails instead of
 silently reusing the old priors; copying the dataset does not. Caches written before this fingerprint (view names,
 RGB file sizes and the first file's bytes; no ``rgb-bytes:`` prefix) are still checked the way they were made, so
-they are not recomputed. A missing, partial, stale or other-estimator cache is a
+they are not recomputed, and checking them reads no more than that (the byte-wise fingerprint is computed only for
+``rgb-bytes:`` entries and for entries being written). A missing, partial, stale or other-estimator cache is a
 :class:`~depthnerf.errors.DepthnerfError` naming the exact ``depthnerf depth ...`` command that makes it.
 
 ``oracle`` priors need no cache (computed from ``depth/`` on the fly) but are served through the same
@@ -113,12 +114,19 @@ def _sizes_fingerprint(record: Any) -> str:
     return digest.hexdigest()
 
 
+def is_bytes_fingerprint(stored: str | None) -> bool:
+    """Whether a stored fingerprint is of the :func:`object_fingerprint` scheme (``rgb-bytes:``), the one checking
+    it needs the bytes of every RGB file for; an earlier one is checked by :func:`_sizes_fingerprint`."""
+    return isinstance(stored, str) and stored.startswith(f"{FINGERPRINT_SCHEME}:")
+
+
 def fingerprint_matches(stored: str | None, record: Any, current: str | None = None) -> bool:
     """Whether a cache entry's stored fingerprint is ``record``'s now, under the scheme it was written with
-    (``current``: :func:`object_fingerprint` of ``record`` when the caller has it already)."""
+    (``current``: :func:`object_fingerprint` of ``record`` when the caller has it already; computed here only for
+    an ``rgb-bytes:`` entry)."""
     if not isinstance(stored, str):
         return False
-    if stored.startswith(f"{FINGERPRINT_SCHEME}:"):
+    if is_bytes_fingerprint(stored):
         return stored == (current or object_fingerprint(record))
     return stored == _sizes_fingerprint(record)
 
