@@ -4,13 +4,16 @@ The far side of an object (targets 135-180 degrees from the input camera) is whe
 an overall mean hides it. For each eval folder (``depthnerf eval --save-renders``: its ``renders.csv`` holds the
 per-view scores) this reads the dataset's camera poses, puts every scored view in a bin by the angle between its
 optical axis and the input view's, averages each object's views per bin, and compares every ``--method`` with
-the ``--baseline`` on the objects both scored in that bin: mean difference, 95% t-interval and wins.
+the ``--baseline`` on the objects both scored in that bin: mean difference, 95% t-interval and wins. A bin holds the
+views with ``lo <= angle < hi`` (the last one its upper edge too); views outside the edges are in no bin.
 
     python scripts/angle_bins.py --baseline study/eval/cars-bundled --method study/eval/cars-bundled-sym \
         [--bins 0 45 90 135 180] [--json OUT.json]
 
 A folder whose ``renders.csv`` is not the one its ``summary.json`` was written with (an earlier evaluation's, left
-behind) is refused; so is a missing folder or file: one ``error:`` line, exit status 2.
+behind) is refused; so is a ``--method`` evaluation scored on other views or another way than the baseline (another
+``--views-stride``, ``--resolution``, split, ``--ssim`` or ``--scored``: ``paired_difference.scoring_difference``),
+and a missing folder or file: one ``error:`` line, exit status 2.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from paired_difference import t_interval
+from paired_difference import scoring_difference, t_interval
 
 from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import ObjectRecord, index_split
@@ -111,12 +114,21 @@ def view_angles(folder: Path) -> dict[tuple[str, int], float]:
     return angles
 
 
+def bin_index(angle: float, edges: list[float]) -> int | None:
+    """The bin ``k`` with ``edges[k] <= angle < edges[k + 1]`` (the last bin includes its upper edge), None for an
+    angle outside the edges."""
+    if not edges[0] <= angle <= edges[-1]:
+        return None
+    return min(int(np.searchsorted(edges, angle, side="right")) - 1, len(edges) - 2)
+
+
 def binned(folder: Path, edges: list[float], angles: dict[tuple[str, int], float]) -> dict[int, dict[str, dict]]:
     """bin -> object id -> {metric: mean over the object's views in the bin, "views": count}."""
     acc: dict[int, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     for row in _read_csv(folder / "renders.csv"):
-        angle = angles[(row["object_id"], int(row["view"]))]
-        k = min(int(np.searchsorted(edges, angle, side="right")) - 1, len(edges) - 2)
+        k = bin_index(angles[(row["object_id"], int(row["view"]))], edges)
+        if k is None:
+            continue
         for m in METRICS:
             acc[k][row["object_id"]][m].append(float(row[m]))
     return {k: {oid: {**{m: float(np.mean(v[m])) for m in METRICS}, "views": len(v["psnr"])}
@@ -162,9 +174,15 @@ def _run(args: argparse.Namespace) -> int:
         raise DepthnerfError("--bins needs >= 2 edges within 0..180")
     angles = view_angles(args.baseline)
     base = binned(args.baseline, edges, angles)
+    base_summary = read_summary(args.baseline)
     report = {}
     for folder in args.method:
-        rows = compare(base, binned(folder, edges, view_angles(folder)), edges)
+        method_angles = view_angles(folder)
+        difference = scoring_difference(args.baseline, base_summary, folder, read_summary(folder))
+        if difference is not None:
+            raise DepthnerfError(f"{difference}: not the same views scored the same way, so not paired (evaluate "
+                                 "both with the same options)")
+        rows = compare(base, binned(folder, edges, method_angles), edges)
         report[str(folder)] = rows
         print(f"\n{folder} - {args.baseline} (paired per object; objects and views per bin)\n")
         print("| bin (deg) | metric | objects | views | baseline | method | difference (95% CI) | wins |")

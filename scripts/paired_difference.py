@@ -3,8 +3,11 @@
 A mean PSNR over 50 objects moves by a few tenths of a dB with the choice of objects; two methods scored on the
 SAME objects are compared far more precisely by the per-object differences. For each ``--method`` eval folder
 against the ``--baseline`` one (both written by ``depthnerf eval``; their ``per_object.csv`` files must list the
-same objects and views), this prints, per metric, the mean difference (method - baseline), its standard error
-``std(d, ddof=1) / sqrt(n)``, a 95% interval ``mean +- t_{0.975, n-1} * SE`` and how many objects the method wins.
+same objects, each with the same input view and number of scored views, and their ``summary.json`` files the same
+category, split, ``--views-stride``, ``--resolution``, ``--ssim`` and ``--scored``: evaluations scored on other
+views or another way are refused in one line), this prints, per metric, the mean difference (method - baseline),
+its standard error ``std(d, ddof=1) / sqrt(n)``, a 95% interval ``mean +- t_{0.975, n-1} * SE`` and how many
+objects the method wins.
 
     python scripts/paired_difference.py --baseline study/eval/cars-none \
         --method study/eval/cars-bundled study/eval/cars-oracle [--json OUT.json]
@@ -22,9 +25,16 @@ from pathlib import Path
 
 from scipy import stats
 
+from depthnerf.errors import DepthnerfError
+from depthnerf.eval.config import protocol_mismatch, recorded_choices
+
 METRICS: dict[str, bool] = {"psnr": True, "ssim": True, "chamfer_l1": False, "fscore": True,
                              "floater_fraction": False}
 """Metric column of per_object.csv -> whether higher is better."""
+SCORING_KEYS = {"category": "category", "split": "--split", "views_stride": "--views-stride",
+                "resolution": "--resolution"}
+"""``summary.json`` keys two paired evaluations must share (the same views, scored at the same size), with the
+``depthnerf eval`` option that sets each."""
 
 
 @dataclass
@@ -66,18 +76,52 @@ def read_per_object(folder: Path) -> dict[str, dict[str, str]]:
         return {row["object_id"]: row for row in csv.DictReader(f)}
 
 
+def read_summary(folder: Path) -> dict:
+    """``folder/summary.json`` as a mapping; empty when the folder has none (an error names it if unreadable)."""
+    path = folder / "summary.json"
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:  # ValueError: not JSON, or not UTF-8 text
+        raise SystemExit(f"error: {path}: unreadable ({err})") from None
+    return data if isinstance(data, dict) else {}
+
+
+def scoring_difference(baseline: Path, base: dict, method: Path, other: dict) -> str | None:
+    """One line saying how the evaluation in ``method`` (its ``summary.json`` mapping ``other``) was scored
+    differently from the one in ``baseline`` (``base``): other views, split or size (:data:`SCORING_KEYS`) or other
+    protocol choices (:func:`depthnerf.eval.config.protocol_mismatch`); None when they agree. A key either summary
+    lacks (an older summary) is not compared."""
+    for key, flag in SCORING_KEYS.items():
+        if key in base and key in other and base[key] != other[key]:
+            return (f"{method / 'summary.json'} was scored with {flag} {other[key]} but {baseline / 'summary.json'} "
+                    f"with {flag} {base[key]}")
+    return protocol_mismatch([recorded_choices(baseline / "summary.json", base),
+                              recorded_choices(method / "summary.json", other)])
+
+
+def check_pairable(baseline: Path, method: Path) -> None:
+    """A one-line ``SystemExit`` when the two evaluations were scored differently (:func:`scoring_difference`)."""
+    try:
+        difference = scoring_difference(baseline, read_summary(baseline), method, read_summary(method))
+    except DepthnerfError as err:
+        raise SystemExit(f"error: {err}") from None
+    if difference is not None:
+        raise SystemExit(f"error: {difference}: not the same views scored the same way, so not paired "
+                         "(evaluate both with the same options)")
+
+
 def method_name(folder: Path) -> str:
     """The method label recorded in the eval summary, else the folder name."""
-    summary = folder / "summary.json"
-    if summary.is_file():
-        return str(json.loads(summary.read_text()).get("method", folder.name))
-    return folder.name
+    return str(read_summary(folder).get("method", folder.name))
 
 
 def paired(baseline: Path, method: Path, common: bool = False) -> list[PairedStat]:
     """Paired statistics of ``method`` against ``baseline`` for every metric both have (``common``: on the objects
     both scored, e.g. an evaluation stopped early, instead of requiring the same objects)."""
     base, other = read_per_object(baseline), read_per_object(method)
+    check_pairable(baseline, method)
     if common:
         shared = set(base) & set(other)
         base, other = {k: base[k] for k in shared}, {k: other[k] for k in shared}
@@ -85,7 +129,7 @@ def paired(baseline: Path, method: Path, common: bool = False) -> list[PairedSta
         raise SystemExit(f"error: {method}/per_object.csv: objects differ from {baseline}/per_object.csv "
                          "(--common pairs the objects both scored)")
     for oid in base:
-        if base[oid]["views"] != other[oid]["views"]:
+        if any(base[oid].get(k) != other[oid].get(k) for k in ("views", "input_view")):
             raise SystemExit(f"error: {method}/per_object.csv: object {oid} was scored on other views than in "
                              f"{baseline}")
     out = []

@@ -3,7 +3,8 @@
 One training run per arm cannot separate a method's effect from the seed's: on the study's chairs, the same
 baseline trained with seed 1 instead of 0 gains +0.24 dB on 35/50 objects. The seed's effect is a shift of the
 whole run, so a per-object interval of ONE pair of runs does not contain it. Given each arm's evaluations (one
-``depthnerf eval`` folder per training seed, the same objects and views), this prints per metric:
+``depthnerf eval`` folder per training seed, the same objects and views scored the same way), this prints per
+metric:
 
 - **seed-averaged, paired per object**: each object's metric averaged over the arm's seeds, then the paired
   difference (method - baseline) with its 95% t-interval over objects and the objects on which the method is no
@@ -27,7 +28,7 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from paired_difference import METRICS, method_name, read_per_object, t_interval
+from paired_difference import METRICS, check_pairable, method_name, read_per_object, t_interval
 from scipy import stats
 
 
@@ -59,11 +60,14 @@ class SeedStat:
 
 
 def load_arm(folders: list[Path]) -> list[dict[str, dict[str, str]]]:
-    """Each folder's per-object rows; every folder must score the same objects on the same views."""
+    """Each folder's per-object rows; every folder must score the same objects on the same views, the same way
+    (``paired_difference.check_pairable``)."""
     arms = [read_per_object(f) for f in folders]
     first = arms[0]
     for folder, rows in zip(folders[1:], arms[1:], strict=True):
-        if set(rows) != set(first) or any(rows[o]["views"] != first[o]["views"] for o in first):
+        check_pairable(folders[0], folder)
+        if set(rows) != set(first) or any(rows[o].get(k) != first[o].get(k) for o in first
+                                          for k in ("views", "input_view")):
             raise SystemExit(f"error: {folder}/per_object.csv: objects or views differ from "
                              f"{folders[0]}/per_object.csv")
     return arms

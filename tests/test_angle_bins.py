@@ -111,3 +111,44 @@ def test_renders_csv_of_another_evaluation_is_refused(tmp_path, capsys):
     with open(m / "per_object.csv", "a", newline="") as f:
         f.write("0123456789abcdef0123456789abcdef,0\n")
     assert "(other objects)" in _main_error(mod, capsys, "--baseline", b, "--method", m)
+
+
+def test_views_beyond_the_last_edge_are_in_no_bin(tmp_path):
+    """With edges 0, 45, 90 the views at 100 and 170 degrees belong to no bin (not to 45-90); 90 itself, the last
+    edge, to the last bin, and a view below the first edge to none."""
+    mod = _load()
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 2}, views=4, size=8)
+    for obj in sorted((root / "cars_test").iterdir()):
+        for k, az in enumerate([0.0, 30.0, 100.0, 170.0]):
+            a = math.radians(az)
+            pose = look_at(torch.tensor([1.3 * math.cos(a), 1.3 * math.sin(a), 0.0])).numpy()
+            np.savetxt(obj / "pose" / f"{k:06d}.txt", pose.reshape(1, 16))
+    ids = sorted(p.name for p in (root / "cars_test").iterdir())
+    b = _eval(tmp_path / "base", root, {(oid, v): 20.0 + v for oid in ids for v in (1, 2, 3)})
+    bins = mod.binned(b, [0, 45, 90], mod.view_angles(b))
+    assert set(bins) == {0} and all(o["views"] == 1 and o["psnr"] == 21.0 for o in bins[0].values())
+    assert [mod.bin_index(a, [0, 45, 90]) for a in (0, 44.9, 45, 90, 100, 170)] == [0, 0, 1, 1, None, None]
+    assert mod.bin_index(10, [20, 90]) is None
+
+
+@pytest.mark.parametrize(("edit", "text"), [
+    ({"views_stride": 2}, "--views-stride"),
+    ({"resolution": 128}, "--resolution 128 but"),
+    ({"protocol_choices": {"ssim": "gaussian11", "scored": "png8", "skipped_objects": []}}, "--ssim gaussian11"),
+])
+def test_a_method_scored_on_other_views_or_another_way_is_refused(tmp_path, capsys, edit, text):
+    mod = _load()
+    b, m = _folders(tmp_path)
+    if "views_stride" in edit:  # a valid evaluation of its own: stride 2 scores views 1 and 3
+        with open(m / "renders.csv", newline="") as f:
+            rows = [r for r in csv.DictReader(f) if r["view"] != "2"]
+        with open(m / "renders.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    recorded = {"resolution": 64, "protocol_choices": {"ssim": "uniform7", "scored": "png8", "skipped_objects": []}}
+    for folder, extra in ((b, {}), (m, edit)):
+        summary = json.loads((folder / "summary.json").read_text())
+        (folder / "summary.json").write_text(json.dumps({**summary, **recorded, **extra}))
+    err = _main_error(mod, capsys, "--baseline", b, "--method", m)
+    assert text in err and "not paired" in err

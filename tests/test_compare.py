@@ -163,3 +163,24 @@ def test_rows_over_different_samples_are_printed_with_a_warning(tmp_path, capsys
                                             "views\n")
     assert main(["compare", str(a), str(c)]) == 0
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(("a", "b", "text"), [
+    ({"views_stride": 25}, {"views_stride": 26}, "with different --views-stride (25; 26)"),  # 10 views each
+    ({"resolution": 64}, {"resolution": 128}, "with different --resolution (128; 64)"),
+    ({"split": "test"}, {"split": "val"}, "with different splits (test; val)"),
+    ({"per_object": _per_object("x", "y", "z")}, {"per_object": _per_object("x", "y", "w")},
+     "on different objects (as many in each)"),
+])
+def test_rows_over_other_views_with_equal_counts_are_printed_with_a_warning(tmp_path, capsys, a, b, text):
+    """Equal numbers of objects and views do not make the same sample: another stride, resolution, split or set
+    of objects is said on stderr too."""
+    first = _summary(tmp_path / "a" / "summary.json", "baseline", "cars", 20.0, 0.8, **a)
+    second = _summary(tmp_path / "b" / "summary.json", "depth-aware", "cars", 21.0, 0.81, **b)
+    assert main(["compare", str(first), str(second)]) == 0
+    out, err = capsys.readouterr()
+    assert "depth-aware" in out and err == (f"warning: the cars rows were scored {text}: their means are not over "
+                                            "the same views\n")
+    same = _summary(tmp_path / "c" / "summary.json", "depth-aware", "cars", 21.0, 0.81, **a)
+    assert main(["compare", str(first), str(same)]) == 0
+    assert capsys.readouterr().err == ""

@@ -130,3 +130,24 @@ def test_flag_choices_match_the_registries():
     flags = {a.dest: a.choices for a in parser._actions if a.dest in ("ssim", "scored", "objects")}
     assert list(flags["ssim"]) == list(SSIM_WINDOWS) and list(flags["scored"]) == list(SCORED)
     assert list(flags["objects"]) == list(OBJECTS)
+
+
+def test_default_scores_are_scikit_images_on_the_files(case):
+    """With the defaults (uniform7, png8) every renders.csv score is scikit-image's own PSNR and SSIM (its current
+    ``structural_similarity`` defaults are the old ``compare_ssim`` ones pixelNeRF called: 7x7 uniform window,
+    sample covariance, per channel) of the render PNG and the dataset PNG, and the summary is the mean over objects
+    of the per-object means of those."""
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    summary, renders, out = _eval(case, "skimage")
+    per_object: dict[str, list[tuple[float, float]]] = {}
+    for row in renders:
+        pred = srn_format.read_rgb(out / row["render_path"]).astype(np.float64)
+        gt = srn_format.read_rgb(row["gt_path"]).astype(np.float64)
+        ref = (peak_signal_noise_ratio(gt, pred, data_range=1.0),
+               structural_similarity(pred, gt, data_range=1.0, channel_axis=-1))
+        assert (float(row["psnr"]), float(row["ssim"])) == pytest.approx(ref, abs=1e-6)
+        per_object.setdefault(row["object_id"], []).append(ref)
+    means = [np.mean(v, axis=0) for v in per_object.values()]
+    assert summary["psnr"] == pytest.approx(np.mean([m[0] for m in means]), abs=1e-6)
+    assert summary["ssim"] == pytest.approx(np.mean([m[1] for m in means]), abs=1e-6)

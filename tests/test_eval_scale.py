@@ -162,3 +162,26 @@ def test_unreadable_or_foreign_result_files_are_computed_again(case, tmp_path):
     assert (summary["timing"]["objects_computed"], summary["timing"]["objects_resumed"]) == (2, OBJECTS - 2)
     assert [r for r in _rows(out / "per_object.csv", ("seconds",))] == [
         {k: v for k, v in r.items() if k != "seconds"} for r in csv.DictReader(reference.splitlines())]
+
+
+def test_summary_means_are_recomputed_from_the_object_files(case):
+    """The result files alone give the summary: each object's PSNR/SSIM is the mean of its views' (the input view
+    not among them), and the summary's the mean over the objects' files, each object once."""
+    import numpy as np
+
+    out = case["reference"]
+    summary = json.loads((out / "summary.json").read_text())
+    files = sorted(p for p in (out / OBJECTS_DIR).glob("*.json") if p.name != SETTINGS_FILE)
+    payloads = [json.loads(p.read_text()) for p in files]
+    assert sorted(p["object_id"] for p in payloads) == sorted(o["object_id"] for o in summary["per_object"])
+    assert len({p["object_id"] for p in payloads}) == summary["objects"] == OBJECTS
+    for p in payloads:
+        views = p["metrics"]["views"]
+        assert len(views) == 3 and [int(r["view"]) for r in p["renders"]] == [0, 30, 60]  # 65 others, stride 30
+        for key in ("psnr", "ssim"):
+            assert p["metrics"][key] == pytest.approx(np.mean([v[key] for v in views]), abs=1e-12)
+    for key in ("psnr", "ssim"):
+        assert summary[key] == pytest.approx(np.mean([p["metrics"][key] for p in payloads]), abs=1e-12)
+    assert summary["views"] == sum(len(p["metrics"]["views"]) for p in payloads)
+    meshed = [p["geometry"] for p in payloads if p["geometry"] is not None]
+    assert summary["chamfer_l1"] == pytest.approx(np.mean([g["chamfer_l1"] for g in meshed]), abs=1e-12)

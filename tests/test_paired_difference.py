@@ -66,3 +66,63 @@ def test_mismatched_objects_or_views_are_errors(tmp_path: Path) -> None:
         pd.paired(base, other_views)
     with pytest.raises(SystemExit, match="per_object.csv: missing"):
         pd.paired(base, tmp_path / "nowhere")
+
+
+def test_interval_matches_scipys_paired_t_test(tmp_path: Path) -> None:
+    """The 95% interval and standard error are scipy's paired t-test's (an independent implementation)."""
+    pd = _load()
+    base = [20.1, 22.4, 18.3, 25.0, 19.7, 21.2, 23.9]
+    meth = [21.0, 22.5, 17.9, 26.2, 20.4, 21.0, 24.8]
+    rows = {s.metric: s for s in pd.paired(_write(tmp_path / "b", "b", base, [0.1] * 7),
+                                           _write(tmp_path / "m", "m", meth, [0.1] * 7))}
+    ref = stats.ttest_rel(meth, base).confidence_interval(0.95)
+    s = rows["psnr"]
+    assert (s.ci95_low, s.ci95_high) == pytest.approx((ref.low, ref.high), abs=1e-12)
+    assert s.std_err == pytest.approx(stats.sem([m - b for m, b in zip(meth, base, strict=True)]), abs=1e-12)
+
+
+def _summary(folder: Path, **fields) -> None:
+    data = {"method": folder.name, "category": "cars", "split": "test", "views_stride": 25, "resolution": 64,
+            "protocol_choices": {"ssim": "uniform7", "scored": "png8", "skipped_objects": []}}
+    for key, value in fields.items():
+        data[key] = value
+    (folder / "summary.json").write_text(json.dumps(data))
+
+
+@pytest.mark.parametrize(("fields", "text"), [
+    ({"views_stride": 26}, "--views-stride 26 but"),  # 250 targets: stride 25 and 26 both score 10 views
+    ({"resolution": 128}, "--resolution 128 but"),
+    ({"split": "val"}, "--split val but"),
+    ({"protocol_choices": {"ssim": "uniform7", "scored": "float", "skipped_objects": []}}, "--scored float but"),
+    ({"protocol_choices": {"ssim": "gaussian11", "scored": "png8", "skipped_objects": []}}, "--ssim gaussian11"),
+    ({"protocol_choices": None, "metrics_path": "float renders (eval.py)"}, "--scored float but"),  # older summary
+])
+def test_evaluations_scored_on_other_views_or_another_way_are_not_paired(tmp_path: Path, fields, text) -> None:
+    """Equal object ids and view counts are not enough: the summaries must say the same views were scored the
+    same way (else a paired difference measures the protocol, not the method)."""
+    pd = _load()
+    base = _write(tmp_path / "base", "baseline", [20.0, 22.0], [0.1, 0.2])
+    meth = _write(tmp_path / "meth", "depth", [21.0, 22.5], [0.1, 0.2])
+    _summary(base)
+    _summary(meth)
+    assert [s.metric for s in pd.paired(base, meth)] == ["psnr", "chamfer_l1"]
+    _summary(meth, **fields)
+    for common in (False, True):
+        with pytest.raises(SystemExit, match="not paired") as err:
+            pd.paired(base, meth, common=common)
+        assert text in str(err.value) and str(base / "summary.json") in str(err.value)
+
+
+def test_another_input_view_is_other_views(tmp_path: Path) -> None:
+    pd = _load()
+    base = _write(tmp_path / "base", "baseline", [20.0, 22.0], [0.1, 0.2])
+    meth = _write(tmp_path / "meth", "depth", [21.0, 22.5], [0.1, 0.2])
+    for folder, view in ((base, "64"), (meth, "0")):
+        with open(folder / "per_object.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        with open(folder / "per_object.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=[*rows[0], "input_view"])
+            w.writeheader()
+            w.writerows({**r, "input_view": view} for r in rows)
+    with pytest.raises(SystemExit, match="object obj0 was scored on other views"):
+        pd.paired(base, meth)

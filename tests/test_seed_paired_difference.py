@@ -69,3 +69,12 @@ def test_mismatched_objects_name_the_file(tmp_path: Path) -> None:
         spd.seed_paired([b0, b1], [m])
     with pytest.raises(SystemExit, match="m/per_object.csv"):
         spd.seed_paired([b0], [m])
+
+
+def test_seeds_scored_at_another_resolution_are_refused(tmp_path: Path) -> None:
+    b0 = _write(tmp_path / "b0", [20.0, 22.0, 18.0], [0.10, 0.20, 0.30])
+    m0 = _write(tmp_path / "m0", [21.0, 22.0, 20.0], [0.05, 0.25, 0.30])
+    for folder, res in ((b0, 64), (m0, 128)):
+        (folder / "summary.json").write_text(json.dumps({"method": folder.name, "resolution": res}))
+    with pytest.raises(SystemExit, match="--resolution 128 but .* not paired"):
+        spd.seed_paired([b0], [m0])

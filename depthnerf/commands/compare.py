@@ -10,8 +10,9 @@ rows, labelled as reported in the paper on the real SRN data. The table goes to 
 Summaries scored with different protocol choices (SSIM variant, 8-bit or float renders, an object one left out
 that another scored; :mod:`depthnerf.eval.config`) are refused with one line saying which differ; with
 ``--mixed-protocols`` the table is printed anyway, under a warning line that says the same. Rows of one category
-scored on different numbers of objects or views (``--max-objects``, ``--views-stride``) are printed with a warning
-on stderr: their means are over different samples.
+scored on different samples (other numbers of objects or views, other objects, another split, ``--views-stride``
+or ``--resolution``) are printed with a warning on stderr: their means are not over the same views
+(:func:`depthnerf.eval.table.sample_warnings`).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.config import protocol_mismatch
-from depthnerf.eval.table import find_summaries, load_summary, markdown_table
+from depthnerf.eval.table import find_summaries, load_summary, markdown_table, sample_warnings
 from depthnerf.files import write_text_atomic
 
 
@@ -46,12 +47,8 @@ def run(args: argparse.Namespace) -> int:
     if mismatch and not args.mixed_protocols:
         raise DepthnerfError(f"{mismatch}: not comparable; re-evaluate with the same choices, or pass "
                              "--mixed-protocols")
-    for category in sorted({s.category for s in summaries}):
-        sizes = sorted({(s.objects, s.views) for s in summaries if s.category == category})
-        if len(sizes) > 1:
-            shown = "; ".join(f"{o} objects x {v} views" for o, v in sizes)
-            print(f"warning: the {category} rows were scored on different samples ({shown}): their means are not "
-                  "over the same views", file=sys.stderr)
+    for line in sample_warnings(summaries):
+        print(line, file=sys.stderr)
     table = markdown_table(summaries, reference=args.reference == "paper")
     if mismatch:
         table = f"**WARNING: mixed protocol choices, the rows are not comparable: {mismatch}.**\n\n{table}"

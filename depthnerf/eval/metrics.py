@@ -4,8 +4,8 @@ Facts checked in pixelNeRF's ``eval/eval.py`` and ``eval/calc_metrics.py``:
 
 - Images are ``H x W x 3`` floats in ``[0, 1]``; the render is clamped to ``[0, 1]`` first (eval.py clamps the
   renderer's output). ``calc_metrics.py`` re-reads renders that eval.py wrote as 8-bit PNG by *truncation*
-  (``(x * 255).astype(uint8)``); :attr:`ImageMetricsConfig.quantize_pred` reproduces that path, the default is
-  eval.py's float path.
+  (``(x * 255).astype(uint8)``); :attr:`ImageMetricsConfig.quantize_pred` reproduces that path (the default of
+  ``depthnerf eval``, ``--scored png8``), the class default is eval.py's float path (training validation).
 - PSNR: scikit-image's ``10 log10(data_range^2 / MSE)`` with ``data_range = 1``, MSE over all pixels and channels.
 - SSIM: scikit-image with ``data_range = 1`` over all channels (``multichannel=True`` then, ``channel_axis=-1``
   now): the mean over channels of per-channel SSIM, with the old ``compare_ssim`` defaults that pixelNeRF got and

@@ -49,6 +49,9 @@ MISSING = "—"
 """Cell text when a method has no value for a column."""
 GEOMETRY_KEYS = ("chamfer_l1", "fscore", "floater_fraction")
 """Columns measured on the predicted meshes (marked when some were empty)."""
+SAMPLE_KEYS = (("split", "splits"), ("views_stride", "--views-stride"), ("resolution", "--resolution"))
+"""``summary.json`` keys that say which views were scored and at which size, with how :func:`sample_warnings`
+names a difference."""
 
 
 @dataclass(frozen=True)
@@ -75,6 +78,8 @@ class EvalSummary:
     """Predicted meshes that were empty (``empty_predictions``: worst-case values in the geometry means)."""
     meshed_objects: int | None = None
     """Objects with geometry metrics (``geometry_objects``; None when the summary does not say)."""
+    scoring: tuple[tuple[str, object], ...] = ()
+    """The :data:`SAMPLE_KEYS` the summary records, with their values (which views, at which size)."""
 
     def empty_text(self) -> str:
         """``2/2 meshes empty`` when predicted meshes were empty, else ``""``."""
@@ -129,7 +134,8 @@ def load_summary(path: Path) -> EvalSummary:
     return EvalSummary(path=path, method=data["method"].strip(), category=data["category"].strip().lower(),
                        metrics=metrics, objects=counts["objects"], views=counts["views"], provenance=provenance,
                        choices=recorded_choices(path, data), empty_meshes=data.get("empty_predictions") or 0,
-                       meshed_objects=data.get("geometry_objects"))
+                       meshed_objects=data.get("geometry_objects"),
+                       scoring=tuple((k, data[k]) for k, _ in SAMPLE_KEYS if data.get(k) is not None))
 
 
 def find_summaries(path: Path) -> list[Path]:
@@ -145,6 +151,30 @@ def find_summaries(path: Path) -> list[Path]:
     if not found:
         raise DepthnerfError(f"{path}: no summary.json here nor in {path / 'eval'}/*/ (run 'depthnerf eval' first)")
     return found
+
+
+def sample_warnings(summaries: Sequence[EvalSummary]) -> list[str]:
+    """One ``warning:`` line per category whose rows average different samples: other numbers of objects or views,
+    other objects (the ids of ``per_object``), another split, ``--views-stride`` or ``--resolution`` (keys a summary
+    does not record are not compared)."""
+    lines = []
+    for category in sorted({s.category for s in summaries}):
+        rows = [s for s in summaries if s.category == category]
+        parts = []
+        sizes = sorted({(s.objects, s.views) for s in rows})
+        if len(sizes) > 1:
+            parts.append("on different samples (" + "; ".join(f"{o} objects x {v} views" for o, v in sizes) + ")")
+        ids = {s.choices.scored_ids for s in rows if s.choices is not None and s.choices.scored_ids is not None}
+        if len(sizes) == 1 and len(ids) > 1:
+            parts.append("on different objects (as many in each)")
+        for key, name in SAMPLE_KEYS:
+            values = sorted({str(dict(s.scoring)[key]) for s in rows if key in dict(s.scoring)})
+            if len(values) > 1:
+                parts.append(f"with different {name} ({'; '.join(values)})")
+        if parts:
+            lines.append(f"warning: the {category} rows were scored {', '.join(parts)}: their means are not over "
+                         "the same views")
+    return lines
 
 
 def _categories(summaries: Sequence[EvalSummary], reference: bool) -> list[str]:
