@@ -28,12 +28,15 @@ Outputs per category in ``OUT/<category>/``
     input camera's distance and elevation, starting at the input camera. Plus ``novel_views/pred_NNNNNN.png`` and
     ``novel_views/true_NNNNNN.png`` (NNNNNN = the SRN view index) and ``novel_views.png``, a strip with the
     predictions on top and the true views below. ``OUT/demo.json`` gathers metrics, checkpoints and files.
+    A rerun into the same ``OUT`` replaces these files (an earlier run's novel views with another stride or seed
+    included) and leaves other files alone.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import sys
 import time
@@ -73,6 +76,8 @@ CATEGORIES = ("cars", "chairs")
 """Categories the demo knows, in order."""
 DEFAULT_CHECKPOINTS = {category: RECOMMENDED[category] for category in CATEGORIES}
 """Shipped checkpoint per category: the best one (:data:`~depthnerf.pretrained.recommended.RECOMMENDED`)."""
+NOVEL_VIEW = re.compile(r"(pred|true)_\d+\.png")
+"""Names of the files a demo writes into ``OUT/<category>/novel_views/``."""
 
 
 @dataclass(frozen=True)
@@ -177,7 +182,13 @@ def _strip(preds: np.ndarray, gts: np.ndarray, gap: int = 2) -> np.ndarray:
 
 
 def _save_novel_views(out: Path, root: Path, names: Sequence[str], preds: np.ndarray, gts: np.ndarray) -> dict:
-    (out / "novel_views").mkdir(parents=True, exist_ok=True)
+    """Write ``novel_views/{pred,true}_NAME.png`` and the strip; the views of an earlier demo in ``out`` (another
+    ``--views-stride`` or ``--seed``) are removed first, so the folder holds exactly this run's views."""
+    folder = out / "novel_views"
+    folder.mkdir(parents=True, exist_ok=True)
+    for earlier in folder.iterdir():
+        if NOVEL_VIEW.fullmatch(earlier.name) and earlier.is_file():
+            earlier.unlink()
     files: dict[str, Any] = {"pred": [], "true": []}
     for name, pred, gt in zip(names, preds, gts, strict=True):
         for kind, img in (("pred", pred), ("true", gt)):

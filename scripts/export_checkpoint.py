@@ -19,7 +19,12 @@ Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where `
     :mod:`depthnerf.eval.table` / :mod:`depthnerf.eval.protocol`). ``depthnerf checkpoints`` prints them.
 ``<name>.md``
     The model card: what the model is, training data (from ``RUN/data_card.json``), preset and key settings,
-    metrics with their protocol, the reproduce commands, intended use, limitations and licence.
+    metrics with their protocol, the reproduce commands, intended use, limitations and licence
+    (``scripts/checkpoint_card.py``).
+
+A run that has not reached its ``schedule.max_steps`` (stopped early, or still training) is refused unless
+``--allow-unfinished`` (then the cards say where it stopped); an ``--eval-summary`` must be of this checkpoint (its
+SHA-256, before or after export), its preset and category, and its own depth prior (estimator and weights).
 
 Round-trip check (always run, the export fails when it does not hold): the source (fp32) and the exported (fp16,
 loaded back to fp32) models render the same :func:`probe_sources` input view from another camera at the training
@@ -45,23 +50,25 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from depthnerf import __version__
-from depthnerf.data.srn import category_defaults
-from depthnerf.data.synth.framing import card_framing
-from depthnerf.depth.cache import depth_command
-from depthnerf.depth.estimators import CACHED_ESTIMATORS
-from depthnerf.depth.normalize import normalize_disparity
-from depthnerf.errors import DepthnerfError
-from depthnerf.eval.metrics import psnr
-from depthnerf.eval.table import load_summary
-from depthnerf.files import write_text_atomic
-from depthnerf.model.pixelnerf import SourceViews
-from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint
-from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec
-from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics
-from depthnerf.render.views import render_poses
-from depthnerf.train import checkpoint as ckpt
-from depthnerf.train.config import TrainConfig, from_dict_config, inference_spec
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling checkpoint_card.py, however this runs
+from checkpoint_card import METRIC_KEYS, eval_command, model_card  # noqa: E402
+
+from depthnerf import __version__  # noqa: E402
+from depthnerf.data.srn import category_defaults  # noqa: E402
+from depthnerf.data.synth.framing import card_framing  # noqa: E402
+from depthnerf.depth.normalize import normalize_disparity  # noqa: E402
+from depthnerf.errors import DepthnerfError  # noqa: E402
+from depthnerf.eval.metrics import psnr  # noqa: E402
+from depthnerf.eval.table import load_summary  # noqa: E402
+from depthnerf.files import write_text_atomic  # noqa: E402
+from depthnerf.model.pixelnerf import SourceViews  # noqa: E402
+from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint  # noqa: E402
+from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec  # noqa: E402
+from depthnerf.pretrained.weights import latest_checkpoint  # noqa: E402
+from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics  # noqa: E402
+from depthnerf.render.views import render_poses  # noqa: E402
+from depthnerf.train import checkpoint as ckpt  # noqa: E402
+from depthnerf.train.config import TrainConfig, from_dict_config  # noqa: E402
 
 FP16_TOLERANCE = 0.02
 """Largest accepted absolute RGB difference (in [0, 1], ~5 of 255 levels) between fp32 and fp16 renders."""
@@ -69,10 +76,6 @@ FP16_MAX = 65504.0
 """Largest finite float16 value: a weight beyond it cannot be exported."""
 NAME_PATTERN = re.compile(r"^[a-z0-9][a-z0-9._-]*$")
 """Allowed checkpoint names (they become file names and ``--checkpoint`` values)."""
-LICENCE = "MIT (the depthnerf repository's licence, see pyproject.toml)"
-"""Licence of the exported weights."""
-METRIC_KEYS = ("psnr", "ssim", "lpips", "chamfer_l1", "fscore")
-"""Metrics copied from the eval summary (null ones are left out)."""
 REPO_ROOT = Path(__file__).resolve().parent.parent
 """Default base of the relative paths written into cards."""
 
@@ -162,8 +165,12 @@ def _read_json(path: Path, what: str) -> dict:
     return data
 
 
-def read_eval_summary(path: Path, source_sha: str, exported_sha: str, cfg: TrainConfig) -> dict:
-    """The checked ``summary.json`` of an evaluation of this checkpoint (source or exported file)."""
+def read_eval_summary(path: Path, source_sha: str, exported_sha: str, cfg: TrainConfig,
+                      prior_hash: str | None = None) -> dict:
+    """The checked ``summary.json`` of an evaluation of this checkpoint (source or exported file) as it ships: the
+    same preset and category, and its own depth prior (``depthnerf eval --depth`` / ``--depth-checkpoint`` score
+    another prior: the estimator must be the checkpoint's, and the prior's weights hash, where both record one,
+    ``prior_hash``)."""
     load_summary(path)  # required keys and types (depthnerf.eval.table)
     summary = _read_json(path, "eval summary")
     if summary["checkpoint_sha256"] not in (source_sha, exported_sha):
@@ -172,7 +179,40 @@ def read_eval_summary(path: Path, source_sha: str, exported_sha: str, cfg: Train
     if summary["category"] != cfg.data.category or summary["preset"] != cfg.preset:
         raise DepthnerfError(f"{path}: summary is for {summary['preset']}/{summary['category']}, the checkpoint is "
                              f"{cfg.preset}/{cfg.data.category}")
+    if summary["depth_prior"] != cfg.prior.estimator:
+        raise DepthnerfError(f"{path}: evaluates the checkpoint with the {summary['depth_prior']} depth prior, but it "
+                             f"ships with {cfg.prior.estimator}; evaluate it without --depth")
+    provenance = summary.get("depth_prior_provenance")
+    scored_hash = provenance.get("weights_hash") if isinstance(provenance, dict) else None
+    if prior_hash and scored_hash and scored_hash != prior_hash:
+        raise DepthnerfError(f"{path}: evaluates the checkpoint with other depth weights "
+                             f"({provenance.get('checkpoint')}, sha256 {scored_hash[:12]}) than it was trained with "
+                             f"({prior_hash[:12]}); evaluate it without --depth-checkpoint")
     return summary
+
+
+def check_finished(run: Path, allow_unfinished: bool = False) -> dict | None:
+    """None when the run's newest complete checkpoint reached its ``schedule.max_steps``; else (a run stopped early,
+    or still training) a one-line error, or with ``allow_unfinished`` the card's record of it
+    (``{"stopped_at": step, "max_steps": n}``)."""
+    ckpt_root = run / "checkpoints"
+    newest = latest_checkpoint(ckpt_root)
+    if newest is None:
+        newest = ckpt_root / "best"
+    _, meta = ckpt.read_weights(newest / "model.safetensors")
+    try:
+        max_steps = int(json.loads(meta["train_config"])["schedule"]["max_steps"])
+        step = int(meta["step"])
+    except (KeyError, TypeError, ValueError):
+        raise DepthnerfError(f"{newest / 'model.safetensors'}: no step and training config with "
+                             "schedule.max_steps in its metadata") from None
+    if step >= max_steps:
+        return None
+    if not allow_unfinished:
+        raise DepthnerfError(f"{run}: the run is not finished (its newest checkpoint is step {step} of {max_steps}: "
+                             "stopped early or still training); finish it (depthnerf train --resume), or pass "
+                             "--allow-unfinished to export it as it is")
+    return {"stopped_at": step, "max_steps": max_steps}
 
 
 def _eval_section(summary: dict, path: Path, base: Path = REPO_ROOT) -> dict:
@@ -186,132 +226,6 @@ def _eval_section(summary: dict, path: Path, base: Path = REPO_ROOT) -> dict:
     return section
 
 
-def eval_command(name: str, ev: dict, train_res: int) -> str:
-    """The ``depthnerf eval`` command that measures the card's metrics for a shipped checkpoint."""
-    parts = ["depthnerf eval", f"--checkpoint {name}", "--data $DATA", f"--split {ev['split']}",
-             f"--out eval/{name}", f"--views-stride {ev['views_stride']}"]
-    if ev.get("max_objects"):
-        parts.append(f"--max-objects {ev['max_objects']}")
-    if ev.get("resolution") and ev["resolution"] != train_res:
-        parts.append(f"--resolution {ev['resolution']}")
-    return " ".join(parts)
-
-
-def synth_command(dataset_card: dict | None, category: str) -> str:
-    """The ``depthnerf synth`` command of the training data (from the dataset card)."""
-    if not dataset_card:
-        return f"# dataset card missing: the {category} data's generation settings are unknown"
-    counts = dataset_card.get("counts", {})
-    family = dataset_card.get("family", "standard")
-    return (f"depthnerf synth --category {category} --out $DATA --train-objects {counts.get('train')} "
-            f"--val-objects {counts.get('val')} --test-objects {counts.get('test')} --resolution "
-            f"{dataset_card.get('resolution')} --seed {dataset_card.get('seed')} --framing "
-            f"{card_framing(dataset_card)}" + (f" --family {family}" if family != "standard" else ""))
-
-
-def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None) -> str:
-    """The Markdown model card ``<name>.md``."""
-    name, est, cat = card["name"], card["depth_estimator"], card["category"]
-    kind = "pixelNeRF baseline (RGB encoder only)" if est == "none" else f"depth-aware pixelNeRF ({est} depth prior)"
-    ds = data_card.get("dataset_card") or {}
-    m, f = cfg.model, cfg.model.coarse
-    s, r = cfg.schedule, cfg.render.sampler
-    lines = [f"# {name}", "",
-             f"A {kind} for single-image 3D reconstruction of **{cat}**, trained with the `{cfg.preset}` preset "
-             f"on the CPU at {cfg.data.resolution}x{cfg.data.resolution}. Trained and evaluated on the project's "
-             "**synthetic** SRN-format benchmark (`depthnerf synth`: procedural shapes, ray-traced) — **not** on "
-             "real ShapeNet; the numbers below are not comparable with the paper's Table 1.", "",
-             "| field | value |", "|---|---|",
-             f"| weights | `{name}.safetensors`, float16 ({card['size_bytes']:,} bytes), loaded as float32 |",
-             f"| sha256 | `{card['sha256']}` |",
-             f"| training steps | {card['step']}"
-             + (f" (on top of a warm start from a {card['init_from']['step']}-step model)" if card.get("init_from")
-                else "") + " |",
-             f"| source | run `{card['source']['run']}`, `{card['source']['file']}` (sha256 "
-             f"`{card['source']['sha256'][:16]}...`) |",
-             f"| fp16 round trip | max abs RGB difference {card['fp16_check']['max_abs_rgb']:.2e} "
-             f"(PSNR {card['fp16_check']['psnr_db']:.1f} dB vs the fp32 weights) |", "",
-             "## Training data", "",
-             f"- {data_card.get('train_objects')} synthetic {cat} train objects (`{cat}_train`), images at "
-             f"{data_card.get('resolution')} px for training, generator `{ds.get('generator', 'unknown')}`, "
-             f"framing `{card.get('framing') or 'unknown'}` (docs/data.md), pixel centres read as "
-             f"`data.pixel_center` {cfg.data.pixel_center}, "
-             f"seed {ds.get('seed', 'unknown')}, {ds.get('protocol', {}).get('train_views', '?')} random "
-             "upper-hemisphere views per object (exact z-depth, masks and meshes exist for every view).",
-             f"- Dataset split sizes: {', '.join(f'{k} {v}' for k, v in ds.get('counts', {}).items()) or 'unknown'}"
-             "; no val/test object is used for training.",
-             f"- Depth prior: `{est}`" + (f", weights `{card['depth_weights']}`" if card.get("depth_weights") else "")
-             + (f" (sha256 `{str(prior.get('weights_hash'))[:16]}...`, "
-                f"licence {prior.get('licence')})" if prior and est != "none" else "")
-             + ".", "",
-             "## Model and preset", "",
-             f"- Encoder: {m.encoder.backbone} trunk, {m.encoder.num_layers} feature stages"
-             + (f", + 4th input channel and depth encoder ({m.encoder.depth_channels} channels)"
-                if cfg.prior.enabled else "") + ".",
-             f"- NeRF MLP: {f.n_blocks} residual blocks of width {f.d_hidden}; samples {r.n_coarse} coarse + "
-             f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(inference_spec(cfg).z_range)}.",
-             *([f"- Mirror-symmetric conditioning (beyond the paper): each point also reads the features at its "
-                f"mirror image's projection; trained with {s.mirror_dropout:g} of the items without a plane. "
-                "`depthnerf eval` uses the dataset's plane (`--no-symmetry`: none), `depthnerf reconstruct "
-                "--facing DEG` a photo's (default 90, a side view; `none`: none)."] if m.mirror else []),
-             *(["- Depth prior at the point (beyond the paper, `--model.prior_at_point true`): the MLP input also "
-                "gets the normalised prior read at full resolution at each point's projection"
-                + (" and at its mirror image's" if m.mirror else "") + "."] if m.prior_at_point else []),
-             f"- Schedule: {s.max_steps} steps, Adam lr {s.lr:g}"
-             + (f" with a half-cosine decay to {s.lr_final:g}" if s.lr_schedule == "cosine" else "")
-             + f", {s.objects_phase1}/{s.objects_phase2} objects x {s.rays_per_object} rays per step, bbox sampling "
-             f"for {s.bbox_steps} steps; seed {cfg.seed}.",
-             *([f"- Warm start (`--init-from`): these steps continue from the network weights of "
-                f"`{card['init_from']['source']}` (step {card['init_from']['step']}, sha256 "
-                f"`{card['init_from']['sha256'][:16]}...`), with a fresh optimiser and schedule."]
-               if card.get("init_from") else []),
-             "- Full config: the `train_config` entry of the weights' metadata "
-             f"(`depthnerf train --preset {cfg.preset} --print-config` prints the preset).", "",
-             "## Evaluation", ""]
-    metrics, ev = card.get("metrics"), card.get("evaluation")
-    if metrics and ev:
-        heads = [k for k in METRIC_KEYS if k in metrics]
-        lines += ["| " + " | ".join(h.upper() if h != "chamfer_l1" else "Chamfer-L1" for h in heads) + " |",
-                  "|" + "---:|" * len(heads),
-                  "| " + " | ".join(f"{metrics[h]:.4f}" for h in heads) + " |", "",
-                  f"Protocol: {card['protocol']}.", "",
-                  f"- split `{ev['split']}`, {ev['objects']} objects, {ev['views']} scored views "
-                  f"(view stride {ev['views_stride']}), {ev['resolution']}x{ev['resolution']} px, "
-                  f"{ev['metrics_path']}; {ev['aggregation']}.",
-                  f"- LPIPS: {ev['lpips_status']}." + (f" Mesh: {ev['mesh_status']}." if ev.get("mesh_status") else "")]
-    else:
-        lines += ["Not evaluated at export time (no `--eval-summary`)."]
-    data_root = card.get("data_root") or (ev or {}).get("data_root") or data_card.get("root", "data/synth")
-    reproduce = [f"DATA={data_root}", synth_command(ds, cat)]
-    if est in CACHED_ESTIMATORS:
-        reproduce.append(depth_command(Path("$DATA"), est, card.get("depth_weights"), cfg.data.resolution,
-                                       category=cat))
-    reproduce.append(card.get("command") or f"depthnerf train --preset {cfg.preset} --data $DATA --depth {est} "
-                     f"--out runs/{name}  # --command not given at export: check the config in the weights")
-    reproduce.append(f"python scripts/export_checkpoint.py --run {card.get('run_path') or 'runs/' + card['source']['run']} "
-                     f"--name {name}"
-                     + (" --eval-summary SUMMARY" if ev else ""))
-    if ev:
-        reproduce.append(eval_command(name, ev, cfg.data.resolution))
-    lines += ["", "## Reproduce", "", "```bash", *reproduce, "```", "",
-              "## Intended use", "",
-              f"Demonstrating and testing the depthnerf pipeline offline: `depthnerf demo`, `depthnerf eval "
-              f"--checkpoint {name}` on the synthetic benchmark, and `depthnerf reconstruct` on renders that look "
-              "like it (one object, centred, white background, SRN-like camera).", "",
-              "## Limitations", "",
-              "- Trained on procedural synthetic objects only: real photos (and real ShapeNet renders) are out of "
-              "distribution, expect poor reconstructions.",
-              f"- CPU preset: {cfg.data.resolution} px, a small MLP and few training steps; far below the paper's "
-              "GPU settings.",
-              "- Single object, centred, on white, camera at the category's SRN distance and focal length.",
-              ("- The bundled depth network only knows the synthetic benchmark; for photos retrain with "
-               "`depth-anything-v2`." if est == "bundled" else
-               "- The oracle prior needs ground-truth depth, which only synthetic data has." if est == "oracle"
-               else "- Baseline: no depth prior, the reference for the depth-aware model."), "",
-              "## Licence", "", f"{LICENCE}. Exported with depthnerf {__version__}.", ""]
-    return "\n".join(lines)
-
-
 def _check_fp16_range(pre: Pretrained) -> None:
     for key, value in pre.model.state_dict().items():
         if value.is_floating_point() and not bool((value.abs() <= FP16_MAX).all()):
@@ -320,13 +234,17 @@ def _check_fp16_range(pre: Pretrained) -> None:
 
 
 def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | None = None,
-           command: str | None = None, data_root: str | None = None, base: Path = REPO_ROOT) -> ExportResult:
-    """Export ``run``'s best (else latest) checkpoint as ``out/<name>.*`` (see the module docstring)."""
+           command: str | None = None, data_root: str | None = None, base: Path = REPO_ROOT,
+           allow_unfinished: bool = False) -> ExportResult:
+    """Export ``run``'s best (else latest) checkpoint as ``out/<name>.*`` (see the module docstring); an unfinished
+    run only with ``allow_unfinished`` (:func:`check_finished`)."""
     if not NAME_PATTERN.match(name):
         raise DepthnerfError(f"--name {name!r}: use lower-case letters, digits, '.', '_' and '-' only")
     run = Path(run)
     if not (run / "checkpoints").is_dir():
         raise DepthnerfError(f"{run}: not a run folder (no checkpoints/)")
+    resolve_checkpoint(run)  # no complete checkpoint: one line
+    unfinished = check_finished(run, allow_unfinished)
     data_card = _read_json(run / "data_card.json", "run data card")
     prior = _read_json(run / "prior.json", "run prior record") if (run / "prior.json").is_file() else None
     source_path = resolve_checkpoint(run)
@@ -350,7 +268,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
                                  f"fp32 ones (tolerance {FP16_TOLERANCE}); not exported")
         summary = None
         if summary_path is not None:
-            summary = read_eval_summary(Path(summary_path), source.sha256, exported.sha256, cfg)
+            trained_prior = source.spec.prior_weights_hash or (prior or {}).get("weights_hash")  # spec, else run
+            summary = read_eval_summary(Path(summary_path), source.sha256, exported.sha256, cfg, trained_prior)
     except BaseException:
         staged.unlink(missing_ok=True)
         raise
@@ -363,6 +282,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
             "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},
             "fp16_check": check, "command": command, "data_root": portable_path(data_root, base),
             "run_path": portable_path(run, base), "metrics": None, "protocol": None, "evaluation": None}
+    if unfinished is not None:
+        card["unfinished"] = unfinished
     ds = data_card.get("dataset_card") or {}
     if ds:
         card.update(framing=card_framing(ds), generator=ds.get("generator"))
@@ -392,6 +313,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--command", help="the command that produced the run (quoted; goes into the model card)")
     p.add_argument("--data-root", help="dataset root as the card's reproduce commands should name it (default: the "
                    "path the evaluation used, relative to --relative-to)")
+    p.add_argument("--allow-unfinished", action="store_true",
+                   help="export a run that stopped before its --max-steps (the card says so); refused otherwise")
     p.add_argument("--relative-to", type=Path, default=REPO_ROOT,
                    help=f"base of the relative paths written into cards (default the repository, {REPO_ROOT})")
     return p.parse_args(argv)
@@ -402,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with torch.no_grad():  # scoped: main() also runs inside test processes
             res = export(args.run, args.name, args.out, args.eval_summary, args.command, args.data_root,
-                         args.relative_to)
+                         args.relative_to, args.allow_unfinished)
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -8,6 +8,7 @@ does (``checkpoints/step_*``, ``best``, ``latest``, ``data_card.json``, ``prior.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -69,9 +70,11 @@ def save_tiny(path: Path, cfg: TrainConfig, seed: int = 0, step: int = 7) -> Pat
     return path
 
 
-def tiny_run(run: Path, cfg: TrainConfig, seed: int = 0, steps: tuple[int, ...] = (5, 10), best: int | None = 5
-             ) -> Path:
-    """A run folder with checkpoints at ``steps`` (different weights each) and ``best`` = the one at ``best``."""
+def tiny_run(run: Path, cfg: TrainConfig, seed: int = 0, steps: tuple[int, ...] = (5, 10), best: int | None = 5,
+             max_steps: int | None = None) -> Path:
+    """A run folder with checkpoints at ``steps`` (different weights each) and ``best`` = the one at ``best``, of a
+    run configured for ``max_steps`` (default the last of ``steps``: a finished run)."""
+    cfg = dataclasses.replace(cfg, schedule=dataclasses.replace(cfg.schedule, max_steps=max_steps or max(steps)))
     run.mkdir(parents=True)
     for k, step in enumerate(steps):
         model = tiny_model(cfg, seed + k)

@@ -188,7 +188,8 @@ def test_a_run_collects_every_output(session):
         session.run(RunRequest(examples()[0], "car", views=1))
     assert len(list(session.work_dir.glob("run-*"))) == 2 and not run.exists()
     later = AppSession(AppConfig(work_dir=session.work_dir))  # a reused work folder: new runs, never old names
-    assert later._new_run_dir().name > max(d.name for d in session.work_dir.glob("run-*"))
+    before = max(d.name for d in session.work_dir.glob("run-*"))
+    assert later._new_run_dir().name > before
 
 
 def test_training_fill_is_the_checkpoints(session):

@@ -118,3 +118,24 @@ def test_wrong_category_checkpoint(tmp_path, capsys):
     chairs = save_tiny(tmp_path / "chairs.safetensors", tiny_config("chairs", "none"))
     code = main(["demo", "--out", str(tmp_path / "out"), "--cars-checkpoint", str(chairs), "--categories", "cars"])
     assert code == 2 and "trained on chairs" in capsys.readouterr().err
+
+
+def test_a_rerun_into_the_same_out_repeats_its_scores_and_leaves_no_stale_views(demo, tmp_path):
+    """``--out`` reused: the same flags give the same PSNR/SSIM (deterministic sampling, same object), and a run
+    with another ``--views-stride`` or ``--seed`` leaves exactly its own novel views in ``novel_views/``."""
+    cars = demo[0].parent / "cars.safetensors"
+    out = tmp_path / "out"
+
+    def run(*flags: str) -> dict:
+        with contextlib.redirect_stdout(io.StringIO()):
+            assert main(["demo", "--out", str(out), "--cars-checkpoint", str(cars), "--categories", "cars",
+                         "--turntable-views", "1", "--mesh-resolution", "8", "--no-progress", *flags]) == 0
+        return json.loads((out / "demo.json").read_text())["categories"]["cars"]
+
+    first, again = run("--views-stride", "50"), run("--views-stride", "50")
+    assert (again["psnr"], again["ssim"], again["per_view"]) == (first["psnr"], first["ssim"], first["per_view"])
+    for flags in (["--views-stride", "125"], ["--views-stride", "125", "--seed", "5"]):
+        r = run(*flags)
+        listed = {Path(p).name for kind in ("pred", "true") for p in r["files"]["novel_views"][kind]}
+        assert {p.name for p in (out / "cars" / "novel_views").iterdir()} == listed, flags
+        assert len(listed) == 2 * len(r["target_views"]) == 2 * 2

@@ -241,3 +241,36 @@ def test_warm_start_from_a_run_folder_is_written_relative(exporter, run, tmp_pat
     res = exporter.export(warm, "cpu-cars-depth", tmp_path / "ship", base=tmp_path)
     assert res.card["init_from"]["source"] == "runs/cars-bundled-w"
     assert str(tmp_path) not in res.card_md.read_text()
+
+
+def test_an_unfinished_run_is_refused_unless_asked_for(exporter, tmp_path):
+    """A run whose newest checkpoint is short of its ``--max-steps`` (stopped early, or still training) is not
+    exported as if finished: refused in one line, or with --allow-unfinished exported with cards that say so."""
+    run = tiny_run(tmp_path / "run", tiny_config("chairs", "none"), steps=(3, 8), best=3, max_steps=20)
+    with pytest.raises(exporter.DepthnerfError, match=r"not finished \(its newest checkpoint is step 8 of 20"):
+        exporter.export(run, "cpu-chairs-baseline", tmp_path / "ship")
+    assert not (tmp_path / "ship").exists() or not list((tmp_path / "ship").iterdir())
+    assert exporter.main(["--run", str(run), "--name", "cpu-chairs-baseline", "--out", str(tmp_path / "ship")]) == 2
+    res = exporter.export(run, "cpu-chairs-baseline", tmp_path / "ship", allow_unfinished=True)
+    assert res.card["unfinished"] == {"stopped_at": 8, "max_steps": 20} and res.card["step"] == 3  # best, as before
+    assert "Schedule: 20 steps (the run stopped at step 8: exported unfinished)" in res.card_md.read_text()
+    assert load_pretrained(res.weights).step == 3
+
+
+def test_refuses_summary_of_another_depth_prior(exporter, run, tmp_path):
+    """``depthnerf eval --depth`` / ``--depth-checkpoint`` score the checkpoint with a prior it does not ship with:
+    such a summary's metrics are not the shipped model's."""
+    best_sha = sha256_file(run / "checkpoints" / "best" / "model.safetensors")
+    oracle = _summary(tmp_path / "oracle.json", best_sha, depth_prior="oracle", method="depth-aware (oracle)")
+    with pytest.raises(exporter.DepthnerfError, match="with the oracle depth prior, but it ships with bundled"):
+        exporter.export(run, "cpu-cars-depth", tmp_path / "ship", oracle)
+    trained = load_pretrained(run).spec.prior_weights_hash or json.loads((run / "prior.json").read_text())[
+        "weights_hash"]  # the run's record of the prior it trained with, where the spec has none
+    other = _summary(tmp_path / "other.json", best_sha,
+                     depth_prior_provenance={"estimator": "bundled", "checkpoint": "srn", "weights_hash": "cd" * 32})
+    with pytest.raises(exporter.DepthnerfError, match="with other depth weights .srn, sha256 cdcdcdcdcdcd"):
+        exporter.export(run, "cpu-cars-depth", tmp_path / "ship", other)
+    assert not list((tmp_path / "ship").iterdir())
+    same = _summary(tmp_path / "same.json", best_sha,
+                    depth_prior_provenance={"estimator": "bundled", "checkpoint": "x", "weights_hash": trained})
+    assert trained and exporter.export(run, "cpu-cars-depth", tmp_path / "ship", same).card["metrics"]["psnr"] == 23.4567

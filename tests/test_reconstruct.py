@@ -157,6 +157,29 @@ def test_huge_image_is_downscaled_first():
     assert abs((x1 - x0 + 1) - 16) <= 2 and abs((y1 - y0 + 1) - 8) <= 2  # 2:1 box, longer side = half the frame
 
 
+def test_a_small_fill_frames_in_bounded_memory_as_the_full_square_would(monkeypatch):
+    """A small fill asks for a square far wider than the photo (8000 px for a 400 px object at 0.05, 770 MB at the
+    photo's scale): it is framed at a reduced scale, in bounded memory, and gives what the full square gives."""
+    import tracemalloc
+
+    from depthnerf.reconstruct import photo
+
+    disc = disc_photo(600, 600, (300, 300), 200)
+    tracemalloc.start()
+    try:
+        tiny = prepare_photo(disc, None, 64, "auto", 0.05)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 300e6, peak
+    x0, y0, x1, y1 = _bbox(tiny.mask)
+    assert 3 <= max(x1 - x0 + 1, y1 - y0 + 1) <= 5 and abs((x0 + x1) / 2 - 31.5) <= 1 and abs((y0 + y1) / 2 - 31.5) <= 1
+    reduced = prepare_photo(disc, None, 64, "auto", 0.075)  # a 5334 px square: just above MAX_CANVAS
+    monkeypatch.setattr(photo, "MAX_CANVAS", 10**6)
+    full = prepare_photo(disc, None, 64, "auto", 0.075)
+    assert np.abs(reduced.image - full.image).max() < 0.02 and (reduced.mask == full.mask).all()
+
+
 def test_constant_field_reconstruction_matches_closed_forms(models):
     rec = Reconstructor.from_pretrained(models["constant"])
     cfg = ReconstructConfig(views=4, elevation=30.0, mesh_resolution=10, mesh_keep="largest")

@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from depthnerf.app.messages import check_upload, display_name, one_line
+from depthnerf.app.messages import check_local_paths, check_upload, display_name, one_line
 from depthnerf.errors import DepthnerfError
 from depthnerf.pretrained.recommended import RECOMMENDED
 
@@ -93,7 +93,9 @@ class AppConfig:
     max_cached_models: int = 3
     """Loaded (checkpoint, depth prior) pairs kept in memory."""
     allow_checkpoint_paths: bool = True
-    """Offer the free "local checkpoint path" field (off when sharing publicly)."""
+    """Offer the free "local checkpoint path" and "background model" fields and accept local paths in the
+    requests (off when sharing publicly: then a request naming a local file or folder is refused,
+    :func:`~depthnerf.app.messages.check_local_paths`, whichever way it comes, the page or its HTTP API)."""
     background_model: str | None = None
     """Background model when the page's field is empty (rembg name or ONNX file; None: rembg's u2net)."""
 
@@ -227,6 +229,11 @@ class ModelCache:
             return rec
 
 
+def run_folders(work_dir: Path) -> dict[int, Path]:
+    """The run folders (``run-NNNNNN``) in ``work_dir`` by number."""
+    return {int(d.name[4:]): d for d in work_dir.glob("run-*") if d.name[4:].isdigit()}
+
+
 def model_resolution(rec) -> int:
     """Training (input) resolution of a loaded Reconstructor."""
     return rec.session.spec.resolution
@@ -243,13 +250,22 @@ class AppSession:
         else:
             self.work_dir = Path(config.work_dir)
             self.work_dir.mkdir(parents=True, exist_ok=True)
-        numbers = [int(d.name[4:]) for d in self.work_dir.glob("run-*") if d.name[4:].isdigit()]
-        self._runs = max(numbers, default=0)  # a reused --work-dir continues its numbering
+        self._runs = max(run_folders(self.work_dir), default=0)  # a reused --work-dir continues its numbering
         self._lock = threading.Lock()
 
     def training_fill(self, model: str, checkpoint_path: str = "") -> float:
         """The fill (foreground ratio) the model was trained at (see the module docstring)."""
-        return self.models.get(resolve_model(RunRequest(None, model, checkpoint_path))).default_fill
+        request = RunRequest(None, model, checkpoint_path)
+        self.check_paths(request)
+        return self.models.get(resolve_model(request)).default_fill
+
+    def check_paths(self, request: RunRequest) -> None:
+        """One line when ``request`` names a local file or folder, or a model outside the menu, and
+        ``AppConfig.allow_checkpoint_paths`` is off."""
+        if not self.config.allow_checkpoint_paths:
+            check_local_paths(request.checkpoint_path, request.background_model, request.depth_checkpoint)
+            if resolve_model(request) not in self.config.checkpoints:
+                raise DepthnerfError(f"model {request.model!r} is not in this page's menu")
 
     def preview(self, request: RunRequest) -> tuple[np.ndarray | None, str]:
         """The preprocessing alone (mask, recentre, white background, resize): ``(image or None, message)``."""
@@ -258,6 +274,7 @@ class AppSession:
 
         try:
             path = check_upload(request.image)
+            self.check_paths(request)
             rec = self.models.get(resolve_model(request))
             fill = request.foreground_ratio or rec.default_fill
             prep = prepare_photo(path, None, model_resolution(rec), "auto", fill,
@@ -275,12 +292,20 @@ class AppSession:
         return ("auto" if request.remove_background else "off"), model or None
 
     def _new_run_dir(self) -> Path:
-        """A fresh run folder; the oldest beyond ``keep_runs`` are deleted."""
+        """A fresh run folder, created here (so it is this request's alone, also when another app process shares
+        the ``--work-dir``: its number follows every run folder there, and a name taken meanwhile is skipped); the
+        oldest beyond ``keep_runs`` are deleted."""
         with self._lock:
-            self._runs += 1
-            run = self.work_dir / f"run-{self._runs:06d}"
-            runs = sorted(self.work_dir.glob("run-*"))
-        for stale in runs[: max(0, len(runs) - self.config.keep_runs + 1)]:
+            while True:
+                self._runs = max([self._runs, *run_folders(self.work_dir)]) + 1
+                run = self.work_dir / f"run-{self._runs:06d}"
+                try:
+                    run.mkdir(parents=True)
+                    break
+                except FileExistsError:  # another process took this number: take the next one
+                    continue
+            runs = [folder for _, folder in sorted(run_folders(self.work_dir).items())]
+        for stale in runs[: max(0, len(runs) - max(1, self.config.keep_runs))]:
             shutil.rmtree(stale, ignore_errors=True)
         return run
 
@@ -302,6 +327,7 @@ class AppSession:
         from depthnerf.render.mesh_level import LEVEL_RULES
 
         path = check_upload(request.image)
+        self.check_paths(request)
         max_views = self.config.max_views
         if not 1 <= int(request.views) <= max_views:
             raise DepthnerfError(f"orbit views must be within 1..{max_views}, got {request.views}")

@@ -1,4 +1,5 @@
-"""What the page says: errors in one line and in the page's words, the depth-prior line, the upload check.
+"""What the page says: errors in one line and in the page's words, the depth-prior line, the upload check and
+the rule for local paths on a publicly shared page (:func:`check_local_paths`).
 
 Messages from the package name command-line flags (``--mask``, ``--depth-checkpoint`` ...); the page shows them
 with its own field names (:data:`PAGE_WORDS`).
@@ -81,3 +82,26 @@ def check_upload(image: str | Path | None) -> Path:
         raise DepthnerfError(f"{name}: not an image ({' '.join(str(err).split())})") from None
     check_photo_format(fmt, name)  # the rule depthnerf reconstruct applies
     return path
+
+
+def is_local_path(value: str) -> bool:
+    """Whether a field's value names a file or folder of the server (rather than a model name or hub id): it
+    exists there, starts with ``.``, ``/`` or ``~``, or is a ``.onnx`` / ``.safetensors`` file name."""
+    return value.startswith((".", "/", "~")) or value.endswith((".onnx", ".safetensors")) or \
+        Path(value).expanduser().exists()
+
+
+def check_local_paths(checkpoint_path: str, background_model: str, depth_checkpoint: str) -> None:
+    """One line when a request names a local file or folder of the server on a page that offers none (a public
+    share link hides those fields; its HTTP API takes the same parameters, so the rule is applied here): a
+    checkpoint path, a background model file (a name with a ``/`` is one, as rembg reads it), a Depth Anything
+    folder (anything but a hub id ``owner/name``). Model names and hub ids pass."""
+    if checkpoint_path.strip():
+        raise DepthnerfError("local checkpoint paths are off on this shared page; pick a model from the menu")
+    background, weights = background_model.strip(), depth_checkpoint.strip()
+    if background and (is_local_path(background) or "/" in background):
+        raise DepthnerfError(f"background model {background!r}: local files are off on this shared page; enter a "
+                             "rembg model name (u2net), or leave it empty")
+    if weights and (is_local_path(weights) or weights.count("/") != 1):
+        raise DepthnerfError(f"Depth Anything weights {weights!r}: local folders are off on this shared page; enter "
+                             "a hub id (depth-anything/Depth-Anything-V2-Small-hf), or leave it empty")

@@ -3,7 +3,8 @@
 Imports Gradio (the ``[app]`` extra); nothing else in the package does. Requests go through Gradio's queue with
 one worker (``queue(default_concurrency_limit=1)``): one reconstruction at a time, and a second tab sees its
 place in the queue on its outputs. The server binds ``AppConfig.host`` (127.0.0.1 by default) and asks for a
-public share link only with ``AppConfig.share``.
+public share link only with ``AppConfig.share``. A shared page hides its path fields, and the session refuses
+local paths in any request (``AppConfig.allow_checkpoint_paths``), since its HTTP API takes every field.
 
 A new upload clears every output of the previous one (the preview fills in the preprocessed input; errors leave
 nothing stale). On exit (Ctrl+C or SIGTERM) the server closes, Gradio deletes the files it cached for this page
@@ -159,7 +160,8 @@ def build_page(session: AppSession) -> gr.Blocks:
                                       placeholder="u2net", visible=config.allow_checkpoint_paths,
                                       elem_id="background-model")
                 prior = gr.Radio(PRIOR_CHOICES, value="bundled", label="Depth prior", elem_id="prior")
-                prior_ckpt = gr.Textbox(label="Depth Anything V2 weights (hub id in the local cache, or a folder)",
+                prior_ckpt = gr.Textbox(label="Depth Anything V2 weights (hub id in the local cache"
+                                        + (", or a folder)" if config.allow_checkpoint_paths else ")"),
                                         placeholder="depth-anything/Depth-Anything-V2-Base-hf (default)",
                                         elem_id="prior-checkpoint")
                 prior_info = gr.Markdown(prior_description("bundled"), elem_id="prior-info")

@@ -2,7 +2,8 @@
 
 Input photo (assumption: ONE object, roughly centred, on a plain background)
     A PNG, JPEG or WebP file (:data:`PHOTO_FORMATS`; other formats, GIF animations included, are refused with one
-    line, by ``depthnerf reconstruct`` and the app alike; arrays and in-memory images are taken as they are);
+    line, by ``depthnerf reconstruct`` and the app alike; arrays and in-memory images are taken as they are; of an
+    animated PNG or WebP the first frame is read, noted);
     a file with an EXIF orientation tag (a camera's portrait JPEG) is turned upright as viewers show it, and so
     is a mask file (noted); grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
     images larger than :data:`MAX_SIDE` px are first downscaled (box filter, aspect ratio kept) so the longer side
@@ -23,7 +24,9 @@ Cluttered background (border-colour mask only)
 Framing rule (``framing="auto"``)
     A square crop centred on the mask's bounding box, of side ``max(box width, box height) / fill``, padded with
     white where it leaves the image, then resampled to the model's training resolution (area averaging, bilinear
-    when enlarging; mask = any area coverage, as :func:`depthnerf.data.srn.load_object` resizes masks). ``fill`` is the fraction of the
+    when enlarging; mask = any area coverage, as :func:`depthnerf.data.srn.load_object` resizes masks; a square
+    wider than :data:`MAX_CANVAS` px, which a small ``fill`` asks for, is built at a reduced scale, the photo's part
+    of it area-resampled first, so memory stays bounded at any fill). ``fill`` is the fraction of the
     frame the object's longer box side takes in training images: :func:`category_fill`, the fill of the synthetic
     benchmark's framing the checkpoint was trained on (``Framing.fill`` in :mod:`depthnerf.data.synth.framing`,
     measured by ``scripts/measure_fill.py``), :data:`DEFAULT_FILL` for other categories.
@@ -58,6 +61,8 @@ BACKGROUND_TOLERANCE = 0.1
 """Largest per-channel difference from the border colour that still counts as background (in [0, 1])."""
 ALPHA_THRESHOLD = 0.5
 """Alpha above this is object."""
+MAX_CANVAS = 4096
+"""Widest square the framing builds before resampling (a smaller ``fill`` frames at a reduced scale first)."""
 MAX_BORDER_OBJECT = 0.35
 """Largest fraction of the border ring the border-colour mask may cover before the background counts as cluttered."""
 MAX_OBJECT_AREA = 0.9
@@ -155,6 +160,8 @@ def _open(source: str | Path | Image.Image, name: str, notes: list[str]) -> Imag
         if not isinstance(source, Image.Image):
             check_photo_format(im.format, name)
         im.load()
+        if getattr(im, "is_animated", False):  # an animated PNG or WebP: its first frame, as a viewer's still
+            notes.append(f"animated image: the first of its {im.n_frames} frames is used")
         if not isinstance(source, Image.Image):
             im = upright(im, notes)
     if im.mode in ("P", "PA", "CMYK", "YCbCr", "HSV", "LAB", "RGBa", "La"):
@@ -289,17 +296,27 @@ def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, res
         raise DepthnerfError(f"framing must be 'auto' or 'keep', got {framing!r}")
     side_px = max(1, math.ceil(side))
     left, top = round(cx - side_px / 2), round(cy - side_px / 2)
-    canvas = np.ones((side_px, side_px, 3), dtype=np.float32)
-    cmask = np.zeros((side_px, side_px), dtype=bool)
     sx0, sy0 = max(0, left), max(0, top)
     sx1, sy1 = min(width, left + side_px), min(height, top + side_px)
-    canvas[sy0 - top:sy1 - top, sx0 - left:sx1 - left] = rgb[sy0:sy1, sx0:sx1]
-    cmask[sy0 - top:sy1 - top, sx0 - left:sx1 - left] = mask[sy0:sy1, sx0:sx1]
     notes.append(f"framing {framing}: square crop x {left}..{left + side_px}, y {top}..{top + side_px} of the "
                  f"{width}x{height} image, resampled to {resolution}x{resolution}")
+    scale = min(1.0, MAX_CANVAS / side_px)  # a small fill pads a huge square: built at most MAX_CANVAS px wide
+    n = max(1, round(side_px * scale))
+    canvas = np.ones((n, n, 3), dtype=np.float32)
+    cmask = np.zeros((n, n), dtype=bool)
+    part, part_mask = rgb[sy0:sy1, sx0:sx1], mask[sy0:sy1, sx0:sx1]
+    px, py = round((sx0 - left) * scale), round((sy0 - top) * scale)
+    if scale < 1.0:  # the photo's part of the square, area-resampled to the canvas's scale
+        pw, ph = min(max(1, round((sx1 - sx0) * scale)), n - px), min(max(1, round((sy1 - sy0) * scale)), n - py)
+        part = F.interpolate(torch.from_numpy(np.ascontiguousarray(part)).permute(2, 0, 1)[None], size=(ph, pw),
+                             mode="area")[0].permute(1, 2, 0).numpy()
+        part_mask = (F.interpolate(torch.from_numpy(part_mask)[None, None].float(), size=(ph, pw),
+                                   mode="area")[0, 0] > 0).numpy()
+    canvas[py:py + part.shape[0], px:px + part.shape[1]] = part
+    cmask[py:py + part.shape[0], px:px + part.shape[1]] = part_mask
     img_t = torch.from_numpy(canvas).permute(2, 0, 1)[None]
     size = (resolution, resolution)
-    img_t = (F.interpolate(img_t, size=size, mode="area") if side_px >= resolution
+    img_t = (F.interpolate(img_t, size=size, mode="area") if n >= resolution
              else F.interpolate(img_t, size=size, mode="bilinear", align_corners=False)).clamp(0, 1)
     cover = F.interpolate(torch.from_numpy(cmask)[None, None].float(), size=size, mode="area")
     return img_t[0].permute(1, 2, 0).numpy(), (cover[0, 0] > 0).numpy()
