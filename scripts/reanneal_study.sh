@@ -8,6 +8,9 @@
 #   bash scripts/reanneal_study.sh DIR                      # cars, cpu-cars-sym-pp
 #   CATEGORY=chairs CHECKPOINT=cpu-chairs-sym-pp bash scripts/reanneal_study.sh DIR
 #   STEPS=4 TRAIN=3 VAL=1 TEST=2 UNSEEN=2 bash scripts/reanneal_study.sh /tmp/r   # a smoke run of the script
+#   TRAIN=1200 ARMS="3e-4:3e-6" bash scripts/reanneal_study.sh DIR  # the lr-3e-4 arm on four times the train objects
+# (synth seeds each object by its split and index alone, so the first 300 train objects and the test objects are
+# those of the 300-object data)
 set -euo pipefail
 OUT=$1
 CATEGORY=${CATEGORY:-cars}
@@ -19,6 +22,7 @@ TEST=${TEST:-50}
 UNSEEN=${UNSEEN:-20}
 RES=${RES:-64}
 SEED=${SEED:-2}
+ARMS=${ARMS:-3e-4:3e-6 1e-4:1e-6}  # PEAK:FINAL learning rates, one run each
 HERE=$(cd "$(dirname "$0")" && pwd)
 source "$HERE/anneal_recipe.sh"
 mkdir -p "$OUT"
@@ -36,23 +40,25 @@ score() {  # score() DATA CHECKPOINT OUT
 
 data "$OUT/data" 0 "$TRAIN" "$VAL" "$TEST"
 data "$OUT/unseen" 4242 0 0 "$UNSEEN"
-for arm in "3e-4 3e-6" "1e-4 1e-6"; do
-  set -- $arm
-  run="$OUT/runs/lr$1"
-  anneal_flags "$CHECKPOINT" "$1" "$2"
+for arm in $ARMS; do
+  lr=${arm%%:*}
+  run="$OUT/runs/lr$lr"
+  anneal_flags "$CHECKPOINT" "$lr" "${arm##*:}"
   [ -d "$run/checkpoints/step_$(printf %08d "$STEPS")" ] || depthnerf train --preset "cpu-$CATEGORY" \
     --data "$OUT/data" --depth bundled --depth-checkpoint srn --model.mirror true --model.prior_at_point true \
     --seed "$SEED" "${ANNEAL_FLAGS[@]}" --max-steps "$STEPS" --checkpoint-every 250 --out "$run" --resume \
-    --no-progress > "$OUT/train_lr$1.log" 2>&1 &
+    --no-progress > "$OUT/train_lr$lr.log" 2>&1 &
 done
 wait
 score "$OUT/data" "$CHECKPOINT" "$OUT/eval/shipped"
 score "$OUT/unseen" "$CHECKPOINT" "$OUT/eval-unseen/shipped"
-for lr in 3e-4 1e-4; do
+methods=() unseen=()
+for arm in $ARMS; do
+  lr=${arm%%:*}
   score "$OUT/data" "$OUT/runs/lr$lr" "$OUT/eval/lr$lr"
   score "$OUT/unseen" "$OUT/runs/lr$lr" "$OUT/eval-unseen/lr$lr"
+  methods+=("$OUT/eval/lr$lr") unseen+=("$OUT/eval-unseen/lr$lr")
 done
-python "$HERE/paired_difference.py" --baseline "$OUT/eval/shipped" --method "$OUT/eval/lr3e-4" "$OUT/eval/lr1e-4" \
-  | tee "$OUT/paired.md"
-python "$HERE/paired_difference.py" --baseline "$OUT/eval-unseen/shipped" --method "$OUT/eval-unseen/lr3e-4" \
-  "$OUT/eval-unseen/lr1e-4" | tee "$OUT/paired_unseen.md"
+python "$HERE/paired_difference.py" --baseline "$OUT/eval/shipped" --method "${methods[@]}" | tee "$OUT/paired.md"
+python "$HERE/paired_difference.py" --baseline "$OUT/eval-unseen/shipped" --method "${unseen[@]}" \
+  | tee "$OUT/paired_unseen.md"
