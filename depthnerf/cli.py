@@ -3,7 +3,9 @@
 Each subcommand lives in ``depthnerf/commands/<module>.py`` and exposes ``add_arguments(parser)`` and
 ``run(args) -> int``; modules are imported lazily so ``depthnerf --help`` stays fast. A
 :class:`~depthnerf.errors.DepthnerfError` becomes one line ``error: ...`` on stderr and exit status 2, and so
-does a flag the parser refuses (:class:`OneLineParser`).
+does a flag the parser refuses (:class:`OneLineParser`). In a torchrun job every rank parses the same command
+line, so rank 0 alone prints a refused flag, and a :class:`~depthnerf.errors.RefusedOnMain` (a refusal rank 0 prints)
+ends a rank with status 2 and no line.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import warnings
 
 from depthnerf import __version__
 from depthnerf.cpu_runtime import configure_process
-from depthnerf.errors import DataWarning, DepthnerfError, format_data_warning
+from depthnerf.errors import DataWarning, DepthnerfError, RefusedOnMain, format_data_warning, launch_rank
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("synth", "generate the synthetic SRN-protocol benchmark (cars or chairs)"),
@@ -34,10 +36,12 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 class OneLineParser(argparse.ArgumentParser):
     """An argument parser whose errors are one line like every other error of the package (``error: PROG:
-    message``, exit status 2), pointing to ``--help`` instead of printing the usage block."""
+    message``, exit status 2), pointing to ``--help`` instead of printing the usage block; in a torchrun job, whose
+    ranks all parse the same command line, rank 0 alone prints it."""
 
     def error(self, message: str):
-        self.exit(2, f"error: {self.prog}: {message} ({self.prog} --help lists its options)\n")
+        line = f"error: {self.prog}: {message} ({self.prog} --help lists its options)\n"
+        self.exit(2, line if launch_rank() == 0 else None)
 
 
 def _command_module(name: str):
@@ -90,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
             warnings.simplefilter("always", DataWarning)  # every object's warning, even when repeated in-process
             warnings.showwarning = _data_warning_printer(warnings.showwarning)
             return int(module.run(args) or 0)
+    except RefusedOnMain:
+        return 2  # rank 0 prints the same line
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

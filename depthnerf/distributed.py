@@ -7,7 +7,8 @@ the objects and rank 0 merges them (:func:`gather_to_main`, :func:`broadcast_fro
 stage may use it.
 
 A rank that stops (its own one-line error, a kill) breaks the other ranks' next collective; :func:`peer_failure`
-turns that into one line on those ranks too, instead of a backend traceback.
+turns that into one line on those ranks too, instead of a backend traceback. Checks that every rank makes before the
+work starts (the data, the run folder) agree instead (:func:`checked_together`): one line for the whole job.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DepthnerfError, refusal
 
 
 @dataclass(frozen=True)
@@ -143,6 +144,31 @@ def peer_failure(info: DistInfo, what: str) -> Iterator[None]:
         said = text.split("] ", 1)[-1].split(". ", 1)[0][:160]  # gloo: "[file:line] what. Advice..."
         raise DepthnerfError(f"rank {info.rank} of {info.world}: another rank stopped while this one was {what}; "
                              f"the rank that stopped says why ({said})") from None
+
+
+@contextlib.contextmanager
+def checked_together(info: DistInfo, what: str) -> Iterator[None]:
+    """Checks every rank makes (``what`` they are: the data, the run folder), agreed on by all ranks at the end of
+    the block: when any rank refused, every rank stops with the first refusal, rank 0 printing it and the others
+    raising :class:`~depthnerf.errors.RefusedOnMain` (:func:`~depthnerf.errors.refusal`), so the job prints it
+    once; suffixed with the refusing rank where not every rank refused alike. A collective: every rank enters the
+    block. One process: a refusal passes through as raised."""
+    failed = None
+    try:
+        yield
+    except DepthnerfError as err:
+        if info.world == 1:
+            raise
+        failed = str(err)
+    if info.world == 1:
+        return
+    with peer_failure(info, what):
+        said = all_ranks(failed, info)
+    refused = [(rank, message) for rank, message in enumerate(said) if message is not None]
+    if refused:
+        rank, message = refused[0]
+        alike = all(other == message for other in said)
+        raise refusal(message if alike else f"{message} (rank {rank})", info.rank) from None
 
 
 class NormMerge:

@@ -34,10 +34,12 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def two_ranks(args: list[str], env: tuple[dict, dict] = ({}, {})) -> list[subprocess.CompletedProcess]:
-    """``python -m depthnerf ARGS`` as ranks 0 and 1 of one gloo job (``env``: each rank's extra variables)."""
+def two_ranks(args: list[str], env: tuple[dict, dict] = ({}, {}), launch: tuple[str, ...] = ("-m", "depthnerf")
+              ) -> list[subprocess.CompletedProcess]:
+    """``python -m depthnerf ARGS`` as ranks 0 and 1 of one gloo job (``env``: each rank's extra variables;
+    ``launch``: what runs instead of ``-m depthnerf``)."""
     port = str(free_port())
-    procs = [subprocess.Popen([sys.executable, "-m", "depthnerf", *map(str, args)], cwd=ROOT, text=True,
+    procs = [subprocess.Popen([sys.executable, *launch, *map(str, args)], cwd=ROOT, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "RANK": str(r),
                                    "LOCAL_RANK": str(r), "WORLD_SIZE": "2", "LOCAL_WORLD_SIZE": "2",
@@ -113,3 +115,56 @@ def test_peer_failure_turns_only_backend_failures_into_one_line():
     with pytest.raises(RuntimeError, match="gloo"):  # one process: nothing to blame on another rank
         with peer_failure(DistInfo(rank=0, world=1, device=torch.device("cpu")), "training"):
             raise RuntimeError(gloo)
+
+
+def all_error_lines(ranks: list[subprocess.CompletedProcess]) -> list[tuple[int, str]]:
+    """Every ``error:`` line of the ranks' combined output, with the rank that printed it."""
+    return [(r, line) for r, done in enumerate(ranks) for line in (done.stdout + done.stderr).splitlines()
+            if line.startswith("error:")]
+
+
+@pytest.mark.parametrize(("flags", "said"), [
+    (["--max-steps", "x"], "error: depthnerf train: argument --max-steps: invalid int value: 'x'"),  # the parser's
+    (["--schedule.lr", "inf"], "error: --schedule.lr must be a finite number, got inf"),  # the config's
+    (["--schedule.rays_per_object", "1000000000000"], "error: --schedule.objects_phase1 2 objects (1 per rank; one "
+                                                      "at a time: --schedule.step_shape per-object) x "
+                                                      "--schedule.rays_per_object 1000000000000 rays"),  # agreed
+    (["--data", "MISSING"], "error: "),  # the data's, agreed by the ranks after the process group started
+])
+def test_a_refusal_every_rank_reaches_is_printed_once(data, tmp_path, flags, said):
+    """Two ranks refusing alike (a bad flag or value, settings no step can hold, missing data) print one line, rank
+    0's, and both exit 2 (each rank printed it: the line twice)."""
+    flags = [str(tmp_path / "missing") if f == "MISSING" else f for f in flags]
+    ranks = two_ranks([*train_args(data, tmp_path / "run"), *flags])
+    assert [r.returncode for r in ranks] == [2, 2], ranks[0].stderr[-2000:] + ranks[1].stderr[-2000:]
+    lines = all_error_lines(ranks)
+    assert len(lines) == 1 and lines[0][0] == 0 and lines[0][1].startswith(said), lines
+    assert not any("Traceback" in r.stderr for r in ranks)
+
+
+OOM_ON_RANK_1 = """
+import os, sys
+from depthnerf.cli import main
+import torch
+import depthnerf.train.loop as loop
+
+def out_of_memory(*args, **kwargs):
+    raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 1 has a total capacity of 8 GiB")
+
+if os.environ["RANK"] == "1":
+    loop.train_step = out_of_memory
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_out_of_memory_on_one_rank_is_printed_by_that_rank(data, tmp_path):
+    """A failure of one rank alone (out of memory in its step) is still that rank's line, naming it; the other rank
+    says it stopped because another did."""
+    ranks = two_ranks(train_args(data, tmp_path / "run"), launch=("-c", OOM_ON_RANK_1))
+    assert [r.returncode for r in ranks] == [2, 2], ranks[0].stderr[-2000:] + ranks[1].stderr[-2000:]
+    lines = dict(all_error_lines(ranks))
+    assert len(all_error_lines(ranks)) == 2, lines
+    assert lines[1].startswith("error: rank 1 of 2: out of memory on cpu (could not allocate 2.00 GiB) at training "
+                               "step 0: a step renders --schedule.objects_phase1 2 objects (1 per rank; one at a "
+                               "time: --schedule.step_shape per-object) x --schedule.rays_per_object 32 rays"), lines
+    assert lines[0].startswith("error: rank 0 of 2: another rank stopped while this one was training"), lines

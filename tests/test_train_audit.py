@@ -248,3 +248,87 @@ def test_the_run_lock_waits_for_a_lock_released_meanwhile(tmp_path):
     threading.Timer(1.0, holder.__exit__, (None, None, None)).start()
     with run_lock(tmp_path, wait_s=10):
         pass
+
+
+def test_a_step_that_cannot_fit_the_device_is_refused_before_training_starts(data, tmp_path, capsys):
+    """Rays are drawn with replacement, so the data bounds nothing; but a step whose sample points alone exceed all
+    the device's memory can never run: one line naming the settings with their values, before anything is written
+    (it was an out-of-memory traceback from the first step's allocations)."""
+    run = tmp_path / "run"
+    assert main([*BASE, "--data", str(data), "--out", str(run), "--max-steps", "2",
+                 "--schedule.rays_per_object", "1000000000000"]) == 2
+    line = one_error(capsys)
+    assert line.startswith("error: --schedule.objects_phase1 2 objects x --schedule.rays_per_object 1000000000000 rays "
+                           "x 16 samples per ray (--render.sampler.n_coarse 8 + n_importance 4 + n_gaussian 4)"), line
+    assert "a step's sample points alone would take 349.2 TiB, more than all the memory of cpu (" in line
+    assert not run.exists()
+
+
+def _raise_torch_cuda_oom():
+    raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of "
+                                 "79.15 GiB of which 1.06 GiB is free.")
+
+
+def _raise_cpu_allocator_error():
+    torch.empty(1 << 55, dtype=torch.uint8)  # 32 PiB: more than any address space, refused at once
+
+
+def _raise_memory_error():
+    raise MemoryError
+
+
+@pytest.mark.parametrize(("fail", "said"), [(_raise_torch_cuda_oom, "(could not allocate 2.00 GiB)"),
+                                            (_raise_cpu_allocator_error, "(could not allocate 32.0 PiB)"),
+                                            (_raise_memory_error, "(MemoryError)")])
+def test_out_of_memory_in_a_step_is_one_line_and_the_run_resumes(data, tmp_path, capsys, monkeypatch, fail, said):
+    """An allocation that fails in step 1 (torch's CUDA error, the CPU allocator's, Python's) is one line naming the
+    settings that size a step and the allocation, exit 2; the checkpoint of step 1 stays the run's last, and --resume
+    continues from it (it was a traceback)."""
+    import depthnerf.train.loop as loop
+
+    real, calls = loop.train_step, []
+
+    def step_failing_at_1(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            fail()
+        return real(*args, **kwargs)
+
+    run = tmp_path / "run"
+    args = [*BASE, "--data", str(data), "--out", str(run), "--max-steps", "3", "--checkpoint-every", "1"]
+    monkeypatch.setattr(loop, "train_step", step_failing_at_1)
+    assert main(args) == 2
+    assert one_error(capsys) == (
+        f"error: out of memory on cpu {said} at training step 1: a step renders --schedule.objects_phase1 2 objects x "
+        "--schedule.rays_per_object 32 rays x 16 samples per ray (--render.sampler.n_coarse 8 + n_importance 4 + "
+        "n_gaussian 4), at --data.resolution 32; the run keeps its last checkpoint step_00000001: --resume continues "
+        "it on a device with more memory; smaller settings need a new run (another --out)")
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["latest", "step_00000001"]
+    monkeypatch.setattr(loop, "train_step", real)
+    assert main([*args, "--resume"]) == 0
+    assert ckpt.latest_checkpoint(run / "checkpoints").name == "step_00000003"
+
+
+def test_out_of_memory_in_a_loader_worker_or_validation_is_one_line(data, tmp_path, capsys, monkeypatch):
+    """The CPU allocator's error in a DataLoader worker (re-raised in the main process with the worker's traceback
+    as its text) and an allocation that fails in validation are one line each, naming what ran and its settings."""
+    import multiprocessing
+
+    from depthnerf.train.items import TrainItems
+
+    if multiprocessing.get_start_method() == "fork":  # the patch reaches a forked worker
+        with monkeypatch.context() as mp:
+            mp.setattr(TrainItems, "__getitem__", lambda self, key: _raise_cpu_allocator_error())
+            assert main([*BASE, "--data", str(data), "--out", str(tmp_path / "a"), "--max-steps", "2",
+                         "--data.num_workers", "1"]) == 2
+        line = one_error(capsys)
+        assert line.startswith("error: out of memory on cpu (could not allocate 32.0 PiB) at training step 0: a step "
+                               "renders --schedule.objects_phase1 2 objects"), line
+        assert line.endswith("the run has no checkpoint yet: start it again with smaller settings (without --resume)")
+    monkeypatch.setattr("depthnerf.eval.validation.validate", lambda *args, **kwargs: _raise_torch_cuda_oom())
+    assert main([*BASE, "--data", str(data), "--out", str(tmp_path / "b"), "--max-steps", "2", "--log.val_every", "2",
+                 "--log.val_objects", "1", "--log.val_views", "1", "--checkpoint-every", "1"]) == 2
+    assert one_error(capsys).startswith(
+        "error: out of memory on cpu (could not allocate 2.00 GiB) validating at step 2: it renders "
+        "--log.render_chunk 4096 rays per chunk x 16 samples per ray, at --data.resolution 32; the run keeps its last "
+        "checkpoint step_00000001")

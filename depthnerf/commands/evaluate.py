@@ -213,7 +213,7 @@ def empty_meshes_text(summary: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from depthnerf.distributed import peer_failure, teardown
-    from depthnerf.eval.shards import RefusedOnMain
+    from depthnerf.errors import RefusedOnMain
 
     check_flags(args)
     choices = _choices(args)

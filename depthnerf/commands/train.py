@@ -28,7 +28,7 @@ from typing import Any
 from depthnerf.config_io import apply_overrides, differences, to_dict
 from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import ESTIMATORS
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DepthnerfError, launch_rank, refusal
 from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
 
 ACCEPTS_OVERRIDES = True
@@ -143,25 +143,24 @@ def _absolute_store(cfg: TrainConfig) -> TrainConfig:
 
 
 def run(args: argparse.Namespace) -> int:
-    cfg = resolve_config(args)
-    if args.print_config:
-        print(json.dumps(to_dict(cfg), indent=2))
-        return 0
-    if not args.out:
-        raise DepthnerfError("--out RUN_DIR is required to train")
-    from depthnerf.distributed import setup, teardown
-    from depthnerf.eval.validation import validate
-    from depthnerf.train.loop import train
+    try:  # from the command line (and the run's config) alone: every torchrun rank refuses alike, rank 0 prints it
+        cfg = resolve_config(args)
+        if args.print_config:
+            print(json.dumps(to_dict(cfg), indent=2))
+            return 0
+        if not args.out:
+            raise DepthnerfError("--out RUN_DIR is required to train")
+        from depthnerf.distributed import checked_together, setup, teardown
+        from depthnerf.eval.validation import validate
+        from depthnerf.train.loop import train
 
-    if args.strict:  # training checks every file itself (leniently); this makes optional parts strict too
-        from depthnerf.data.srn import index_split, split_dir
-
-        for split in ("train", "val"):
-            if split == "train" or split_dir(cfg.data.root, cfg.data.category, split).is_dir():
-                index_split(cfg.data.root, cfg.data.category, split, strict=True)
-
-    info = setup(args.device, deterministic=args.deterministic)
+        info = setup(args.device, deterministic=args.deterministic)
+    except DepthnerfError as err:
+        raise refusal(str(err), launch_rank()) from None
     try:
+        if args.strict:  # training checks every file itself (leniently); this makes optional parts strict too
+            with checked_together(info, "checking the data (--strict)"):  # the ranks may read their own copies
+                _check_strictly(cfg)
         result = train(cfg, Path(args.out), info, resume=args.resume, progress=not args.no_progress,
                        validate=validate, compile=args.compile, compile_step=args.compile_step)
     finally:
@@ -172,6 +171,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"stopped by {result['stopped_by']} at step {result['step']}: checkpoint {result['checkpoint']}; "
                   f"resume with: {resume_command(args, info.world)}", file=sys.stderr, flush=True)
     return int(result["exit_code"])
+
+
+def _check_strictly(cfg: TrainConfig) -> None:
+    """``--strict``: index the train and val splits strictly (a problem in an optional part is an error)."""
+    from depthnerf.data.srn import index_split, split_dir
+
+    for split in ("train", "val"):
+        if split == "train" or split_dir(cfg.data.root, cfg.data.category, split).is_dir():
+            index_split(cfg.data.root, cfg.data.category, split, strict=True)
 
 
 def resume_command(args: argparse.Namespace, world: int) -> str:

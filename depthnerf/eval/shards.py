@@ -48,7 +48,7 @@ from depthnerf.config_io import differences
 from depthnerf.data.protocol import ProtocolViews, protocol_views
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.distributed import DistInfo, broadcast_from_main, gather_to_main
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DepthnerfError, refusal
 from depthnerf.eval.geometry_metrics import GeometryMetrics
 from depthnerf.eval.metrics import ObjectMetrics, ViewMetrics
 from depthnerf.files import write_json_atomic
@@ -87,10 +87,6 @@ class ObjectResult:
     """Wall-clock seconds of ``render`` (encode + render), ``metrics`` and ``mesh``."""
     renders: list[dict] = field(default_factory=list)
     """Its ``renders.csv`` rows (with ``save_renders``)."""
-
-
-class RefusedOnMain(DepthnerfError):
-    """What a rank other than 0 raises when rank 0 refused the evaluation (rank 0 prints the reason)."""
 
 
 def settings_hash(settings: dict) -> str:
@@ -240,7 +236,7 @@ def _plan(store: ObjectStore, records: Sequence[ObjectRecord], stride: int, info
     todo = [r.object_id for r in records if r.object_id not in done]
     message, todo = broadcast_from_main((message, todo), info)
     if message is not None:
-        raise DepthnerfError(message) if info.is_main else RefusedOnMain(message)
+        raise refusal(message, info.rank)
     return done, todo
 
 

@@ -43,12 +43,13 @@ from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
 from depthnerf.data.view_store import ViewStore
 from depthnerf.depth.prior import PriorSource, open_prior, portable_prior, weights_mismatch
-from depthnerf.distributed import DistInfo, NormMerge, all_ranks, barrier, peer_failure
-from depthnerf.errors import DepthnerfError
+from depthnerf.distributed import DistInfo, NormMerge, barrier, checked_together, peer_failure
+from depthnerf.errors import DepthnerfError, refusal
 from depthnerf.files import write_text_atomic
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.train import checkpoint as ckpt
+from depthnerf.train import memory
 from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate_packed, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.items import TrainItems
@@ -135,15 +136,8 @@ def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | 
         return None
     t0 = time.perf_counter()
     store = ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center)
-    counts, failed = {}, None
-    try:
+    with checked_together(info, "building the view store"):  # every rank stops with a rank's failure
         counts = store.ensure(records, rank=info.rank, world=info.world, progress=info.is_main)
-    except DepthnerfError as err:  # every rank learns of it (instead of waiting at a barrier) and stops with it
-        failed = str(err)
-    failures = [f"{msg} (rank {r})" if info.world > 1 else msg for r, msg in enumerate(all_ranks(failed, info))
-                if msg is not None]
-    if failures:
-        raise DepthnerfError(failures[0])
     others = [record for i, record in enumerate(records) if i % info.world != info.rank]  # the others' shares
     store.ensure(others)  # fingerprints only, where the ranks share a disk; built here, where not
     if info.is_main:
@@ -179,71 +173,76 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
            progress: bool, validate: Validator | None, compile: bool, compile_step: bool) -> dict:
     """:func:`train`'s body; ``hold`` keeps the run's lock until :func:`train` returns."""
     sched = cfg.schedule
-    check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world)
-    ckpt_root = run_dir / "checkpoints"
-    latest = ckpt.latest_checkpoint(ckpt_root) if ckpt_root.exists() else None
-    if latest is not None and not resume:
-        raise DepthnerfError(f"{run_dir}: already holds a run (last checkpoint {latest.name}); pass --resume to "
-                             "continue it or choose another --out")
-    check_run_dir(run_dir, latest is not None)
-    root, cat = Path(cfg.data.root), cfg.data.category
-    try:
-        records = index_split(root, cat, "train").objects
+    try:  # from the config and the world size alone: every rank refuses alike, rank 0 prints it
+        check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world)
     except DepthnerfError as err:
-        if resume and latest is None:  # most likely a mistyped --out: say so, not only what the data lacks
-            raise DepthnerfError(f"{err} (--resume found no checkpoint in {run_dir}, so a new run would start "
-                                 "there: check --out)") from None
-        raise
-    single = next((r for r in records if r.num_views < 2), None)
-    if single is not None:  # pixelNeRF's items need a source view and at least one other view as the target
-        raise DepthnerfError(f"{single.path}: has {single.num_views} view; a training object needs at least 2 (a "
-                             "source and a target); remove it from the train split")
-    if latest is not None:
-        _check_same_objects(run_dir, root, records)
-    trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
-    cfg = dataclasses.replace(cfg, prior=portable_prior(cfg.prior, trained_hash))
-    prior_source = open_prior(cfg.prior, data_root=root, resolution=cfg.data.resolution, records=records)
-    mismatch = weights_mismatch(prior_source, trained_hash, str(run_dir / "prior.json"))
-    if mismatch is not None:
-        raise DepthnerfError(f"{mismatch}; restore the weights the run began with to resume it")
-    val_records = []
-    if cfg.log.val_every > 0 and info.is_main and validate is not None:
+        raise refusal(str(err), info.rank) from None
+    with checked_together(info, "checking the run's settings, data and folder"):  # agreed by the ranks: one line
+        memory.check_step_fits(cfg, info)
+        ckpt_root = run_dir / "checkpoints"
+        latest = ckpt.latest_checkpoint(ckpt_root) if ckpt_root.exists() else None
+        if latest is not None and not resume:
+            raise DepthnerfError(f"{run_dir}: already holds a run (last checkpoint {latest.name}); pass --resume to "
+                                 "continue it or choose another --out")
+        check_run_dir(run_dir, latest is not None)
+        root, cat = Path(cfg.data.root), cfg.data.category
         try:
-            val_records = index_split(root, cat, "val").objects[: cfg.log.val_objects]
+            records = index_split(root, cat, "train").objects
         except DepthnerfError as err:
-            raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
-                                 ) from None
-        prior_source.check(val_records)
-    plane = None
-    if cfg.model.mirror:
-        plane, plane_from = dataset_plane(root, cat, cfg.data.symmetry_plane)
-        if info.is_main:
-            print(f"mirror conditioning: symmetry plane {plane} ({plane_from})", file=sys.stderr, flush=True)
-    card = read_dataset_card(root, cat)
-    spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"), dataset_framing(card))
-    near, far = spec.z_range
+            if resume and latest is None:  # most likely a mistyped --out: say so, not only what the data lacks
+                raise DepthnerfError(f"{err} (--resume found no checkpoint in {run_dir}, so a new run would start "
+                                     "there: check --out)") from None
+            raise
+        single = next((r for r in records if r.num_views < 2), None)
+        if single is not None:  # pixelNeRF's items need a source view and at least one other view as the target
+            raise DepthnerfError(f"{single.path}: has {single.num_views} view; a training object needs at least 2 (a "
+                                 "source and a target); remove it from the train split")
+        if latest is not None:
+            _check_same_objects(run_dir, root, records)
+        trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
+        cfg = dataclasses.replace(cfg, prior=portable_prior(cfg.prior, trained_hash))
+        prior_source = open_prior(cfg.prior, data_root=root, resolution=cfg.data.resolution, records=records)
+        mismatch = weights_mismatch(prior_source, trained_hash, str(run_dir / "prior.json"))
+        if mismatch is not None:
+            raise DepthnerfError(f"{mismatch}; restore the weights the run began with to resume it")
+        val_records = []
+        if cfg.log.val_every > 0 and info.is_main and validate is not None:
+            try:
+                val_records = index_split(root, cat, "val").objects[: cfg.log.val_objects]
+            except DepthnerfError as err:
+                raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
+                                     ) from None
+            prior_source.check(val_records)
+        plane = None
+        if cfg.model.mirror:
+            plane, plane_from = dataset_plane(root, cat, cfg.data.symmetry_plane)
+            if info.is_main:
+                print(f"mirror conditioning: symmetry plane {plane} ({plane_from})", file=sys.stderr, flush=True)
+        card = read_dataset_card(root, cat)
+        spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"), dataset_framing(card))
+        near, far = spec.z_range
 
-    torch.manual_seed(cfg.seed)
-    model = PixelNeRF(cfg.model, depth_aware=cfg.prior.enabled).to(info.device)
-    warm = None
-    if latest is None and cfg.init_from is not None:
-        warm = warm_start(model, cfg.init_from, cfg.model, cfg.prior.enabled)
-    if info.device.type == "cuda":
-        model.encoder.to(memory_format=torch.channels_last)
-    cuda = info.device.type == "cuda"
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr, fused=cuda or None)
-    model_cfg = to_dict(cfg.model)
-    state = ckpt.TrainingState(step=0, best_psnr=-math.inf)
-    if latest is not None:
-        state = ckpt.load_checkpoint(latest, model, optimizer, model_cfg)
-    start = state.step
-    if info.is_main:
-        print(f"resumed from step {start} ({latest})" if latest is not None else
-              f"started a new run in {run_dir} ({'no checkpoint found' if resume else 'new folder'})",
-              file=sys.stderr, flush=True)
-        if start >= cfg.schedule.max_steps:
-            print(f"nothing to train: the run is at step {start}, --max-steps is {cfg.schedule.max_steps} (pass a "
-                  "larger --max-steps to continue it)", file=sys.stderr, flush=True)
+        torch.manual_seed(cfg.seed)
+        model = PixelNeRF(cfg.model, depth_aware=cfg.prior.enabled).to(info.device)
+        warm = None
+        if latest is None and cfg.init_from is not None:
+            warm = warm_start(model, cfg.init_from, cfg.model, cfg.prior.enabled)
+        if info.device.type == "cuda":
+            model.encoder.to(memory_format=torch.channels_last)
+        cuda = info.device.type == "cuda"
+        optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr, fused=cuda or None)
+        model_cfg = to_dict(cfg.model)
+        state = ckpt.TrainingState(step=0, best_psnr=-math.inf)
+        if latest is not None:
+            state = ckpt.load_checkpoint(latest, model, optimizer, model_cfg)
+        start = state.step
+        if info.is_main:
+            print(f"resumed from step {start} ({latest})" if latest is not None else
+                  f"started a new run in {run_dir} ({'no checkpoint found' if resume else 'new folder'})",
+                  file=sys.stderr, flush=True)
+            if start >= cfg.schedule.max_steps:
+                print(f"nothing to train: the run is at step {start}, --max-steps is {cfg.schedule.max_steps} (pass a "
+                      "larger --max-steps to continue it)", file=sys.stderr, flush=True)
     if info.is_main:
         hold.enter_context(run_lock(run_dir))  # before the first write: a second process stops here
         restored = ckpt.restore_best(ckpt_root, state) if latest is not None else None
@@ -287,7 +286,10 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     step, best, best_step, last_saved = start, state.best_psnr, state.best_step, None
     saved_step, stopping = None, False
     t_last, rays_since = time.perf_counter(), 0
-    with StopRequest(info) as stop:
+    # out of memory: one line naming the step's settings, the step and the last checkpoint as they are then
+    oom = memory.one_line_out_of_memory(info, lambda: memory.in_training_step(cfg, info.world, step,
+                                                                               last_saved or latest))
+    with StopRequest(info) as stop, oom:
         for batch in loader:
             lr = learning_rate(cfg, plan, step)
             for group in optimizer.param_groups:
@@ -324,7 +326,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             if info.is_main and val_now:
                 try:
                     res = _validate(validate, stop, model, val_records, prior_source, spec, cfg, info, step,
-                                    progress and info.is_main, plane)
+                                    progress and info.is_main, plane, last_saved or latest)
                 except ValidationInterrupted:
                     pass  # stop.signum is set: the step's checkpoint follows
                 else:
@@ -373,11 +375,12 @@ def _ignore_stop_signals(worker_id: int) -> None:
 
 def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior_source: PriorSource,
               spec: InferenceSpec, cfg: TrainConfig, info: DistInfo, step: int, progress: bool,
-              plane: tuple[float, ...] | None):
+              plane: tuple[float, ...] | None, checkpoint: Path | None):
     """One validation as its own phase: a second progress bar over the val objects; interruptible by a stop
-    signal (:meth:`StopRequest.interruptible`)."""
+    signal (:meth:`StopRequest.interruptible`); out of memory, one line (``checkpoint``: the run's last)."""
     with tqdm(total=len(records), desc=f"validate (step {step})", unit="object", leave=False, position=1,
-              dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible():
+              dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible(), \
+            memory.one_line_out_of_memory(info, lambda: memory.in_validation(cfg, step, checkpoint)):
         ckpt.crash_point("validation", step)
         return validate(model, records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
                         progress=vbar.update, symmetry_plane=plane)
