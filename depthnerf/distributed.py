@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
@@ -54,31 +55,88 @@ def make_deterministic() -> None:
     torch.backends.cudnn.deterministic = True
 
 
-def pick_device(device: str, local_rank: int = 0) -> torch.device:
-    """``auto`` (CUDA if available), ``cpu``, ``cuda`` or ``cuda:N``; a CUDA request without a GPU is a one-line
-    :class:`DepthnerfError`."""
-    if device not in ("auto", "cpu", "cuda") and not (device.startswith("cuda:") and device[5:].isdigit()):
-        raise DepthnerfError(f"--device {device!r}: choose auto, cpu, cuda or cuda:N")
-    if device == "cpu" or (device == "auto" and not torch.cuda.is_available()):
+def _shown(name: str) -> str:
+    """A device request as a message quotes it: as given when it is one word, else its repr."""
+    return name if re.fullmatch(r"[\w.:-]+", name) else repr(name)
+
+
+def _visible(count: int) -> str:
+    """``N visible CUDA device(s) (cuda:0, ...)``."""
+    names = ", ".join(f"cuda:{i}" for i in range(count)) if count <= 3 else f"cuda:0 to cuda:{count - 1}"
+    return f"{count} visible CUDA device{'' if count == 1 else 's'} ({names})"
+
+
+def check_device_text(device: str | torch.device, flag: str = "--device", auto: bool = True) -> str:
+    """The request as text when it names a device this package runs on: ``cpu``, ``cuda``, ``cuda:N`` (and
+    ``auto`` where ``auto``); any other text (``mps``, ``meta``, ``gpu``, ...) is a one-line
+    :class:`DepthnerfError` naming ``flag`` and the choices. Depends on the text alone."""
+    name = str(device)
+    if name in ("cpu", "cuda") or (auto and name == "auto") or re.fullmatch(r"cuda:\d+", name):
+        return name
+    raise DepthnerfError(f"{flag} {_shown(name)}: choose {'auto, ' if auto else ''}cpu, cuda or cuda:N")
+
+
+def pick_device(device: str | torch.device, local_rank: int | None = None, *, flag: str = "--device",
+                auto: bool = True) -> torch.device:
+    """The one check of a device request: every ``--device`` flag (eval, train, reconstruct, demo, app, depth,
+    depth-eval), :class:`~depthnerf.infer.session.SessionOptions` and
+    :func:`~depthnerf.pretrained.load.load_pretrained` (a ``torch.device`` is read as its text).
+
+    ``auto`` (allowed where ``auto``): CUDA when available, else the CPU; ``cpu``; ``cuda``; ``cuda:N``. Another
+    device type (:func:`check_device_text`), CUDA without a GPU, or ``cuda:N`` past the GPUs this process sees
+    is a one-line :class:`DepthnerfError` naming ``flag`` and what there is. ``local_rank`` (a torchrun rank's
+    ``LOCAL_RANK``): the GPU ``cuda`` and ``auto`` mean, one per process; None: ``cuda`` as given (torch's
+    current GPU)."""
+    name = check_device_text(device, flag, auto)
+    if name == "cpu" or (name == "auto" and not torch.cuda.is_available()):
         return torch.device("cpu")
     if not torch.cuda.is_available():
-        raise DepthnerfError(f"--device {device}: no CUDA GPU is available to this process "
-                             "(torch.cuda.is_available() is False); use --device cpu")
-    index = int(device[5:]) if device.startswith("cuda:") else local_rank
-    if index >= torch.cuda.device_count():
-        raise DepthnerfError(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) are visible")
-    return torch.device(f"cuda:{index}")
+        raise DepthnerfError(f"{flag} {name}: no CUDA GPU is available to this process "
+                             f"(torch.cuda.is_available() is False); use {flag} cpu")
+    count = torch.cuda.device_count()
+    index = int(name[5:]) if name.startswith("cuda:") else local_rank
+    if index is None:
+        return torch.device("cuda")
+    if index < count:
+        return torch.device("cuda", index)
+    if name.startswith("cuda:"):
+        raise DepthnerfError(f"{flag} {name}: this machine has {_visible(count)}")
+    raise DepthnerfError(f"{flag} {name}: LOCAL_RANK {index} has no CUDA device of its own: this machine has "
+                         f"{_visible(count)}; launch at most {count} processes per machine")
+
+
+def _rank_device(device: str, rank: int, local: int, world: int) -> torch.device:
+    """:func:`pick_device` for a torchrun rank, before its process group starts, a refusal printed once
+    (:func:`~depthnerf.errors.refusal`): by rank 0 when the text is wrong (every rank alike), by each machine's
+    ``LOCAL_RANK`` 0 when the machine lacks the device (its ranks alike), and by the first rank past the
+    machine's GPUs when it runs more processes than it has GPUs. One process prints its own."""
+    def teller(r: int) -> int:
+        return r if world > 1 else 0
+
+    try:
+        check_device_text(device)
+    except DepthnerfError as err:
+        raise refusal(str(err), teller(rank)) from None
+    try:
+        pick_device(device)
+    except DepthnerfError as err:
+        raise refusal(str(err), teller(local)) from None
+    try:
+        return pick_device(device, local)
+    except DepthnerfError as err:
+        raise refusal(str(err), teller(local - torch.cuda.device_count())) from None
 
 
 def setup(device: str = "auto", deterministic: bool = False, timeout: timedelta | None = None) -> DistInfo:
-    """Initialise the process group if launched by torchrun, and pick this rank's device. ``timeout``: how long a
-    collective may wait for the slowest rank (None: PyTorch's default)."""
+    """Initialise the process group if launched by torchrun, and pick this rank's device (a refusal printed
+    once: :func:`_rank_device`). ``timeout``: how long a collective may wait for the slowest rank (None:
+    PyTorch's default)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local = int(os.environ.get("LOCAL_RANK", "0"))
     if deterministic:
         make_deterministic()
-    dev = pick_device(device, local)
+    dev = _rank_device(device, rank, local, world)
     use_cuda = dev.type == "cuda"
     if use_cuda:
         torch.cuda.set_device(dev)

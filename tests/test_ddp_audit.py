@@ -168,3 +168,77 @@ def test_out_of_memory_on_one_rank_is_printed_by_that_rank(data, tmp_path):
                                "step 0: a step renders --schedule.objects_phase1 2 objects (1 per rank; one at a "
                                "time: --schedule.step_shape per-object) x --schedule.rays_per_object 32 rays"), lines
     assert lines[0].startswith("error: rank 0 of 2: another rank stopped while this one was training"), lines
+
+
+FAILS_ON_RANK_1 = """
+import os, sys
+from depthnerf.cli import main
+from depthnerf.errors import DepthnerfError
+import depthnerf.reconstruct.exports as exports
+
+def full(out, overwrite=False):
+    raise DepthnerfError(f"{out}: cannot write the output folder (No space left on device)")
+
+def unreadable(self, record):
+    raise DepthnerfError(f"{record.path}: rgb/000000.png: unreadable image (truncated)")
+
+if os.environ["RANK"] == "1":
+    if os.environ["FAIL"] == "out":
+        exports.check_output_dir = full
+    else:
+        import depthnerf.eval.protocol as protocol
+        protocol._Evaluator.__call__ = unreadable
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory) -> Path:
+    return save_tiny(tmp_path_factory.mktemp("tiny") / "tiny.safetensors", tiny_config("cars", "none", resolution=16))
+
+
+def eval_args(weights: Path, data: Path, out: Path) -> list:
+    return ["eval", "--checkpoint", weights, "--data", data, "--no-mesh", "--no-progress", "--device", "cpu",
+            "--out", out]
+
+
+@pytest.mark.parametrize(("bad", "said"), [
+    ({"--mesh-points": "0"}, "error: --mesh-points must be >= 1, got 0"),  # a flag beyond the parser's
+    ({"--checkpoint": "MISSING/none.safetensors"}, "error: MISSING/none.safetensors"),  # agreed by the ranks
+    ({"--out": "FILE"}, "error: FILE: --out is a file, not a folder"),
+    ({"--data": "MISSING"}, "error: MISSING"),  # the data's, checked in the protocol
+    ({"--device": "meta"}, "error: --device meta: choose auto, cpu, cuda or cuda:N"),  # before the process group
+])
+def test_an_eval_refusal_every_rank_reaches_is_printed_once(data, tiny_weights, tmp_path, bad, said):
+    """Two evaluating ranks refusing alike (a flag, a checkpoint that is not there, a file as --out, missing data,
+    a device) print one line, rank 0's, and both exit 2 (each rank printed it: the line twice)."""
+    (tmp_path / "file").write_text("x")
+
+    def placed(text: str) -> str:
+        return text.replace("MISSING", str(tmp_path / "missing")).replace("FILE", str(tmp_path / "file"))
+
+    args = [str(a) for a in eval_args(tiny_weights, data, tmp_path / "eval")]
+    for flag, value in bad.items():  # the later of two equal flags wins
+        args += [flag, placed(value)]
+    ranks = two_ranks(args)
+    assert [r.returncode for r in ranks] == [2, 2], ranks[0].stderr[-2000:] + ranks[1].stderr[-2000:]
+    lines = all_error_lines(ranks)
+    expected = placed(said)
+    assert len(lines) == 1 and lines[0][0] == 0 and lines[0][1].startswith(expected), lines
+    assert not any("Traceback" in r.stderr for r in ranks)
+
+
+def test_an_eval_failure_of_one_rank_alone_is_printed(data, tiny_weights, tmp_path):
+    """Rank 1 alone cannot write the output folder (its own disk): an agreed check, printed once, naming rank 1.
+    Rank 1 alone fails while scoring: its own line, and rank 0 says another rank stopped."""
+    args = eval_args(tiny_weights, data, tmp_path / "eval")
+    ranks = two_ranks(args, env=({"FAIL": "out"}, {"FAIL": "out"}), launch=("-c", FAILS_ON_RANK_1))
+    assert [r.returncode for r in ranks] == [2, 2], ranks[0].stderr[-2000:] + ranks[1].stderr[-2000:]
+    lines = all_error_lines(ranks)
+    assert lines == [(0, f"error: {tmp_path / 'eval'}: cannot write the output folder (No space left on device) "
+                         "(rank 1)")], lines
+    ranks = two_ranks(args, env=({"FAIL": "scoring"}, {"FAIL": "scoring"}), launch=("-c", FAILS_ON_RANK_1))
+    assert [r.returncode for r in ranks] == [2, 2], ranks[0].stderr[-2000:] + ranks[1].stderr[-2000:]
+    lines = dict(all_error_lines(ranks))
+    assert len(all_error_lines(ranks)) == 2 and lines[1].endswith("rgb/000000.png: unreadable image (truncated)")
+    assert lines[0].startswith("error: rank 0 of 2: another rank stopped while this one was evaluating"), lines

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -22,6 +23,8 @@ from fixtures_checkpoints import save_tiny, tiny_config
 from fixtures_srn import make_srn_fixture
 
 from depthnerf.cli import main
+from depthnerf.data.srn import index_split
+from depthnerf.errors import DepthnerfError
 from depthnerf.eval.shards import OBJECTS_DIR, SETTINGS_FILE
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -185,3 +188,86 @@ def test_summary_means_are_recomputed_from_the_object_files(case):
     assert summary["views"] == sum(len(p["metrics"]["views"]) for p in payloads)
     meshed = [p["geometry"] for p in payloads if p["geometry"] is not None]
     assert summary["chamfer_l1"] == pytest.approx(np.mean([g["chamfer_l1"] for g in meshed]), abs=1e-12)
+
+
+def _synth(root: Path, seed: int) -> None:
+    """Two synthetic test cars (66 views of 16 px) of ``seed`` in ``root``, as ``depthnerf synth`` makes them."""
+    assert main(["synth", "--category", "cars", "--out", str(root), "--train-objects", "0", "--val-objects", "0",
+                 "--test-objects", "2", "--resolution", "16", "--views-test", "66", "--seed", str(seed),
+                 "--quiet"]) == 0
+
+
+def _timing(out: Path) -> tuple[int, int]:
+    timing = json.loads((out / "summary.json").read_text())["timing"]
+    return timing["objects_computed"], timing["objects_resumed"]
+
+
+def test_data_generated_again_in_place_is_refused_on_resume(case, tmp_path, capsys):
+    """``depthnerf synth`` with another seed into the same folder: the same object ids and (the test split's
+    camera spiral) the same poses, other cars. Resuming there mixed the earlier cars' results with the new ones';
+    it is one line now. New file times alone (a copy without ``-p``) change nothing; an evaluation whose result
+    files predate the fingerprint resumes as before; ``--overwrite`` starts over."""
+    root, out = tmp_path / "data", tmp_path / "eval"
+    _synth(root, seed=0)
+    base = ["eval", "--checkpoint", str(case["weights"]), "--data", str(root), "--views-stride", "30", "--no-mesh",
+            "--no-progress", "--device", "cpu", "--out", str(out)]
+    assert main(base) == 0 and _timing(out) == (2, 0)
+    for path in root.rglob("*"):
+        os.utime(path, (1_000_000_000, 1_000_000_000))
+    assert main(base) == 0 and _timing(out) == (0, 2)
+    shutil.rmtree(root)
+    _synth(root, seed=1)
+    capsys.readouterr()
+    assert main(base) == 2
+    first = root / "cars_test" / "synth_cars_test_000000"
+    assert capsys.readouterr().err == (
+        f"error: {out}: the data changed since the evaluation there started ({first} and 1 more of the 2 finished "
+        "objects: other cameras, image sizes or dataset card than its result was computed from); pass --overwrite "
+        "to start over or choose another --out\n")
+    files = sorted(p for p in (out / OBJECTS_DIR).glob("*.json") if p.name != SETTINGS_FILE)
+    for path in files:  # as an evaluation made before the fingerprint wrote them
+        payload = json.loads(path.read_text())
+        del payload["data_fingerprint"]
+        path.write_text(json.dumps(payload))
+    assert main(base) == 0 and _timing(out) == (0, 2)
+    assert main([*base, "--overwrite"]) == 0 and _timing(out) == (2, 0)
+    assert main(base) == 0 and _timing(out) == (0, 2)
+
+
+def test_the_data_fingerprint_reads_content_not_times(tmp_path):
+    """What changes an object's fingerprint: its cameras, its files' sizes, the dataset card's description; what
+    does not: file times, and the card's tallies over the splits (another split generated into the folder)."""
+    from depthnerf.data.fingerprint import DataFingerprint
+
+    root = make_srn_fixture(tmp_path / "data", "cars", {"test": 1}, views=3, size=16, with_depth=True,
+                            with_mask=True, with_mesh=True)
+    record = index_split(root, "cars", "test").objects[0]
+
+    def now() -> str:
+        return DataFingerprint(root, "cars")(record)
+
+    bare = now()
+    assert bare.startswith("files-1:")
+    for path in root.rglob("*"):
+        os.utime(path, (1_000_000_000, 1_000_000_000))
+    assert now() == bare
+    card = root / "cars_card.json"
+    card.write_text(json.dumps({"seed": 0, "counts": {"train": 10, "test": 1}, "styles": {}, "z_range": {}}))
+    carded = now()
+    assert carded != bare
+    card.write_text(json.dumps({"seed": 0, "counts": {"train": 20, "test": 1}, "styles": {"train": {"suv": 3}},
+                                "z_range": {"near": 0.8}}))
+    assert now() == carded
+    card.write_text(json.dumps({"seed": 1, "counts": {"train": 20, "test": 1}}))
+    assert now() != carded
+    card.unlink()
+    for changed in (record.pose_path(1), record.rgb_path(2), record.depth_path(0), record.mask_path(0),
+                    record.mesh_path):
+        kept = changed.read_bytes()
+        changed.write_bytes(kept + b"\n")
+        assert now() != bare, changed
+        changed.write_bytes(kept)
+    assert now() == bare
+    record.pose_path(0).unlink()
+    with pytest.raises(DepthnerfError, match=f"^{record.pose_path(0)}: cannot read it"):
+        now()

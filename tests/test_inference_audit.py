@@ -138,10 +138,10 @@ def test_demo_refuses_a_negative_seed_and_a_file_as_out(tmp_path, capsys, flags,
 def test_python_api_device_mistakes_are_one_line():
     """``Reconstructor.from_pretrained(name, "gpu")`` (or "cuda" without a GPU) was torch's RuntimeError from deep
     inside the checkpoint loader."""
-    with pytest.raises(DepthnerfError, match=r"^device 'gpu': not a torch device \(use 'cpu' or 'cuda'\)$"):
+    with pytest.raises(DepthnerfError, match=r"^device gpu: choose cpu, cuda or cuda:N$"):
         SessionOptions(device="gpu")
     if not torch.cuda.is_available():
-        with pytest.raises(DepthnerfError, match="^device 'cuda': no CUDA GPU is available to this process"):
+        with pytest.raises(DepthnerfError, match="^device cuda: no CUDA GPU is available to this process"):
             SessionOptions(device="cuda")
     assert SessionOptions(device="cpu").device == "cpu"
 
@@ -170,7 +170,7 @@ def test_eval_refuses_a_file_as_out_before_loading(tmp_path, capsys):
 
 @pytest.mark.skipif(importlib.util.find_spec("gradio") is None, reason="needs the [app] extra")
 @pytest.mark.parametrize("flags, line", [
-    (["--device", "gpu"], "--device 'gpu': not a torch device (use auto, cpu or cuda)"),
+    (["--device", "gpu"], "--device gpu: choose auto, cpu, cuda or cuda:N"),
     (["--work-dir", "{d}/file"], "{d}/file: --work-dir is a file, not a folder"),
     (["--work-dir", "{d}/file/runs"], "{d}/file/runs: cannot create --work-dir (Not a directory)"),
 ])

@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-views", type=int, default=36, help="largest number of orbit views (default 36)")
     p.add_argument("--mesh-resolution", type=int, default=64,
                    help="marching-cubes samples along the mesh box's longest side (default 64; 0 = no mesh)")
-    p.add_argument("--device", default="cpu", help="torch device of the models (default cpu)")
+    p.add_argument("--device", default="cpu", help="torch device of the models: cpu (default), cuda, cuda:N or auto")
     p.add_argument("--work-dir", type=Path,
                    help="where runs are written (default: a temporary folder, removed when the app stops)")
     p.add_argument("--background-model", metavar="NAME_OR_FILE",
@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("gradio") is None:
         raise DepthnerfError(INSTALL_HINT)
     from depthnerf.app.logic import SHIPPED_MODELS, AppConfig, check_port
-    from depthnerf.commands.evaluate import resolve_device
+    from depthnerf.distributed import pick_device
 
     if not 1 <= args.views <= args.max_views:
         raise DepthnerfError(f"--views must be within 1..--max-views ({args.max_views}), got {args.views}")
@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {args.mesh_resolution}")
     if not 0 < args.port < 65536:
         raise DepthnerfError(f"--port must be within 1..65535, got {args.port}")
-    device = resolve_device(args.device)  # a device that is not there: one line, not the first model's traceback
+    device = pick_device(args.device)  # a device that is not there: one line, not the first model's traceback
     if args.work_dir is not None:  # a file or a folder that cannot be made: one line
         if args.work_dir.exists() and not args.work_dir.is_dir():
             raise DepthnerfError(f"{args.work_dir}: --work-dir is a file, not a folder")

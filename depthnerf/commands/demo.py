@@ -15,8 +15,6 @@ import os
 import time
 from pathlib import Path
 
-from depthnerf.commands.evaluate import resolve_device
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from depthnerf.demo import CATEGORIES, DEFAULT_CHECKPOINTS, DEMO_SEED
@@ -35,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--turntable-views", type=int, default=16, help="turntable frames (default 16)")
     p.add_argument("--mesh-resolution", type=int, default=96, help="marching-cubes grid samples (default 96)")
     p.add_argument("--no-mesh", action="store_true", help="skip the mesh")
-    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -51,6 +49,7 @@ def process_seconds() -> float | None:
 
 def run(args: argparse.Namespace) -> int:
     from depthnerf.demo import DemoConfig, run_demo
+    from depthnerf.distributed import pick_device
 
     t0 = time.perf_counter()
     cats = tuple(dict.fromkeys(args.categories))
@@ -58,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
                      checkpoints={c: getattr(args, f"{c}_checkpoint") for c in cats},
                      views_stride=args.views_stride, turntable_views=args.turntable_views, mesh=not args.no_mesh,
                      mesh_resolution=args.mesh_resolution, progress=not args.no_progress)
-    demo = run_demo(cfg, resolve_device(args.device))
+    demo = run_demo(cfg, pick_device(args.device))
     rows = [("category", "checkpoint", "prior", "object", "views", "PSNR", "SSIM", "seconds")]
     for cat, r in demo["categories"].items():
         rows.append((cat, r["checkpoint"], r["depth_prior"], r["object_id"],

@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch-size", type=int, default=16, help="images per estimator call (default 16)")
     parser.add_argument("--resolution", type=int, default=None,
                         help="image side to compute priors at (default: the dataset's own)")
-    parser.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda or cuda:N")
+    parser.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N or auto")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--strict", action="store_true",
                         help="check every file of the splits first; a problem in an optional part is an error too")
@@ -62,6 +62,9 @@ def _prior_of_checkpoint(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from depthnerf.distributed import pick_device
+
+    device = pick_device(args.device)  # a device this process lacks: one line, before any work
     if args.for_checkpoint is not None:
         _prior_of_checkpoint(args)
     if args.depth not in CACHED_ESTIMATORS:
@@ -79,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint,
         splits=tuple(args.splits or DEFAULT_SPLITS), categories=tuple(args.category) if args.category else None,
         require_splits=args.splits is not None, batch_size=args.batch_size, resolution=args.resolution,
-        device=args.device, progress=not args.no_progress)
+        device=str(device), progress=not args.no_progress)
     summary = precompute_priors(cfg)
     for group in summary.missing_splits:
         print(f"note: {group} does not exist under {args.data}, skipped")

@@ -38,16 +38,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-objects", type=int, default=None, help="at most N objects per category")
     parser.add_argument("--max-views", type=int, default=None, help="at most N evenly spaced views per object")
     parser.add_argument("--batch-size", type=int, default=16, help="images per estimator call (default 16)")
-    parser.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda or cuda:N")
+    parser.add_argument("--device", default="cpu", help="torch device: cpu (default), cuda, cuda:N or auto")
     parser.add_argument("--no-cache", action="store_true", help="always run the estimator, ignore any cache")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
+    from depthnerf.distributed import pick_device
+
+    device = pick_device(args.device)  # a device this process lacks: one line, before any work
     cfg = DepthEvalConfig(
         data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint, split=args.split,
         categories=tuple(args.category) if args.category else None, max_objects=args.max_objects,
-        max_views=args.max_views, batch_size=args.batch_size, device=args.device, use_cache=not args.no_cache,
+        max_views=args.max_views, batch_size=args.batch_size, device=str(device), use_cache=not args.no_cache,
         progress=not args.no_progress)
     result = evaluate_depth(cfg)
     print(f"{args.depth} on {args.split} ({result.objects} objects, {result.images} images, "

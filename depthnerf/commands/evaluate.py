@@ -16,7 +16,8 @@ problems in the optional parts (depth, masks, meshes) errors too (see docs/data.
 
 ``--ssim``, ``--scored`` and ``--objects`` select the protocol choices that move published numbers (defaults:
 pixelNeRF's; :mod:`depthnerf.eval.config`). Every object's result is kept under ``OUT_DIR/objects/``: the same
-command run again continues a killed evaluation, other settings there are refused unless ``--overwrite``.
+command run again continues a killed evaluation, other settings there (or data changed since, a fingerprint of
+its files: :mod:`depthnerf.data.fingerprint`) are refused unless ``--overwrite``.
 ``torchrun --nproc_per_node=N -m depthnerf eval ...`` shares the objects out over N processes (one GPU each,
 ``LOCAL_RANK`` picks it; gloo on CPU) and rank 0 writes the merged outputs (:mod:`depthnerf.eval.shards`).
 """
@@ -28,8 +29,6 @@ import os
 import sys
 from datetime import timedelta
 from pathlib import Path
-
-import torch
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
@@ -98,7 +97,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--symmetry-plane", type=float, nargs=4, metavar=("NX", "NY", "NZ", "D"),
                    help="mirror models: the objects' symmetry plane n.x = d in the world frame (default: the "
                         "dataset card's, else ShapeNet's x = 0)")
-    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     add_precision_flags(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--strict", action="store_true",
@@ -117,19 +116,6 @@ def add_precision_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bf16-residual", action="store_true",
                    help="CUDA: keep the field MLPs' residual stream in bf16 under bf16 autocast (half its memory "
                         "traffic; renders differ by bf16 rounding; opt-in)")
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when available, else CPU; anything else as given."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise DepthnerfError(f"--device {name!r}: not a torch device (use auto, cpu or cuda)") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise DepthnerfError(f"--device {name}: no CUDA GPU is available to this process; use --device cpu")
-    return device
 
 
 def guided_request(budget: int | None, align_samples: int):
@@ -177,21 +163,24 @@ def _choices(args: argparse.Namespace):
 
 def _process(device: str):
     """This process's place in the job: a torchrun rank (its process group set up, one GPU each by
-    ``LOCAL_RANK``, gloo on CPU) or the only process."""
-    from depthnerf.distributed import DistInfo, setup
+    ``LOCAL_RANK``, gloo on CPU; a device refusal printed once, :func:`depthnerf.distributed.setup`) or the only
+    process."""
+    from depthnerf.distributed import DistInfo, pick_device, setup
 
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         return setup(device, timeout=COLLECTIVE_TIMEOUT)
-    return DistInfo(rank=0, world=1, device=resolve_device(device))
+    return DistInfo(rank=0, world=1, device=pick_device(device))
 
 
-def check_category(data: Path, category: str | None, split: str, trained: str, checkpoint: str) -> None:
-    """A warning line when ``--category`` scores a model on another category than it was trained on; an error
-    naming the categories the data holds when it has none of the model's (instead of a missing split folder)."""
+def check_category(data: Path, category: str | None, split: str, trained: str, checkpoint: str,
+                   warn: bool = True) -> None:
+    """A warning line (where ``warn``: rank 0 of a torchrun job) when ``--category`` scores a model on another
+    category than it was trained on; an error naming the categories the data holds when it has none of the
+    model's (instead of a missing split folder)."""
     from depthnerf.data.srn import discover_categories, split_dir
 
     if category is not None:
-        if category != trained:
+        if category != trained and warn:
             print(f"warning: scoring {checkpoint}, a {trained} model, on {category} data (--category {category}); "
                   "the figures measure a category it was not trained on", file=sys.stderr, flush=True)
         return
@@ -211,64 +200,87 @@ def empty_meshes_text(summary: dict) -> str:
     return f" ({empty} of {summary.get('geometry_objects', '?')} meshes empty)" if empty else ""
 
 
-def run(args: argparse.Namespace) -> int:
-    from depthnerf.distributed import peer_failure, teardown
-    from depthnerf.errors import RefusedOnMain
+def _request(args: argparse.Namespace):
+    """The output folder, protocol config and guided setup the flags ask for, from the command line alone (every
+    flag checked before the checkpoint and the data load): ``(out, cfg, guided)``."""
+    from depthnerf.eval.geometry_metrics import GeometryConfig
+    from depthnerf.eval.metrics import LpipsConfig
+    from depthnerf.eval.protocol import ProtocolConfig
+    from depthnerf.render.mesh_level import parse_level
 
     check_flags(args)
     choices = _choices(args)
-    info = _process(args.device)
-    try:
-        with peer_failure(info, "evaluating (the finished objects are kept: the same command continues)"):
-            return _run(args, info, choices)
-    except RefusedOnMain:
-        return 2  # rank 0 prints why
-    finally:
-        teardown(info)
-
-
-def _run(args: argparse.Namespace, info, choices) -> int:
-    from depthnerf.eval.geometry_metrics import GeometryConfig
-    from depthnerf.eval.metrics import LpipsConfig
-    from depthnerf.eval.protocol import ProtocolConfig, evaluate_protocol
-    from depthnerf.infer.session import InferenceSession, SessionOptions
-    from depthnerf.pretrained.load import load_pretrained
-    from depthnerf.reconstruct.exports import check_output_dir
-    from depthnerf.render.mesh_level import parse_level
-
     out = args.out
     if out is None:
         if args.run is None:
             raise DepthnerfError("--out OUT_DIR is required with --checkpoint")
         out = args.run / "eval" / args.split
-    check_output_dir(out, overwrite=True)  # a file or an unwritable folder fails before anything loads
-    device = info.device
     guided = guided_request(args.guided, args.guided_align_samples)
-    cfg = ProtocolConfig(  # every protocol flag is checked here, before the checkpoint and the data load
+    cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
         resolution=args.resolution, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         choices=choices, method=args.method, lpips=LpipsConfig(trunk_path=args.lpips_trunk),
         progress=not args.no_progress, overwrite=args.overwrite)
-    pre = load_pretrained(args.run if args.run is not None else args.checkpoint, device)
+    return out, cfg, guided
+
+
+def run(args: argparse.Namespace) -> int:
+    """Under torchrun a refusal prints once: one from the command line alone (every rank refuses alike) by rank
+    0; the output folder, checkpoint and data are checked by every rank and agreed on
+    (:func:`~depthnerf.distributed.checked_together`); one rank's failure while scoring is that rank's line."""
+    from depthnerf.distributed import peer_failure, teardown
+    from depthnerf.errors import RefusedOnMain, launch_rank, refusal
+
+    try:
+        request = _request(args)
+    except DepthnerfError as err:
+        raise refusal(str(err), launch_rank()) from None
+    info = _process(args.device)
+    try:
+        with peer_failure(info, "evaluating (the finished objects are kept: the same command continues)"):
+            return _run(args, info, *request)
+    except RefusedOnMain:
+        return 2  # rank 0 prints why
+    finally:
+        teardown(info)
+
+
+def _session(args: argparse.Namespace, info, out: Path, guided):
+    """The output folder checked, the checkpoint loaded and its data checked: the evaluation's session."""
+    from depthnerf.infer.session import InferenceSession, SessionOptions
+    from depthnerf.pretrained.load import load_pretrained
+    from depthnerf.reconstruct.exports import check_output_dir
+
+    check_output_dir(out, overwrite=True)  # a file or an unwritable folder fails before anything loads
+    pre = load_pretrained(args.run if args.run is not None else args.checkpoint, info.device)
     note = symmetry_note(args, pre.model.cfg.mirror, str(args.run or args.checkpoint))
     if note is not None and info.is_main:
         print(note, file=sys.stderr, flush=True)
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
-    check_category(data, args.category, args.split, pre.spec.category, str(args.run or args.checkpoint))
+    check_category(data, args.category, args.split, pre.spec.category, str(args.run or args.checkpoint),
+                   warn=info.is_main)
     if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too
         from depthnerf.data.srn import index_split
 
         index_split(data, args.category or pre.spec.category, args.split, strict=True)
-    session = InferenceSession(pre, SessionOptions(
-        device=device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset", data_root=data,
-        fp32=args.fp32, compile=args.compile, compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,
-        chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
+    return InferenceSession(pre, SessionOptions(
+        device=info.device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset",
+        data_root=data, fp32=args.fp32, compile=args.compile, compile_mode=args.compile_mode,
+        bf16_residual=args.bf16_residual, chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
         encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
         symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane)))
+
+
+def _run(args: argparse.Namespace, info, out: Path, cfg, guided) -> int:
+    from depthnerf.distributed import checked_together
+    from depthnerf.eval.protocol import evaluate_protocol
+
+    with checked_together(info, "checking the output folder, the checkpoint and the data"):  # agreed: one line
+        session = _session(args, info, out, guided)
     result = evaluate_protocol(session, out, cfg, info)
     if result is None:  # a rank other than 0: rank 0 writes and prints
         return 0

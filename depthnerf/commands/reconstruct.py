@@ -15,8 +15,9 @@ import math
 import sys
 from pathlib import Path
 
-from depthnerf.commands.evaluate import add_precision_flags, guided_request, resolve_device
+from depthnerf.commands.evaluate import add_precision_flags, guided_request
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
+from depthnerf.distributed import pick_device
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
 
@@ -69,7 +70,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--guided-align-samples", type=int, default=32,
                    help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
     p.add_argument("--chunk", type=int, help="rays per render pass (default 4096 on CPU, 65536 on CUDA)")
-    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu or cuda")
+    p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     add_precision_flags(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model,
                             facing=getattr(args, "facing", DEFAULT_FACING))
-    options = SessionOptions(device=resolve_device(args.device), depth=args.depth,
+    options = SessionOptions(device=pick_device(args.device), depth=args.depth,
                              depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
                              compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,
                              chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples))

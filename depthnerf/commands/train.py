@@ -153,10 +153,9 @@ def run(args: argparse.Namespace) -> int:
         from depthnerf.distributed import checked_together, setup, teardown
         from depthnerf.eval.validation import validate
         from depthnerf.train.loop import train
-
-        info = setup(args.device, deterministic=args.deterministic)
     except DepthnerfError as err:
         raise refusal(str(err), launch_rank()) from None
+    info = setup(args.device, deterministic=args.deterministic)  # a device refusal: printed once (setup says how)
     try:
         if args.strict:  # training checks every file itself (leniently); this makes optional parts strict too
             with checked_together(info, "checking the data (--strict)"):  # the ranks may read their own copies

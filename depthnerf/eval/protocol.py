@@ -79,8 +79,9 @@ import trimesh
 
 from depthnerf.data import srn_format
 from depthnerf.data.card import card_path, card_pixel_center, read_dataset_card
+from depthnerf.data.fingerprint import DataFingerprint
 from depthnerf.data.srn import ObjectRecord, index_split
-from depthnerf.distributed import DistInfo
+from depthnerf.distributed import DistInfo, checked_together
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.config import ProtocolChoices, ProtocolConfig
 from depthnerf.eval.geometry_metrics import object_geometry, summarize_geometry
@@ -299,33 +300,34 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     pre, spec = session.pretrained, session.spec
     data_root, out_dir = Path(session.options.data_root), Path(out_dir)
     category = cfg.category or spec.category
-    all_records = index_split(data_root, category, cfg.split).objects  # every file checked up front, as train does
-    card = read_dataset_card(data_root, category)
-    # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
-    cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=card_pixel_center(card)))
-    skipped = [r.object_id for r in all_records if choices.skips(r.object_id)]
-    kept = [r for r in all_records if not choices.skips(r.object_id)]
-    if not kept:
-        raise DepthnerfError(f"{data_root}: every object of {category}_{cfg.split} is left out by --objects "
-                             f"{choices.objects}")
-    records = kept[: cfg.max_objects] if cfg.max_objects else kept
-    input_res = spec.resolution
-    eval_res = input_res if cfg.resolution is None else cfg.resolution  # 0 is refused by ProtocolConfig
-    side = max(8, SSIM_WINDOW_SIDE[choices.ssim])
-    if eval_res < side:
-        raise DepthnerfError(f"--resolution must be >= {side} (SSIM {choices.ssim}), got {eval_res}")
-    session.prior_source.check(records)
-    estimator, guided = spec.prior.estimator, session.guided
-    lpips = load_lpips(cfg.lpips, device)
-    lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
-    try:
-        if out_dir.exists() and not out_dir.is_dir():
-            raise NotADirectoryError(0, "a file, not a folder")
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise DepthnerfError(f"{out_dir}: cannot use it as the output folder ({err.strerror or err})") from None
-    evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category)
-    store = ObjectStore(out_dir, _settings(session, cfg, data_root, category, eval_res, lpips is not None))
+    with checked_together(info, "checking the data and the output folder"):  # agreed by the ranks: one line
+        all_records = index_split(data_root, category, cfg.split).objects  # every file checked, as train does
+        card = read_dataset_card(data_root, category)
+        # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
+        cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=card_pixel_center(card)))
+        skipped = [r.object_id for r in all_records if choices.skips(r.object_id)]
+        kept = [r for r in all_records if not choices.skips(r.object_id)]
+        if not kept:
+            raise DepthnerfError(f"{data_root}: every object of {category}_{cfg.split} is left out by --objects "
+                                 f"{choices.objects}")
+        records = kept[: cfg.max_objects] if cfg.max_objects else kept
+        input_res, eval_res = spec.resolution, spec.resolution if cfg.resolution is None else cfg.resolution
+        side = max(8, SSIM_WINDOW_SIDE[choices.ssim])
+        if eval_res < side:
+            raise DepthnerfError(f"--resolution must be >= {side} (SSIM {choices.ssim}), got {eval_res}")
+        session.prior_source.check(records)
+        estimator, guided = spec.prior.estimator, session.guided
+        lpips = load_lpips(cfg.lpips, device)
+        lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
+        try:
+            if out_dir.exists() and not out_dir.is_dir():
+                raise NotADirectoryError(0, "a file, not a folder")
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise DepthnerfError(f"{out_dir}: cannot use it as the output folder ({err.strerror or err})") from None
+        evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category)
+        store = ObjectStore(out_dir, _settings(session, cfg, data_root, category, eval_res, lpips is not None),
+                            DataFingerprint(data_root, category))
     results, counts = evaluate_objects(records, evaluator, store, info, cfg.views_stride, overwrite=cfg.overwrite,
                                        progress=cfg.progress)
     if results is None:

@@ -5,17 +5,21 @@ Files (under ``OUT_DIR/objects/``)
     chunk, prior, protocol choices, mesh and geometry settings, device type and render precision; not
     ``--max-objects``, ``--method`` or the number of processes). ``<object_id>.json``: one object's metrics, mesh
     level, timings and ``renders.csv`` rows, written atomically (:func:`depthnerf.files.write_json_atomic`, a
-    temporary sibling renamed into place) after its PNGs and mesh, with the settings' hash inside. A reader only
-    ever sees whole files; a stray ``.NAME.PID.tmp`` of a killed process is never read, and a file that does not
-    parse or carries another settings hash counts as not done.
+    temporary sibling renamed into place) after its PNGs and mesh, with the settings' hash and the fingerprint
+    of the object's files (``data_fingerprint``: :mod:`depthnerf.data.fingerprint`, taken before it was read)
+    inside. A reader only ever sees whole files; a stray ``.NAME.PID.tmp`` of a killed process is never read, and
+    a file that does not parse or carries another settings hash counts as not done.
 
 Resume
     :func:`evaluate_objects` skips the objects whose file is there, so a killed evaluation restarted with the same
     arguments computes only the rest, and the merged outputs equal an uninterrupted run's (the stored floats
     round-trip exactly through JSON; only timings differ). A restart with other settings, once an object is
-    finished, is a one-line error naming what differs, unless ``--overwrite``, which first deletes everything an
-    earlier evaluation wrote there (:func:`remove_outputs`: the object files, ``summary.json``,
-    ``per_object.csv``, ``renders.csv`` and the PNGs and meshes of ``--save-renders``), and nothing else.
+    finished, is a one-line error naming what differs, and so is one on data that changed since (a finished
+    object whose files' fingerprint is not the stored one: a dataset generated again in place under the same
+    object ids; result files without a fingerprint, of earlier versions, are not checked), unless
+    ``--overwrite``, which first deletes everything an earlier evaluation wrote there (:func:`remove_outputs`: the
+    object files, ``summary.json``, ``per_object.csv``, ``renders.csv`` and the PNGs and meshes of
+    ``--save-renders``), and nothing else.
 
 Sharding
     Rank 0 checks the folder and sends every rank the same list of unfinished objects (in dataset order); rank
@@ -96,10 +100,11 @@ def settings_hash(settings: dict) -> str:
     return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def encode(result: ObjectResult, settings_sha: str) -> dict:
-    """The JSON content of an object's result file."""
+def encode(result: ObjectResult, settings_sha: str, data_fingerprint: str | None = None) -> dict:
+    """The JSON content of an object's result file (``data_fingerprint``: of its files, None: not taken)."""
     m = result.metrics
     return {"format": FORMAT, "object_id": result.record.object_id, "settings_sha": settings_sha,
+            "data_fingerprint": data_fingerprint,
             "metrics": {"psnr": m.psnr, "ssim": m.ssim, "lpips": m.lpips,
                         "views": [dataclasses.asdict(v) for v in m.views]},
             "geometry": None if result.geometry is None else dataclasses.asdict(result.geometry),
@@ -150,10 +155,17 @@ def remove_outputs(out_dir: Path) -> int:
 class ObjectStore:
     """The per-object result files of one evaluation (module docstring)."""
 
-    def __init__(self, out_dir: Path, settings: dict) -> None:
+    def __init__(self, out_dir: Path, settings: dict,
+                 fingerprint: Callable[[ObjectRecord], str] | None = None) -> None:
         self.dir = Path(out_dir) / OBJECTS_DIR
         self.settings = json.loads(json.dumps(settings))  # as it reads back from disk
         self.sha = settings_hash(self.settings)
+        self.fingerprint = fingerprint
+        """An object's data fingerprint (:class:`depthnerf.data.fingerprint.DataFingerprint`); None: not kept."""
+
+    def data_fingerprint(self, record: ObjectRecord) -> str | None:
+        """``record``'s data fingerprint now (None without :attr:`fingerprint`)."""
+        return None if self.fingerprint is None else self.fingerprint(record)
 
     def path(self, object_id: str) -> Path:
         return self.dir / f"{object_id}.json"
@@ -184,8 +196,9 @@ class ObjectStore:
         write_json_atomic(settings_path, self.settings)
 
     def finished(self, records: Sequence[ObjectRecord], stride: int) -> dict[str, ObjectResult]:
-        """The objects of ``records`` whose result file is complete and was made with these settings."""
-        done = {}
+        """The objects of ``records`` whose result file is complete and was made with these settings; a one-line
+        error when the files of a finished object are not those it was computed from (:meth:`check_data`)."""
+        done, stored = {}, {}
         for record in records:
             path = self.path(record.object_id)
             if not path.is_file():
@@ -195,9 +208,32 @@ class ObjectStore:
                 if payload.get("format") != FORMAT or payload.get("settings_sha") != self.sha:
                     continue
                 done[record.object_id] = decode(payload, record, stride)
+                stored[record.object_id] = payload.get("data_fingerprint")
             except (OSError, ValueError, KeyError, TypeError, AttributeError):
                 continue  # not a result of this evaluation: computed again
+        self.check_data([r for r in records if r.object_id in done], stored)
         return done
+
+    def check_data(self, records: Sequence[ObjectRecord], stored: dict[str, str | None]) -> None:
+        """A one-line error when a finished object's files changed since its result was computed (its stored
+        fingerprint, by id in ``stored``, is not the one of its files now); an object without one (a result file
+        of an earlier version) is not checked."""
+        if self.fingerprint is None:
+            return
+        changed = [r for r in records if stored.get(r.object_id) is not None
+                   and stored[r.object_id] != self._current(r)]
+        if changed:
+            more = f" and {len(changed) - 1} more of the {len(records)} finished objects" if len(changed) > 1 else ""
+            raise DepthnerfError(
+                f"{self.dir.parent}: the data changed since the evaluation there started ({changed[0].path}{more}: "
+                "other cameras, image sizes or dataset card than its result was computed from); pass --overwrite "
+                "to start over or choose another --out")
+
+    def _current(self, record: ObjectRecord) -> str | None:
+        try:
+            return self.data_fingerprint(record)
+        except DepthnerfError:
+            return None  # a file gone or unreadable: changed
 
     def save(self, payload: dict, *, only_if_missing: bool = False) -> None:
         """Write an object's result file atomically (:func:`encode`'s mapping)."""
@@ -257,8 +293,9 @@ def evaluate_objects(records: Sequence[ObjectRecord], evaluate: Callable[[Object
                disable=not (progress and info.is_main), dynamic_ncols=True)
     payloads, views, start, where = [], 0, time.perf_counter(), "" if info.world == 1 else " on rank 0"
     for k, record in enumerate(mine, start=1):
+        fingerprint = store.data_fingerprint(record)  # of the files as they are read
         result = evaluate(record)
-        payload = encode(result, store.sha)
+        payload = encode(result, store.sha, fingerprint)
         store.save(payload)
         payloads.append(payload)
         crash_point(k)

@@ -52,6 +52,7 @@ from depthnerf.data.srn import ObjectRecord, ObjectViews, load_object
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.depth.prior import PriorConfig, PriorSource, open_prior, weights_mismatch
+from depthnerf.distributed import pick_device
 from depthnerf.errors import DepthnerfError, UsageWarning
 from depthnerf.model.conditioning import Conditioned, condition, condition_views
 from depthnerf.model.pixelnerf import ENCODER_NORMS, EncodedViews, EncoderNorm, SourceViews
@@ -118,12 +119,7 @@ class SessionOptions:
 
     def __post_init__(self) -> None:
         """One line naming the flag when a value cannot work (checked before anything loads)."""
-        try:
-            device = torch.device(self.device)
-        except (RuntimeError, TypeError):
-            raise DepthnerfError(f"device {self.device!r}: not a torch device (use 'cpu' or 'cuda')") from None
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise DepthnerfError(f"device {self.device!r}: no CUDA GPU is available to this process; use 'cpu'")
+        pick_device(self.device, flag="device", auto=False)  # one line for a device this process lacks
         if self.chunk is not None and self.chunk < 1:
             raise DepthnerfError(f"--chunk must be >= 1, got {self.chunk}")
         if self.policy is None:  # a flag combination the device cannot run fails here, not after loading

@@ -27,6 +27,7 @@ import torch
 
 from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing
 from depthnerf.depth.prior import portable_prior
+from depthnerf.distributed import pick_device
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.pixelnerf import PixelNeRF
@@ -105,7 +106,9 @@ class Pretrained:
 
 
 def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") -> Pretrained:
-    """Load a checkpoint (shipped name or path) into a ready :class:`Pretrained` (weights in fp32 on ``device``)."""
+    """Load a checkpoint (shipped name or path) into a ready :class:`Pretrained` (weights in fp32 on ``device``:
+    ``cpu``, ``cuda`` or ``cuda:N``, checked first, :func:`~depthnerf.distributed.pick_device`)."""
+    pick_device(device, flag="device", auto=False)
     path = resolve_checkpoint(checkpoint)
     tensors, meta = read_weights(path)
     try:
