@@ -289,8 +289,10 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     # out of memory: one line naming the step's settings, the step and the last checkpoint as they are then
     oom = memory.one_line_out_of_memory(info, lambda: memory.in_training_step(cfg, info.world, step,
                                                                                last_saved or latest))
-    with StopRequest(info) as stop, oom:
-        for batch in loader:
+    with StopRequest(info) as stop, oom, contextlib.ExitStack() as cleanup:
+        batches = iter(loader)
+        cleanup.callback(_stop_workers, batches)  # also when a step raises: see _stop_workers
+        for batch in batches:
             lr = learning_rate(cfg, plan, step)
             for group in optimizer.param_groups:
                 group["lr"] = lr
@@ -364,6 +366,16 @@ def _save(ckpt_root: Path, model: PixelNeRF, optimizer: torch.optim.Optimizer, m
     state = ckpt.TrainingState(step=step, best_psnr=best[0], best_step=best[1], world_size=info.world)
     return ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg, state, keep_last=cfg.log.keep_last,
                                 train_config=to_dict(cfg), spec_json=spec.to_json())
+
+
+def _stop_workers(batches) -> None:
+    """Shut down the DataLoader iterator's worker processes now. Left to garbage collection, a run that ends in an
+    exception (out of memory in a worker, one line) keeps the iterator alive through the exception's traceback, and
+    at interpreter exit multiprocessing's SIGTERM to its workers is ignored (:func:`_ignore_stop_signals`): the
+    process would wait for them for ever."""
+    shutdown = getattr(batches, "_shutdown_workers", None)  # torch's multi-process iterator; none with 0 workers
+    if shutdown is not None:
+        shutdown()
 
 
 def _ignore_stop_signals(worker_id: int) -> None:
