@@ -12,7 +12,7 @@ views with ``lo <= angle < hi`` (the last one its upper edge too); views outside
 
 A folder whose ``renders.csv`` is not the one its ``summary.json`` was written with (an earlier evaluation's, left
 behind) is refused; so is a ``--method`` evaluation scored on other views or another way than the baseline (another
-``--views-stride``, ``--resolution``, split, ``--ssim`` or ``--scored``: ``paired_difference.scoring_difference``),
+``--views-stride``, ``--resolution``, split, ``--ssim`` or ``--scored``: ``paired_difference.pairing_refusal``),
 and a missing folder or file: one ``error:`` line, exit status 2.
 """
 
@@ -27,7 +27,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from paired_difference import scoring_difference, t_interval
+from paired_difference import pairing_refusal, t_interval
 
 from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import ObjectRecord, index_split
@@ -178,10 +178,9 @@ def _run(args: argparse.Namespace) -> int:
     report = {}
     for folder in args.method:
         method_angles = view_angles(folder)
-        difference = scoring_difference(args.baseline, base_summary, folder, read_summary(folder))
-        if difference is not None:
-            raise DepthnerfError(f"{difference}: not the same views scored the same way, so not paired (evaluate "
-                                 "both with the same options)")
+        refusal = pairing_refusal(args.baseline, base_summary, folder, read_summary(folder))
+        if refusal is not None:
+            raise DepthnerfError(refusal)
         rows = compare(base, binned(folder, edges, method_angles), edges)
         report[str(folder)] = rows
         print(f"\n{folder} - {args.baseline} (paired per object; objects and views per bin)\n")

@@ -101,15 +101,22 @@ def scoring_difference(baseline: Path, base: dict, method: Path, other: dict) ->
                               recorded_choices(method / "summary.json", other)])
 
 
+def pairing_refusal(baseline: Path, base: dict, method: Path, other: dict) -> str | None:
+    """The one-line refusal to pair two evaluations scored differently (:func:`scoring_difference`), else None."""
+    difference = scoring_difference(baseline, base, method, other)
+    if difference is None:
+        return None
+    return f"{difference}: not the same views scored the same way, so not paired (evaluate both with the same options)"
+
+
 def check_pairable(baseline: Path, method: Path) -> None:
-    """A one-line ``SystemExit`` when the two evaluations were scored differently (:func:`scoring_difference`)."""
+    """A one-line ``SystemExit`` when the two evaluations were scored differently (:func:`pairing_refusal`)."""
     try:
-        difference = scoring_difference(baseline, read_summary(baseline), method, read_summary(method))
+        refusal = pairing_refusal(baseline, read_summary(baseline), method, read_summary(method))
     except DepthnerfError as err:
         raise SystemExit(f"error: {err}") from None
-    if difference is not None:
-        raise SystemExit(f"error: {difference}: not the same views scored the same way, so not paired "
-                         "(evaluate both with the same options)")
+    if refusal is not None:
+        raise SystemExit(f"error: {refusal}")
 
 
 def method_name(folder: Path) -> str:
