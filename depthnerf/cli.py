@@ -5,7 +5,8 @@ Each subcommand lives in ``depthnerf/commands/<module>.py`` and exposes ``add_ar
 :class:`~depthnerf.errors.DepthnerfError` becomes one line ``error: ...`` on stderr and exit status 2, and so
 does a flag the parser refuses (:class:`OneLineParser`). In a torchrun job every rank parses the same command
 line, so rank 0 alone prints a refused flag, and a :class:`~depthnerf.errors.RefusedOnMain` (a refusal rank 0 prints)
-ends a rank with status 2 and no line.
+ends a rank with status 2 and no line. Data and usage warnings are printed by rank 0 alone too: every rank indexes
+the same splits and loads the same checkpoint, so each would print the same lines.
 """
 
 from __future__ import annotations
@@ -17,7 +18,14 @@ import warnings
 
 from depthnerf import __version__
 from depthnerf.cpu_runtime import configure_process
-from depthnerf.errors import DataWarning, DepthnerfError, RefusedOnMain, format_data_warning, launch_rank
+from depthnerf.errors import (
+    DataWarning,
+    DepthnerfError,
+    RefusedOnMain,
+    UsageWarning,
+    format_data_warning,
+    launch_rank,
+)
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("synth", "generate the synthetic SRN-protocol benchmark (cars or chairs)"),
@@ -92,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", DataWarning)  # every object's warning, even when repeated in-process
+            if launch_rank() != 0:  # the same lines as rank 0's (module docstring)
+                warnings.simplefilter("ignore", DataWarning)
+                warnings.simplefilter("ignore", UsageWarning)
             warnings.showwarning = _data_warning_printer(warnings.showwarning)
             return int(module.run(args) or 0)
     except RefusedOnMain:

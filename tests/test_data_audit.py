@@ -194,6 +194,22 @@ def test_jpeg_rgb_under_a_png_name_is_read_with_one_warning_per_split(tmp_path: 
     assert capsys.readouterr().err.strip() == f"warning: {expected}"
 
 
+def test_a_data_warning_is_printed_by_rank_zero_alone(tmp_path: Path, capsys, monkeypatch):
+    """In a torchrun job every rank indexes the same splits: rank 0 prints the split's warning, rank 1 does not
+    (its exit status is the same)."""
+    root = make_srn_fixture(tmp_path, splits={"train": 1}, views=3)
+    path = next(p for p in (root / "cars_train").iterdir() if p.is_dir()) / "rgb" / "000001.png"
+    buffer = io.BytesIO()
+    Image.open(path).convert("RGB").save(buffer, "JPEG", quality=75)
+    path.write_bytes(buffer.getvalue())
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    for rank, lines in (("0", 1), ("1", 0)):
+        monkeypatch.setenv("RANK", rank)
+        assert main(["inspect", "--data", str(root)]) == 0
+        err = capsys.readouterr().err
+        assert err.count("warning: ") == lines and err.count("JPEG data under a .png name") == lines, (rank, err)
+
+
 def test_a_legacy_prior_entry_is_checked_without_hashing_every_image(tmp_path: Path, monkeypatch):
     """``depthnerf depth`` (and the store's check) compute the byte-wise fingerprint for ``rgb-bytes:`` entries
     and for entries they write, never to check an entry of the earlier scheme."""
