@@ -260,7 +260,7 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
              SPEC_KEY: source.spec.to_json()}
     ckpt.save_weights(staged, source.model, ckpt.checkpoint_config(meta, source_path), step=source.step,
                       dtype=torch.float16, extra=extra)
-    try:  # every check passes before the staged file takes the shipped name
+    try:  # every check passes and both cards are built before any file takes its shipped name
         exported = load_pretrained(staged)
         check = roundtrip_check(source, exported)
         if not check["max_abs_rgb"] <= FP16_TOLERANCE:
@@ -270,37 +270,38 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
         if summary_path is not None:
             trained_prior = source.spec.prior_weights_hash or (prior or {}).get("weights_hash")  # spec, else run
             summary = read_eval_summary(Path(summary_path), source.sha256, exported.sha256, cfg, trained_prior)
+        card = {"name": name, "preset": cfg.preset, "depth_estimator": cfg.prior.estimator,
+                "depth_weights": exported.spec.prior.checkpoint,
+                "category": cfg.data.category, "resolution": cfg.data.resolution, "step": exported.step,
+                "sha256": exported.sha256, "size_bytes": staged.stat().st_size, "dtype": "float16",
+                "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},
+                "fp16_check": check, "command": command, "data_root": portable_path(data_root, base),
+                "run_path": portable_path(run, base), "metrics": None, "protocol": None, "evaluation": None}
+        if unfinished is not None:
+            card["unfinished"] = unfinished
+        ds = data_card.get("dataset_card") or {}
+        if ds:
+            card.update(framing=card_framing(ds), generator=ds.get("generator"))
+        card["pixel_center"] = cfg.data.pixel_center
+        if (run / "init_from.json").is_file():
+            warm = _read_json(run / "init_from.json", "run warm-start record")
+            # a shipped checkpoint's name (kept as is) or a path (written relative, like the card's other paths)
+            card["init_from"] = {"source": portable_path(warm.get("source"), base), "step": warm.get("step"),
+                                 "sha256": warm.get("sha256")}
+        if summary is not None:
+            card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
+            card["protocol"] = summary["protocol"]
+            card["evaluation"] = _eval_section(summary, Path(summary_path), base)
+            card["eval_command"] = eval_command(name, card["evaluation"], cfg.data.resolution)
+        card_text = model_card(card, cfg, data_card, prior)
     except BaseException:
         staged.unlink(missing_ok=True)
         raise
     os.chmod(staged, 0o644)  # shared package data (the writer's temporary file may be private)
-    os.replace(staged, weights)
-    card = {"name": name, "preset": cfg.preset, "depth_estimator": cfg.prior.estimator,
-            "depth_weights": exported.spec.prior.checkpoint,
-            "category": cfg.data.category, "resolution": cfg.data.resolution, "step": exported.step,
-            "sha256": exported.sha256, "size_bytes": weights.stat().st_size, "dtype": "float16",
-            "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},
-            "fp16_check": check, "command": command, "data_root": portable_path(data_root, base),
-            "run_path": portable_path(run, base), "metrics": None, "protocol": None, "evaluation": None}
-    if unfinished is not None:
-        card["unfinished"] = unfinished
-    ds = data_card.get("dataset_card") or {}
-    if ds:
-        card.update(framing=card_framing(ds), generator=ds.get("generator"))
-    card["pixel_center"] = cfg.data.pixel_center
-    if (run / "init_from.json").is_file():
-        warm = _read_json(run / "init_from.json", "run warm-start record")
-        # a shipped checkpoint's name (kept as is) or a path (written relative, like the card's other paths)
-        card["init_from"] = {"source": portable_path(warm.get("source"), base), "step": warm.get("step"),
-                             "sha256": warm.get("sha256")}
-    if summary is not None:
-        card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
-        card["protocol"] = summary["protocol"]
-        card["evaluation"] = _eval_section(summary, Path(summary_path), base)
-        card["eval_command"] = eval_command(name, card["evaluation"], cfg.data.resolution)
+    os.replace(staged, weights)  # then the cards (a rename and two atomic writes: no step left that can refuse)
     card_json, card_md = out / f"{name}.json", out / f"{name}.md"
     write_text_atomic(card_json, json.dumps(card, indent=1) + "\n")
-    write_text_atomic(card_md, model_card(card, cfg, data_card, prior))
+    write_text_atomic(card_md, card_text)
     return ExportResult(weights=weights, card_json=card_json, card_md=card_md, card=card)
 
 

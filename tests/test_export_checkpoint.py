@@ -274,3 +274,23 @@ def test_refuses_summary_of_another_depth_prior(exporter, run, tmp_path):
     same = _summary(tmp_path / "same.json", best_sha,
                     depth_prior_provenance={"estimator": "bundled", "checkpoint": "x", "weights_hash": trained})
     assert trained and exporter.export(run, "cpu-cars-depth", tmp_path / "ship", same).card["metrics"]["psnr"] == 23.4567
+
+
+def test_a_card_that_fails_leaves_the_shipped_trio_as_it_was(exporter, run, tmp_path, monkeypatch):
+    """Re-exporting over a shipped name: a card that cannot be written (here its Markdown) leaves the weights and
+    both cards byte-identical, with no staged file, so the three never describe different weights."""
+    ship = tmp_path / "ship"
+    exporter.export(run, "cpu-cars-depth", ship)
+    before = {p.name: p.read_bytes() for p in ship.iterdir()}
+    assert sorted(before) == ["cpu-cars-depth.json", "cpu-cars-depth.md", "cpu-cars-depth.safetensors"]
+    other = tmp_path / "other-run"
+    shutil.copytree(run, other)
+    shutil.rmtree(other / "checkpoints" / "best")  # the latest checkpoint: other weights than the shipped ones
+
+    def broken(*args, **kwargs):
+        raise exporter.DepthnerfError("card: cannot be written")
+
+    monkeypatch.setattr(exporter, "model_card", broken)
+    with pytest.raises(exporter.DepthnerfError, match="card: cannot be written"):
+        exporter.export(other, "cpu-cars-depth", ship)
+    assert {p.name: p.read_bytes() for p in ship.iterdir()} == before
