@@ -40,6 +40,17 @@ def synth_command(dataset_card: dict | None, category: str) -> str:
             f"{card_framing(dataset_card)}" + (f" --family {family}" if family != "standard" else ""))
 
 
+def training_steps(card: dict) -> str:
+    """The card's training steps: the run's own, and for a warm-started run those behind its source and the total
+    (``total_steps``; cards written before that field give the source's own steps)."""
+    warm = card.get("init_from")
+    if not warm:
+        return str(card["step"])
+    behind = warm.get("total_steps", warm["step"])
+    total = card.get("total_steps", card["step"] + behind)
+    return f"{total} in all: {card['step']} on top of a warm start from a model trained {behind} steps"
+
+
 def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None) -> str:
     """The Markdown model card ``<name>.md``."""
     name, est, cat = card["name"], card["depth_estimator"], card["category"]
@@ -55,9 +66,7 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              "| field | value |", "|---|---|",
              f"| weights | `{name}.safetensors`, float16 ({card['size_bytes']:,} bytes), loaded as float32 |",
              f"| sha256 | `{card['sha256']}` |",
-             f"| training steps | {card['step']}"
-             + (f" (on top of a warm start from a {card['init_from']['step']}-step model)" if card.get("init_from")
-                else "") + " |",
+             f"| training steps | {training_steps(card)} |",
              f"| source | run `{card['source']['run']}`, `{card['source']['file']}` (sha256 "
              f"`{card['source']['sha256'][:16]}...`) |",
              f"| fp16 round trip | max abs RGB difference {card['fp16_check']['max_abs_rgb']:.2e} "

@@ -11,9 +11,10 @@ Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where `
     with floating tensors in float16 and integer buffers (BatchNorm ``num_batches_tracked``) unchanged, written
     atomically by :func:`depthnerf.train.checkpoint.save_weights`. Metadata: the source's model ``config``,
     ``train_config`` and ``step``, plus provenance ``source_sha256``, ``source_run``, ``source_file``,
-    ``dtype``, ``exported_by``. :func:`~depthnerf.pretrained.load.load_pretrained` casts the weights back to fp32.
+    ``dtype``, ``exported_by`` and ``total_steps`` (the steps behind the weights in all, a warm start's chain
+    included: :func:`steps_behind`). :func:`~depthnerf.pretrained.load.load_pretrained` casts the weights back to fp32.
 ``<name>.json``
-    Name, preset, depth estimator, category, resolution, step, SHA-256 and size of the fp16 file, the source, the
+    Name, preset, depth estimator, category, resolution, step, total steps, SHA-256 and size of the fp16 file, the source, the
     fp16 round-trip check, and with ``--eval-summary`` the metrics (``psnr``, ``ssim``, and ``lpips``,
     ``chamfer_l1``, ``fscore`` when measured) and the protocol of that ``summary.json`` (keys of
     :mod:`depthnerf.eval.table` / :mod:`depthnerf.eval.protocol`). ``depthnerf checkpoints`` prints them.
@@ -60,7 +61,7 @@ from depthnerf.depth.normalize import normalize_disparity  # noqa: E402
 from depthnerf.errors import DepthnerfError  # noqa: E402
 from depthnerf.eval.metrics import psnr  # noqa: E402
 from depthnerf.eval.table import load_summary  # noqa: E402
-from depthnerf.files import write_text_atomic  # noqa: E402
+from depthnerf.files import sha256_file, write_text_atomic  # noqa: E402
 from depthnerf.model.pixelnerf import SourceViews  # noqa: E402
 from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint  # noqa: E402
 from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec  # noqa: E402
@@ -69,6 +70,7 @@ from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics  # noqa: E40
 from depthnerf.render.views import render_poses  # noqa: E402
 from depthnerf.train import checkpoint as ckpt  # noqa: E402
 from depthnerf.train.config import TrainConfig, from_dict_config  # noqa: E402
+from depthnerf.train.warm_start import steps_in_all  # noqa: E402
 
 FP16_TOLERANCE = 0.02
 """Largest accepted absolute RGB difference (in [0, 1], ~5 of 255 levels) between fp32 and fp16 renders."""
@@ -215,6 +217,18 @@ def check_finished(run: Path, allow_unfinished: bool = False) -> dict | None:
     return {"stopped_at": step, "max_steps": max_steps}
 
 
+def steps_behind(warm: dict) -> int:
+    """The steps behind a warm start's source in all (``init_from.json``'s ``total_steps``; for a record written
+    before that field, :func:`~depthnerf.train.warm_start.steps_in_all` of the source file when it still holds the
+    recorded weights, else the source's own ``step``)."""
+    if isinstance(warm.get("total_steps"), int):
+        return warm["total_steps"]
+    step, path = int(warm.get("step") or 0), Path(str(warm.get("path", "")))
+    if path.is_file() and sha256_file(path) == warm.get("sha256"):
+        return steps_in_all(path, ckpt.read_weights(path)[1], warm["sha256"])
+    return step
+
+
 def _eval_section(summary: dict, path: Path, base: Path = REPO_ROOT) -> dict:
     keys = ("split", "objects", "views", "views_stride", "max_objects", "resolution", "input_resolution",
             "method", "metrics_path", "aggregation", "lpips_status", "fscore_tau", "mesh_status",
@@ -252,12 +266,14 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     source = load_pretrained(source_path)
     _check_fp16_range(source)
     cfg = from_dict_config(json.loads(meta["train_config"]), where=f"{source_path} train_config")
+    warm = _read_json(run / "init_from.json", "run warm-start record") if (run / "init_from.json").is_file() else None
+    total_steps = source.step + (steps_behind(warm) if warm is not None else 0)
     out.mkdir(parents=True, exist_ok=True)
     weights, staged = out / f"{name}.safetensors", out / f".{name}.export.safetensors"
     extra = {"train_config": meta["train_config"], "source_sha256": source.sha256, "source_run": run.resolve().name,
              "source_file": source_path.resolve().relative_to(run.resolve()).as_posix(), "dtype": "float16",
              "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})",
-             SPEC_KEY: source.spec.to_json()}
+             "total_steps": str(total_steps), SPEC_KEY: source.spec.to_json()}
     ckpt.save_weights(staged, source.model, ckpt.checkpoint_config(meta, source_path), step=source.step,
                       dtype=torch.float16, extra=extra)
     try:  # every check passes and both cards are built before any file takes its shipped name
@@ -273,7 +289,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
         card = {"name": name, "preset": cfg.preset, "depth_estimator": cfg.prior.estimator,
                 "depth_weights": exported.spec.prior.checkpoint,
                 "category": cfg.data.category, "resolution": cfg.data.resolution, "step": exported.step,
-                "sha256": exported.sha256, "size_bytes": staged.stat().st_size, "dtype": "float16",
+                "total_steps": total_steps, "sha256": exported.sha256, "size_bytes": staged.stat().st_size,
+                "dtype": "float16",
                 "source": {"run": extra["source_run"], "file": extra["source_file"], "sha256": source.sha256},
                 "fp16_check": check, "command": command, "data_root": portable_path(data_root, base),
                 "run_path": portable_path(run, base), "metrics": None, "protocol": None, "evaluation": None}
@@ -283,11 +300,10 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
         if ds:
             card.update(framing=card_framing(ds), generator=ds.get("generator"))
         card["pixel_center"] = cfg.data.pixel_center
-        if (run / "init_from.json").is_file():
-            warm = _read_json(run / "init_from.json", "run warm-start record")
+        if warm is not None:
             # a shipped checkpoint's name (kept as is) or a path (written relative, like the card's other paths)
             card["init_from"] = {"source": portable_path(warm.get("source"), base), "step": warm.get("step"),
-                                 "sha256": warm.get("sha256")}
+                                 "total_steps": steps_behind(warm), "sha256": warm.get("sha256")}
         if summary is not None:
             card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
             card["protocol"] = summary["protocol"]

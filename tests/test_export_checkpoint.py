@@ -224,12 +224,14 @@ def test_card_of_a_warm_started_run_names_its_source(exporter, run, tmp_path):
     record = {"source": "cpu-cars-sym-pp", "path": "/x/cpu-cars-sym-pp.safetensors", "sha256": "ab" * 32, "step": 3500}
     (warm / "init_from.json").write_text(json.dumps(record))
     res = exporter.export(warm, "cpu-cars-depth", tmp_path / "ship")
-    assert res.card["init_from"] == {"source": "cpu-cars-sym-pp", "step": 3500, "sha256": "ab" * 32}
+    assert res.card["init_from"] == {"source": "cpu-cars-sym-pp", "step": 3500, "total_steps": 3500,
+                                     "sha256": "ab" * 32}  # the source file is gone: its own steps
     assert "continue from the network weights of `cpu-cars-sym-pp` (step 3500, sha256 `abababababababab...`)" \
         in res.card_md.read_text()
-    assert "| training steps | 5 (on top of a warm start from a 3500-step model) |" in res.card_md.read_text()
+    assert "| training steps | 3505 in all: 5 on top of a warm start from a model trained 3500 steps |" \
+        in res.card_md.read_text()
     listed = describe("cpu-cars-depth", res.weights)
-    assert listed["steps"] == 5 and listed["warm_start_steps"] == 3500
+    assert listed["steps"] == 5 and listed["warm_start_steps"] == 3500 and listed["total_steps"] == 3505
     assert describe("cpu-cars-depth", plain.weights)["warm_start_steps"] is None
 
 
@@ -294,3 +296,34 @@ def test_a_card_that_fails_leaves_the_shipped_trio_as_it_was(exporter, run, tmp_
     with pytest.raises(exporter.DepthnerfError, match="card: cannot be written"):
         exporter.export(other, "cpu-cars-depth", ship)
     assert {p.name: p.read_bytes() for p in ship.iterdir()} == before
+
+
+def test_a_chain_of_warm_starts_counts_every_step(exporter, run, tmp_path):
+    """Steps in all follow a chain of warm starts: an exported model records its total in its metadata; a run
+    warm-started from it adds its own steps; a card written before the field that describes those very weights
+    (same SHA-256) supplies the total of weights that lack it, and a card of other weights does not."""
+    from depthnerf.train.warm_start import steps_in_all
+
+    first = exporter.export(run, "first", tmp_path / "a")  # 5 steps from scratch
+    _, meta = ckpt.read_weights(first.weights)
+    assert meta["total_steps"] == "5" and first.card["total_steps"] == 5
+    assert steps_in_all(first.weights, meta, sha256_file(first.weights)) == 5
+    second_run = tmp_path / "second-run"
+    shutil.copytree(run, second_run)
+    record = {"source": str(first.weights), "path": str(first.weights), "sha256": sha256_file(first.weights),
+              "step": 5}  # as a run warm-started before the field recorded it: resolved from the file
+    (second_run / "init_from.json").write_text(json.dumps(record))
+    second = exporter.export(second_run, "second", tmp_path / "b")
+    assert second.card["total_steps"] == 10 and ckpt.read_weights(second.weights)[1]["total_steps"] == "10"
+    assert describe("second", second.weights)["total_steps"] == 10
+    (second_run / "init_from.json").write_text(json.dumps({**record, "total_steps": 4000}))  # recorded at the start
+    assert exporter.export(second_run, "third", tmp_path / "c").card["total_steps"] == 4005
+
+    legacy = tmp_path / "legacy.safetensors"  # weights without the metadata, beside a card that gives the total
+    shutil.copy(run / "checkpoints" / "best" / "model.safetensors", legacy)
+    _, legacy_meta = ckpt.read_weights(legacy)
+    sha = sha256_file(legacy)
+    legacy.with_suffix(".json").write_text(json.dumps({"sha256": sha, "total_steps": 7000}))
+    assert steps_in_all(legacy, legacy_meta, sha) == 7000
+    legacy.with_suffix(".json").write_text(json.dumps({"sha256": "0" * 64, "total_steps": 7000}))
+    assert steps_in_all(legacy, legacy_meta, sha) == 5

@@ -312,7 +312,7 @@ def test_warm_start_takes_the_source_weights_once_and_refuses_another_network(da
                "--schedule.lr", "1e-12")
     assert "warm start" in proc.stderr
     record = json.loads((warm / "init_from.json").read_text())
-    assert record["path"] == str(source.resolve()) and record["step"] == 6
+    assert record["path"] == str(source.resolve()) and record["step"] == 6 and record["total_steps"] == 6
     assert json.loads((warm / "config.json").read_text())["init_from"] == str(uninterrupted)
     before, after = ckpt.read_weights(source)[0], final_weights(warm)
     params = [k for k in before if "running_" not in k and "num_batches" not in k]

@@ -60,7 +60,7 @@ def describe(name: str, path: Path) -> dict:
     train = _json_field(meta.get("train_config"), f"{path} metadata 'train_config'")
     metrics = _json_field(meta.get("metrics"), f"{path} metadata 'metrics'")
     card_json, card_md = path.with_suffix(".json"), path.with_suffix(".md")
-    protocol, warm_steps = None, None
+    protocol, warm_steps, total = None, None, meta.get("total_steps")
     if card_json.is_file():
         card = _json_field(card_json.read_text(), str(card_json))
         card_metrics = card.get("metrics") or {}  # null = exported without an evaluation
@@ -68,12 +68,16 @@ def describe(name: str, path: Path) -> dict:
             raise DepthnerfError(f"{card_json}: 'metrics' must be a JSON object or null")
         metrics = {**metrics, **card_metrics}
         protocol = card.get("protocol")
-        warm_steps = (card.get("init_from") or {}).get("step")  # a warm-started run: the source's steps
+        warm = card.get("init_from") or {}  # a warm-started run: the steps behind its source, in all
+        warm_steps = warm.get("total_steps", warm.get("step"))
+        total = card.get("total_steps", total)
+    steps = int(meta.get("step", 0))
+    total = int(total) if total is not None else steps + int(warm_steps or 0)
     return {"name": name, "path": str(path), "preset": train.get("preset", "unknown"),
             "depth_weights": _depth_weights(meta, str(path)),
             "category": train.get("data", {}).get("category", "unknown"),
-            "depth_prior": train.get("prior", {}).get("estimator", "unknown"), "steps": int(meta.get("step", 0)),
-            "warm_start_steps": warm_steps, "metrics": metrics or None, "protocol": protocol,
+            "depth_prior": train.get("prior", {}).get("estimator", "unknown"), "steps": steps,
+            "warm_start_steps": warm_steps, "total_steps": total, "metrics": metrics or None, "protocol": protocol,
             "model_card": str(card_md) if card_md.is_file() else (str(card_json) if card_json.is_file() else None)}
 
 
@@ -95,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{r['name']}: preset {r['preset']}, category {r['category']}, depth prior {r['depth_prior']}"
               + (f" ({Path(r['depth_weights']).name} weights)" if r.get("depth_weights") else "") + ", "
               f"{r['steps']} steps"
-              + (f" after a {r['warm_start_steps']}-step warm start" if r["warm_start_steps"] else "")
+              + (f" after a {r['warm_start_steps']}-step warm start ({r['total_steps']} in all)"
+                 if r["warm_start_steps"] else "")
               + f"; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")
               + (f"; card {r['model_card']}" if r["model_card"] else ""))
     retired = pretrained.retired_checkpoints()

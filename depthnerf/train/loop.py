@@ -251,7 +251,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
         _write_run_files(run_dir, cfg, prior_source, records, card)
         if warm is not None:
             write_text_atomic(run_dir / "init_from.json", warm.to_json())
-            print(f"warm start: the network's weights from {warm.path} (step {warm.step})", file=sys.stderr,
+            in_all = f", {warm.total_steps} in all" if warm.total_steps != warm.step else ""
+            print(f"warm start: the network's weights from {warm.path} (step {warm.step}{in_all})", file=sys.stderr,
                   flush=True)
         note = record_launch(run_dir, start, info.world, str(info.device))
         if note:

@@ -4,6 +4,11 @@ Only the weights are taken: the step, the optimiser's moments and the learning-r
 warm-started run is "N more steps from that model" with its own schedule (e.g. a cosine decay that anneals a
 shipped model). The source's model config and prior must equal the run's: a different width, mirror or prior
 would load into a different function (or fail on shapes), so any difference is an error naming the first one.
+
+Steps in all. A chain of warm starts is recorded as the steps behind each source *in all*
+(:attr:`WarmStart.total_steps`, :func:`steps_in_all`): the source's ``total_steps`` metadata (written by
+``scripts/export_checkpoint.py``), else the ``total_steps`` of the card beside it that describes these very weights,
+else its own steps (a model trained from scratch, or a chain that predates the field).
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from depthnerf.pretrained.spec import spec_from_metadata
 from depthnerf.pretrained.weights import read_weights
 from depthnerf.state_dicts import load_state_strict
 
-__all__ = ["WarmStart", "warm_start"]
+__all__ = ["WarmStart", "steps_in_all", "warm_start"]
 
 
 @dataclass(frozen=True)
@@ -37,10 +42,27 @@ class WarmStart:
     sha256: str
     """SHA-256 of that file."""
     step: int
-    """Training steps behind the source weights."""
+    """Training steps behind the source weights (its own run's)."""
+    total_steps: int
+    """Training steps behind the source weights in all, its own warm starts' included (module docstring)."""
 
     def to_json(self) -> str:
         return json.dumps(self.__dict__, indent=1) + "\n"
+
+
+def steps_in_all(path: str | Path, meta: dict[str, str], sha256: str) -> int:
+    """The training steps behind the weights file ``path`` (metadata ``meta``, SHA-256 ``sha256``) in all (module
+    docstring)."""
+    step = int(meta.get("step", 0))
+    if "total_steps" in meta:
+        return int(meta["total_steps"])
+    card = Path(path).with_suffix(".json")
+    try:
+        found = json.loads(card.read_text()) if card.is_file() else {}
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        found = {}
+    total = found.get("total_steps") if isinstance(found, dict) and found.get("sha256") == sha256 else None
+    return int(total) if isinstance(total, int) and total >= step else step
 
 
 def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, depth_aware: bool) -> WarmStart:
@@ -58,5 +80,6 @@ def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, 
         raise DepthnerfError(f"{path}: --init-from has model.{k} = {theirs!r}, the run {ours!r} "
                              f"({len(differ)} model setting(s) differ); train with the checkpoint's model config")
     load_state_strict(model, tensors, path)
-    return WarmStart(source=str(source), path=str(Path(path).resolve()), sha256=sha256_file(path),
-                     step=int(meta.get("step", 0)))
+    sha = sha256_file(path)
+    return WarmStart(source=str(source), path=str(Path(path).resolve()), sha256=sha, step=int(meta.get("step", 0)),
+                     total_steps=steps_in_all(path, meta, sha))
