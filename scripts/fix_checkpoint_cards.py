@@ -7,6 +7,10 @@ in eval messages becomes ``~`` (:func:`export_checkpoint.portable_path` / ``port
 ``scripts/export_checkpoint.py`` now writes), and ``--framing`` records the training data's framing
 (``framing``, plus ``generator`` read from the model card) and ``--framing F`` in the card's ``depthnerf synth``
 command. The ``.safetensors`` weights are only read (for ``data.pixel_center``), never written.
+
+``--total-steps N`` (one card) records the steps behind a warm-started model in all, for a chain of warm starts
+exported before cards counted them (``total_steps``; the steps behind its source become ``N`` minus its own), and
+rewrites the card's "training steps" row; take ``N`` from the chain of commands in docs/RESULTS.md.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from checkpoint_card import training_steps  # noqa: E402
 from export_checkpoint import REPO_ROOT, _read_json, portable_path, portable_text  # noqa: E402
 
 from depthnerf.data.synth.framing import FRAMINGS, get_framing  # noqa: E402
@@ -26,9 +31,11 @@ from depthnerf.files import write_text_atomic  # noqa: E402
 from depthnerf.train import checkpoint as ckpt  # noqa: E402
 
 
-def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT) -> dict:
+def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT,
+             total_steps: int | None = None) -> dict:
     """Rewrite an exported card pair (``card_json`` and the ``.md`` beside it) with portable paths (module
-    docstring) and, given ``framing``, the training data's framing; the weights are not touched."""
+    docstring), given ``framing`` the training data's framing, and given ``total_steps`` a warm-start chain's
+    steps in all; the weights are not touched."""
     card_json, card_md = Path(card_json), Path(card_json).with_suffix(".md")
     card = _read_json(card_json, "checkpoint card")
     md = card_md.read_text() if card_md.is_file() else None
@@ -59,6 +66,12 @@ def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT
     if "pixel_center" not in card and weights.is_file():
         _, meta = ckpt.read_weights(weights)
         card["pixel_center"] = float(json.loads(meta["train_config"]).get("data", {}).get("pixel_center", 0.0))
+    if total_steps is not None:
+        warm = card.get("init_from")
+        if not warm or total_steps <= card["step"]:
+            raise DepthnerfError(f"{card_json}: --total-steps {total_steps} is for a warm-started model with more "
+                                 f"steps than its own {card['step']}")
+        card["total_steps"], warm["total_steps"] = total_steps, total_steps - card["step"]
     write_text_atomic(card_json, json.dumps(card, indent=1) + "\n")
     if md is not None:
         for old, new in sorted(renames.items(), key=lambda kv: -len(kv[0])):
@@ -68,6 +81,9 @@ def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT
                         rf"read as `data.pixel_center` {card.get('pixel_center', 0.0)}, ", md, count=1)
             md = "\n".join(line + f" --framing {card['framing']}" if line.startswith("depthnerf synth ")
                            and "--framing" not in line else line for line in md.split("\n"))
+        if total_steps is not None:
+            md = re.sub(r"^\| training steps \|.*$", f"| training steps | {training_steps(card)} |", md, count=1,
+                        flags=re.M)
         write_text_atomic(card_md, md)
     return card
 
@@ -78,10 +94,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--framing", choices=sorted(FRAMINGS), help="framing of the data the checkpoints were trained on")
     p.add_argument("--relative-to", type=Path, default=REPO_ROOT,
                    help=f"base of the relative paths (default the repository, {REPO_ROOT})")
+    p.add_argument("--total-steps", type=int, help="a warm-started model's training steps in all (one card)")
     args = p.parse_args(argv)
+    if args.total_steps is not None and len(args.cards) != 1:
+        p.error("--total-steps is for one card")
     try:
         for path in args.cards:
-            fix_card(path, args.framing, args.relative_to)
+            fix_card(path, args.framing, args.relative_to, args.total_steps)
             print(f"rewrote {path} and {path.with_suffix('.md')}")
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)

@@ -7,6 +7,7 @@ Runs are tiny random models written by the training checkpoint writer (``fixture
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -327,3 +328,31 @@ def test_a_chain_of_warm_starts_counts_every_step(exporter, run, tmp_path):
     assert steps_in_all(legacy, legacy_meta, sha) == 7000
     legacy.with_suffix(".json").write_text(json.dumps({"sha256": "0" * 64, "total_steps": 7000}))
     assert steps_in_all(legacy, legacy_meta, sha) == 5
+
+
+def test_fix_cards_records_a_chains_total_steps(exporter, run, tmp_path):
+    """``--total-steps`` gives a card exported before cards counted a chain its steps in all (the JSON, the
+    "training steps" row of an old-format Markdown card, the listing), weights untouched; a card without a warm
+    start, or a total below the run's own steps, is refused in one line."""
+    warm = tmp_path / "warm-run"
+    shutil.copytree(run, warm)
+    (warm / "init_from.json").write_text(json.dumps({"source": "prev", "sha256": "ab" * 32, "step": 3000}))
+    res = exporter.export(warm, "cpu-cars-sym-pp", tmp_path / "ship")
+    card = json.loads(res.card_json.read_text())
+    del card["total_steps"], card["init_from"]["total_steps"]  # as written before the field
+    res.card_json.write_text(json.dumps(card, indent=1))
+    old_row = "| training steps | 5 (on top of a warm start from a 3000-step model) |"
+    md = re.sub(r"^\| training steps \|.*$", lambda _: old_row, res.card_md.read_text(), flags=re.M)
+    res.card_md.write_text(md)
+    weights_sha = sha256_file(res.weights)
+    fixer = load_script("fix_checkpoint_cards")
+    assert fixer.main([str(res.card_json), "--total-steps", "8005"]) == 0
+    fixed = json.loads(res.card_json.read_text())
+    assert fixed["total_steps"] == 8005 and fixed["init_from"]["total_steps"] == 8000
+    new_md = res.card_md.read_text()
+    assert old_row not in new_md
+    assert "| training steps | 8005 in all: 5 on top of a warm start from a model trained 8000 steps |" in new_md
+    assert describe("cpu-cars-sym-pp", res.weights)["total_steps"] == 8005 and sha256_file(res.weights) == weights_sha
+    plain = exporter.export(run, "plain", tmp_path / "plain")
+    assert fixer.main([str(plain.card_json), "--total-steps", "8005"]) == 2
+    assert fixer.main([str(res.card_json), "--total-steps", "4"]) == 2
