@@ -45,7 +45,13 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 class OneLineParser(argparse.ArgumentParser):
     """An argument parser whose errors are one line like every other error of the package (``error: PROG:
     message``, exit status 2), pointing to ``--help`` instead of printing the usage block; in a torchrun job, whose
-    ranks all parse the same command line, rank 0 alone prints it."""
+    ranks all parse the same command line, rank 0 alone prints it. Flags are taken as spelled in full only
+    (``allow_abbrev=False``, also for the subcommands' parsers): argparse's prefix matching ran ``depthnerf eval
+    --views 8`` as ``--views-stride 8``, where ``reconstruct --views`` means another thing."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):
         line = f"error: {self.prog}: {message} ({self.prog} --help lists its options)\n"

@@ -311,6 +311,20 @@ def test_an_unknown_flag_is_named_with_its_subcommand(capsys):
         assert line.startswith(start) and line.endswith(end), line
 
 
+def test_a_shortened_flag_is_refused_not_taken_for_a_longer_one(capsys):
+    """Flags count as spelled in full: ``eval --views`` is not ``--views-stride`` (``reconstruct --views`` is the
+    number of orbit views), nor ``train --max`` ``--max-steps``."""
+    for argv, name in ((["eval", "--checkpoint", "x", "--views", "8"], "--views"),
+                       (["inspect", "--data", "x", "--str"], "--str")):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        assert stop.value.code == 2
+        line = one_error(capsys)
+        assert f"unrecognized arguments: {name} " in line, line
+    assert main(["train", "--preset", "cpu-cars", "--max", "5"]) == 2
+    assert "--max" in one_error(capsys)
+
+
 def test_app_help_does_not_import_torch():
     """``depthnerf app`` builds its parser (the default models in its help) without torch, so ``--help`` and the
     missing-extra message stay instant."""
