@@ -38,7 +38,8 @@ from depthnerf.cli import SUBCOMMANDS, _command_module, build_parser
 from depthnerf.errors import DepthnerfError
 
 ROOT = Path(__file__).resolve().parent.parent
-DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+             *sorted((ROOT / "depthnerf" / "checkpoints").rglob("*.md"))]  # the model cards' reproduce commands
 SHELL_FENCES = {"", "bash", "sh", "shell", "console"}
 INLINE_SPAN = re.compile(r"(?<!`)`((?:[^`\n]|\n(?!\s*\n))+)`(?!`)")  # one paragraph at most
 INLINE_START = re.compile(r"^(\w+=(\"[^\"]*\"|\S+) )*(depthnerf |python (scripts|benchmarks)/|bash scripts/)")
