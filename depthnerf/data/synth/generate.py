@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.srn import CATEGORY_DEFAULTS
 from depthnerf.data.synth.cars import (
     CAR_REVISION,
     CAR_STYLES,
@@ -112,13 +113,14 @@ class CategorySpec:
 
 
 def category_spec(category: str, framing: str = DEFAULT_FRAMING) -> CategorySpec:
-    """Camera radius, z-range and object size of ``cars`` or ``chairs`` in ``framing``."""
+    """Camera radius, z-range (the SRN release's, :data:`~depthnerf.data.srn.CATEGORY_DEFAULTS`) and object size
+    of ``cars`` or ``chairs`` in ``framing``."""
     fr = get_framing(framing)
-    if category == "cars":
-        return CategorySpec(radius=1.3, z_near=0.8, z_far=1.8, diagonal=1.0, framing=fr.name)
-    if category == "chairs":
-        return CategorySpec(radius=2.0, z_near=1.25, z_far=2.75, diagonal=fr.chair_diagonal, framing=fr.name)
-    raise DepthnerfError(f"synth: unknown category {category!r} (expected cars or chairs)")
+    if category not in ("cars", "chairs"):
+        raise DepthnerfError(f"synth: unknown category {category!r} (expected cars or chairs)")
+    srn = CATEGORY_DEFAULTS[category]
+    return CategorySpec(radius=srn.camera_radius, z_near=srn.z_near, z_far=srn.z_far,
+                        diagonal=1.0 if category == "cars" else fr.chair_diagonal, framing=fr.name)
 
 
 @dataclass(frozen=True)
