@@ -61,7 +61,7 @@ from depthnerf.data.synth.chairs import (
 )
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, Framing, get_framing
 from depthnerf.data.synth.hits import ENGINES, resolve_engine
-from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
+from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, render_view
 from depthnerf.data.synth.views import (
     ViewConfig,
     hemisphere_eyes,
@@ -147,7 +147,7 @@ class SynthConfig:
     """Views per train object (SRN: 50)."""
     views_test: int = 251
     """Views per val/test object (SRN: 251)."""
-    render: RenderConfig = field(default_factory=RenderConfig)
+    render: SynthRenderConfig = field(default_factory=SynthRenderConfig)
     """Renderer settings."""
     progress: bool = True
     """Show a tqdm progress bar."""
