@@ -15,7 +15,6 @@ from depthnerf.eval.metrics import (
     ImageMetricsConfig,
     LpipsConfig,
     load_lpips,
-    lpips_available,
     lpips_status,
     object_metrics,
     psnr,
@@ -169,7 +168,7 @@ def test_lpips_reports_unavailable_instead_of_a_number(tmp_path):
     missing = LpipsConfig(trunk_path=tmp_path / "nope.pth")
     status = lpips_status(missing)
     assert not status.available and status.reason.startswith("unavailable:")
-    assert not lpips_available(missing) and load_lpips(missing) is None
+    assert load_lpips(missing) is None
     assert lpips_status(LpipsConfig(net="resnet")).reason.startswith("unavailable: unknown LPIPS trunk")
     default = lpips_status()  # whatever this machine has: either ok or a stated reason, never a guess
     assert default.available == (default.reason == "ok") and (default.available or "unavailable:" in default.reason)

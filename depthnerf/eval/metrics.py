@@ -254,11 +254,6 @@ def lpips_status(config: LpipsConfig = LpipsConfig()) -> LpipsStatus:
     return LpipsStatus(True, "ok")
 
 
-def lpips_available(config: LpipsConfig = LpipsConfig()) -> bool:
-    """True when :func:`load_lpips` would return a metric."""
-    return lpips_status(config).available
-
-
 class LpipsMetric:
     """LPIPS on ``[0, 1]`` images (scaled to ``[-1, 1]`` inside, as pixelNeRF does), CPU or GPU."""
 

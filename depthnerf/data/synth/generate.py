@@ -74,9 +74,6 @@ from depthnerf.data.synth.views import (
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_json_atomic
 
-GENERATOR_VERSION = "depthnerf-synth-1"
-"""Version of the legacy generator (renderer, protocol, file layout); the SRN framing's is ``depthnerf-synth-2``
-(:data:`~depthnerf.data.synth.framing.FRAMINGS`)."""
 FAMILIES = ("standard", "heldout")
 """Shape families: the grammars' training mix, and styles it never draws (generalisation checks)."""
 
