@@ -24,7 +24,7 @@ import torch
 
 from depthnerf.data import srn_format
 from depthnerf.data.synth.generate import SynthConfig, category_spec, generate, object_poses, object_rngs
-from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
+from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, render_view
 
 
 def breakdown(category: str, objects: int, views: int, resolution: int, raycaster: str) -> None:
@@ -47,7 +47,7 @@ def breakdown(category: str, objects: int, views: int, resolution: int, raycaste
             poses = object_poses("train", views, category_spec(category), view_rng)
             for v, c2w in enumerate(poses):
                 t0 = time.perf_counter()
-                view = render_view(caster, c2w, rays, RenderConfig())
+                view = render_view(caster, c2w, rays, SynthRenderConfig())
                 t1 = time.perf_counter()
                 base = Path(tmp) / f"{k}_{v}"
                 srn_format.write_rgb(base.with_suffix(".png"), view.rgb)

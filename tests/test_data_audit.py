@@ -20,7 +20,7 @@ from depthnerf.data import srn_format
 from depthnerf.data.srn import index_split, load_object
 from depthnerf.data.view_store import ViewStore
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
-from depthnerf.depth.cache import PriorStore, object_fingerprint
+from depthnerf.depth.cache import PriorStore, rgb_fingerprint
 from depthnerf.errors import DataWarning, DepthnerfError
 
 INTRINSICS = "8.2 8. 8. 0.\n0. 0. 0.\n1.\n{}\n"
@@ -141,11 +141,11 @@ def test_a_prior_goes_stale_when_an_image_changes_but_keeps_its_size(tmp_path: P
     for path in (obj / "rgb").iterdir():  # uncompressed PNGs: the file size depends on the image size only
         Image.open(path).save(path, compress_level=0)
     record = index_split(root, "cars", "train").objects[0]
-    before = object_fingerprint(record)
+    before = rgb_fingerprint(record)
     path = obj / "rgb" / "000001.png"
     size = path.stat().st_size
     Image.open(path).rotate(90).save(path, compress_level=0)
-    assert path.stat().st_size == size and object_fingerprint(record) != before
+    assert path.stat().st_size == size and rgb_fingerprint(record) != before
 
 
 def test_a_cache_made_with_the_earlier_fingerprint_is_checked_as_it_was_made(tmp_path):
@@ -155,7 +155,7 @@ def test_a_cache_made_with_the_earlier_fingerprint_is_checked_as_it_was_made(tmp
 
     root = make_srn_fixture(tmp_path / "d", "cars", {"train": 1}, views=3, size=16)
     record = index_split(root, "cars", "train").objects[0]
-    legacy, current = _sizes_fingerprint(record), object_fingerprint(record)
+    legacy, current = _sizes_fingerprint(record), rgb_fingerprint(record)
     assert current.startswith("rgb-bytes:") and fingerprint_matches(current, record)
     assert fingerprint_matches(legacy, record) and not fingerprint_matches(None, record)
     path = Path(record.rgb_path(1))
@@ -233,14 +233,14 @@ def test_a_legacy_prior_entry_is_checked_without_hashing_every_image(tmp_path: P
     cache.write_object_priors(path, load_file(str(path))["disparity"],
                               {**meta, "fingerprint": cache._sizes_fingerprint(legacy)})
     hashed = []
-    real = cache.object_fingerprint
+    real = cache.rgb_fingerprint
 
     def counting(record):
         hashed.append(record.object_id)
         return real(record)
 
-    monkeypatch.setattr(cache, "object_fingerprint", counting)
-    monkeypatch.setattr(precompute, "object_fingerprint", counting)
+    monkeypatch.setattr(cache, "rgb_fingerprint", counting)
+    monkeypatch.setattr(precompute, "rgb_fingerprint", counting)
     summary = precompute_priors(cfg)
     assert (summary.computed, summary.skipped, hashed) == (0, 2, [current.object_id])
     hashed.clear()

@@ -15,7 +15,6 @@ from depthnerf.eval.metrics import (
     ImageMetricsConfig,
     LpipsConfig,
     load_lpips,
-    lpips_available,
     lpips_status,
     object_metrics,
     psnr,
@@ -169,11 +168,31 @@ def test_lpips_reports_unavailable_instead_of_a_number(tmp_path):
     missing = LpipsConfig(trunk_path=tmp_path / "nope.pth")
     status = lpips_status(missing)
     assert not status.available and status.reason.startswith("unavailable:")
-    assert not lpips_available(missing) and load_lpips(missing) is None
+    assert load_lpips(missing) is None
     assert lpips_status(LpipsConfig(net="resnet")).reason.startswith("unavailable: unknown LPIPS trunk")
     default = lpips_status()  # whatever this machine has: either ok or a stated reason, never a guess
     assert default.available == (default.reason == "ok") and (default.available or "unavailable:" in default.reason)
 
+
+
+def test_lpips_errors_name_the_file_that_is_bad(tmp_path, monkeypatch):
+    """The linear-layer weights the lpips package ships and the trunk are two files: an unreadable or non-dict one
+    is named, not the other."""
+    lpips = pytest.importorskip("lpips")
+    package = tmp_path / "lpips"
+    linear = package / "weights" / "v0.1" / "alex.pth"
+    linear.parent.mkdir(parents=True)
+    monkeypatch.setattr(lpips, "__file__", str(package / "__init__.py"))
+    trunk = tmp_path / "alexnet.pth"
+    torch.save({"features.0.weight": torch.zeros(1)}, trunk)
+    linear.write_bytes(b"not a checkpoint")
+    with pytest.raises(DepthnerfError, match="cannot read LPIPS weights") as err:
+        load_lpips(LpipsConfig(net="alex", trunk_path=trunk))
+    assert str(err.value).startswith(f"{linear}: ")
+    torch.save([torch.zeros(1)], linear)
+    with pytest.raises(DepthnerfError, match="not a state dict") as err:
+        load_lpips(LpipsConfig(net="alex", trunk_path=trunk))
+    assert str(err.value).startswith(f"{linear}: ")
 
 def test_lpips_loads_local_weights_only(tmp_path):
     lpips = pytest.importorskip("lpips")

@@ -10,7 +10,7 @@ import torch
 
 from depthnerf.data.cameras import look_at, project, world_to_camera
 from depthnerf.model import EncodedViews, EncoderConfig, FieldConfig, PixelNeRF, PixelNeRFConfig, SourceViews
-from depthnerf.model.features import pixel_aligned, project_points, to_source_frames, uv_to_grid
+from depthnerf.model.features import project_points, sample_projected, to_source_frames, uv_to_grid
 from depthnerf.model.field import PositionalEncoding
 
 SMALL_FIELD = FieldConfig(d_hidden=32, chunk_points=7)
@@ -70,7 +70,7 @@ def test_known_point_projects_to_its_pixel_and_samples_its_feature():
     rows, cols = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
                                 indexing="ij")
     coord_map = torch.stack([cols, rows], -1)[None, None]  # [1 1 H W 2] channels-last
-    feat = pixel_aligned(coord_map, cam, torch.tensor([focal]), torch.tensor([[cx, cy]]), (h, w))
+    feat = sample_projected(coord_map, uv, (h, w))
     torch.testing.assert_close(feat[0, 0, 0], torch.tensor([float(j), float(i)]), atol=1e-4, rtol=0)
 
 
@@ -87,17 +87,17 @@ def test_latent_scaling_matches_pixelnerf_formula():
     coord_map = torch.stack([cols, rows], -1)[None, None]
     # camera points that project exactly to uv with f = 10, c = (0, 0), z = 2
     cam = torch.cat([uv / 10 * 2, torch.full_like(uv[..., :1], 2.0)], dim=-1)
-    feat = pixel_aligned(coord_map, cam, torch.tensor([10.0]), torch.zeros(1, 2), (h, w))
+    feat = sample_projected(coord_map, project_points(cam, torch.tensor([10.0]), torch.zeros(1, 2)), (h, w))
     torch.testing.assert_close(feat, uv * torch.tensor([wf / w, hf / h]), atol=1e-4, rtol=0)
     # border padding: far outside the image reads the edge features
     far_cam = torch.tensor([[[[-50.0, 500.0, 1.0]]]])
-    edge = pixel_aligned(coord_map, far_cam, torch.tensor([10.0]), torch.zeros(1, 2), (h, w))
+    edge = sample_projected(coord_map, project_points(far_cam, torch.tensor([10.0]), torch.zeros(1, 2)), (h, w))
     torch.testing.assert_close(edge[0, 0, 0], torch.tensor([0.0, hf - 1.0]))
 
 
 def test_positional_encoding_closed_form():
     pe = PositionalEncoding(num_freqs=6, freq_factor=1.5, include_input=True)
-    assert pe.d_out == 39 and FieldConfig().d_in == 42
+    assert pe(torch.zeros(2, 3)).shape == (2, FieldConfig().d_encoding) == (2, 39) and FieldConfig().d_in == 42
     x = torch.tensor([[0.1, -0.7, 0.33], [1.0, 0.0, -2.0]])
     out = pe(x)
     assert out.shape == (2, 39)

@@ -115,6 +115,59 @@ def test_every_text_and_json_writer_goes_through_files_py():
             found[str(path.relative_to(ROOT))] = lines
     assert found == {}, "write these through depthnerf.files (write_text_atomic / write_json_atomic / ...)"
 
+def _undocumented_fields(tree) -> list[str]:
+    """``Class.field`` of every dataclass (or bundle) field not followed by a docstring."""
+    import ast
+
+    missing = []
+    for cls in (n for n in ast.walk(tree) if isinstance(n, ast.ClassDef)):
+        is_dataclass = any("dataclass" in ast.unparse(d) for d in cls.decorator_list)
+        if not is_dataclass and not any(ast.unparse(b) in {"TensorBundle", "NamedTuple"} for b in cls.bases):
+            continue
+        for node, after in zip(cls.body, [*cls.body[1:], None], strict=True):
+            if not isinstance(node, ast.AnnAssign) or "ClassVar" in ast.unparse(node.annotation):
+                continue
+            documented = (isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
+                          and isinstance(after.value.value, str))
+            if not documented:
+                missing.append(f"{cls.name}.{ast.unparse(node.target)}")
+    return missing
+
+
+def test_every_config_and_bundle_field_has_a_docstring():
+    import ast
+
+    example = "@dataclass\nclass A:\n    x: int = 1\n    \"\"\"Doc.\"\"\"\n    y: int = 2\n"
+    assert _undocumented_fields(ast.parse(example)) == ["A.y"]
+    found = {}
+    for path in sorted((ROOT / "depthnerf").rglob("*.py")):
+        if missing := _undocumented_fields(ast.parse(path.read_text(), str(path))):
+            found[str(path.relative_to(ROOT))] = missing
+    assert found == {}, "put a docstring under every field"
+
+
+def test_nothing_unpickles():
+    """``torch.load`` only with ``weights_only=True``, ``np.load`` never with ``allow_pickle=True``, no pickle."""
+    import ast
+
+    found = []
+    for path in sorted((ROOT / "depthnerf").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            where = f"{path.relative_to(ROOT)}:{getattr(node, 'lineno', 0)}"
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                names = [a.name for a in node.names] + ([node.module] if isinstance(node, ast.ImportFrom) else [])
+                found += [where for n in names if n and n.split(".")[0] in {"pickle", "dill", "cloudpickle"}]
+            if not isinstance(node, ast.Call) or not isinstance(node.func, ast.Attribute):
+                continue
+            keywords = {k.arg: ast.unparse(k.value) for k in node.keywords}
+            call = ast.unparse(node.func)
+            if call == "torch.load" and keywords.get("weights_only") != "True":
+                found.append(where)
+            if call in {"np.load", "numpy.load"} and keywords.get("allow_pickle", "False") != "False":
+                found.append(where)
+    assert found == []
+
+
 def test_one_estimator_registry_feeds_every_flag():
     assert ESTIMATORS == ("depth-anything-v2", "bundled", "oracle", "none")
     assert CACHED_ESTIMATORS == ("depth-anything-v2", "bundled") and PHOTO_ESTIMATORS == CACHED_ESTIMATORS

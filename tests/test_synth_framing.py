@@ -19,7 +19,7 @@ from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, HELDOUT_ARCHETYPES, bu
 from depthnerf.data.synth.framing import FRAMINGS, checkpoint_framing, get_framing
 from depthnerf.data.synth.generate import SynthConfig, category_spec, generate, object_poses, object_rngs
 from depthnerf.data.synth.primitives import Material, MeshBuilder, box
-from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
+from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, render_view
 from depthnerf.data.synth.views import poses_from_angles, srn_spiral_angles
 from depthnerf.errors import DepthnerfError
 
@@ -125,7 +125,7 @@ def test_depth_of_a_tilted_plane_is_analytic_at_the_framings_pixel_centres(frami
     fr = get_framing(framing)
     res = 40
     c2w = poses_from_angles(1.3, np.radians([50.0]), np.radians([20.0]))[0]
-    view = render_view(Raycaster(mesh), c2w, PixelRays(fr.render_intrinsics(res)), RenderConfig(antialias=False))
+    view = render_view(Raycaster(mesh), c2w, PixelRays(fr.render_intrinsics(res)), SynthRenderConfig(antialias=False))
     file_intr = fr.file_intrinsics(res)
     rot, eye = c2w[:3, :3].astype(np.float64), c2w[:3, 3].astype(np.float64)
     depth, inside = {}, None

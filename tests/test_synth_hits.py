@@ -93,7 +93,7 @@ def test_torch_and_embree_render_the_same_views(category):
     from depthnerf.data.synth.cars import build_car, sample_car
     from depthnerf.data.synth.chairs import build_chair, sample_chair
     from depthnerf.data.synth.generate import SynthConfig, category_spec, object_poses, object_rngs
-    from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
+    from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, render_view
 
     spec = category_spec(category)
     shape, views = object_rngs(0, category, "test", 2)
@@ -103,7 +103,7 @@ def test_torch_and_embree_render_the_same_views(category):
     assert (embree.engine, brute.engine) == ("embree", "torch")
     pixels = differing = 0
     for c2w in object_poses("test", 4, spec, views):
-        a, b = render_view(embree, c2w, rays, RenderConfig()), render_view(brute, c2w, rays, RenderConfig())
+        a, b = render_view(embree, c2w, rays, SynthRenderConfig()), render_view(brute, c2w, rays, SynthRenderConfig())
         same = a.mask == b.mask
         pixels += a.mask.size
         differing += int((~same).sum() + (np.abs(a.rgb - b.rgb).max(-1) > 1e-6).sum())

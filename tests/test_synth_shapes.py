@@ -14,7 +14,7 @@ from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, CHAIR_DIAGONAL, build_
 from depthnerf.data.synth.framing import SRN_INTRINSICS
 from depthnerf.data.synth.generate import category_spec
 from depthnerf.data.synth.primitives import box, cylinder, loft, superellipsoid
-from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
+from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, render_view
 from depthnerf.data.synth.views import ViewConfig, eyes_from_angles, poses_from_eyes, spiral_eyes
 
 
@@ -59,7 +59,7 @@ def test_objects_fill_the_frame_like_srn(category: str) -> None:
     for k in range(6):
         rng = np.random.default_rng(100 + k)
         mesh = build_car(sample_car(rng)) if category == "cars" else build_chair(sample_chair(rng))
-        mask = render_view(Raycaster(mesh), pose, rays, RenderConfig(antialias=False)).mask
+        mask = render_view(Raycaster(mesh), pose, rays, SynthRenderConfig(antialias=False)).mask
         cols, rows = np.where(mask.any(0))[0], np.where(mask.any(1))[0]
         width, height = (np.ptp(cols) + 1) / 128, (np.ptp(rows) + 1) / 128
         if category == "cars":
@@ -73,7 +73,7 @@ def test_objects_fill_the_frame_like_srn(category: str) -> None:
 def _masks(builders, radius: float, size: int = 48) -> list[np.ndarray]:
     intr = SRN_INTRINSICS.resized(size, size)
     pose = _side_pose(radius, 12.0, 70.0)
-    return [render_view(Raycaster(m), pose, intr, RenderConfig(antialias=False)).mask for m in builders]
+    return [render_view(Raycaster(m), pose, intr, SynthRenderConfig(antialias=False)).mask for m in builders]
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -118,7 +118,7 @@ def test_depth_is_exact_on_the_mesh(category: str) -> None:
     mesh = build_car(sample_car(rng)) if category == "cars" else build_chair(sample_chair(rng))
     intr = Intrinsics(40.0, 15.5, 15.5, 32, 32)
     pose = _side_pose(spec.radius, 30.0, 200.0)
-    view = render_view(Raycaster(mesh), pose, intr, RenderConfig())
+    view = render_view(Raycaster(mesh), pose, intr, SynthRenderConfig())
     assert view.mask.sum() > 50
     assert ((view.depth > 0) == view.mask).all()
     cam = pixel_directions(intr, normalize=False).numpy()[view.mask] * view.depth[view.mask][:, None]
@@ -131,8 +131,8 @@ def test_background_is_white_and_antialiasing_only_touches_rgb() -> None:
     mesh = build_chair(sample_chair(np.random.default_rng(11), "dining"))
     intr = SRN_INTRINSICS.resized(64, 64)
     pose = _side_pose(2.0, 25.0, 40.0)
-    aa = render_view(Raycaster(mesh), pose, intr, RenderConfig(antialias=True))
-    plain = render_view(Raycaster(mesh), pose, intr, RenderConfig(antialias=False))
+    aa = render_view(Raycaster(mesh), pose, intr, SynthRenderConfig(antialias=True))
+    plain = render_view(Raycaster(mesh), pose, intr, SynthRenderConfig(antialias=False))
     np.testing.assert_array_equal(aa.depth, plain.depth)
     np.testing.assert_array_equal(aa.mask, plain.mask)
     changed = np.abs(aa.rgb - plain.rgb).max(-1) > 1e-6

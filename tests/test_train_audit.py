@@ -21,7 +21,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.pretrained.spec import spec_from_train_config
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.config import check_config, from_dict_config, inference_spec, preset, z_range
-from depthnerf.train.run_log import run_lock
+from depthnerf.train.run_log import read_run_record, run_lock
 
 BASE = ["train", "--preset", "cpu-cars", "--depth", "none", "--log.val_every", "0", "--device", "cpu", *TINY]
 
@@ -171,6 +171,24 @@ def test_resume_on_other_data_or_beside_a_running_process_is_refused(data, tmp_p
                                 "it) before resuming"
     assert main(["train", "--out", str(run), "--resume", "--max-steps", "2", "--no-progress"]) == 0
 
+
+
+@pytest.mark.parametrize("record", ["prior.json", "data_card.json"])
+def test_a_damaged_run_record_stops_the_resume_it_would_check(data, tmp_path, capsys, record):
+    """``prior.json`` (the prior's weights the run trained with) and ``data_card.json`` (its training objects) feed
+    resume checks: a damaged one is one line naming it, not taken as absent (the check skipped, the file replaced)."""
+    run = tmp_path / "run"
+    assert main([*BASE, "--data", str(data), "--out", str(run), "--max-steps", "1"]) == 0
+    (run / record).write_text('{"train_objects": 2, ')  # cut short
+    capsys.readouterr()
+    assert main([*BASE, "--data", str(data), "--out", str(run), "--max-steps", "2", "--resume"]) == 2
+    assert one_error(capsys).startswith(f"error: {run / record}: unreadable run record (")
+    assert (run / record).read_text() == '{"train_objects": 2, ' and ckpt.latest_checkpoint(run / "checkpoints").name \
+        == "step_00000001"
+    (run / record).write_text("[2]")
+    with pytest.raises(DepthnerfError, match=r"data_card.json|prior.json"):
+        read_run_record(run / record)
+    assert read_run_record(run / "no_such_record.json") is None  # a run from before the file existed
 
 def test_a_kill_between_a_checkpoint_and_its_best_copy_is_mended_on_resume(data, tmp_path, capsys):
     run = tmp_path / "run"

@@ -27,12 +27,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from datetime import timedelta
 from pathlib import Path
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
-from depthnerf.render.config import COMPILE_MODES, DEFAULT_BUDGET
+from depthnerf.render.config import COMPILE_MODES, DEFAULT_BUDGET, GuidedConfig
 
 COLLECTIVE_TIMEOUT = timedelta(hours=6)
 """How long rank 0 waits for the slowest rank's share of the objects before the merge (multi-process runs)."""
@@ -80,11 +81,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth", choices=ESTIMATORS,
                    help="override the depth prior recorded in the checkpoint (its cache must exist)")
     p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
-    p.add_argument("--guided", type=int, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
-                   help="render with depth-guided sampling, BUDGET samples per occupied ray "
-                        f"(default {DEFAULT_BUDGET})")
-    p.add_argument("--guided-align-samples", type=int, default=32,
-                   help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
+    add_guided_flags(p)
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
     p.add_argument("--pixel-center", type=float,
                    help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
@@ -116,6 +113,17 @@ def add_precision_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bf16-residual", action="store_true",
                    help="CUDA: keep the field MLPs' residual stream in bf16 under bf16 autocast (half its memory "
                         "traffic; renders differ by bf16 rounding; opt-in)")
+
+
+def add_guided_flags(p: argparse.ArgumentParser, budget: Callable[[str], int] = int) -> None:
+    """``--guided [BUDGET]`` (read by ``budget``) and ``--guided-align-samples`` (``eval`` and ``reconstruct``;
+    :func:`guided_request`)."""
+    p.add_argument("--guided", type=budget, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
+                   help="render with depth-guided sampling, BUDGET samples per occupied ray "
+                        f"(default {DEFAULT_BUDGET})")
+    p.add_argument("--guided-align-samples", type=int, default=GuidedConfig.align_samples,
+                   help="coarse samples of the source render the prior is aligned to for --guided "
+                        f"(default {GuidedConfig.align_samples})")
 
 
 def guided_request(budget: int | None, align_samples: int):

@@ -15,7 +15,7 @@ import math
 import sys
 from pathlib import Path
 
-from depthnerf.commands.evaluate import add_precision_flags, guided_request
+from depthnerf.commands.evaluate import add_guided_flags, add_precision_flags, guided_request
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.distributed import pick_device
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
@@ -64,11 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
                         "--depth-estimator: same)")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
-    p.add_argument("--guided", type=_budget, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
-                   help="render with depth-guided sampling, BUDGET samples per occupied ray "
-                        f"(default {DEFAULT_BUDGET})")
-    p.add_argument("--guided-align-samples", type=int, default=32,
-                   help="coarse samples of the source render the prior is aligned to for --guided (default 32)")
+    add_guided_flags(p, _budget)
     p.add_argument("--chunk", type=int, help="rays per render pass (default 4096 on CPU, 65536 on CUDA)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     add_precision_flags(p)

@@ -15,7 +15,7 @@ from pathlib import Path
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, FRAMINGS
 from depthnerf.data.synth.generate import FAMILIES, SynthConfig, generate
 from depthnerf.data.synth.hits import ENGINES
-from depthnerf.data.synth.raycast import RenderConfig
+from depthnerf.data.synth.raycast import SynthRenderConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         category=args.category, out=args.out, train_objects=args.train_objects, val_objects=args.val_objects,
         test_objects=args.test_objects, resolution=args.resolution, seed=args.seed, workers=args.workers,
         views_train=args.views_train, views_test=args.views_test,
-        render=RenderConfig(antialias=not args.no_antialias), progress=not args.quiet, framing=args.framing,
+        render=SynthRenderConfig(antialias=not args.no_antialias), progress=not args.quiet, framing=args.framing,
         family=args.family, raycaster=args.raycaster,
     )
     card = generate(config)

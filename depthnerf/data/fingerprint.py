@@ -11,7 +11,7 @@ still resumes. A dataset generated again in place (``depthnerf synth`` with anot
 on the test split's fixed camera spiral, the same poses, but other shapes) changes it through the image sizes
 (PNG sizes follow the content) and the card's seed. An edit that keeps every file's size and every camera (a few
 repainted pixels) goes unseen; the depth prior cache has its own byte-wise fingerprint
-(:func:`depthnerf.depth.cache.object_fingerprint`).
+(:func:`depthnerf.depth.cache.rgb_fingerprint`).
 """
 
 from __future__ import annotations

@@ -104,7 +104,7 @@ class StoredObject:
 
 def store_fingerprint(record: ObjectRecord) -> str:
     """SHA-256 of the view names and the size and modification time of ``intrinsics.txt`` and every RGB, pose and
-    mask file (not :func:`depthnerf.depth.cache.object_fingerprint`, which covers the RGB files alone: the store
+    mask file (not :func:`depthnerf.depth.cache.rgb_fingerprint`, which covers the RGB files alone: the store
     also holds poses, masks and intrinsics)."""
     digest = hashlib.sha256()
     st = (record.path / "intrinsics.txt").stat()

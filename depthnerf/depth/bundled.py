@@ -73,7 +73,8 @@ class BundledNetConfig:
     """Architecture of the bundled depth U-Net."""
 
     widths: tuple[int, ...] = (24, 32, 48, 64, 128)
-    """Channels per level; level ``k`` works at ``1 / 2**k`` of the input resolution."""
+    """Channels per level; level ``k`` works at ``1 / (unshuffle * 2**k)`` of the network input's resolution
+    (``1 / 2**k`` of the pixel-unshuffled input)."""
     input_size: int = 128
     """Images are resized so their longer side has this many pixels before the network."""
     context: bool = True

@@ -76,7 +76,7 @@ def depth_command(data_root: Path, estimator: str, checkpoint: str | None, resol
 
 
 FINGERPRINT_SCHEME = "rgb-bytes"
-"""Prefix of :func:`object_fingerprint`; a stored fingerprint without it is the earlier scheme
+"""Prefix of :func:`rgb_fingerprint`; a stored fingerprint without it is the earlier scheme
 (:func:`_sizes_fingerprint`)."""
 
 
@@ -89,7 +89,7 @@ def _rgb_bytes(path: Path) -> bytes:
         raise DepthnerfError(f"{path}: cannot read image ({err.strerror or err})") from None
 
 
-def object_fingerprint(record: Any) -> str:
+def rgb_fingerprint(record: Any) -> str:
     """``rgb-bytes:`` + the SHA-256 of the view names and the bytes of their RGB files (see the module docstring)."""
     digest = hashlib.sha256()
     for index, name in enumerate(record.view_names):
@@ -115,19 +115,19 @@ def _sizes_fingerprint(record: Any) -> str:
 
 
 def is_bytes_fingerprint(stored: str | None) -> bool:
-    """Whether a stored fingerprint is of the :func:`object_fingerprint` scheme (``rgb-bytes:``), the one checking
+    """Whether a stored fingerprint is of the :func:`rgb_fingerprint` scheme (``rgb-bytes:``), the one checking
     it needs the bytes of every RGB file for; an earlier one is checked by :func:`_sizes_fingerprint`."""
     return isinstance(stored, str) and stored.startswith(f"{FINGERPRINT_SCHEME}:")
 
 
 def fingerprint_matches(stored: str | None, record: Any, current: str | None = None) -> bool:
     """Whether a cache entry's stored fingerprint is ``record``'s now, under the scheme it was written with
-    (``current``: :func:`object_fingerprint` of ``record`` when the caller has it already; computed here only for
+    (``current``: :func:`rgb_fingerprint` of ``record`` when the caller has it already; computed here only for
     an ``rgb-bytes:`` entry)."""
     if not isinstance(stored, str):
         return False
     if is_bytes_fingerprint(stored):
-        return stored == (current or object_fingerprint(record))
+        return stored == (current or rgb_fingerprint(record))
     return stored == _sizes_fingerprint(record)
 
 

@@ -20,9 +20,9 @@ from depthnerf.depth.cache import (
     cache_dir,
     fingerprint_matches,
     is_bytes_fingerprint,
-    object_fingerprint,
     object_path,
     read_object_metadata,
+    rgb_fingerprint,
     write_object_priors,
 )
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, DepthEstimator, describe_estimator, make_estimator
@@ -156,13 +156,13 @@ def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
         meta = read_object_metadata(path)
         stored = None if meta is None else meta.get("fingerprint")
         # the full-bytes fingerprint only where the entry's scheme compares it, or when an entry is (re)written
-        fingerprint = object_fingerprint(record) if is_bytes_fingerprint(stored) else None
+        fingerprint = rgb_fingerprint(record) if is_bytes_fingerprint(stored) else None
         if meta is not None and fingerprint_matches(stored, record, fingerprint) and (
                 meta.get("weights_hash"), meta.get("resolution")) == (provenance.weights_hash, str(resolution)):
             summary.skipped += 1
         else:
             summary.stale += meta is not None
-            fingerprint = fingerprint or object_fingerprint(record)
+            fingerprint = fingerprint or rgb_fingerprint(record)
             if estimator is None:  # loaded (and the manifest written) only once there is work to do
                 estimator = make_estimator(cfg.estimator, cfg.checkpoint, device=cfg.device)
                 write_json_atomic(manifest_path, manifest)

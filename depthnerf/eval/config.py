@@ -54,7 +54,9 @@ PIXELNERF_UNLOADABLE = {
                                         "SRNDataset raises 'Bad image' on it",
 }
 """Objects pixelNeRF's evaluation cannot load (id -> why), left out under ``--objects pixelnerf``."""
-LEGACY_METRICS_PATH = {"quantized 8-bit renders (calc_metrics.py)": "png8", "float renders (eval.py)": "float"}
+METRICS_PATH = {"png8": "quantized 8-bit renders (calc_metrics.py)", "float": "float renders (eval.py)"}
+"""``summary.json`` ``metrics_path`` text of each scored precision."""
+LEGACY_METRICS_PATH = {text: scored for scored, text in METRICS_PATH.items()}
 """``summary.json`` ``metrics_path`` text -> scored precision (summaries without ``protocol_choices``)."""
 
 

@@ -210,6 +210,24 @@ class LpipsStatus:
     """``"ok"`` or ``"unavailable: <reason>"``."""
 
 
+def _linear_file(config: LpipsConfig) -> Path:
+    """The v0.1 linear-layer weights the ``lpips`` package ships for ``config.net`` (the package must import)."""
+    import lpips
+
+    return Path(lpips.__file__).parent / "weights" / "v0.1" / f"{config.net}.pth"
+
+
+def _read_state_dict(path: Path) -> dict:
+    """A ``torch.load(weights_only=True)`` state dict; one line naming ``path`` when it is unreadable or not one."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any unreadable or non-tensor file is reported the same way
+        raise DepthnerfError(f"{path}: cannot read LPIPS weights ({type(err).__name__}: {err})") from None
+    if not isinstance(state, dict):
+        raise DepthnerfError(f"{path}: LPIPS weights are not a state dict")
+    return state
+
+
 def _trunk_file(config: LpipsConfig) -> Path:
     """The trunk weight file: the given path, or torchvision's own hub-cache file name."""
     if config.trunk_path is not None:
@@ -225,21 +243,15 @@ def lpips_status(config: LpipsConfig = LpipsConfig()) -> LpipsStatus:
     if config.net not in TRUNK_WEIGHTS:
         return LpipsStatus(False, f"unavailable: unknown LPIPS trunk {config.net!r} (use {sorted(TRUNK_WEIGHTS)})")
     try:
-        import lpips
+        linear = _linear_file(config)
     except ImportError:
         return LpipsStatus(False, "unavailable: the 'lpips' package is not installed")
-    linear = Path(lpips.__file__).parent / "weights" / "v0.1" / f"{config.net}.pth"
     if not linear.is_file():
         return LpipsStatus(False, f"unavailable: LPIPS linear weights missing ({linear})")
     trunk = _trunk_file(config)
     if not trunk.is_file():
         return LpipsStatus(False, f"unavailable: {config.net} ImageNet trunk weights not found locally ({trunk})")
     return LpipsStatus(True, "ok")
-
-
-def lpips_available(config: LpipsConfig = LpipsConfig()) -> bool:
-    """True when :func:`load_lpips` would return a metric."""
-    return lpips_status(config).available
 
 
 class LpipsMetric:
@@ -264,21 +276,15 @@ class LpipsMetric:
 
 def load_lpips(config: LpipsConfig = LpipsConfig(), device: torch.device | str = "cpu") -> LpipsMetric | None:
     """LPIPS from local files only (``torch.load(weights_only=True)``), or None when :func:`lpips_status`
-    says it is unavailable. A trunk file that exists but does not fit raises :class:`DepthnerfError`."""
+    says it is unavailable. A weights file that exists but cannot be read or does not fit raises
+    :class:`DepthnerfError` naming that file."""
     status = lpips_status(config)
     if not status.available:
         return None
     import lpips
 
-    linear_path = Path(lpips.__file__).parent / "weights" / "v0.1" / f"{config.net}.pth"
-    trunk_path = _trunk_file(config)
-    try:
-        linear = torch.load(linear_path, map_location="cpu", weights_only=True)
-        trunk = torch.load(trunk_path, map_location="cpu", weights_only=True)
-    except Exception as err:  # any unreadable or non-tensor file is reported the same way
-        raise DepthnerfError(f"{trunk_path}: cannot read LPIPS weights ({type(err).__name__}: {err})") from None
-    if not isinstance(trunk, dict) or not isinstance(linear, dict):
-        raise DepthnerfError(f"{trunk_path}: LPIPS weights are not a state dict")
+    linear_path, trunk_path = _linear_file(config), _trunk_file(config)
+    linear, trunk = _read_state_dict(linear_path), _read_state_dict(trunk_path)
     with warnings.catch_warnings():  # lpips passes torchvision's deprecated `pretrained=False`
         warnings.simplefilter("ignore")
         model = lpips.LPIPS(pretrained=False, net=config.net, version="0.1", pnet_rand=True, verbose=False)

@@ -83,7 +83,7 @@ from depthnerf.data.fingerprint import DataFingerprint
 from depthnerf.data.srn import ObjectRecord, index_split
 from depthnerf.distributed import DistInfo, checked_together
 from depthnerf.errors import DepthnerfError
-from depthnerf.eval.config import ProtocolChoices, ProtocolConfig
+from depthnerf.eval.config import METRICS_PATH, ProtocolChoices, ProtocolConfig
 from depthnerf.eval.geometry_metrics import object_geometry, summarize_geometry
 from depthnerf.eval.metrics import (
     SSIM_WINDOW_SIDE,
@@ -373,8 +373,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
         "symmetry_plane": None if evaluator.symmetry_plane is None else list(evaluator.symmetry_plane),
         "symmetry_plane_source": evaluator.symmetry_from,
         "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),
-        "metrics_path": ("quantized 8-bit renders (calc_metrics.py)" if choices.scored == "png8"
-                         else "float renders (eval.py)"),
+        "metrics_path": METRICS_PATH[choices.scored],
         "world_size": info.world,
         "timing": {"total_s": total, "per_object_s": total / len(results),
                    **{f"{k}_s": float(sum(r.seconds[k] for r in results)) for k in ("render", "metrics", "mesh")},

@@ -148,15 +148,10 @@ def resize_bilinear_matmul(x: Float[Tensor, "N C H W"], size: tuple[int, int]) -
     return torch.matmul(torch.matmul(a_h, x), a_w.t())
 
 
-def pixel_aligned(maps: Float[Tensor, "B V Hf Wf C"], cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
-                  principal: Float[Tensor, "B 2"], image_size: tuple[int, int]) -> Float[Tensor, "B V N C"]:
-    """Features of each source view's (channels-last) map at the projection of each camera-frame point."""
-    return sample_projected(maps, project_points(cam, focal, principal), image_size)
-
-
 def sample_projected(maps: Float[Tensor, "B V Hf Wf C"], uv: Float[Tensor, "B V N 2"],
                      image_size: tuple[int, int]) -> Float[Tensor, "B V N C"]:
-    """:func:`pixel_aligned` from projections ``uv`` already made (:func:`project_points`)."""
+    """Features of each source view's (channels-last) map at image coordinates ``uv`` of an ``H x W`` image (the
+    projections of camera-frame points, :func:`project_points`)."""
     b, v, hf, wf, c = maps.shape
     grid = uv_to_grid(uv, image_size, (hf, wf))
     out = sample_maps(maps.reshape(b * v, hf, wf, c), grid.reshape(b * v, -1, 2))

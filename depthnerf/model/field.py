@@ -60,11 +60,6 @@ class PositionalEncoding(nn.Module):
         self.register_buffer("freqs", freq_factor * 2.0 ** torch.arange(num_freqs, dtype=torch.float32),
                              persistent=False)
 
-    @property
-    def d_out(self) -> int:
-        """Output width for 3-D input."""
-        return 6 * self.num_freqs + (3 if self.include_input else 0)
-
     def forward(self, x: Float[Tensor, "*N 3"]) -> Float[Tensor, "*N D"]:
         scaled = x[..., None, :] * self.freqs[:, None]  # [*N, F, 3]
         enc = torch.stack([torch.sin(scaled), torch.cos(scaled)], dim=-2).flatten(-3)  # [*N, F*2*3]

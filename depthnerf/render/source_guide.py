@@ -51,8 +51,8 @@ def _split(total: int, weights: tuple[int, ...]) -> list[int]:
     return parts
 
 
-def guided_config(budget: int = DEFAULT_BUDGET, align_samples: int = 32, base: GuidedConfig | None = None
-                  ) -> GuidedConfig:
+def guided_config(budget: int = DEFAULT_BUDGET, align_samples: int = GuidedConfig.align_samples,
+                  base: GuidedConfig | None = None) -> GuidedConfig:
     """Depth-guided sampling switched on at ``budget`` samples per occupied ray, split 1:2:2:1 (uniform, window,
     importance, Gaussian: the default 8:16:16:8's proportions), and ``budget // 2`` per empty ray split 2:1 (the
     default 16:8's); ``align_samples`` for the alignment render; every other setting ``base``'s (default:

@@ -95,8 +95,8 @@ class ScheduleConfig:
     """Weight of the scale/shift-invariant depth loss against the target view's prior (beyond the paper; 0 = off)."""
     step_shape: Literal["batched", "per-object"] = "batched"
     """How a step runs its objects: ``batched`` = all of a rank's objects through the encoder and the fields
-    together (one call each); ``per-object`` = one object at a time with gradients accumulated (the earlier
-    loop). Same per-object BatchNorm statistics and noise, so the same result up to float rounding
+    together (one call each); ``per-object`` = one object at a time with gradients accumulated. Same per-object
+    BatchNorm statistics and noise, so the same result up to float rounding
     (``depthnerf.train.step``); a speed choice only."""
     mirror_dropout: float = 0.2
     """Mirror models only: the fraction of training items conditioned WITHOUT their symmetry plane (drawn per item

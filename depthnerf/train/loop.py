@@ -53,7 +53,7 @@ from depthnerf.train import memory
 from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate_packed, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
 from depthnerf.train.items import TrainItems
-from depthnerf.train.run_log import RunLog, check_run_dir, record_launch, run_lock
+from depthnerf.train.run_log import RunLog, check_run_dir, read_run_record, record_launch, run_lock
 from depthnerf.train.step import BatchLoss, compiled_fields, train_step
 from depthnerf.train.stop import STOP_SIGNALS, StopRequest, ValidationInterrupted, exit_code, signal_name
 from depthnerf.train.validator import Validator
@@ -80,10 +80,7 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
 
 def _trained_weights_hash(run_dir: Path) -> str | None:
     """The prior's weights hash a run recorded in its ``prior.json`` (None: none recorded, or no prior)."""
-    try:
-        recorded = json.loads((run_dir / "prior.json").read_text()).get("weights_hash")
-    except (OSError, ValueError, AttributeError):
-        return None
+    recorded = (read_run_record(run_dir / "prior.json") or {}).get("weights_hash")
     return recorded if isinstance(recorded, str) else None
 
 
@@ -97,11 +94,10 @@ def _check_same_objects(run_dir: Path, root: Path, records: list) -> None:
     and their ids where recorded), else its batches (a function of seed, step and object index) would silently
     change; a moved copy passes."""
     path = run_dir / "data_card.json"
-    try:
-        card = json.loads(path.read_text())
-        trained, ids = card.get("train_objects"), card.get("train_object_ids_sha256")
-    except (OSError, ValueError, AttributeError):
+    card = read_run_record(path)
+    if card is None:
         return  # no record to compare with
+    trained, ids = card.get("train_objects"), card.get("train_object_ids_sha256")
     again = "resume with --data naming the run's own data, or choose another --out for a new run"
     if isinstance(trained, int) and trained != len(records):
         raise DepthnerfError(f"{path}: the run trained on {trained} training objects, but {root} holds "

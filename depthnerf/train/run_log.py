@@ -1,6 +1,7 @@
 """A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step), TensorBoard events and
 ``launches.jsonl`` (one JSON object per start or resume of the run: the step it started from, the world size =
-number of torchrun ranks, the device and the time); and the run folder's guards: :func:`check_run_dir` (a new run
+number of torchrun ranks, the device and the time); the run's JSON records as a resume reads them
+(:func:`read_run_record`); and the run folder's guards: :func:`check_run_dir` (a new run
 never overwrites a ``config.json`` that is not a run's) and :func:`run_lock` (one process trains a run at a time).
 
 On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
@@ -127,6 +128,21 @@ def read_launches(run_dir: Path) -> list[dict[str, Any]]:
         except json.JSONDecodeError:
             continue  # a line cut by a kill
     return out
+
+
+def read_run_record(path: Path) -> dict[str, Any] | None:
+    """A run's JSON record (``prior.json``, ``data_card.json``), None when the run has none (written before the file
+    existed); a file that is there but unreadable or not a JSON object is one line naming it, never taken as absent
+    (the resume checks the record feeds would be skipped)."""
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as err:
+        raise DepthnerfError(f"{path}: unreadable run record ({err}); restore it to resume the run") from None
+    if not isinstance(record, dict):
+        raise DepthnerfError(f"{path}: not a run record (a JSON object); restore it to resume the run")
+    return record
 
 
 def check_run_dir(run_dir: Path, has_checkpoint: bool) -> None:

@@ -11,7 +11,7 @@ which objects share the batch (so 2 DDP ranks x 2 objects equal 1 process x 4 ob
 The loss is pixelNeRF's: the mean over objects of the coarse + fine colour MSE (plus the optional depth and
 background-opacity terms, each per object then averaged). :func:`train_step` returns the loss terms as one
 device tensor; the loop reads it once per log interval. ``per_object=True`` runs the same module once per object
-(gradients accumulated), the shape the training loop used before; same result up to float rounding.
+(gradients accumulated, ``--schedule.step_shape per-object``); same result up to float rounding.
 :func:`compiled_fields` (``depthnerf train --compile``) runs the fields' MLPs, forward and backward, through
 ``torch.compile``, which fuses their element-wise work and casts (fewer kernel launches on a GPU).
 """

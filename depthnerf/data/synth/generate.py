@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.srn import CATEGORY_DEFAULTS
 from depthnerf.data.synth.cars import (
     CAR_REVISION,
     CAR_STYLES,
@@ -60,7 +61,7 @@ from depthnerf.data.synth.chairs import (
 )
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, Framing, get_framing
 from depthnerf.data.synth.hits import ENGINES, resolve_engine
-from depthnerf.data.synth.raycast import PixelRays, Raycaster, RenderConfig, render_view
+from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, render_view
 from depthnerf.data.synth.views import (
     ViewConfig,
     hemisphere_eyes,
@@ -73,9 +74,6 @@ from depthnerf.data.synth.views import (
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_json_atomic
 
-GENERATOR_VERSION = "depthnerf-synth-1"
-"""Version of the legacy generator (renderer, protocol, file layout); the SRN framing's is ``depthnerf-synth-2``
-(:data:`~depthnerf.data.synth.framing.FRAMINGS`)."""
 FAMILIES = ("standard", "heldout")
 """Shape families: the grammars' training mix, and styles it never draws (generalisation checks)."""
 
@@ -112,13 +110,14 @@ class CategorySpec:
 
 
 def category_spec(category: str, framing: str = DEFAULT_FRAMING) -> CategorySpec:
-    """Camera radius, z-range and object size of ``cars`` or ``chairs`` in ``framing``."""
+    """Camera radius, z-range (the SRN release's, :data:`~depthnerf.data.srn.CATEGORY_DEFAULTS`) and object size
+    of ``cars`` or ``chairs`` in ``framing``."""
     fr = get_framing(framing)
-    if category == "cars":
-        return CategorySpec(radius=1.3, z_near=0.8, z_far=1.8, diagonal=1.0, framing=fr.name)
-    if category == "chairs":
-        return CategorySpec(radius=2.0, z_near=1.25, z_far=2.75, diagonal=fr.chair_diagonal, framing=fr.name)
-    raise DepthnerfError(f"synth: unknown category {category!r} (expected cars or chairs)")
+    if category not in ("cars", "chairs"):
+        raise DepthnerfError(f"synth: unknown category {category!r} (expected cars or chairs)")
+    srn = CATEGORY_DEFAULTS[category]
+    return CategorySpec(radius=srn.camera_radius, z_near=srn.z_near, z_far=srn.z_far,
+                        diagonal=1.0 if category == "cars" else fr.chair_diagonal, framing=fr.name)
 
 
 @dataclass(frozen=True)
@@ -145,7 +144,7 @@ class SynthConfig:
     """Views per train object (SRN: 50)."""
     views_test: int = 251
     """Views per val/test object (SRN: 251)."""
-    render: RenderConfig = field(default_factory=RenderConfig)
+    render: SynthRenderConfig = field(default_factory=SynthRenderConfig)
     """Renderer settings."""
     progress: bool = True
     """Show a tqdm progress bar."""

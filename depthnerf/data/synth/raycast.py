@@ -56,8 +56,9 @@ class LightingConfig:
 
 
 @dataclass(frozen=True)
-class RenderConfig:
-    """Renderer settings."""
+class SynthRenderConfig:
+    """Settings of the synthetic-data renderer (``depthnerf synth``; the NeRF renderer's are
+    :class:`depthnerf.render.config.RenderConfig`)."""
 
     lighting: LightingConfig = field(default_factory=LightingConfig)
     """The lighting rig."""
@@ -148,7 +149,7 @@ class Raycaster:
         normals[hit] = normal
         return _Hits(face, t, normals)
 
-    def shade(self, hits: _Hits, dirs: np.ndarray, cfg: RenderConfig) -> np.ndarray:
+    def shade(self, hits: _Hits, dirs: np.ndarray, cfg: SynthRenderConfig) -> np.ndarray:
         """Colour of each ray (background where it missed)."""
         light = cfg.lighting
         out = np.full((len(dirs), 3), cfg.background)
@@ -221,7 +222,7 @@ def _edge_pixels(key: np.ndarray, luma: np.ndarray, threshold: float) -> np.ndar
 
 
 def render_view(caster: Raycaster, c2w: np.ndarray, rays: PixelRays | Intrinsics,
-                cfg: RenderConfig) -> RenderedView:
+                cfg: SynthRenderConfig) -> RenderedView:
     """Render RGB, z-depth and mask of ``caster.mesh`` seen by camera-to-world ``c2w`` (OpenCV axes).
 
     Pass a :class:`PixelRays` to reuse the per-pixel directions across views (an :class:`Intrinsics` works too).
