@@ -309,7 +309,7 @@ class Reconstructor:
         return Reconstruction(
             input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
             prior_normalized=None if normalized is None else normalized[0, 0, 0].cpu().numpy(),
-            poses=poses.numpy(), intrinsics=render_intr, views=out.rgb.numpy(), depths=out.depth.numpy(),
+            poses=poses.numpy(), intrinsics=render_intr, views=out.rgb.numpy(), depths=out.distance.numpy(),
             opacity=out.opacity.numpy(), mesh=mesh, points=points.astype(np.float32),
             point_colors=colors.astype(np.float32), settings=settings, timings=times)
 
