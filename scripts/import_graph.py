@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent / "depthnerf"
 
 STAGES = {
     "": 0, "errors": 0, "files": 0, "config_io": 0, "cpu_runtime": 0, "distributed": 0,
-    "bundles": 0, "hub_access": 0, "state_dicts": 0, "data": 1, "depth": 2, "model": 3, "render": 4, "pretrained": 5, "infer": 6,
+    "bundles": 0, "hub_access": 0, "state_dicts": 0, "crash_hook": 0, "data": 1, "depth": 2, "model": 3, "render": 4, "pretrained": 5, "infer": 6,
     "train": 7, "eval": 7, "reconstruct": 7,
     "commands": 8, "app": 8, "demo": 8, "cli": 9, "__main__": 9,
 }

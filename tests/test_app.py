@@ -338,6 +338,26 @@ def test_a_new_upload_clears_every_earlier_output(session, tmp_path):
         assert (values["prepared"] is not None) == (image == examples()[0])
 
 
+def test_the_fill_slider_keeps_its_value_only_for_a_bad_checkpoint(session, monkeypatch):
+    """Choosing a model sets the fill slider to its training fill; a bad checkpoint keeps the slider (the run
+    reports it in one line), any other failure is a bug and surfaces."""
+    pytest.importorskip("gradio", reason="gradio is not installed (pip install -e '.[app]')")
+    import gradio as gr
+
+    from depthnerf.app.page import build_page
+
+    fill_for = {f.name: f for f in build_page(session).fns.values()}["fill_for"].fn
+    assert fill_for("car", "") == pytest.approx(session.training_fill("car"))
+    assert isinstance(fill_for("car", "/no/such/checkpoint"), gr.Slider)
+
+    def broken(model, checkpoint_path=""):
+        raise RuntimeError("a bug in training_fill")
+
+    monkeypatch.setattr(session, "training_fill", broken)
+    with pytest.raises(RuntimeError, match="a bug in training_fill"):
+        fill_for("car", "")
+
+
 def test_the_temporary_run_folder_is_removed_on_sigterm(monkeypatch, capsys, tmp_path):
     """``depthnerf app`` without --work-dir runs in a temporary folder; SIGTERM (as a service manager stops it)
     ends the server like Ctrl+C, and the folder goes."""

@@ -83,7 +83,7 @@ def test_render_bundles_use_the_base():
     idx = torch.tensor([[5, 1], [0, 0]])
     picked = guide.gather(idx)
     assert torch.equal(picked.valid, torch.gather(guide.valid, 1, idx)) and picked.valid.dtype == torch.bool
-    res = RenderResult(rgb=torch.rand(2, 6, 3), depth=torch.rand(2, 6), opacity=torch.rand(2, 6),
+    res = RenderResult(rgb=torch.rand(2, 6, 3), distance=torch.rand(2, 6), opacity=torch.rand(2, 6),
                        weights=torch.rand(2, 6, 4), t=torch.rand(2, 6, 4))
     both = RenderResult.cat([res.slice(0, 2), res.slice(2, 6)], dim=1)
-    assert all(torch.equal(getattr(both, n), getattr(res, n)) for n in ("rgb", "depth", "opacity", "weights", "t"))
+    assert all(torch.equal(getattr(both, n), getattr(res, n)) for n in ("rgb", "distance", "opacity", "weights", "t"))

@@ -333,3 +333,17 @@ def test_app_help_does_not_import_torch():
              "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_encoder_norm_names_live_once_in_a_torch_free_module():
+    """``depthnerf eval --encoder-norm`` takes its choices from ``model.config.ENCODER_NORMS``, the names
+    ``PixelNeRF.encode`` checks; importing that module (through the lazy ``depthnerf.model``) imports no torch."""
+    from depthnerf.cli import build_parser
+    from depthnerf.model import config, pixelnerf
+
+    probe = "import sys; import depthnerf.model.config; print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+    sub = next(a for a in build_parser(["eval"])._actions if a.dest == "command").choices["eval"]
+    action = next(a for a in sub._actions if a.dest == "encoder_norm")
+    assert action.choices is config.ENCODER_NORMS is pixelnerf.ENCODER_NORMS

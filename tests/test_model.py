@@ -66,6 +66,13 @@ def test_known_point_projects_to_its_pixel_and_samples_its_feature():
     uv = project_points(cam, torch.tensor([focal]), torch.tensor([[cx, cy]]))
     torch.testing.assert_close(uv[0, 0, 0], torch.tensor([float(j), float(i)]), atol=1e-4, rtol=0)
     torch.testing.assert_close(uv[0, 0], project(cam[0, 0], focal, (cx, cy)), atol=1e-5, rtol=0)
+    # The model's intrinsics come in the features' dtype (bf16 under autocast): the projection promotes them to the
+    # camera points' float32 (it does not round the points to bf16), and its values are cameras.project's.
+    focal_bf16, principal_bf16 = torch.tensor([focal], dtype=torch.bfloat16), torch.tensor([[cx, cy]]).bfloat16()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        uv_bf16 = project_points(cam, focal_bf16, principal_bf16)
+    assert uv_bf16.dtype == torch.float32
+    assert torch.equal(uv_bf16, project(cam, focal_bf16[:, None], principal_bf16[:, None]))
     # A full-resolution map whose pixel (r, c) stores (c, r): sampling returns the pixel coordinates.
     rows, cols = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
                                 indexing="ij")

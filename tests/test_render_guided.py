@@ -94,7 +94,7 @@ def test_guided_end_to_end_from_a_relative_disparity_prior():
     prior = normalize_disparity(torch.where(mask, 0.37 / z_src.clamp_min(1e-3) + 2.0, torch.zeros_like(z_src)), mask)
     src_rays = rays_from_camera(src, INTR, NEAR, FAR)
     cheap = render_image(SCENE, None, src_rays, RenderConfig(sampler=SamplerConfig(n_coarse=32)), chunk=4096).coarse
-    ref_z = (cheap.normalized_depth() * camera_z_of_directions(src_rays.directions, src)).reshape(1, 32, 32)
+    ref_z = (cheap.normalized_distance() * camera_z_of_directions(src_rays.directions, src)).reshape(1, 32, 32)
     fit_mask = mask & (cheap.opacity > 0.9).reshape(1, 32, 32)
     aligned = align_disparity_to_depth(prior, ref_z, fit_mask)
     rel = ((aligned - z_src).abs() / z_src)[mask]

@@ -95,7 +95,7 @@ def test_chunked_render_equals_unchunked(guided):
         guide = build_depth_guide(src, INTR, z, mask, rays, GuidedConfig())
     full = render_rays(SCENE, SCENE, rays, cfg, train=False, guide=guide)
     chunked = render_image(SCENE, SCENE, rays, cfg, chunk=100, guide=guide)  # 576 = 5 * 100 + 76
-    for name in ("rgb", "depth", "opacity", "weights", "t"):
+    for name in ("rgb", "distance", "opacity", "weights", "t"):
         assert torch.allclose(getattr(chunked.fine, name), getattr(full.fine, name), atol=1e-6), name
         assert torch.allclose(getattr(chunked.coarse, name), getattr(full.coarse, name), atol=1e-6), name
 

@@ -28,7 +28,7 @@ def test_uniform_slab_matches_closed_form():
         exact_trans = torch.exp(-s * (t - t0).clamp(0, L))
         assert torch.allclose(trans, exact_trans, atol=1e-12)
         assert abs(res.opacity.item() - (1 - math.exp(-s * L))) < 1e-12
-        errors.append(abs(res.depth.item() - exact_depth))
+        errors.append(abs(res.distance.item() - exact_depth))
         # depth uses the left end of each interval: first-order error bounded by one step
         assert errors[-1] <= (far - near) / n
     assert errors[1] < 0.3 * errors[0] and errors[2] < 0.3 * errors[1]  # converges linearly
@@ -55,7 +55,7 @@ def test_composite_matches_bruteforce_loop():
                 acc += w
                 trans *= 1 - alpha
             assert abs(res.opacity[bi, ri].item() - acc) < 1e-12
-            assert abs(res.depth[bi, ri].item() - depth) < 1e-12
+            assert abs(res.distance[bi, ri].item() - depth) < 1e-12
             for k in range(3):
                 assert abs(res.rgb[bi, ri, k].item() - (color[k] + 1 - acc)) < 1e-12
 
@@ -71,4 +71,4 @@ def test_white_background_adds_one_minus_opacity():
     assert torch.allclose(white.rgb - black.rgb, (1 - black.opacity)[..., None].expand(-1, -1, 3), atol=1e-6)
     assert (black.opacity > 0.05).all() and (black.opacity < 0.999).all()  # both terms matter here
     empty = composite(t, far, torch.zeros_like(sigma), rgb, white_background=True)
-    assert torch.allclose(empty.rgb, torch.ones_like(empty.rgb)) and torch.all(empty.depth == 0)
+    assert torch.allclose(empty.rgb, torch.ones_like(empty.rgb)) and torch.all(empty.distance == 0)

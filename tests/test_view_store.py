@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -277,9 +278,14 @@ def test_a_damaged_meta_file_is_one_line(tmp_path):
     records = index_split(root, "cars", "train").objects
     store = ViewStore(tmp_path / "store", 16, 0.5)
     store.ensure(records)
-    (store.object_dir(records[0]) / "meta.json").write_text("[1, 2]")
-    with pytest.raises(DepthnerfError, match=r"missing from the view store"):
-        ViewStore(tmp_path / "store", 16, 0.5).open(records[0])
+    meta = store.object_dir(records[0]) / "meta.json"
+    for damaged, why in (("[1, 2]", "not a JSON object"), ('{"views": 3, "finger', "Unterminated string")):
+        meta.write_text(damaged)  # a damaged file is reported as such, naming it, not as a missing object
+        with pytest.raises(DepthnerfError, match=rf"^{re.escape(str(meta))}: unreadable view store metadata "
+                                                 rf"\({why}.*delete the folder to rebuild it$"):
+            ViewStore(tmp_path / "store", 16, 0.5).open(records[0])
+    assert ViewStore(tmp_path / "store", 16, 0.5).ensure(records) == {"built": 1, "rebuilt": 0, "reused": 0}
+    ViewStore(tmp_path / "store", 16, 0.5).open(records[0])  # ... and the next build replaces it
     (store.object_dir(records[0]) / "meta.json").write_text('{"views": 3, "fingerprint": "x"}')
     with pytest.raises(DepthnerfError, match=r"unreadable view store object .*intrinsics"):
         ViewStore(tmp_path / "store", 16, 0.5).open(records[0])

@@ -125,7 +125,7 @@ def build_page(session: AppSession) -> gr.Blocks:
     def fill_for(model, ckpt_path):
         try:
             return session.training_fill(model, ckpt_path or "")
-        except Exception:  # noqa: BLE001 - a bad path shows up (one line) when the user runs it
+        except DepthnerfError:  # a bad path or model shows up (one line) when the user runs it; a bug surfaces
             return gr.Slider()
 
     def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg, bg_model,

@@ -33,6 +33,7 @@ from pathlib import Path
 
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
+from depthnerf.model.config import ENCODER_NORMS
 from depthnerf.render.config import COMPILE_MODES, DEFAULT_BUDGET, GuidedConfig
 
 COLLECTIVE_TIMEOUT = timedelta(hours=6)
@@ -86,7 +87,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pixel-center", type=float,
                    help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
                         "data.pixel_center (measures what a convention mismatch costs)")
-    p.add_argument("--encoder-norm", choices=("running", "image"), default="running",
+    p.add_argument("--encoder-norm", choices=ENCODER_NORMS, default="running",
                    help="encoder BatchNorm statistics: running (pixelNeRF, default) or the input image's own, as "
                         "training normalises each object")
     p.add_argument("--no-symmetry", action="store_true",

@@ -131,10 +131,14 @@ def project(points_cam: Float[Tensor, "*B N 3"], focal: Float[Tensor, "*B"] | fl
             principal: Float[Tensor, "*B 2"] | tuple[float, float]) -> Float[Tensor, "*B N 2"]:
     """Pixel coordinates ``(u, v)`` of camera-frame points: ``u = f x / z + cx``, ``v = f y / z + cy``.
 
-    Points behind the camera (``z <= 0``) get coordinates far outside the image rather than NaN.
+    Points behind the camera (``z <= 0``) get coordinates far outside the image rather than NaN. A Python number
+    or tuple becomes a tensor of the points' dtype; a tensor is used as it is (torch's type promotion, so the
+    model's features, :func:`depthnerf.model.features.project_points`, keep their dtype behaviour).
     """
-    focal = torch.as_tensor(focal, dtype=points_cam.dtype, device=points_cam.device)
-    principal = torch.as_tensor(principal, dtype=points_cam.dtype, device=points_cam.device)
+    if not isinstance(focal, Tensor):
+        focal = torch.as_tensor(focal, dtype=points_cam.dtype, device=points_cam.device)
+    if not isinstance(principal, Tensor):
+        principal = torch.as_tensor(principal, dtype=points_cam.dtype, device=points_cam.device)
     z = points_cam[..., 2:3].clamp_min(1e-6)
     return points_cam[..., :2] / z * focal[..., None, None] + principal[..., None, :]
 

@@ -73,9 +73,15 @@ class CategoryDefaults:
     """Side of the square images of the release, in pixels."""
 
 
+SRN_IMAGE_SIZE = 128
+"""Side of the square images of SRN's releases (both categories), in pixels."""
+SRN_FOCAL = 131.25
+"""Focal length in pixels of SRN's images at :data:`SRN_IMAGE_SIZE` (525 / 512 * 128, as its intrinsics files
+state; principal point at the image centre)."""
 CATEGORY_DEFAULTS: Mapping[str, CategoryDefaults] = MappingProxyType({
-    "cars": CategoryDefaults(z_near=0.8, z_far=1.8, camera_radius=1.3, focal=131.25, image_size=128),
-    "chairs": CategoryDefaults(z_near=1.25, z_far=2.75, camera_radius=2.0, focal=131.25, image_size=128),
+    "cars": CategoryDefaults(z_near=0.8, z_far=1.8, camera_radius=1.3, focal=SRN_FOCAL, image_size=SRN_IMAGE_SIZE),
+    "chairs": CategoryDefaults(z_near=1.25, z_far=2.75, camera_radius=2.0, focal=SRN_FOCAL,
+                               image_size=SRN_IMAGE_SIZE),
 })
 """Known SRN categories (read-only mapping)."""
 IGNORED_FOLDERS: frozenset[str] = frozenset({"__MACOSX"})

@@ -192,12 +192,27 @@ class ViewStore:
             raise DepthnerfError(f"{path}: the view store was made for {have}, this run needs {want}; name "
                                  "another --data.view_store folder")
 
-    def _meta(self, record: ObjectRecord) -> dict | None:
+    def _read_meta(self, record: ObjectRecord) -> dict | None:
+        """One object's ``meta.json``; None when there is none, one line naming the file when it is unreadable."""
+        path = self.object_dir(record) / "meta.json"
         try:
-            meta = json.loads((self.object_dir(record) / "meta.json").read_text())
-        except (OSError, ValueError):
+            meta = json.loads(path.read_text())
+        except FileNotFoundError:
             return None
-        return meta if isinstance(meta, dict) else None
+        except (OSError, ValueError) as err:
+            raise DepthnerfError(f"{path}: unreadable view store metadata ({err}); delete the folder to rebuild "
+                                 "it") from None
+        if not isinstance(meta, dict):
+            raise DepthnerfError(f"{path}: unreadable view store metadata (not a JSON object); delete the folder to "
+                                 "rebuild it")
+        return meta
+
+    def _meta(self, record: ObjectRecord) -> dict | None:
+        """One object's ``meta.json``, None when it is missing or unreadable (the object is built again)."""
+        try:
+            return self._read_meta(record)
+        except DepthnerfError:
+            return None
 
     def write(self, record: ObjectRecord, fingerprint: str, replace: bool = False) -> bool:
         """Decode every view of ``record`` and write its folder (atomically: temporary folder, then rename);
@@ -288,7 +303,7 @@ class ViewStore:
     def open(self, record: ObjectRecord) -> StoredObject:
         """One object's arrays, memory-mapped (a missing, unreadable or changed object is one line naming it)."""
         folder = self.object_dir(record)
-        meta = self._meta(record)
+        meta = self._read_meta(record)
         if meta is None:
             raise DepthnerfError(f"{folder}: missing from the view store (it is built when training starts; is "
                                  "another run rebuilding it?)")

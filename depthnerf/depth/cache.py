@@ -39,6 +39,7 @@ from safetensors import SafetensorError
 from safetensors.torch import safe_open, save
 from torch import Tensor
 
+from depthnerf.data.records import ObjectRecord
 from depthnerf.depth.backend import PriorProvenance, oracle_disparity
 from depthnerf.depth.estimators import describe_estimator
 from depthnerf.errors import DepthnerfError
@@ -56,7 +57,7 @@ def cache_dir(data_root: Path, provenance: PriorProvenance, resolution: int) -> 
     return Path(data_root) / CACHE_DIRNAME / f"{provenance.estimator}-{provenance.short_hash}-{resolution}"
 
 
-def object_path(root: Path, record: Any) -> Path:
+def object_path(root: Path, record: ObjectRecord) -> Path:
     """Cache file of one object inside a cache folder."""
     return root / f"{record.category}_{record.split}" / f"{record.object_id}.safetensors"
 
@@ -89,7 +90,7 @@ def _rgb_bytes(path: Path) -> bytes:
         raise DepthnerfError(f"{path}: cannot read image ({err.strerror or err})") from None
 
 
-def rgb_fingerprint(record: Any) -> str:
+def rgb_fingerprint(record: ObjectRecord) -> str:
     """``rgb-bytes:`` + the SHA-256 of the view names and the bytes of their RGB files (see the module docstring)."""
     digest = hashlib.sha256()
     for index, name in enumerate(record.view_names):
@@ -99,7 +100,7 @@ def rgb_fingerprint(record: Any) -> str:
     return f"{FINGERPRINT_SCHEME}:{digest.hexdigest()}"
 
 
-def _sizes_fingerprint(record: Any) -> str:
+def _sizes_fingerprint(record: ObjectRecord) -> str:
     """The earlier fingerprint: SHA-256 of the view names, their RGB file sizes and the first RGB file's bytes."""
     digest = hashlib.sha256()
     for index, name in enumerate(record.view_names):
@@ -120,7 +121,7 @@ def is_bytes_fingerprint(stored: str | None) -> bool:
     return isinstance(stored, str) and stored.startswith(f"{FINGERPRINT_SCHEME}:")
 
 
-def fingerprint_matches(stored: str | None, record: Any, current: str | None = None) -> bool:
+def fingerprint_matches(stored: str | None, record: ObjectRecord, current: str | None = None) -> bool:
     """Whether a cache entry's stored fingerprint is ``record``'s now, under the scheme it was written with
     (``current``: :func:`rgb_fingerprint` of ``record`` when the caller has it already; computed here only for
     an ``rgb-bytes:`` entry)."""
@@ -131,7 +132,7 @@ def fingerprint_matches(stored: str | None, record: Any, current: str | None = N
     return stored == _sizes_fingerprint(record)
 
 
-def missing_depth(record: Any) -> str:
+def missing_depth(record: ObjectRecord) -> str:
     """Why ``record`` has no ground-truth depth, to end an error line: no ``depth/``, or the first problem that
     made its ``depth/`` unusable (the warning the indexer gave)."""
     issue = next((i for i in getattr(record, "issues", ()) if i.part == "depth" and i.disables), None)
@@ -200,15 +201,15 @@ class PriorStore:
         """JSON-able provenance (estimator, checkpoint, weights hash, licence, resolution, cache folder)."""
         return {**self._provenance.as_dict(), "resolution": self.resolution}
 
-    def load(self, record: Any, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+    def load(self, record: ObjectRecord, views: Sequence[int]) -> Float[Tensor, "V H W"]:
         """Raw relative disparity of the given views of one object (float32)."""
         raise NotImplementedError
 
-    def check(self, records: Sequence[Any]) -> None:
+    def check(self, records: Sequence[ObjectRecord]) -> None:
         """Fail early (one line naming the fix) if any of these objects has no valid prior."""
         raise NotImplementedError
 
-    def _check_views(self, record: Any, views: Sequence[int], where: Path) -> list[int]:
+    def _check_views(self, record: ObjectRecord, views: Sequence[int], where: Path) -> list[int]:
         views = [int(v) for v in views]
         n = len(record.view_names)
         bad = [v for v in views if not -n <= v < n]
@@ -220,7 +221,7 @@ class PriorStore:
 class OraclePriorStore(PriorStore):
     """``oracle``: ``1 / z`` on the foreground (0 on the background) from the dataset's ground-truth depth."""
 
-    def load(self, record: Any, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+    def load(self, record: ObjectRecord, views: Sequence[int]) -> Float[Tensor, "V H W"]:
         from depthnerf.data.card import INTEGER_CENTRED
         from depthnerf.data.srn import load_object
 
@@ -232,7 +233,7 @@ class OraclePriorStore(PriorStore):
                           pixel_center=INTEGER_CENTRED)  # depth pixels only
         return oracle_disparity(obj.depths)
 
-    def check(self, records: Sequence[Any]) -> None:
+    def check(self, records: Sequence[ObjectRecord]) -> None:
         for record in records:
             if not record.has_depth:
                 raise DepthnerfError(f"{record.path}: the 'oracle' prior needs ground-truth depth/ maps, "
@@ -276,7 +277,7 @@ class CachedPriorStore(PriorStore):
         return (f"{self.root}: no '{prov.estimator}' depth priors for weights {prov.short_hash} at "
                 f"{self.resolution} px{found}; run: {self.command()}")
 
-    def _verify(self, record: Any) -> Path:
+    def _verify(self, record: ObjectRecord) -> Path:
         key = (record.category, record.split, record.object_id)
         path = object_path(self.root, record)
         if key in self._verified:
@@ -294,11 +295,11 @@ class CachedPriorStore(PriorStore):
         self._verified.add(key)
         return path
 
-    def check(self, records: Sequence[Any]) -> None:
+    def check(self, records: Sequence[ObjectRecord]) -> None:
         for record in records:
             self._verify(record)
 
-    def load(self, record: Any, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+    def load(self, record: ObjectRecord, views: Sequence[int]) -> Float[Tensor, "V H W"]:
         path = self._verify(record)
         views = self._check_views(record, views, path)
         try:

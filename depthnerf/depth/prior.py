@@ -34,6 +34,7 @@ from typing import Any
 from jaxtyping import Float
 from torch import Tensor
 
+from depthnerf.data.records import ObjectRecord
 from depthnerf.depth.cache import PriorStore, as_cached
 from depthnerf.depth.estimators import ESTIMATORS, estimator_entry, make_estimator
 from depthnerf.errors import DepthnerfError
@@ -73,8 +74,8 @@ class PriorConfig:
 class DatasetViews:
     """Which dataset views a set of images are (what a cached prior is looked up by)."""
 
-    record: Any
-    """The object's :class:`~depthnerf.data.srn.ObjectRecord`."""
+    record: ObjectRecord
+    """The object's index record."""
     views: tuple[int, ...]
     """View indices of the object, in the images' order."""
 
@@ -94,7 +95,7 @@ class PriorSource:
         """The prior of these views (``depths``: their ground-truth z-depth; ``where``: their dataset views)."""
         raise NotImplementedError
 
-    def check(self, records: Sequence[Any]) -> None:
+    def check(self, records: Sequence[ObjectRecord]) -> None:
         """Fail early (one line naming the fix) if any of these objects has no prior."""
 
     @property
@@ -129,7 +130,7 @@ class CachedPrior(PriorSource):
                                  "open a live prior source for photos")
         return self.store.load(where.record, list(where.views))
 
-    def check(self, records: Sequence[Any]) -> None:
+    def check(self, records: Sequence[ObjectRecord]) -> None:
         self.store.check(records)
 
     @property
@@ -180,7 +181,7 @@ def weights_mismatch(prior_source: PriorSource, weights_hash: str | None, where:
 
 
 def open_prior(prior: PriorConfig, *, data_root: str | os.PathLike | None = None, resolution: int = 128,
-               records: Sequence[Any] = (), device: str = "cpu", match_cache: bool = False) -> PriorSource:
+               records: Sequence[ObjectRecord] = (), device: str = "cpu", match_cache: bool = False) -> PriorSource:
     """The source of ``prior``: the dataset cache at ``resolution`` when ``data_root`` is given (checked for
     ``records``), else the live estimator on ``device``; :class:`NoPrior` for ``none``."""
     if not prior.enabled:

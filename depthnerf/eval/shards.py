@@ -31,15 +31,13 @@ Sharding
     ``OUT_DIR`` should be on a file system they share.
 
 Test hook: with ``DEPTHNERF_CRASH_AT=eval-object@K`` in the environment a process SIGKILLs itself right after
-writing the result file of its K-th object.
+writing the result file of its K-th object (:mod:`depthnerf.crash_hook`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import signal
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -49,6 +47,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from depthnerf.config_io import differences
+from depthnerf.crash_hook import crash_point
 from depthnerf.data.protocol import ProtocolViews, protocol_views
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.distributed import DistInfo, broadcast_from_main, gather_to_main
@@ -242,12 +241,6 @@ class ObjectStore:
             write_json_atomic(path, payload)
 
 
-def crash_point(done: int) -> None:
-    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``eval-object@<done>`` (test hook; a no-op otherwise)."""
-    if os.environ.get("DEPTHNERF_CRASH_AT") == f"{CRASH_STAGE}@{done}":
-        os.kill(os.getpid(), signal.SIGKILL)
-
-
 @dataclass(frozen=True)
 class RunCounts:
     """How many objects this invocation computed and how many it took from an earlier one."""
@@ -298,7 +291,7 @@ def evaluate_objects(records: Sequence[ObjectRecord], evaluate: Callable[[Object
         payload = encode(result, store.sha, fingerprint)
         store.save(payload)
         payloads.append(payload)
-        crash_point(k)
+        crash_point(CRASH_STAGE, k)
         views += len(result.views.targets)
         rate = views / max(time.perf_counter() - start, 1e-9)
         bar.set_postfix_str(f"{rate:.2f} views/s{where}", refresh=False)

@@ -64,9 +64,9 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: Pr
             gts = obj.images[1:].permute(0, 2, 3, 1).numpy()
             scores.append(object_metrics(record.object_id, list(preds), list(gts)))
             if i == 0:
-                depth = out.depth[0].cpu().numpy()
+                distance = out.distance[0].cpu().numpy()
                 images = {"source": obj.images[0].permute(1, 2, 0).numpy(), "target": gts[0], "render": preds[0],
-                          "depth": (far - depth) / (far - near)}
+                          "depth": (far - distance) / (far - near)}
                 if disparity is not None:
                     d = disparity[0].numpy()
                     images["prior"] = (d - d.min()) / max(float(d.max() - d.min()), 1e-8)

@@ -55,7 +55,8 @@ from depthnerf.depth.prior import PriorConfig, PriorSource, open_prior, weights_
 from depthnerf.distributed import pick_device
 from depthnerf.errors import DepthnerfError, UsageWarning
 from depthnerf.model.conditioning import Conditioned, condition, condition_views
-from depthnerf.model.pixelnerf import ENCODER_NORMS, EncodedViews, EncoderNorm, SourceViews
+from depthnerf.model.config import ENCODER_NORMS, EncoderNorm
+from depthnerf.model.pixelnerf import EncodedViews, SourceViews
 from depthnerf.pretrained.load import Pretrained, load_pretrained
 from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.render.config import GuidedConfig

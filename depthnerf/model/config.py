@@ -15,6 +15,13 @@ from typing import Literal
 
 from depthnerf.errors import DepthnerfError
 
+EncoderNorm = Literal["running", "image"]
+"""How the encoder's BatchNorm layers normalise at inference (:meth:`depthnerf.model.pixelnerf.PixelNeRF.encode`):
+their running statistics (pixelNeRF) or each object's own source-view statistics, as training does."""
+ENCODER_NORMS: tuple[str, ...] = ("running", "image")
+"""The :data:`EncoderNorm` values (``depthnerf eval --encoder-norm`` takes its choices from here: this module
+imports no torch)."""
+
 PRIOR_POINT_SCALE = 0.2
 """Factor on the normalised prior (foreground in [-4, 4], background -5) where it enters the MLP input
 (:attr:`PixelNeRFConfig.prior_at_point`): background -1, foreground within [-0.8, 0.8]."""

@@ -22,6 +22,8 @@ import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from depthnerf.data.cameras import project
+
 
 def to_source_frames(points: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]
                      ) -> tuple[Float[Tensor, "B V N 3"], Float[Tensor, "B V N 3"]]:
@@ -36,9 +38,9 @@ def to_source_frames(points: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4
 
 def project_points(cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
                    principal: Float[Tensor, "B 2"]) -> Float[Tensor, "B V N 2"]:
-    """Pixel coordinates (u, v) of camera-frame points; points with z <= 0 go far outside (border features)."""
-    z = cam[..., 2:3].clamp_min(1e-6)
-    return cam[..., :2] / z * focal[:, None, None, None] + principal[:, None, None, :]
+    """Pixel coordinates (u, v) of camera-frame points; points with z <= 0 go far outside (border features).
+    :func:`depthnerf.data.cameras.project` with one camera per batch element (broadcast over its views)."""
+    return project(cam, focal[:, None], principal[:, None, :])
 
 
 def in_frame(cam: Float[Tensor, "B V N 3"], uv: Float[Tensor, "B V N 2"], image_size: tuple[int, int]

@@ -36,15 +36,10 @@ from depthnerf.bundles import FieldFn, TensorBundle
 from depthnerf.data.cameras import invert_pose
 from depthnerf.data.symmetry import has_plane, reflect_dirs, reflect_points
 from depthnerf.errors import DepthnerfError
-from depthnerf.model.config import PRIOR_POINT_SCALE, PixelNeRFConfig
+from depthnerf.model.config import ENCODER_NORMS, PRIOR_POINT_SCALE, EncoderNorm, PixelNeRFConfig
 from depthnerf.model.encoder import ImageEncoder
 from depthnerf.model.features import in_frame, project_points, rotate_dirs, sample_projected, to_source_frames
 from depthnerf.model.field import MirrorQuery, ResidualField
-
-EncoderNorm = Literal["running", "image"]
-"""How the encoder's BatchNorm layers normalise at inference (:meth:`PixelNeRF.encode`)."""
-ENCODER_NORMS: tuple[str, ...] = ("running", "image")
-"""The :data:`EncoderNorm` values."""
 
 
 @dataclass

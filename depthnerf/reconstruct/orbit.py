@@ -63,10 +63,10 @@ def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, depth: Float[Tens
 
 def orbit_points(renders: ViewRenders, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, min_opacity: float,
                  max_points: int | None) -> tuple[Float[np.ndarray, "P 3"], Float[np.ndarray, "P 3"]]:
-    """Point cloud of rendered views: depth unprojected where opacity > ``min_opacity``, with the rendered colours;
+    """Point cloud of rendered views: ray distance unprojected where opacity > ``min_opacity``, with the rendered colours;
     an even subsample of at most ``max_points`` points (None: all)."""
     keep = renders.opacity > min_opacity
-    points = unproject(poses, intr, renders.depth, keep)
+    points = unproject(poses, intr, renders.distance, keep)
     colors = renders.rgb[keep].numpy()
     if max_points is not None and len(points) > max_points:
         idx = np.linspace(0, len(points) - 1, max_points).round().astype(np.int64)

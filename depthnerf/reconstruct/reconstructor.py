@@ -46,7 +46,7 @@ from jaxtyping import Bool, Float
 from tqdm import tqdm
 
 from depthnerf.data.cameras import Intrinsics
-from depthnerf.data.srn import category_defaults
+from depthnerf.data.srn import SRN_IMAGE_SIZE, category_defaults
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.errors import DepthnerfError
 from depthnerf.infer.session import EncodedView, InferenceSession, SessionOptions
@@ -64,8 +64,6 @@ from depthnerf.render.views import ViewRenders
 
 POINT_OPACITY = 0.5
 """Rendered pixels with more than this opacity go into the point cloud."""
-RELEASE_SIZE = 128
-"""Frame size ``--focal`` refers to when the category is not a known SRN one (SRN images are 128 px)."""
 DEFAULT_FACING = 90.0
 """``ReconstructConfig.facing`` by default: a side view with the front to the right (the SRN input view)."""
 @dataclass(frozen=True)
@@ -204,7 +202,7 @@ class Reconstructor:
         t = time.perf_counter()
         res = spec.resolution
         if cfg.radius is not None and cfg.focal is not None:
-            radius, focal, image_size = cfg.radius, cfg.focal, RELEASE_SIZE
+            radius, focal, image_size = cfg.radius, cfg.focal, SRN_IMAGE_SIZE  # --focal's frame: SRN's
         else:
             cat = category_defaults(spec.category)  # unknown category: an error asking for both
             radius = cfg.radius if cfg.radius is not None else cat.camera_radius
@@ -311,7 +309,7 @@ class Reconstructor:
         return Reconstruction(
             input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
             prior_normalized=None if normalized is None else normalized[0, 0, 0].cpu().numpy(),
-            poses=poses.numpy(), intrinsics=render_intr, views=out.rgb.numpy(), depths=out.depth.numpy(),
+            poses=poses.numpy(), intrinsics=render_intr, views=out.rgb.numpy(), depths=out.distance.numpy(),
             opacity=out.opacity.numpy(), mesh=mesh, points=points.astype(np.float32),
             point_colors=colors.astype(np.float32), settings=settings, timings=times)
 

@@ -54,7 +54,7 @@ def _two_pass(net1: FieldFn, net2: FieldFn, reuse: bool, rays: RayBundle, t1: Te
         parts.append(sample_pdf(edges, masses, n_importance, random=random, generator=generator,
                                 epsilon=gc.pdf_epsilon))
     if n_gaussian > 0:
-        parts.append(gaussian_samples(res1.normalized_depth().detach(), rays.near, rays.far, n_gaussian,
+        parts.append(gaussian_samples(res1.normalized_distance().detach(), rays.near, rays.far, n_gaussian,
                                       gc.gaussian_std, random=random, generator=generator))
     if not parts:
         if reuse:

@@ -89,7 +89,7 @@ def scatter_result(dest: RenderResult, src: RenderResult, idx: Int[Tensor, "B G"
     cols = idx[keep]
     s_src = src.t.shape[-1]
     dest.rgb[rows, cols] = src.rgb[keep]
-    dest.depth[rows, cols] = src.depth[keep]
+    dest.distance[rows, cols] = src.distance[keep]
     dest.opacity[rows, cols] = src.opacity[keep]
     dest.weights[rows, cols] = 0.0
     dest.weights[rows, cols, :s_src] = src.weights[keep]
@@ -100,5 +100,5 @@ def scatter_result(dest: RenderResult, src: RenderResult, idx: Int[Tensor, "B G"
 def empty_result(shape: tuple[int, int], samples: int, like: Tensor) -> RenderResult:
     """A zero-filled result for ``shape = (B, R)`` rays with ``samples`` samples each."""
     z = like.new_zeros
-    return RenderResult(rgb=z(*shape, 3), depth=z(*shape), opacity=z(*shape), weights=z(*shape, samples),
+    return RenderResult(rgb=z(*shape, 3), distance=z(*shape), opacity=z(*shape), weights=z(*shape, samples),
                         t=z(*shape, samples))

@@ -4,12 +4,12 @@ The networks are passed in as :data:`FieldFn` callables; nothing here holds stat
 
     t_c  = stratified(near, far, 64)                       -> coarse net -> composite -> coarse result
     t_i  = sample_pdf(uniform coarse bins, coarse weights, 16)
-    t_g  = clamp(coarse depth + 0.01 N(0, 1), near, far)  x 16
+    t_g  = clamp(coarse distance + 0.01 N(0, 1), near, far)  x 16
     t_f  = sort(t_c ++ t_i ++ t_g)   (96 samples)          -> fine net   -> composite -> fine result
 
 As in pixelNeRF the fine pass re-evaluates the coarse samples with the fine network (``z_combine`` includes
-``z_coarse``), the Gaussian centre is the *unnormalised* coarse depth ``sum w t`` (so empty rays put those samples
-at near) and is not detached (``SamplerConfig.detach_gaussian_center``). One deliberate difference: pixelNeRF
+``z_coarse``), the Gaussian centre is the *unnormalised* coarse ray distance ``sum w t`` (``RenderResult.distance``;
+so empty rays put those samples at near) and is not detached (``SamplerConfig.detach_gaussian_center``). One deliberate difference: pixelNeRF
 draws random samples at evaluation too; here ``train=False`` is deterministic (bin midpoints, quantiles; see
 ``samplers``) unless ``SamplerConfig.eval_random``. The depth-guided path (``cfg.guided.enabled``) is in
 :mod:`~depthnerf.render.guided_sampler`.
@@ -55,7 +55,7 @@ def _render_paper(coarse: FieldFn, fine: FieldFn | None, rays: RayBundle, cfg: R
         parts.append(sample_pdf(edges, res_c.weights, sc.n_importance, random=random, epsilon=sc.pdf_epsilon,
                                 u=u_importance))
     if sc.n_gaussian > 0:
-        center = res_c.depth.detach() if sc.detach_gaussian_center else res_c.depth
+        center = res_c.distance.detach() if sc.detach_gaussian_center else res_c.distance
         parts.append(gaussian_samples(center, rays.near, rays.far, sc.n_gaussian, sc.gaussian_std,
                                       random=random, eps=eps_gaussian))
     t_f, _ = torch.sort(torch.cat(parts, dim=-1), dim=-1)

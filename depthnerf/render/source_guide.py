@@ -104,7 +104,7 @@ def source_depth(coarse: FieldFn, c2w: Float[Tensor, "1 4 4"], intr: Intrinsics,
                               guided=dataclasses.replace(render.guided, enabled=False))
     cheap = render_image(coarse, None, rays, cfg, chunk=chunk).coarse
     shape = mask.shape
-    ref_z = (cheap.normalized_depth() * camera_z_of_directions(rays.directions, c2w)).reshape(shape)
+    ref_z = (cheap.normalized_distance() * camera_z_of_directions(rays.directions, c2w)).reshape(shape)
     opacity = cheap.opacity.reshape(shape)
     anchors = mask & (opacity > guided.align_min_opacity)
     if disparity is None:

@@ -31,8 +31,9 @@ class ViewRenders(TensorBundle):
 
     rgb: Float[Tensor, "N H W 3"]
     """Colour in [0, 1] on the configured background."""
-    depth: Float[Tensor, "N H W"]
-    """Expected ray distance divided by opacity (the visible surface's distance; ``far`` where opacity ~ 0)."""
+    distance: Float[Tensor, "N H W"]
+    """Expected ray distance divided by opacity (the visible surface's distance along the unit ray, not z-depth;
+    ``far`` where opacity ~ 0)."""
     opacity: Float[Tensor, "N H W"]
     """Accumulated opacity in [0, 1]."""
 
@@ -53,9 +54,9 @@ def render_views(coarse: FieldFn, fine: FieldFn | None, c2w: Float[Tensor, "N 4 
     out = render_image(coarse, fine, rays, cfg, chunk=chunk, guide=guide)
     res = out.fine if out.fine is not None else out.coarse
     opacity = res.opacity.reshape(n, h, w)
-    depth = torch.where(opacity > 1e-4, res.depth.reshape(n, h, w) / opacity.clamp_min(1e-4),
-                        torch.full_like(opacity, far))
-    return ViewRenders(rgb=res.rgb.reshape(n, h, w, 3).clamp(0, 1), depth=depth, opacity=opacity)
+    distance = torch.where(opacity > 1e-4, res.distance.reshape(n, h, w) / opacity.clamp_min(1e-4),
+                           torch.full_like(opacity, far))
+    return ViewRenders(rgb=res.rgb.reshape(n, h, w, 3).clamp(0, 1), distance=distance, opacity=opacity)
 
 
 @torch.no_grad()

@@ -10,7 +10,7 @@ For one ray with sorted sample distances ``t_0 <= ... <= t_{S-1}`` inside ``[nea
     w_i     = alpha_i T_i
     opacity = sum_i w_i = 1 - T_S
     rgb     = sum_i w_i c_i  (+ 1 - opacity on a white background)
-    depth   = sum_i w_i t_i                                      (expected ray distance, NOT divided by opacity,
+    distance = sum_i w_i t_i                                     (expected ray distance, NOT divided by opacity,
                                                                   so it tends to 0 on empty rays, as pixelNeRF)
 
 ``T`` is computed as ``exp`` of an exclusive cumulative sum of optical depths, which equals pixelNeRF's
@@ -34,8 +34,8 @@ class RenderResult(TensorBundle):
 
     rgb: Float[Tensor, "B R 3"]
     """Pixel colour, including the white background if configured."""
-    depth: Float[Tensor, "B R"]
-    """Expected ray distance ``sum w_i t_i`` (not normalised by opacity)."""
+    distance: Float[Tensor, "B R"]
+    """Expected ray distance ``sum w_i t_i`` (not normalised by opacity; not z-depth: ``depthnerf.data.cameras``)."""
     opacity: Float[Tensor, "B R"]
     """Accumulated opacity ``sum w_i`` in [0, 1]."""
     weights: Float[Tensor, "B R S"]
@@ -43,9 +43,9 @@ class RenderResult(TensorBundle):
     t: Float[Tensor, "B R S"]
     """Sorted sample ray distances."""
 
-    def normalized_depth(self, eps: float = 1e-10) -> Float[Tensor, "B R"]:
-        """``depth / opacity``: the expected distance of the visible surface (meaningless where opacity ~ 0)."""
-        return self.depth / self.opacity.clamp_min(eps)
+    def normalized_distance(self, eps: float = 1e-10) -> Float[Tensor, "B R"]:
+        """``distance / opacity``: the expected ray distance of the visible surface (meaningless where opacity ~ 0)."""
+        return self.distance / self.opacity.clamp_min(eps)
 
 
 def compute_deltas(t: Float[Tensor, "*N S"], far: Float[Tensor, "*N"]) -> Float[Tensor, "*N S"]:
@@ -65,10 +65,10 @@ def render_weights(sigma: Float[Tensor, "*N S"], deltas: Float[Tensor, "*N S"]
 
 def composite(t: Float[Tensor, "B R S"], far: Float[Tensor, "B R"], sigma: Float[Tensor, "B R S"],
               rgb: Float[Tensor, "B R S 3"], *, white_background: bool) -> RenderResult:
-    """Alpha-composite samples into pixel colour, expected depth and opacity (formulas in the module docstring)."""
+    """Alpha-composite samples into pixel colour, expected ray distance and opacity (formulas in the module docstring)."""
     weights, _ = render_weights(sigma, compute_deltas(t, far))
     opacity = weights.sum(-1)
     color = (weights[..., None] * rgb).sum(-2)
     if white_background:
         color = color + (1.0 - opacity)[..., None]
-    return RenderResult(rgb=color, depth=(weights * t).sum(-1), opacity=opacity, weights=weights, t=t)
+    return RenderResult(rgb=color, distance=(weights * t).sum(-1), opacity=opacity, weights=weights, t=t)

@@ -21,7 +21,7 @@ Crash test hook: with ``DEPTHNERF_CRASH_AT=STAGE@STEP`` in the environment the p
 every point of a write deterministically instead of racing a timer (``tests/test_train.py``). The loop adds two
 points, ``step`` (after the optimiser step) and ``validation`` (as validation starts), and
 ``DEPTHNERF_CRASH_AT=sigterm-STAGE@STEP`` / ``sigint-STAGE@STEP`` sends the process SIGTERM / SIGINT there instead
-(the clean stop of :mod:`depthnerf.train.stop`).
+(the clean stop of :mod:`depthnerf.train.stop`; the hook: :mod:`depthnerf.crash_hook`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ import json
 import math
 import os
 import shutil
-import signal
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +39,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save
 
 from depthnerf.config_io import to_dict
+from depthnerf.crash_hook import crash_point
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_bytes_atomic, write_text_atomic
 from depthnerf.pretrained.spec import SPEC_KEY, model_config_from_dict
@@ -56,24 +56,8 @@ CRASH_STAGES = ("weights", "optimizer", "state", "renamed", "latest", "pruned", 
 """Points of a checkpoint write where ``DEPTHNERF_CRASH_AT`` can kill the process: after the weights / optimizer /
 state files of the temporary folder are written, after the folder is renamed into place, after the ``latest``
 pointer is updated, after old checkpoints are pruned; for ``best``: after its temporary copy, after the old
-``best`` was moved aside (before the new one takes its place)."""
+``best`` was moved aside (before the new one takes its place). The hook itself: :mod:`depthnerf.crash_hook`."""
 
-
-SIGNAL_HOOKS = {"sigterm": signal.SIGTERM, "sigint": signal.SIGINT}
-"""``DEPTHNERF_CRASH_AT=<name>-STAGE@STEP``: the signal sent instead of SIGKILL (module docstring)."""
-
-
-def crash_point(stage: str, step: int) -> None:
-    """SIGKILL this process if ``DEPTHNERF_CRASH_AT`` is ``stage@step``, send it SIGTERM / SIGINT if it is
-    ``sigterm-stage@step`` / ``sigint-stage@step`` (test hook; a no-op otherwise)."""
-    hook = os.environ.get("DEPTHNERF_CRASH_AT")
-    if not hook or not hook.endswith(f"{stage}@{step}"):
-        return
-    if hook == f"{stage}@{step}":
-        os.kill(os.getpid(), signal.SIGKILL)
-    for name, sig in SIGNAL_HOOKS.items():
-        if hook == f"{name}-{stage}@{step}":
-            os.kill(os.getpid(), sig)
 
 
 def _fsync_dir(path: Path) -> None:

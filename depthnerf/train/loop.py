@@ -37,6 +37,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from depthnerf.config_io import to_dict
+from depthnerf.crash_hook import crash_point
 from depthnerf.data.card import read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
@@ -302,7 +303,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             norms.merge(before)
             optimizer.step()
             step += 1
-            ckpt.crash_point("step", step)
+            crash_point("step", step)
             rays_since += len(keys) * s.rays_per_object * info.world
             bar.update(1)
             log_now = step % cfg.log.log_every == 0 or step == s.max_steps
@@ -390,6 +391,6 @@ def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records:
     with tqdm(total=len(records), desc=f"validate (step {step})", unit="object", leave=False, position=1,
               dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible(), \
             memory.one_line_out_of_memory(info, lambda: memory.in_validation(cfg, step, checkpoint)):
-        ckpt.crash_point("validation", step)
+        crash_point("validation", step)
         return validate(model, records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
                         progress=vbar.update, symmetry_plane=plane)

@@ -106,7 +106,7 @@ class BatchLoss(torch.nn.Module):
         total = coarse + fine
         depth = total * 0
         if self.depth_weight > 0 and batch.target_prior is not None:
-            per_object, _ = ssi_depth_loss_per_image(out.fine.normalized_depth(), batch.target_prior,
+            per_object, _ = ssi_depth_loss_per_image(out.fine.normalized_distance(), batch.target_prior,
                                                      batch.target_fg, dirs_cam_z=batch.target_cos)
             depth = per_object.mean()
             total = total + self.depth_weight * depth

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.card import card_path, read_dataset_card
+from depthnerf.data.srn import SRN_FOCAL, SRN_IMAGE_SIZE
 from depthnerf.errors import DepthnerfError
 
 
@@ -62,8 +63,10 @@ class Framing:
         return self.file_intrinsics(resolution).with_pixel_center(self.pixel_center)
 
 
-SRN_INTRINSICS = Intrinsics(focal=131.25, cx=64.0, cy=64.0, height=128, width=128)
-"""SRN's intrinsics at 128 x 128 (as in its intrinsics files: focal 525/512 * 128, principal point 128 / 2)."""
+SRN_INTRINSICS = Intrinsics(focal=SRN_FOCAL, cx=SRN_IMAGE_SIZE / 2, cy=SRN_IMAGE_SIZE / 2, height=SRN_IMAGE_SIZE,
+                            width=SRN_IMAGE_SIZE)
+"""SRN's intrinsics at 128 x 128 (as in its intrinsics files: focal 525/512 * 128, principal point 128 / 2;
+:data:`depthnerf.data.srn.SRN_FOCAL`, :data:`~depthnerf.data.srn.SRN_IMAGE_SIZE`)."""
 FRAMINGS = {
     "srn": Framing(name="srn", generator="depthnerf-synth-2", chair_diagonal=1.0, pixel_center=0.5,
                    fills=(("cars", 0.66), ("chairs", 0.43))),

@@ -41,7 +41,6 @@ from tqdm import tqdm
 
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics
-from depthnerf.data.srn import CATEGORY_DEFAULTS
 from depthnerf.data.synth.cars import (
     CAR_REVISION,
     CAR_STYLES,
@@ -50,6 +49,7 @@ from depthnerf.data.synth.cars import (
     car_style_summary,
     sample_car,
 )
+from depthnerf.data.synth.category import CategorySpec, category_spec
 from depthnerf.data.synth.chairs import (
     ARCHETYPE_WEIGHTS,
     CHAIR_ARCHETYPES,
@@ -91,33 +91,6 @@ SPLITS = ("train", "val", "test")
 """Splits in seed order."""
 MARKER = ".synth_done.json"
 """Per-object completion marker (written last)."""
-
-
-@dataclass(frozen=True)
-class CategorySpec:
-    """Per-category camera setup and normalisation (SRN values)."""
-
-    radius: float
-    """Camera distance from the origin."""
-    z_near: float
-    """pixelNeRF's near bound (ray distance)."""
-    z_far: float
-    """pixelNeRF's far bound (ray distance)."""
-    diagonal: float
-    """Bounding-box diagonal of the normalised objects."""
-    framing: str = DEFAULT_FRAMING
-    """Framing the cameras follow (``srn`` or ``legacy``)."""
-
-
-def category_spec(category: str, framing: str = DEFAULT_FRAMING) -> CategorySpec:
-    """Camera radius, z-range (the SRN release's, :data:`~depthnerf.data.srn.CATEGORY_DEFAULTS`) and object size
-    of ``cars`` or ``chairs`` in ``framing``."""
-    fr = get_framing(framing)
-    if category not in ("cars", "chairs"):
-        raise DepthnerfError(f"synth: unknown category {category!r} (expected cars or chairs)")
-    srn = CATEGORY_DEFAULTS[category]
-    return CategorySpec(radius=srn.camera_radius, z_near=srn.z_near, z_far=srn.z_far,
-                        diagonal=1.0 if category == "cars" else fr.chair_diagonal, framing=fr.name)
 
 
 @dataclass(frozen=True)
