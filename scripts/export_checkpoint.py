@@ -267,7 +267,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     _check_fp16_range(source)
     cfg = from_dict_config(json.loads(meta["train_config"]), where=f"{source_path} train_config")
     warm = _read_json(run / "init_from.json", "run warm-start record") if (run / "init_from.json").is_file() else None
-    total_steps = source.step + (steps_behind(warm) if warm is not None else 0)
+    behind = steps_behind(warm) if warm is not None else 0  # may hash the source file: once
+    total_steps = source.step + behind
     out.mkdir(parents=True, exist_ok=True)
     weights, staged = out / f"{name}.safetensors", out / f".{name}.export.safetensors"
     extra = {"train_config": meta["train_config"], "source_sha256": source.sha256, "source_run": run.resolve().name,
@@ -303,7 +304,7 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
         if warm is not None:
             # a shipped checkpoint's name (kept as is) or a path (written relative, like the card's other paths)
             card["init_from"] = {"source": portable_path(warm.get("source"), base), "step": warm.get("step"),
-                                 "total_steps": steps_behind(warm), "sha256": warm.get("sha256")}
+                                 "total_steps": behind, "sha256": warm.get("sha256")}
         if summary is not None:
             card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
             card["protocol"] = summary["protocol"]

@@ -53,18 +53,19 @@ def srn_intrinsics(focal: float, image_size: int, resolution: int, pixel_center:
     return base.with_pixel_center(pixel_center).resized(resolution, resolution)
 
 
-def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, depth: Float[Tensor, "N H W"],
+def unproject(poses: Float[Tensor, "N 4 4"], intr: Intrinsics, distance: Float[Tensor, "N H W"],
               keep: Bool[Tensor, "N H W"]) -> Float[np.ndarray, "P 3"]:
-    """World points ``o + t d`` of the kept pixels of N views, ``t`` = ray distance along unit directions."""
-    out = [backproject(t, pose, intr, k, ray_distance=True).numpy() for pose, t, k in zip(poses, depth, keep,
+    """World points ``o + t d`` of the kept pixels of N views, ``t`` = ``distance``, the ray distance along unit
+    directions."""
+    out = [backproject(t, pose, intr, k, ray_distance=True).numpy() for pose, t, k in zip(poses, distance, keep,
                                                                                            strict=True)]
     return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.float32)
 
 
 def orbit_points(renders: ViewRenders, poses: Float[Tensor, "N 4 4"], intr: Intrinsics, min_opacity: float,
                  max_points: int | None) -> tuple[Float[np.ndarray, "P 3"], Float[np.ndarray, "P 3"]]:
-    """Point cloud of rendered views: ray distance unprojected where opacity > ``min_opacity``, with the rendered colours;
-    an even subsample of at most ``max_points`` points (None: all)."""
+    """Point cloud of rendered views: ray distance unprojected where opacity > ``min_opacity``, with the rendered
+    colours; an even subsample of at most ``max_points`` points (None: all)."""
     keep = renders.opacity > min_opacity
     points = unproject(poses, intr, renders.distance, keep)
     colors = renders.rgb[keep].numpy()
