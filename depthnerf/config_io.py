@@ -112,8 +112,8 @@ def apply_overrides(cfg: T, pairs: list[str]) -> T:
     roots = {f.name for f in dataclasses.fields(cfg)} if dataclasses.is_dataclass(cfg) else set()
     for path, value in items:
         if "." not in path and path not in roots:  # most likely a flag misspelled, e.g. --max for --max-steps
-            raise DepthnerfError(f"--{path.replace('_', '-')}: neither a flag of this command (--help lists them) nor "
-                                 f"a config field (known: {', '.join(sorted(roots))})")
+            raise DepthnerfError(f"--{path.replace('_', '-')}: neither a flag of this command (--help lists them) "
+                                 f"nor a config field (known: {', '.join(sorted(roots))})")
         try:
             cfg = _set_path(cfg, path.split("."), value, path)
         except DepthnerfError as err:  # a config's own check (``__post_init__``): name the flag that broke it

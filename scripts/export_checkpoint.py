@@ -12,10 +12,11 @@ Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where `
     atomically by :func:`depthnerf.train.checkpoint.save_weights`. Metadata: the source's model ``config``,
     ``train_config`` and ``step``, plus provenance ``source_sha256``, ``source_run``, ``source_file``,
     ``dtype``, ``exported_by`` and ``total_steps`` (the steps behind the weights in all, a warm start's chain
-    included: :func:`steps_behind`). :func:`~depthnerf.pretrained.load.load_pretrained` casts the weights back to fp32.
+    included: :func:`steps_behind`). :func:`~depthnerf.pretrained.load.load_pretrained` casts the weights back to
+    fp32.
 ``<name>.json``
-    Name, preset, depth estimator, category, resolution, step, total steps, SHA-256 and size of the fp16 file, the source, the
-    fp16 round-trip check, and with ``--eval-summary`` the metrics (``psnr``, ``ssim``, and ``lpips``,
+    Name, preset, depth estimator, category, resolution, step, total steps, SHA-256 and size of the fp16 file, the
+    source, the fp16 round-trip check, and with ``--eval-summary`` the metrics (``psnr``, ``ssim``, and ``lpips``,
     ``chamfer_l1``, ``fscore`` when measured) and the protocol of that ``summary.json`` (keys of
     :mod:`depthnerf.eval.table` / :mod:`depthnerf.eval.protocol`). ``depthnerf checkpoints`` prints them.
 ``<name>.md``

@@ -106,7 +106,8 @@ def pairing_refusal(baseline: Path, base: dict, method: Path, other: dict) -> st
     difference = scoring_difference(baseline, base, method, other)
     if difference is None:
         return None
-    return f"{difference}: not the same views scored the same way, so not paired (evaluate both with the same options)"
+    return (f"{difference}: not the same views scored the same way, so not paired (evaluate both with the same "
+            "options)")
 
 
 def check_pairable(baseline: Path, method: Path) -> None:

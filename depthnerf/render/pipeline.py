@@ -8,9 +8,10 @@ The networks are passed in as :data:`FieldFn` callables; nothing here holds stat
     t_f  = sort(t_c ++ t_i ++ t_g)   (96 samples)          -> fine net   -> composite -> fine result
 
 As in pixelNeRF the fine pass re-evaluates the coarse samples with the fine network (``z_combine`` includes
-``z_coarse``), the Gaussian centre is the *unnormalised* coarse ray distance ``sum w t`` (``RenderResult.distance``;
-so empty rays put those samples at near) and is not detached (``SamplerConfig.detach_gaussian_center``). One deliberate difference: pixelNeRF
-draws random samples at evaluation too; here ``train=False`` is deterministic (bin midpoints, quantiles; see
+``z_coarse``), the Gaussian centre is the *unnormalised* coarse ray distance ``sum w t``
+(``RenderResult.distance``; so empty rays put those samples at near) and is not detached
+(``SamplerConfig.detach_gaussian_center``). One deliberate difference: pixelNeRF draws random samples at evaluation
+too; here ``train=False`` is deterministic (bin midpoints, quantiles; see
 ``samplers``) unless ``SamplerConfig.eval_random``. The depth-guided path (``cfg.guided.enabled``) is in
 :mod:`~depthnerf.render.guided_sampler`.
 """

@@ -44,7 +44,8 @@ class RenderResult(TensorBundle):
     """Sorted sample ray distances."""
 
     def normalized_distance(self, eps: float = 1e-10) -> Float[Tensor, "B R"]:
-        """``distance / opacity``: the expected ray distance of the visible surface (meaningless where opacity ~ 0)."""
+        """``distance / opacity``: the expected ray distance of the visible surface (meaningless where opacity
+        ~ 0)."""
         return self.distance / self.opacity.clamp_min(eps)
 
 
@@ -65,7 +66,8 @@ def render_weights(sigma: Float[Tensor, "*N S"], deltas: Float[Tensor, "*N S"]
 
 def composite(t: Float[Tensor, "B R S"], far: Float[Tensor, "B R"], sigma: Float[Tensor, "B R S"],
               rgb: Float[Tensor, "B R S 3"], *, white_background: bool) -> RenderResult:
-    """Alpha-composite samples into pixel colour, expected ray distance and opacity (formulas in the module docstring)."""
+    """Alpha-composite samples into pixel colour, expected ray distance and opacity (formulas in the module
+    docstring)."""
     weights, _ = render_weights(sigma, compute_deltas(t, far))
     opacity = weights.sum(-1)
     color = (weights[..., None] * rgb).sum(-2)
