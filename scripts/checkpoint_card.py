@@ -9,6 +9,7 @@ from depthnerf import __version__
 from depthnerf.data.synth.framing import card_framing
 from depthnerf.depth.cache import depth_command
 from depthnerf.depth.estimators import CACHED_ESTIMATORS
+from depthnerf.pretrained.card import total_steps, warm_start_steps
 from depthnerf.train.config import TrainConfig, inference_spec
 
 LICENCE = "MIT (the depthnerf repository's licence, see pyproject.toml)"
@@ -43,12 +44,11 @@ def synth_command(dataset_card: dict | None, category: str) -> str:
 def training_steps(card: dict) -> str:
     """The card's training steps: the run's own, and for a warm-started run those behind its source and the total
     (``total_steps``; cards written before that field give the source's own steps)."""
-    warm = card.get("init_from")
-    if not warm:
+    behind = warm_start_steps(card)
+    if behind is None:
         return str(card["step"])
-    behind = warm.get("total_steps", warm["step"])
-    total = card.get("total_steps", card["step"] + behind)
-    return f"{total} in all: {card['step']} on top of a warm start from a model trained {behind} steps"
+    return (f"{total_steps(card, card['step'])} in all: {card['step']} on top of a warm start from a model trained "
+            f"{behind} steps")
 
 
 def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None) -> str:

@@ -18,6 +18,7 @@ import json
 from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
+from depthnerf.pretrained.card import total_steps, warm_start_steps
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,19 +61,15 @@ def describe(name: str, path: Path) -> dict:
     train = _json_field(meta.get("train_config"), f"{path} metadata 'train_config'")
     metrics = _json_field(meta.get("metrics"), f"{path} metadata 'metrics'")
     card_json, card_md = path.with_suffix(".json"), path.with_suffix(".md")
-    protocol, warm_steps, total = None, None, meta.get("total_steps")
+    card: dict = {}
     if card_json.is_file():
         card = _json_field(card_json.read_text(), str(card_json))
         card_metrics = card.get("metrics") or {}  # null = exported without an evaluation
         if not isinstance(card_metrics, dict):
             raise DepthnerfError(f"{card_json}: 'metrics' must be a JSON object or null")
         metrics = {**metrics, **card_metrics}
-        protocol = card.get("protocol")
-        warm = card.get("init_from") or {}  # a warm-started run: the steps behind its source, in all
-        warm_steps = warm.get("total_steps", warm.get("step"))
-        total = card.get("total_steps", total)
-    steps = int(meta.get("step", 0))
-    total = int(total) if total is not None else steps + int(warm_steps or 0)
+    steps, protocol, warm_steps = int(meta.get("step", 0)), card.get("protocol"), warm_start_steps(card)
+    total = total_steps({"total_steps": meta.get("total_steps"), **card}, steps)  # the card's count wins
     return {"name": name, "path": str(path), "preset": train.get("preset", "unknown"),
             "depth_weights": _depth_weights(meta, str(path)),
             "category": train.get("data", {}).get("category", "unknown"),
