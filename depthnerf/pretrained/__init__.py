@@ -9,5 +9,6 @@ reconstruction read it, and neither needs the training config.
 - :mod:`~depthnerf.pretrained.load`: ``--checkpoint`` resolution (shipped name, file, folder, run) and
   :func:`load_pretrained`.
 - :mod:`~depthnerf.pretrained.card`: the training steps a shipped model card counts (warm-start chains).
+- :mod:`~depthnerf.pretrained.official_pixelnerf`: official pixelNeRF weights as this package's baseline network.
 - :mod:`~depthnerf.pretrained.recommended`: the shipped checkpoint the demo and the app use per category.
 """
