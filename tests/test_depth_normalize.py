@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from depthnerf.depth.estimators import OracleEstimator, make_estimator, oracle_disparity
-from depthnerf.depth.metrics import affine_invariant_scores, align_disparity
-from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP, normalize_disparity
+from depthnerf.depth.metrics import affine_invariant_scores, align_disparity, fit_scale_shift
+from depthnerf.depth.normalize import (
+    BACKGROUND_VALUE,
+    FOREGROUND_CLAMP,
+    SCALE_FLOOR,
+    foreground_median_and_deviation,
+    normalize_disparity,
+)
 from depthnerf.errors import DepthnerfError
 
 
@@ -99,3 +106,94 @@ def test_metric_closed_form_scaled_depth_and_alignment():
     assert scores.abs_rel.item() == pytest.approx(expect_rel, rel=1e-5)
     assert scores.delta1.item() == pytest.approx(expect_d1)
     assert not affine_invariant_scores(torch.ones(1, 2, 2), torch.zeros(1, 2, 2)).valid.any()
+
+
+def _reference_normalize(values: list[float]) -> tuple[float, float]:
+    """Lower median and mean absolute deviation around it, by sorting (the module docstring's definitions)."""
+    values = sorted(values)
+    median = values[(len(values) - 1) // 2]
+    return median, sum(abs(v - median) for v in values) / len(values)
+
+
+def test_normalisation_clamps_both_ends_and_skips_non_finite_foreground():
+    """An outlier far below the median is clamped to -FOREGROUND_CLAMP (one far above to +FOREGROUND_CLAMP);
+    NaN and inf foreground pixels are left out of the statistics and get the background value."""
+    gen = torch.Generator().manual_seed(6)
+    disp = 1.0 + 0.1 * torch.rand(6, 6, generator=gen, dtype=torch.float64)
+    disp[0, 0], disp[0, 1] = -100.0, 100.0
+    disp[1, 1], disp[2, 2] = float("nan"), float("inf")
+    mask = torch.ones(6, 6, dtype=torch.bool)
+    mask[5] = False
+    out = normalize_disparity(disp, mask)
+    finite = mask & torch.isfinite(disp)
+    median, mad = _reference_normalize(disp[finite].tolist())
+    expect = ((disp - median) / mad).clamp(-FOREGROUND_CLAMP, FOREGROUND_CLAMP)
+    assert torch.allclose(out[finite].double(), expect[finite], atol=1e-5)
+    assert (out[0, 0], out[0, 1]) == (-FOREGROUND_CLAMP, FOREGROUND_CLAMP)
+    assert (out[~finite] == BACKGROUND_VALUE).all() and torch.isfinite(out).all()
+
+
+def test_normalisation_is_exact_for_tiny_disparity_scales():
+    """Invariance holds at any scale whose deviation is above the floor: 3e-5 * d (deviation ~100 floors)
+    normalises like d, with no floor-sized term entering the division."""
+    depth, mask = _scene(batch=2, seed=7)
+    disp = oracle_disparity(depth).double()
+    ref = normalize_disparity(disp, mask)
+    for scale in (1e-2, 3e-5):
+        _, mad = _reference_normalize((scale * disp[0][mask[0]]).tolist())
+        assert mad > 100 * SCALE_FLOOR
+        assert torch.allclose(normalize_disparity(scale * disp, mask), ref, atol=1e-4)
+
+
+def test_foreground_statistics_of_rows_without_foreground_are_zero():
+    disp = torch.tensor([[3.0, 1.0, 2.0, 7.0], [5.0, 6.0, 7.0, 8.0]])
+    mask = torch.tensor([[True, True, True, False], [False, False, False, False]])
+    median, dev, count = foreground_median_and_deviation(disp, mask)
+    assert median.tolist() == [2.0, 0.0] and dev.tolist() == [pytest.approx(2 / 3), 0.0] and count.tolist() == [3, 0]
+
+
+def _reference_scores(pred: torch.Tensor, gt: torch.Tensor) -> tuple[list[float], list[float], float]:
+    """Per-image AbsRel and delta1 by numpy least squares on the foreground, the cap at 10 x max depth, and the
+    smallest aligned disparity seen (to show the cap was needed)."""
+    rel, d1, lowest = [], [], float("inf")
+    for p, z in zip(pred.double().numpy(), gt.double().numpy(), strict=True):
+        keep = (z > 0) & np.isfinite(p)
+        a, b = np.linalg.lstsq(np.stack([p[keep], np.ones(keep.sum())], axis=1), 1 / z[keep], rcond=None)[0]
+        aligned = a * p[keep] + b
+        lowest = min(lowest, aligned.min())
+        z_hat = 1 / np.maximum(aligned, 1 / (10 * z.max()))
+        rel.append(float(np.mean(np.abs(z_hat - z[keep]) / z[keep])))
+        d1.append(float(np.mean(np.maximum(z_hat / z[keep], z[keep] / z_hat) < 1.25)))
+    return rel, d1, lowest
+
+
+def test_metric_matches_a_numpy_reference_with_outliers_and_non_finite_predictions():
+    """Depth 1..4 across the image (two background rows). Image 0: exact disparity but one outlier whose aligned
+    disparity is negative (its depth is capped at 10 x max z); image 1: noisy, with NaN and inf on the foreground
+    (not scored)."""
+    yy, xx = torch.meshgrid(torch.linspace(-1, 1, 16), torch.linspace(-1, 1, 16), indexing="ij")
+    depth = (2.5 + 1.5 * xx).double().expand(2, 16, 16).clone()
+    depth[:, :2] = 0.0
+    noise = 0.05 * torch.randn(16, 16, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    pred = torch.stack([1 / depth[0].clamp_min(0.5), 1 / depth[1].clamp_min(0.5) + noise])
+    pred[0, 8, 8] = -1.0
+    pred[1, 10, 11], pred[1, 11, 10] = float("nan"), float("inf")
+    rel, d1, lowest = _reference_scores(pred, depth)
+    assert lowest < 0
+    scores = affine_invariant_scores(pred, depth)
+    assert scores.valid.all()
+    assert scores.abs_rel.tolist() == pytest.approx(rel, rel=1e-5)
+    assert scores.delta1.tolist() == pytest.approx(d1, abs=1e-7)
+
+
+def test_delta_threshold_is_strict_and_constant_predictions_get_no_scale():
+    """A constant prediction aligns to the mean disparity: z in {2.5, 5/3} gives mean 1/z = 0.5 (exact in
+    binary), predicted depth 2, ratios 1.25 (not < 1.25: a miss) and 1.2 (a hit)."""
+    scores = affine_invariant_scores(torch.ones(1, 1, 2, dtype=torch.float64),
+                                     torch.tensor([[[2.5, 1 / 0.6]]], dtype=torch.float64))
+    assert scores.delta1.item() == 0.5 and scores.abs_rel.item() == pytest.approx(0.2)
+    # 0.1 is not a binary fraction: its row mean carries rounding, which must not turn into a slope
+    x = torch.full((2, 9), 0.1, dtype=torch.float64)
+    y = torch.arange(18, dtype=torch.float64).reshape(2, 9) ** 2
+    s, b = fit_scale_shift(x, y, torch.ones(2, 9, dtype=torch.bool))
+    assert s.tolist() == [0.0, 0.0] and torch.allclose(b, y.mean(-1))

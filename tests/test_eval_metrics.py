@@ -94,6 +94,18 @@ def test_gaussian_ssim_matches_brute_force_loop(window, zero_pad):
     assert value != pytest.approx(ssim(pred, gt), abs=1e-3)  # a different number from pixelNeRF's uniform7
 
 
+@pytest.mark.parametrize("window, side", [("uniform7", 7), ("gaussian11", 11), ("gaussian11-zeropad", 11)])
+def test_ssim_of_an_image_exactly_the_window_size(window, side):
+    """The smallest image a variant measures is one window: uniform7 at 7x7, the Gaussian ones at 11x11."""
+    gt = _rand((side, side, 3), 10)
+    pred = np.clip(gt + 0.3 * _rand((side, side, 3), 11) - 0.15, 0, 1)
+    value = ssim(pred, gt, ImageMetricsConfig(ssim_window=window))
+    expect = (_ssim_reference(pred, gt) if window == "uniform7"
+              else _gaussian_ssim_reference(pred, gt, zero_pad=window.endswith("zeropad")))
+    assert value == pytest.approx(expect, abs=1e-10)
+    with pytest.raises(DepthnerfError, match="smaller than the SSIM window"):
+        ssim(pred[:-1], gt[:-1], ImageMetricsConfig(ssim_window=window))
+
 def test_ssim_variant_is_checked_and_needs_its_window():
     img = _rand((10, 10, 3), 9)
     assert math.isfinite(ssim(img, img))  # 10x10 fits the 7x7 window ...

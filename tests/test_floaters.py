@@ -59,3 +59,21 @@ def test_margin_and_empty_prediction() -> None:
     empty = trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
     assert floater_fraction(empty, gt) == 0.0
     assert geometry_metrics(empty, gt).floater_fraction == 0.0
+
+
+def test_margin_is_in_gt_diagonals_not_world_units() -> None:
+    """GT box of side 4 (diagonal 4 sqrt(3) ~ 6.93): the default margin 0.05 diagonals is ~0.35 world units, so a
+    slab 0.2 above the top face is not a floater and one 0.5 above is (all of its surface, in closed form)."""
+    gt = _box((4.0, 4.0, 4.0), (0.0, 0.0, 0.0))
+    cfg = GeometryConfig(n_points=2000)
+    margin = 0.05 * 4.0 * np.sqrt(3.0)
+    for gap, expected in ((0.2, 0.0), (0.5, 1.0)):
+        assert (gap < margin) == (expected == 0.0)
+        slab = _box((2.0, 2.0, 0.02), (0.0, 0.0, 2.0 + gap))
+        assert floater_fraction(slab, gt, cfg) == expected
+
+
+def test_surface_on_the_box_faces_is_inside_even_without_margin() -> None:
+    """The grown box is closed: the GT's own surface (samples exactly on its bounding faces) has no floaters."""
+    gt = _box((1.0, 0.5, 0.4), (0.1, 0.0, 0.0))
+    assert floater_fraction(gt, gt, GeometryConfig(n_points=2000, floater_margin=0.0)) == 0.0

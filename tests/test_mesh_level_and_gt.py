@@ -104,12 +104,14 @@ def test_backprojected_depth_lies_on_the_sphere():
     assert (points @ c2w[:3, 3].double().numpy() > 0).all()  # only the side facing the camera
 
 
-def _sphere_object(root: Path, views: int, intr: Intrinsics) -> ObjectRecord:
+def _sphere_object(root: Path, views: int, intr: Intrinsics, pixel_center: float = 0.0) -> ObjectRecord:
+    """A sphere object whose depth maps put pixel (i, j) at ``(j + pixel_center, i + pixel_center)`` in ``intr``."""
     srn_format.write_intrinsics(root / "intrinsics.txt", intr)
     for k in range(views):
         c2w = _camera(2 * np.pi * k / views, 0.3)
         srn_format.write_pose(root / "pose" / f"{k:06d}.txt", c2w.numpy())
-        srn_format.write_depth(root / "depth" / f"{k:06d}.npz", sphere_depth(c2w, intr, RADIUS))
+        depth = sphere_depth(c2w, intr.with_pixel_center(pixel_center), RADIUS)
+        srn_format.write_depth(root / "depth" / f"{k:06d}.npz", depth)
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS)
     inner = trimesh.creation.icosphere(subdivisions=2, radius=RADIUS / 2)  # an interior part no view sees
     trimesh.util.concatenate([mesh, inner]).export(root / "mesh.ply")
@@ -136,3 +138,15 @@ def test_visible_surface_ground_truth(tmp_path):
     assert summarize_geometry([m, m], cfg)["geometry_gt"] == "visible surface from 4 depth maps"
     assert summarize_geometry([m, mesh_only], cfg)["geometry_gt"] == (
         "mesh.ply (1 objects); visible surface from 4 depth maps (1 objects)")
+
+
+def test_visible_surface_follows_the_depth_maps_pixel_centre(tmp_path):
+    """Depth maps rendered at pixel centres ``(j + 0.5, i + 0.5)``: read with that convention every point is on the
+    sphere; read half a pixel off, the points leave it."""
+    (tmp_path / "pose").mkdir()
+    (tmp_path / "depth").mkdir()
+    record = _sphere_object(tmp_path, 2, Intrinsics(focal=48.0, cx=16.0, cy=16.0, height=32, width=32), 0.5)
+    on = visible_surface_points(record, n_points=10_000, pixel_center=0.5)
+    assert np.abs(np.linalg.norm(on, axis=1) - RADIUS).max() < 1e-5
+    off = visible_surface_points(record, n_points=10_000, pixel_center=0.0)
+    assert np.abs(np.linalg.norm(off, axis=1) - RADIUS).max() > 1e-3

@@ -1,6 +1,7 @@
 """Depth guides from a source view and the depth-guided sampler on analytic sphere scenes."""
 
 import math
+import statistics
 
 import pytest
 import torch
@@ -10,6 +11,7 @@ from depthnerf.depth.normalize import normalize_disparity
 from depthnerf.render.analytic import Sphere, SphereScene
 from depthnerf.render.config import GuidedConfig, RenderConfig, SamplerConfig
 from depthnerf.render.depth_guide import DepthGuide, align_disparity_to_depth, build_depth_guide
+from depthnerf.render.guided_sampler import guided_first_samples
 from depthnerf.render.pipeline import render_image, render_rays
 from depthnerf.render.rays import RayBundle, camera_z_of_directions, rays_from_camera
 
@@ -173,3 +175,81 @@ def test_guide_input_checks():
     with pytest.raises(ValueError, match="guide for"):
         render_rays(SCENE, SCENE, rays.slice(0, 10), RenderConfig(guided=GuidedConfig(enabled=True)),
                     train=False, guide=guide)
+
+
+def _axis_rays(r: int) -> RayBundle:
+    """``r`` rays from the origin along +z, t in [0.8, 1.8] (double precision)."""
+    dirs = torch.zeros(1, r, 3, dtype=torch.float64)
+    dirs[..., 2] = 1.0
+    return RayBundle(torch.zeros_like(dirs), dirs, torch.full((1, r), NEAR, dtype=torch.float64),
+                     torch.full((1, r), FAR, dtype=torch.float64))
+
+
+def _slab_field(pts, dirs):
+    """Density 5 on 1.25 < z < 1.35 (optical depth 0.5 along +z, opacity 1 - e^-0.5 ~ 0.39), grey colour."""
+    sigma = torch.where((pts[..., 2] - 1.3).abs() < 0.05, 5.0, 0.0).to(pts.dtype)
+    return torch.full((*pts.shape[:-1], 3), 0.5, dtype=pts.dtype), sigma
+
+
+def _trusted_guide(t_guess: float, spread: float, r: int, valid: bool = True) -> DepthGuide:
+    full = torch.full((1, r), t_guess, dtype=torch.float64)
+    flag = torch.full((1, r), valid)
+    return DepthGuide(full, full - spread, flag, torch.ones(1, r, dtype=torch.bool),
+                      torch.full((1, r), spread, dtype=torch.float64))
+
+
+def test_first_pass_samples_are_the_uniform_bins_and_the_window_bins():
+    """Evaluation samples: midpoints of ``n_uniform`` bins of [near, far] and the points at a quarter of each of
+    ``n_window`` bins of the window, [t_guess - spread, t_guess + spread] on a trusted ray, [t_enter, far] else."""
+    rays = _axis_rays(2)
+    guide = _trusted_guide(1.3, 0.1, 2)
+    guide.valid[0, 1] = False  # untrusted: window from t_enter = 1.2 to far
+    t = guided_first_samples(rays, guide, 4, 6, random=False)
+    for r, (lo, hi) in enumerate(((1.2, 1.4), (1.2, FAR))):
+        uniform = [NEAR + (k + 0.5) * (FAR - NEAR) / 4 for k in range(4)]
+        window = [lo + (k + 0.25) * (hi - lo) / 6 for k in range(6)]
+        assert torch.allclose(t[0, r], torch.tensor(sorted(uniform + window), dtype=torch.float64), atol=1e-12)
+
+
+def test_gaussian_samples_centre_on_the_opacity_normalised_first_pass_depth():
+    """Half-transparent slab: pass 2 adds ``n_gaussian`` samples ``c + std * Phi^-1((k + 0.5) / n)`` around
+    ``c = sum w t / sum w`` of pass 1 (near the slab at 1.3), not around ``sum w t`` (~0.39 * 1.3)."""
+    rays = _axis_rays(1)
+    cfg = RenderConfig(guided=GuidedConfig(enabled=True, n_importance=0, n_gaussian=8))
+    out = render_rays(_slab_field, _slab_field, rays, cfg, train=False, guide=_trusted_guide(1.3, 0.1, 1))
+    w, t1 = out.coarse.weights[0, 0], out.coarse.t[0, 0]
+    assert 0.3 < w.sum() < 0.5  # pass 1 sees a partly transparent surface
+    centre = (w * t1).sum() / w.sum()
+    assert abs(centre - 1.3) < 0.05
+    normal = statistics.NormalDist()
+    gauss = [float(centre) + 0.01 * normal.inv_cdf((k + 0.5) / 8) for k in range(8)]
+    expect = torch.sort(torch.cat([t1, torch.tensor(gauss, dtype=torch.float64)])).values
+    assert torch.allclose(out.fine.t[0, 0], expect, atol=1e-9)
+
+
+def test_without_a_fine_network_pass_two_reuses_pass_one_for_either_first_pass():
+    """Evaluations per occupied ray: n_uniform + n_window (pass 1) + n_importance + n_gaussian (pass 2 only)."""
+    rays = _axis_rays(3)
+    gc = GuidedConfig(enabled=True)
+    per_ray = gc.n_uniform + gc.n_window + gc.n_importance + gc.n_gaussian
+    renders = []
+    for first_pass in ("fine", "coarse"):
+        net = _Counter(_slab_field)
+        cfg = RenderConfig(guided=GuidedConfig(enabled=True, first_pass=first_pass))
+        renders.append(render_rays(net, None, rays, cfg, train=False, guide=_trusted_guide(1.3, 0.1, 3)))
+        assert net.points == 3 * per_ray, first_pass
+    assert torch.equal(renders[0].fine.rgb, renders[1].fine.rgb)
+
+
+def test_guided_evaluation_honours_eval_random():
+    rays = _axis_rays(4)
+    guide = _trusted_guide(1.3, 0.1, 4)
+
+    def render(eval_random: bool, seed: int):
+        cfg = RenderConfig(sampler=SamplerConfig(eval_random=eval_random), guided=GuidedConfig(enabled=True))
+        return render_rays(_slab_field, _slab_field, rays, cfg, train=False,
+                           generator=torch.Generator().manual_seed(seed), guide=guide).coarse.t
+
+    assert torch.equal(render(False, 0), render(False, 1))  # deterministic: the generator is not used
+    assert torch.equal(render(True, 0), render(True, 0)) and not torch.equal(render(True, 0), render(True, 1))
+    assert not torch.equal(render(True, 0), render(False, 0))

@@ -173,3 +173,32 @@ def test_a_render_given_its_draws_equals_one_that_draws_them():
     assert not torch.equal(other.fine.t, own.fine.t)
     with pytest.raises(ValueError, match="pre-drawn"):
         render_rays(SCENE, SCENE, rays, cfg, train=True, draws=draws, generator=torch.Generator())
+
+
+def test_ray_directions_match_a_per_pixel_loop_with_an_off_centre_principal_point():
+    """Non-square image, ``cx != cy``: pixel (i, j) looks along ``R ((j - cx) / f, (i - cy) / f, 1)``, normalised,
+    and is ray ``i * W + j``."""
+    intr = Intrinsics(focal=20.0, cx=6.3, cy=2.9, height=5, width=9)
+    c2w = torch.cat([_camera(30, 20), _camera(200, 50)]).double()
+    rays = rays_from_camera(c2w, intr, 0.8, 1.8)
+    rows = torch.tensor([[0, 4, 2, 3], [1, 0, 4, 2]])
+    cols = torch.tensor([[0, 8, 5, 1], [7, 3, 0, 6]])
+    sub = rays_from_pixels(c2w, intr, rows, cols, 0.8, 1.8)
+    for b in range(2):
+        for i in range(intr.height):
+            for j in range(intr.width):
+                d = torch.tensor([(j - intr.cx) / intr.focal, (i - intr.cy) / intr.focal, 1.0], dtype=torch.float64)
+                expect = c2w[b, :3, :3] @ (d / d.norm())
+                assert torch.allclose(rays.directions[b, i * intr.width + j], expect, atol=1e-12)
+                assert torch.equal(rays.origins[b, i * intr.width + j], c2w[b, :3, 3])
+        for k in range(rows.shape[1]):
+            i, j = int(rows[b, k]), int(cols[b, k])
+            assert torch.allclose(sub.directions[b, k], rays.directions[b, i * intr.width + j], atol=1e-12)
+
+
+def test_ray_bounds_must_have_positive_length():
+    c2w = _camera(30, 20)
+    for near, far in ((1.0, 1.0), (1.8, 0.8), (torch.tensor([1.2]), 1.2)):
+        with pytest.raises(ValueError, match="far > near"):
+            rays_from_camera(c2w, INTR, near, far)
+    rays_from_camera(c2w, INTR, 1.0, 1.0 + 1e-4)  # any positive length is accepted

@@ -1,6 +1,7 @@
 """Samplers: bins, determinism, inverse-CDF histograms against the pdf, Gaussian moments."""
 
 import math
+import statistics
 
 import pytest
 import torch
@@ -108,3 +109,36 @@ def test_gap_bins_max_filter():
     edges, masses = gap_bins(t, w, torch.tensor([[0.5]]), torch.tensor([[4.0]]))
     assert torch.equal(edges, torch.tensor([[[0.5, 1.0, 2.0, 3.0, 4.0]]]))
     assert torch.allclose(masses, torch.tensor([[[0.1, 0.7, 0.7, 0.2]]]))
+
+
+def test_importance_epsilon_goes_to_bins_of_positive_width_only():
+    """Masses (w + eps) on the two unit bins, none on the zero-width one: [0, 1] gets (1 + 1) / 6 = 1/3,
+    [1, 2] gets (3 + 1) / 6 = 2/3, and the quantiles (j + 0.5) / 4 invert that piecewise-linear CDF."""
+    edges = torch.tensor([[[0.0, 1.0, 1.0, 2.0]]], dtype=torch.float64)
+    weights = torch.tensor([[[1.0, 5.0, 3.0]]], dtype=torch.float64)
+    t = sample_pdf(edges, weights, 4, random=False, epsilon=1.0)
+    expect = []
+    for j in range(4):
+        u = (j + 0.5) / 4
+        expect.append(u / (1 / 3) if u < 1 / 3 else 1.0 + (u - 1 / 3) / (2 / 3))
+    assert torch.allclose(t, torch.tensor([[expect]], dtype=torch.float64), atol=1e-12)
+
+
+def test_stratified_eval_offset_places_samples_at_that_fraction_of_each_bin():
+    near, far = torch.tensor([[0.8, 1.0]]), torch.tensor([[1.8, 3.0]])
+    t = stratified_samples(near, far, 8, random=False, eval_offset=0.25)
+    for r in range(2):
+        h = (far[0, r] - near[0, r]) / 8
+        expect = torch.tensor([near[0, r] + (k + 0.25) * h for k in range(8)])
+        assert torch.allclose(t[0, r], expect, atol=1e-6)
+
+
+def test_gaussian_eval_samples_are_normal_quantiles():
+    """Deterministic Gaussian samples are ``center + std * Phi^-1((k + 0.5) / n)`` (the standard library's
+    inverse normal CDF as the reference)."""
+    n, std = 16, 0.05
+    center, near, far = (torch.tensor([[x]], dtype=torch.float64) for x in (1.3, 0.8, 1.8))
+    t = gaussian_samples(center, near, far, n, std, random=False)
+    normal = statistics.NormalDist()
+    expect = torch.tensor([1.3 + std * normal.inv_cdf((k + 0.5) / n) for k in range(n)], dtype=torch.float64)
+    assert torch.allclose(t[0, 0], expect, atol=1e-12)

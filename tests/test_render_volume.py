@@ -72,3 +72,17 @@ def test_white_background_adds_one_minus_opacity():
     assert (black.opacity > 0.05).all() and (black.opacity < 0.999).all()  # both terms matter here
     empty = composite(t, far, torch.zeros_like(sigma), rgb, white_background=True)
     assert torch.allclose(empty.rgb, torch.ones_like(empty.rgb)) and torch.all(empty.distance == 0)
+
+
+def test_normalized_distance_is_the_weighted_mean_distance():
+    """One absorbing sample at t_1 = 2 (optical depth tau, opacity 1 - e^-tau) behind an empty one:
+    distance = (1 - e^-tau) * 2, and distance / opacity = 2 whatever the opacity."""
+    t = torch.tensor([[[1.0, 2.0], [1.0, 2.0]]], dtype=torch.float64)
+    far = torch.full((1, 2), 3.0, dtype=torch.float64)
+    taus = (0.1, 5.0)  # optical depth of the last interval [2, far]: nearly transparent and nearly opaque
+    sigma = torch.tensor([[[0.0, taus[0]], [0.0, taus[1]]]], dtype=torch.float64)
+    res = composite(t, far, sigma, torch.zeros(1, 2, 2, 3, dtype=torch.float64), white_background=False)
+    opacity = torch.tensor([[1 - math.exp(-tau) for tau in taus]], dtype=torch.float64)
+    assert torch.allclose(res.opacity, opacity, atol=1e-12)
+    assert torch.allclose(res.distance, 2.0 * opacity, atol=1e-12)
+    assert torch.allclose(res.normalized_distance(), torch.full((1, 2), 2.0, dtype=torch.float64), atol=1e-12)
