@@ -106,6 +106,7 @@ def test_ssim_of_an_image_exactly_the_window_size(window, side):
     with pytest.raises(DepthnerfError, match="smaller than the SSIM window"):
         ssim(pred[:-1], gt[:-1], ImageMetricsConfig(ssim_window=window))
 
+
 def test_ssim_variant_is_checked_and_needs_its_window():
     img = _rand((10, 10, 3), 9)
     assert math.isfinite(ssim(img, img))  # 10x10 fits the 7x7 window ...
