@@ -102,6 +102,28 @@ def test_protocol_views_are_all_but_view_64_with_stride():
             protocol_views(*bad)
 
 
+def test_protocol_text_and_mesh_status_name_what_ran():
+    """The protocol line for objects with and without a view 64, with a stride (target counts written out from
+    the protocol's definition), and the mesh status for no, some and all predicted meshes empty."""
+    from types import SimpleNamespace
+
+    from depthnerf.eval.protocol import mesh_status, protocol_text
+
+    mixed = [SimpleNamespace(views=protocol_views(n, 2)) for n in (251, 10)]  # 250 -> 125 and 9 -> 5 targets
+    assert protocol_text(mixed, 4, "test", "cars", 2, 64, 64, True) == (
+        "SRN protocol: input view 64 (view 0 for objects with <= 64 views), targets = all other 9/250 views with "
+        "stride 2 (5/125 views), 2 of 4 objects of cars_test, 64x64, deterministic sampling")
+    small = [SimpleNamespace(views=protocol_views(10))]
+    assert protocol_text(small, 1, "val", "chairs", 1, 32, 64, False) == (
+        "SRN-style protocol: input view 0 (objects have <= 64 views; SRN uses view 64), targets = all other 9 "
+        "views, 1 of 1 objects of chairs_val, 32x32 (input view encoded at the training resolution 64x64), "
+        "random sampling (render.sampler.eval_random)")
+    assert mesh_status(0, 2, 3) == "ok: 2 of 3 objects have mesh.ply; "
+    assert mesh_status(1, 2, 3) == ("1 of 2 predicted meshes empty (worst-case values in the means); "
+                                    "2 of 3 objects have mesh.ply; ")
+    assert mesh_status(2, 2, 3).startswith("every predicted mesh is empty (2 of 2)")
+
+
 def _read_csv(path: Path) -> list[dict]:
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
@@ -132,6 +154,7 @@ def test_eval_baseline_outputs_are_consistent(setup):
     renders = _read_csv(out / "renders.csv")
     expected = [v for v in range(66) if v != 64][::16]
     assert expected == [0, 16, 32, 48, 65]
+    assert all(r["input_view"] == "64" and int(r["views"]) == len(expected) for r in rows)  # scored, not 65
     for obj in rows:
         assert [int(r["view"]) for r in renders if r["object_id"] == obj["object_id"]] == expected
     for r in renders:
@@ -213,6 +236,8 @@ def test_eval_small_objects_use_view_0_and_max_objects(setup):
     assert summary["protocol"].startswith("SRN-style protocol: input view 0 (objects have <= 64 views; SRN uses "
                                           "view 64), targets = all other 3 views, 1 of 2 objects of cars_train")
     assert summary["objects"] == 1 and summary["views"] == 3 and summary["method"] == "label (test)"
+    first = sorted(p.name for p in (setup["root"] / "cars_train").iterdir() if p.is_dir())[0]
+    assert [r["object_id"] for r in _read_csv(out / "per_object.csv")] == [first]  # the first by id
 
 
 @pytest.mark.parametrize("args, text", [

@@ -1,5 +1,6 @@
 """The feature gather (``depthnerf.model.features.sample_maps``) against torch's ``grid_sample``: the fused
-training path, values and gradients, and the no-gradient path of compiled CUDA inference."""
+training path, values and gradients, and the no-gradient path of compiled CUDA inference; ``in_frame`` against
+its definition."""
 
 from __future__ import annotations
 
@@ -49,3 +50,20 @@ def test_inference_sampling_equals_the_fused_gather():
         torch.testing.assert_close(sample_maps_inference(maps.cuda(), grid.cuda()).cpu(), sample_maps(maps, grid))
         # CUDA inference takes it (eager too, not only compiled); a call with gradients keeps the fused gather
         assert torch.equal(sample_maps(maps.cuda(), grid.cuda()), sample_maps_inference(maps.cuda(), grid.cuda()))
+
+
+def test_in_frame_is_in_front_and_inside_the_closed_image_rectangle():
+    """``in_frame`` of a 4 x 6 (H x W) image against its definition, one point at a time: z > 0 and
+    ``0 <= u <= W``, ``0 <= v <= H`` (edges included), on a grid of (u, v) that straddles each edge and z of
+    both signs."""
+    from depthnerf.model.features import in_frame
+
+    h, w = 4, 6
+    values = [-0.5, 0.0, 3.0, 4.0, 4.5, 5.5, 6.0, 6.5]
+    cases = [(u, v, z) for u in values for v in values for z in (-1.0, 0.0, 2.0)]
+    uv = torch.tensor([[[[u, v] for u, v, _ in cases]]], dtype=torch.float64)
+    cam = torch.tensor([[[[0.1, -0.2, z] for _, _, z in cases]]], dtype=torch.float64)
+    out = in_frame(cam, uv, (h, w))
+    expected = [float(z > 0 and 0 <= u <= w and 0 <= v <= h) for u, v, z in cases]
+    assert out.dtype == torch.float64 and out[0, 0].tolist() == expected
+    assert 0 < sum(expected) < len(expected)

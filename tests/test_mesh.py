@@ -45,6 +45,14 @@ def test_layout_has_cube_voxels_covering_the_box():
         CameraGrid(torch.eye(4), (0.0, 0.0, 1.0), (1.0, 1.0, 1.0))
 
 
+def test_grid_is_centred_on_a_box_its_step_does_not_divide():
+    """A 1 x 0.45 x 0.3 box at resolution 11: step 0.1, 11 x 6 x 4 samples; the y samples span 0.5, overhanging
+    the box by 0.025 on each side (first sample at -0.025), x and z fit exactly."""
+    shape, step, origin = CameraGrid(torch.eye(4), (0.0, 0.0, 0.0), (1.0, 0.45, 0.3)).layout(11)
+    assert shape == (11, 6, 4) and step == pytest.approx(0.1)
+    np.testing.assert_allclose(origin, [0.0, -0.025, 0.0], atol=1e-12)
+
+
 def test_frustum_box_contains_what_the_image_sees():
     grid = CameraGrid.from_frustum(C2W, INTR, 0.8, 1.8)
     assert grid.lo[2] == 0.8 and grid.hi[2] == 1.8
@@ -55,6 +63,17 @@ def test_frustum_box_contains_what_the_image_sees():
         assert min(abs(y - grid.lo[1]), abs(y - grid.hi[1])) < 1e-9
     with pytest.raises(DepthnerfError):
         CameraGrid.from_frustum(C2W, INTR, 1.8, 0.8)
+
+
+def test_frustum_box_of_a_wide_image_is_the_bounding_box_of_its_corner_rays():
+    """A 40 x 16 (W x H) image with an off-centre principal point: the box is the min / max over the 8 points
+    where the rays through the image's pixel-border corners meet z_near and z_far."""
+    intr = Intrinsics(focal=50.0, cx=20.5, cy=9.0, height=16, width=40)
+    corners = np.array([[(u - intr.cx) / intr.focal * z, (v - intr.cy) / intr.focal * z, z]
+                        for u in (-0.5, 39.5) for v in (-0.5, 15.5) for z in (0.8, 1.8)])
+    grid = CameraGrid.from_frustum(C2W, intr, 0.8, 1.8)
+    np.testing.assert_allclose(grid.lo, corners.min(0), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(grid.hi, corners.max(0), rtol=0, atol=1e-12)
 
 
 def test_density_samples_are_at_the_world_positions_of_the_grid():

@@ -73,6 +73,35 @@ def test_auto_level_falls_back_without_opaque_rays():
     assert "1 object(s) without an opaque ray" in levels_text([level], 32)
 
 
+def test_ray_samples_are_bin_midpoints_and_negative_densities_add_no_opacity():
+    """``input_ray_densities`` for a camera at the origin (unit ray directions, so a sample's distance from the
+    eye is its ``t``): with ``sigma = |x|`` the peak is the last bin midpoint ``far - delta / 2`` and the opacity
+    ``1 - exp(-delta sum_k t_k) = 1 - exp(-(far - near)(near + far) / 2)``; with ``sigma = +3`` left of the
+    optical axis and ``-3`` right of it, the left rays have opacity ``1 - exp(-3 (far - near))`` and the right
+    rays 0 (negative densities clipped)."""
+    from depthnerf.render.mesh_level import input_ray_densities
+
+    intr, near, far, samples = Intrinsics(focal=4.0, cx=1.5, cy=1.5, height=4, width=4), 1.0, 3.0, 8
+    delta = (far - near) / samples
+    queried = []
+
+    def distance(p: torch.Tensor) -> torch.Tensor:
+        queried.append(p.norm(dim=-1))
+        return p.norm(dim=-1)
+
+    peak, opacity = input_ray_densities(distance, torch.eye(4), intr, near, far, samples, chunk=5, ray_stride=1)
+    t = torch.cat(queried).reshape(16, samples)
+    torch.testing.assert_close(t, (near + (torch.arange(samples) + 0.5) * delta).expand(16, samples))
+    np.testing.assert_allclose(peak, far - delta / 2, rtol=1e-6)
+    np.testing.assert_allclose(opacity, 1 - np.exp(-(far - near) * (near + far) / 2), rtol=1e-6)
+    peak, opacity = input_ray_densities(lambda p: torch.where(p[:, 0] < 0, 3.0, -3.0), torch.eye(4), intr, near,
+                                        far, samples, ray_stride=1)
+    left = np.arange(4) < 1.5  # pixel columns 0 and 1 lie left of cx = 1.5
+    np.testing.assert_allclose(peak.reshape(4, 4), np.where(left, 3.0, -3.0)[None].repeat(4, 0))
+    np.testing.assert_allclose(opacity.reshape(4, 4), np.where(left, 1 - np.exp(-3.0 * (far - near)), 0.0)[None]
+                               .repeat(4, 0), rtol=1e-6, atol=1e-12)
+
+
 def test_parse_level():
     assert parse_level("auto") == "auto" and parse_level(" AUTO ") == "auto" and parse_level("12.5") == 12.5
     assert parse_level("Silhouette") == "silhouette" and parse_level("local") == "local"

@@ -56,6 +56,17 @@ def test_silhouette_choice_is_the_best_level_of_a_brute_force_search(seed):
     assert all(brute_force_iou(peak, opaque, c) < best - 1e-12 for c in candidates if c > level)  # highest maximiser
 
 
+def test_silhouette_choice_on_a_tie_and_when_every_ray_is_kept():
+    """Hand-computed IoUs. Peaks 4 > 3 > 2 > 1 with targets on the 4 and the 1: keeping 1, 2, 3, 4 rays gives
+    IoU 1/2, 1/3, 1/4, 2/4; the tie goes to the fewest rays kept, level (4 + 3) / 2. Every ray a target: all are
+    kept (IoU 1) and the level is half the lowest peak, so the lowest ray is still inside ``{peak > level}``."""
+    level, iou = silhouette_choice(np.array([2.0, 4.0, 1.0, 3.0]), np.array([False, True, True, False]))
+    assert (level, iou) == (3.5, 0.5)
+    peak = np.array([2.0, 5.0, 3.0])
+    level, iou = silhouette_choice(peak, np.ones(3, dtype=bool))
+    assert (level, iou) == (1.0, 1.0) and (peak > level).all()
+
+
 def test_silhouette_level_of_a_constant_ball_is_half_its_density():
     def density(p: torch.Tensor) -> torch.Tensor:
         return torch.where(p.norm(dim=-1) < 0.5, torch.tensor(7.0), torch.tensor(0.0))
@@ -171,6 +182,28 @@ def test_local_level_keeps_the_faint_rod_and_the_half_maximum_sphere():
     assert front["local"] == pytest.approx(distance - radius(level.level), abs=0.002)  # as tight as auto ...
     assert front["silhouette"] == pytest.approx(distance - radius(level.floor), abs=0.002)
     assert front["silhouette"] < front["local"] - 0.005  # ... where one low level inflates the ball
+
+
+def test_local_level_is_the_auto_level_of_autos_rays_and_its_floor_never_exceeds_it():
+    """A camera at the origin looking along +z through 8 x 8 pixels at a slab (camera z 1.5 to 2.5) of density
+    40 on the even pixel columns and 10 on the odd ones. ``auto`` reads every 2nd row and column (even columns
+    only): level 40 / 2 = 20 (the median over every ray would give 25 / 2). With the even columns as the mask
+    the silhouette level is (40 + 10) / 2 = 25, above the auto level: the floor is then the auto level, 20."""
+    from depthnerf.render.mesh_level import local_surface
+
+    intr = Intrinsics(focal=8.0, cx=3.5, cy=3.5, height=8, width=8)
+
+    def density(p: torch.Tensor) -> torch.Tensor:
+        column = torch.round(p[:, 0] / p[:, 2] * intr.focal + intr.cx)
+        slab = (p[:, 2] > 1.5) & (p[:, 2] < 2.5)
+        return torch.where(slab, torch.where(column % 2 == 0, 40.0, 10.0), 0.0)
+
+    mask = np.zeros((8, 8), dtype=bool)
+    mask[:, ::2] = True
+    assert auto_level(density, torch.eye(4), intr, NEAR, FAR).level == 20.0
+    assert silhouette_level(density, torch.eye(4), intr, NEAR, FAR, mask).level == 25.0
+    level, _, value = local_surface(density, torch.eye(4), intr, NEAR, FAR, mask)
+    assert (level.rule, level.level, level.floor, level.iou, value) == ("local", 20.0, 20.0, 1.0, 1.0)
 
 
 def test_local_level_falls_back_and_checks_the_mask():

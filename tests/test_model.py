@@ -116,6 +116,22 @@ def test_positional_encoding_closed_form():
         torch.testing.assert_close(out[n], torch.tensor(expected), atol=1e-5, rtol=0)
 
 
+def test_density_bias_init_makes_the_initial_density_that_constant():
+    """``density_bias_init = b``: lin_out's density row starts at zero weights and bias b, so the raw density
+    output is b at every input (whatever the other weights), while the colour logits still vary."""
+    from depthnerf.model.field import ResidualField
+
+    torch.manual_seed(0)
+    cfg = FieldConfig(d_hidden=16, n_blocks=2, combine_layer=1, density_bias_init=0.75)
+    mlp = ResidualField(cfg, d_latent=8)
+    with torch.no_grad():
+        for block in mlp.blocks:  # non-identity blocks
+            block.fc_1.weight.normal_(0, 0.3)
+        raw = mlp(torch.randn(1, 1, 30, cfg.d_in), torch.randn(1, 1, 30, 8), projected=False)
+    assert torch.equal(raw[..., 3], torch.full((1, 30), 0.75))
+    assert raw[..., :3].std() > 0.1
+
+
 # --- brute-force reference of the whole field -------------------------------------------------------------------
 
 def bilinear_border(fmap: torch.Tensor, fx: float, fy: float) -> torch.Tensor:

@@ -265,6 +265,28 @@ def test_check_size_false_rescales_intrinsics(srn_root: Path):
     assert views.images.shape[-2:] == (32, 32) and views.intrinsics == rec.intrinsics.resized(32, 32)
 
 
+def test_intrinsics_and_pose_files_read_as_the_format_states(tmp_path: Path):
+    """``intrinsics.txt``: ``f cx cy 0.`` first, ``H W`` on the last line, so a non-square image with cx != cy
+    keeps each number in its place, a file with an extra line before the size reads the same, and the writer
+    puts ``H W`` last. A pose file round-trips; a mirror pose (orthonormal, det -1) is refused."""
+    path = tmp_path / "intrinsics.txt"
+    expected = Intrinsics(focal=100.0, cx=31.5, cy=15.5, height=32, width=64)
+    path.write_text("100.0 31.5 15.5 0.\n0. 0. 0.\n1.\n32 64\n")
+    assert srn_format.read_intrinsics(path) == expected
+    path.write_text("100.0 31.5 15.5 0.\n0. 0. 0.\n0.\n1.\n32 64\n")
+    assert srn_format.read_intrinsics(path) == expected
+    srn_format.write_intrinsics(path, expected)
+    assert path.read_text().splitlines()[-1] == "32 64" and srn_format.read_intrinsics(path) == expected
+    pose = np.eye(4)
+    pose[:3, 3] = [0.5, -1.0, 2.0]
+    srn_format.write_pose(tmp_path / "pose.txt", pose)
+    np.testing.assert_array_equal(srn_format.read_pose(tmp_path / "pose.txt"), pose.astype(np.float32))
+    pose[0, 0] = -1.0
+    srn_format.write_pose(tmp_path / "mirror.txt", pose)
+    with pytest.raises(DepthnerfError, match="mirror.txt: pose is not a rigid transform"):
+        srn_format.read_pose(tmp_path / "mirror.txt")
+
+
 @pytest.mark.parametrize("case", sorted(BAD_INPUT_CASES))
 def test_bad_input_raises_one_line_naming_the_file(tmp_path: Path, case: str):
     root = make_srn_fixture(tmp_path, with_depth=True, with_mask=True)

@@ -66,6 +66,17 @@ def test_reflection_formulas():
     assert facing_plane(30.0) == pytest.approx(tuple(-v for v in facing_plane(210.0)), abs=1e-12)
 
 
+def test_has_plane_reads_the_normal_only():
+    """An object has a plane exactly when its normal is non-zero; a zero normal with a non-zero offset is no
+    plane (the reflections leave points unchanged there, so the mirror branch must stay off)."""
+    from depthnerf.data.symmetry import has_plane
+
+    plane = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.7], [0.0, 0.0, -1.0, 0.0], [0.6, 0.8, 0.0, -2.0]])
+    assert has_plane(plane).tolist() == [0.0, 0.0, 1.0, 1.0]
+    pts = torch.randn(4, 3, 3)
+    torch.testing.assert_close(reflect_points(pts, plane)[1], pts[1])
+
+
 def _mirror_gap(mesh_vertices: np.ndarray, faces: np.ndarray, plane: tuple[float, ...]) -> np.ndarray:
     """Distance from the mirror images of surface samples to the surface."""
     mesh = trimesh.Trimesh(mesh_vertices, faces)
