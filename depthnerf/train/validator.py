@@ -28,7 +28,7 @@ class Validator(Protocol):
     render ``views`` of each record from its input view (conditioned on ``prior_source`` and, for mirror models, the
     symmetry plane) and score them; ``progress(1)`` after each record (the loop's validation progress bar)."""
 
-    def __call__(self, model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: PriorSource, views: Sequence[int],
-                 spec: InferenceSpec, chunk: int, device: torch.device,
+    def __call__(self, model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: PriorSource,
+                 views: Sequence[int], spec: InferenceSpec, chunk: int, device: torch.device,
                  progress: Callable[[int], Any] | None = None,
                  symmetry_plane: Sequence[float] | None = None) -> ValidationScores: ...
