@@ -1,7 +1,8 @@
 """Named tensors read from a weights file, checked before they go into a module: every value finite, every key and
 shape the module's. One mechanism for the pixelNeRF checkpoints (:mod:`depthnerf.pretrained.weights`) and the
 bundled depth net (:mod:`depthnerf.depth.bundled`); each mismatch is one :class:`DepthnerfError` line naming the
-file. A neutral module: any stage may use it."""
+file. :func:`read_state_dict` reads the state dicts other code wrote (ImageNet trunks, LPIPS, pixelNeRF's own
+weights). A neutral module: any stage may use it."""
 
 from __future__ import annotations
 
@@ -40,3 +41,25 @@ def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor],
             parts.append(f"shape mismatch for {k}: file {tuple(tensors[k].shape)} vs model {tuple(own[k].shape)}")
         raise DepthnerfError(f"{path}: {mismatch}: {'; '.join(parts)}")
     module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()}, strict=True)
+
+
+def read_state_dict(path: str | Path, kind: str) -> dict[str, torch.Tensor]:
+    """The flat state dict of tensors in ``path``: ``.safetensors``, else ``torch.load(weights_only=True)`` (never
+    unpickled). ``kind`` names what the file should hold (e.g. "LPIPS weights") in the one error line that names the
+    file when it is missing, unreadable or not a non-empty state dict of tensors."""
+    path = Path(path)
+    if not path.is_file():
+        raise DepthnerfError(f"{path}: {kind} not found")
+    try:
+        if path.suffix == ".safetensors":
+            from safetensors.torch import load_file
+
+            state = load_file(str(path))
+        else:
+            state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any reader failure is a bad file
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise DepthnerfError(f"{path}: cannot read {kind} ({type(err).__name__}: {first})") from None
+    if not isinstance(state, dict) or not state or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise DepthnerfError(f"{path}: not a state dict of tensors (expected {kind})")
+    return dict(state)

@@ -189,7 +189,7 @@ def test_file_round_trip_and_what_is_refused(tmp_path):
     with pytest.raises(DepthnerfError, match="not found"):
         read_official_state(tmp_path / "absent")
     (tmp_path / "junk").write_bytes(b"not a torch file")
-    with pytest.raises(DepthnerfError, match="junk: not a readable weights file"):
+    with pytest.raises(DepthnerfError, match="junk: cannot read official pixelNeRF weights"):
         read_official_state(tmp_path / "junk")
     torch.save({"model": official}, tmp_path / "nested")  # a dict of dicts: not a state dict
     with pytest.raises(DepthnerfError, match="nested: not a state dict of tensors"):

@@ -47,6 +47,7 @@ from scipy.ndimage import correlate1d
 from skimage.metrics import structural_similarity
 
 from depthnerf.errors import DepthnerfError
+from depthnerf.state_dicts import read_state_dict
 
 MSE_FLOOR = 1e-10
 """Smallest MSE used in PSNR: caps PSNR at 100 dB so a pixel-perfect render stays finite."""
@@ -217,17 +218,6 @@ def _linear_file(config: LpipsConfig) -> Path:
     return Path(lpips.__file__).parent / "weights" / "v0.1" / f"{config.net}.pth"
 
 
-def _read_state_dict(path: Path) -> dict:
-    """A ``torch.load(weights_only=True)`` state dict; one line naming ``path`` when it is unreadable or not one."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any unreadable or non-tensor file is reported the same way
-        raise DepthnerfError(f"{path}: cannot read LPIPS weights ({type(err).__name__}: {err})") from None
-    if not isinstance(state, dict):
-        raise DepthnerfError(f"{path}: LPIPS weights are not a state dict")
-    return state
-
-
 def _trunk_file(config: LpipsConfig) -> Path:
     """The trunk weight file: the given path, or torchvision's own hub-cache file name."""
     if config.trunk_path is not None:
@@ -284,7 +274,7 @@ def load_lpips(config: LpipsConfig = LpipsConfig(), device: torch.device | str =
     import lpips
 
     linear_path, trunk_path = _linear_file(config), _trunk_file(config)
-    linear, trunk = _read_state_dict(linear_path), _read_state_dict(trunk_path)
+    linear, trunk = read_state_dict(linear_path, "LPIPS weights"), read_state_dict(trunk_path, "LPIPS weights")
     with warnings.catch_warnings():  # lpips passes torchvision's deprecated `pretrained=False`
         warnings.simplefilter("ignore")
         model = lpips.LPIPS(pretrained=False, net=config.net, version="0.1", pnet_rand=True, verbose=False)

@@ -22,8 +22,6 @@ torchvision state_dict are ignored, any other missing or mis-shaped entry is an 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import torch
 import torch.nn.functional as F
 import torchvision
@@ -35,6 +33,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig
 from depthnerf.model.features import resize_bilinear
 from depthnerf.model.norm import ObjectBatchNorm2d, ObjectGroups, object_groups
+from depthnerf.state_dicts import read_state_dict
 
 STAGE_NAMES = ("layer1", "layer2", "layer3")
 """Trunk stages after conv1, in order."""
@@ -139,26 +138,6 @@ def expand_conv1(weight: Float[Tensor, "64 3 7 7"]) -> Float[Tensor, "64 4 7 7"]
     return torch.cat([weight, weight.mean(dim=1, keepdim=True)], dim=1)
 
 
-def read_state_dict(path: str | Path) -> dict[str, Tensor]:
-    """Read a state_dict from ``.safetensors`` or (only with ``weights_only=True``) a ``.pth``/``.pt`` file."""
-    path = Path(path)
-    if not path.is_file():
-        raise DepthnerfError(f"{path}: pretrained encoder weights not found")
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            state = load_file(str(path))
-        else:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any reader failure is a bad file
-        raise DepthnerfError(f"{path}: cannot read weights ({type(err).__name__}: {str(err).splitlines()[0]})") \
-            from None
-    if not isinstance(state, dict) or not all(isinstance(v, Tensor) for v in state.values()):
-        raise DepthnerfError(f"{path}: not a flat state_dict of tensors")
-    return state
-
-
 class ImageEncoder(nn.Module):
     """Encode source images (and priors) into pixel-aligned feature maps ``[N, C, Hf, Wf]`` (Hf = ceil(H'/2))."""
 
@@ -169,7 +148,8 @@ class ImageEncoder(nn.Module):
         self.trunk = ResNetTrunk(cfg, depth_aware)
         self.depth = DepthEncoder(cfg.depth_hidden, cfg.depth_channels) if depth_aware else None
         if cfg.pretrained_path is not None:
-            self.trunk.load_torchvision_state(read_state_dict(cfg.pretrained_path), cfg.pretrained_path)
+            self.trunk.load_torchvision_state(read_state_dict(cfg.pretrained_path, "pretrained encoder weights"),
+                                             cfg.pretrained_path)
 
     @property
     def latent_size(self) -> int:

@@ -31,6 +31,7 @@ import torch
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import FieldConfig, PixelNeRFConfig
+from depthnerf.state_dicts import read_state_dict
 
 RENAMES = (("encoder.model.", "encoder.trunk."), ("mlp_coarse.", "coarse."), ("mlp_fine.", "fine."))
 """Official name prefix -> this package's, for every tensor that is part of both networks."""
@@ -54,23 +55,7 @@ def read_official_state(path: Path) -> dict[str, torch.Tensor]:
     """The state dict in an official pixelNeRF weights file (``torch.save`` of ``PixelNeRFNet.state_dict()``, e.g.
     ``pixel_nerf_latest``), read with ``weights_only=True`` (never unpickled); a ``.safetensors`` file is read
     as such. Errors name the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise DepthnerfError(f"{path}: official pixelNeRF weights file not found")
-    try:
-        if path.suffix == ".safetensors":
-            from safetensors.torch import load_file
-
-            state = load_file(str(path))
-        else:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # noqa: BLE001 - any reader failure is a bad file
-        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
-        raise DepthnerfError(f"{path}: not a readable weights file ({type(err).__name__}: {first})") from None
-    if not isinstance(state, dict) or not state or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise DepthnerfError(f"{path}: not a state dict of tensors (expected torch.save(net.state_dict()) of "
-                             "pixelNeRF's PixelNeRFNet)")
-    return dict(state)
+    return read_state_dict(path, "official pixelNeRF weights")
 
 
 def _check_encoding(state: dict[str, torch.Tensor], cfg: FieldConfig, path: Path) -> None:
