@@ -330,6 +330,32 @@ def test_a_chain_of_warm_starts_counts_every_step(exporter, run, tmp_path):
     assert steps_in_all(legacy, legacy_meta, sha) == 5
 
 
+def test_a_run_checkpoint_counts_its_runs_warm_start(exporter, run, tmp_path):
+    """``--init-from RUN`` resolves to a checkpoint inside the run folder, whose metadata has no ``total_steps``: the
+    steps in all are its own plus the ``total_steps`` of the run's ``init_from.json`` (else its ``step``); a record
+    without a count is an error naming it, and a copy of the weights outside a run counts its own steps."""
+    from depthnerf.pretrained.load import resolve_checkpoint
+    from depthnerf.train.warm_start import steps_in_all
+
+    chained = tmp_path / "chained-run"
+    shutil.copytree(run, chained)
+    weights = resolve_checkpoint(str(chained))
+    _, meta = ckpt.read_weights(weights)
+    sha = sha256_file(weights)
+    assert "total_steps" not in meta and steps_in_all(weights, meta, sha) == 5  # trained from scratch
+    (chained / "init_from.json").write_text(json.dumps({"step": 3000, "total_steps": 11000}))
+    assert steps_in_all(weights, meta, sha) == 11005
+    (chained / "init_from.json").write_text(json.dumps({"step": 3000}))  # a record that predates the field
+    assert steps_in_all(weights, meta, sha) == 3005
+    (chained / "init_from.json").write_text("{not json")
+    with pytest.raises(exporter.DepthnerfError, match="init_from.json: not a readable warm-start record"):
+        steps_in_all(weights, meta, sha)
+    loose = tmp_path / "loose" / "model.safetensors"
+    loose.parent.mkdir()
+    shutil.copy(weights, loose)
+    assert steps_in_all(loose, meta, sha) == 5
+
+
 def test_fix_cards_records_a_chains_total_steps(exporter, run, tmp_path):
     """``--total-steps`` gives a card exported before cards counted a chain its steps in all (the JSON, the
     "training steps" row of an old-format Markdown card, the listing), weights untouched; a card without a warm

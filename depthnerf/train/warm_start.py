@@ -8,7 +8,9 @@ would load into a different function (or fail on shapes), so any difference is a
 Steps in all. A chain of warm starts is recorded as the steps behind each source *in all*
 (:attr:`WarmStart.total_steps`, :func:`steps_in_all`): the source's ``total_steps`` metadata (written by
 ``scripts/export_checkpoint.py``), else the ``total_steps`` of the card beside it that describes these very weights,
-else its own steps (a model trained from scratch, or a chain that predates the field).
+else, for a checkpoint inside a run folder (``RUN/checkpoints/NAME/model.safetensors``, what ``--init-from RUN``
+resolves to), its own steps plus the ``total_steps`` of that run's ``init_from.json``, else its own steps (a model
+trained from scratch, or a chain that predates the field).
 """
 
 from __future__ import annotations
@@ -62,7 +64,30 @@ def steps_in_all(path: str | Path, meta: dict[str, str], sha256: str) -> int:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         found = {}
     total = found.get("total_steps") if isinstance(found, dict) and found.get("sha256") == sha256 else None
-    return int(total) if isinstance(total, int) and total >= step else step
+    if isinstance(total, int) and total >= step:
+        return total
+    return step + _run_warm_start_steps(Path(path))
+
+
+def _run_warm_start_steps(path: Path) -> int:
+    """The steps in all behind the warm start of the run whose checkpoint ``path`` is (``RUN/checkpoints/NAME/
+    model.safetensors``): its ``init_from.json``'s ``total_steps`` (else ``step``); 0 for a file outside a run
+    folder or a run trained from scratch. A record that cannot be read is an error naming it: the count would be
+    wrong without a word."""
+    if path.parent.parent.name != "checkpoints":
+        return 0
+    record = path.parent.parent.parent / "init_from.json"
+    if not record.is_file():
+        return 0
+    try:
+        warm = json.loads(record.read_text())
+        behind = warm.get("total_steps", warm.get("step"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+        behind = None
+    if not isinstance(behind, int) or isinstance(behind, bool) or behind < 0:
+        raise DepthnerfError(f"{record}: not a readable warm-start record (no step count); the steps behind "
+                             f"{path} cannot be counted")
+    return behind
 
 
 def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, depth_aware: bool) -> WarmStart:
