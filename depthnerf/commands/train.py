@@ -1,7 +1,10 @@
 """``depthnerf train``: train a preset (baseline with ``--depth none``, depth-aware otherwise).
 
 Any config field can be overridden with ``--section.field VALUE`` (e.g. ``--model.coarse.d_hidden 256``,
-``--schedule.lr 2e-4``); ``--print-config`` prints the resolved config as JSON and exits. Multi-GPU / multi-node:
+``--schedule.lr 2e-4``); ``--print-config`` prints the resolved config as JSON and exits. ``--config FILE`` reads
+settings from a JSON file (a run's ``config.json``, a ``--print-config`` output, or a file holding only the fields
+that differ): the config is built in layers, the preset (``--preset``, else the file's ``preset``, else
+:data:`DEFAULT_PRESET`), then the file, then the named flags, then the ``--section.field`` overrides. Multi-GPU / multi-node:
 launch the same command with ``torchrun --nproc_per_node=N -m depthnerf train ...``.
 
 ``--resume`` continues the run in ``--out`` from its last checkpoint, or starts it if there is none (a cluster
@@ -44,6 +47,9 @@ DEFAULT_PRESET = "cpu-cars"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=sorted(PRESETS), help=f"named preset (default {DEFAULT_PRESET})")
+    p.add_argument("--config", metavar="FILE",
+                   help="settings from a JSON file on top of the preset (a run's config.json, a --print-config "
+                        "output, or only the fields that differ); the flags apply on top of it")
     p.add_argument("--data", help="dataset root (SRN layout); default: the preset's; stored resolved to an "
                                   "absolute path; on --resume it may point at the run's data moved elsewhere")
     p.add_argument("--out", help="run folder (config, metrics.jsonl, TensorBoard events, checkpoints/)")
@@ -104,15 +110,41 @@ def config_changes(old: TrainConfig, new: TrainConfig) -> dict[str, tuple[Any, A
     return differences(json.loads(json.dumps(to_dict(old))), json.loads(json.dumps(to_dict(new))))
 
 
-def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
+def _read_json_config(path: Path, what: str) -> dict[str, Any]:
+    """The mapping in the JSON file ``path`` (``what`` names it in the error line)."""
     try:
-        stored = from_dict_config(json.loads(path.read_text()), where=str(path))
-    except (OSError, json.JSONDecodeError) as err:
-        raise DepthnerfError(f"{path}: unreadable run config ({err})") from None
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise DepthnerfError(f"{path}: unreadable {what} ({err})") from None
+    if not isinstance(data, dict):
+        raise DepthnerfError(f"{path}: {what} must be a JSON object of config sections, not "
+                             f"{type(data).__name__}")
+    return data
+
+
+def _merged(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``top``'s values laid over it, section by section (a mapping in both merges key by key)."""
+    out = dict(base)
+    for key, value in top.items():
+        out[key] = _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def _with_config_file(cfg: TrainConfig, args: argparse.Namespace) -> TrainConfig:
+    """``cfg`` with ``--config FILE``'s settings laid over it (unknown fields and wrong types name the file)."""
+    if args.config is None:
+        return cfg
+    path = Path(args.config)
+    data = _read_json_config(path, "--config file")
+    return from_dict_config(_merged(json.loads(json.dumps(to_dict(cfg))), data), where=str(path))
+
+
+def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
+    stored = from_dict_config(_read_json_config(path, "run config"), where=str(path))
     if args.preset is not None and args.preset != stored.preset:
         raise DepthnerfError(f"--resume: {path} is a {stored.preset} run, not --preset {args.preset}; drop the "
                              "flag or choose another --out")
-    cfg = _apply_flags(stored, args)
+    cfg = _apply_flags(_with_config_file(stored, args), args)
     changes = config_changes(stored, cfg)
     refused = {k: v for k, v in changes.items() if k not in CHANGEABLE_ON_RESUME}
     if refused:
@@ -125,11 +157,25 @@ def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
     return check_config(_absolute_store(cfg))
 
 
+def _base_preset(args: argparse.Namespace) -> str:
+    """The preset a new run starts from: ``--preset``, else the ``--config`` file's ``preset`` (one of
+    :data:`PRESETS`; "custom" or none: :data:`DEFAULT_PRESET`), else :data:`DEFAULT_PRESET`. Both named and
+    different is an error."""
+    named = None
+    if args.config is not None:
+        named = _read_json_config(Path(args.config), "--config file").get("preset")
+        named = named if named in PRESETS else None
+    if args.preset is not None and named is not None and args.preset != named:
+        raise DepthnerfError(f"{args.config}: a {named} config, but --preset {args.preset}; drop one of them")
+    return args.preset or named or DEFAULT_PRESET
+
+
 def resolve_config(args: argparse.Namespace) -> TrainConfig:
-    """Preset -> --depth -> named flags -> --section.field overrides; or the run's own config on --resume."""
+    """Preset -> --config file -> --depth -> named flags -> --section.field overrides; on --resume the run's own
+    config takes the preset's place."""
     if args.resume and args.out and (Path(args.out) / "config.json").is_file():
         return _resume_config(args, Path(args.out) / "config.json")
-    cfg = _apply_flags(preset(args.preset or DEFAULT_PRESET), args)
+    cfg = _apply_flags(_with_config_file(preset(_base_preset(args)), args), args)
     root = Path(cfg.data.root)
     return check_config(_absolute_store(dataclasses.replace(cfg, data=dataclasses.replace(cfg.data,
                                                                                         root=str(root.resolve())))))
