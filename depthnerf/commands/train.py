@@ -4,8 +4,9 @@ Any config field can be overridden with ``--section.field VALUE`` (e.g. ``--mode
 ``--schedule.lr 2e-4``); ``--print-config`` prints the resolved config as JSON and exits. ``--config FILE`` reads
 settings from a JSON file (a run's ``config.json``, a ``--print-config`` output, or a file holding only the fields
 that differ): the config is built in layers, the preset (``--preset``, else the file's ``preset``, else
-:data:`DEFAULT_PRESET`), then the file, then the named flags, then the ``--section.field`` overrides. Multi-GPU / multi-node:
-launch the same command with ``torchrun --nproc_per_node=N -m depthnerf train ...``.
+:data:`DEFAULT_PRESET`), then the file, then the named flags, then the ``--section.field`` overrides.
+
+Multi-GPU / multi-node: launch the same command with ``torchrun --nproc_per_node=N -m depthnerf train ...``.
 
 ``--resume`` continues the run in ``--out`` from its last checkpoint, or starts it if there is none (a cluster
 that preempts jobs reissues the same command); one line on stderr says which. On resume the run's own
@@ -149,7 +150,8 @@ def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
     refused = {k: v for k, v in changes.items() if k not in CHANGEABLE_ON_RESUME}
     if refused:
         said = ", ".join(f"{k} {json.dumps(o)} -> {json.dumps(n)}" for k, (o, n) in list(refused.items())[:4])
-        raise DepthnerfError(f"--resume: the flags contradict the run's config {path} ({said}); drop them to "
+        which = "the flags" if args.config is None else f"the flags and --config {args.config}"
+        raise DepthnerfError(f"--resume: {which} contradict the run's config {path} ({said}); drop them to "
                              "resume, or choose another --out for a new run")
     if "data.root" in changes:
         old, new = changes["data.root"]
