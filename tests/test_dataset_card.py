@@ -37,6 +37,35 @@ def test_a_bad_card_is_one_error_naming_it_for_every_reader(tmp_path: Path, text
             read()
 
 
+
+@pytest.mark.parametrize("stated", [0.0, 0.25, 0.5, 1])
+def test_a_stated_pixel_centre_is_returned_as_stated(tmp_path: Path, stated: float) -> None:
+    """Ground truth: the number written into the card's ``camera.pixel_center`` (an explicit 0.0 included)."""
+    (tmp_path / "cars_card.json").write_text(json.dumps({"camera": {"pixel_center": stated}}))
+    assert dataset_pixel_center(tmp_path, "cars") == stated
+    assert card_pixel_center({"camera": {"pixel_center": stated}}) == stated
+
+
+@pytest.mark.parametrize("card", [{}, {"camera": None}, {"camera": "blender"}, {"camera": [0.5]},
+                                  {"camera": {}}, {"camera": {"pixel_center": None}}])
+def test_a_card_that_states_no_pixel_centre_is_integer_centred(card: dict) -> None:
+    """A card whose ``camera`` is not an object, or has no ``pixel_center``, states none: 0.0 (integer centres)."""
+    assert card_pixel_center(card) == 0.0
+
+
+def test_a_folder_in_place_of_the_card_is_no_card(tmp_path: Path) -> None:
+    """Ground truth: the documented rule that no card *file* reads as None."""
+    (tmp_path / "cars_card.json").mkdir()
+    assert read_dataset_card(tmp_path, "cars") is None and dataset_pixel_center(tmp_path, "cars") == 0.0
+
+
+def test_a_card_that_is_not_utf8_is_one_error_naming_it(tmp_path: Path) -> None:
+    """Bytes that are no text (a Latin-1 file) are an unreadable card naming the file, not a decoding traceback."""
+    card = tmp_path / "cars_card.json"
+    card.write_bytes(b'{"framing": "\xe9t\xe9"}')
+    with pytest.raises(DepthnerfError, match=f"{card}: unreadable dataset card"):
+        read_dataset_card(tmp_path, "cars")
+
 def test_load_object_says_which_pixel_centre_it_used(tmp_path: Path) -> None:
     import warnings
 

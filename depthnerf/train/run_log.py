@@ -5,8 +5,8 @@ number of torchrun ranks, the device and the time); the run's JSON records as a 
 never overwrites a ``config.json`` that is not a run's) and :func:`run_lock` (one process trains a run at a time).
 
 On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
-its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s``, so the logged curves of a resumed
-run are exactly those of an uninterrupted one.
+its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s + 1`` (TensorBoard hides the events
+of steps ``>= purge_step``), so the logged curves of a resumed run are exactly those of an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -52,7 +52,8 @@ class RunLog:
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=start_step if start_step else None)
+            # the step of the checkpoint was logged before it was written: only later events are the interrupted run's
+            self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=start_step + 1 if start_step else None)
 
     def _truncate(self, start_step: int) -> None:
         if not self.path.exists():

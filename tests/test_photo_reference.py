@@ -1,0 +1,134 @@
+"""Reading, masking and framing a photo (:mod:`depthnerf.reconstruct.photo`) against the rules of its module
+docstring, on images whose answer is known by construction: crops that land on whole pixels (so the framed image
+is a copy of photo pixels), masks reduced by a loop over blocks, and thresholds probed on both sides."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from depthnerf.errors import DepthnerfError
+from depthnerf.reconstruct.photo import frame_photo, photo_mask, prepare_photo, read_photo
+
+
+def _photo(h: int, w: int, seed: int = 0) -> np.ndarray:
+    """Random float32 colours: no symmetry of the picture can hide a shifted or transposed crop."""
+    return np.random.default_rng(seed).uniform(0.0, 0.9, (h, w, 3)).astype(np.float32)
+
+
+def _box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    rows, cols = np.where(mask.any(1))[0], np.where(mask.any(0))[0]
+    return int(cols[0]), int(rows[0]), int(cols[-1]), int(rows[-1])
+
+
+@pytest.mark.parametrize("x0, y0", [(11, 5), (12, 6), (20, 13)])
+def test_auto_framing_centres_the_box_and_copies_the_photos_pixels(x0, y0):
+    """An 8 px square object at fill 0.5 frames a 16 px square centred on the box, i.e. starting 4 px before it;
+    at resolution 16 the result is that crop itself: the object at 4..11 and every pixel the photo's."""
+    rgb = _photo(40, 40)
+    mask = np.zeros((40, 40), bool)
+    mask[y0:y0 + 8, x0:x0 + 8] = True
+    image, small = frame_photo(rgb, None, mask, 16, "auto", 0.5, [])
+    assert _box(small) == (4, 4, 11, 11)
+    crop = np.where(mask[..., None], rgb, 1.0)[y0 - 4:y0 + 12, x0 - 4:x0 + 12]
+    np.testing.assert_array_equal(image, crop)
+
+
+def test_a_fill_of_one_frames_the_box_exactly_and_fills_outside_0_1_are_refused():
+    rgb = _photo(30, 30)
+    mask = np.zeros((30, 30), bool)
+    mask[7:15, 9:17] = True
+    image, small = frame_photo(rgb, None, mask, 8, "auto", 1.0, [])
+    assert small.all()
+    np.testing.assert_array_equal(image, rgb[7:15, 9:17])
+    for fill in (0.0, -0.5, 1.01):
+        with pytest.raises(DepthnerfError, match="--fill must be in"):
+            frame_photo(rgb, None, mask, 8, "auto", fill, [])
+
+
+def test_keep_framing_pads_a_wide_photo_above_and_below():
+    """A 20 x 40 photo framed with ``keep``: a 40 px square, the photo in rows 10..29, white above and below."""
+    rgb = _photo(20, 40)
+    mask = np.ones((20, 40), bool)
+    image, small = frame_photo(rgb, None, mask, 40, "keep", 0.5, [])
+    want = np.ones((40, 40, 3), np.float32)
+    want[10:30] = rgb
+    np.testing.assert_array_equal(image, want)
+    assert small[10:30].all() and not small[:10].any() and not small[30:].any()
+
+
+def test_the_framed_mask_is_any_coverage_of_each_output_pixel():
+    """Downsampling 32 -> 8: an output pixel is object when any of its 4 x 4 photo pixels is (a loop over blocks)."""
+    rng = np.random.default_rng(3)
+    mask = rng.random((32, 32)) < 0.03
+    mask[0, 0] = True
+    _, small = frame_photo(_photo(32, 32), None, mask, 8, "keep", 0.5, [])
+    want = np.array([[mask[4 * i:4 * i + 4, 4 * j:4 * j + 4].any() for j in range(8)] for i in range(8)])
+    assert 5 < want.sum() < 64
+    np.testing.assert_array_equal(small, want)
+
+
+def test_alpha_is_composited_on_white():
+    """Black at alpha 0.6: ``0 * 0.6 + 1 * (1 - 0.6)`` = 0.4 (a photo framed as it is)."""
+    rgb = np.zeros((16, 16, 3), np.float32)
+    alpha = np.full((16, 16), 0.6, np.float32)
+    image, _ = frame_photo(rgb, alpha, np.ones((16, 16), bool), 16, "keep", 0.5, [])
+    np.testing.assert_allclose(image, 0.4, atol=1e-6)
+
+
+def test_the_border_ring_is_2_percent_of_the_shorter_side():
+    """A blue 100 x 400 photo with a grey frame 6 px wide, 2 px inside its edge: the ring is 2 px wide (2 % of
+    100, not 8 of 400), so the background colour is the blue and the frame is object."""
+    img = np.empty((100, 400, 3), np.uint8)
+    img[:] = (40, 90, 160)
+    img[2:8, 2:-2], img[-8:-2, 2:-2], img[2:-2, 2:8], img[2:-2, -8:-2] = 200, 200, 200, 200
+    img[40:60, 180:220] = (200, 40, 40)
+    prep = prepare_photo(img, None, 32, "keep")
+    assert any("border colour [40, 90, 160]" in n for n in prep.notes), prep.notes
+
+
+@pytest.mark.parametrize("levels, is_object", [(25, False), (26, True), (60, True)])
+def test_the_border_colour_mask_uses_the_largest_channel_difference(levels, is_object):
+    """Tolerance 0.1 (25.5 of 255 levels) on the *largest* channel difference: a pixel off in one channel only by
+    26 levels is object, by 25 levels background."""
+    rgb = np.full((40, 40, 3), 0.4, np.float32)
+    rgb[15:25, 15:25] = 0.2
+    rgb[18, 18] = (0.4 + levels / 255, 0.4, 0.4)
+    out = photo_mask(rgb, None, None, [])
+    assert out[18, 18] == is_object and out[15, 15] and not out[0, 0]
+
+
+def test_alpha_above_one_half_is_object():
+    rgb = np.zeros((20, 20, 3), np.float32)
+    alpha = np.zeros((20, 20), np.float32)
+    alpha[5:10, 5:10], alpha[12:15, 12:15] = 0.5, 0.75
+    out = photo_mask(rgb, alpha, None, [])
+    assert not out[5:10, 5:10].any() and out[12:15, 12:15].all() and out.sum() == 9
+
+
+def test_a_given_mask_is_object_above_127_and_a_clean_mask_gets_no_note():
+    """``value > 127 of 255``: 127 is background, 128 object; a mask of dark (<= 32) and bright (>= 223) values
+    only is no photo (no note), one of middle greys is."""
+    rgb = np.zeros((20, 20, 3), np.float32)
+    given = np.zeros((20, 20), np.uint8)
+    given[2:6, 2:6], given[10:14, 10:14] = 127, 128
+    notes: list[str] = []
+    out = photo_mask(rgb, None, given, notes)
+    assert not out[2:6, 2:6].any() and out[10:14, 10:14].all() and out.sum() == 16
+    assert not any("neither dark nor bright" in n for n in notes)
+    clean = np.full((20, 20), 10, np.uint8)  # dark and bright, not 0 and 255
+    clean[:, 10:] = 240
+    notes = []
+    photo_mask(rgb, None, clean, notes)
+    assert not any("neither dark nor bright" in n for n in notes), notes
+    notes = []
+    photo_mask(rgb, None, np.full((20, 20), 200, np.uint8), notes)
+    assert any("100% of its pixels are neither dark nor bright" in n for n in notes), notes
+
+
+def test_16_bit_pixels_are_divided_by_65535():
+    arr = np.zeros((20, 20, 3), np.uint16)
+    arr[0, 0], arr[0, 1] = 65535, (32768, 1, 0)
+    rgb, alpha, _ = read_photo(arr, [])
+    assert alpha is None and rgb[0, 0].tolist() == [1.0, 1.0, 1.0]
+    np.testing.assert_allclose(rgb[0, 1], [32768 / 65535, 1 / 65535, 0.0], rtol=1e-6)
