@@ -1,4 +1,5 @@
-"""Crash-safe file writes and content hashes shared by the data, depth-cache, training and checkpoint code.
+"""Crash-safe file writes, content hashes and JSON-object reads shared by the data, depth-cache, training and
+checkpoint code.
 
 A write goes to a temporary file in the destination folder (so the rename stays on one file system), is flushed
 and fsynced, then renamed over the destination with ``os.replace``: a reader sees the old file or the new one,
@@ -14,6 +15,8 @@ import secrets
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+from depthnerf.errors import DepthnerfError
 
 
 def temporary_sibling(path: Path) -> Path:
@@ -53,6 +56,18 @@ def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def read_json_object(path: Path, what: str) -> dict[str, Any]:
+    """The JSON object in ``path``; a file that cannot be read, is not JSON or holds no object is a
+    :class:`~depthnerf.errors.DepthnerfError` naming the file and ``what`` it should be."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise DepthnerfError(f"{path}: unreadable {what} ({err})") from None
+    if not isinstance(data, dict):
+        raise DepthnerfError(f"{path}: unreadable {what} (a JSON object was expected, got {type(data).__name__})")
+    return data
 
 
 def write_json_atomic(path: Path, payload: dict[str, Any]) -> None:

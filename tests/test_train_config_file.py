@@ -68,7 +68,7 @@ def test_flags_win_over_the_file(capsys, tmp_path):
 
 @pytest.mark.parametrize(("content", "said"), [
     ("{not json", "unreadable --config file"),
-    ("[1, 2]", "--config file must be a JSON object of config sections, not list"),
+    ("[1, 2]", "unreadable --config file (a JSON object was expected, got list)"),
     ('{"schedule": {"lrr": 1e-4}}', "unknown field(s) lrr for ScheduleConfig"),
     ('{"schedule": {"lr": "fast"}}', "schedule.lr: expected float, got 'fast'"),
     ('{"model": 5}', "model: expected a mapping for PixelNeRFConfig"),

@@ -120,12 +120,16 @@ def test_a_changed_object_is_decoded_again(tmp_path):
     assert store.ensure(records, rank=1, world=2) == {"built": 0, "rebuilt": 0, "reused": 1}
 
 
-def test_a_store_of_another_resolution_is_refused(tmp_path):
+@pytest.mark.parametrize(("resolution", "pixel_center", "said"), [
+    (8, 0.5, r"'resolution': 16"),
+    (16, 0.0, r"'pixel_center': 0\.5"),
+])
+def test_a_store_of_another_resolution_or_pixel_centre_is_refused(tmp_path, resolution, pixel_center, said):
     root = make_srn_fixture(tmp_path / "srn", splits={"train": 1}, views=3, size=16)
     records = index_split(root, "cars", "train").objects
     ViewStore(tmp_path / "store", 16, 0.5).ensure(records)
-    with pytest.raises(DepthnerfError, match=r"manifest\.json: the view store was made for .*'resolution': 16"):
-        ViewStore(tmp_path / "store", 8, 0.5).ensure(records)
+    with pytest.raises(DepthnerfError, match=r"manifest\.json: the view store was made for .*" + said):
+        ViewStore(tmp_path / "store", resolution, pixel_center).ensure(records)
 
 
 def test_missing_and_damaged_objects_are_one_line(tmp_path):

@@ -40,14 +40,6 @@ def test_the_fingerprint_covers_intrinsics_rgb_pose_and_mask_files_only(tmp_path
         assert (store_fingerprint(record) != before) == (path in covered), path
 
 
-def test_a_store_of_another_pixel_centre_is_refused(tmp_path):
-    root = make_srn_fixture(tmp_path / "srn", splits={"train": 1}, views=3, size=16)
-    records = index_split(root, "cars", "train").objects
-    ViewStore(tmp_path / "store", 16, 0.5).ensure(records)
-    with pytest.raises(DepthnerfError, match=r"manifest\.json: the view store was made for .*'pixel_center': 0\.5"):
-        ViewStore(tmp_path / "store", 16, 0.0).ensure(records)
-
-
 def test_opening_an_object_for_a_record_with_other_views_is_refused(tmp_path):
     """The store holds 3 views of the object; a record of the same object with 2 views is one line naming both."""
     root = make_srn_fixture(tmp_path / "srn", splits={"train": 1}, views=3, size=8)

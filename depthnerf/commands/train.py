@@ -33,6 +33,7 @@ from depthnerf.config_io import apply_overrides, differences, to_dict
 from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError, launch_rank, refusal
+from depthnerf.files import read_json_object
 from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
 
 ACCEPTS_OVERRIDES = True
@@ -111,18 +112,6 @@ def config_changes(old: TrainConfig, new: TrainConfig) -> dict[str, tuple[Any, A
     return differences(json.loads(json.dumps(to_dict(old))), json.loads(json.dumps(to_dict(new))))
 
 
-def _read_json_config(path: Path, what: str) -> dict[str, Any]:
-    """The mapping in the JSON file ``path`` (``what`` names it in the error line)."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise DepthnerfError(f"{path}: unreadable {what} ({err})") from None
-    if not isinstance(data, dict):
-        raise DepthnerfError(f"{path}: {what} must be a JSON object of config sections, not "
-                             f"{type(data).__name__}")
-    return data
-
-
 def _merged(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
     """``base`` with ``top``'s values laid over it, section by section (a mapping in both merges key by key)."""
     out = dict(base)
@@ -136,12 +125,12 @@ def _with_config_file(cfg: TrainConfig, args: argparse.Namespace) -> TrainConfig
     if args.config is None:
         return cfg
     path = Path(args.config)
-    data = _read_json_config(path, "--config file")
+    data = read_json_object(path, "--config file")
     return from_dict_config(_merged(json.loads(json.dumps(to_dict(cfg))), data), where=str(path))
 
 
 def _resume_config(args: argparse.Namespace, path: Path) -> TrainConfig:
-    stored = from_dict_config(_read_json_config(path, "run config"), where=str(path))
+    stored = from_dict_config(read_json_object(path, "run config"), where=str(path))
     if args.preset is not None and args.preset != stored.preset:
         raise DepthnerfError(f"--resume: {path} is a {stored.preset} run, not --preset {args.preset}; drop the "
                              "flag or choose another --out")
@@ -165,7 +154,7 @@ def _base_preset(args: argparse.Namespace) -> str:
     different is an error."""
     named = None
     if args.config is not None:
-        named = _read_json_config(Path(args.config), "--config file").get("preset")
+        named = read_json_object(Path(args.config), "--config file").get("preset")
         named = named if named in PRESETS else None
     if args.preset is not None and named is not None and args.preset != named:
         raise DepthnerfError(f"{args.config}: a {named} config, but --preset {args.preset}; drop one of them")

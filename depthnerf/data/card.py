@@ -8,11 +8,10 @@ object is an error naming it.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
-from depthnerf.errors import DepthnerfError
+from depthnerf.files import read_json_object
 
 INTEGER_CENTRED = 0.0
 """Pixel centre of a dataset whose card does not state one (no card, or a card older than the field): pixel
@@ -30,14 +29,7 @@ def read_dataset_card(root: str | Path, category: str) -> dict[str, Any] | None:
     path = card_path(root, category)
     if not path.is_file():
         return None
-    try:
-        card = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise DepthnerfError(f"{path}: unreadable dataset card ({err})") from None
-    if not isinstance(card, dict):
-        raise DepthnerfError(f"{path}: unreadable dataset card (a JSON object was expected, got "
-                             f"{type(card).__name__})")
-    return card
+    return read_json_object(path, "dataset card")
 
 
 def card_pixel_center(card: dict[str, Any] | None) -> float:
