@@ -218,9 +218,11 @@ class ViewStore:
         """Decode every view of ``record`` and write its folder (atomically: temporary folder, then rename);
         returns whether this folder is the one in the store now.
 
-        ``replace``: the folder there is stale and is moved aside first; without it a folder that another process
-        finished in the meantime is kept and this one dropped (runs that share a store may start together). A
-        folder holding anything but the store's files is never replaced."""
+        ``replace``: the folder there is stale and is moved aside first, unless another process has written the
+        same fingerprint there since (a folder that appeared between :meth:`ensure`'s look and this call is not
+        stale: moving it aside would leave the other processes, which found it, without it); without ``replace`` a
+        folder that another process finished in the meantime is kept and this one dropped (runs that share a store
+        may start together). A folder holding anything but the store's files is never replaced."""
         obj = load_object(record, resolution=self.resolution, pixel_center=self.pixel_center)
         decoded = obj.images.permute(0, 2, 3, 1).contiguous().numpy()
         exact = _exact_uint8(decoded)
@@ -236,6 +238,9 @@ class ViewStore:
                                 ("bboxes", obj.bboxes.numpy())):
                 _save_durably(tmp / f"{name}.npy", array)
             write_json_atomic(tmp / "meta.json", meta)
+            if replace and (self._meta(record) or {}).get("fingerprint") == fingerprint:
+                shutil.rmtree(tmp, ignore_errors=True)  # another process wrote these very views since ensure looked
+                return False
             if replace and final.exists():
                 held = {p.name for p in final.iterdir()}
                 if not held <= STORE_FILES:
