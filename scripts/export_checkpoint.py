@@ -62,7 +62,7 @@ from depthnerf.depth.normalize import normalize_disparity  # noqa: E402
 from depthnerf.errors import DepthnerfError  # noqa: E402
 from depthnerf.eval.metrics import psnr  # noqa: E402
 from depthnerf.eval.table import load_summary  # noqa: E402
-from depthnerf.files import sha256_file, write_text_atomic  # noqa: E402
+from depthnerf.files import read_json_object, sha256_file, write_text_atomic  # noqa: E402
 from depthnerf.model.pixelnerf import SourceViews  # noqa: E402
 from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint  # noqa: E402
 from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec  # noqa: E402
@@ -156,18 +156,6 @@ def roundtrip_check(source: Pretrained, exported: Pretrained) -> dict:
             "input": "procedural disc view at the training resolution, rendered from 60 degrees around"}
 
 
-def _read_json(path: Path, what: str) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DepthnerfError(f"{path}: {what} not found") from None
-    except (OSError, json.JSONDecodeError) as err:
-        raise DepthnerfError(f"{path}: unreadable {what} ({err})") from None
-    if not isinstance(data, dict):
-        raise DepthnerfError(f"{path}: {what} must be a JSON object")
-    return data
-
-
 def read_eval_summary(path: Path, source_sha: str, exported_sha: str, cfg: TrainConfig,
                       prior_hash: str | None = None) -> dict:
     """The checked ``summary.json`` of an evaluation of this checkpoint (source or exported file) as it ships: the
@@ -175,7 +163,7 @@ def read_eval_summary(path: Path, source_sha: str, exported_sha: str, cfg: Train
     another prior: the estimator must be the checkpoint's, and the prior's weights hash, where both record one,
     ``prior_hash``)."""
     load_summary(path)  # required keys and types (depthnerf.eval.table)
-    summary = _read_json(path, "eval summary")
+    summary = read_json_object(path, "eval summary")
     if summary["checkpoint_sha256"] not in (source_sha, exported_sha):
         raise DepthnerfError(f"{path}: evaluates checkpoint {summary['checkpoint_sha256'][:12]}, not the exported "
                              f"one ({source_sha[:12]} before export, {exported_sha[:12]} after)")
@@ -260,14 +248,14 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
         raise DepthnerfError(f"{run}: not a run folder (no checkpoints/)")
     resolve_checkpoint(run)  # no complete checkpoint: one line
     unfinished = check_finished(run, allow_unfinished)
-    data_card = _read_json(run / "data_card.json", "run data card")
-    prior = _read_json(run / "prior.json", "run prior record") if (run / "prior.json").is_file() else None
+    data_card = read_json_object(run / "data_card.json", "run data card")
+    prior = read_json_object(run / "prior.json", "run prior record") if (run / "prior.json").is_file() else None
     source_path = resolve_checkpoint(run)
     _, meta = ckpt.read_weights(source_path)
     source = load_pretrained(source_path)
     _check_fp16_range(source)
     cfg = from_dict_config(json.loads(meta["train_config"]), where=f"{source_path} train_config")
-    warm = _read_json(run / "init_from.json", "run warm-start record") if (run / "init_from.json").is_file() else None
+    warm = read_json_object(run / "init_from.json", "run warm-start record") if (run / "init_from.json").is_file() else None
     behind = steps_behind(warm) if warm is not None else 0  # may hash the source file: once
     total_steps = source.step + behind
     out.mkdir(parents=True, exist_ok=True)

@@ -23,11 +23,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from checkpoint_card import training_steps  # noqa: E402
-from export_checkpoint import REPO_ROOT, _read_json, portable_path, portable_text  # noqa: E402
+from export_checkpoint import REPO_ROOT, portable_path, portable_text  # noqa: E402
 
 from depthnerf.data.synth.framing import FRAMINGS, get_framing  # noqa: E402
 from depthnerf.errors import DepthnerfError  # noqa: E402
-from depthnerf.files import write_text_atomic  # noqa: E402
+from depthnerf.files import read_json_object, write_text_atomic  # noqa: E402
 from depthnerf.train import checkpoint as ckpt  # noqa: E402
 
 
@@ -37,7 +37,7 @@ def fix_card(card_json: Path, framing: str | None = None, base: Path = REPO_ROOT
     docstring), given ``framing`` the training data's framing, and given ``total_steps`` a warm-start chain's
     steps in all; the weights are not touched."""
     card_json, card_md = Path(card_json), Path(card_json).with_suffix(".md")
-    card = _read_json(card_json, "checkpoint card")
+    card = read_json_object(card_json, "checkpoint card")
     md = card_md.read_text() if card_md.is_file() else None
     renames: dict[str, str] = {}
 
