@@ -20,6 +20,7 @@ from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.distributed import pick_device
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
+from depthnerf.render.mesh_colors import MESH_COLOR_RULES, NORMAL_RAY
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,6 +61,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-keep", choices=["all", "largest"], default="all",
                    help="all pieces of the mesh (default), or only the largest connected piece; manifest.json "
                         "records the pieces and faces either way")
+    p.add_argument("--mesh-colors", choices=MESH_COLOR_RULES, default=NORMAL_RAY,
+                   help="vertex colours: normal-ray (default: the colour the renderer gives a short ray into the "
+                        "surface along its normal) or point (the network's colour at the vertex, seen from the "
+                        "input camera; speckled)")
     p.add_argument("--depth", "--depth-estimator", dest="depth", choices=PHOTO_ESTIMATORS,
                    help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
                         "--depth-estimator: same)")
@@ -106,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
-                            mesh_keep=args.mesh_keep,
+                            mesh_keep=args.mesh_keep, mesh_colors=args.mesh_colors,
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model,
                             facing=getattr(args, "facing", DEFAULT_FACING))

@@ -58,6 +58,7 @@ from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill,
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, check_mesh_keep, keep_pieces
+from depthnerf.render.mesh_colors import NORMAL_RAY, check_color_rule, describe_colors
 from depthnerf.render.mesh_level import AUTO_LEVEL
 from depthnerf.render.source_guide import as_guided
 from depthnerf.render.views import ViewRenders
@@ -93,6 +94,9 @@ class ReconstructConfig:
     mesh_keep: str = "all"
     """``all`` pieces of the mesh, or the ``largest`` connected piece only (:func:`~depthnerf.render.mesh.keep_pieces`;
     the manifest records the pieces and the faces kept either way)."""
+    mesh_colors: str = NORMAL_RAY
+    """Vertex colour rule: ``normal-ray`` (the renderer's colour along a short ray into the surface) or ``point``
+    (the field at the vertex; :mod:`depthnerf.render.mesh_colors`)."""
     max_points: int | None = 200_000
     """Largest point-cloud size (None: every point)."""
     chunk: int | None = None
@@ -124,6 +128,7 @@ class ReconstructConfig:
         if self.mesh_resolution != 0 and self.mesh_resolution < 2:
             raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
         check_mesh_keep(self.mesh_keep)
+        check_color_rule(self.mesh_colors)
         for name, value in (("radius", self.radius), ("focal", self.focal)):
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise DepthnerfError(f"--{name} must be > 0, got {value}")
@@ -283,7 +288,8 @@ class Reconstructor:
         t = time.perf_counter()
         mesh, level = trimesh.Trimesh(), None
         if cfg.mesh_resolution > 0:
-            mesh, level = self.session.mesh(encoded, MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold))
+            mesh, level = self.session.mesh(encoded, MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold,
+                                                                colors=cfg.mesh_colors))
         mesh, pieces = keep_pieces(mesh, cfg.mesh_keep)
         bar.update(1)
         bar.close()
@@ -305,7 +311,7 @@ class Reconstructor:
                     "mesh_keep": cfg.mesh_keep, "mesh_pieces": pieces.pieces, "mesh_faces_extracted": pieces.faces,
                     "mesh_faces_kept": pieces.kept_faces,
                     "point_opacity": POINT_OPACITY,
-                    "mesh_colors": "fine-network rgb at each vertex seen along the input camera's ray"}
+                    "mesh_colors": describe_colors(cfg.mesh_colors, MeshConfig().color_half_width)}
         return Reconstruction(
             input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
             prior_normalized=None if normalized is None else normalized[0, 0, 0].cpu().numpy(),
