@@ -3,7 +3,7 @@ view store (``--data.view_store``, :mod:`depthnerf.data.view_store`), and steps 
 with W workers for both.
 
     python benchmarks/bench_loader.py                      # makes 4 synthetic cars x 50 views at 128 px first
-    python benchmarks/bench_loader.py --data data/srn/cars --category cars --workers 8 --json out.json
+    python benchmarks/bench_loader.py --data data/srn --category cars --workers 8 --json out.json
 
 Items are built exactly as ``depthnerf train`` builds them (the preset's rays, target views, pixel centre and
 bounding-box steps; the same keys for both paths, so the same work). Per-item figures run in this process with

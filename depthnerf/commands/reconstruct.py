@@ -45,14 +45,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--focal", type=float,
                    help="focal length in pixels of a 128 px frame (default: the training category's, SRN 131.25)")
     p.add_argument("--framing", choices=["auto", "keep"], default="auto",
-                   help="auto: crop around the object to the training fill; keep: only pad to square")
-    p.add_argument("--fill", type=float, help="object's longer side / frame side with --framing auto")
+                   help="auto (default): crop around the object to --fill; keep: only pad to square")
+    p.add_argument("--fill", type=float, help="object's longer side / frame side with --framing auto (default: the "
+                   "fill of the checkpoint's training data)")
     p.add_argument("--facing", type=_facing, default=argparse.SUPPRESS, metavar="DEG|none",
                    help="mirror models: which way the object's front points, degrees from the camera towards the "
                         "image's right (0 = facing the camera, 90 = facing right, 270 = left; default 90, a side "
                         "view); none = no symmetry plane")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
-    p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (0 = no mesh)")
+    p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (default 128; 0 = no mesh)")
     p.add_argument("--mesh-threshold", default="auto",
                    help="marching-cubes density level: a number, auto (default: half the median peak density "
                         "along the opaque input rays), silhouette (the level whose input-view outline best matches "

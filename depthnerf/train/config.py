@@ -224,7 +224,7 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
 def _paper(category: str) -> TrainConfig:
     """The paper's settings at 128x128 (pixelNeRF SRN defaults; for GPUs)."""
     live = FieldConfig(density_bias_init=DENSITY_BIAS)
-    return TrainConfig(preset=f"paper-{category}", data=DataConfig(root=f"data/srn/{category}", category=category,
+    return TrainConfig(preset=f"paper-{category}", data=DataConfig(root="data/srn", category=category,
                                                                    resolution=128, num_workers=8),
                        prior=PriorConfig(estimator="depth-anything-v2"),
                        model=PixelNeRFConfig(coarse=live, fine=live),
