@@ -213,7 +213,8 @@ def test_cli_writes_every_listed_output(models, tmp_path, capsys):
     Image.fromarray((disc_photo()[..., 0] == 200).astype(np.uint8) * 255).save(mask)
     out = tmp_path / "out"
     assert main(["reconstruct", str(photo), "--checkpoint", str(models["run"]), "--out", str(out), "--views", "3",
-                 "--mask", str(mask), "--mesh-resolution", "8", "--mesh-keep", "largest", "--no-progress"]) == 0
+                 "--mask", str(mask), "--mesh-resolution", "8", "--mesh-keep", "largest", "--mesh-colors", "point",
+                 "--no-progress"]) == 0
     assert "wrote 3 views" in capsys.readouterr().out
     manifest = json.loads((out / "manifest.json").read_text())
     files = manifest["files"]
@@ -231,7 +232,7 @@ def test_cli_writes_every_listed_output(models, tmp_path, capsys):
         assert d["depth"].shape == (3, 32, 32) and d["poses"].shape == (3, 4, 4)
     assert manifest["checkpoint_sha256"] and manifest["settings"]["views"] == 3
     settings = manifest["settings"]
-    assert settings["mesh_keep"] == "largest"
+    assert settings["mesh_keep"] == "largest" and "seen along the input camera's ray" in settings["mesh_colors"]
     assert len(ply.faces) == settings["mesh_faces_kept"] <= settings["mesh_faces_extracted"]
     assert "mask: given (value > 127 of 255 = object)" in manifest["input"]["notes"]
 

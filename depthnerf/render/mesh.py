@@ -22,6 +22,10 @@ Surface level
     ``MeshConfig.threshold`` is a fixed density or a per-object rule (``"auto"``, the default of eval, reconstruct
     and demo; ``"silhouette"``; ``"local"``), resolved from the densities along the input camera's rays: see
     :mod:`depthnerf.render.mesh_level`.
+
+Colours
+    :func:`input_camera_mesh` colours the vertices by ``MeshConfig.colors`` (:mod:`depthnerf.render.mesh_colors`):
+    by default the renderer's colour of a short ray that looks at each vertex from outside along its normal.
 """
 
 from __future__ import annotations
