@@ -55,6 +55,17 @@ def test_non_finite_values_are_written_as_strict_json_nulls(tmp_path):
     assert _strict(line) == {"step": 1, "loss": None, "psnr": None, "depth": None, "lr": 0.5, "count": 3}
 
 
+def test_a_run_folder_deleted_while_training_is_one_line_naming_the_metrics_file(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    log = RunLog(run, 0, tensorboard=False)
+    log.log(1, {"loss": 0.5})
+    (run / "metrics.jsonl").unlink()
+    run.rmdir()
+    with pytest.raises(DepthnerfError, match=r"run/metrics.jsonl: cannot append the step-2 metrics .*moved or deleted"):
+        log.log(2, {"loss": 0.4})
+
+
 def test_a_resumed_runs_tensorboard_scalars_are_those_of_an_uninterrupted_run(tmp_path):
     """Read back with TensorBoard's own reader: steps 1..6 logged, a resume from the checkpoint of step 4 logs
     steps 5 and 6 again; the curve is steps 1..6 with the first process's values up to step 4 (which the
