@@ -75,6 +75,8 @@ def test_overwrite_removes_every_output_of_the_earlier_evaluation_and_nothing_el
     (["--fscore-tau", "0"], "--fscore-tau must be > 0"),
     (["--mesh-points", "0"], "--mesh-points must be >= 1"),
     (["--symmetry-plane", "0", "0", "0", "0"], "--symmetry-plane: a symmetry plane is 4 finite numbers"),
+    (["--guided-align-samples", "-5"], "--guided-align-samples must be >= 1, got -5"),  # was ignored: no --guided
+    (["--lpips-trunk", "vgg.pth"], "--lpips-trunk vgg.pth: no such file"),  # was LPIPS "unavailable", exit 0
 ])
 def test_flag_values_that_cannot_work_are_refused_before_anything_loads(tmp_path, capsys, flags, text):
     """A checkpoint path that does not exist: were the flag checked after loading, the error would be about it."""
