@@ -66,6 +66,20 @@ def test_overwrite_removes_every_output_of_the_earlier_evaluation_and_nothing_el
     assert summary["views_stride"] == 2 and summary["views"] == 2 * 2 and summary["renders_csv"] is None
 
 
+@pytest.mark.parametrize("name, make", [("per_object.csv", Path.mkdir), ("summary.json", Path.mkdir),
+                                        ("objects", Path.touch), ("meshes", Path.touch)])
+def test_an_output_name_taken_by_the_other_kind_of_entry_is_one_line(case, tmp_path, capsys, name, make):
+    """A folder where eval writes a file (or a file where it writes a folder) was an IsADirectoryError /
+    FileExistsError traceback, after every object had been scored for a CSV."""
+    out = tmp_path / "out"
+    out.mkdir()
+    make(out / name)
+    assert _eval(case, out, "--views-stride", "2", "--save-renders") == 2
+    err = _one_error_line(capsys)
+    assert err.startswith(f"error: {out / name}: is a ") and "choose another --out" in err
+    assert not (out / "objects" / "settings.json").exists()  # refused before any object was scored
+
+
 @pytest.mark.parametrize("flags, text", [
     (["--pixel-center", "7"], "--pixel-center must be in [0, 1)"),
     (["--pixel-center", "-100"], "--pixel-center must be in [0, 1)"),
