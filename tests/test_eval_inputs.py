@@ -80,6 +80,21 @@ def test_an_output_name_taken_by_the_other_kind_of_entry_is_one_line(case, tmp_p
     assert not (out / "objects" / "settings.json").exists()  # refused before any object was scored
 
 
+def test_out_of_memory_while_evaluating_is_one_line_naming_the_sizes(case, tmp_path, capsys, monkeypatch):
+    """``--resolution 100000`` made the CPU allocator fail in a traceback; it is one line naming the flags that
+    size the work, exit 2."""
+    import depthnerf.eval.protocol as protocol
+
+    def fail(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(protocol, "evaluate_protocol", fail)
+    assert _eval(case, tmp_path / "out", "--resolution", "100000", "--chunk", "64") == 2
+    assert _one_error_line(capsys) == ("error: out of memory on cpu (MemoryError) evaluating at --resolution 100000, "
+                                       "--chunk 64 rays per pass, --mesh-resolution 8; lower them (the finished "
+                                       "objects are kept: the same command continues)\n")
+
+
 @pytest.mark.parametrize("flags, text", [
     (["--pixel-center", "7"], "--pixel-center must be in [0, 1)"),
     (["--pixel-center", "-100"], "--pixel-center must be in [0, 1)"),

@@ -265,6 +265,26 @@ def test_bad_checkpoints(models, tmp_path, capsys):
     assert rec.session.prior_source.kind == "live" and rec.session.prior_source.estimator.name == "bundled"
 
 
+def test_out_of_memory_while_reconstructing_is_one_line_naming_the_sizes(models, tmp_path, capsys, monkeypatch):
+    """``--render-resolution 100000`` made the CPU allocator fail in a traceback; it is one line naming the flags
+    that size the work, exit 2, and no output folder."""
+    photo = tmp_path / "photo.png"
+    Image.fromarray(disc_photo()).save(photo)
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
+                           "memory: you tried to allocate 40000000000 bytes. Error code 12")
+
+    monkeypatch.setattr(Reconstructor, "reconstruct", fail)
+    out = tmp_path / "o"
+    assert main(["reconstruct", str(photo), "--checkpoint", str(models["baseline"]), "--out", str(out),
+                 "--views", "3", "--render-resolution", "100000", "--mesh-resolution", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: out of memory on cpu (could not allocate 37.3 GiB) reconstructing {photo}: 3 views at "
+                   "--render-resolution 100000, --chunk 4096 rays per pass, --mesh-resolution 0; lower them\n")
+    assert not out.exists()
+
+
 def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys):
     rec = Reconstructor.from_pretrained(models["constant"])
     cfg = ReconstructConfig(views=2, mesh_resolution=0, guided=guided_config(12))

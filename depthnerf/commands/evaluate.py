@@ -294,10 +294,15 @@ def _session(args: argparse.Namespace, info, out: Path, guided):
 def _run(args: argparse.Namespace, info, out: Path, cfg, guided) -> int:
     from depthnerf.distributed import checked_together
     from depthnerf.eval.protocol import evaluate_protocol
+    from depthnerf.train.memory import one_line_out_of_memory
 
     with checked_together(info, "checking the output folder, the checkpoint and the data"):  # agreed: one line
         session = _session(args, info, out, guided)
-    result = evaluate_protocol(session, out, cfg, info)
+    with one_line_out_of_memory(info, lambda: (
+            f"evaluating at --resolution {cfg.resolution or session.spec.resolution}, --chunk {session.chunk} rays "
+            f"per pass{f', --mesh-resolution {cfg.mesh_resolution}' if cfg.mesh else ''}; lower them (the finished "
+            "objects are kept: the same command continues)")):
+        result = evaluate_protocol(session, out, cfg, info)
     if result is None:  # a rank other than 0: rank 0 writes and prints
         return 0
     s = result.summary
