@@ -169,6 +169,14 @@ def test_bad_inputs_are_one_line_errors(data, tmp_path, capsys):
     assert str(broken) in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("estimator", ["oracle", "none"])
+def test_an_estimator_without_a_cache_still_checks_the_data_folder(tmp_path, capsys, estimator):
+    """``depthnerf depth --data /typo --depth oracle`` said "needs no cache" and exited 0."""
+    missing = tmp_path / "typo"
+    assert main(["depth", "--data", str(missing), "--depth", estimator, "--no-progress"]) == 2
+    assert capsys.readouterr().err == f"error: {missing}: dataset folder does not exist\n"
+
+
 def test_depth_anything_cache_from_a_local_checkpoint(data, tmp_path, capsys):
     from depthnerf.depth.depth_anything import make_tiny_checkpoint
 
