@@ -12,6 +12,7 @@ import dataclasses
 import importlib.util
 import json
 import math
+import re
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -122,9 +123,17 @@ def test_bad_photos(tmp_path):
              (np.zeros((1, 1, 3), np.uint8), "image is 1x1 px; at least 16"),
              (np.zeros((15, 40, 3), np.uint8), "image is 40x15 px"),
              (np.full((40, 40, 3), 90, np.uint8), "no object found"),
-             (np.zeros((4, 4, 5), np.uint8), "expected an H x W")]
+             (np.zeros((4, 4, 5), np.uint8), "expected an H x W"),
+             # arrays whose values were misread: "no object found", or a silently clipped or near-black photo
+             (np.where(disc_photo() > 100, np.nan, 0.2), "image: the array holds NaN or inf"),
+             (disc_photo().astype(np.float32), "image: a float array is read as values in [0, 1], got 40 to 200; "
+                                               "divide 8-bit values by 255 or pass a uint8 array"),
+             (disc_photo() / 255.0 - 0.5, "image: a float array is read as values in [0, 1], got -0.343137 to"),
+             (disc_photo().astype(np.int64), "image: int64 pixels are read as 16-bit values (0-65535), got 40 to "
+                                             "200; pass 8-bit values as a uint8 array"),
+             (disc_photo().astype(object), "image: an array of object is not pixels")]
     for image, text in cases:
-        with pytest.raises(DepthnerfError, match=text.replace("(", r"\(")) as info:
+        with pytest.raises(DepthnerfError, match=re.escape(text)) as info:
             prepare_photo(image, None, 32)
         assert "\n" not in str(info.value)
     with pytest.raises(DepthnerfError, match="mask is 10x10 but the image is 40x40"):
@@ -327,7 +336,15 @@ def test_the_python_api_takes_a_guided_budget_as_the_cli_does(models):
 def test_config_names_the_flag_of_a_setting_that_cannot_work():
     for kwargs, message in (({"mesh_keep": "most"}, "--mesh-keep must be one of all, largest, got 'most'"),
                             ({"framing": "tight"}, "--framing must be 'auto' or 'keep', got 'tight'"),
-                            ({"fill": 1.5}, "--fill must be in (0, 1], got 1.5")):
+                            ({"fill": 1.5}, "--fill must be in (0, 1], got 1.5"),
+                            ({"views": 2.5}, "--views must be a whole number, got 2.5"),  # was a TypeError
+                            ({"render_resolution": 16.5}, "--render-resolution must be a whole number, got 16.5"),
+                            ({"mesh_resolution": 8.5}, "--mesh-resolution must be a whole number, got 8.5"),
+                            # a level <= 0 or NaN was used as given: every grid cell inside, or an empty mesh
+                            ({"mesh_threshold": -1.0}, "--mesh-threshold: must be a positive number or one of "
+                                                       "auto, silhouette, local, got '-1.0'"),
+                            ({"mesh_threshold": float("nan")}, "--mesh-threshold: must be a positive number or one "
+                                                               "of auto, silhouette, local, got 'nan'")):
         with pytest.raises(DepthnerfError) as err:
             ReconstructConfig(**kwargs)
         assert str(err.value) == message
