@@ -285,8 +285,10 @@ def run_demo(cfg: DemoConfig, device: torch.device | str = "cpu") -> dict:
     unknown = [c for c in cfg.categories if c not in CATEGORIES]
     if unknown or not cfg.categories:
         raise DepthnerfError(f"--categories: choose from {', '.join(CATEGORIES)} (got {', '.join(unknown) or 'none'})")
-    if cfg.views_stride < 1 or cfg.turntable_views < 1 or cfg.mesh_resolution < 2:
-        raise DepthnerfError("--views-stride and --turntable-views must be >= 1, --mesh-resolution >= 2")
+    for flag, value, least in (("--views-stride", cfg.views_stride, 1), ("--turntable-views", cfg.turntable_views, 1),
+                               ("--mesh-resolution", cfg.mesh_resolution, 2)):
+        if value < least:
+            raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
     if cfg.seed < 0:
         raise DepthnerfError(f"--seed must be >= 0 (a synthesis seed), got {cfg.seed}")
     if cfg.out.exists() and not cfg.out.is_dir():

@@ -80,3 +80,24 @@ def test_load_object_says_which_pixel_centre_it_used(tmp_path: Path) -> None:
         warnings.simplefilter("error")
         assert load_object(record, [0], pixel_center=0.0).intrinsics == unstated.intrinsics
         assert load_object(record, [0], pixel_center=0.5).intrinsics.cx == unstated.intrinsics.cx - 0.5
+
+
+@pytest.mark.parametrize("stated", ["0.5", float("nan"), -0.5, 37, True, [0.5]])
+def test_a_stated_pixel_centre_that_is_not_a_number_in_0_1_is_named(tmp_path: Path, stated) -> None:
+    """Eval back-projects depth maps with the card's pixel centre: a string was a ValueError traceback, NaN a
+    crash in the geometry metrics, 37 a silent shift of 37 pixels."""
+    card = tmp_path / "cars_card.json"
+    card.write_text(json.dumps({"camera": {"pixel_center": stated}}))
+    for read in (lambda: read_dataset_card(tmp_path, "cars"), lambda: dataset_pixel_center(tmp_path, "cars")):
+        with pytest.raises(DepthnerfError, match=f"^{card}: camera.pixel_center must be a number in"):
+            read()
+
+
+@pytest.mark.parametrize("framing", ["blender", ["srn"]])
+def test_an_unknown_framing_in_a_card_names_the_card(tmp_path: Path, framing) -> None:
+    card = tmp_path / "cars_card.json"
+    card.write_text(json.dumps({"framing": framing}))
+    with pytest.raises(DepthnerfError, match=f"^{card} framing: unknown framing"):
+        dataset_framing(read_dataset_card(tmp_path, "cars"), str(card))
+    with pytest.raises(DepthnerfError, match=f"^{card} framing: unknown framing"):
+        checkpoint_framing(tmp_path / "w.safetensors", tmp_path, "cars")

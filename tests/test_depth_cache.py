@@ -169,6 +169,27 @@ def test_bad_inputs_are_one_line_errors(data, tmp_path, capsys):
     assert str(broken) in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("flags, line", [
+    (["--max-objects", "0"], "--max-objects must be positive, got 0"),  # was: every object, exit 0
+    (["--max-objects", "-1"], "--max-objects must be positive, got -1"),  # was: an IndexError traceback
+    (["--batch-size", "0"], "--batch-size must be positive, got 0"),  # was: a ValueError traceback
+    (["--json", "{data}"], "{data}: --json names a folder; give the path of the JSON file to write"),
+])
+def test_depth_eval_refuses_flags_that_cannot_work_in_one_line(data, capsys, flags, line):
+    """Before any file is read (a folder as --json was an IsADirectoryError once every image had been scored)."""
+    flags = [f.format(data=data) for f in flags]
+    assert main(["depth-eval", "--data", str(data), "--depth", "oracle", "--no-progress", *flags]) == 2
+    assert capsys.readouterr().err == f"error: {line.format(data=data)}\n"
+
+
+@pytest.mark.parametrize("estimator", ["oracle", "none"])
+def test_an_estimator_without_a_cache_still_checks_the_data_folder(tmp_path, capsys, estimator):
+    """``depthnerf depth --data /typo --depth oracle`` said "needs no cache" and exited 0."""
+    missing = tmp_path / "typo"
+    assert main(["depth", "--data", str(missing), "--depth", estimator, "--no-progress"]) == 2
+    assert capsys.readouterr().err == f"error: {missing}: dataset folder does not exist\n"
+
+
 def test_depth_anything_cache_from_a_local_checkpoint(data, tmp_path, capsys):
     from depthnerf.depth.depth_anything import make_tiny_checkpoint
 

@@ -66,6 +66,35 @@ def test_overwrite_removes_every_output_of_the_earlier_evaluation_and_nothing_el
     assert summary["views_stride"] == 2 and summary["views"] == 2 * 2 and summary["renders_csv"] is None
 
 
+@pytest.mark.parametrize("name, make", [("per_object.csv", Path.mkdir), ("summary.json", Path.mkdir),
+                                        ("objects", Path.touch), ("meshes", Path.touch)])
+def test_an_output_name_taken_by_the_other_kind_of_entry_is_one_line(case, tmp_path, capsys, name, make):
+    """A folder where eval writes a file (or a file where it writes a folder) was an IsADirectoryError /
+    FileExistsError traceback, after every object had been scored for a CSV."""
+    out = tmp_path / "out"
+    out.mkdir()
+    make(out / name)
+    assert _eval(case, out, "--views-stride", "2", "--save-renders") == 2
+    err = _one_error_line(capsys)
+    assert err.startswith(f"error: {out / name}: is a ") and "choose another --out" in err
+    assert not (out / "objects" / "settings.json").exists()  # refused before any object was scored
+
+
+def test_out_of_memory_while_evaluating_is_one_line_naming_the_sizes(case, tmp_path, capsys, monkeypatch):
+    """``--resolution 100000`` made the CPU allocator fail in a traceback; it is one line naming the flags that
+    size the work, exit 2."""
+    import depthnerf.eval.protocol as protocol
+
+    def fail(*args, **kwargs):
+        raise MemoryError()
+
+    monkeypatch.setattr(protocol, "evaluate_protocol", fail)
+    assert _eval(case, tmp_path / "out", "--resolution", "100000", "--chunk", "64") == 2
+    assert _one_error_line(capsys) == ("error: out of memory on cpu (MemoryError) evaluating at --resolution 100000, "
+                                       "--chunk 64 rays per pass, --mesh-resolution 8; lower them (the finished "
+                                       "objects are kept: the same command continues)\n")
+
+
 @pytest.mark.parametrize("flags, text", [
     (["--pixel-center", "7"], "--pixel-center must be in [0, 1)"),
     (["--pixel-center", "-100"], "--pixel-center must be in [0, 1)"),
@@ -75,6 +104,8 @@ def test_overwrite_removes_every_output_of_the_earlier_evaluation_and_nothing_el
     (["--fscore-tau", "0"], "--fscore-tau must be > 0"),
     (["--mesh-points", "0"], "--mesh-points must be >= 1"),
     (["--symmetry-plane", "0", "0", "0", "0"], "--symmetry-plane: a symmetry plane is 4 finite numbers"),
+    (["--guided-align-samples", "-5"], "--guided-align-samples must be >= 1, got -5"),  # was ignored: no --guided
+    (["--lpips-trunk", "vgg.pth"], "--lpips-trunk vgg.pth: no such file"),  # was LPIPS "unavailable", exit 0
 ])
 def test_flag_values_that_cannot_work_are_refused_before_anything_loads(tmp_path, capsys, flags, text):
     """A checkpoint path that does not exist: were the flag checked after loading, the error would be about it."""

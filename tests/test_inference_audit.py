@@ -125,6 +125,8 @@ def test_compare_and_resume_refuse_a_binary_json_file(tmp_path, capsys):
 @pytest.mark.parametrize("flags, line", [
     (["--seed", "-1"], "--seed must be >= 0 (a synthesis seed), got -1"),
     (["--out", "{d}/file"], "{d}/file: --out is a file, not a folder"),
+    (["--views-stride", "0"], "--views-stride must be >= 1, got 0"),  # one line named all three flags
+    (["--mesh-resolution", "1"], "--mesh-resolution must be >= 2, got 1"),
 ])
 def test_demo_refuses_a_negative_seed_and_a_file_as_out(tmp_path, capsys, flags, line):
     """``--seed -1`` was numpy's ValueError traceback after both checkpoints loaded; ``--out FILE`` read

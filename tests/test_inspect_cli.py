@@ -73,6 +73,21 @@ def test_inspect_bad_input_exit_2_naming_the_file(tmp_path: Path, case: str, cap
     assert len(err) == 1 and err[0].startswith("error: ") and str(path) in err[0] and text in err[0]
 
 
+@pytest.mark.parametrize("card, said", [
+    ("[1, 2]", ": unreadable dataset card"),
+    ('{"camera": {"pixel_center": "half"}}', ": camera.pixel_center must be a number in [0, 1]"),
+    ('{"framing": "blender"}', " framing: unknown framing 'blender'"),
+    ('{"objects": {"front": "+x", "up": "+x"}}', ": objects.front +x and objects.up +x are parallel"),
+])
+def test_inspect_reads_the_dataset_card_as_train_and_eval_do(tmp_path: Path, card: str, said: str, capsys):
+    """A card training or evaluation would stop on is an error of inspect too, not a clean bill of health."""
+    root = make_srn_fixture(tmp_path, splits={"train": 1}, views=2, size=8)
+    (root / "cars_card.json").write_text(card)
+    assert main(["inspect", "--data", str(root)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {root / 'cars_card.json'}{said}" + err[0].split(said, 1)[1]]
+
+
 def test_inspect_skip_bad_lists_skipped(tmp_path: Path, capsys):
     root = make_srn_fixture(tmp_path, splits={"train": 3, "test": 1})
     _, bad_pose, _ = BAD_INPUT_CASES["pose_not_rigid"](root)

@@ -7,7 +7,7 @@
 - ``--depth bundled --depth-checkpoint``: a misspelled shipped name, a folder, a model checkpoint, impossible sizes
   in the config, non-finite weights.
 - ``--checkpoint``: a misspelled shipped name (the closest one suggested), a bad ``step``, framing or prior in the
-  metadata, and ``hf://`` paths with ``.`` / ``..`` segments.
+  metadata, ``hf://`` paths with ``.`` / ``..`` segments, and a run folder without a checkpoint yet.
 """
 
 from __future__ import annotations
@@ -179,6 +179,21 @@ def test_misspelled_checkpoint_names_suggest_the_closest(tmp_path):
     for reference in ("hf://alice/dn/../x.safetensors", "hf://alice/dn/./model.safetensors", "hf://../dn"):
         with pytest.raises(DepthnerfError, match="'.' and '..' are not allowed"):  # was "download failed"
             parse_hub_reference(reference)
+
+
+def test_a_run_stopped_before_its_first_checkpoint_is_named_as_a_run(tmp_path):
+    """A run folder train started (``launches.jsonl``, ``data_card.json``) but that has no ``checkpoints/`` yet was
+    called "not a checkpoint file, checkpoint folder, run folder, ..." by ``eval --run`` and ``reconstruct``."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "launches.jsonl").write_text("{}\n")
+    with pytest.raises(DepthnerfError, match=f"^{run}: run folder has no checkpoint yet"):
+        load_pretrained(run)
+    (run / "checkpoints").mkdir()
+    with pytest.raises(DepthnerfError, match=f"^{run}: run folder has no complete checkpoint yet"):
+        load_pretrained(run)
+    with pytest.raises(DepthnerfError, match="not a checkpoint file, checkpoint folder, run folder"):
+        load_pretrained(tmp_path)  # no run's files: the general line
 
 
 def test_cli_refuses_a_truncated_depth_anything_in_one_line(tiny_da, tmp_path, srn_root):

@@ -12,6 +12,7 @@ import dataclasses
 import importlib.util
 import json
 import math
+import re
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -122,9 +123,17 @@ def test_bad_photos(tmp_path):
              (np.zeros((1, 1, 3), np.uint8), "image is 1x1 px; at least 16"),
              (np.zeros((15, 40, 3), np.uint8), "image is 40x15 px"),
              (np.full((40, 40, 3), 90, np.uint8), "no object found"),
-             (np.zeros((4, 4, 5), np.uint8), "expected an H x W")]
+             (np.zeros((4, 4, 5), np.uint8), "expected an H x W"),
+             # arrays whose values were misread: "no object found", or a silently clipped or near-black photo
+             (np.where(disc_photo() > 100, np.nan, 0.2), "image: the array holds NaN or inf"),
+             (disc_photo().astype(np.float32), "image: a float array is read as values in [0, 1], got 40 to 200; "
+                                               "divide 8-bit values by 255 or pass a uint8 array"),
+             (disc_photo() / 255.0 - 0.5, "image: a float array is read as values in [0, 1], got -0.343137 to"),
+             (disc_photo().astype(np.int64), "image: int64 pixels are read as 16-bit values (0-65535), got 40 to "
+                                             "200; pass 8-bit values as a uint8 array"),
+             (disc_photo().astype(object), "image: an array of object is not pixels")]
     for image, text in cases:
-        with pytest.raises(DepthnerfError, match=text.replace("(", r"\(")) as info:
+        with pytest.raises(DepthnerfError, match=re.escape(text)) as info:
             prepare_photo(image, None, 32)
         assert "\n" not in str(info.value)
     with pytest.raises(DepthnerfError, match="mask is 10x10 but the image is 40x40"):
@@ -266,6 +275,26 @@ def test_bad_checkpoints(models, tmp_path, capsys):
     assert rec.session.prior_source.kind == "live" and rec.session.prior_source.estimator.name == "bundled"
 
 
+def test_out_of_memory_while_reconstructing_is_one_line_naming_the_sizes(models, tmp_path, capsys, monkeypatch):
+    """``--render-resolution 100000`` made the CPU allocator fail in a traceback; it is one line naming the flags
+    that size the work, exit 2, and no output folder."""
+    photo = tmp_path / "photo.png"
+    Image.fromarray(disc_photo()).save(photo)
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate "
+                           "memory: you tried to allocate 40000000000 bytes. Error code 12")
+
+    monkeypatch.setattr(Reconstructor, "reconstruct", fail)
+    out = tmp_path / "o"
+    assert main(["reconstruct", str(photo), "--checkpoint", str(models["baseline"]), "--out", str(out),
+                 "--views", "3", "--render-resolution", "100000", "--mesh-resolution", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: out of memory on cpu (could not allocate 37.3 GiB) reconstructing {photo}: 3 views at "
+                   "--render-resolution 100000, --chunk 4096 rays per pass, --mesh-resolution 0; lower them\n")
+    assert not out.exists()
+
+
 def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys):
     rec = Reconstructor.from_pretrained(models["constant"])
     cfg = ReconstructConfig(views=2, mesh_resolution=0, guided=guided_config(12))
@@ -308,7 +337,15 @@ def test_the_python_api_takes_a_guided_budget_as_the_cli_does(models):
 def test_config_names_the_flag_of_a_setting_that_cannot_work():
     for kwargs, message in (({"mesh_keep": "most"}, "--mesh-keep must be one of all, largest, got 'most'"),
                             ({"framing": "tight"}, "--framing must be 'auto' or 'keep', got 'tight'"),
-                            ({"fill": 1.5}, "--fill must be in (0, 1], got 1.5")):
+                            ({"fill": 1.5}, "--fill must be in (0, 1], got 1.5"),
+                            ({"views": 2.5}, "--views must be a whole number, got 2.5"),  # was a TypeError
+                            ({"render_resolution": 16.5}, "--render-resolution must be a whole number, got 16.5"),
+                            ({"mesh_resolution": 8.5}, "--mesh-resolution must be a whole number, got 8.5"),
+                            # a level <= 0 or NaN was used as given: every grid cell inside, or an empty mesh
+                            ({"mesh_threshold": -1.0}, "--mesh-threshold: must be a positive number or one of "
+                                                       "auto, silhouette, local, got '-1.0'"),
+                            ({"mesh_threshold": float("nan")}, "--mesh-threshold: must be a positive number or one "
+                                                               "of auto, silhouette, local, got 'nan'")):
         with pytest.raises(DepthnerfError) as err:
             ReconstructConfig(**kwargs)
         assert str(err.value) == message

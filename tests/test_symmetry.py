@@ -48,6 +48,23 @@ def test_dataset_plane_sources(tmp_path):
         dataset_plane(tmp_path, "cars")
 
 
+@pytest.mark.parametrize("card, said", [
+    ({"mirror_plane": "abc"}, " mirror_plane: a symmetry plane is 4 finite numbers"),
+    ({"mirror_plane": 5}, " mirror_plane: a symmetry plane is 4 finite numbers"),
+    ({"mirror_plane": [0, 1, 0, "x"]}, " mirror_plane: a symmetry plane is 4 finite numbers"),
+    ({"objects": [1]}, ": objects must be a JSON object"),
+    ({"objects": {"front": ["+x"], "up": "+z"}}, ": objects.front / objects.up must be one of"),
+    ({"objects": {"front": "+x", "up": "+z", "centre": [1, 2]}}, ": objects.centre must be 3 finite numbers"),
+    ({"objects": {"front": "+x", "up": "+z", "centre": "origin"}}, ": objects.centre must be 3 finite numbers"),
+])
+def test_a_malformed_card_plane_is_one_line_naming_the_card(tmp_path, card, said):
+    """Each of these was a ValueError, TypeError or AttributeError traceback out of ``train --model.mirror``."""
+    path = tmp_path / "cars_card.json"
+    path.write_text(json.dumps(card))
+    with pytest.raises(DepthnerfError, match=f"^{path}{said}"):
+        dataset_plane(tmp_path, "cars")
+
+
 def test_reflection_formulas():
     plane = torch.tensor([[0.6, 0.8, 0.0, 0.3], [0.0, 0.0, 0.0, 0.0]])
     pts = torch.randn(2, 7, 3, dtype=torch.float64).float()

@@ -68,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
     if args.for_checkpoint is not None:
         _prior_of_checkpoint(args)
     if args.depth not in CACHED_ESTIMATORS:
+        from depthnerf.data.srn import discover_categories
+
+        discover_categories(args.data)  # nothing to cache, but a --data that is no dataset is still one line
         print(f"estimator '{args.depth}' needs no cache "
               f"({'computed from depth/ on the fly' if args.depth == 'oracle' else 'no depth prior'})")
         return 0

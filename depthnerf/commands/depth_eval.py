@@ -21,6 +21,7 @@ from pathlib import Path
 from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.depth.evaluate import DepthEvalConfig, evaluate_depth
+from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
 
 
@@ -47,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.distributed import pick_device
 
     device = pick_device(args.device)  # a device this process lacks: one line, before any work
+    if args.json is not None and args.json.is_dir():  # found before the estimator runs, not after
+        raise DepthnerfError(f"{args.json}: --json names a folder; give the path of the JSON file to write")
     cfg = DepthEvalConfig(
         data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint, split=args.split,
         categories=tuple(args.category) if args.category else None, max_objects=args.max_objects,
@@ -63,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  flat     AbsRel {flat['abs_rel']:.4f}  delta<1.25 {flat['delta1']:.4f}  "
           "(a constant prediction on the same images: the floor to beat)")
     if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        write_text_atomic(args.json, json.dumps(result.as_dict(), indent=2) + "\n")
+        try:
+            write_text_atomic(args.json, json.dumps(result.as_dict(), indent=2) + "\n")
+        except OSError as err:
+            raise DepthnerfError(f"{args.json}: cannot write the scores ({err.strerror or err})") from None
     return 0

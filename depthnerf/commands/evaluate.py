@@ -129,15 +129,19 @@ def add_guided_flags(p: argparse.ArgumentParser, budget: Callable[[str], int] = 
 
 def guided_request(budget: int | None, align_samples: int):
     """The ``--guided [BUDGET]`` / ``--guided-align-samples`` flags: None (the checkpoint's sampler) or the guided
-    config of that budget (:func:`depthnerf.render.source_guide.guided_config`)."""
+    config of that budget (:func:`depthnerf.render.source_guide.guided_config`); a count below 1 is refused with
+    or without ``--guided``."""
     from depthnerf.render.source_guide import guided_config
 
+    if align_samples < 1:
+        raise DepthnerfError(f"--guided-align-samples must be >= 1, got {align_samples}")
     return None if budget is None else guided_config(budget, align_samples)
 
 
 def check_flags(args: argparse.Namespace) -> None:
-    """One line naming the flag when ``--pixel-center``, ``--mesh-points``, ``--fscore-tau`` or
-    ``--symmetry-plane`` cannot work (checked before anything loads)."""
+    """One line naming the flag when ``--pixel-center``, ``--mesh-points``, ``--fscore-tau``,
+    ``--symmetry-plane`` or ``--lpips-trunk`` (a file that is not there) cannot work (checked before anything
+    loads)."""
     from depthnerf.data.symmetry import normalized_plane
 
     if args.pixel_center is not None and not 0 <= args.pixel_center < 1:  # NaN fails too
@@ -149,6 +153,9 @@ def check_flags(args: argparse.Namespace) -> None:
         raise DepthnerfError(f"--fscore-tau must be > 0 (a distance in GT diagonals), got {args.fscore_tau}")
     if args.symmetry_plane is not None:
         normalized_plane(args.symmetry_plane, "--symmetry-plane")
+    if args.lpips_trunk is not None and not args.lpips_trunk.is_file():  # else LPIPS were silently "unavailable"
+        raise DepthnerfError(f"--lpips-trunk {args.lpips_trunk}: no such file (torchvision VGG16 weights, "
+                             "e.g. vgg16-397923af.pth)")
 
 
 def symmetry_note(args: argparse.Namespace, mirror: bool, checkpoint: str) -> str | None:
@@ -287,10 +294,15 @@ def _session(args: argparse.Namespace, info, out: Path, guided):
 def _run(args: argparse.Namespace, info, out: Path, cfg, guided) -> int:
     from depthnerf.distributed import checked_together
     from depthnerf.eval.protocol import evaluate_protocol
+    from depthnerf.train.memory import one_line_out_of_memory
 
     with checked_together(info, "checking the output folder, the checkpoint and the data"):  # agreed: one line
         session = _session(args, info, out, guided)
-    result = evaluate_protocol(session, out, cfg, info)
+    with one_line_out_of_memory(info, lambda: (
+            f"evaluating at --resolution {cfg.resolution or session.spec.resolution}, --chunk {session.chunk} rays "
+            f"per pass{f', --mesh-resolution {cfg.mesh_resolution}' if cfg.mesh else ''}; lower them (the finished "
+            "objects are kept: the same command continues)")):
+        result = evaluate_protocol(session, out, cfg, info)
     if result is None:  # a rank other than 0: rank 0 writes and prints
         return 0
     s = result.summary

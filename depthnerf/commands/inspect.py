@@ -6,8 +6,9 @@ The first bad *required* file (intrinsics, rgb, pose) stops the run with ``error
 unless ``--skip-bad``, which leaves bad objects out and lists them. A bad *optional* part (depth, mask, mesh) is
 not used for that object, with a ``warning: <file>: <problem>`` line on stderr (equal problems of a split grouped
 into one line); ``--strict`` makes it an error. Entries the layout does not know are ignored (one ``note:`` line
-per split). Accepted formats and rules: docs/data.md. A tqdm bar on stderr shows progress when stderr is a
-terminal.
+per split). A category's dataset card (``<category>_card.json``), where there is one, is read as training and
+evaluation read it: a bad one is an error naming it. Accepted formats and rules: docs/data.md. A tqdm bar on
+stderr shows progress when stderr is a terminal.
 
 ``--json PATH`` writes the same summary as JSON::
 
@@ -36,7 +37,10 @@ import json
 import math
 from pathlib import Path
 
+from depthnerf.data.card import card_path, read_dataset_card
 from depthnerf.data.srn import SPLITS, discover_categories, index_split, split_dir
+from depthnerf.data.symmetry import plane_from_card
+from depthnerf.data.synth.framing import dataset_framing
 from depthnerf.data.validate import SplitSummary, summarize_split
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
@@ -99,6 +103,15 @@ def format_summary(s: SplitSummary) -> list[str]:
     return lines
 
 
+def _check_card(root: Path, category: str) -> None:
+    """The category's dataset card, if it has one, read as training and evaluation read it (its pixel centre,
+    framing and symmetry plane): a bad one is the error they would stop with."""
+    card = read_dataset_card(root, category)
+    if card is not None:
+        dataset_framing(card, str(card_path(root, category)))
+        plane_from_card(card, str(card_path(root, category)))
+
+
 def run(args: argparse.Namespace) -> int:
     root: Path = args.data
     categories = [args.category] if args.category else discover_categories(root)
@@ -109,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
         splits = [args.split] if args.split else [s for s in SPLITS if split_dir(root, category, s).is_dir()]
         if not splits:
             raise DepthnerfError(f"{root}: no {category}_<split> folders found")
+        _check_card(root, category)
         for split in splits:
             index = index_split(root, category, split, skip_bad=args.skip_bad, check_files=True, progress=True,
                                 strict=args.strict)

@@ -101,12 +101,14 @@ def _facing(text: str) -> float | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from depthnerf.distributed import DistInfo
     from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.reconstruct.background import choose_remover
     from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.reconstruct.photo import check_image_file
     from depthnerf.reconstruct.reconstructor import DEFAULT_FACING, ReconstructConfig, Reconstructor
     from depthnerf.render.mesh_level import parse_level
+    from depthnerf.train.memory import one_line_out_of_memory
 
     # every flag and the output folder are checked before the model is loaded or anything rendered
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
@@ -127,7 +129,11 @@ def run(args: argparse.Namespace) -> int:
     # a background model the flags name loads (or fails in one line) before the NeRF does
     background = choose_remover(args.background_removal, args.background_model)
     rec = Reconstructor(InferenceSession(args.checkpoint, options))
-    result = rec.reconstruct(args.image, mask=args.mask, config=cfg, background=background)
+    side = cfg.render_resolution or rec.session.spec.resolution
+    with one_line_out_of_memory(DistInfo(rank=0, world=1, device=rec.session.device), lambda: (
+            f"reconstructing {args.image}: {cfg.views} views at --render-resolution {side}, --chunk "
+            f"{rec.session.chunk} rays per pass, --mesh-resolution {cfg.mesh_resolution}; lower them")):
+        result = rec.reconstruct(args.image, mask=args.mask, config=cfg, background=background)
     manifest = rec.save(result, args.out)
     for note in result.input.notes:
         print(f"note: {note}")

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from depthnerf.errors import DepthnerfError
 from depthnerf.files import read_json_object
 
 INTEGER_CENTRED = 0.0
@@ -25,11 +26,19 @@ def card_path(root: str | Path, category: str) -> Path:
 
 def read_dataset_card(root: str | Path, category: str) -> dict[str, Any] | None:
     """The parsed card of ``category`` under ``root``; None when there is none. A card that cannot be read, is
-    not JSON or is not a JSON object is a :class:`~depthnerf.errors.DepthnerfError` naming the file."""
+    not JSON or is not a JSON object is a :class:`~depthnerf.errors.DepthnerfError` naming the file, and so is
+    a stated ``camera.pixel_center`` that is not a number in [0, 1]."""
     path = card_path(root, category)
     if not path.is_file():
         return None
-    return read_json_object(path, "dataset card")
+    card = read_json_object(path, "dataset card")
+    camera = card.get("camera")
+    stated = camera.get("pixel_center") if isinstance(camera, dict) else None
+    if stated is not None and not (isinstance(stated, (int, float)) and not isinstance(stated, bool)
+                                   and 0 <= stated <= 1):  # NaN fails too
+        raise DepthnerfError(f"{path}: camera.pixel_center must be a number in [0, 1] (the pixel centre of the "
+                             f"dataset's images), got {stated!r}")
+    return card
 
 
 def card_pixel_center(card: dict[str, Any] | None) -> float:

@@ -36,7 +36,10 @@ _AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "
 
 def normalized_plane(plane: tuple[float, ...] | list[float], where: str) -> tuple[float, float, float, float]:
     """``plane`` with a unit normal (d scaled alike); a one-line error naming ``where`` for a bad one."""
-    values = [float(v) for v in plane]
+    try:
+        values = [float(v) for v in plane]
+    except (TypeError, ValueError):  # not a list, or an entry that is not a number
+        values = []
     norm = float(np.linalg.norm(values[:3])) if len(values) == 4 else 0.0
     if len(values) != 4 or not np.all(np.isfinite(values)) or norm < 1e-8:
         raise DepthnerfError(f"{where}: a symmetry plane is 4 finite numbers nx ny nz d with a non-zero normal, "
@@ -49,16 +52,25 @@ def plane_from_card(card: dict, where: str) -> tuple[float, float, float, float]
     if "mirror_plane" in card:
         return normalized_plane(card["mirror_plane"], f"{where} mirror_plane")
     objects = card.get("objects") or {}
+    if not isinstance(objects, dict):
+        raise DepthnerfError(f"{where}: objects must be a JSON object (front, up, centre), got {objects!r}")
     front, up = objects.get("front"), objects.get("up")
     if front is None or up is None:
         return None
-    if front not in _AXES or up not in _AXES:
+    if not isinstance(front, str) or not isinstance(up, str) or front not in _AXES or up not in _AXES:
         raise DepthnerfError(f"{where}: objects.front / objects.up must be one of {sorted(_AXES)}, "
                              f"got {front!r} / {up!r}")
     left = np.cross(np.array(_AXES[up], float), np.array(_AXES[front], float))
     if not np.any(left):
         raise DepthnerfError(f"{where}: objects.front {front} and objects.up {up} are parallel")
-    centre = np.asarray(objects.get("centre", (0.0, 0.0, 0.0)), dtype=float)
+    centre = objects.get("centre", (0.0, 0.0, 0.0))
+    try:
+        centre = np.asarray(centre, dtype=float)
+    except (TypeError, ValueError):
+        centre = np.zeros(0)
+    if centre.shape != (3,) or not np.all(np.isfinite(centre)):
+        raise DepthnerfError(f"{where}: objects.centre must be 3 finite numbers x y z, got "
+                             f"{objects.get('centre')!r}")
     return normalized_plane((*left.tolist(), float(left @ centre)), where)
 
 

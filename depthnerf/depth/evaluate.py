@@ -106,6 +106,10 @@ def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
     from depthnerf.data.card import INTEGER_CENTRED
     from depthnerf.data.srn import discover_categories, index_split, load_object
 
+    for flag, value in (("--max-objects", cfg.max_objects), ("--max-views", cfg.max_views),
+                        ("--batch-size", cfg.batch_size)):
+        if value is not None and value <= 0:  # checked before any file is read or the estimator loads
+            raise DepthnerfError(f"{flag} must be positive, got {value}")
     provenance = describe_estimator(cfg.estimator, cfg.checkpoint)
     if provenance is None:
         raise DepthnerfError("estimator 'none' produces no depth, there is nothing to evaluate")

@@ -96,7 +96,7 @@ from depthnerf.eval.metrics import (
     summarize,
 )
 from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, prepare_object, protocol_views
-from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects
+from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects, prepare_output_folder
 from depthnerf.files import write_text_atomic
 from depthnerf.infer.session import InferenceSession
 from depthnerf.render.mesh import MeshConfig
@@ -319,12 +319,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
         estimator, guided = spec.prior.estimator, session.guided
         lpips = load_lpips(cfg.lpips, device)
         lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
-        try:
-            if out_dir.exists() and not out_dir.is_dir():
-                raise NotADirectoryError(0, "a file, not a folder")
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise DepthnerfError(f"{out_dir}: cannot use it as the output folder ({err.strerror or err})") from None
+        prepare_output_folder(out_dir)
         evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category)
         store = ObjectStore(out_dir, _settings(session, cfg, data_root, category, eval_res, lpips is not None),
                             DataFingerprint(data_root, category))

@@ -128,6 +128,25 @@ def _differences(old: dict, new: dict) -> list[str]:
     return [f"{k} {json.dumps(there)} there, {json.dumps(now)} now" for k, (there, now) in differences(old, new).items()]
 
 
+def prepare_output_folder(out_dir: Path) -> None:
+    """Make ``out_dir`` (a one-line error when it cannot be used as the output folder, and when a name the
+    evaluation writes there, :data:`OUTPUT_FILES`, :data:`OBJECTS_DIR` or an :data:`OUTPUT_TREES` folder, is taken
+    by a folder or a file of the other kind)."""
+    out_dir = Path(out_dir)
+    try:
+        if out_dir.exists() and not out_dir.is_dir():
+            raise NotADirectoryError(0, "a file, not a folder")
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DepthnerfError(f"{out_dir}: cannot use it as the output folder ({err.strerror or err})") from None
+    folders = (OBJECTS_DIR, *(name for name, _ in OUTPUT_TREES))
+    for name in (*OUTPUT_FILES, *folders):
+        path, folder = out_dir / name, name in folders
+        if path.exists() and path.is_dir() != folder:
+            raise DepthnerfError(f"{path}: is a {'file' if folder else 'folder'}, where the evaluation writes its "
+                                 f"{'folder' if folder else 'file'} {name}; move it away or choose another --out")
+
+
 def remove_outputs(out_dir: Path) -> int:
     """Delete what an evaluation writes in ``out_dir`` (:data:`OBJECTS_DIR`'s result, settings and stray
     temporary files, :data:`OUTPUT_FILES`, the :data:`OUTPUT_TREES` files) and the folders that leaves empty;

@@ -42,6 +42,10 @@ SPEC_FRAMING = "the checkpoint's inference spec"
 """``Pretrained.framing_origin`` of a checkpoint whose spec states its framing."""
 
 
+RUN_MARKERS = ("launches.jsonl", "data_card.json")
+"""Files ``depthnerf train`` writes into a run folder when it starts, before its first checkpoint."""
+
+
 def shipped_checkpoints() -> dict[str, Path]:
     """Names and paths of the checkpoints shipped inside the package."""
     return {p.stem: p for p in sorted(SHIPPED_DIR.glob("*.safetensors"))}
@@ -73,6 +77,8 @@ def resolve_checkpoint(checkpoint: str | Path) -> Path:
         if latest is not None:
             return latest / "model.safetensors"
         raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")
+    if any((path / name).is_file() for name in RUN_MARKERS):  # a run stopped before its first checkpoint
+        raise DepthnerfError(f"{path}: run folder has no checkpoint yet (no {ckpt_root.name}/ folder)")
     retired = retired_checkpoints()
     if isinstance(checkpoint, str) and checkpoint in retired:
         raise DepthnerfError(f"{checkpoint}: a retired checkpoint, no longer shipped with depthnerf; its card "

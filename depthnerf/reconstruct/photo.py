@@ -2,8 +2,9 @@
 
 Input photo (assumption: ONE object, roughly centred, on a plain background)
     A PNG, JPEG or WebP file (:data:`PHOTO_FORMATS`; other formats, GIF animations included, are refused with one
-    line, by ``depthnerf reconstruct`` and the app alike; arrays and in-memory images are taken as they are; of an
-    animated PNG or WebP the first frame is read, noted);
+    line, by ``depthnerf reconstruct`` and the app alike; arrays and in-memory images are taken as they are, an
+    array as uint8, uint16 or float values in [0, 1] (NaN, floats outside [0, 1] and other integer types holding
+    8-bit values are an error); of an animated PNG or WebP the first frame is read, noted);
     a file with an EXIF orientation tag (a camera's portrait JPEG) is turned upright as viewers show it, and so
     is a mask file (noted); grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
     images larger than :data:`MAX_SIDE` px are first downscaled (box filter, aspect ratio kept) so the longer side
@@ -57,6 +58,8 @@ MIN_SIDE = 16
 """Smallest accepted image side (pixels)."""
 MAX_SIDE = 1024
 """Longer image sides are downscaled to this first."""
+FLOAT_SLACK = 0.01
+"""How far outside [0, 1] a float photo array may go (resampling overshoot, clipped); further is an error."""
 BACKGROUND_TOLERANCE = 0.1
 """Largest per-channel difference from the border colour that still counts as background (in [0, 1])."""
 ALPHA_THRESHOLD = 0.5
@@ -105,6 +108,27 @@ def _to_float(arr: np.ndarray) -> np.ndarray:
     if arr.dtype.kind in "iu":
         return arr.astype(np.float32) / 65535.0
     return np.clip(arr.astype(np.float32), 0.0, 1.0)
+
+
+def _check_array_values(arr: np.ndarray) -> None:
+    """A photo given as an array whose values :func:`_to_float` would misread (NaN, floats outside [0, 1], 8-bit
+    values in a wide integer type, which read as 16-bit are nearly black): one line saying what was expected."""
+    if arr.dtype.kind not in "biuf":
+        raise DepthnerfError(f"image: an array of {arr.dtype} is not pixels; pass uint8, uint16 or float values "
+                             "in [0, 1]")
+    if arr.dtype.kind == "f":
+        bad = int((~np.isfinite(arr)).sum())
+        if bad:
+            raise DepthnerfError(f"image: the array holds NaN or inf ({bad} of {arr.size} values)")
+        low, high = float(arr.min()), float(arr.max())
+        if low < -FLOAT_SLACK or high > 1 + FLOAT_SLACK:
+            hint = "; divide 8-bit values by 255 or pass a uint8 array" if low >= 0 and high <= 255 else ""
+            raise DepthnerfError(f"image: a float array is read as values in [0, 1], got {low:g} to {high:g}{hint}")
+    elif arr.dtype.kind in "iu" and arr.dtype not in (np.uint8, np.uint16) and arr.size:
+        low, high = int(arr.min()), int(arr.max())
+        if low < 0 or high > 65535 or high <= 255:
+            raise DepthnerfError(f"image: {arr.dtype} pixels are read as 16-bit values (0-65535), got {low} to "
+                                 f"{high}; pass 8-bit values as a uint8 array and 16-bit ones as uint16")
 
 
 def check_photo_format(fmt: str | None, name: str) -> None:
@@ -182,6 +206,7 @@ def read_photo(source: ImageLike, notes: list[str]) -> tuple[np.ndarray, np.ndar
         arr = np.asarray(source)
         if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] not in (1, 2, 3, 4)):
             raise DepthnerfError(f"image: expected an H x W (x 1|2|3|4) array, got shape {arr.shape}")
+        _check_array_values(arr)
         size = arr.shape[:2]
     else:
         size = (im.height, im.width)

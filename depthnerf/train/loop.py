@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from depthnerf.config_io import to_dict
 from depthnerf.crash_hook import crash_point
-from depthnerf.data.card import read_dataset_card
+from depthnerf.data.card import card_path, read_dataset_card
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
@@ -216,7 +216,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             if info.is_main:
                 print(f"mirror conditioning: symmetry plane {plane} ({plane_from})", file=sys.stderr, flush=True)
         card = read_dataset_card(root, cat)
-        spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"), dataset_framing(card))
+        framing = dataset_framing(card, str(card_path(root, cat)))
+        spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"), framing)
         near, far = spec.z_range
 
         torch.manual_seed(cfg.seed)

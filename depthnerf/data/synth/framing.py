@@ -80,10 +80,10 @@ LEGACY_FRAMING = "legacy"
 """Framing of datasets whose card predates the ``framing`` field (generator ``depthnerf-synth-1``)."""
 
 
-def get_framing(name: str) -> Framing:
-    """The framing called ``name`` (an error naming the choices otherwise)."""
+def get_framing(name: str, where: str = "synth") -> Framing:
+    """The framing called ``name`` (an error naming ``where`` it was read and the choices otherwise)."""
     if name not in FRAMINGS:
-        raise DepthnerfError(f"synth: unknown framing {name!r} (expected one of {', '.join(FRAMINGS)})")
+        raise DepthnerfError(f"{where}: unknown framing {name!r} (expected one of {', '.join(FRAMINGS)})")
     return FRAMINGS[name]
 
 
@@ -107,15 +107,17 @@ def checkpoint_framing(weights: Path, data_root: str | Path | None, category: st
         except (OSError, ValueError) as err:
             raise DepthnerfError(f"{card}: unreadable checkpoint card ({err})") from None
         if isinstance(meta, dict) and "framing" in meta:
-            return get_framing(str(meta["framing"])).name, str(card)
+            return get_framing(str(meta["framing"]), f"{card} framing").name, str(card)
     if data_root is not None:
         data_card = read_dataset_card(data_root, category)
         if data_card is not None:
-            return get_framing(card_framing(data_card)).name, str(card_path(data_root, category))
+            where = str(card_path(data_root, category))
+            return get_framing(card_framing(data_card), f"{where} framing").name, where
     return DEFAULT_FRAMING, "default (no checkpoint card or dataset card found)"
 
 
-def dataset_framing(card: dict | None) -> str:
-    """Framing of a dataset with this card (:func:`~depthnerf.data.card.read_dataset_card`): the card's
-    (:func:`card_framing`); a dataset without a card (a real SRN download) is SRN's own renders, ``srn``."""
-    return DEFAULT_FRAMING if card is None else get_framing(card_framing(card)).name
+def dataset_framing(card: dict | None, where: str = "dataset card") -> str:
+    """Framing of a dataset with this card (:func:`~depthnerf.data.card.read_dataset_card`, read from ``where``,
+    which an unknown framing's error names): the card's (:func:`card_framing`); a dataset without a card (a real
+    SRN download) is SRN's own renders, ``srn``."""
+    return DEFAULT_FRAMING if card is None else get_framing(card_framing(card), f"{where} framing").name
