@@ -12,7 +12,9 @@ the same splits and loads the same checkpoint, so each would print the same line
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
 import sys
 import warnings
 
@@ -119,3 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of stdout went away (`depthnerf ... | head`): stop quietly, as on SIGPIPE
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # no second error when Python flushes stdout
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141

@@ -347,3 +347,13 @@ def test_encoder_norm_names_live_once_in_a_torch_free_module():
     sub = next(a for a in build_parser(["eval"])._actions if a.dest == "command").choices["eval"]
     action = next(a for a in sub._actions if a.dest == "encoder_norm")
     assert action.choices is config.ENCODER_NORMS is pixelnerf.ENCODER_NORMS
+
+
+def test_a_closed_stdout_pipe_ends_the_command_quietly():
+    """``depthnerf train --print-config | head``: the reader closes the pipe before the config is written; the
+    command stops with 141 (128 + SIGPIPE) and no traceback, at the write or when Python flushes stdout."""
+    proc = subprocess.Popen([sys.executable, "-m", "depthnerf", "train", "--print-config"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    proc.stdout.close()  # before the child has written anything: it imports torch first
+    _, err = proc.communicate(timeout=120)
+    assert (proc.returncode, err.decode()) == (141, "")
