@@ -197,3 +197,41 @@ def test_delta_threshold_is_strict_and_constant_predictions_get_no_scale():
     y = torch.arange(18, dtype=torch.float64).reshape(2, 9) ** 2
     s, b = fit_scale_shift(x, y, torch.ones(2, 9, dtype=torch.bool))
     assert s.tolist() == [0.0, 0.0] and torch.allclose(b, y.mean(-1))
+
+
+def test_rows_and_images_without_foreground_get_zeros_not_nan():
+    """fit_scale_shift: an empty row is ``s = b = 0`` (its docstring), whatever the masked-out entries hold; the
+    scores of an image without foreground are 0 and flagged invalid, beside a scored image."""
+    x = torch.tensor([[1.0, 2.0, 3.0], [float("nan"), 5.0, float("inf")]])
+    y = torch.tensor([[3.0, 5.0, 7.0], [1.0, float("inf"), 2.0]])
+    s, b = fit_scale_shift(x, y, torch.tensor([[True, True, True], [False, False, False]]))
+    assert s.tolist() == [pytest.approx(2.0), 0.0] and b.tolist() == [pytest.approx(1.0), 0.0]
+    depth = torch.stack([torch.full((4, 4), 2.0), torch.zeros(4, 4)]).double()
+    scores = affine_invariant_scores(torch.rand(2, 4, 4, dtype=torch.float64), depth)
+    assert scores.valid.tolist() == [True, False]
+    assert scores.abs_rel.tolist() == [0.0, 0.0] and scores.delta1.tolist() == [1.0, 0.0]
+
+
+def test_background_pixels_never_count_as_delta_hits():
+    """Depths near 1 and a prediction ``1/z + c`` on the foreground: the fit ``1/z = pred - c`` is exact, so AbsRel
+    is 0 and every foreground pixel a hit. The background's aligned disparity is ``-c``: for ``c = 1`` capped to
+    depth ``10 * max z = 12`` (an error of 11 against a placeholder depth 1), for ``c = -1`` depth 1 (a hit
+    against that placeholder); neither may enter the scores."""
+    depth = torch.tensor([[0.8, 0.9, 1.0], [1.1, 1.2, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)[None]
+    fg = depth > 0
+    for shift in (1.0, -1.0):
+        pred = torch.where(fg, 1 / depth.clamp_min(1e-3) + shift, torch.full_like(depth, 7.0))
+        scores = affine_invariant_scores(pred, depth)
+        assert scores.abs_rel.item() == pytest.approx(0.0, abs=1e-6) and scores.delta1.item() == 1.0
+
+
+def test_normalised_values_by_hand_and_the_documented_range():
+    """Foreground ``[-50, -1, 0 x 6, 1, 50]``: median 0, mean absolute deviation 102 / 10 = 10.2, so the outliers
+    (-4.9, +4.9) clamp to the documented bounds -4 and 4 and ``+-1`` become ``+-1/10.2``; the background is the
+    documented -5 (the range ``[-5, 4]`` the shipped models were trained with)."""
+    fg = [-50.0, -1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 50.0]
+    disp = torch.tensor(fg + [123.0, -7.0]).reshape(1, 3, 4)
+    mask = torch.tensor([True] * 10 + [False, False]).reshape(1, 3, 4)
+    out = normalize_disparity(disp, mask).reshape(-1).tolist()
+    expected = [-4.0, -1 / 10.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1 / 10.2, 4.0, -5.0, -5.0]
+    assert out == pytest.approx(expected, abs=1e-6)

@@ -14,6 +14,7 @@ from depthnerf.eval.metrics import (
     MSE_FLOOR,
     ImageMetricsConfig,
     LpipsConfig,
+    LpipsMetric,
     load_lpips,
     lpips_status,
     object_metrics,
@@ -187,7 +188,6 @@ def test_lpips_reports_unavailable_instead_of_a_number(tmp_path):
     assert default.available == (default.reason == "ok") and (default.available or "unavailable:" in default.reason)
 
 
-
 def test_lpips_errors_name_the_file_that_is_bad(tmp_path, monkeypatch):
     """The linear-layer weights the lpips package ships and the trunk are two files: an unreadable or non-dict one
     is named, not the other."""
@@ -206,6 +206,7 @@ def test_lpips_errors_name_the_file_that_is_bad(tmp_path, monkeypatch):
     with pytest.raises(DepthnerfError, match="not a state dict") as err:
         load_lpips(LpipsConfig(net="alex", trunk_path=trunk))
     assert str(err.value).startswith(f"{linear}: ")
+
 
 def test_lpips_loads_local_weights_only(tmp_path):
     lpips = pytest.importorskip("lpips")
@@ -242,3 +243,25 @@ def test_lpips_loads_local_weights_only(tmp_path):
     path.write_bytes(b"not a checkpoint")
     with pytest.raises(DepthnerfError, match="cannot read LPIPS weights"):
         load_lpips(LpipsConfig(net="alex", trunk_path=path))
+
+
+class _SquaredError(torch.nn.Module):
+    """A stand-in perceptual distance: the mean squared difference of the [-1, 1] inputs, 4 x the [0, 1] MSE."""
+
+    def forward(self, p: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        return ((p - g) ** 2).mean(dim=(1, 2, 3), keepdim=True)
+
+
+def test_object_lpips_is_the_mean_over_views_in_batches_and_needs_every_object():
+    """Three views at offsets 0.05, 0.05, 0.2 (distances 4 x 0.0025, 4 x 0.0025, 4 x 0.04), two per batch: the
+    object's LPIPS is their mean 0.06 (the median would be 0.01); a dataset LPIPS needs every object's."""
+    gt = np.full((8, 8, 3), 0.5)
+    metric = LpipsMetric(_SquaredError())
+    preds = [gt + 0.05, gt + 0.05, gt + 0.2]
+    obj = object_metrics("a", preds, [gt] * 3, ImageMetricsConfig(lpips_batch=2), lpips=metric)
+    assert [v.lpips for v in obj.views] == pytest.approx([0.01, 0.01, 0.16])
+    assert obj.lpips == pytest.approx(0.06)
+    without = object_metrics("b", [gt], [gt])
+    assert summarize([obj, obj])["lpips"] == pytest.approx(0.06)
+    mixed = summarize([obj, without], lpips_reason="unavailable: test")
+    assert mixed["lpips"] is None and mixed["lpips_status"] == "unavailable: test"

@@ -151,6 +151,44 @@ def test_load_mesh_roundtrip_and_errors(tmp_path):
     (tmp_path / "bad.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nend_header\n")
     with pytest.raises(DepthnerfError, match="bad.ply"):
         load_mesh(tmp_path / "bad.ply")
+    broken = sphere.copy()
+    broken.vertices[3] = np.nan
+    broken.export(tmp_path / "nan.ply")
+    with pytest.raises(DepthnerfError, match="nan.ply: mesh has non-finite vertices"):
+        load_mesh(tmp_path / "nan.ply")
+
+
+def test_a_level_at_or_below_zero_is_capped_by_empty_space_below_it():
+    """The level set ``-|p| = -0.3`` (a sphere of radius 0.3, inside where the field exceeds the level) in the box
+    [-0.5, 0.5]^3: the padding must lie below the level, as the field outside the sphere does, so the mesh is the
+    sphere alone, not also a shell at the box's border."""
+    grid = CameraGrid.world_box((-0.5,) * 3, (0.5,) * 3)
+    mesh = extract_mesh(lambda p: -p.norm(dim=-1), grid, MeshConfig(resolution=24, threshold=-0.3))
+    step = grid.layout(24)[1]
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    assert mesh.is_watertight and np.abs(radii - 0.3).max() < step / 2
+    assert 4 / 3 * math.pi * (0.3 - step / 2) ** 3 < mesh.volume < 4 / 3 * math.pi * 0.3**3
+
+
+def test_a_density_that_only_reaches_the_level_gives_an_empty_mesh():
+    """Nothing exceeds the level (a plateau exactly at it): no surface, an empty mesh and no error, with or without
+    the padding."""
+    grid = CameraGrid.world_box((-0.5,) * 3, (0.5,) * 3)
+    for close in (True, False):
+        config = MeshConfig(resolution=8, threshold=20.0, close_boundary=close)
+        mesh = extract_mesh(lambda p: torch.full((len(p),), 20.0), grid, config)
+        assert len(mesh.vertices) == 0 and len(mesh.faces) == 0
+
+
+def test_vertex_colours_are_the_nearest_8_bit_values():
+    """RGB (0.45, 0.05, 1.2) is clipped to [0, 1] and rounded to the nearest 8-bit value: 114.75 -> 115,
+    12.75 -> 13, 1 -> 255; alpha 255."""
+    grid = CameraGrid.world_box((-0.5,) * 3, (0.5,) * 3)
+    colour = torch.tensor([0.45, 0.05, 1.2])
+    mesh = extract_mesh(sphere_density(0.3, torch.zeros(3)), grid, MeshConfig(resolution=8),
+                        color_fn=lambda p: colour.expand(len(p), 3))
+    assert len(mesh.vertices) > 0
+    assert mesh.visual.vertex_colors.tolist() == [[115, 13, 255, 255]] * len(mesh.vertices)
 
 
 def _pieces_by_union_find(faces: np.ndarray) -> list[set[int]]:
@@ -179,15 +217,16 @@ def test_keep_largest_piece_matches_a_brute_force_union_find():
     mesh = trimesh.util.concatenate(parts)
     # two triangles meeting at a single vertex are two pieces, not one
     corner = len(mesh.vertices)
+    bowtie = [[corner, corner + 1, corner + 2], [corner, corner + 3, corner + 4]]
     mesh = trimesh.Trimesh(np.vstack([mesh.vertices, [[2, 2, 2], [3, 2, 2], [2, 3, 2], [1, 2, 2], [2, 1, 2]]]),
-                           np.vstack([mesh.faces, [[corner, corner + 1, corner + 2], [corner, corner + 3, corner + 4]]]),
-                           process=False)
+                           np.vstack([mesh.faces, bowtie]), process=False)
     mesh.visual.vertex_colors = np.column_stack([np.arange(len(mesh.vertices)) % 256] * 3 + [
         np.full(len(mesh.vertices), 255)]).astype(np.uint8)
     truth = _pieces_by_union_find(np.asarray(mesh.faces))
     biggest = max(truth, key=len)
     kept, pieces = keep_pieces(mesh, "largest")
-    assert (pieces.pieces, pieces.faces, pieces.kept_faces) == (len(truth), len(mesh.faces), len(biggest)) == (6, 494, 320)
+    counts = (pieces.pieces, pieces.faces, pieces.kept_faces)
+    assert counts == (len(truth), len(mesh.faces), len(biggest)) == (6, 494, 320)
     want = {tuple(sorted(map(tuple, mesh.vertices[f].round(6).tolist()))) for f in mesh.faces[sorted(biggest)]}
     got = {tuple(sorted(map(tuple, kept.vertices[f].round(6).tolist()))) for f in kept.faces}
     assert got == want and len(kept.vertices) == 162  # the subdivided sphere's vertices, no stray ones

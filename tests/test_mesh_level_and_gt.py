@@ -62,7 +62,8 @@ def test_soft_ball_auto_mesh_sits_at_the_half_maximum_radius():
     assert used == level and len(mesh.faces) > 0
     radii = np.linalg.norm(mesh.vertices, axis=1)
     assert np.abs(radii - RADIUS).max() < 0.01  # sigmoid(0) = 1/2: the half-maximum surface is the sphere r = 0.5
-    assert used.describe().startswith(f"auto level {level.level:.4g} = 0.5 x median peak density over {level.opaque_rays} of 64")
+    assert used.describe().startswith(
+        f"auto level {level.level:.4g} = 0.5 x median peak density over {level.opaque_rays} of 64")
     assert f"median {level.level:.4g}" in levels_text([used], 48)
 
 
@@ -179,3 +180,23 @@ def test_visible_surface_follows_the_depth_maps_pixel_centre(tmp_path):
     assert np.abs(np.linalg.norm(on, axis=1) - RADIUS).max() < 1e-5
     off = visible_surface_points(record, n_points=10_000, pixel_center=0.0)
     assert np.abs(np.linalg.norm(off, axis=1) - RADIUS).max() > 1e-3
+
+
+def test_visible_surface_subsample_is_spread_evenly_over_every_view(tmp_path):
+    """Fewer GT samples than object pixels: the kept points are every ``P / n``-th of all views' points in view
+    order, so each view keeps its share ``n * P_view / P`` (up to rounding), not the first views all of it."""
+    (tmp_path / "pose").mkdir()
+    (tmp_path / "depth").mkdir()
+    record = _sphere_object(tmp_path, 4, Intrinsics(focal=96.0, cx=31.5, cy=31.5, height=64, width=64))
+    per_view = [backproject_depth(srn_format.read_depth(record.depth_path(k), record.depth_scale),
+                                  srn_format.read_pose(record.pose_path(k)), record.intrinsics) for k in range(4)]
+    total, n = sum(len(p) for p in per_view), 300
+    assert all(len(p) > n for p in per_view)
+    view_of = {tuple(p): k for k, pts in enumerate(per_view) for p in pts.round(9).tolist()}
+    points = visible_surface_points(record, n_points=n)
+    views = [view_of[tuple(p)] for p in points.round(9).tolist()]
+    assert views == sorted(views)  # in view order
+    for k, pts in enumerate(per_view):
+        assert abs(views.count(k) - n * len(pts) / total) <= 1.5
+    assert np.array_equal(points[0], per_view[0][0]) and np.array_equal(points[-1], per_view[-1][-1])
+    assert visible_surface_points(record, n_points=total).shape == (total, 3)  # all of them: nothing dropped

@@ -78,7 +78,8 @@ def test_silhouette_level_of_a_constant_ball_is_half_its_density():
     assert level.rule == "silhouette" and level.level == pytest.approx(3.5)  # midpoint of the peaks 7 and 0
     assert level.iou == pytest.approx(opaque.sum() / hit.sum())  # every hit ray kept; the grazing ones are not opaque
     assert level.opaque_rays == level.target_rays == opaque.sum() and level.rays == 64 * 64  # every pixel's ray
-    assert level.describe().startswith("silhouette level 3.5: its input-view silhouette matches the opaque input rays")
+    assert level.describe().startswith(
+        "silhouette level 3.5: its input-view silhouette matches the opaque input rays")
     assert "silhouette level per object" in levels_text([level], 48)
 
 
@@ -212,6 +213,9 @@ def test_local_level_falls_back_and_checks_the_mask():
     flat = lambda p: torch.full((len(p),), 0.1)  # noqa: E731 - opacity 1 - e^-0.2: no opaque ray
     level, fn, value = local_surface(flat, _camera(), INTR, NEAR, FAR)
     assert (level.rule, level.level, value) == ("fallback", DEFAULT_THRESHOLD, DEFAULT_THRESHOLD) and fn is flat
+    # a mask gives no auto level (its half median peak over the opaque rays) to clip to: still the fallback
+    level, fn, value = local_surface(flat, _camera(), INTR, NEAR, FAR, np.ones((64, 64), bool))
+    assert (level.rule, level.level, value) == ("fallback", DEFAULT_THRESHOLD, DEFAULT_THRESHOLD) and fn is flat
     with pytest.raises(DepthnerfError, match="mesh level: mask is 32x32 but the camera is 64x64"):
         local_surface(ball_and_rod(), _camera(), INTR, NEAR, FAR, np.ones((32, 32), bool))
 
@@ -243,3 +247,28 @@ def test_local_level_field_is_the_formula_at_pixel_centres():
         got = float(fn(point[None])[0])
         assert got == pytest.approx(float(density(point[None])[0]) / expected, rel=1e-4), (i, j)
     assert value == 1.0 and mask.sum() > (mask & (peak < 2.3)).sum() > 0  # some rod rays were probed
+
+
+def test_local_level_field_reads_its_own_pixel_of_a_wide_image():
+    """A 40 x 24 camera at the origin looking along +z and a slab 1.9 < z < 2.1 whose density ``A`` varies with the
+    ray (``x / z``, ``y / z``), so each ray's peak is its own ``A``. With the mask everywhere the levels are
+    ``clip(0.5 A, 0.5 min A, 0.5 median A)``, and a point at a pixel centre is scaled by that pixel's level."""
+    from depthnerf.data.cameras import camera_rays
+    from depthnerf.render.mesh_level import local_surface
+
+    intr = Intrinsics(focal=30.0, cx=19.5, cy=11.5, height=24, width=40)
+
+    def density(p: torch.Tensor) -> torch.Tensor:
+        a = 10 + 20 * (p[..., 0] / p[..., 2] + 0.7) + 10 * (p[..., 1] / p[..., 2] + 0.4)
+        return torch.where((p[..., 2] - 2.0).abs() < 0.1, a, torch.zeros_like(a))
+
+    c2w = torch.eye(4)
+    level, fn, value = local_surface(density, c2w, intr, NEAR, FAR, np.ones((24, 40), bool))
+    peak = input_ray_densities(density, c2w, intr, NEAR, FAR, ray_stride=1)[0].reshape(24, 40)
+    assert (level.floor, level.level) == pytest.approx((0.5 * peak.min(), 0.5 * np.median(peak[::2, ::2])))
+    origins, dirs = camera_rays(c2w, intr)
+    for i, j in [(0, 0), (0, 39), (23, 0), (5, 10), (5, 30), (17, 8), (12, 20)]:
+        point = origins[i, j] + dirs[i, j] * 2.0 / float(dirs[i, j, 2])
+        expected = min(max(0.5 * peak[i, j], level.floor), level.level)
+        assert float(fn(point[None])[0]) == pytest.approx(float(density(point[None])[0]) / expected, rel=1e-4)
+    assert value == 1.0 and level.floor < 0.5 * peak[5, 10] < level.level  # a pixel with its own half-maximum

@@ -126,3 +126,37 @@ def test_another_input_view_is_other_views(tmp_path: Path) -> None:
             w.writerows({**r, "input_view": view} for r in rows)
     with pytest.raises(SystemExit, match="object obj0 was scored on other views"):
         pd.paired(base, meth)
+
+
+def _write_columns(folder: Path, summary: dict, columns: dict[str, list[str]]) -> Path:
+    """per_object.csv with the given metric columns (one value per object obj0, obj1, ...; "" = not scored)."""
+    folder.mkdir(parents=True)
+    (folder / "summary.json").write_text(json.dumps(summary))
+    n = len(next(iter(columns.values())))
+    with open(folder / "per_object.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["object_id", "views", *columns])
+        w.writeheader()
+        for k in range(n):
+            w.writerow({"object_id": f"obj{k}", "views": "10", **{c: v[k] for c, v in columns.items()}})
+    return folder
+
+
+def test_common_objects_metric_directions_and_single_object_metrics(tmp_path: Path) -> None:
+    """The method scored 3 of the baseline's 4 objects; its summary predates ``resolution`` (not compared).
+    On the 3 shared objects: F-score d = (+0.1, +0.1, -0.1), higher is better: 2 wins; floater fraction
+    d = (-0.05, 0, -0.1), lower is better: 2 wins, 3 no worse; SSIM was scored on one object only: no row."""
+    pd = _load()
+    base = _write_columns(tmp_path / "base", {"method": "b", "resolution": 64},
+                          {"ssim": ["0.9", "", "", ""], "fscore": ["0.5", "0.6", "0.7", "0.8"],
+                           "floater_fraction": ["0.1", "0.0", "0.2", "0.3"]})
+    meth = _write_columns(tmp_path / "meth", {"method": "m"},
+                          {"ssim": ["0.95", "", ""], "fscore": ["0.6", "0.7", "0.6"],
+                           "floater_fraction": ["0.05", "0.0", "0.1"]})
+    with pytest.raises(SystemExit, match="objects differ"):
+        pd.paired(base, meth)
+    rows = {s.metric: s for s in pd.paired(base, meth, common=True)}
+    assert set(rows) == {"fscore", "floater_fraction"}
+    f, fl = rows["fscore"], rows["floater_fraction"]
+    assert (f.n, f.wins, f.no_worse) == (3, 2, 2) and (fl.n, fl.wins, fl.no_worse) == (3, 2, 3)
+    assert f.baseline_mean == pytest.approx(0.6) and f.mean_diff == pytest.approx(0.1 / 3)
+    assert fl.baseline_mean == pytest.approx(0.1) and fl.mean_diff == pytest.approx(-0.05)

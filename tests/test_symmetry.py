@@ -38,6 +38,7 @@ def test_dataset_plane_sources(tmp_path):
         plane_from_card({"objects": {"front": "+z", "up": "-z"}}, "card")
     plane, source = dataset_plane(tmp_path, "cars")
     assert plane == SHAPENET_PLANE and "ShapeNet" in source  # no card: SRN / ShapeNet data
+    assert SHAPENET_PLANE == (1.0, 0.0, 0.0, 0.0)  # x = 0: ShapeNet's left-right axis is X (module docstring)
     (tmp_path / "cars_card.json").write_text(json.dumps(SYNTH_CARD))
     assert dataset_plane(tmp_path, "cars") == ((0.0, 1.0, 0.0, 0.0), "dataset card cars_card.json")
     assert dataset_plane(tmp_path, "cars", (0, 0, 3, 0))[0] == (0.0, 0.0, 1.0, 0.0)

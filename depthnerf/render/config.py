@@ -52,8 +52,9 @@ class GuidedConfig:
     The sampler: two passes of one network (the fine one by default), the second reusing the first's evaluations:
 
     - pass 1, rays the guide marks *occupied*: ``n_uniform`` stratified samples over [near, far] plus ``n_window``
-      stratified over the guide's window (``[t_guess - spread, t_guess + spread]`` for a trusted surface guess,
-      ``[t_guess - spread, far]`` otherwise); rays the source view sees as empty: ``n_empty`` stratified samples.
+      stratified over the guide's window (``[min(t_enter, t_guess - spread), t_guess + spread]`` for a trusted
+      surface guess, ``[t_enter, far]`` otherwise: :meth:`~depthnerf.render.depth_guide.DepthGuide.window`); rays
+      the source view sees as empty: ``n_empty`` stratified samples.
     - pass 2: ``n_importance`` (empty rays: ``n_empty_importance``) inverse-CDF samples from the pass-1 weights
       over the gaps between pass-1 samples, plus ``n_gaussian`` (occupied rays only) around the pass-1
       opacity-normalised depth; the result composites the sorted union.

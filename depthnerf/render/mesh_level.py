@@ -45,8 +45,9 @@ silhouette of the object seen from the input camera.
     is as tight as its half-maximum. :class:`MeshLevel` records ``L_auto`` as ``level`` and ``L_silhouette`` (or
     ``L_auto`` when lower) as ``floor``.
 
-When no ray is opaque (``silhouette`` and ``local`` with a mask: also when the mask is empty) the rules fall back
-to :data:`DEFAULT_THRESHOLD` and :class:`MeshLevel` says so.
+When no ray is opaque the rules fall back to :data:`DEFAULT_THRESHOLD` and :class:`MeshLevel` says so; with a mask,
+``local`` also falls back when the mask is empty, and ``silhouette`` only then (its target is the mask, whatever
+the opacity).
 :data:`DEFAULT_THRESHOLD` (20, NeRF practice being 10-50 for unit-scale scenes): a slab 0.05 thick (5% of a
 unit-diagonal SRN object, about a chair leg) at density 20 has opacity ``1 - exp(-20 * 0.05) = 63%``.
 """

@@ -1,0 +1,90 @@
+"""Checkpoint files (depthnerf.train.checkpoint) without a training run: what a save and a load must give back,
+pruning, re-saving a step, and the resume's mending of ``best/``."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from depthnerf.train import checkpoint as ckpt
+
+
+class _CountingSGD(torch.optim.SGD):
+    """SGD with momentum that also keeps a plain-number count per parameter (state that is not a tensor)."""
+
+    def step(self, closure=None):
+        out = super().step(closure)
+        for group in self.param_groups:
+            for p in group["params"]:
+                self.state[p]["calls"] = self.state[p].get("calls", 0) + 1
+        return out
+
+
+def _trained(seed: int, steps: int = 3) -> tuple[torch.nn.Module, torch.optim.Optimizer]:
+    torch.manual_seed(seed)
+    model = torch.nn.Linear(3, 2)
+    opt = _CountingSGD(model.parameters(), lr=0.1, momentum=0.9)
+    for _ in range(steps):
+        opt.zero_grad()
+        model(torch.randn(4, 3)).pow(2).sum().backward()
+        opt.step()
+    return model, opt
+
+
+def _save(root: Path, step: int, seed: int = 0, **state) -> Path:
+    model, opt = _trained(seed)
+    fields = {"best_psnr": 12.5, **state}
+    return ckpt.save_checkpoint(root, model, opt, {"toy": 1}, ckpt.TrainingState(step=step, **fields), keep_last=2)
+
+
+def test_save_then_load_gives_back_weights_optimizer_and_state(tmp_path):
+    model, opt = _trained(0)
+    state = ckpt.TrainingState(step=7, best_psnr=21.25, world_size=2, best_step=5)
+    saved = ckpt.save_checkpoint(tmp_path, model, opt, {"toy": 1}, state)
+    fresh = torch.nn.Linear(3, 2)
+    fresh_opt = _CountingSGD(fresh.parameters(), lr=0.5, momentum=0.1)
+    assert ckpt.load_checkpoint(saved, fresh, fresh_opt, {"toy": 1}) == state
+    assert all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), fresh.state_dict().values(),
+                                                   strict=True))
+    for p, q in zip(model.parameters(), fresh.parameters(), strict=True):
+        assert fresh_opt.state[q]["calls"] == 3 and torch.equal(fresh_opt.state[q]["momentum_buffer"],
+                                                                 opt.state[p]["momentum_buffer"])
+    assert fresh_opt.param_groups[0]["lr"] == 0.1 and fresh_opt.param_groups[0]["momentum"] == 0.9
+    no_validation = ckpt.TrainingState(step=8, best_psnr=-math.inf)
+    unvalidated = ckpt.save_checkpoint(tmp_path, model, opt, {"toy": 1}, no_validation)
+    assert json.loads((unvalidated / "state.json").read_text())["best_psnr"] is None  # strict JSON
+    assert ckpt.load_checkpoint(unvalidated, fresh, None, {"toy": 1}) == no_validation
+
+
+def test_pruning_keeps_the_newest_and_a_step_saved_again_is_replaced(tmp_path):
+    for step in (1, 2, 3):
+        _save(tmp_path, step)
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_00000002", "step_00000003"]  # keep_last=2
+    again = _save(tmp_path, 3, seed=1)
+    fresh = torch.nn.Linear(3, 2)
+    ckpt.load_checkpoint(again, fresh, None, {"toy": 1})
+    assert torch.equal(fresh.weight, _trained(1)[0].weight)
+    assert (tmp_path / "latest").read_text() == "step_00000003\n"
+
+
+def test_resume_mends_best_only_when_it_holds_another_step(tmp_path):
+    """``best/`` holding the recorded best step is left alone (no copy, no note); holding another step, or missing,
+    it becomes a copy of the best step's folder; stray temporary folders of killed writers are removed."""
+    first = _save(tmp_path, 1)
+    ckpt.mark_best(tmp_path, first)
+    _save(tmp_path, 2, best_step=2)
+    marker = tmp_path / "best" / "kept.txt"
+    marker.write_text("untouched")
+    assert ckpt.restore_best(tmp_path, ckpt.TrainingState(2, 12.5, best_step=1)) is None
+    assert marker.is_file()
+    strays = [tmp_path / ".step_00000003.99.tmp", tmp_path / ".best.99.tmp"]
+    for stray in strays:
+        stray.mkdir()
+    note = ckpt.restore_best(tmp_path, ckpt.TrainingState(2, 12.5, best_step=2))
+    assert note == f"restored {tmp_path / 'best'} from step_00000002 (a kill had interrupted its copy)"
+    assert json.loads((tmp_path / "best" / "state.json").read_text())["step"] == 2 and not marker.exists()
+    assert not any(stray.exists() for stray in strays)
+    assert ckpt.restore_best(tmp_path, ckpt.TrainingState(2, 12.5, best_step=2)) is None
