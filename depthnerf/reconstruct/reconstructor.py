@@ -123,10 +123,10 @@ class ReconstructConfig:
         """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
         for name, value, least in (("views", self.views, 1), ("render_resolution", self.render_resolution, 1),
                                    ("chunk", self.chunk, 1), ("max_points", self.max_points, 0),
-                                   ("mesh_resolution", self.mesh_resolution, 0)):
+                                   ("mesh_resolution", self.mesh_resolution, None)):  # its rule is below
             if value is not None and (isinstance(value, bool) or not isinstance(value, int | np.integer)):
                 raise DepthnerfError(f"--{name.replace('_', '-')} must be a whole number, got {value!r}")
-            if value is not None and value < least:
+            if value is not None and least is not None and value < least:
                 raise DepthnerfError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
         if self.mesh_resolution != 0 and self.mesh_resolution < 2:
             raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
