@@ -255,7 +255,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     source = load_pretrained(source_path)
     _check_fp16_range(source)
     cfg = from_dict_config(json.loads(meta["train_config"]), where=f"{source_path} train_config")
-    warm = read_json_object(run / "init_from.json", "run warm-start record") if (run / "init_from.json").is_file() else None
+    warm = (read_json_object(run / "init_from.json", "run warm-start record")
+            if (run / "init_from.json").is_file() else None)
     behind = steps_behind(warm) if warm is not None else 0  # may hash the source file: once
     total_steps = source.step + behind
     out.mkdir(parents=True, exist_ok=True)

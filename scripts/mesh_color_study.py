@@ -1,4 +1,4 @@
-"""Mesh vertex colours scored against the true views: each colour rule's mesh rendered into the protocol's target views.
+"""Mesh vertex colours scored against the true views: each colour rule's mesh rendered into the target views.
 
 For each test object, exactly as ``depthnerf eval`` prepares it (input view 64, every ``--views-stride``-th other
 view), the mesh is extracted once (``--mesh-resolution``, the ``auto`` level, as reconstruct and the demo) and

@@ -62,7 +62,8 @@ def test_a_run_folder_deleted_while_training_is_one_line_naming_the_metrics_file
     log.log(1, {"loss": 0.5})
     (run / "metrics.jsonl").unlink()
     run.rmdir()
-    with pytest.raises(DepthnerfError, match=r"run/metrics.jsonl: cannot append the step-2 metrics .*moved or deleted"):
+    with pytest.raises(DepthnerfError,
+                       match=r"run/metrics.jsonl: cannot append the step-2 metrics .*moved or deleted"):
         log.log(2, {"loss": 0.4})
 
 

@@ -108,8 +108,9 @@ def _check_card(root: Path, category: str) -> None:
     framing and symmetry plane): a bad one is the error they would stop with."""
     card = read_dataset_card(root, category)
     if card is not None:
-        dataset_framing(card, str(card_path(root, category)))
-        plane_from_card(card, str(card_path(root, category)))
+        where = str(card_path(root, category))
+        dataset_framing(card, where)
+        plane_from_card(card, where)
 
 
 def run(args: argparse.Namespace) -> int:

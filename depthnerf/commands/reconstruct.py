@@ -53,7 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "image's right (0 = facing the camera, 90 = facing right, 270 = left; default 90, a side "
                         "view); none = no symmetry plane")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
-    p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (default 128; 0 = no mesh)")
+    p.add_argument("--mesh-resolution", type=int, default=128,
+                   help="marching-cubes grid samples (default 128; 0 = no mesh)")
     p.add_argument("--mesh-threshold", default="auto",
                    help="marching-cubes density level: a number, auto (default: half the median peak density "
                         "along the opaque input rays), silhouette (the level whose input-view outline best matches "

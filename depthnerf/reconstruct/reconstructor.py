@@ -291,9 +291,9 @@ class Reconstructor:
             on_stage(1)
         t = time.perf_counter()
         mesh, level = trimesh.Trimesh(), None
+        mesh_cfg = MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold, colors=cfg.mesh_colors)
         if cfg.mesh_resolution > 0:
-            mesh, level = self.session.mesh(encoded, MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold,
-                                                                colors=cfg.mesh_colors))
+            mesh, level = self.session.mesh(encoded, mesh_cfg)
         mesh, pieces = keep_pieces(mesh, cfg.mesh_keep)
         bar.update(1)
         bar.close()
@@ -315,7 +315,7 @@ class Reconstructor:
                     "mesh_keep": cfg.mesh_keep, "mesh_pieces": pieces.pieces, "mesh_faces_extracted": pieces.faces,
                     "mesh_faces_kept": pieces.kept_faces,
                     "point_opacity": POINT_OPACITY,
-                    "mesh_colors": describe_colors(cfg.mesh_colors, MeshConfig().color_half_width)}
+                    "mesh_colors": describe_colors(mesh_cfg.colors, mesh_cfg.color_half_width)}
         return Reconstruction(
             input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
             prior_normalized=None if normalized is None else normalized[0, 0, 0].cpu().numpy(),

@@ -247,22 +247,6 @@ def load_mesh(path: Path) -> trimesh.Trimesh:
     return mesh
 
 
-def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"],
-                  runtime: FieldRuntime | None = None
-                  ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
-    """``(density_fn, color_fn)`` of the fine network (the coarse one without a fine network) at world points
-    ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it, run as
-    ``runtime`` says (None: the default)."""
-    fn = model.field(enc, "fine", runtime)
-
-    def query(points: Tensor) -> tuple[Tensor, Tensor]:
-        dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
-        rgb, sigma = fn(points[None, :, None, :], dirs[None])
-        return rgb[0, :, 0], sigma[0, :, 0]
-
-    return (lambda p: query(p)[1]), (lambda p: query(p)[0])
-
-
 def field_radiance(model: PixelNeRF, enc: EncodedViews, runtime: FieldRuntime | None = None) -> RadianceFn:
     """The fine network (the coarse one without a fine network) as a :data:`~depthnerf.render.mesh_colors.RadianceFn`:
     points ``[N, S, 3]`` seen along directions ``[N, 3]`` -> ``(rgb [N, S, 3], density [N, S])``."""
@@ -273,6 +257,22 @@ def field_radiance(model: PixelNeRF, enc: EncodedViews, runtime: FieldRuntime | 
         return rgb[0], sigma[0]
 
     return radiance
+
+
+def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"],
+                  runtime: FieldRuntime | None = None
+                  ) -> tuple[Callable[[Tensor], Tensor], Callable[[Tensor], Tensor]]:
+    """``(density_fn, color_fn)`` of the fine network (the coarse one without a fine network) at world points
+    ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it, run as
+    ``runtime`` says (None: the default)."""
+    radiance = field_radiance(model, enc, runtime)
+
+    def query(points: Tensor) -> tuple[Tensor, Tensor]:
+        dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
+        rgb, sigma = radiance(points[:, None, :], dirs)
+        return rgb[:, 0], sigma[:, 0]
+
+    return (lambda p: query(p)[1]), (lambda p: query(p)[0])
 
 
 def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,

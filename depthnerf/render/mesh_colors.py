@@ -41,7 +41,8 @@ MESH_COLOR_RULES = (NORMAL_RAY, POINT)
 MIN_OPACITY = 1e-3
 """``normal-ray``: below this opacity along the short ray a vertex takes its point colour seen along ``-n``."""
 
-RadianceFn = Callable[[Float[Tensor, "N S 3"], Float[Tensor, "N 3"]], tuple[Float[Tensor, "N S 3"], Float[Tensor, "N S"]]]
+RadianceFn = Callable[[Float[Tensor, "N S 3"], Float[Tensor, "N 3"]],
+                      tuple[Float[Tensor, "N S 3"], Float[Tensor, "N S"]]]
 """World points of N rays (S each) and each ray's unit viewing direction -> (RGB in [0, 1], density)."""
 
 
@@ -67,10 +68,12 @@ def normal_ray_colors(radiance_fn: RadianceFn, vertices: Float[Tensor, "N 3"], n
         points = (v + half_width * n)[:, None, :] - n[:, None, :] * t[None, :, None]
         rgb, sigma = radiance_fn(points, -n)
         weights, _ = render_weights(sigma, interval.expand_as(sigma))
-        opacity = weights.sum(-1, keepdim=True)
-        ray = (weights[..., None] * rgb).sum(-2) / opacity.clamp_min(MIN_OPACITY)
-        at_vertex, _ = radiance_fn(v[:, None, :], -n)
-        return torch.where(opacity >= MIN_OPACITY, ray, at_vertex[:, 0])
+        opacity = weights.sum(-1)
+        color = (weights[..., None] * rgb).sum(-2) / opacity.clamp_min(MIN_OPACITY)[:, None]
+        faint = opacity < MIN_OPACITY
+        if faint.any():  # no density near the vertex: its own colour, seen along -n
+            color[faint] = radiance_fn(v[faint, None, :], -n[faint])[0][:, 0]
+        return color
 
     rows = torch.arange(len(vertices), device=vertices.device)
     return query_chunks(colors, lambda a, b: rows[a:b], len(vertices), max(1, chunk // samples), 3,

@@ -73,8 +73,8 @@ class RunLog:
             with open(self.path, "a") as f:
                 f.write(json.dumps({"step": step, **{k: _clean(v) for k, v in values.items()}}) + "\n")
         except OSError as err:  # the run folder moved or deleted under the run, a full disk
-            raise DepthnerfError(f"{self.path}: cannot append the step-{step} metrics ({err.strerror or err}); was the "
-                                 "run folder moved or deleted while training?") from None
+            raise DepthnerfError(f"{self.path}: cannot append the step-{step} metrics ({err.strerror or err}); was "
+                                 "the run folder moved or deleted while training?") from None
         if self.writer is not None:
             for key, value in values.items():
                 if isinstance(value, int | float) and math.isfinite(value):
