@@ -68,7 +68,7 @@ from depthnerf.reconstruct.exports import save_reconstruction, to_u8
 from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
-from depthnerf.render.mesh_level import AUTO_LEVEL
+from depthnerf.render.mesh_level import LOCAL_LEVEL
 
 DEMO_SEED = 2718
 """``depthnerf synth --seed`` of the demo objects (training data: seed 0; bundled-depth evaluation: 1234)."""
@@ -235,7 +235,7 @@ def run_category(category: str, session: InferenceSession, checkpoint: str, cfg:
     src, tgt, encoded = obj.source, obj.targets, obj.encoded
     if not cfg.mesh:
         notes.append("--no-mesh: no mesh extracted (no mesh.ply or mesh.glb written)")
-    rcfg = ReconstructConfig(mesh_resolution=cfg.mesh_resolution if cfg.mesh else 0, mesh_threshold=AUTO_LEVEL,
+    rcfg = ReconstructConfig(mesh_resolution=cfg.mesh_resolution if cfg.mesh else 0, mesh_threshold=LOCAL_LEVEL,
                              max_points=None, chunk=cfg.chunk)
     preds = rec.render(encoded, tgt.poses, tgt.intrinsics, rcfg).rgb.numpy()
     gts = tgt.images.permute(0, 2, 3, 1).numpy()

@@ -33,7 +33,7 @@ from safetensors.torch import load_file  # noqa: E402
 
 from depthnerf.train.run_log import read_metrics  # noqa: E402
 
-TERMS = ("loss", "loss_coarse", "loss_fine", "loss_depth", "loss_background")
+TERMS = ("loss", "loss_coarse", "loss_fine", "loss_depth", "loss_background", "loss_foreground")
 
 
 def train_command(data: Path, out: Path, steps: int, device: str) -> list[str]:

@@ -28,7 +28,7 @@ from depthnerf.train.batching import BatchPlan, sample_pixels, step_keys
 from depthnerf.train.config import check_config, preset, with_prior
 from depthnerf.train.loop import learning_rate
 from depthnerf.train.run_log import read_launches, read_metrics
-from depthnerf.train.step import background_opacity_per_object
+from depthnerf.train.step import background_opacity_per_object, foreground_opacity_per_object
 
 
 def cli(*args: str, check: bool = True, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -156,6 +156,21 @@ def test_background_opacity_loss_closed_form():
     assert background_opacity_per_object(opacity, torch.ones_like(fg)).tolist() == [0.0, 0.0]  # no background ray
 
 
+def test_foreground_opacity_loss_against_a_loop():
+    """Per object, the mean of (1 - opacity)^2 over the object's rays, from a plain loop over random rays and
+    masks (an object with no object ray gives 0)."""
+    g = torch.Generator().manual_seed(3)
+    opacity = torch.rand(4, 9, generator=g, dtype=torch.float64)
+    fg = torch.rand(4, 9, generator=g) < 0.4
+    fg[2] = False
+    expected = []
+    for b in range(4):
+        values = [(1 - opacity[b, r].item()) ** 2 for r in range(9) if fg[b, r]]
+        expected.append(sum(values) / len(values) if values else 0.0)
+    assert foreground_opacity_per_object(opacity, fg).tolist() == pytest.approx(expected, abs=1e-12)
+    assert foreground_opacity_per_object(torch.ones(2, 3), torch.ones(2, 3, dtype=torch.bool)).tolist() == [0, 0]
+
+
 def test_background_opacity_term_enters_the_training_loss(data, tmp_path):
     """With ``--schedule.background_opacity_weight W`` the logged loss is coarse + fine + W * background (and the
     background term is logged, positive at initialisation, and logged unweighted at weight 0); on in the CPU
@@ -170,11 +185,18 @@ def test_background_opacity_term_enters_the_training_loss(data, tmp_path):
     cli("train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--out", str(off),
         "--max-steps", "2", "--log.val_every", "0", "--schedule.background_opacity_weight", "0", *TINY)
     for m in (m for m in read_metrics(off) if "loss" in m):
-        assert m["loss_background"] > 0
+        assert m["loss_background"] > 0 and m["loss_foreground"] > 0
         assert m["loss"] == pytest.approx(m["loss_coarse"] + m["loss_fine"], rel=1e-6)
+    fg = tmp_path / "fg"
+    cli("train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--out", str(fg),
+        "--max-steps", "2", "--log.val_every", "0", "--schedule.background_opacity_weight", "0",
+        "--schedule.foreground_opacity_weight", "0.5", *TINY)
+    for m in (m for m in read_metrics(fg) if "loss" in m):
+        assert m["loss"] == pytest.approx(m["loss_coarse"] + m["loss_fine"] + 0.5 * m["loss_foreground"], rel=1e-6)
     assert preset("cpu-cars").schedule.background_opacity_weight == 0.02
     assert preset("cpu-chairs").schedule.background_opacity_weight == 0.02
     assert preset("paper-cars").schedule.background_opacity_weight == 0.0
+    assert preset("paper-cars").schedule.foreground_opacity_weight == preset("cpu-cars").schedule.foreground_opacity_weight == 0
 
 
 def test_train_run_folder_determinism_and_refusal_to_overwrite(data, tmp_path):

@@ -207,7 +207,8 @@ def tiny_setup(b: int, depth_aware: bool = False, seed: int = 0, device: str = "
                        target_cos=torch.rand(b, r, generator=gen) * 0.2 + 0.8)
     keys = [ItemKey(k, 1000 + 17 * k, True) for k in range(b)]
     render = RenderConfig(sampler=SamplerConfig(n_coarse=8, n_importance=4, n_gaussian=4))
-    return model, BatchLoss(model, render, depth_weight=0.1, background_weight=0.2), batch.to(device), keys
+    loss = BatchLoss(model, render, depth_weight=0.1, background_weight=0.2, foreground_weight=0.3)
+    return model, loss, batch.to(device), keys
 
 
 def grads(model: torch.nn.Module) -> dict[str, torch.Tensor]:
@@ -234,7 +235,7 @@ def test_batched_step_equals_the_per_object_loop(depth_aware):
     g_batched = grads(model)
     looped = train_step(loss, batch, keys, 5, 0.8, 1.8, torch.device("cpu"), per_object=True)
     g_looped = grads(model)
-    assert batched.shape == (5,) and (batched[3:] > 0).all()  # depth and background terms are on
+    assert batched.shape == (6,) and (batched[3:] > 0).all()  # depth, background and foreground terms are on
     torch.testing.assert_close(batched, looped, rtol=1e-5, atol=1e-7)
     assert_grads_close(g_batched, g_looped, rel=1e-4)
 
@@ -248,7 +249,8 @@ def compiled_step_check() -> None:
     g_eager = grads(model)
     runtime = compiled_fields(model)
     assert set(runtime.forwards) == {"coarse", "fine"}
-    compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, runtime)
+    compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, runtime,
+                         foreground_weight=loss.foreground_weight)
     torch._dynamo.utils.counters.clear()
     fused = train_step(compiled, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 2  # coarse and fine MLPs went through dynamo
@@ -266,7 +268,8 @@ def compiled_whole_step_check() -> None:
     g_eager = grads(model)
     stats_eager = {k: v.clone() for k, v in model.state_dict().items() if "running" in k}
     model.load_state_dict(state)
-    compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, compile_step="aot_eager")
+    compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, compile_step="aot_eager",
+                         foreground_weight=loss.foreground_weight)
     torch._dynamo.utils.counters.clear()
     packed = PackedBatch.pack(batch).to("cpu")  # as the loop gets it from a worker: the fields view one storage
     whole = train_step(compiled, packed, keys, 3, 0.8, 1.8, torch.device("cpu"))

@@ -127,9 +127,9 @@ class RunRequest:
     """Remove the background of a photo without alpha with a background model when one is installed."""
     background_model: str = ""
     """rembg model name or ONNX file ("" = ``AppConfig.background_model``, else rembg's u2net)."""
-    mesh_level: str = "auto"
-    """The mesh's level rule, one of :data:`~depthnerf.render.mesh_level.LEVEL_RULES` (the page offers ``auto``,
-    one tight piece, and ``local``, which keeps thin parts in a looser surface)."""
+    mesh_level: str = "local"
+    """The mesh's level rule, one of :data:`~depthnerf.render.mesh_level.LEVEL_RULES` (the page offers ``local``,
+    the default, which keeps thin parts in a looser surface, and ``auto``, one tight piece)."""
     guided: bool = True
     """Render the orbit with depth-guided sampling at its default budget (``ReconstructConfig.guided``): on the
     shipped app models within 0.04 dB of their own sampler and about twice as fast (docs/RESULTS.md, "Depth-guided

@@ -70,9 +70,9 @@ FACING_DEFAULT = 90.0
 """The facing slider's start: a side view with the front to the right (``ReconstructConfig.facing``)."""
 FACING_INFO = ("which way the object's front points: 0 = towards the camera, 90 = right (a side view, the "
                "default), 180 = away, 270 = left; sets the mirror plane of models with mirror-symmetric conditioning")
-MESH_LEVEL_INFO = ("auto: one tight piece at half the object's typical density; local: each part at its own "
-                   "half-maximum, outlined by the photo's mask, which keeps thin parts (legs, frames) in a looser "
-                   "surface (docs/RESULTS.md, \"Mesh level rules\")")
+MESH_LEVEL_INFO = ("local: each part at its own half-maximum, outlined by the photo's mask, which keeps thin parts "
+                   "(legs, frames) in a looser surface; auto: one tight piece at half the object's typical density "
+                   "(docs/RESULTS.md, \"Mesh level rules\")")
 GUIDED_INFO = ("samples each ray where the depth prior puts the surface: about twice as fast, within 0.04 dB of "
                "the model's own sampler on the shipped models (docs/RESULTS.md, \"Depth-guided sampling\")")
 SYMMETRY_INFO = ("models with mirror-symmetric conditioning also read each point's mirror image; untick for none "
@@ -129,7 +129,7 @@ def build_page(session: AppSession) -> gr.Blocks:
             return gr.Slider()
 
     def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg, bg_model,
-                    facing=FACING_DEFAULT, use_symmetry=True, mesh_level="auto", guided=True,
+                    facing=FACING_DEFAULT, use_symmetry=True, mesh_level="local", guided=True,
                     progress=gr.Progress(track_tqdm=True)):  # noqa: B008 - Gradio's way to ask for a progress bar
         request = RunRequest(image=image, model=model, checkpoint_path=ckpt_path or "", depth_prior=prior,
                              depth_checkpoint=prior_ckpt or "", foreground_ratio=ratio, elevation=elevation,
@@ -174,7 +174,7 @@ def build_page(session: AppSession) -> gr.Blocks:
                                            elem_id="use-symmetry")
                 facing = gr.Slider(0, 359, value=FACING_DEFAULT, step=1, label="Object facing (degrees)",
                                    info=FACING_INFO, elem_id="facing")
-                mesh_level = gr.Radio(["auto", "local"], value="auto", label="Mesh surface", info=MESH_LEVEL_INFO,
+                mesh_level = gr.Radio(["local", "auto"], value="local", label="Mesh surface", info=MESH_LEVEL_INFO,
                                       elem_id="mesh-level")
                 guided = gr.Checkbox(value=True, label="Depth-guided rendering", info=GUIDED_INFO, elem_id="guided")
                 run = gr.Button("Reconstruct", variant="primary", elem_id="run")

@@ -55,11 +55,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128,
                    help="marching-cubes grid samples (default 128; 0 = no mesh)")
-    p.add_argument("--mesh-threshold", default="auto",
-                   help="marching-cubes density level: a number, auto (default: half the median peak density "
-                        "along the opaque input rays), silhouette (the level whose input-view outline best matches "
-                        "the input's mask: keeps thin parts, a thicker surface) or local (half the peak along each "
-                        "input ray, between the two)")
+    p.add_argument("--mesh-threshold", default="local",
+                   help="marching-cubes density level: a number, local (default: half the peak density along each "
+                        "input ray, between the auto and silhouette levels on the mask's rays, auto elsewhere: "
+                        "keeps thin parts), auto (half the median peak density along the opaque input rays: one "
+                        "tight surface) or silhouette (the level whose input-view outline best matches the input's "
+                        "mask: a thicker surface)")
     p.add_argument("--mesh-keep", choices=["all", "largest"], default="all",
                    help="all pieces of the mesh (default), or only the largest connected piece; manifest.json "
                         "records the pieces and faces either way")

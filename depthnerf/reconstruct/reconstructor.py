@@ -59,7 +59,7 @@ from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, check_mesh_keep, keep_pieces
 from depthnerf.render.mesh_colors import NORMAL_RAY, check_color_rule, describe_colors
-from depthnerf.render.mesh_level import AUTO_LEVEL, parse_level
+from depthnerf.render.mesh_level import LOCAL_LEVEL, parse_level
 from depthnerf.render.source_guide import as_guided
 from depthnerf.render.views import ViewRenders
 
@@ -88,9 +88,10 @@ class ReconstructConfig:
     """Side of the rendered views; None = the training resolution."""
     mesh_resolution: int = 128
     """Marching-cubes samples along the frustum box's longest side (0 = no mesh)."""
-    mesh_threshold: float | str = AUTO_LEVEL
-    """Density level of the mesh surface, or a rule: ``"auto"`` or ``"silhouette"`` (the photo's mask is its
-    target; see :mod:`depthnerf.render.mesh_level`)."""
+    mesh_threshold: float | str = LOCAL_LEVEL
+    """Density level of the mesh surface, or a rule (:mod:`depthnerf.render.mesh_level`): ``"local"`` (the default:
+    each input ray's half-maximum, clipped to the photo's mask, which keeps thin parts; docs/RESULTS.md, "Mesh
+    level rules"), ``"auto"`` (one level, a tighter surface without them) or ``"silhouette"``."""
     mesh_keep: str = "all"
     """``all`` pieces of the mesh, or the ``largest`` connected piece only (:func:`~depthnerf.render.mesh.keep_pieces`;
     the manifest records the pieces and the faces kept either way)."""

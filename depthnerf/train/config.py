@@ -107,6 +107,11 @@ class ScheduleConfig:
     background target rays, averaged over objects (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
     colour loss; this term penalises it (the white floaters of docs/RESULTS.md). The term is measured and logged
     (``loss_background``) at every weight, 0 included."""
+    foreground_opacity_weight: float = 0.0
+    """Weight of :func:`~depthnerf.train.step.foreground_opacity_per_object`: squared transparency of coarse and
+    fine on target rays that show the object, averaged over objects (beyond the paper; 0 = off). With the
+    background term it is a silhouette loss on the target's mask; it pushes thin and light-coloured parts, whose
+    colour error is small, to full opacity. Measured and logged (``loss_foreground``) at every weight."""
 
 
 @dataclass
@@ -166,7 +171,9 @@ NUMBER_RULES: dict[str, tuple[float, bool]] = {
     "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
     "schedule.lr_decay": (0, False), "schedule.lr_final": (0, True), "schedule.depth_loss_weight": (0, True),
-    "schedule.background_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "log.log_every": (1, True), "log.val_every": (0, True),
+    "schedule.background_opacity_weight": (0, True),
+    "schedule.foreground_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "log.log_every": (1, True),
+    "log.val_every": (0, True),
     "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
     "log.render_chunk": (1, True), "render.sampler.n_coarse": (1, True), "render.sampler.n_importance": (0, True),
     "render.sampler.n_gaussian": (0, True), "render.sampler.gaussian_std": (0, True),

@@ -258,7 +258,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     barrier(info)
 
     loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight,
-                            compiled_fields(model) if compile else None, "inductor" if compile_step else None)
+                            compiled_fields(model) if compile else None, "inductor" if compile_step else None,
+                            foreground_weight=cfg.schedule.foreground_opacity_weight)
     # buffers: merged after each step (NormMerge), not rank 0's broadcast before each forward (the flag's newer name
     # where torch has it)
     no_sync = "forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(
@@ -312,11 +313,13 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                 torch.distributed.all_reduce(terms)
                 terms /= info.world
             if info.is_main and log_now:
-                total, coarse, fine, depth, background = terms.tolist()  # the one host sync per log interval
+                # the one host sync per log interval
+                total, coarse, fine, depth, background, foreground = terms.tolist()
                 now = time.perf_counter()
                 psnr = -10.0 * math.log10(max(fine, 1e-10))
                 values = {"loss": total, "loss_coarse": coarse, "loss_fine": fine, "loss_depth": depth,
-                          "loss_background": background, "psnr_train": psnr, "lr": lr, "epoch": plan.epoch(step),
+                          "loss_background": background, "loss_foreground": foreground, "psnr_train": psnr, "lr": lr,
+                          "epoch": plan.epoch(step),
                           "rays_per_s": rays_since / max(now - t_last, 1e-9)}
                 log.log(step, values)
                 bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")

@@ -8,10 +8,10 @@ which objects share the batch (so 2 DDP ranks x 2 objects equal 1 process x 4 ob
 * BatchNorm statistics are per object (``depthnerf.model.norm``);
 * each object's sample jitter and density noise come from its own generator (``depthnerf.render.noise``).
 
-The loss is pixelNeRF's: the mean over objects of the coarse + fine colour MSE (plus the optional depth and
-background-opacity terms, each per object then averaged). :func:`train_step` returns the loss terms as one
-device tensor; the loop reads it once per log interval. ``per_object=True`` runs the same module once per object
-(gradients accumulated, ``--schedule.step_shape per-object``); same result up to float rounding.
+The loss is pixelNeRF's: the mean over objects of the coarse + fine colour MSE (plus the optional depth,
+background-opacity and foreground-opacity terms, each per object then averaged). :func:`train_step` returns the loss
+terms as one device tensor; the loop reads it once per log interval. ``per_object=True`` runs the same module once per
+object (gradients accumulated, ``--schedule.step_shape per-object``); same result up to float rounding.
 :func:`compiled_fields` (``depthnerf train --compile``) runs the fields' MLPs, forward and backward, through
 ``torch.compile``, which fuses their element-wise work and casts (fewer kernel launches on a GPU).
 """
@@ -34,7 +34,7 @@ from depthnerf.render.pipeline import render_rays
 from depthnerf.render.rays import RayBundle
 from depthnerf.train.batching import ItemKey, TrainBatch, item_seed
 
-TERMS = ("total", "coarse", "fine", "depth", "background")
+TERMS = ("total", "coarse", "fine", "depth", "background", "foreground")
 """Order of the loss terms in :meth:`LossTerms.stacked` (and of the logged ``loss*`` values)."""
 
 
@@ -52,8 +52,10 @@ class LossTerms:
     """Scale/shift-invariant depth loss (0 when off)."""
     background: Tensor
     """Background-opacity term, coarse + fine: measured whether or not it is weighted into ``total``."""
+    foreground: Tensor
+    """Foreground-opacity term, coarse + fine: measured whether or not it is weighted into ``total``."""
 
-    def stacked(self) -> Float[Tensor, " 5"]:
+    def stacked(self) -> Float[Tensor, " 6"]:
         """The terms in :data:`TERMS` order, detached, fp32, on the device."""
         return torch.stack([getattr(self, n).detach().float() for n in TERMS])
 
@@ -66,13 +68,23 @@ def background_opacity_per_object(opacity: Float[Tensor, "B R"], foreground: Boo
     return (opacity.square() * background).sum(-1) / background.sum(-1).clamp_min(1)
 
 
+def foreground_opacity_per_object(opacity: Float[Tensor, "B R"], foreground: Bool[Tensor, "B R"]
+                                  ) -> Float[Tensor, " B"]:
+    """Per object, mean squared transparency over the rays whose target pixel shows the object (0 when there is
+    none): ``sum_r [fg_r] * (1 - opacity_r)^2 / max(1, #object rays)``, the mask's half of a silhouette loss (the
+    other half is :func:`background_opacity_per_object`); the loss term is its mean over objects."""
+    return ((1 - opacity).square() * foreground).sum(-1) / foreground.sum(-1).clamp_min(1)
+
+
 class BatchLoss(torch.nn.Module):
     """Encode a batch's source views, render its target rays, return the losses (DDP wraps this module)."""
 
     def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float,
                  background_weight: float = 0.0, runtime: FieldRuntime | None = None,
-                 compile_step: str | None = None) -> None:
-        """``runtime``: how the field passes run (e.g. :func:`compiled_fields`; None: the MLPs as they are).
+                 compile_step: str | None = None, foreground_weight: float = 0.0) -> None:
+        """``background_weight`` / ``foreground_weight``: weights of the background- and foreground-opacity terms
+        (0 = measured, not back-propagated). ``runtime``: how the field passes run (e.g. :func:`compiled_fields`;
+        None: the MLPs as they are).
         ``compile_step``: a ``torch.compile`` backend (``"inductor"``; ``"aot_eager"`` traces without code
         generation) through which :meth:`losses` runs (:func:`compiled_losses`); None: eagerly."""
         super().__init__()
@@ -80,6 +92,7 @@ class BatchLoss(torch.nn.Module):
         self.render_cfg = render_cfg
         self.depth_weight = depth_weight
         self.background_weight = background_weight
+        self.foreground_weight = foreground_weight
         self.runtime = runtime
         cuda = any(p.is_cuda for p in model.parameters())
         self._losses = compiled_losses(self.losses, compile_step, cuda) if compile_step else self.losses
@@ -117,7 +130,14 @@ class BatchLoss(torch.nn.Module):
             total = total + self.background_weight * background
         else:
             background = background.detach()
-        return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth, background=background)
+        foreground = (foreground_opacity_per_object(out.coarse.opacity, batch.target_fg)
+                      + foreground_opacity_per_object(out.fine.opacity, batch.target_fg)).mean()
+        if self.foreground_weight > 0:
+            total = total + self.foreground_weight * foreground
+        else:
+            foreground = foreground.detach()
+        return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth, background=background,
+                         foreground=foreground)
 
 
 def compiled_fields(model: PixelNeRF) -> FieldRuntime:
@@ -151,7 +171,7 @@ def object_generators(keys: Sequence[ItemKey], step: int, device: torch.device) 
 
 def train_step(runner: torch.nn.Module, batch: TrainBatch, keys: Sequence[ItemKey], step: int, near: float,
                far: float, device: torch.device, *, amp: contextlib.AbstractContextManager | None = None,
-               per_object: bool = False, distributed: bool = False) -> Float[Tensor, " 5"]:
+               per_object: bool = False, distributed: bool = False) -> Float[Tensor, " 6"]:
     """Forward and backward of one step (gradients accumulate in the parameters; the caller zeroes them and
     steps the optimiser). Returns the :data:`TERMS` on the device: no host synchronisation here."""
     amp = amp if amp is not None else contextlib.nullcontext()
