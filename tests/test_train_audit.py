@@ -49,6 +49,8 @@ def _checked(*flags: str):
     (("--render.sampler.n_coarse", "0"), "--render.sampler.n_coarse must be >= 1, got 0"),  # was a traceback
     (("--render.sampler.n_importance", "-1"), "--render.sampler.n_importance must be >= 0"),  # trained silently
     (("--render.sampler.gaussian_std", "-1"), "--render.sampler.gaussian_std must be >= 0"),
+    (("--schedule.foreground_opacity_weight", "-0.1"), "--schedule.foreground_opacity_weight must be >= 0"),
+    (("--schedule.foreground_opacity_weight", "nan"), "--schedule.foreground_opacity_weight must be"),
 ])
 def test_nonsense_settings_are_refused_when_the_config_is_built(flags, said):
     with pytest.raises(DepthnerfError, match=None) as err:

@@ -111,7 +111,8 @@ class ScheduleConfig:
     """Weight of :func:`~depthnerf.train.step.foreground_opacity_per_object`: squared transparency of coarse and
     fine on target rays that show the object, averaged over objects (beyond the paper; 0 = off). With the
     background term it is a silhouette loss on the target's mask; it pushes thin and light-coloured parts, whose
-    colour error is small, to full opacity. Measured and logged (``loss_foreground``) at every weight."""
+    colour error is small, to full opacity; measured on chairs it fattens the shapes instead (docs/RESULTS.md, "A
+    foreground-opacity term"). Measured and logged (``loss_foreground``) at every weight."""
 
 
 @dataclass
