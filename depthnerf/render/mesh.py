@@ -45,7 +45,7 @@ from torch import Tensor
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
-from depthnerf.render.mesh_colors import NORMAL_RAY, RadianceFn, vertex_colors
+from depthnerf.render.mesh_colors import NORMAL_RAY, RadianceFn, seen_from, vertex_colors
 from depthnerf.render.mesh_level import DEFAULT_THRESHOLD, DensityFn, MeshLevel, level_surface, query_chunks
 
 ColorFn = Callable[[Float[Tensor, "N 3"]], Float[Tensor, "N 3"]]
@@ -266,13 +266,7 @@ def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"],
     ``[N, 3]``, each point viewed along the ray from ``eye`` (the input camera centre) through it, run as
     ``runtime`` says (None: the default)."""
     radiance = field_radiance(model, enc, runtime)
-
-    def query(points: Tensor) -> tuple[Tensor, Tensor]:
-        dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
-        rgb, sigma = radiance(points[:, None, :], dirs)
-        return rgb[:, 0], sigma[:, 0]
-
-    return (lambda p: query(p)[1]), (lambda p: query(p)[0])
+    return (lambda p: seen_from(radiance, p, eye)[1]), (lambda p: seen_from(radiance, p, eye)[0])
 
 
 def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,

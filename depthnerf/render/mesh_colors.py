@@ -80,15 +80,20 @@ def normal_ray_colors(radiance_fn: RadianceFn, vertices: Float[Tensor, "N 3"], n
                         "the field's colour")
 
 
+def seen_from(radiance_fn: RadianceFn, points: Float[Tensor, "N 3"], eye: Float[Tensor, " 3"]
+              ) -> tuple[Float[Tensor, "N 3"], Float[Tensor, " N"]]:
+    """``(rgb, density)`` of the field at each point, seen along the ray from ``eye`` through it."""
+    dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
+    rgb, sigma = radiance_fn(points[:, None, :], dirs)
+    return rgb[:, 0], sigma[:, 0]
+
+
 def point_colors(radiance_fn: RadianceFn, vertices: Float[Tensor, "N 3"], eye: Float[Tensor, " 3"], chunk: int
                  ) -> Float[np.ndarray, "N 3"]:
     """``point`` colours (module docstring): the field at each vertex seen along the ray from ``eye`` (the input
-    camera centre) through it. Returns float32 ``(N, 3)``."""
-    def colors(points: Tensor) -> Tensor:
-        dirs = torch.nn.functional.normalize(points - eye.to(points), dim=-1)
-        return radiance_fn(points[:, None, :], dirs)[0][:, 0]
-
-    return query_chunks(colors, lambda a, b: vertices[a:b], len(vertices), chunk, 3, "the field's colour")
+    camera centre) through it (:func:`seen_from`). Returns float32 ``(N, 3)``."""
+    return query_chunks(lambda points: seen_from(radiance_fn, points, eye)[0], lambda a, b: vertices[a:b],
+                        len(vertices), chunk, 3, "the field's colour")
 
 
 def vertex_colors(rule: str, radiance_fn: RadianceFn, vertices: Float[np.ndarray, "N 3"],
