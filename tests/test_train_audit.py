@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -268,6 +269,26 @@ def test_the_run_lock_waits_for_a_lock_released_meanwhile(tmp_path):
     threading.Timer(1.0, holder.__exit__, (None, None, None)).start()
     with run_lock(tmp_path, wait_s=10):
         pass
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_signal_during_the_lock_wait_ends_the_process_with_one_line(tmp_path, capsys, sig):
+    """The wait for a held lock is announced; SIGTERM (a cluster cancelling the requeued job) or Ctrl+C during it
+    exits with the signal's status (143, 130) and one line, and the process's own handlers come back."""
+    import threading
+
+    before = signal.getsignal(sig)
+    with run_lock(tmp_path):  # another process's lock (per open file)
+        threading.Timer(0.5, os.kill, (os.getpid(), sig)).start()
+        with pytest.raises(SystemExit) as stopped:
+            with run_lock(tmp_path, wait_s=30):
+                pass
+    assert stopped.value.code == 128 + sig
+    assert capsys.readouterr().err.splitlines() == [
+        f"{tmp_path}: another process holds this run's lock; waiting up to 30 s for it",
+        f"{tmp_path}: stopped by {signal.Signals(sig).name} while waiting for the run's lock; this process wrote "
+        "nothing to the run"]
+    assert signal.getsignal(sig) is before
 
 
 def test_a_step_that_cannot_fit_the_device_is_refused_before_training_starts(data, tmp_path, capsys):

@@ -15,6 +15,9 @@ import contextlib
 import json
 import math
 import os
+import signal
+import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -177,27 +180,60 @@ def run_lock(run_dir: Path, wait_s: float | None = None) -> Iterator[None]:
     """Hold ``RUN_DIR/.lock`` (an advisory ``flock``, released when the process ends, however it ends) while a
     process trains the run; a second process on the same run (say, a job launched again while the first still
     runs) stops with one line instead of interleaving its steps with the first's. It first waits up to ``wait_s``
-    (default :data:`LOCK_WAIT_S`) for the lock: a shared file system may hold a crashed node's lock until its lease
-    ends, and a requeued job should not fail on that."""
+    (default :data:`LOCK_WAIT_S`) for the lock, saying so on stderr: a shared file system may hold a crashed node's
+    lock until its lease ends, and a requeued job should not fail on that. SIGTERM or Ctrl+C during the wait ends
+    the process with one line (it has written nothing to the run yet) and the signal's exit status."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if fcntl is None:
         yield
         return
     fd = os.open(run_dir / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
-    deadline = time.monotonic() + (LOCK_WAIT_S if wait_s is None else wait_s)
+    wait = LOCK_WAIT_S if wait_s is None else wait_s
     try:
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                break
-            except BlockingIOError:
-                if time.monotonic() >= deadline:
-                    raise DepthnerfError(f"{run_dir}: another process is training this run; wait for it to end (or "
-                                         "stop it) before resuming") from None
-                time.sleep(1.0)
-            except OSError:  # a file system without flock (e.g. Lustre mounted without it): train unguarded
-                break
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            _wait_for_lock(fd, run_dir, wait)
+        except OSError:  # a file system without flock (e.g. Lustre mounted without it): train unguarded
+            pass
         yield
     finally:
         os.close(fd)
+
+
+class _StopWhileWaiting(Exception):
+    """A stop signal arrived while :func:`_wait_for_lock` waited."""
+
+
+def _wait_for_lock(fd: int, run_dir: Path, wait_s: float) -> None:
+    """Take the held lock on ``fd`` once its holder lets go, polling once a second for ``wait_s`` seconds (a
+    :class:`DepthnerfError` after that); a stop signal meanwhile exits (:func:`run_lock`)."""
+    if wait_s > 0:
+        print(f"{run_dir}: another process holds this run's lock; waiting up to {wait_s:.0f} s for it",
+              file=sys.stderr, flush=True)
+
+    def stop(signum: int, frame: object) -> None:
+        raise _StopWhileWaiting(signum)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)} if main_thread else {}
+    deadline = time.monotonic() + wait_s
+    try:
+        while True:
+            if time.monotonic() >= deadline:
+                raise DepthnerfError(f"{run_dir}: another process is training this run; wait for it to end (or "
+                                     "stop it) before resuming")
+            time.sleep(min(1.0, max(deadline - time.monotonic(), 0.0)))
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except BlockingIOError:
+                continue
+    except _StopWhileWaiting as stopped:
+        signum = stopped.args[0]
+        print(f"{run_dir}: stopped by {signal.Signals(signum).name} while waiting for the run's lock; this process "
+              "wrote nothing to the run", file=sys.stderr, flush=True)
+        raise SystemExit(128 + signum) from None
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
