@@ -2,7 +2,8 @@
 
 For each test object, exactly as ``depthnerf eval`` prepares it (input view 64, every ``--views-stride``-th other
 view), the mesh is extracted once (``--mesh-resolution``, the ``auto`` level, as reconstruct and the demo) and
-coloured by each rule (``depthnerf.render.mesh_colors``: ``point`` and ``normal-ray`` at each ``--half-widths``).
+coloured by each rule (``depthnerf.render.mesh_colors``: ``point``, ``normal-ray`` at each ``--half-widths`` and
+``photo`` at the first half-width).
 Each coloured mesh is rendered into every target view by ray casting (the synthetic generator's first-hit engine;
 the colour at a hit is the barycentric mix of the triangle's vertex colours, unlit, on white) and scored:
 
@@ -12,7 +13,7 @@ the colour at a hit is the barycentric mix of the triangle's vertex colours, unl
 * ``delta_ab``: the mean CIELAB (a, b) distance on those pixels (hue and saturation error, lightness left out).
 
 Each metric is averaged over an object's views, then over objects; each rule is paired per object against
-``point`` (mean difference, 95% t interval, objects no worse).
+``--against`` (default ``point``; mean difference, 95% t interval, objects no worse).
 
     python scripts/mesh_color_study.py --checkpoint cpu-chairs-sym-pp --data DATA --category chairs --objects 50
 """
@@ -37,10 +38,11 @@ from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.hits import first_hit_finder
 from depthnerf.eval.objects import prepare_object
 from depthnerf.eval.protocol import protocol_views
-from depthnerf.infer.session import InferenceSession
+from depthnerf.infer.session import InferenceSession, photo_view
 from depthnerf.render.mesh import MeshConfig, field_radiance
 from depthnerf.render.mesh_colors import NORMAL_RAY, POINT, vertex_colors
 from depthnerf.render.mesh_level import AUTO_LEVEL
+from depthnerf.render.photo_colors import PHOTO
 
 METRICS = ("psnr", "object_psnr", "delta_ab")
 """Per-object scores, each an object mean of view values; higher is better except ``delta_ab``."""
@@ -79,6 +81,26 @@ def view_scores(image: np.ndarray, hit: np.ndarray, gt: np.ndarray, gt_mask: np.
     return scores
 
 
+def write_figure(panels: list[tuple[str, list[np.ndarray]]], path: Path, columns: int = 4) -> None:
+    """One row per (label, views): ``columns`` of the views, evenly spaced, side by side, labelled on the left."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(panels), columns, figsize=(1.6 * columns + 1.6, 1.6 * len(panels)), squeeze=False)
+    for row, (label, views) in zip(axes, panels, strict=True):
+        picks = np.linspace(0, len(views) - 1, columns).round().astype(int)
+        for ax, k in zip(row, picks, strict=True):
+            ax.imshow(np.clip(views[k], 0, 1))
+            ax.set_xticks([])
+            ax.set_yticks([])
+        row[0].set_ylabel(label.replace(" truth", "\ntruth"), fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--checkpoint", required=True)
@@ -88,13 +110,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views-stride", type=int, default=25)
     ap.add_argument("--mesh-resolution", type=int, default=128, help="as depthnerf reconstruct's default")
     ap.add_argument("--half-widths", type=float, nargs="+", default=[MeshConfig().color_half_width])
+    ap.add_argument("--against", default=POINT, help="the rule every other is paired with (a name of the table)")
     ap.add_argument("--out", type=Path, help="per-object scores as JSON")
+    ap.add_argument("--figure", type=Path, help="a PNG: the truth and each rule's mesh in four target views")
+    ap.add_argument("--figure-objects", type=int, default=3, help="objects (the first ones) in --figure")
     args = ap.parse_args(argv)
     session = InferenceSession(args.checkpoint)
     plane = dataset_plane(args.data, args.category)[0] if session.model.cfg.mirror else None
-    rules = [(POINT, 0.0)] + [(NORMAL_RAY, h) for h in args.half_widths]
+    rules = [(POINT, 0.0)] + [(NORMAL_RAY, h) for h in args.half_widths] + [(PHOTO, args.half_widths[0])]
     names = [POINT if r == POINT else f"{r} {h:g}" for r, h in rules]
+    if args.against not in names:
+        ap.error(f"--against must be one of {', '.join(names)}, got {args.against!r}")
     rows: dict[str, dict[str, dict[str, float]]] = {}
+    panels: list[tuple[str, list[np.ndarray]]] = []
     for record in index_split(args.data, args.category, "test").objects[:args.objects]:
         obj = prepare_object(session, record, protocol_views(record.num_views, args.views_stride),
                              symmetry_plane=plane)
@@ -109,27 +137,34 @@ def main(argv: list[str] | None = None) -> int:
         rows[record.object_id] = {}
         with torch.no_grad():
             for name, (rule, half) in zip(names, rules, strict=True):
-                rgba = vertex_colors(rule, radiance, mesh.vertices, mesh.vertex_normals, obj.encoded.pose[:3, 3],
-                                     half or cfg.color_half_width, cfg.color_samples, cfg.chunk, session.device)
-                views = [view_scores(*mesh_render(mesh, rgba[:, :3] / 255.0, pose, obj.targets.intrinsics), gt, m)
-                         for pose, gt, m in zip(obj.targets.poses, gts, masks, strict=True)]
+                rgba = vertex_colors(rule, radiance, mesh, obj.encoded.pose[:3, 3], half or cfg.color_half_width,
+                                     cfg.color_samples, cfg.chunk, session.device, photo_view(obj.encoded))
+                renders = [mesh_render(mesh, rgba[:, :3] / 255.0, pose, obj.targets.intrinsics)
+                           for pose in obj.targets.poses]
+                views = [view_scores(*r, gt, m) for r, gt, m in zip(renders, gts, masks, strict=True)]
+                if len(panels) < args.figure_objects * (len(rules) + 1):
+                    if name == names[0]:
+                        panels.append((f"{record.object_id} truth", list(gts)))
+                    panels.append((name, [r[0] for r in renders]))
                 rows[record.object_id][name] = {k: float(np.nanmean([v[k] for v in views])) for k in METRICS}
         print(record.object_id, " ".join(f"{n}: {rows[record.object_id][n]['object_psnr']:.2f}" for n in names),
               file=sys.stderr, flush=True)
     print(f"{args.checkpoint} on {len(rows)} {args.category} ({args.data}), mesh resolution {args.mesh_resolution}")
-    print("| rule | " + " | ".join(METRICS) + " | " + " | ".join(f"{m} vs point" for m in METRICS) + " |")
+    print("| rule | " + " | ".join(METRICS) + " | " + " | ".join(f"{m} vs {args.against}" for m in METRICS) + " |")
     print("|---" * (1 + 2 * len(METRICS)) + "|")
     for name in names:
         means = [np.mean([r[name][m] for r in rows.values()]) for m in METRICS]
         cells = [f"{x:.3f}" for x in means]
-        for m in METRICS if name != POINT else ():
-            diffs = [r[name][m] - r[POINT][m] for r in rows.values()]
+        for m in METRICS if name != args.against else ():
+            diffs = [r[name][m] - r[args.against][m] for r in rows.values()]
             mean, _, half = t_interval(diffs)
             better = sum((d >= 0) if m != "delta_ab" else (d <= 0) for d in diffs)
             cells.append(f"{mean:+.3f} [{mean - half:+.3f}, {mean + half:+.3f}], {better}/{len(diffs)}")
         print(f"| {name} | " + " | ".join(cells + [""] * (2 * len(METRICS) - len(cells))) + " |")
     if args.out:
         args.out.write_text(json.dumps(rows, indent=1) + "\n")
+    if args.figure:
+        write_figure(panels, args.figure)
     return 0
 
 

@@ -7,11 +7,13 @@ import math
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.reconstructor import ReconstructConfig
 from depthnerf.render import mesh_colors
 from depthnerf.render.mesh_colors import MIN_OPACITY, NORMAL_RAY, POINT, normal_ray_colors, point_colors
+from depthnerf.render.photo_colors import PHOTO
 
 
 def smooth_field(points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -106,11 +108,13 @@ def test_vertex_colors_are_rounded_rgba_and_rules_are_checked():
         rgb = torch.tensor([0.1, 0.504, 1.7]).expand(*points.shape[:2], 3)  # 1.7 is clipped
         return rgb, torch.full(points.shape[:2], 50.0)
 
-    v, n = np.zeros((3, 3)), np.tile([0.0, 0.0, 1.0], (3, 1))
+    mesh = trimesh.Trimesh([[0, 0, 1], [1, 0, 1], [0, 1, 1]], [[0, 1, 2]], process=False)  # normals +z
     for rule in (NORMAL_RAY, POINT):
-        rgba = mesh_colors.vertex_colors(rule, flat, v + [0, 0, 1], n, torch.zeros(3), 0.05, 8, 64)
+        rgba = mesh_colors.vertex_colors(rule, flat, mesh, torch.zeros(3), 0.05, 8, 64)
         assert rgba.dtype == np.uint8 and rgba.tolist() == [[26, 129, 255, 255]] * 3
-    with pytest.raises(DepthnerfError, match="--mesh-colors must be one of normal-ray, point, got 'vertex'"):
+    with pytest.raises(DepthnerfError, match="the photo rule needs the input photo"):
+        mesh_colors.vertex_colors(PHOTO, flat, mesh, torch.zeros(3), 0.05, 8, 64)
+    with pytest.raises(DepthnerfError, match="--mesh-colors must be one of normal-ray, photo, point, got 'vertex'"):
         mesh_colors.check_color_rule("vertex")
     with pytest.raises(DepthnerfError, match="--mesh-colors must be one of"):
         ReconstructConfig(mesh_colors="normal")
@@ -118,3 +122,4 @@ def test_vertex_colors_are_rounded_rgba_and_rules_are_checked():
         normal_ray_colors(flat, torch.zeros(1, 3), torch.ones(1, 3), 0.0, 8, 64)
     assert "0.06 outside" in mesh_colors.describe_colors(NORMAL_RAY, 0.06)
     assert "input camera" in mesh_colors.describe_colors(POINT, 0.06)
+    assert "input photo" in mesh_colors.describe_colors(PHOTO, 0.06)

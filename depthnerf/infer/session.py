@@ -62,6 +62,7 @@ from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, input_camera_mesh
 from depthnerf.render.mesh_level import MeshLevel
+from depthnerf.render.photo_colors import PhotoView
 from depthnerf.render.precision import InferencePolicy, check_precision_flags, field_runtime, inference_policy
 from depthnerf.render.source_guide import as_guided, make_source_guide
 from depthnerf.render.views import ViewRenders, render_poses
@@ -175,6 +176,14 @@ class EncodedView:
     """Its intrinsics (the training resolution)."""
     mask: Bool[torch.Tensor, "1 H W"]
     """Its foreground mask."""
+
+
+def photo_view(encoded: EncodedView) -> PhotoView:
+    """The encoded view's photo, mask, camera and mirror plane as the ``photo`` mesh colour rule reads them."""
+    plane = encoded.inputs.symmetry_plane
+    return PhotoView(image=encoded.inputs.images[0, 0].permute(1, 2, 0).float().cpu().numpy(),
+                     mask=encoded.mask[0].cpu().numpy(), c2w=encoded.pose.double().cpu().numpy(), intr=encoded.intr,
+                     plane=None if plane is None else plane[0].double().cpu().numpy())
 
 
 class InferenceSession:
@@ -320,4 +329,5 @@ class InferenceSession:
         """Marching cubes over the encoded view's frustum box at the run's z-range (:mod:`depthnerf.render.mesh`)."""
         near, far = self.spec.z_range
         return input_camera_mesh(self.model, encoded.enc, encoded.pose, encoded.intr, near, far, cfg, self.device,
-                                 colored=colored, runtime=self.runtime, mask=encoded.mask[0].cpu().numpy())
+                                 colored=colored, runtime=self.runtime, mask=encoded.mask[0].cpu().numpy(),
+                                 photo=photo_view(encoded))

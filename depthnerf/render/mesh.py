@@ -47,6 +47,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
 from depthnerf.render.mesh_colors import NORMAL_RAY, RadianceFn, seen_from, vertex_colors
 from depthnerf.render.mesh_level import DEFAULT_THRESHOLD, DensityFn, MeshLevel, level_surface, query_chunks
+from depthnerf.render.photo_colors import PhotoView
 
 ColorFn = Callable[[Float[Tensor, "N 3"]], Float[Tensor, "N 3"]]
 """World points -> RGB in [0, 1]."""
@@ -68,7 +69,8 @@ class MeshConfig:
     """Pad with one sample of empty space so surfaces cut by the box are capped."""
     colors: str = NORMAL_RAY
     """Vertex colour rule of :func:`input_camera_mesh` (:mod:`depthnerf.render.mesh_colors`): ``"normal-ray"``
-    (the renderer's colour along a short ray into the surface) or ``"point"`` (the field at the vertex)."""
+    (the renderer's colour along a short ray into the surface), ``"photo"`` (the input photo's colour where it sees
+    the surface, else ``normal-ray``'s) or ``"point"`` (the field at the vertex)."""
     color_half_width: float = 0.06
     """``normal-ray``: the short ray's half-width (world units; the study measured 0.015-0.1 on cars and chairs)."""
     color_samples: int = 24
@@ -271,16 +273,17 @@ def field_queries(model: PixelNeRF, enc: EncodedViews, eye: Float[Tensor, " 3"],
 
 def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4 4"], intr: Intrinsics, near: float,
                       far: float, config: MeshConfig, device: torch.device | str, colored: bool = True,
-                      runtime: FieldRuntime | None = None, mask: Bool[np.ndarray, "H W"] | None = None
-                      ) -> tuple[trimesh.Trimesh, MeshLevel]:
+                      runtime: FieldRuntime | None = None, mask: Bool[np.ndarray, "H W"] | None = None,
+                      photo: PhotoView | None = None) -> tuple[trimesh.Trimesh, MeshLevel]:
     """The mesh over the input camera's frustum box (fine network density, each point seen along the input
     camera's ray through it), its vertices coloured by ``config.colors`` when ``colored``; the field runs as
-    ``runtime`` says (None: the default); ``mask``: the input's object mask (the ``silhouette`` level's target)."""
+    ``runtime`` says (None: the default); ``mask``: the input's object mask (the ``silhouette`` level's target);
+    ``photo``: the input photo (the ``photo`` colour rule reads it)."""
     eye = c2w[:3, 3].to(device)
     density_fn, _ = field_queries(model, enc, eye, runtime)
     mesh, level = source_mesh(density_fn, c2w, intr, near, far, config, None, device, mask)
     if colored and len(mesh.vertices):
         mesh.visual.vertex_colors = vertex_colors(
-            config.colors, field_radiance(model, enc, runtime), mesh.vertices, mesh.vertex_normals, eye,
-            config.color_half_width, config.color_samples, config.chunk, device)
+            config.colors, field_radiance(model, enc, runtime), mesh, eye, config.color_half_width,
+            config.color_samples, config.chunk, device, photo)
     return mesh, level

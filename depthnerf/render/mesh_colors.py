@@ -10,6 +10,9 @@
     :data:`MIN_OPACITY` (no density near the vertex) the colour is the field's colour at ``v`` seen along ``d``.
 ``point`` (:data:`POINT`, :func:`point_colors`)
     **the field's colour at the vertex itself, seen along the input camera's ray through it.**
+``photo`` (:data:`~depthnerf.render.photo_colors.PHOTO`, :func:`~depthnerf.render.photo_colors.photo_blend`)
+    **the input photo's colour where the input camera sees the vertex or, on a mirror-symmetric object, its mirror
+    image; elsewhere the** ``normal-ray`` **colour**, blended over grazing angles.
 
 Why ``normal-ray``: training fits only the weighted sum of colours along rays, so the colour at one point of a
 soft density is barely constrained, and a vertex lies on a density level, often at the surface's fringe. ``point``
@@ -25,18 +28,20 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
+import trimesh
 from jaxtyping import Float
 from torch import Tensor
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.render.mesh_level import query_chunks
+from depthnerf.render.photo_colors import PHOTO, PhotoView, photo_blend
 from depthnerf.render.volume import render_weights
 
 NORMAL_RAY = "normal-ray"
 """Colour rule: the volume-rendered colour of a short ray along the inward normal (:func:`normal_ray_colors`)."""
 POINT = "point"
 """Colour rule: the field's colour at the vertex, seen along the input camera's ray (:func:`point_colors`)."""
-MESH_COLOR_RULES = (NORMAL_RAY, POINT)
+MESH_COLOR_RULES = (NORMAL_RAY, PHOTO, POINT)
 """The vertex colour rules, by name."""
 MIN_OPACITY = 1e-3
 """``normal-ray``: below this opacity along the short ray a vertex takes its point colour seen along ``-n``."""
@@ -96,17 +101,22 @@ def point_colors(radiance_fn: RadianceFn, vertices: Float[Tensor, "N 3"], eye: F
                         len(vertices), chunk, 3, "the field's colour")
 
 
-def vertex_colors(rule: str, radiance_fn: RadianceFn, vertices: Float[np.ndarray, "N 3"],
-                  normals: Float[np.ndarray, "N 3"], eye: Float[Tensor, " 3"], half_width: float, samples: int,
-                  chunk: int, device: torch.device | str = "cpu") -> Float[np.ndarray, "N 4"]:
-    """RGBA uint8 vertex colours by ``rule`` (:data:`MESH_COLOR_RULES`), alpha 255."""
+def vertex_colors(rule: str, radiance_fn: RadianceFn, mesh: trimesh.Trimesh, eye: Float[Tensor, " 3"],
+                  half_width: float, samples: int, chunk: int, device: torch.device | str = "cpu",
+                  photo: PhotoView | None = None) -> Float[np.ndarray, "N 4"]:
+    """RGBA uint8 colours of ``mesh``'s vertices by ``rule`` (:data:`MESH_COLOR_RULES`), alpha 255; ``photo``: the
+    input photo (the ``photo`` rule needs it)."""
     check_color_rule(rule)
-    v = torch.as_tensor(np.array(vertices), dtype=torch.float32, device=device)
-    if rule == NORMAL_RAY:
-        n = torch.as_tensor(np.array(normals), dtype=torch.float32, device=device)
-        rgb = normal_ray_colors(radiance_fn, v, n, half_width, samples, chunk)
-    else:
+    if rule == PHOTO and photo is None:
+        raise DepthnerfError("mesh colours: the photo rule needs the input photo")
+    v = torch.as_tensor(np.array(mesh.vertices), dtype=torch.float32, device=device)
+    if rule == POINT:
         rgb = point_colors(radiance_fn, v, eye.to(device), chunk)
+    else:
+        n = torch.as_tensor(np.array(mesh.vertex_normals), dtype=torch.float32, device=device)
+        rgb = normal_ray_colors(radiance_fn, v, n, half_width, samples, chunk)
+        if rule == PHOTO:
+            rgb = photo_blend(mesh, rgb, photo)
     return np.concatenate([np.round(np.clip(rgb, 0, 1) * 255), np.full((len(rgb), 1), 255)], axis=1).astype(np.uint8)
 
 
@@ -115,4 +125,7 @@ def describe_colors(rule: str, half_width: float) -> str:
     if rule == NORMAL_RAY:
         return (f"fine-network rgb volume-rendered along each vertex's inward normal, from {half_width:g} outside "
                 f"the surface to {half_width:g} inside")
+    if rule == PHOTO:
+        return "the input photo's rgb where it sees the vertex or its mirror image; elsewhere " + \
+            describe_colors(NORMAL_RAY, half_width)
     return "fine-network rgb at each vertex seen along the input camera's ray"
