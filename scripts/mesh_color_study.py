@@ -114,13 +114,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="per-object scores as JSON")
     ap.add_argument("--figure", type=Path, help="a PNG: the truth and each rule's mesh in four target views")
     ap.add_argument("--figure-objects", type=int, default=3, help="objects (the first ones) in --figure")
+    ap.add_argument("--figure-rules", nargs="+", help="the rules (names of the table) --figure shows (default: all)")
     args = ap.parse_args(argv)
     session = InferenceSession(args.checkpoint)
     plane = dataset_plane(args.data, args.category)[0] if session.model.cfg.mirror else None
     rules = [(POINT, 0.0)] + [(NORMAL_RAY, h) for h in args.half_widths] + [(PHOTO, args.half_widths[0])]
     names = [POINT if r == POINT else f"{r} {h:g}" for r, h in rules]
-    if args.against not in names:
-        ap.error(f"--against must be one of {', '.join(names)}, got {args.against!r}")
+    for name in [args.against, *(args.figure_rules or [])]:
+        if name not in names:
+            ap.error(f"rule names are {', '.join(names)}, got {name!r}")
+    shown = [n for n in names if n in (args.figure_rules or names)]  # in the table's order
     rows: dict[str, dict[str, dict[str, float]]] = {}
     panels: list[tuple[str, list[np.ndarray]]] = []
     for record in index_split(args.data, args.category, "test").objects[:args.objects]:
@@ -142,8 +145,8 @@ def main(argv: list[str] | None = None) -> int:
                 renders = [mesh_render(mesh, rgba[:, :3] / 255.0, pose, obj.targets.intrinsics)
                            for pose in obj.targets.poses]
                 views = [view_scores(*r, gt, m) for r, gt, m in zip(renders, gts, masks, strict=True)]
-                if len(panels) < args.figure_objects * (len(rules) + 1):
-                    if name == names[0]:
+                if len(rows) <= args.figure_objects and name in shown:
+                    if name == shown[0]:
                         panels.append((f"{record.object_id} truth", list(gts)))
                     panels.append((name, [r[0] for r in renders]))
                 rows[record.object_id][name] = {k: float(np.nanmean([v[k] for v in views])) for k in METRICS}

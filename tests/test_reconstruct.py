@@ -22,10 +22,11 @@ import torch
 import trimesh
 from fixtures_srn import make_srn_fixture
 from PIL import Image
+from scipy import ndimage
 
 from depthnerf.cli import main
 from depthnerf.config_io import to_dict
-from depthnerf.data.cameras import world_to_camera
+from depthnerf.data.cameras import project, world_to_camera
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.errors import DepthnerfError
@@ -205,7 +206,21 @@ def test_constant_field_reconstruction_matches_closed_forms(models):
     dist = np.linalg.norm(res.points.reshape(4, -1, 3) - eyes[:, None], axis=-1)
     assert np.all((dist >= 0.8 - 1e-4) & (dist <= 0.8 + 1.0 / 16 + 1e-4))
     assert np.allclose(res.point_colors, COLOR, atol=1e-4)
-    assert np.all(res.mesh.visual.vertex_colors[:, :3] == np.round(np.array(COLOR) * 255))
+    # photo colours (the default): the photo's red disc where the input camera sees the mesh well inside it, the
+    # field's colour wherever the vertex projects off the object
+    rgb = res.mesh.visual.vertex_colors[:, :3].astype(int)
+    cam = world_to_camera(torch.as_tensor(res.mesh.vertices), torch.from_numpy(res.poses[0]).double())
+    uv = np.rint(project(cam, res.intrinsics.focal, (res.intrinsics.cx, res.intrinsics.cy)).numpy()).astype(int)
+    uv = np.clip(uv, 0, np.array(res.input.mask.shape[::-1]) - 1)
+    inside = ndimage.distance_transform_edt(res.input.mask)[uv[:, 1], uv[:, 0]]  # pixels to the mask's edge
+    to_eye = res.poses[0][:3, 3] - np.asarray(res.mesh.vertices)
+    cos = (np.asarray(res.mesh.vertex_normals) * to_eye).sum(1) / np.linalg.norm(to_eye, axis=1)
+    facing = cos > 0.5
+    assert (inside >= 3).sum() > 10 and (inside == 0).sum() > 10
+    assert np.abs(rgb[(inside >= 3) & facing] - [200, 50, 50]).max() <= 1
+    assert np.all(rgb[inside == 0] == np.round(np.array(COLOR) * 255))
+    field = rec.reconstruct(disc_photo(), config=dataclasses.replace(cfg, mesh_colors="normal-ray", views=1))
+    assert np.all(field.mesh.visual.vertex_colors[:, :3] == np.round(np.array(COLOR) * 255))
     grid = CameraGrid.from_frustum(torch.from_numpy(res.poses[0]), srn_intrinsics(131.25, 128, 32), 0.8, 1.8)
     cam = world_to_camera(torch.as_tensor(res.mesh.vertices, dtype=torch.float32), torch.from_numpy(res.poses[0]))
     step = grid.layout(10)[1]

@@ -20,7 +20,8 @@ from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.distributed import pick_device
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
-from depthnerf.render.mesh_colors import MESH_COLOR_RULES, NORMAL_RAY
+from depthnerf.render.mesh_colors import MESH_COLOR_RULES
+from depthnerf.render.photo_colors import PHOTO
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -64,10 +65,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh-keep", choices=["all", "largest"], default="all",
                    help="all pieces of the mesh (default), or only the largest connected piece; manifest.json "
                         "records the pieces and faces either way")
-    p.add_argument("--mesh-colors", choices=MESH_COLOR_RULES, default=NORMAL_RAY,
-                   help="vertex colours: normal-ray (default: the colour the renderer gives a short ray into the "
-                        "surface along its normal) or point (the network's colour at the vertex, seen from the "
-                        "input camera; speckled)")
+    p.add_argument("--mesh-colors", choices=MESH_COLOR_RULES, default=PHOTO,
+                   help="vertex colours: photo (default: the photo's colour where it sees the vertex or, for a "
+                        "mirror model, its mirror image; elsewhere normal-ray's), normal-ray (the colour the "
+                        "renderer gives a short ray into the surface along its normal) or point (the network's "
+                        "colour at the vertex, seen from the input camera; speckled)")
     p.add_argument("--depth", "--depth-estimator", dest="depth", choices=PHOTO_ESTIMATORS,
                    help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
                         "--depth-estimator: same)")

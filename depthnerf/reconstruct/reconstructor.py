@@ -58,8 +58,9 @@ from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill,
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, check_mesh_keep, keep_pieces
-from depthnerf.render.mesh_colors import NORMAL_RAY, check_color_rule, describe_colors
+from depthnerf.render.mesh_colors import check_color_rule, describe_colors
 from depthnerf.render.mesh_level import LOCAL_LEVEL, parse_level
+from depthnerf.render.photo_colors import PHOTO
 from depthnerf.render.source_guide import as_guided
 from depthnerf.render.views import ViewRenders
 
@@ -95,9 +96,10 @@ class ReconstructConfig:
     mesh_keep: str = "all"
     """``all`` pieces of the mesh, or the ``largest`` connected piece only (:func:`~depthnerf.render.mesh.keep_pieces`;
     the manifest records the pieces and the faces kept either way)."""
-    mesh_colors: str = NORMAL_RAY
-    """Vertex colour rule: ``normal-ray`` (the renderer's colour along a short ray into the surface) or ``point``
-    (the field at the vertex; :mod:`depthnerf.render.mesh_colors`)."""
+    mesh_colors: str = PHOTO
+    """Vertex colour rule (:mod:`depthnerf.render.mesh_colors`): ``photo`` (the photo's colour where it sees the
+    vertex or, with a mirror plane, its mirror image; elsewhere ``normal-ray``'s), ``normal-ray`` (the renderer's
+    colour along a short ray into the surface) or ``point`` (the field at the vertex)."""
     max_points: int | None = 200_000
     """Largest point-cloud size (None: every point)."""
     chunk: int | None = None

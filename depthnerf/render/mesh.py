@@ -45,9 +45,9 @@ from torch import Tensor
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
-from depthnerf.render.mesh_colors import NORMAL_RAY, RadianceFn, seen_from, vertex_colors
+from depthnerf.render.mesh_colors import RadianceFn, seen_from, vertex_colors
 from depthnerf.render.mesh_level import DEFAULT_THRESHOLD, DensityFn, MeshLevel, level_surface, query_chunks
-from depthnerf.render.photo_colors import PhotoView
+from depthnerf.render.photo_colors import PHOTO, PhotoView
 
 ColorFn = Callable[[Float[Tensor, "N 3"]], Float[Tensor, "N 3"]]
 """World points -> RGB in [0, 1]."""
@@ -67,12 +67,13 @@ class MeshConfig:
     """Points per density query (bounds memory)."""
     close_boundary: bool = True
     """Pad with one sample of empty space so surfaces cut by the box are capped."""
-    colors: str = NORMAL_RAY
-    """Vertex colour rule of :func:`input_camera_mesh` (:mod:`depthnerf.render.mesh_colors`): ``"normal-ray"``
-    (the renderer's colour along a short ray into the surface), ``"photo"`` (the input photo's colour where it sees
-    the surface, else ``normal-ray``'s) or ``"point"`` (the field at the vertex)."""
+    colors: str = PHOTO
+    """Vertex colour rule of :func:`input_camera_mesh` (:mod:`depthnerf.render.mesh_colors`): ``"photo"`` (the
+    default: the input photo's colour where it sees the vertex or its mirror image, else ``normal-ray``'s),
+    ``"normal-ray"`` (the renderer's colour along a short ray into the surface) or ``"point"`` (the field at the
+    vertex). docs/RESULTS.md, "Mesh vertex colours" measures them."""
     color_half_width: float = 0.06
-    """``normal-ray``: the short ray's half-width (world units; the study measured 0.015-0.1 on cars and chairs)."""
+    """``normal-ray`` (and ``photo`` where the photo does not see): the short ray's half-width (world units; the study measured 0.015-0.1 on cars and chairs)."""
     color_samples: int = 24
     """``normal-ray``: samples along the short ray."""
 

@@ -25,6 +25,7 @@ Vertices that neither the photo nor its mirror sees keep ``c_field``: the top, f
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass
 
 import numpy as np
@@ -96,7 +97,8 @@ def unoccluded(mesh: trimesh.Trimesh, eye: Float[np.ndarray, " 3"], points: Floa
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
     dirs = (points - eye) / np.maximum(dist, 1e-12)[:, None]
     origins = np.broadcast_to(eye, points.shape).copy()
-    face = first_hit_finder(vertices, faces, engine="auto")(origins, dirs)
+    engine = "embree" if importlib.util.find_spec("embreex") is not None else "torch"  # the same hits, up to ties
+    face = first_hit_finder(vertices, faces, engine)(origins, dirs)
     hit = face >= 0
     a, b, c = (vertices[faces[face[hit]]][:, k] for k in range(3))
     e1, e2, s = b - a, c - a, origins[hit] - a
