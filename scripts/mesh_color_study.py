@@ -3,7 +3,7 @@
 For each test object, exactly as ``depthnerf eval`` prepares it (input view 64, every ``--views-stride``-th other
 view), the mesh is extracted once (``--mesh-resolution``, the ``auto`` level, as reconstruct and the demo) and
 coloured by each rule (``depthnerf.render.mesh_colors``: ``point``, ``normal-ray`` at each ``--half-widths`` and
-``photo`` at the first half-width).
+``photo`` with each ``--fills``, at the first half-width).
 Each coloured mesh is rendered into every target view by ray casting (the synthetic generator's first-hit engine;
 the colour at a hit is the barycentric mix of the triangle's vertex colours, unlit, on white) and scored:
 
@@ -42,7 +42,7 @@ from depthnerf.infer.session import InferenceSession, photo_view
 from depthnerf.render.mesh import MeshConfig, field_radiance
 from depthnerf.render.mesh_colors import NORMAL_RAY, POINT, vertex_colors
 from depthnerf.render.mesh_level import AUTO_LEVEL
-from depthnerf.render.photo_colors import PHOTO
+from depthnerf.render.photo_colors import PHOTO, PHOTO_FILL
 
 METRICS = ("psnr", "object_psnr", "delta_ab")
 """Per-object scores, each an object mean of view values; higher is better except ``delta_ab``."""
@@ -110,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views-stride", type=int, default=25)
     ap.add_argument("--mesh-resolution", type=int, default=128, help="as depthnerf reconstruct's default")
     ap.add_argument("--half-widths", type=float, nargs="+", default=[MeshConfig().color_half_width])
+    ap.add_argument("--fills", type=float, nargs="+", default=[0.0, PHOTO_FILL],
+                    help="photo rule: its fill values (at the first half-width)")
     ap.add_argument("--against", default=POINT, help="the rule every other is paired with (a name of the table)")
     ap.add_argument("--out", type=Path, help="per-object scores as JSON")
     ap.add_argument("--figure", type=Path, help="a PNG: the truth and each rule's mesh in four target views")
@@ -118,8 +120,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     session = InferenceSession(args.checkpoint)
     plane = dataset_plane(args.data, args.category)[0] if session.model.cfg.mirror else None
-    rules = [(POINT, 0.0)] + [(NORMAL_RAY, h) for h in args.half_widths] + [(PHOTO, args.half_widths[0])]
-    names = [POINT if r == POINT else f"{r} {h:g}" for r, h in rules]
+    half = args.half_widths[0]
+    rules = [(POINT, 0.0, 0.0)] + [(NORMAL_RAY, h, 0.0) for h in args.half_widths] + \
+        [(PHOTO, half, f) for f in args.fills]
+    names = [POINT] + [f"{NORMAL_RAY} {h:g}" for h in args.half_widths] + [f"{PHOTO} fill {f:g}" for f in args.fills]
     for name in [args.against, *(args.figure_rules or [])]:
         if name not in names:
             ap.error(f"rule names are {', '.join(names)}, got {name!r}")
@@ -139,9 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         masks = obj.targets.masks.numpy()
         rows[record.object_id] = {}
         with torch.no_grad():
-            for name, (rule, half) in zip(names, rules, strict=True):
-                rgba = vertex_colors(rule, radiance, mesh, obj.encoded.pose[:3, 3], half or cfg.color_half_width,
-                                     cfg.color_samples, cfg.chunk, session.device, photo_view(obj.encoded))
+            for name, (rule, width, fill) in zip(names, rules, strict=True):
+                rgba = vertex_colors(rule, radiance, mesh, obj.encoded.pose[:3, 3], width or cfg.color_half_width,
+                                     cfg.color_samples, cfg.chunk, session.device, photo_view(obj.encoded), fill)
                 renders = [mesh_render(mesh, rgba[:, :3] / 255.0, pose, obj.targets.intrinsics)
                            for pose in obj.targets.poses]
                 views = [view_scores(*r, gt, m) for r, gt, m in zip(renders, gts, masks, strict=True)]

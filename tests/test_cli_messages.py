@@ -46,6 +46,9 @@ def test_mesh_resolution_is_checked_and_0_writes_no_mesh(tmp_path, capsys):
     for flag in ("--views", "--render-resolution", "--chunk"):
         assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "bad", flag, "0") == 2
         assert one_error(capsys) == f"error: {flag} must be >= 1, got 0"
+    for value in ("-0.1", "nan", "inf"):
+        assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "bad", "--mesh-fill", value) == 2
+        assert one_error(capsys) == f"error: --mesh-fill must be a number >= 0, got {float(value)!r}"
     out = tmp_path / "out"
     assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", out, "--mesh-resolution", "0", *QUICK) == 0
     assert "no mesh (--mesh-resolution 0)" in capsys.readouterr().out

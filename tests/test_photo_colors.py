@@ -13,11 +13,14 @@ from depthnerf.data.cameras import Intrinsics, look_at
 from depthnerf.render.photo_colors import (
     FACING_COS,
     GRAZING_COS,
+    SPREAD_DATA_WEIGHT,
     PhotoView,
     bilinear,
+    field_error,
     photo_blend,
     photo_samples,
     reflect,
+    spread_colors,
 )
 
 EYE = np.array([-3.0, 0.0, 0.0])
@@ -174,3 +177,72 @@ def test_grazing_surfaces_fade_to_the_field_colour(tilt_deg):
 
 def test_an_empty_mesh_keeps_what_it_was_given():
     assert photo_blend(trimesh.Trimesh(), np.zeros((0, 3)), view()).shape == (0, 3)
+
+
+def brute_force_spread(mesh: trimesh.Trimesh, colors, weight, prior, length) -> np.ndarray:
+    """The energy of :func:`spread_colors` as a least-squares problem, one residual row per edge and per vertex term,
+    solved densely: ``sqrt(a) (x_i - x_j)`` per edge, ``sqrt(K w_i) (x_i - c_i)`` and ``sqrt(eps) (x_i - p_i)``."""
+    n = len(mesh.vertices)
+    lengths = [np.linalg.norm(mesh.vertices[i] - mesh.vertices[j]) for i, j in mesh.edges_unique]
+    eps = (np.mean(lengths) / length) ** 2
+    rows, rhs = [], []
+    for i, j in mesh.edges_unique:
+        row = np.zeros(n)
+        row[i], row[j] = 1.0, -1.0
+        rows.append(row)
+        rhs.append(np.zeros(3))
+    for i in range(n):
+        for scale, target in ((np.sqrt(SPREAD_DATA_WEIGHT * weight[i]), colors[i]), (np.sqrt(eps), prior[i])):
+            row = np.zeros(n)
+            row[i] = scale
+            rows.append(row)
+            rhs.append(scale * np.asarray(target))
+    return np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)[0]
+
+
+@pytest.mark.parametrize("length", [0.05, 0.3, 3.0])
+def test_spread_colours_minimise_their_energy(length):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    rng = np.random.default_rng(1)
+    n = len(mesh.vertices)
+    colors, prior = rng.uniform(size=(n, 3)), rng.uniform(size=(n, 3))
+    weight = np.where(rng.uniform(size=n) < 0.3, rng.uniform(size=n), 0.0)
+    got = spread_colors(mesh, colors, weight, prior, length)
+    assert np.allclose(got, brute_force_spread(mesh, colors, weight, prior, length), atol=1e-8)
+
+
+def test_spread_colours_reach_further_with_a_longer_length_and_leave_unseen_pieces_to_the_prior():
+    seen, unseen = box(1.0, splits=2), box(0.3, (3.0, 0.0, 0.0), splits=1)  # two pieces, no edge between them
+    mesh = trimesh.util.concatenate([seen, unseen])
+    n_seen = len(seen.vertices)
+    v = np.asarray(mesh.vertices)
+    weight = np.where((np.arange(len(v)) < n_seen) & (v[:, 0] < -0.49), 1.0, 0.0)  # the first box's -x face
+    colors, prior = np.tile([1.0, 0.0, 0.0], (len(v), 1)), np.tile([0.0, 0.0, 1.0], (len(v), 1))
+    far = np.flatnonzero((np.arange(len(v)) < n_seen) & (v[:, 0] > 0.49))  # the first box's +x face
+    reach = [spread_colors(mesh, colors, weight, prior, length)[far, 0].mean() for length in (0.1, 0.5, 2.0)]
+    assert 0 < reach[0] < reach[1] < reach[2] < 1
+    assert np.allclose(spread_colors(mesh, colors, weight, prior, 2.0)[n_seen:], [0.0, 0.0, 1.0], atol=1e-9)
+
+
+def test_the_fill_colours_what_the_photo_does_not_see_from_what_it_sees():
+    mesh = box(1.0)
+    plain, filled = blend(mesh, view()), photo_blend(mesh, np.tile(FIELD, (len(mesh.vertices), 1)), view(), 5.0)
+    near, far = face_rows(mesh, 0, -0.5, 0.5), face_rows(mesh, 0, 0.5, 0.5)
+    assert np.allclose(filled[near], plain[near], atol=1e-5)  # seen: the photo either way
+    photo_mean = plain[near].mean(0)
+    assert np.abs(filled[far] - photo_mean).max() < 0.5 * np.abs(FIELD - photo_mean).max()
+
+
+def test_a_field_that_matches_the_photo_where_it_sees_keeps_its_colours_elsewhere():
+    mesh = box(1.0)
+    field = expected_photo(np.asarray(mesh.vertices))  # the photo's colour law, extended to the whole box
+    for fill in (0.0, 5.0):
+        assert np.allclose(photo_blend(mesh, field, view(), fill), field, atol=1e-5)
+
+
+def test_field_error_is_the_weighted_rms_colour_distance():
+    field = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.5, 0.5, 0.5]])
+    photo = np.array([[0.3, 0.4, 0.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0]])
+    assert field_error(field, photo, np.array([1.0, 1.0, 0.0])) == pytest.approx(np.sqrt(0.25 / 2))
+    assert field_error(field, photo, np.array([0.0, 0.0, 2.0])) == pytest.approx(np.sqrt(0.75))
+    assert field_error(field, photo, np.zeros(3)) == 0.0

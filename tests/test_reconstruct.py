@@ -206,9 +206,11 @@ def test_constant_field_reconstruction_matches_closed_forms(models):
     dist = np.linalg.norm(res.points.reshape(4, -1, 3) - eyes[:, None], axis=-1)
     assert np.all((dist >= 0.8 - 1e-4) & (dist <= 0.8 + 1.0 / 16 + 1e-4))
     assert np.allclose(res.point_colors, COLOR, atol=1e-4)
-    # photo colours (the default): the photo's red disc where the input camera sees the mesh well inside it, the
-    # field's colour wherever the vertex projects off the object
-    rgb = res.mesh.visual.vertex_colors[:, :3].astype(int)
+    # photo colours without a fill: the photo's red disc where the input camera sees the mesh well inside it, the
+    # field's colour wherever the vertex projects off the object; with the default fill the red spreads into those
+    unfilled = rec.reconstruct(disc_photo(), config=dataclasses.replace(cfg, mesh_fill=0.0, views=1))
+    assert np.array_equal(unfilled.mesh.vertices, res.mesh.vertices)
+    rgb = unfilled.mesh.visual.vertex_colors[:, :3].astype(int)
     cam = world_to_camera(torch.as_tensor(res.mesh.vertices), torch.from_numpy(res.poses[0]).double())
     uv = np.rint(project(cam, res.intrinsics.focal, (res.intrinsics.cx, res.intrinsics.cy)).numpy()).astype(int)
     uv = np.clip(uv, 0, np.array(res.input.mask.shape[::-1]) - 1)
@@ -219,6 +221,10 @@ def test_constant_field_reconstruction_matches_closed_forms(models):
     assert (inside >= 3).sum() > 10 and (inside == 0).sum() > 10
     assert np.abs(rgb[(inside >= 3) & facing] - [200, 50, 50]).max() <= 1
     assert np.all(rgb[inside == 0] == np.round(np.array(COLOR) * 255))
+    filled = res.mesh.visual.vertex_colors[:, :3].astype(int)
+    assert np.abs(filled[(inside >= 3) & facing] - [200, 50, 50]).max() <= 1
+    red_share = (filled[inside == 0, 0] - 255 * COLOR[0]) / (200 - 255 * COLOR[0])  # 0: the field's, 1: the disc's
+    assert 0 < red_share.mean() < 1 and red_share.min() >= 0
     field = rec.reconstruct(disc_photo(), config=dataclasses.replace(cfg, mesh_colors="normal-ray", views=1))
     assert np.all(field.mesh.visual.vertex_colors[:, :3] == np.round(np.array(COLOR) * 255))
     grid = CameraGrid.from_frustum(torch.from_numpy(res.poses[0]), srn_intrinsics(131.25, 128, 32), 0.8, 1.8)

@@ -21,7 +21,7 @@ from depthnerf.distributed import pick_device
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
 from depthnerf.render.mesh_colors import MESH_COLOR_RULES
-from depthnerf.render.photo_colors import PHOTO
+from depthnerf.render.photo_colors import PHOTO, PHOTO_FILL
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -70,6 +70,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "mirror model, its mirror image; elsewhere normal-ray's), normal-ray (the colour the "
                         "renderer gives a short ray into the surface along its normal) or point (the network's "
                         "colour at the vertex, seen from the input camera; speckled)")
+    p.add_argument("--mesh-fill", type=float, default=PHOTO_FILL,
+                   help="photo colours: how far the photo's colours spread over the surface into what it does not "
+                        "see, in world units per unit of the network's RMS colour error where it sees (default "
+                        f"{PHOTO_FILL:g}; 0: the network's colours there)")
     p.add_argument("--depth", "--depth-estimator", dest="depth", choices=PHOTO_ESTIMATORS,
                    help="override the checkpoint's depth prior (needed for checkpoints trained with oracle; "
                         "--depth-estimator: same)")
@@ -118,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
                             mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
-                            mesh_keep=args.mesh_keep, mesh_colors=args.mesh_colors,
+                            mesh_keep=args.mesh_keep, mesh_colors=args.mesh_colors, mesh_fill=args.mesh_fill,
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model,
                             facing=getattr(args, "facing", DEFAULT_FACING))

@@ -60,7 +60,7 @@ from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, check_mesh_keep, keep_pieces
 from depthnerf.render.mesh_colors import check_color_rule, describe_colors
 from depthnerf.render.mesh_level import LOCAL_LEVEL, parse_level
-from depthnerf.render.photo_colors import PHOTO
+from depthnerf.render.photo_colors import PHOTO, PHOTO_FILL
 from depthnerf.render.source_guide import as_guided
 from depthnerf.render.views import ViewRenders
 
@@ -100,6 +100,9 @@ class ReconstructConfig:
     """Vertex colour rule (:mod:`depthnerf.render.mesh_colors`): ``photo`` (the photo's colour where it sees the
     vertex or, with a mirror plane, its mirror image; elsewhere ``normal-ray``'s), ``normal-ray`` (the renderer's
     colour along a short ray into the surface) or ``point`` (the field at the vertex)."""
+    mesh_fill: float = PHOTO_FILL
+    """``photo`` colours: how far the photo's colours spread over the surface into what it does not see, in world
+    units per unit of the field's RMS colour error where it sees (0: no spread, the field's colours there)."""
     max_points: int | None = 200_000
     """Largest point-cloud size (None: every point)."""
     chunk: int | None = None
@@ -136,6 +139,9 @@ class ReconstructConfig:
         check_mesh_keep(self.mesh_keep)
         check_color_rule(self.mesh_colors)
         parse_level(str(self.mesh_threshold))  # a level <= 0 or NaN made an empty mesh or every cell a surface
+        if isinstance(self.mesh_fill, bool) or not isinstance(self.mesh_fill, int | float) or \
+                not (math.isfinite(self.mesh_fill) and self.mesh_fill >= 0):
+            raise DepthnerfError(f"--mesh-fill must be a number >= 0, got {self.mesh_fill!r}")
         for name, value in (("radius", self.radius), ("focal", self.focal)):
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise DepthnerfError(f"--{name} must be > 0, got {value}")
@@ -294,7 +300,7 @@ class Reconstructor:
             on_stage(1)
         t = time.perf_counter()
         mesh, level = trimesh.Trimesh(), None
-        mesh_cfg = MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold, colors=cfg.mesh_colors)
+        mesh_cfg = MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold, colors=cfg.mesh_colors, photo_fill=cfg.mesh_fill)
         if cfg.mesh_resolution > 0:
             mesh, level = self.session.mesh(encoded, mesh_cfg)
         mesh, pieces = keep_pieces(mesh, cfg.mesh_keep)
@@ -318,7 +324,7 @@ class Reconstructor:
                     "mesh_keep": cfg.mesh_keep, "mesh_pieces": pieces.pieces, "mesh_faces_extracted": pieces.faces,
                     "mesh_faces_kept": pieces.kept_faces,
                     "point_opacity": POINT_OPACITY,
-                    "mesh_colors": describe_colors(mesh_cfg.colors, mesh_cfg.color_half_width)}
+                    "mesh_colors": describe_colors(mesh_cfg.colors, mesh_cfg.color_half_width, mesh_cfg.photo_fill)}
         return Reconstruction(
             input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
             prior_normalized=None if normalized is None else normalized[0, 0, 0].cpu().numpy(),

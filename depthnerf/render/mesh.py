@@ -47,7 +47,7 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
 from depthnerf.render.mesh_colors import RadianceFn, seen_from, vertex_colors
 from depthnerf.render.mesh_level import DEFAULT_THRESHOLD, DensityFn, MeshLevel, level_surface, query_chunks
-from depthnerf.render.photo_colors import PHOTO, PhotoView
+from depthnerf.render.photo_colors import PHOTO, PHOTO_FILL, PhotoView
 
 ColorFn = Callable[[Float[Tensor, "N 3"]], Float[Tensor, "N 3"]]
 """World points -> RGB in [0, 1]."""
@@ -62,7 +62,7 @@ class MeshConfig:
     threshold: float | str = DEFAULT_THRESHOLD
     """Density level of the surface (units 1/world-distance), or a rule name of
     :mod:`depthnerf.render.mesh_level` (``"auto"``, ``"silhouette"``, ``"local"``): :func:`extract_mesh` needs a number,
-    :func:`source_mesh` resolves a rule; eval, reconstruct and demo default to ``"auto"``."""
+    :func:`source_mesh` resolves a rule; eval defaults to ``"auto"``, reconstruct and the demo to ``"local"``."""
     chunk: int = 65536
     """Points per density query (bounds memory)."""
     close_boundary: bool = True
@@ -76,6 +76,9 @@ class MeshConfig:
     """``normal-ray`` (and ``photo`` where the photo does not see): the short ray's half-width (world units; the study measured 0.015-0.1 on cars and chairs)."""
     color_samples: int = 24
     """``normal-ray``: samples along the short ray."""
+    photo_fill: float = PHOTO_FILL
+    """``photo``: how far the photo's colours spread into what it does not see, in world units per unit of the
+    field's RMS colour error where it sees (:func:`~depthnerf.render.photo_colors.photo_blend`; 0: no spread)."""
 
 
 @dataclass(frozen=True)
@@ -286,5 +289,5 @@ def input_camera_mesh(model: PixelNeRF, enc: EncodedViews, c2w: Float[Tensor, "4
     if colored and len(mesh.vertices):
         mesh.visual.vertex_colors = vertex_colors(
             config.colors, field_radiance(model, enc, runtime), mesh, eye, config.color_half_width,
-            config.color_samples, config.chunk, device, photo)
+            config.color_samples, config.chunk, device, photo, config.photo_fill)
     return mesh, level

@@ -103,9 +103,9 @@ def point_colors(radiance_fn: RadianceFn, vertices: Float[Tensor, "N 3"], eye: F
 
 def vertex_colors(rule: str, radiance_fn: RadianceFn, mesh: trimesh.Trimesh, eye: Float[Tensor, " 3"],
                   half_width: float, samples: int, chunk: int, device: torch.device | str = "cpu",
-                  photo: PhotoView | None = None) -> Float[np.ndarray, "N 4"]:
+                  photo: PhotoView | None = None, fill: float = 0.0) -> Float[np.ndarray, "N 4"]:
     """RGBA uint8 colours of ``mesh``'s vertices by ``rule`` (:data:`MESH_COLOR_RULES`), alpha 255; ``photo``: the
-    input photo (the ``photo`` rule needs it)."""
+    input photo (the ``photo`` rule needs it), ``fill``: its fill (:func:`~depthnerf.render.photo_colors.photo_blend`)."""
     check_color_rule(rule)
     if rule == PHOTO and photo is None:
         raise DepthnerfError("mesh colours: the photo rule needs the input photo")
@@ -116,16 +116,18 @@ def vertex_colors(rule: str, radiance_fn: RadianceFn, mesh: trimesh.Trimesh, eye
         n = torch.as_tensor(np.array(mesh.vertex_normals), dtype=torch.float32, device=device)
         rgb = normal_ray_colors(radiance_fn, v, n, half_width, samples, chunk)
         if rule == PHOTO:
-            rgb = photo_blend(mesh, rgb, photo)
+            rgb = photo_blend(mesh, rgb, photo, fill)
     return np.concatenate([np.round(np.clip(rgb, 0, 1) * 255), np.full((len(rgb), 1), 255)], axis=1).astype(np.uint8)
 
 
-def describe_colors(rule: str, half_width: float) -> str:
+def describe_colors(rule: str, half_width: float, fill: float = 0.0) -> str:
     """One line for records (the reconstruction manifest)."""
     if rule == NORMAL_RAY:
         return (f"fine-network rgb volume-rendered along each vertex's inward normal, from {half_width:g} outside "
                 f"the surface to {half_width:g} inside")
     if rule == PHOTO:
-        return "the input photo's rgb where it sees the vertex or its mirror image; elsewhere " + \
+        spread = (f"its colours spread over the surface for {fill:g} x their RMS distance to the field's (world "
+                  "units), into ") if fill > 0 else ""
+        return "the input photo's rgb where it sees the vertex or its mirror image; elsewhere " + spread + \
             describe_colors(NORMAL_RAY, half_width)
     return "fine-network rgb at each vertex seen along the input camera's ray"

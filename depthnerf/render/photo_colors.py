@@ -20,7 +20,11 @@ and replaces it by the photo's where the photo sees the vertex:
 - ``v' = reflect(v)`` in the object's mirror plane, with the normal reflected too (``w_2``; 0 without a plane):
   a vertex on the far side of a mirror-symmetric object takes the colour of its mirror image on the near side.
 
-Vertices that neither the photo nor its mirror sees keep ``c_field``: the top, front and back of a side view.
+Vertices that neither the photo nor its mirror sees (the top, front and back of a side view) keep ``c_field``, or
+with a ``fill`` (:data:`PHOTO_FILL` by default in reconstruct) take the photo's colours spread over the surface from
+the nearest seen vertices and fading into ``c_field`` (:func:`spread_colors`). How far they reach depends on how
+wrong the field's colours proved where the photo sees: ``fill * sigma`` world units, ``sigma`` the RMS colour
+distance between field and photo there (:func:`field_error`). A field that matches the photo keeps its colours.
 """
 
 from __future__ import annotations
@@ -32,7 +36,8 @@ import numpy as np
 import torch
 import trimesh
 from jaxtyping import Bool, Float
-from scipy import ndimage
+from scipy import ndimage, sparse
+from scipy.sparse.linalg import splu
 
 from depthnerf.data.cameras import Intrinsics, project, world_to_camera
 from depthnerf.data.synth.hits import first_hit_finder
@@ -47,6 +52,11 @@ MASK_ERODE = 1
 """Pixels taken off the object's mask before a vertex may read the photo (the silhouette mixes in background)."""
 OCCLUSION_TOL = 1.5
 """How far (in mean mesh edge lengths) a first hit may lie in front of a vertex that still counts as seen."""
+PHOTO_FILL = 0.3
+"""Default ``fill`` of :func:`photo_blend`: the photo's colours reach ``0.3 sigma`` world units into what it does not
+see (docs/RESULTS.md, "Mesh vertex colours", measures 0 to 1)."""
+SPREAD_DATA_WEIGHT = 100.0
+""":func:`spread_colors`: the weight of a seen vertex's photo colour, against 1 per mesh edge of smoothness."""
 
 
 @dataclass(frozen=True)
@@ -131,17 +141,62 @@ def reflect(x: Float[np.ndarray, "N 3"], plane: Float[np.ndarray, " 4"], *, dire
     return x - 2.0 * ((x @ n) - d)[:, None] * n
 
 
-def photo_blend(mesh: trimesh.Trimesh, field_rgb: Float[np.ndarray, "N 3"], view: PhotoView
+def photo_blend(mesh: trimesh.Trimesh, field_rgb: Float[np.ndarray, "N 3"], view: PhotoView, fill: float = 0.0
                 ) -> Float[np.ndarray, "N 3"]:
-    """The ``photo`` rule's colours of ``mesh``'s vertices (module docstring) from the field's ``field_rgb``."""
-    rgb = np.asarray(field_rgb, dtype=np.float64)
+    """The ``photo`` rule's colours of ``mesh``'s vertices (module docstring) from the field's ``field_rgb``; with
+    ``fill > 0`` the vertices the photo does not see take the photo's colours spread over the surface
+    (:func:`spread_colors`) into the field's, over ``fill * sigma`` world units (:func:`field_error`)."""
+    field = np.asarray(field_rgb, dtype=np.float64)
     if len(mesh.faces) == 0:
-        return rgb.astype(np.float32)
+        return field.astype(np.float32)
     vertices, normals = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.vertex_normals)
+    direct, w_direct = photo_samples(mesh, vertices, normals, view)
+    mirrored, w_mirror = np.zeros_like(direct), np.zeros_like(w_direct)
     plane = None if view.plane is None else np.asarray(view.plane, dtype=np.float64)
     if plane is not None and np.abs(plane[:3]).sum() > 0:
         mirrored, w_mirror = photo_samples(mesh, reflect(vertices, plane), reflect(normals, plane, direction=True),
                                            view)
-        rgb = w_mirror[:, None] * mirrored + (1 - w_mirror[:, None]) * rgb
-    direct, w_direct = photo_samples(mesh, vertices, normals, view)
-    return (w_direct[:, None] * direct + (1 - w_direct[:, None]) * rgb).astype(np.float32)
+    # c = w_1 p(v) + (1 - w_1) (w_2 p(v') + (1 - w_2) c_field) = k photo + (1 - k) c_field
+    seen = w_direct + (1 - w_direct) * w_mirror
+    photo = (w_direct[:, None] * direct + ((1 - w_direct) * w_mirror)[:, None] * mirrored) / \
+        np.maximum(seen, 1e-12)[:, None]
+    rest = field
+    length = fill * field_error(field, photo, seen) if fill > 0 else 0.0
+    if length > 0:
+        rest = spread_colors(mesh, photo, seen, field, length)
+    return (seen[:, None] * photo + (1 - seen[:, None]) * rest).astype(np.float32)
+
+
+def field_error(field: Float[np.ndarray, "N 3"], photo: Float[np.ndarray, "N 3"], seen: Float[np.ndarray, " N"]
+                ) -> float:
+    """``sigma``: the root of the ``seen``-weighted mean squared RGB distance between the field's and the photo's
+    colours where the photo sees the surface (0 where it sees none). How far the field's own colours can be trusted
+    where the photo does not see: the fill of :func:`photo_blend` reaches ``fill * sigma`` world units, so a field
+    whose colours match the photo keeps its own."""
+    total = float(seen.sum())
+    if total <= 0:
+        return 0.0
+    return float(np.sqrt((seen * ((field - photo) ** 2).sum(1)).sum() / total))
+
+
+def spread_colors(mesh: trimesh.Trimesh, colors: Float[np.ndarray, "N 3"], weight: Float[np.ndarray, " N"],
+                  prior: Float[np.ndarray, "N 3"], length: float) -> Float[np.ndarray, "N 3"]:
+    """The vertex colours ``x`` that minimise
+
+    ``sum over mesh edges (i, j) |x_i - x_j|^2 + sum over vertices (K w_i |x_i - c_i|^2 + eps |x_i - prior_i|^2)``
+
+    with ``K`` = :data:`SPREAD_DATA_WEIGHT` and ``eps = (h / length)^2``, ``h`` the mean edge length: the colours
+    ``c`` (weight ``w``, 0 = unknown) spread over the surface into the unknown vertices and fade into ``prior`` over
+    about ``length`` world units (the decay length of the edge chain's solution, ``h / sqrt(eps)``). A piece of the
+    mesh without a known vertex takes ``prior``. One sparse symmetric positive definite solve (``L + diag(K w +
+    eps)``, ``L`` the graph Laplacian), three right-hand sides."""
+    n = len(mesh.vertices)
+    edges = np.asarray(mesh.edges_unique)
+    eps = (float(mesh.edges_unique_length.mean()) / length) ** 2
+    adjacency = sparse.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    adjacency = (adjacency + adjacency.T).tocsr()
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    data = SPREAD_DATA_WEIGHT * np.asarray(weight, dtype=np.float64)
+    system = (sparse.diags(degree + data + eps) - adjacency).tocsc()
+    rhs = data[:, None] * np.asarray(colors, dtype=np.float64) + eps * np.asarray(prior, dtype=np.float64)
+    return splu(system).solve(rhs)
