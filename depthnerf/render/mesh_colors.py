@@ -1,6 +1,7 @@
-"""Vertex colours of an extracted mesh, read from the radiance field. Two rules (:data:`MESH_COLOR_RULES`):
+"""Vertex colours of an extracted mesh, read from the radiance field (and the photo). Three rules
+(:data:`MESH_COLOR_RULES`):
 
-``normal-ray`` (:data:`NORMAL_RAY`, :func:`normal_ray_colors`; the default)
+``normal-ray`` (:data:`NORMAL_RAY`, :func:`normal_ray_colors`; what ``photo`` keeps where the photo does not see)
     **the colour the volume renderer gives a short ray that looks at the vertex from outside, along its inward
     normal.** For a vertex ``v`` with unit outward normal ``n`` and a half-width ``h``, the ray starts at ``v + h n``
     and runs along ``d = -n`` to ``v - h n``; its ``S`` samples are ``x_k = v + (h - t_k) n``, ``t_k = 2 h k /
@@ -10,16 +11,19 @@
     :data:`MIN_OPACITY` (no density near the vertex) the colour is the field's colour at ``v`` seen along ``d``.
 ``point`` (:data:`POINT`, :func:`point_colors`)
     **the field's colour at the vertex itself, seen along the input camera's ray through it.**
-``photo`` (:data:`~depthnerf.render.photo_colors.PHOTO`, :func:`~depthnerf.render.photo_colors.photo_blend`)
+``photo`` (:data:`~depthnerf.render.photo_colors.PHOTO`, :func:`~depthnerf.render.photo_colors.photo_blend`; the
+    default of reconstruct)
     **the input photo's colour where the input camera sees the vertex or, on a mirror-symmetric object, its mirror
-    image; elsewhere the** ``normal-ray`` **colour**, blended over grazing angles.
+    image; elsewhere the** ``normal-ray`` **colour**, blended over grazing angles, or with a fill the photo's colours
+    spread over the surface into it.
 
 Why ``normal-ray``: training fits only the weighted sum of colours along rays, so the colour at one point of a
 soft density is barely constrained, and a vertex lies on a density level, often at the surface's fringe. ``point``
 therefore gives speckled vertex colours (reds and blues on a green chair), and on the side away from the input
 camera it asks for the colour of a surface seen from behind, which no training ray showed. ``normal-ray`` asks what
-the renderer shows: the first surface met from outside, seen from outside. docs/RESULTS.md, "Mesh vertex colours"
-measures both (``scripts/mesh_color_study.py``).
+the renderer shows: the first surface met from outside, seen from outside. Why ``photo``: where the photo sees the
+surface its colours are the truth, not the field's blurred and darkened guess. docs/RESULTS.md, "Mesh vertex
+colours" measures all three (``scripts/mesh_color_study.py``).
 """
 
 from __future__ import annotations
