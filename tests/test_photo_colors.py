@@ -19,7 +19,7 @@ from depthnerf.render.photo_colors import (
     field_error,
     photo_blend,
     photo_samples,
-    reflect,
+    reflected,
     spread_colors,
 )
 
@@ -78,13 +78,14 @@ def test_bilinear_is_exact_on_a_linear_image_and_clamps_at_the_border():
     assert np.allclose(outside[:, :2], [[0.0, 1.0], [1.0, 0.0]])
 
 
-def test_reflect_points_and_directions():
+def test_reflected_points_and_normals():
     plane = np.array([0.6, 0.8, 0.0, 0.5])
     x = np.random.default_rng(0).normal(size=(20, 3))
-    assert np.allclose(reflect(reflect(x, plane), plane), x)
-    mid = (x + reflect(x, plane)) / 2
+    image, image_dirs = reflected(x, x, plane)
+    assert np.allclose(reflected(image, image, plane)[0], x)
+    mid = (x + image) / 2
     assert np.allclose(mid @ plane[:3], plane[3])  # the midpoint lies on the plane
-    assert np.allclose(reflect(x, plane, direction=True), reflect(x, plane) - reflect(np.zeros((1, 3)), plane))
+    assert np.allclose(image_dirs, image - reflected(np.zeros((1, 3)), np.zeros((1, 3)), plane)[0])
 
 
 def test_the_near_face_takes_the_photo_and_the_hidden_faces_keep_the_field():

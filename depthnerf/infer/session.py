@@ -330,4 +330,4 @@ class InferenceSession:
         near, far = self.spec.z_range
         return input_camera_mesh(self.model, encoded.enc, encoded.pose, encoded.intr, near, far, cfg, self.device,
                                  colored=colored, runtime=self.runtime, mask=encoded.mask[0].cpu().numpy(),
-                                 photo=photo_view(encoded))
+                                 photo=photo_view(encoded) if colored else None)

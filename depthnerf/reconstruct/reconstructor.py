@@ -300,7 +300,8 @@ class Reconstructor:
             on_stage(1)
         t = time.perf_counter()
         mesh, level = trimesh.Trimesh(), None
-        mesh_cfg = MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold, colors=cfg.mesh_colors, photo_fill=cfg.mesh_fill)
+        mesh_cfg = MeshConfig(cfg.mesh_resolution, cfg.mesh_threshold, colors=cfg.mesh_colors,
+                              photo_fill=cfg.mesh_fill)
         if cfg.mesh_resolution > 0:
             mesh, level = self.session.mesh(encoded, mesh_cfg)
         mesh, pieces = keep_pieces(mesh, cfg.mesh_keep)

@@ -62,7 +62,8 @@ class MeshConfig:
     threshold: float | str = DEFAULT_THRESHOLD
     """Density level of the surface (units 1/world-distance), or a rule name of
     :mod:`depthnerf.render.mesh_level` (``"auto"``, ``"silhouette"``, ``"local"``): :func:`extract_mesh` needs a number,
-    :func:`source_mesh` resolves a rule; eval defaults to ``"auto"``, reconstruct and the demo to ``"local"``."""
+    :func:`source_mesh` resolves a rule; eval defaults to ``"auto"``, reconstruct and the demo to
+    ``"local"``."""
     chunk: int = 65536
     """Points per density query (bounds memory)."""
     close_boundary: bool = True
@@ -73,7 +74,8 @@ class MeshConfig:
     ``"normal-ray"`` (the renderer's colour along a short ray into the surface) or ``"point"`` (the field at the
     vertex). docs/RESULTS.md, "Mesh vertex colours" measures them."""
     color_half_width: float = 0.06
-    """``normal-ray`` (and ``photo`` where the photo does not see): the short ray's half-width (world units; the study measured 0.015-0.1 on cars and chairs)."""
+    """``normal-ray`` (and ``photo`` where the photo does not see): the short ray's half-width (world units; the
+    study measured 0.015-0.1 on cars and chairs)."""
     color_samples: int = 24
     """``normal-ray``: samples along the short ray."""
     photo_fill: float = PHOTO_FILL

@@ -109,7 +109,8 @@ def vertex_colors(rule: str, radiance_fn: RadianceFn, mesh: trimesh.Trimesh, eye
                   half_width: float, samples: int, chunk: int, device: torch.device | str = "cpu",
                   photo: PhotoView | None = None, fill: float = 0.0) -> Float[np.ndarray, "N 4"]:
     """RGBA uint8 colours of ``mesh``'s vertices by ``rule`` (:data:`MESH_COLOR_RULES`), alpha 255; ``photo``: the
-    input photo (the ``photo`` rule needs it), ``fill``: its fill (:func:`~depthnerf.render.photo_colors.photo_blend`)."""
+    input photo (the ``photo`` rule needs it), ``fill``: its fill
+    (:func:`~depthnerf.render.photo_colors.photo_blend`)."""
     check_color_rule(rule)
     if rule == PHOTO and photo is None:
         raise DepthnerfError("mesh colours: the photo rule needs the input photo")

@@ -40,6 +40,7 @@ from scipy import ndimage, sparse
 from scipy.sparse.linalg import splu
 
 from depthnerf.data.cameras import Intrinsics, project, world_to_camera
+from depthnerf.data.symmetry import reflect_dirs, reflect_points
 from depthnerf.data.synth.hits import first_hit_finder
 
 PHOTO = "photo"
@@ -72,7 +73,8 @@ class PhotoView:
     intr: Intrinsics
     """Its intrinsics, at the image's resolution."""
     plane: Float[np.ndarray, " 4"] | None = None
-    """The object's mirror plane ``(n, d)`` (``n . x = d``, unit ``n``) in the world frame; None or a zero row: none."""
+    """The object's mirror plane ``(n, d)`` (``n . x = d``, unit ``n``) in the world frame; None or a zero row:
+    none."""
 
 
 def photo_samples(mesh: trimesh.Trimesh, points: Float[np.ndarray, "N 3"], normals: Float[np.ndarray, "N 3"],
@@ -122,23 +124,19 @@ def unoccluded(mesh: trimesh.Trimesh, eye: Float[np.ndarray, " 3"], points: Floa
 
 def bilinear(image: Float[np.ndarray, "H W 3"], uv: Float[np.ndarray, "N 2"]) -> Float[np.ndarray, "N 3"]:
     """``image`` at continuous pixel coordinates ``(u, v)`` (pixel ``(i, j)`` centred at ``(j, i)``), bilinear,
-    clamped to the border."""
-    h, w = image.shape[:2]
-    u, v = np.clip(uv[:, 0], 0, w - 1), np.clip(uv[:, 1], 0, h - 1)
-    j0, i0 = np.minimum(np.floor(u).astype(np.int64), w - 2 if w > 1 else 0), \
-        np.minimum(np.floor(v).astype(np.int64), h - 2 if h > 1 else 0)
-    j1, i1 = np.minimum(j0 + 1, w - 1), np.minimum(i0 + 1, h - 1)
-    fu, fv = (u - j0)[:, None], (v - i0)[:, None]
-    top = image[i0, j0] * (1 - fu) + image[i0, j1] * fu
-    bottom = image[i1, j0] * (1 - fu) + image[i1, j1] * fu
-    return top * (1 - fv) + bottom * fv
+    clamped to the border (``scipy.ndimage.map_coordinates``, order 1)."""
+    rows_cols = [np.asarray(uv[:, 1], dtype=np.float64), np.asarray(uv[:, 0], dtype=np.float64)]
+    return np.stack([ndimage.map_coordinates(np.asarray(image[..., c], dtype=np.float64), rows_cols, order=1,
+                                             mode="nearest") for c in range(image.shape[-1])], axis=-1)
 
 
-def reflect(x: Float[np.ndarray, "N 3"], plane: Float[np.ndarray, " 4"], *, direction: bool = False
-            ) -> Float[np.ndarray, "N 3"]:
-    """Mirror images of points (``x - 2 (n . x - d) n``) or, with ``direction``, of vectors (``x - 2 (n . x) n``)."""
-    n, d = plane[:3], 0.0 if direction else plane[3]
-    return x - 2.0 * ((x @ n) - d)[:, None] * n
+def reflected(points: Float[np.ndarray, "N 3"], normals: Float[np.ndarray, "N 3"], plane: Float[np.ndarray, " 4"]
+              ) -> tuple[Float[np.ndarray, "N 3"], Float[np.ndarray, "N 3"]]:
+    """Mirror images of points and their normals in ``plane`` (:func:`~depthnerf.data.symmetry.reflect_points`,
+    :func:`~depthnerf.data.symmetry.reflect_dirs`)."""
+    p = torch.tensor(plane, dtype=torch.float64)[None]  # copies: trimesh's arrays are read-only
+    return (reflect_points(torch.tensor(points, dtype=torch.float64)[None], p)[0].numpy(),
+            reflect_dirs(torch.tensor(normals, dtype=torch.float64)[None], p)[0].numpy())
 
 
 def photo_blend(mesh: trimesh.Trimesh, field_rgb: Float[np.ndarray, "N 3"], view: PhotoView, fill: float = 0.0
@@ -154,8 +152,7 @@ def photo_blend(mesh: trimesh.Trimesh, field_rgb: Float[np.ndarray, "N 3"], view
     mirrored, w_mirror = np.zeros_like(direct), np.zeros_like(w_direct)
     plane = None if view.plane is None else np.asarray(view.plane, dtype=np.float64)
     if plane is not None and np.abs(plane[:3]).sum() > 0:
-        mirrored, w_mirror = photo_samples(mesh, reflect(vertices, plane), reflect(normals, plane, direction=True),
-                                           view)
+        mirrored, w_mirror = photo_samples(mesh, *reflected(vertices, normals, plane), view)
     # c = w_1 p(v) + (1 - w_1) (w_2 p(v') + (1 - w_2) c_field) = k photo + (1 - k) c_field
     seen = w_direct + (1 - w_direct) * w_mirror
     photo = (w_direct[:, None] * direct + ((1 - w_direct) * w_mirror)[:, None] * mirrored) / \
