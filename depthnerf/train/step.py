@@ -123,19 +123,17 @@ class BatchLoss(torch.nn.Module):
                                                      batch.target_fg, dirs_cam_z=batch.target_cos)
             depth = per_object.mean()
             total = total + self.depth_weight * depth
-        # always measured (logged as loss_background: the floater diagnostic), back-propagated only when weighted
-        background = (background_opacity_per_object(out.coarse.opacity, batch.target_fg)
-                      + background_opacity_per_object(out.fine.opacity, batch.target_fg)).mean()
-        if self.background_weight > 0:
-            total = total + self.background_weight * background
-        else:
-            background = background.detach()
-        foreground = (foreground_opacity_per_object(out.coarse.opacity, batch.target_fg)
-                      + foreground_opacity_per_object(out.fine.opacity, batch.target_fg)).mean()
-        if self.foreground_weight > 0:
-            total = total + self.foreground_weight * foreground
-        else:
-            foreground = foreground.detach()
+        # the mask terms: always measured (logged as loss_background, the floater diagnostic, and loss_foreground),
+        # back-propagated only when weighted
+        terms = []
+        for per_object, weight in ((background_opacity_per_object, self.background_weight),
+                                   (foreground_opacity_per_object, self.foreground_weight)):
+            term = (per_object(out.coarse.opacity, batch.target_fg) + per_object(out.fine.opacity, batch.target_fg)
+                    ).mean()
+            if weight > 0:
+                total = total + weight * term
+            terms.append(term if weight > 0 else term.detach())
+        background, foreground = terms
         return LossTerms(total=total, coarse=coarse, fine=fine, depth=depth, background=background,
                          foreground=foreground)
 
