@@ -14,13 +14,14 @@
 #     With embreex in .whl (`WHEELS="trimesh==5.2.0 rtree==1.4.1 lpips==0.1.4 embreex==4.4.0.post1" bash
 #     scripts/gpu_wheels.sh`) Embree casts the rays on the machine's cores; without it torch does, on CUDA, slowly.
 #  2. priors: the bundled depth net DEPTH_NET (srn) over the train split, on DEVICE (cuda).
-#  3. probe: PROBE_SECONDS (90) of training with the preset's own schedule (its bbox phase first), stopped with
+#  3. store: the train split's views decoded once (--data.view_store), so that the probe's time is all steps.
+#  4. probe: PROBE_SECONDS (90) of training with the preset's own schedule (its bbox phase first), stopped with
 #     SIGTERM, which checkpoints. Its median ms per step over the second half of its logged steps sets STEPS.
-#  4. main: --init-from the probe's weights, whole-image rays, a half-cosine learning rate LR (3e-4) -> LR_FINAL
+#  5. main: --init-from the probe's weights, whole-image rays, a half-cosine learning rate LR (3e-4) -> LR_FINAL
 #     (3e-6) over STEPS = (SECONDS_TOTAL - elapsed - RESERVE_S - START_S) * 1000 / (ms per step), START_S (25) the
 #     run's start-up (imports, the store's check, a compilation with --compile-step: raise it then); at the deadline
 #     SIGTERM stops it anyway (a checkpoint, the schedule then not at its end).
-#  5. out: OUT_DIR/run.tar.gz (both run folders without optimiser states and TensorBoard events, the main run with
+#  6. out: OUT_DIR/run.tar.gz (both run folders without optimiser states and TensorBoard events, the main run with
 #     its last checkpoint only: what `depthnerf eval --checkpoint` and scripts/export_checkpoint.py read),
 #     gpu_checkpoint.json (stages, both runs' ms per step, steps, first and last loss) and the log.
 # Other settings: SEED (0), DATA_WORKERS (8, the loader's; the runs read a store of decoded views), INIT (a
@@ -64,6 +65,11 @@ stage data "$PY" -m depthnerf synth --category "$CATEGORY" --out "$WORK/data" --
   --quiet
 stage priors "$PY" -m depthnerf depth --data "$WORK/data" --depth bundled --depth-checkpoint "$DEPTH_NET" \
   --category "$CATEGORY" --resolution "$RES" --splits train --device "$DEVICE"
+# the decoded-view store, before the probe, whose time limit is then all steps (600 objects: 18 s on the H200)
+stage store "$PY" -c "import sys; from depthnerf.data.srn import index_split; from depthnerf.data.view_store import \
+ViewStore; from depthnerf.train.config import preset; root, cat, res = sys.argv[1], sys.argv[2], int(sys.argv[4]); \
+ViewStore(sys.argv[3], res, preset('cpu-' + cat).data.pixel_center).ensure(index_split(root, cat, 'train').objects)" \
+  "$WORK/data" "$CATEGORY" "$WORK/store" "$RES"
 init=(); [ -n "$INIT" ] && init=(--init-from "$INIT")
 stage probe train probe "$PROBE_SECONDS" --max-steps 10000000 --checkpoint-every 10000000 "${init[@]}"
 MS=$(ms_per_step probe 2>>"$LOG")
@@ -71,6 +77,8 @@ LEFT=$(( SECONDS_TOTAL - (SECONDS - T0) - RESERVE_S ))
 STEPS=$("$PY" -c "import sys; ms, s = sys.argv[1:]; print(max(int(float(s) * 1000 / float(ms)), 1) if ms else 0)" \
   "$MS" "$(( LEFT - START_S ))")
 echo "probe: ${MS:-?} ms per step; $LEFT s left for the main run: $STEPS steps" >>"$LOG"
+[ -n "$MS" ] || echo "probe: too few logged steps for a step rate in $PROBE_SECONDS s: no main run (raise PROBE_SECONDS)" \
+  | tee -a "$LOG" >&2
 if [ "$STEPS" -gt 0 ] && [ -f "$WORK/runs/probe/checkpoints/latest" ]; then
   stage main train main "$LEFT" --init-from "$(latest_weights probe)" --max-steps "$STEPS" \
     --checkpoint-every $(( STEPS / 4 > 0 ? STEPS / 4 : 1 )) --schedule.bbox_steps 0 --schedule.lr_schedule cosine \
@@ -107,3 +115,4 @@ res = {"category": category, "stages": stages, "probe_ms_per_step": float(ms) if
 out.write_text(json.dumps(res, indent=1))
 print(json.dumps(res, indent=1))
 PY
+[ -f "$WORK/runs/main/checkpoints/latest" ] || { echo "gpu_checkpoint: no main run checkpoint (the log says why): $LOG" >&2; exit 1; }

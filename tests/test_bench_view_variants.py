@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -22,7 +23,8 @@ BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_view_vari
 
 def run_bench(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(BENCH), *args], capture_output=True, text=True, timeout=600,
-                          env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+                          env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin",
+                               **{k: os.environ[k] for k in ("PYTHONPATH",) if k in os.environ}})
 
 
 def test_accuracy_rows_are_the_protocols_psnr_under_each_precision(tmp_path):

@@ -89,7 +89,7 @@ def test_out_of_memory_while_evaluating_is_one_line_naming_the_sizes(case, tmp_p
         raise MemoryError()
 
     monkeypatch.setattr(protocol, "evaluate_protocol", fail)
-    assert _eval(case, tmp_path / "out", "--resolution", "100000", "--chunk", "64") == 2
+    assert _eval(case, tmp_path / "out", "--resolution", "100000", "--chunk", "64", "--device", "cpu") == 2
     assert _one_error_line(capsys) == ("error: out of memory on cpu (MemoryError) evaluating at --resolution 100000, "
                                        "--chunk 64 rays per pass, --mesh-resolution 8; lower them (the finished "
                                        "objects are kept: the same command continues)\n")

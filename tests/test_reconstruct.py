@@ -309,7 +309,7 @@ def test_out_of_memory_while_reconstructing_is_one_line_naming_the_sizes(models,
     monkeypatch.setattr(Reconstructor, "reconstruct", fail)
     out = tmp_path / "o"
     assert main(["reconstruct", str(photo), "--checkpoint", str(models["baseline"]), "--out", str(out),
-                 "--views", "3", "--render-resolution", "100000", "--mesh-resolution", "0"]) == 2
+                 "--views", "3", "--render-resolution", "100000", "--mesh-resolution", "0", "--device", "cpu"]) == 2
     err = capsys.readouterr().err
     assert err == (f"error: out of memory on cpu (could not allocate 37.3 GiB) reconstructing {photo}: 3 views at "
                    "--render-resolution 100000, --chunk 4096 rays per pass, --mesh-resolution 0; lower them\n")

@@ -97,6 +97,23 @@ def test_launches_note_only_a_resume_with_another_world_size(tmp_path):
     assert [(x["start_step"], x["world_size"]) for x in read_launches(tmp_path)] == [(0, 1), (0, 2), (5, 2), (8, 1)]
 
 
+def test_launches_note_a_cuda_resume_that_drops_deterministic(tmp_path):
+    """--deterministic is a flag of each command, not of the run: a CUDA resume without it is noted, once both
+    notes apply both are on the one line; the CPU (deterministic kernels either way) and a first start are not."""
+    assert record_launch(tmp_path, 0, 1, "cuda:0", deterministic=True) is None
+    assert record_launch(tmp_path, 4, 1, "cuda:0", deterministic=True) is None
+    note = record_launch(tmp_path, 8, 1, "cuda:0")
+    assert note is not None and note.startswith("note: resuming without --deterministic") and note.count("\n") == 0
+    assert record_launch(tmp_path, 9, 1, "cuda:0") is None  # the previous launch had it off already
+    record_launch(tmp_path, 10, 2, "cuda:0", deterministic=True)
+    both = record_launch(tmp_path, 12, 1, "cuda:0")
+    assert "world size 1" in both and "without --deterministic" in both and both.count("note:") == 1
+    (tmp_path / "cpu").mkdir()
+    record_launch(tmp_path / "cpu", 0, 1, "cpu", deterministic=True)
+    assert record_launch(tmp_path / "cpu", 3, 1, "cpu") is None
+    assert [x["deterministic"] for x in read_launches(tmp_path)] == [True, True, False, False, True, False]
+
+
 def test_a_launch_after_a_cut_line_is_recorded_on_its_own_line(tmp_path):
     """A kill cut the last line short: the next launch starts a line of its own, and every whole line before and
     after the cut one is read."""

@@ -224,7 +224,9 @@ def test_gpu_checkpoint_script_on_the_cpu(tmp_path):
                           text=True, env=env, cwd=ROOT, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     res = json.loads((out / "gpu_checkpoint.json").read_text())
-    assert res["stages"]["data"]["rc"] == 0 and res["stages"]["priors"]["rc"] == 0
+    assert res["stages"]["data"]["rc"] == 0 and res["stages"]["priors"]["rc"] == 0 and res["stages"]["store"]["rc"] == 0
+    probe_log = (out / "gpu_checkpoint_log.txt").read_text().split("== probe")[1]
+    assert "0 objects decoded, 0 changed since and decoded again, 2 reused" in probe_log  # the store stage made them
     assert res["stages"]["probe"]["rc"] == 124 and res["runs"]["probe"]["last_step"] > 3  # stopped by its limit
     assert res["probe_ms_per_step"] > 0 and res["main_steps_planned"] > 0 and res["runs"]["main"]["last_step"] > 0
     with tarfile.open(out / "run.tar.gz") as tar:

@@ -15,7 +15,7 @@ device until a log step reads them (the only host synchronisation of the loop be
 
 SIGTERM / SIGINT end the loop after the current step with a checkpoint of that step (:mod:`depthnerf.train.stop`);
 the returned state then names the signal (``stopped_by``). Every start and resume appends one line to the run's
-``launches.jsonl`` (:func:`~depthnerf.train.run_log.record_launch`: step, world size, device).
+``launches.jsonl`` (:func:`~depthnerf.train.run_log.record_launch`: step, world size, device, determinism).
 """
 
 from __future__ import annotations
@@ -252,7 +252,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             in_all = f", {warm.total_steps} in all" if warm.total_steps != warm.step else ""
             print(f"warm start: the network's weights from {warm.path} (step {warm.step}{in_all})", file=sys.stderr,
                   flush=True)
-        note = record_launch(run_dir, start, info.world, str(info.device))
+        note = record_launch(run_dir, start, info.world, str(info.device),
+                             deterministic=torch.are_deterministic_algorithms_enabled())
         if note:
             print(note, file=sys.stderr, flush=True)
     barrier(info)

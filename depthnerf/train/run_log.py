@@ -1,6 +1,6 @@
 """A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step), TensorBoard events and
 ``launches.jsonl`` (one JSON object per start or resume of the run: the step it started from, the world size =
-number of torchrun ranks, the device and the time); the run's JSON records as a resume reads them
+number of torchrun ranks, the device, whether ``--deterministic`` was on and the time); the run's JSON records as a resume reads them
 (:func:`read_run_record`); and the run folder's guards: :func:`check_run_dir` (a new run
 never overwrites a ``config.json`` that is not a run's) and :func:`run_lock` (one process trains a run at a time).
 
@@ -105,25 +105,32 @@ def read_metrics(run_dir: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
 
 
-def record_launch(run_dir: Path, start_step: int, world_size: int, device: str) -> str | None:
-    """Append this start of the run to ``RUN_DIR/launches.jsonl``; returns a one-line note when a resume runs
-    with another world size than the previous launch (the global batch is the same; results agree within float
-    rounding, not bit for bit), else None."""
+def record_launch(run_dir: Path, start_step: int, world_size: int, device: str,
+                  deterministic: bool = False) -> str | None:
+    """Append this start of the run to ``RUN_DIR/launches.jsonl``; returns one line of notes when a resume is not
+    bit for bit the run it continues: another world size than the previous launch (the global batch is the same;
+    results agree within float rounding), or a CUDA resume without the ``--deterministic`` the previous launch had
+    (CUDA's default kernels accumulate in a varying order); else None."""
     path = Path(run_dir) / "launches.jsonl"
     launches = read_launches(run_dir)
-    previous = launches[-1] if launches else None
+    previous = launches[-1] if launches and isinstance(launches[-1], dict) else {}
     if path.exists() and not path.read_text().endswith("\n") and path.stat().st_size:
         with open(path, "a") as f:
             f.write("\n")  # after a line cut by a kill
-    entry = {"start_step": start_step, "world_size": world_size, "device": device,
+    entry = {"start_step": start_step, "world_size": world_size, "device": device, "deterministic": deterministic,
              "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     with open(path, "a") as f:
         f.write(json.dumps(entry) + "\n")
-    old = previous.get("world_size") if isinstance(previous, dict) else None
+    notes = []
+    old = previous.get("world_size")
     if start_step > 0 and old is not None and old != world_size:
-        return (f"note: resuming with world size {world_size} (the run's previous launch had {old}): the same "
-                "global batch, equal to the earlier launch within float rounding, not bit for bit")
-    return None
+        notes.append(f"resuming with world size {world_size} (the run's previous launch had {old}): the same global "
+                     "batch, equal to the earlier launch within float rounding, not bit for bit")
+    if start_step > 0 and previous.get("deterministic") and not deterministic and device.startswith("cuda"):
+        notes.append("resuming without --deterministic (the run's previous launch had it): on CUDA the steps from "
+                     "here match the uninterrupted run within float rounding, not bit for bit; add --deterministic "
+                     "to keep the resume exact")
+    return f"note: {'; '.join(notes)}" if notes else None
 
 
 def read_launches(run_dir: Path) -> list[dict[str, Any]]:
