@@ -134,6 +134,8 @@ def test_request_checks(session, tmp_path):
     assert out.message.startswith("error: ") and "no-da-weights" in out.message and "\n" not in out.message
     out = session.run(RunRequest(example, "car", mesh_level="median"))
     assert out.message == "error: mesh level must be one of auto, silhouette, local, got 'median'" and not out.ok
+    out = session.run(RunRequest(example, "car", mesh_colors="texture"))
+    assert out.message == "error: mesh colours must be one of normal-ray, photo, point, got 'texture'" and not out.ok
     out = session.run(RunRequest(example, "car", checkpoint_path=str(tmp_path / "nope.safetensors")))
     assert out.message.startswith("error: ") and "nope.safetensors" in out.message and "\n" not in out.message
 
@@ -175,9 +177,11 @@ def test_a_run_collects_every_output(session):
     assert calls[0][0] == 0.0 and [t for _, t in calls][-1] == "writing outputs"
     rule = manifest["settings"]["mesh_level_rule"]  # the page's default
     assert rule.startswith("local level: half the peak density along each input ray")
-    auto = session.run(RunRequest(examples()[0], "car", views=1, mesh_level="auto"))
+    auto = session.run(RunRequest(examples()[0], "car", views=1, mesh_level="auto", mesh_colors="normal-ray"))
     settings = json.loads((auto.input_image.parent / "manifest.json").read_text())["settings"]
     assert settings["mesh_level_rule"].startswith("auto level")
+    assert manifest["settings"]["mesh_colors"].startswith("the input photo's rgb")  # the page's default
+    assert settings["mesh_colors"].startswith("fine-network rgb volume-rendered along each vertex's inward normal")
     # the page renders depth-guided by default; unticked, with the checkpoint's own sampler
     assert manifest["settings"]["guided_sampling"] == 48 and "depth-guided sampling (48 samples" in out.details
     assert settings["guided_sampling"] == 48

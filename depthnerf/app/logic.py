@@ -130,6 +130,10 @@ class RunRequest:
     mesh_level: str = "local"
     """The mesh's level rule, one of :data:`~depthnerf.render.mesh_level.LEVEL_RULES` (the page offers ``local``,
     the default, which keeps thin parts in a looser surface, and ``auto``, one tight piece)."""
+    mesh_colors: str = "photo"
+    """The mesh's vertex colour rule, one of :data:`~depthnerf.render.mesh_colors.MESH_COLOR_RULES` (``photo``, the
+    default: the photo's own colours where it sees the surface, spread into the rest; ``normal-ray``: the field's
+    colour seen along each vertex normal)."""
     guided: bool = True
     """Render the orbit with depth-guided sampling at its default budget (``ReconstructConfig.guided``): on the
     shipped app models within 0.04 dB of their own sampler and about twice as fast (docs/RESULTS.md, "Depth-guided
@@ -324,6 +328,7 @@ class AppSession:
 
     def _run(self, request: RunRequest, progress: ProgressFn) -> RunOutputs:
         from depthnerf import ReconstructConfig
+        from depthnerf.render.mesh_colors import MESH_COLOR_RULES
         from depthnerf.render.mesh_level import LEVEL_RULES
 
         path = check_upload(request.image)
@@ -335,6 +340,9 @@ class AppSession:
             raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {request.foreground_ratio}")
         if request.mesh_level not in LEVEL_RULES:
             raise DepthnerfError(f"mesh level must be one of {', '.join(LEVEL_RULES)}, got {request.mesh_level!r}")
+        if request.mesh_colors not in MESH_COLOR_RULES:
+            raise DepthnerfError(f"mesh colours must be one of {', '.join(MESH_COLOR_RULES)}, got "
+                                 f"{request.mesh_colors!r}")
         checkpoint = resolve_model(request)
         progress(0.0, f"loading {checkpoint}")
         rec = self.models.get(checkpoint, request.depth_prior, request.depth_checkpoint)
@@ -342,7 +350,7 @@ class AppSession:
         mode, background_model = self.background(request)
         cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),
                                 fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
-                                mesh_threshold=request.mesh_level,
+                                mesh_threshold=request.mesh_level, mesh_colors=request.mesh_colors,
                                 progress=True, background_removal=mode, background_model=background_model,
                                 facing=None if request.facing is None else float(request.facing),
                                 guided=bool(request.guided))

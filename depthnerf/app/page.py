@@ -73,6 +73,9 @@ FACING_INFO = ("which way the object's front points: 0 = towards the camera, 90 
 MESH_LEVEL_INFO = ("local: each part at its own half-maximum, outlined by the photo's mask, which keeps thin parts "
                    "(legs, frames) in a looser surface; auto: one tight piece at half the object's typical density "
                    "(docs/RESULTS.md, \"Mesh level rules\")")
+MESH_COLORS_INFO = ("photo: the photo's own colours where it sees the surface (and its mirror image), spread into "
+                    "the rest; normal-ray: the model's colour along each vertex normal (docs/RESULTS.md, \"Mesh "
+                    "vertex colours\")")
 GUIDED_INFO = ("samples each ray where the depth prior puts the surface: about twice as fast, within 0.04 dB of "
                "the model's own sampler on the shipped models (docs/RESULTS.md, \"Depth-guided sampling\")")
 SYMMETRY_INFO = ("models with mirror-symmetric conditioning also read each point's mirror image; untick for none "
@@ -129,13 +132,13 @@ def build_page(session: AppSession) -> gr.Blocks:
             return gr.Slider()
 
     def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg, bg_model,
-                    facing=FACING_DEFAULT, use_symmetry=True, mesh_level="local", guided=True,
+                    facing=FACING_DEFAULT, use_symmetry=True, mesh_level="local", guided=True, mesh_colors="photo",
                     progress=gr.Progress(track_tqdm=True)):  # noqa: B008 - Gradio's way to ask for a progress bar
         request = RunRequest(image=image, model=model, checkpoint_path=ckpt_path or "", depth_prior=prior,
                              depth_checkpoint=prior_ckpt or "", foreground_ratio=ratio, elevation=elevation,
                              views=int(views), remove_background=bool(remove_bg), background_model=bg_model or "",
                              facing=float(facing) if use_symmetry else None, mesh_level=mesh_level,
-                             guided=bool(guided))
+                             guided=bool(guided), mesh_colors=mesh_colors)
         return _outputs(session.run(request, lambda frac, text: progress(frac, desc=text)))
 
     with gr.Blocks(title="depthnerf app", analytics_enabled=False, delete_cache=DELETE_CACHE) as page:
@@ -176,6 +179,8 @@ def build_page(session: AppSession) -> gr.Blocks:
                                    info=FACING_INFO, elem_id="facing")
                 mesh_level = gr.Radio(["local", "auto"], value="local", label="Mesh surface", info=MESH_LEVEL_INFO,
                                       elem_id="mesh-level")
+                mesh_colors = gr.Radio(["photo", "normal-ray"], value="photo", label="Mesh colours",
+                                       info=MESH_COLORS_INFO, elem_id="mesh-colors")
                 guided = gr.Checkbox(value=True, label="Depth-guided rendering", info=GUIDED_INFO, elem_id="guided")
                 run = gr.Button("Reconstruct", variant="primary", elem_id="run")
             with gr.Column(scale=2):
@@ -207,7 +212,7 @@ def build_page(session: AppSession) -> gr.Blocks:
         for trigger in (prior.change, prior_ckpt.change):
             trigger(prior_description, [prior, prior_ckpt], [prior_info], api_visibility="private")
         run.click(reconstruct, [upload, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg,
-                                bg_model, facing, use_symmetry, mesh_level, guided],
+                                bg_model, facing, use_symmetry, mesh_level, guided, mesh_colors],
                   [status, prepared, prior_img, video, gif, viewer, downloads, details, clutter],
                   api_name="reconstruct", concurrency_limit=1, concurrency_id="reconstruct")
     return page
