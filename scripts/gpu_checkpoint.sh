@@ -24,6 +24,10 @@
 #  6. out: OUT_DIR/run.tar.gz (both run folders without optimiser states and TensorBoard events, the main run with
 #     its last checkpoint only: what `depthnerf eval --checkpoint` and scripts/export_checkpoint.py read),
 #     gpu_checkpoint.json (stages, both runs' ms per step, steps, first and last loss) and the log.
+# Two calls on one warm machine (the device tool keeps it, with /tmp, for 30 s after a call): SECONDS_TOTAL is the
+# whole budget the main run is planned for, CALL_SECONDS (SECONDS_TOTAL) this call's share, where SIGTERM stops the
+# main run with a checkpoint; the next call, with CONTINUE=1 and its own CALL_SECONDS, resumes it (--resume) on the
+# same plan (WORK/plan.txt) and packs the run again.
 # Other settings: SEED (0), DATA_WORKERS (8, the loader's; the runs read a store of decoded views), INIT (a
 # checkpoint the probe starts from, e.g. cpu-cars-sym-pp; default none), TRAIN_ARGS (extra train flags for both
 # runs, e.g. --compile-step, or tiny sizes for a CPU smoke run), WORK (/tmp/depthnerf-gpu-checkpoint).
@@ -35,14 +39,19 @@ T0=$SECONDS
 CATEGORY=${CATEGORY:-cars}; RES=${RES:-64}; TRAIN_OBJECTS=${TRAIN_OBJECTS:-300}; VIEWS=${VIEWS:-50}
 SYNTH_WORKERS=${SYNTH_WORKERS:-$(nproc)}; DEPTH_NET=${DEPTH_NET:-srn}; DEVICE=${DEVICE:-cuda}; SEED=${SEED:-0}
 SECONDS_TOTAL=${SECONDS_TOTAL:-540}; PROBE_SECONDS=${PROBE_SECONDS:-90}; RESERVE_S=${RESERVE_S:-30}
-START_S=${START_S:-25}
+START_S=${START_S:-25}; CALL_SECONDS=${CALL_SECONDS:-$SECONDS_TOTAL}; CONTINUE=${CONTINUE:-}
 LR=${LR:-3e-4}; LR_FINAL=${LR_FINAL:-3e-6}; DATA_WORKERS=${DATA_WORKERS:-8}; INIT=${INIT:-}
 WORK=${WORK:-/tmp/depthnerf-gpu-checkpoint}
 read -r -a MODEL_ARGS <<<"${MODEL_ARGS:---model.mirror true --model.prior_at_point true}"
 read -r -a TRAIN_ARGS <<<"${TRAIN_ARGS:-}"
-rm -rf "$WORK"; mkdir -p "$WORK" "$OUT"
+if [ -n "$CONTINUE" ] && [ ! -f "$WORK/plan.txt" ]; then
+  echo "gpu_checkpoint: CONTINUE=1 but $WORK/plan.txt is missing: no planned main run on this machine to continue" >&2
+  exit 2
+fi
+[ -n "$CONTINUE" ] || rm -rf "$WORK"
+mkdir -p "$WORK" "$OUT"
 LOG="$OUT/gpu_checkpoint_log.txt"; : >"$LOG"
-STAGES="$WORK/stages.txt"; : >"$STAGES"
+STAGES="$WORK/stages.txt"; [ -n "$CONTINUE" ] || : >"$STAGES"
 stage() {  # stage NAME CMD...: run, log, record "NAME rc seconds"
   local name=$1 s0=$SECONDS rc; shift
   echo "== $name: $*" >>"$LOG"
@@ -60,32 +69,46 @@ train() {  # train RUN_NAME SECONDS FLAGS...: one run under timeout (SIGTERM che
 ms_per_step() { "$PY" "$HERE/scripts/step_rate.py" "$WORK/runs/$1"; }  # median ms per step, 2nd half
 latest_weights() { echo "$WORK/runs/$1/checkpoints/$(cat "$WORK/runs/$1/checkpoints/latest")/model.safetensors"; }
 
-stage data "$PY" -m depthnerf synth --category "$CATEGORY" --out "$WORK/data" --train-objects "$TRAIN_OBJECTS" \
-  --val-objects 0 --test-objects 0 --resolution "$RES" --views-train "$VIEWS" --seed 0 --workers "$SYNTH_WORKERS" \
-  --quiet
-stage priors "$PY" -m depthnerf depth --data "$WORK/data" --depth bundled --depth-checkpoint "$DEPTH_NET" \
-  --category "$CATEGORY" --resolution "$RES" --splits train --device "$DEVICE"
-# the decoded-view store, before the probe, whose time limit is then all steps (600 objects: 18 s on the H200)
-stage store "$PY" -c "import sys; from depthnerf.data.srn import index_split; from depthnerf.data.view_store import \
-ViewStore; from depthnerf.train.config import preset; root, cat, res = sys.argv[1], sys.argv[2], int(sys.argv[4]); \
-ViewStore(sys.argv[3], res, preset('cpu-' + cat).data.pixel_center).ensure(index_split(root, cat, 'train').objects)" \
-  "$WORK/data" "$CATEGORY" "$WORK/store" "$RES"
-init=(); [ -n "$INIT" ] && init=(--init-from "$INIT")
-stage probe train probe "$PROBE_SECONDS" --max-steps 10000000 --checkpoint-every 10000000 "${init[@]}"
-MS=$(ms_per_step probe 2>>"$LOG")
-LEFT=$(( SECONDS_TOTAL - (SECONDS - T0) - RESERVE_S ))
-STEPS=$("$PY" -c "import sys; ms, s = sys.argv[1:]; print(max(int(float(s) * 1000 / float(ms)), 1) if ms else 0)" \
-  "$MS" "$(( LEFT - START_S ))")
-echo "probe: ${MS:-?} ms per step; $LEFT s left for the main run: $STEPS steps" >>"$LOG"
-[ -n "$MS" ] || echo "probe: too few logged steps for a step rate in $PROBE_SECONDS s: no main run (raise PROBE_SECONDS)" \
-  | tee -a "$LOG" >&2
-if [ "$STEPS" -gt 0 ] && [ -f "$WORK/runs/probe/checkpoints/latest" ]; then
-  stage main train main "$LEFT" --init-from "$(latest_weights probe)" --max-steps "$STEPS" \
+call_left() { echo $(( CALL_SECONDS - (SECONDS - T0) - RESERVE_S )); }  # seconds this call can still train
+# main_run SECONDS [--resume]: the planned main run; on --resume with the same flags again, so that a run stopped
+# before its first checkpoint starts as planned
+main_run() {
+  stage main train main "$@" --init-from "$(latest_weights probe)" --max-steps "$STEPS" \
     --checkpoint-every $(( STEPS / 4 > 0 ? STEPS / 4 : 1 )) --schedule.bbox_steps 0 --schedule.lr_schedule cosine \
     --schedule.lr "$LR" --schedule.lr_final "$LR_FINAL"
+}
+if [ -n "$CONTINUE" ]; then  # a later call on the same (warm) machine: the planned main run, resumed
+  read -r STEPS MS <"$WORK/plan.txt"
+  echo "continuing the main run (planned: $STEPS steps at $MS ms per step); $(call_left) s in this call" >>"$LOG"
+  main_run "$(call_left)" --resume
+else
+  stage data "$PY" -m depthnerf synth --category "$CATEGORY" --out "$WORK/data" --train-objects "$TRAIN_OBJECTS" \
+    --val-objects 0 --test-objects 0 --resolution "$RES" --views-train "$VIEWS" --seed 0 --workers "$SYNTH_WORKERS" \
+    --quiet
+  stage priors "$PY" -m depthnerf depth --data "$WORK/data" --depth bundled --depth-checkpoint "$DEPTH_NET" \
+    --category "$CATEGORY" --resolution "$RES" --splits train --device "$DEVICE"
+  # the decoded-view store, before the probe, whose time limit is then all steps (600 objects: 18 s on the H200)
+  stage store "$PY" -c "import sys; from depthnerf.data.srn import index_split; from depthnerf.data.view_store import \
+  ViewStore; from depthnerf.train.config import preset; root, cat, res = sys.argv[1], sys.argv[2], int(sys.argv[4]); \
+  ViewStore(sys.argv[3], res, preset('cpu-' + cat).data.pixel_center).ensure(index_split(root, cat, 'train').objects)" \
+    "$WORK/data" "$CATEGORY" "$WORK/store" "$RES"
+  init=(); [ -n "$INIT" ] && init=(--init-from "$INIT")
+  stage probe train probe "$PROBE_SECONDS" --max-steps 10000000 --checkpoint-every 10000000 "${init[@]}"
+  MS=$(ms_per_step probe 2>>"$LOG")
+  LEFT=$(( SECONDS_TOTAL - (SECONDS - T0) - RESERVE_S ))
+  STEPS=$("$PY" -c "import sys; ms, s = sys.argv[1:]; print(max(int(float(s) * 1000 / float(ms)), 1) if ms else 0)" \
+    "$MS" "$(( LEFT - START_S ))")
+  echo "probe: ${MS:-?} ms per step; $LEFT s left for the main run: $STEPS steps" >>"$LOG"
+  [ -n "$MS" ] || echo "probe: too few logged steps for a step rate in $PROBE_SECONDS s: no main run (raise PROBE_SECONDS)" \
+    | tee -a "$LOG" >&2
+  if [ "$STEPS" -gt 0 ] && [ -f "$WORK/runs/probe/checkpoints/latest" ]; then
+    LIMIT=$(call_left); [ "$LIMIT" -lt "$LEFT" ] || LIMIT=$LEFT
+    echo "$STEPS $MS" >"$WORK/plan.txt"
+    main_run "$LIMIT"
+  fi
 fi
 if [ -f "$WORK/runs/main/checkpoints/latest" ]; then  # the run folders, less optimiser states, TensorBoard events
-  mkdir -p "$WORK/pack"                                   # and every checkpoint but the main run's last
+  rm -rf "$WORK/pack"; mkdir -p "$WORK/pack"             # and every checkpoint but the main run's last
   cp -r "$WORK/runs/main" "$WORK/runs/probe" "$WORK/pack/"
   keep=$(cat "$WORK/runs/main/checkpoints/latest")
   rm -rf "$WORK/pack/probe/checkpoints" "$WORK/pack/"*/tb

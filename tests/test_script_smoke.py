@@ -209,24 +209,37 @@ def test_gpu_compile_train_script_on_the_cpu(tmp_path):
 
 
 def test_gpu_checkpoint_script_on_the_cpu(tmp_path):
-    """The lease script that trains a checkpoint to ship, shrunk to the CPU and to ~40 s: the probe is stopped by
-    its time limit and checkpoints, the main run starts from its weights with the planned cosine schedule, and the
-    archive holds what evaluation and export read, without optimiser states."""
+    """The lease script that trains a checkpoint to ship, shrunk to the CPU and to two calls of ~40 s: the probe is
+    stopped by its time limit and checkpoints, the main run starts from its weights with the planned cosine
+    schedule, is stopped by the first call's share and finished by the second (CONTINUE=1), and the archive holds
+    what evaluation and export read, without optimiser states."""
     tiny = ("--model.encoder.backbone resnet18 --model.coarse.d_hidden 16 --model.fine.d_hidden 16 "
             "--render.sampler.n_coarse 4 --render.sampler.n_importance 2 --render.sampler.n_gaussian 2 "
             "--schedule.objects_phase1 2 --schedule.objects_phase2 2 --schedule.bbox_steps 3 "
             "--schedule.rays_per_object 16 --log.log_every 1")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WORK": str(tmp_path / "work"), "DEVICE": "cpu", "RES": "32",
-           "TRAIN_OBJECTS": "2", "VIEWS": "3", "SYNTH_WORKERS": "1", "DATA_WORKERS": "0", "SECONDS_TOTAL": "45",
-           "PROBE_SECONDS": "14", "RESERVE_S": "2", "START_S": "6", "TRAIN_ARGS": tiny}
-    out = tmp_path / "out"
-    proc = subprocess.run(["bash", str(ROOT / "scripts" / "gpu_checkpoint.sh"), str(out)], capture_output=True,
-                          text=True, env=env, cwd=ROOT, timeout=300)
+           "TRAIN_OBJECTS": "2", "VIEWS": "3", "SYNTH_WORKERS": "1", "DATA_WORKERS": "0", "SECONDS_TOTAL": "70",
+           "CALL_SECONDS": "45", "PROBE_SECONDS": "14", "RESERVE_S": "2", "START_S": "6", "TRAIN_ARGS": tiny}
+    out, script = tmp_path / "out", ["bash", str(ROOT / "scripts" / "gpu_checkpoint.sh")]
+    refused = subprocess.run([*script, str(out)], capture_output=True, text=True, env={**env, "CONTINUE": "1"},
+                             cwd=ROOT, timeout=300)
+    assert refused.returncode == 2 and "plan.txt is missing" in refused.stderr
+    proc = subprocess.run([*script, str(out)], capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
-    res = json.loads((out / "gpu_checkpoint.json").read_text())
-    assert res["stages"]["data"]["rc"] == 0 and res["stages"]["priors"]["rc"] == 0 and res["stages"]["store"]["rc"] == 0
+    first = json.loads((out / "gpu_checkpoint.json").read_text())
+    assert first["stages"]["main"]["rc"] == 124 and 0 < first["runs"]["main"]["last_step"] < first["main_steps_planned"]
     probe_log = (out / "gpu_checkpoint_log.txt").read_text().split("== probe")[1]
     assert "0 objects decoded, 0 changed since and decoded again, 2 reused" in probe_log  # the store stage made them
+    proc = subprocess.run([*script, str(out)], capture_output=True, text=True, cwd=ROOT, timeout=300,
+                          env={**env, "CONTINUE": "1", "CALL_SECONDS": "120"})
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    second_log = (out / "gpu_checkpoint_log.txt").read_text()
+    assert "continuing the main run (planned: " in second_log and "== data" not in second_log
+    assert f"resumed from step {first['runs']['main']['checkpoint'].split('_')[-1].lstrip('0')} (" in second_log
+    res = json.loads((out / "gpu_checkpoint.json").read_text())
+    assert res["stages"]["main"]["rc"] == 0 and res["main_steps_planned"] == first["main_steps_planned"]
+    assert res["runs"]["main"]["last_step"] == res["main_steps_planned"]
+    assert res["stages"]["data"]["rc"] == 0 and res["stages"]["priors"]["rc"] == 0 and res["stages"]["store"]["rc"] == 0
     assert res["stages"]["probe"]["rc"] == 124 and res["runs"]["probe"]["last_step"] > 3  # stopped by its limit
     assert res["probe_ms_per_step"] > 0 and res["main_steps_planned"] > 0 and res["runs"]["main"]["last_step"] > 0
     with tarfile.open(out / "run.tar.gz") as tar:
