@@ -24,6 +24,11 @@
 #  6. out: OUT_DIR/run.tar.gz (both run folders without optimiser states and TensorBoard events, the main run with
 #     its last checkpoint only: what `depthnerf eval --checkpoint` and scripts/export_checkpoint.py read),
 #     gpu_checkpoint.json (stages, both runs' ms per step, steps, first and last loss) and the log.
+#  7. eval (EVAL_OBJECTS test objects; default 0, none): in what the call has left after the archive (over 40 s),
+#     the testdata/testpriors stages make the first EVAL_OBJECTS of the test split the cpu-* cards were scored on
+#     (50 there), `depthnerf eval` (the cards' protocol, --views-stride 25, EVAL_ARGS) scores the main run and
+#     INIT side by side, and scripts/paired_difference.py pairs them: OUT_DIR/eval_main_summary.json and
+#     OUT_DIR/eval_paired.md, the scores in gpu_checkpoint.json. Each evaluation stops at the call's end.
 # Two calls on one warm machine (the device tool keeps it, with /tmp, for 30 s after a call): SECONDS_TOTAL is the
 # whole budget the main run is planned for, CALL_SECONDS (SECONDS_TOTAL) this call's share, where SIGTERM stops the
 # main run with a checkpoint; the next call, with CONTINUE=1 and its own CALL_SECONDS, resumes it (--resume) on the
@@ -40,6 +45,7 @@ CATEGORY=${CATEGORY:-cars}; RES=${RES:-64}; TRAIN_OBJECTS=${TRAIN_OBJECTS:-300};
 SYNTH_WORKERS=${SYNTH_WORKERS:-$(nproc)}; DEPTH_NET=${DEPTH_NET:-srn}; DEVICE=${DEVICE:-cuda}; SEED=${SEED:-0}
 SECONDS_TOTAL=${SECONDS_TOTAL:-540}; PROBE_SECONDS=${PROBE_SECONDS:-90}; RESERVE_S=${RESERVE_S:-30}
 START_S=${START_S:-25}; CALL_SECONDS=${CALL_SECONDS:-$SECONDS_TOTAL}; CONTINUE=${CONTINUE:-}
+EVAL_OBJECTS=${EVAL_OBJECTS:-0}; read -r -a EVAL_ARGS <<<"${EVAL_ARGS:-}"
 LR=${LR:-3e-4}; LR_FINAL=${LR_FINAL:-3e-6}; DATA_WORKERS=${DATA_WORKERS:-8}; INIT=${INIT:-}
 WORK=${WORK:-/tmp/depthnerf-gpu-checkpoint}
 read -r -a MODEL_ARGS <<<"${MODEL_ARGS:---model.mirror true --model.prior_at_point true}"
@@ -116,6 +122,31 @@ if [ -f "$WORK/runs/main/checkpoints/latest" ]; then  # the run folders, less op
   rm -f "$WORK/pack/main/checkpoints/$keep/optimizer.safetensors"
   tar -C "$WORK/pack" -czf "$OUT/run.tar.gz" main probe
 fi
+# eval: the main run (and INIT, the model it continues) on the test objects, by the cards' protocol, in what the
+# call has left after the archive; paired per object (scripts/paired_difference.py) when both finish
+if [ "$EVAL_OBJECTS" -gt 0 ] && [ -f "$WORK/runs/main/checkpoints/latest" ] \
+    && [ $(( CALL_SECONDS - (SECONDS - T0) )) -gt 40 ]; then
+  if [ ! -d "$WORK/test" ]; then  # the test objects of the cpu-* cards (each seeded by its split and index)
+    stage testdata "$PY" -m depthnerf synth --category "$CATEGORY" --out "$WORK/test" --train-objects 0 \
+      --val-objects 0 --test-objects "$EVAL_OBJECTS" --resolution "$RES" --seed 0 --workers "$SYNTH_WORKERS" --quiet
+    stage testpriors "$PY" -m depthnerf depth --data "$WORK/test" --depth bundled --depth-checkpoint "$DEPTH_NET" \
+      --category "$CATEGORY" --resolution "$RES" --splits test --device "$DEVICE"
+  fi
+  EVAL_LEFT=$(( CALL_SECONDS - (SECONDS - T0) - 5 ))
+  evaluate() {  # evaluate NAME CHECKPOINT: one evaluation under the call's time left
+    timeout -s TERM -k 10 "$EVAL_LEFT" "$PY" -m depthnerf eval --checkpoint "$2" --data "$WORK/test" --split test \
+      --out "$WORK/eval/$1" --views-stride 25 --device "$DEVICE" --no-progress --overwrite "${EVAL_ARGS[@]}"
+  }
+  s0=$SECONDS; rm -rf "$WORK/eval"
+  evaluate main "$WORK/runs/main" >>"$LOG" 2>&1 & main_pid=$!
+  [ -z "$INIT" ] || { evaluate init "$INIT" >>"$LOG" 2>&1; echo "eval-init $? $((SECONDS - s0))" >>"$STAGES"; }
+  wait $main_pid; echo "eval-main $? $((SECONDS - s0))" | tee -a "$LOG" >>"$STAGES"
+  [ -f "$WORK/eval/main/summary.json" ] && cp "$WORK/eval/main/summary.json" "$OUT/eval_main_summary.json"
+  if [ -f "$WORK/eval/init/summary.json" ] && [ -f "$WORK/eval/main/summary.json" ]; then
+    "$PY" "$HERE/scripts/paired_difference.py" --baseline "$WORK/eval/init" --method "$WORK/eval/main" \
+      >"$OUT/eval_paired.md" 2>>"$LOG"
+  fi
+fi
 MAIN_MS=$(ms_per_step main 2>>"$LOG")
 "$PY" - "$WORK" "$OUT/gpu_checkpoint.json" "${MS:-}" "${MAIN_MS:-}" "$STEPS" "$CATEGORY" "$((SECONDS - T0))" <<'PY'
 import json, sys
@@ -131,7 +162,13 @@ for run in ("probe", "main"):
     runs[run] = {"last_step": rows[-1]["step"] if rows else None, "first_loss": rows[0]["loss"] if rows else None,
                  "last_loss": rows[-1]["loss"] if rows else None,
                  "checkpoint": latest.read_text().strip() if latest.exists() else None}
-res = {"category": category, "stages": stages, "probe_ms_per_step": float(ms) if ms else None,
+scores = {}
+for name in ("main", "init"):
+    summary = work / "eval" / name / "summary.json"
+    if summary.exists():
+        d = json.loads(summary.read_text())
+        scores[name] = {k: d.get(k) for k in ("objects", "psnr", "ssim", "chamfer_l1", "fscore")}
+res = {"category": category, "stages": stages, "eval": scores, "probe_ms_per_step": float(ms) if ms else None,
        "main_ms_per_step": float(main_ms) if main_ms else None,
        "main_steps_planned": int(steps), "runs": runs, "wall_s": int(wall),
        "packed": (out.parent / "run.tar.gz").exists()}

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -219,7 +220,8 @@ def test_gpu_checkpoint_script_on_the_cpu(tmp_path):
             "--schedule.rays_per_object 16 --log.log_every 1")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "WORK": str(tmp_path / "work"), "DEVICE": "cpu", "RES": "32",
            "TRAIN_OBJECTS": "2", "VIEWS": "3", "SYNTH_WORKERS": "1", "DATA_WORKERS": "0", "SECONDS_TOTAL": "70",
-           "CALL_SECONDS": "45", "PROBE_SECONDS": "14", "RESERVE_S": "2", "START_S": "6", "TRAIN_ARGS": tiny}
+           "CALL_SECONDS": "45", "PROBE_SECONDS": "14", "RESERVE_S": "2", "START_S": "6", "TRAIN_ARGS": tiny,
+           "EVAL_OBJECTS": "2", "EVAL_ARGS": "--mesh-resolution 16 --mesh-points 500"}
     out, script = tmp_path / "out", ["bash", str(ROOT / "scripts" / "gpu_checkpoint.sh")]
     refused = subprocess.run([*script, str(out)], capture_output=True, text=True, env={**env, "CONTINUE": "1"},
                              cwd=ROOT, timeout=300)
@@ -230,14 +232,22 @@ def test_gpu_checkpoint_script_on_the_cpu(tmp_path):
     assert first["stages"]["main"]["rc"] == 124 and 0 < first["runs"]["main"]["last_step"] < first["main_steps_planned"]
     probe_log = (out / "gpu_checkpoint_log.txt").read_text().split("== probe")[1]
     assert "0 objects decoded, 0 changed since and decoded again, 2 reused" in probe_log  # the store stage made them
+    assert not (out / "eval_main_summary.json").exists() and first["eval"] == {}  # no time left for it
+    # the second call scores the main run beside the first call's last checkpoint, given as INIT
+    init = tmp_path / "first"
+    shutil.copytree(tmp_path / "work" / "runs" / "main" / "checkpoints" / first["runs"]["main"]["checkpoint"], init)
     proc = subprocess.run([*script, str(out)], capture_output=True, text=True, cwd=ROOT, timeout=300,
-                          env={**env, "CONTINUE": "1", "CALL_SECONDS": "120"})
+                          env={**env, "CONTINUE": "1", "CALL_SECONDS": "150", "INIT": str(init)})
     assert proc.returncode == 0, proc.stderr[-2000:]
     second_log = (out / "gpu_checkpoint_log.txt").read_text()
     assert "continuing the main run (planned: " in second_log and "== data" not in second_log
     assert f"resumed from step {first['runs']['main']['checkpoint'].split('_')[-1].lstrip('0')} (" in second_log
     res = json.loads((out / "gpu_checkpoint.json").read_text())
     assert res["stages"]["main"]["rc"] == 0 and res["main_steps_planned"] == first["main_steps_planned"]
+    assert res["stages"]["eval-main"]["rc"] == 0 and res["stages"]["eval-init"]["rc"] == 0
+    summary = json.loads((out / "eval_main_summary.json").read_text())
+    assert summary["objects"] == 2 and summary["views_stride"] == 25 and res["eval"]["main"]["psnr"] == summary["psnr"]
+    assert res["eval"]["init"]["objects"] == 2 and "| psnr | 2 |" in (out / "eval_paired.md").read_text()
     assert res["runs"]["main"]["last_step"] == res["main_steps_planned"]
     assert res["stages"]["data"]["rc"] == 0 and res["stages"]["priors"]["rc"] == 0 and res["stages"]["store"]["rc"] == 0
     assert res["stages"]["probe"]["rc"] == 124 and res["runs"]["probe"]["last_step"] > 3  # stopped by its limit
