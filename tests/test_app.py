@@ -181,6 +181,8 @@ def test_a_run_collects_every_output(session):
     settings = json.loads((auto.input_image.parent / "manifest.json").read_text())["settings"]
     assert settings["mesh_level_rule"].startswith("auto level")
     assert manifest["settings"]["mesh_colors"].startswith("the input photo's rgb")  # the page's default
+    assert manifest["settings"]["mesh_color_rule"] == "photo" and ", photo colours, " in out.details
+    assert settings["mesh_color_rule"] == "normal-ray" and ", normal-ray colours, " in auto.details
     assert settings["mesh_colors"].startswith("fine-network rgb volume-rendered along each vertex's inward normal")
     # the page renders depth-guided by default; unticked, with the checkpoint's own sampler
     assert manifest["settings"]["guided_sampling"] == 48 and "depth-guided sampling (48 samples" in out.details

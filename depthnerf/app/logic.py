@@ -387,7 +387,8 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
            else "the model's own sampler"),
         f"**Symmetry** {settings.get('symmetry', 'off: the model has no mirror-symmetric conditioning')}",
         ("**Mesh** none (--mesh-resolution 0)" if not manifest["mesh"].get("made", True) else
-         f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else ""))
+         f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else "")
+         + (f", {settings['mesh_color_rule']} colours" if settings.get("mesh_color_rule") else ""))
         + f", {manifest['point_cloud']['points']} points",
         f"**Timings** {timings}",
         *([] if files.get("turntable_mp4") else [f"**MP4** {manifest['turntable_mp4_status']}"]),

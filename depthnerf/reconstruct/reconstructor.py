@@ -325,6 +325,7 @@ class Reconstructor:
                     "mesh_keep": cfg.mesh_keep, "mesh_pieces": pieces.pieces, "mesh_faces_extracted": pieces.faces,
                     "mesh_faces_kept": pieces.kept_faces,
                     "point_opacity": POINT_OPACITY,
+                    "mesh_color_rule": mesh_cfg.colors,
                     "mesh_colors": describe_colors(mesh_cfg.colors, mesh_cfg.color_half_width, mesh_cfg.photo_fill)}
         return Reconstruction(
             input=prepared, depth_prior=None if disparity is None else disparity[0].numpy(),
