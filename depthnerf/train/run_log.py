@@ -1,8 +1,8 @@
 """A run folder's logs: ``metrics.jsonl`` (one JSON object per logged step), TensorBoard events and
 ``launches.jsonl`` (one JSON object per start or resume of the run: the step it started from, the world size =
-number of torchrun ranks, the device, whether ``--deterministic`` was on and the time); the run's JSON records as a resume reads them
-(:func:`read_run_record`); and the run folder's guards: :func:`check_run_dir` (a new run
-never overwrites a ``config.json`` that is not a run's) and :func:`run_lock` (one process trains a run at a time).
+number of torchrun ranks, the device, whether ``--deterministic`` was on and the time); the run's JSON records as a
+resume reads them (:func:`read_run_record`); and the run folder's guards: :func:`check_run_dir` (a new run never
+overwrites a ``config.json`` that is not a run's) and :func:`run_lock` (one process trains a run at a time).
 
 On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
 its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s + 1`` (TensorBoard hides the events
