@@ -96,7 +96,8 @@ else
   # the decoded-view store, before the probe, whose time limit is then all steps (600 objects: 18 s on the H200)
   stage store "$PY" -c "import sys; from depthnerf.data.srn import index_split; from depthnerf.data.view_store import \
   ViewStore; from depthnerf.train.config import preset; root, cat, res = sys.argv[1], sys.argv[2], int(sys.argv[4]); \
-  ViewStore(sys.argv[3], res, preset('cpu-' + cat).data.pixel_center).ensure(index_split(root, cat, 'train').objects)" \
+  records = index_split(root, cat, 'train').objects; \
+  ViewStore(sys.argv[3], res, preset('cpu-' + cat).data.pixel_center).ensure(records)" \
     "$WORK/data" "$CATEGORY" "$WORK/store" "$RES"
   init=(); [ -n "$INIT" ] && init=(--init-from "$INIT")
   stage probe train probe "$PROBE_SECONDS" --max-steps 10000000 --checkpoint-every 10000000 "${init[@]}"
@@ -105,8 +106,8 @@ else
   STEPS=$("$PY" -c "import sys; ms, s = sys.argv[1:]; print(max(int(float(s) * 1000 / float(ms)), 1) if ms else 0)" \
     "$MS" "$(( LEFT - START_S ))")
   echo "probe: ${MS:-?} ms per step; $LEFT s left for the main run: $STEPS steps" >>"$LOG"
-  [ -n "$MS" ] || echo "probe: too few logged steps for a step rate in $PROBE_SECONDS s: no main run (raise PROBE_SECONDS)" \
-    | tee -a "$LOG" >&2
+  [ -n "$MS" ] || echo "probe: too few logged steps for a step rate in $PROBE_SECONDS s: no main run" \
+    "(raise PROBE_SECONDS)" | tee -a "$LOG" >&2
   if [ "$STEPS" -gt 0 ] && [ -f "$WORK/runs/probe/checkpoints/latest" ]; then
     LIMIT=$(call_left); [ "$LIMIT" -lt "$LEFT" ] || LIMIT=$LEFT
     echo "$STEPS $MS" >"$WORK/plan.txt"
@@ -175,4 +176,7 @@ res = {"category": category, "stages": stages, "eval": scores, "probe_ms_per_ste
 out.write_text(json.dumps(res, indent=1))
 print(json.dumps(res, indent=1))
 PY
-[ -f "$WORK/runs/main/checkpoints/latest" ] || { echo "gpu_checkpoint: no main run checkpoint (the log says why): $LOG" >&2; exit 1; }
+if [ ! -f "$WORK/runs/main/checkpoints/latest" ]; then
+  echo "gpu_checkpoint: no main run checkpoint (the log says why): $LOG" >&2
+  exit 1
+fi
