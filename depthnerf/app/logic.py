@@ -388,7 +388,7 @@ def collect_outputs(run_dir: Path, manifest: dict[str, Any], name: str) -> RunOu
         f"**Symmetry** {settings.get('symmetry', 'off: the model has no mirror-symmetric conditioning')}",
         ("**Mesh** none (--mesh-resolution 0)" if not manifest["mesh"].get("made", True) else
          f"**Mesh** {manifest['mesh']['faces']} faces" + (" (empty: nothing dense enough)" if viewer is None else "")
-         + (f", {settings['mesh_color_rule']} colours" if settings.get("mesh_color_rule") else ""))
+         + f", {settings['mesh_color_rule']} colours")
         + f", {manifest['point_cloud']['points']} points",
         f"**Timings** {timings}",
         *([] if files.get("turntable_mp4") else [f"**MP4** {manifest['turntable_mp4_status']}"]),

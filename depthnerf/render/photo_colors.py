@@ -29,7 +29,6 @@ distance between field and photo there (:func:`field_error`). A field that match
 
 from __future__ import annotations
 
-import importlib.util
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,7 +40,7 @@ from scipy.sparse.linalg import splu
 
 from depthnerf.data.cameras import Intrinsics, project, world_to_camera
 from depthnerf.data.symmetry import reflect_dirs, reflect_points
-from depthnerf.data.synth.hits import first_hit_finder
+from depthnerf.data.synth.hits import available_engine, first_hit_finder
 
 PHOTO = "photo"
 """Colour rule: the input photo's colour where it sees the vertex or its mirror image, else ``normal-ray``."""
@@ -109,8 +108,7 @@ def unoccluded(mesh: trimesh.Trimesh, eye: Float[np.ndarray, " 3"], points: Floa
     vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
     dirs = (points - eye) / np.maximum(dist, 1e-12)[:, None]
     origins = np.broadcast_to(eye, points.shape).copy()
-    engine = "embree" if importlib.util.find_spec("embreex") is not None else "torch"  # the same hits, up to ties
-    face = first_hit_finder(vertices, faces, engine)(origins, dirs)
+    face = first_hit_finder(vertices, faces, available_engine())(origins, dirs)  # the same hits, up to ties
     hit = face >= 0
     a, b, c = (vertices[faces[face[hit]]][:, k] for k in range(3))
     e1, e2, s = b - a, c - a, origins[hit] - a

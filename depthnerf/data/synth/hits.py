@@ -39,13 +39,20 @@ class FirstHits(Protocol):
         ...
 
 
+def available_engine() -> str:
+    """``embree`` where embreex imports, else ``torch`` (what ``auto`` resolves to, without its warning: for callers
+    whose casts are few enough that the engine does not matter)."""
+    return "embree" if importlib.util.find_spec("embreex") is not None else "torch"
+
+
 def resolve_engine(engine: str) -> str:
-    """``embree`` or ``torch`` for ``engine`` (``auto``: embree where embreex imports, else torch, with a warning)."""
+    """``embree`` or ``torch`` for ``engine`` (``auto``: :func:`available_engine`, with a warning when it is
+    torch)."""
     if engine not in ENGINES:
         raise ValueError(f"unknown ray-casting engine {engine!r} (expected one of {', '.join(ENGINES)})")
     if engine != "auto":
         return engine
-    if importlib.util.find_spec("embreex") is not None:
+    if available_engine() == "embree":
         return "embree"
     warnings.warn("embreex is not installed: the synthetic renderer casts rays by brute force in torch (the same "
                   "hits up to ties on shared edges; slower on a CPU). `pip install embreex` for Embree.",
