@@ -79,6 +79,10 @@ call_left() { echo $(( CALL_SECONDS - (SECONDS - T0) - RESERVE_S )); }  # second
 # main_run SECONDS [--resume]: the planned main run; on --resume with the same flags again, so that a run stopped
 # before its first checkpoint starts as planned
 main_run() {
+  if [ "$1" -lt 1 ]; then  # `timeout 0` would mean no limit at all
+    echo "main: no time left in this call ($1 s); CONTINUE=1 in the next call runs it" | tee -a "$LOG" >&2
+    return 1
+  fi
   stage main train main "$@" --init-from "$(latest_weights probe)" --max-steps "$STEPS" \
     --checkpoint-every $(( STEPS / 4 > 0 ? STEPS / 4 : 1 )) --schedule.bbox_steps 0 --schedule.lr_schedule cosine \
     --schedule.lr "$LR" --schedule.lr_final "$LR_FINAL"
