@@ -8,7 +8,10 @@ the same values as ``sample_maps`` (largest absolute difference, printed):
 * ``embedding_bag``: what ``sample_maps`` runs (fp32 maps; and bf16 maps and corner weights, half the bytes);
 * ``grid_sample``: ``F.grid_sample`` on channels-first fp32 maps (its forward is deterministic; bf16 would round
   the grid coordinates to ~0.1 feature pixel, so it is not a candidate);
-* ``index``: :func:`~depthnerf.model.features.sample_maps_gather`, the ``--deterministic`` training path.
+* ``index``: :func:`~depthnerf.model.features.sample_maps_gather`, the ``--deterministic`` training path;
+* ``compiled_index``: :meth:`~depthnerf.model.features.MapSamples.read` through ``torch.compile`` (the kernel
+  inductor writes for ``--gather fused``, here alone; in a view it is part of the compiled MLP's graph), from fp32
+  and from bf16 maps with fp32 coordinates.
 
     python benchmarks/bench_gather.py                  # CUDA: 2^20 points, 64x64 maps, 512 channels
     python benchmarks/bench_gather.py --points 65536   # CPU-sized
@@ -24,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from bench_gpu import timed  # beside this file
 
-from depthnerf.model.features import _corners, sample_maps, sample_maps_gather
+from depthnerf.model.features import MapSamples, _corners, sample_maps, sample_maps_gather
 
 
 def main() -> None:
@@ -57,11 +60,18 @@ def main() -> None:
         index, weight = _corners(grid, 1, args.size, args.size)
         return sample_maps_gather(m, index, weight).reshape(1, args.points, -1)
 
+    def read_all(m, g):
+        samples = MapSamples(maps=m, grid=g)
+        return samples.read(samples.corners())
+    compiled_read = torch.compile(read_all, dynamic=False)
+
     candidates = {
         "embedding_bag_fp32": lambda: sample_maps(maps, grid),
         "embedding_bag_bf16": embedding_bag_bf16,
         "grid_sample_fp32": lambda: grid_sample(maps_cf),
         "index_fp32": lambda: index_gather(maps),
+        "compiled_index_fp32": lambda: compiled_read(maps, grid),
+        "compiled_index_bf16": lambda: compiled_read(maps_bf16, grid),
     }
     out = {"device": str(device), "points": args.points, "size": args.size, "channels": args.channels,
            "torch": torch.__version__, "gpu": torch.cuda.get_device_name(device) if cuda else None}
@@ -72,7 +82,7 @@ def main() -> None:
             try:
                 diff = float((fn().float().reshape(reference.shape) - reference).abs().max())  # also the warm-up
                 ms = min(timed(fn, args.repeat, device)) * 1e3
-            except RuntimeError as err:  # e.g. a dtype a kernel does not take on this device
+            except Exception as err:  # noqa: BLE001  e.g. a dtype a kernel does not take, a compiler missing  # e.g. a dtype a kernel does not take on this device
                 out[name] = {"error": str(err).splitlines()[0]}
                 print(f"  {name:20s} failed: {out[name]['error']}")
                 continue

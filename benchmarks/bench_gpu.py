@@ -172,15 +172,17 @@ def view_source(batch: TrainBatch) -> SourceViews:
 
 
 def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
-                 repeat: int, out: dict, compile: bool = False, profile_dir: str | None = None) -> None:
+                 repeat: int, out: dict, compile: bool = False, profile_dir: str | None = None,
+                 gather: str = "sampled") -> None:
     """Print (and put in ``out``) ms per view with the paper's sampler and guided, and the SRN eval projection
-    (``compile``: the field MLPs through ``torch.compile``; ``profile_dir``: also profile one paper-sampler call)."""
+    (``compile``: the field MLPs through ``torch.compile``; ``profile_dir``: also profile one paper-sampler call;
+    ``gather``: where the features are gathered, ``--gather``)."""
     from depthnerf.render.precision import field_runtime, inference_policy
     from depthnerf.render.views import render_poses, render_views, view_rays
 
     model.eval()
-    policy = inference_policy(device, compile=compile)
-    out["view_compile"] = compile
+    policy = inference_policy(device, compile=compile, gather=gather)
+    out["view_compile"], out["view_gather"] = compile, gather
     runtime = field_runtime(model, policy)
     src = view_source(batch)
     az = torch.linspace(0, 2 * math.pi, views + 1)[:-1]
@@ -305,6 +307,8 @@ def main() -> None:
     p.add_argument("--compile-step", action="store_true",
                    help="CUDA: the training step as depthnerf train --compile-step runs it (one compiled graph, "
                         "replayed as CUDA graphs); views stay eager unless --compile")
+    p.add_argument("--gather", default="sampled", choices=["sampled", "fused", "fused-bf16"],
+                   help="CUDA views: where the fields gather their features (as eval / reconstruct --gather)")
     p.add_argument("--profile", metavar="DIR", help="CUDA: write torch.profiler tables of one training step and one "
                    "paper-sampler view call to DIR/profile_{train,view}.txt")
     args = p.parse_args()
@@ -376,7 +380,7 @@ def run(args, out: dict) -> None:
             profile_table(step, f"{args.profile}/profile_train.txt")
         if not args.no_views:
             view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4), out, args.compile,
-                         args.profile)
+                         args.profile, args.gather)
         return
     if args.time:
         step()  # the untimed warm-up below is skipped without --time

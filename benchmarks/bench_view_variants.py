@@ -1,9 +1,11 @@
 """How the field MLPs' inference settings trade speed for accuracy: prints figures, asserts nothing.
 
 A paper-sampler view is bound by the MLPs' memory traffic, not their matrix products (docs/speed.md, "GPU"): the
-fp32 residual stream is read and written around every bf16 linear. Two opt-in settings cut that traffic
-(:mod:`depthnerf.render.precision`): ``--bf16-residual`` keeps the stream in bf16, and ``--compile-mode
-max-autotune-no-cudagraphs`` lets inductor fuse the element-wise work into Triton matrix products.
+fp32 residual stream is read and written around every bf16 linear, and the features are gathered by
+``grid_sample`` before the compiled MLP. Three opt-in settings cut that traffic (:mod:`depthnerf.render.precision`):
+``--bf16-residual`` keeps the stream in bf16, ``--compile-mode max-autotune-no-cudagraphs`` lets inductor fuse
+the element-wise work into Triton matrix products, and ``--gather fused`` / ``fused-bf16`` moves the gather into
+the compiled MLP forward (from fp32 / bf16 maps).
 
 Speed (CUDA; the paper preset's MLPs with seeded random weights, one synthetic source view, 128x128 views, as
 ``benchmarks/bench_gpu.py``): ms per view for each variant, and how far its renders are from the fp32 renders of
@@ -44,8 +46,10 @@ from depthnerf.render.precision import InferencePolicy, field_runtime, inference
 
 VARIANTS = {
     "eager": {},
-    "eager+bf16res": {"bf16_residual": True},
     "compiled": {"compile": True},
+    "compiled+fused": {"compile": True, "gather": "fused"},
+    "compiled+fused-bf16": {"compile": True, "gather": "fused-bf16"},
+    "eager+bf16res": {"bf16_residual": True},
     "compiled+bf16res": {"compile": True, "bf16_residual": True},
     "autotuned+bf16res": {"compile_mode": "max-autotune-no-cudagraphs", "bf16_residual": True},
     "autotuned": {"compile_mode": "max-autotune-no-cudagraphs"},

@@ -28,7 +28,8 @@ GPU_CHECK_SECONDS (total budget: 450 / 900), GPU_CHECK_TIMEOUT_<STAGE> (seconds)
 GPU_CHECK_CRASH (state@<2 x CKPT_EVERY>), GPU_CHECK_RES (128 / 32), GPU_CHECK_OBJECTS (8 / 2), GPU_CHECK_VIEWS
 (24 / 4), GPU_CHECK_PRESET (paper-cars), GPU_CHECK_DEPTH (oracle), GPU_CHECK_TRAIN_ARGS (extra train flags;
 CPU: tiny model sizes), GPU_CHECK_PYTEST_ARGS (instead of the whole suite), GPU_CHECK_PYTEST_WORKERS,
-GPU_CHECK_BENCH_CASES (CUDA: some of the bench stage's cases, e.g. ``compiled_step view_variants``; default all).
+GPU_CHECK_BENCH_CASES (CUDA: some of the bench stage's cases, e.g. ``compiled_step view_variants``; default all),
+GPU_CHECK_VIEW_VARIANTS (the ``view_variants`` case's variants, e.g. ``compiled compiled+fused``; default all).
 """
 
 from __future__ import annotations
@@ -186,10 +187,12 @@ class Check:
         details, ok = {}, True
         gather = str(ROOT / "benchmarks" / "bench_gather.py")
         variants = str(ROOT / "benchmarks" / "bench_view_variants.py")
+        chosen = os.environ.get("GPU_CHECK_VIEW_VARIANTS", "").replace(",", " ").split()
+        view_variants = ["--variants", *chosen] if chosen else []
         cases = [("baseline", [bench, "--depth", "none"], 0.3),
                  ("compiled", [bench, "--depth", "none", "--compile", "--repeat", "10"], 0.5),
                  ("compiled_step", [bench, "--depth", "none", "--compile-step", "--no-views", "--repeat", "10"], 0.75),
-                 ("view_variants", [variants, "--budget-s", "{budget}"], 0.7),
+                 ("view_variants", [variants, "--budget-s", "{budget}", *view_variants], 0.7),
                  ("depth_aware", [bench, "--depth", "bundled", "--no-views"], 0.8), ("gather", [gather], 1.0)]
         try:
             cases = bench_cases(cases, os.environ.get("GPU_CHECK_BENCH_CASES", ""))

@@ -178,3 +178,37 @@ def test_compare_marks_partly_empty_meshes_and_leaves_full_ones_plain(tmp_path):
     paths[0].write_text(json.dumps({**base, "method": "a", "empty_predictions": -1}))
     with pytest.raises(DepthnerfError, match="'empty_predictions' must be a non-negative integer"):
         load_summary(paths[0])
+
+
+def test_max_objects_checks_the_files_of_the_objects_it_scores(case, tmp_path, capsys):
+    """``--max-objects N`` reads and checks the files of the N objects it evaluates, not the whole split's: a
+    broken pose in another object does not stop it, while the whole split's evaluation names that file."""
+    import shutil
+
+    root = tmp_path / "data"
+    shutil.copytree(case["root"], root)
+    second = sorted(p for p in (root / "cars_test").iterdir() if p.is_dir())[1]
+    broken = sorted((second / "pose").iterdir())[0]
+    broken.write_text("not a pose\n")
+    flags = ["--checkpoint", str(case["plain"]), "--data", str(root), "--no-mesh", "--no-progress"]
+    assert main(["eval", *flags, "--out", str(tmp_path / "one"), "--max-objects", "1"]) == 0
+    summary = json.loads((tmp_path / "one" / "summary.json").read_text())
+    assert summary["objects"] == 1 and ", 1 of 2 objects of cars_test," in summary["protocol"]
+    capsys.readouterr()
+    assert main(["eval", *flags, "--out", str(tmp_path / "all")]) == 2
+    assert str(broken) in _one_error_line(capsys)
+
+
+def test_gather_fused_reaches_the_fields_and_scores_the_same(case, tmp_path, monkeypatch):
+    """``eval --gather fused``: the session's fields gather in the MLP forward (``torch.compile`` replaced by the
+    eager forward here, so no compilation) and the scores are the sampled gather's up to float rounding."""
+    import depthnerf.render.precision as precision
+
+    seen = []
+    monkeypatch.setattr(precision.torch, "compile", lambda fn, **kw: seen.append(kw) or fn)
+    psnr = {}
+    for gather in ("sampled", "fused"):
+        assert _eval(case, tmp_path / gather, "--no-mesh", "--gather", gather) == 0
+        psnr[gather] = json.loads((tmp_path / gather / "summary.json").read_text())["psnr"]
+    assert len(seen) == 2  # the fused run's coarse and fine forwards (--gather fused implies --compile)
+    assert psnr["fused"] == pytest.approx(psnr["sampled"], abs=1e-4)

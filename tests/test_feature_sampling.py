@@ -67,3 +67,33 @@ def test_in_frame_is_in_front_and_inside_the_closed_image_rectangle():
     expected = [float(z > 0 and 0 <= u <= w and 0 <= v <= h) for u, v, z in cases]
     assert out.dtype == torch.float64 and out[0, 0].tolist() == expected
     assert 0 < sum(expected) < len(expected)
+
+
+def test_deferred_reads_equal_the_fused_gather():
+    """:class:`MapSamples` (``--gather fused``: the MLP forward reads the maps) gives :func:`sample_maps`' values,
+    whole or by channel ranges, for coordinates outside the map and non-finite ones; from bf16 maps it returns
+    fp32 within bf16's rounding of the features; and traced by inductor (on this device) the same values."""
+    from depthnerf.model.features import MapSamples, sample_maps
+
+    gen = torch.Generator().manual_seed(2)
+    maps = torch.randn(3, 5, 7, 12, generator=gen)
+    grid = (torch.rand(3, 40, 2, generator=gen) * 2 - 1) * 1.4
+    grid[1, :3] = torch.tensor([[float("nan"), 0.3], [float("inf"), -0.2], [-float("inf"), float("nan")]])
+    ref = sample_maps(maps, grid).reshape(3 * 40, 12)
+    deferred = MapSamples(maps=maps, grid=grid)
+    corners = deferred.corners()
+    torch.testing.assert_close(deferred.read(corners), ref, rtol=0, atol=1e-6)
+    torch.testing.assert_close(deferred.read(corners, 4, 8), ref[:, 4:8], rtol=0, atol=1e-6)
+    half = MapSamples(maps=maps.bfloat16(), grid=grid).read(corners, 8, 12)
+    assert half.dtype == torch.float32
+    torch.testing.assert_close(half, sample_maps(maps.bfloat16().float(), grid).reshape(120, 12)[:, 8:],
+                               rtol=0, atol=1e-6)  # the same sum of the rounded features
+    assert 0 < (half - ref[:, 8:]).abs().max() <= maps.abs().max() * 2 ** -8
+
+    def read_block(m, g):
+        samples = MapSamples(maps=m, grid=g)
+        return samples.read(samples.corners(), 4, 8)
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    compiled = torch.compile(read_block, backend="inductor", dynamic=True)
+    torch.testing.assert_close(compiled(maps.to(device), grid.to(device)).cpu(), ref[:, 4:8], rtol=0, atol=1e-5)

@@ -41,6 +41,7 @@ def test_policy_per_device():
                                                     "autocast; --fp32 turns autocast off: pass one of them"),
     ("cuda", {"compile_mode": "fastest"}, "--compile-mode must be one of default, reduce-overhead, max-autotune, "
                                           "max-autotune-no-cudagraphs, got 'fastest'"),
+    ("cpu", {"gather": "inline"}, "--gather must be one of sampled, fused, fused-bf16, got 'inline'"),
 ])
 def test_flags_a_device_cannot_run_are_one_line(device, flags, line):
     with pytest.raises(DepthnerfError) as err:
@@ -172,3 +173,58 @@ def test_a_compiled_field_keeps_the_bf16_residual_stream():
     for a, b in zip(model.field(enc, "fine", compiled)(pts, dirs), model.field(enc, "fine", eager)(pts, dirs),
                     strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("mirror, on_map, views", [(False, True, 1), (True, True, 2), (True, False, 1)])
+@torch.no_grad()
+def test_the_fused_gather_gives_the_sampled_fields_values(mirror, on_map, views):
+    """``--gather fused``: the MLP forward reads the maps itself (:class:`MapSamples`), with projected features
+    or not, the mirror branch and several source views; the fields' values are the sampled gather's up to float
+    rounding, ``fused-bf16`` within the features' bf16 rounding, and traced by dynamo (``aot_eager``) the same."""
+    cfg = small_config(lin_z_on_map=on_map)
+    cfg.mirror = mirror
+    model = randomize(PixelNeRF(cfg, depth_aware=False))
+    src = sources(b=2, v=views)
+    if mirror:
+        src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    enc = model.encode(src)
+    pts, dirs = query(r=9, s=5)
+    runtimes = {"sampled": FieldRuntime(), "fused": FieldRuntime(fused_gather=True),
+                "fused-bf16": FieldRuntime(fused_gather=True, map_dtype=torch.bfloat16)}
+    ref = model.field(enc, "fine", runtimes["sampled"])(pts, dirs)
+    for a, b in zip(model.field(enc, "fine", runtimes["fused"])(pts, dirs), ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
+    half = model.field(enc, "fine", runtimes["fused-bf16"])(pts, dirs)
+    gaps = [float((a - b).abs().max()) for a, b in zip(half, ref, strict=True)]
+    assert 0 < max(gaps) < 0.05  # the features rounded to bf16 (8 bits of mantissa)
+    forwards = {w: torch.compile(model.network(w).forward, dynamic=True, backend="aot_eager")
+                for w in ("coarse", "fine")}
+    compiled = dataclasses.replace(runtimes["fused-bf16"], forwards=forwards)
+    for a, b in zip(model.field(enc, "fine", compiled)(pts, dirs), half, strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+
+
+def test_the_gather_flag_reaches_the_runtime_and_implies_compile(monkeypatch):
+    """``--gather``: ``fused*`` implies ``--compile`` (no compilation here: the call is recorded) and sets the
+    runtime's ``fused_gather`` / ``map_dtype``; ``sampled`` leaves both off."""
+    monkeypatch.setattr(precision.torch, "compile", lambda fn, **kw: fn)
+    model = PixelNeRF(small_config(), depth_aware=False)
+    for gather, fused, dtype in (("sampled", False, None), ("fused", True, None), ("fused-bf16", True, torch.bfloat16)):
+        policy = inference_policy("cpu", gather=gather)
+        runtime = field_runtime(model, policy)
+        assert policy.gather == gather and policy.compile == fused and bool(runtime.forwards) == fused
+        assert runtime.fused_gather == fused and runtime.map_dtype == dtype
+
+
+def test_the_fused_gather_is_an_inference_setting():
+    """With autograd (training) the features are sampled before the MLP whatever the runtime says, so the
+    gradients are the fused ``embedding_bag``'s; the maps are not cast."""
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
+    pts, dirs = query()
+    grads = []
+    for runtime in (FieldRuntime(), FieldRuntime(fused_gather=True, map_dtype=torch.bfloat16)):
+        model.zero_grad()
+        rgb, sigma = model.field(model.encode(sources()), "coarse", runtime)(pts, dirs)
+        (rgb.sum() + sigma.sum()).backward()
+        grads.append(model.coarse.lin_z[0].weight.grad.clone())
+    assert torch.equal(grads[0], grads[1]) and grads[0].abs().sum() > 0

@@ -34,7 +34,7 @@ from pathlib import Path
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import ENCODER_NORMS
-from depthnerf.render.config import COMPILE_MODES, DEFAULT_BUDGET, GuidedConfig
+from depthnerf.render.config import COMPILE_MODES, DEFAULT_BUDGET, GATHERS, GuidedConfig
 
 COLLECTIVE_TIMEOUT = timedelta(hours=6)
 """How long rank 0 waits for the slowest rank's share of the objects before the merge (multi-process runs)."""
@@ -114,6 +114,10 @@ def add_precision_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bf16-residual", action="store_true",
                    help="CUDA: keep the field MLPs' residual stream in bf16 under bf16 autocast (half its memory "
                         "traffic; renders differ by bf16 rounding; opt-in)")
+    p.add_argument("--gather", choices=GATHERS, default="sampled",
+                   help="where the fields gather their pixel-aligned features: sampled (default) before the MLP, "
+                        "fused in the MLP forward, inside the compiled graph (implies --compile), fused-bf16 the "
+                        "same from bf16 maps (opt-in; renders differ by float rounding)")
 
 
 def add_guided_flags(p: argparse.ArgumentParser, budget: Callable[[str], int] = int) -> None:
@@ -286,7 +290,7 @@ def _session(args: argparse.Namespace, info, out: Path, guided):
     return InferenceSession(pre, SessionOptions(
         device=info.device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset",
         data_root=data, fp32=args.fp32, compile=args.compile, compile_mode=args.compile_mode,
-        bf16_residual=args.bf16_residual, chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
+        bf16_residual=args.bf16_residual, gather=args.gather, chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
         encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
         symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane)))
 

@@ -128,7 +128,7 @@ def run(args: argparse.Namespace) -> int:
                             facing=getattr(args, "facing", DEFAULT_FACING))
     options = SessionOptions(device=pick_device(args.device), depth=args.depth,
                              depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
-                             compile_mode=args.compile_mode, bf16_residual=args.bf16_residual,
+                             compile_mode=args.compile_mode, bf16_residual=args.bf16_residual, gather=args.gather,
                              chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples))
     check_output_dir(args.out, args.overwrite)
     check_image_file(args.image)  # a missing or non-image photo / mask fails before any model loads

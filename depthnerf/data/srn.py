@@ -36,7 +36,7 @@ from __future__ import annotations
 import sys
 import warnings
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -215,19 +215,9 @@ def index_object(path: Path, category: str, split: str, *, strict: bool = False,
                         ignored=srn_parts.extras(path))
 
 
-def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False, check_files: bool = True,
-                progress: bool = False, strict: bool = False) -> SplitIndex:
-    """Index ``<root>/<category>_<split>``.
-
-    Always: reads every ``intrinsics.txt`` and pairs view files by name. ``check_files``: also reads and checks
-    every pose, opens every image header and reads every depth map (see
-    :func:`~depthnerf.data.validate.check_object`). A bad required file raises :class:`DepthnerfError`, or with
-    ``skip_bad`` its object is left out and listed in ``skipped``. A bad optional part is off for its object, with
-    a :class:`~depthnerf.errors.DataWarning` (grouped per split), or with ``strict`` an error. A checked ``rgb/``
-    image holding other data than PNG (a JPEG under a ``.png`` name) is read as what it holds, with one warning
-    per split (first file, count), or with ``strict`` an error. A split without usable objects is an error.
-    ``progress`` shows a tqdm bar on stderr (when it is a terminal).
-    """
+def object_dirs(root: Path, category: str, split: str) -> list[Path]:
+    """The object folders of ``<root>/<category>_<split>``, sorted by name (an object's id is its folder's name);
+    one line naming the path when the dataset or split folder is missing, a file, or the split is empty."""
     folder = split_dir(root, category, split)
     if not folder.is_dir():
         if Path(root).exists() and not Path(root).is_dir():
@@ -240,11 +230,34 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
             raise DepthnerfError(hint)
         problem = "is a file, not a split folder" if folder.exists() else "split folder does not exist"
         raise DepthnerfError(f"{folder}: {problem}")
-    object_dirs = sorted(p for p in folder.iterdir() if p.is_dir() and not ignored_folder(p.name))
-    if not object_dirs:
+    found = sorted(p for p in folder.iterdir() if p.is_dir() and not ignored_folder(p.name))
+    if not found:
         raise DepthnerfError(f"{folder}: empty split (no object folders)")
+    return found
+
+
+def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False, check_files: bool = True,
+                progress: bool = False, strict: bool = False, only: Collection[str] | None = None) -> SplitIndex:
+    """Index ``<root>/<category>_<split>``.
+
+    Always: reads every ``intrinsics.txt`` and pairs view files by name. ``check_files``: also reads and checks
+    every pose, opens every image header and reads every depth map (see
+    :func:`~depthnerf.data.validate.check_object`). A bad required file raises :class:`DepthnerfError`, or with
+    ``skip_bad`` its object is left out and listed in ``skipped``. A bad optional part is off for its object, with
+    a :class:`~depthnerf.errors.DataWarning` (grouped per split), or with ``strict`` an error. A checked ``rgb/``
+    image holding other data than PNG (a JPEG under a ``.png`` name) is read as what it holds, with one warning
+    per split (first file, count), or with ``strict`` an error. A split without usable objects is an error.
+    ``only``: index just the objects of these ids (names from :func:`object_dirs`; None: every object).
+    ``progress`` shows a tqdm bar on stderr (when it is a terminal).
+    """
+    folder = split_dir(root, category, split)
+    dirs = object_dirs(root, category, split)
+    if only is not None:
+        dirs = [p for p in dirs if p.name in only]
+        if not dirs:
+            raise DepthnerfError(f"{folder}: none of the objects asked for is here ({', '.join(sorted(only))})")
     index = SplitIndex(category=category, split=split, path=folder, objects=[], skipped=[])
-    bar = tqdm(object_dirs, desc=f"{category}_{split}", unit="obj", file=sys.stderr, leave=False,
+    bar = tqdm(dirs, desc=f"{category}_{split}", unit="obj", file=sys.stderr, leave=False,
                disable=None if progress else True)
     for obj_dir in bar:
         try:

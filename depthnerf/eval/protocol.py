@@ -80,7 +80,7 @@ import trimesh
 from depthnerf.data import srn_format
 from depthnerf.data.card import card_path, card_pixel_center, read_dataset_card
 from depthnerf.data.fingerprint import DataFingerprint
-from depthnerf.data.srn import ObjectRecord, index_split
+from depthnerf.data.srn import ObjectRecord, index_split, object_dirs
 from depthnerf.distributed import DistInfo, checked_together
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.config import METRICS_PATH, ProtocolChoices, ProtocolConfig
@@ -301,16 +301,17 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     data_root, out_dir = Path(session.options.data_root), Path(out_dir)
     category = cfg.category or spec.category
     with checked_together(info, "checking the data and the output folder"):  # agreed by the ranks: one line
-        all_records = index_split(data_root, category, cfg.split).objects  # every file checked, as train does
+        ids = [p.name for p in object_dirs(data_root, category, cfg.split)]
         card = read_dataset_card(data_root, category)
         # depth maps are back-projected with the dataset's own pixel centres (its card), whatever the model assumes
         cfg = replace(cfg, geometry=replace(cfg.geometry, depth_pixel_center=card_pixel_center(card)))
-        skipped = [r.object_id for r in all_records if choices.skips(r.object_id)]
-        kept = [r for r in all_records if not choices.skips(r.object_id)]
+        skipped = [i for i in ids if choices.skips(i)]
+        kept = [i for i in ids if not choices.skips(i)]
         if not kept:
             raise DepthnerfError(f"{data_root}: every object of {category}_{cfg.split} is left out by --objects "
                                  f"{choices.objects}")
-        records = kept[: cfg.max_objects] if cfg.max_objects else kept
+        chosen = set(kept[: cfg.max_objects] if cfg.max_objects else kept)
+        records = index_split(data_root, category, cfg.split, only=chosen).objects  # every file of these checked
         input_res, eval_res = spec.resolution, spec.resolution if cfg.resolution is None else cfg.resolution
         side = max(8, SSIM_WINDOW_SIDE[choices.ssim])
         if eval_res < side:
@@ -344,7 +345,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     deterministic = not spec.render.sampler.eval_random
     total = time.perf_counter() - t_start
     summary.update({
-        "protocol": protocol_text(results, len(all_records), cfg.split, category, cfg.views_stride, eval_res,
+        "protocol": protocol_text(results, len(ids), cfg.split, category, cfg.views_stride, eval_res,
                                   input_res, deterministic, skipped),
         "protocol_choices": choices.record(skipped),
         "method": cfg.method or method_label(estimator) + (

@@ -99,6 +99,8 @@ class SessionOptions:
     """``--compile-mode``: the ``torch.compile`` mode (implies :attr:`compile`); None: torch's default."""
     bf16_residual: bool = False
     """``--bf16-residual``: keep the MLPs' residual stream in bf16 under CUDA's bf16 autocast."""
+    gather: str = "sampled"
+    """``--gather``: where the fields gather their features (:data:`~depthnerf.render.config.GATHERS`)."""
     chunk: int | None = None
     """Rays per render pass (``--chunk``); None: the device policy's."""
     guided: GuidedConfig | int | bool | None = None
@@ -109,7 +111,7 @@ class SessionOptions:
     """``--pixel-center``: read data with another pixel-centre convention; None: the checkpoint's."""
     policy: InferencePolicy | None = None
     """The device policy itself (e.g. another device's, simulated); None: the policy of :attr:`device` with
-    :attr:`fp32`, :attr:`compile`, :attr:`compile_mode` and :attr:`bf16_residual`."""
+    :attr:`fp32`, :attr:`compile`, :attr:`compile_mode`, :attr:`bf16_residual` and :attr:`gather`."""
     encoder_norm: EncoderNorm = "running"
     """``--encoder-norm``: the encoder's BatchNorm statistics at inference, ``running`` (pixelNeRF) or the input
     ``image``'s own, as training normalises each object (:meth:`PixelNeRF.encode`)."""
@@ -126,7 +128,7 @@ class SessionOptions:
             raise DepthnerfError(f"--chunk must be >= 1, got {self.chunk}")
         if self.policy is None:  # a flag combination the device cannot run fails here, not after loading
             check_precision_flags(self.device, fp32=self.fp32, compile_mode=self.compile_mode,
-                                  bf16_residual=self.bf16_residual)
+                                  bf16_residual=self.bf16_residual, gather=self.gather)
         if self.encoder_norm not in ENCODER_NORMS:
             raise DepthnerfError(f"--encoder-norm must be one of {', '.join(ENCODER_NORMS)}, "
                                  f"got {self.encoder_norm!r}")
@@ -136,7 +138,8 @@ class SessionOptions:
     def device_policy(self) -> InferencePolicy:
         """:attr:`policy`, or the policy of :attr:`device` with these options' flags."""
         return self.policy or inference_policy(self.device, fp32=self.fp32, compile=self.compile,
-                                               compile_mode=self.compile_mode, bf16_residual=self.bf16_residual)
+                                               compile_mode=self.compile_mode, bf16_residual=self.bf16_residual,
+                                               gather=self.gather)
 
 
 def resolve_prior(trained: PriorConfig, depth: str | None, depth_checkpoint: str | None, *, photos: bool,

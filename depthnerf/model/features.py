@@ -17,11 +17,14 @@ feature gather is written with index gathers (:func:`sample_maps_gather`, backwa
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from depthnerf.bundles import TensorBundle
 from depthnerf.data.cameras import project
 
 
@@ -158,6 +161,46 @@ def sample_projected(maps: Float[Tensor, "B V Hf Wf C"], uv: Float[Tensor, "B V 
     grid = uv_to_grid(uv, image_size, (hf, wf))
     out = sample_maps(maps.reshape(b * v, hf, wf, c), grid.reshape(b * v, -1, 2))
     return out.reshape(b, v, uv.shape[2], c)
+
+
+@dataclass
+class MapSamples(TensorBundle):
+    """Channels-last maps and the points to read them at, the bilinear gather left to whoever consumes the
+    features (``--gather fused``: the field MLP's forward, so that under ``--compile`` the gather is part of the
+    compiled graph). :meth:`read` gives :func:`sample_maps`' values with plain index loads of whole channel rows,
+    which inductor generates into its own kernel; the maps may be bf16 while the coordinates and corner weights
+    stay fp32 (``grid_sample`` takes its coordinates in the map's dtype, :func:`sample_maps_inference`)."""
+
+    maps: Float[Tensor, "BV Hf Wf C"]
+    """The maps, channels-last (fp32, or bf16 for half the bytes read)."""
+    grid: Float[Tensor, "BV N 2"]
+    """Grid coordinates of the points in each map (:func:`uv_to_grid`), fp32."""
+
+    def corners(self) -> tuple[Int[Tensor, "BVN 4"], Float[Tensor, "BVN 4"]]:
+        """Flat row indices of every point's 4 bilinear corners in ``maps.reshape(-1, C)`` and their weights;
+        computed once and passed to each :meth:`read`."""
+        bv, hf, wf, _ = self.maps.shape
+        return _corners(self.grid, bv, hf, wf)
+
+    def read(self, corners: tuple[Int[Tensor, "BVN 4"], Float[Tensor, "BVN 4"]], start: int = 0,
+             stop: int | None = None) -> Float[Tensor, "BVN K"]:
+        """Channels ``[start, stop)`` at every point, rows in (BV, N) order: ``sum_k w_k maps[i_k, start:stop]``
+        over the 4 corners, written as four terms (no ``[BVN, 4, K]`` tensor), in fp32 whatever the maps' dtype."""
+        index, weight = corners
+        rows = self.maps.reshape(-1, self.maps.shape[-1])[:, start:stop]
+        out = weight[:, :1].float() * rows[index[:, 0]]
+        for k in range(1, 4):
+            out = out + weight[:, k:k + 1].float() * rows[index[:, k]]
+        return out
+
+
+def map_samples(maps: Float[Tensor, "B V Hf Wf C"], uv: Float[Tensor, "B V N 2"],
+                image_size: tuple[int, int]) -> MapSamples:
+    """:func:`sample_projected` with the gather deferred: the maps (in their dtype) and the grid coordinates of
+    image coordinates ``uv``, for :meth:`MapSamples.read`."""
+    b, v, hf, wf, c = maps.shape
+    grid = uv_to_grid(uv.float(), image_size, (hf, wf))
+    return MapSamples(maps=maps.reshape(b * v, hf, wf, c), grid=grid.reshape(b * v, -1, 2))
 
 
 def rotate_dirs(dirs: Float[Tensor, "B N 3"], w2c: Float[Tensor, "B V 4 4"]) -> Float[Tensor, "B V N 3"]:

@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from depthnerf.bundles import TensorBundle
 from depthnerf.model.config import FieldConfig
+from depthnerf.model.features import MapSamples
 
 MIRROR_FLAGS = 2
 """Extra inputs of the mirror branch: whether the point and its mirror image project inside the source frame."""
@@ -45,8 +46,9 @@ class MirrorQuery(TensorBundle):
     inputs: Float[Tensor, "B V N Dm"]
     """``[gamma(x'), d', in_frame(x), in_frame(x')]`` of the mirror image x' (Dm = d_in + 2), then the source
     pixels at its projection for ``prior_at_point`` / ``rgb_at_point`` models (``PixelNeRFConfig.point_columns``)."""
-    latent: Float[Tensor, "B V N L"]
-    """Features at the mirror image's projection (sampled ``latent_map(..., mirror=True)`` when projected)."""
+    latent: Float[Tensor, "B V N L"] | MapSamples
+    """Features at the mirror image's projection (sampled ``latent_map(..., mirror=True)`` when projected), or
+    the maps and the mirror images' grid coordinates, read by the forward (``--gather fused``)."""
     gate: Float[Tensor, " B"]
     """1.0 for objects with a symmetry plane, 0.0 without (the branch then adds nothing)."""
 
@@ -134,12 +136,14 @@ class ResidualField(nn.Module):
         enc = self.encoding(points)
         return torch.cat([enc, dirs], dim=-1) if self.cfg.use_viewdirs else enc
 
-    def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"], *,
+    def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"] | MapSamples, *,
                 projected: bool, mirror: MirrorQuery | None = None,
                 residual_dtype: torch.dtype | None = None) -> Float[Tensor, "B N 4"]:
         """Raw outputs (rgb logits, sigma pre-activation). ``latent`` is either the sampled features
         (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z); ``mirror``
-        (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike.
+        (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike. Either
+        may instead be a :class:`~depthnerf.model.features.MapSamples` of those maps (``[B*V, Hf, Wf, L]``, grid
+        ``[B*V, N, 2]``): the forward gathers each block's channels itself (``--gather fused``), same values.
 
         ``residual_dtype``: without autograd, the dtype the residual stream ``x`` is kept in (None: the inputs'
         dtype, fp32). ``torch.bfloat16`` under bf16 autocast halves the stream's memory traffic, at the cost of
@@ -148,30 +152,44 @@ class ResidualField(nn.Module):
         b, v, n, _ = inputs.shape
         d = self.cfg.d_hidden
         x = self.lin_in(inputs.reshape(b * v * n, -1))
-        z = latent.reshape(b * v * n, -1)
-        z_parts = z.split(d, dim=1) if projected else None  # split's backward is one cat, not zero-fill + add
+        z_part = _feature_terms(latent, self.lin_z, d, projected, b * v * n)
         inplace = not torch.is_grad_enabled()
         if residual_dtype is not None and not inplace:
             raise ValueError("residual_dtype is an inference setting: training keeps the fp32 residual stream")
         if inplace:
             x = x.to(residual_dtype or inputs.dtype)  # under autocast the stream stays fp32 unless residual_dtype
-        zm, zm_parts, gate = None, None, None
+        zm_part, gate = None, None
         if mirror is not None:
             if not self.mirror:
                 raise ValueError("mirror inputs given to a field built without the mirror branch")
             gate = mirror.gate.to(x.dtype)[:, None, None].expand(b, v, n).reshape(b * v * n, 1)
             x = x + self.lin_in_mirror(mirror.inputs.reshape(b * v * n, -1)).to(x.dtype) * gate
-            zm = mirror.latent.reshape(b * v * n, -1)
-            zm_parts = zm.split(d, dim=1) if projected else None
+            zm_part = _feature_terms(mirror.latent, self.lin_z_mirror, d, projected, b * v * n)
         for i, block in enumerate(self.blocks):
             if i == self.cfg.combine_layer and v > 1:
                 x = x.reshape(b, v, n, d).mean(dim=1).reshape(b * n, d)
             if i < self.n_lin_z:
-                zi = z_parts[i] if z_parts is not None else self.lin_z[i](z)
-                if zm is not None:
-                    zi = zi + (zm_parts[i] if zm_parts is not None else self.lin_z_mirror[i](zm)) * gate
+                zi = z_part(i)
+                if zm_part is not None:
+                    zi = zi + zm_part(i) * gate
                 x = x.add_(zi) if inplace else x + zi
             x = block.forward_(x) if inplace else block(x)
         if self.cfg.combine_layer == self.cfg.n_blocks and v > 1:
             x = x.reshape(b, v, n, d).mean(dim=1).reshape(b * n, d)
         return self.lin_out(F.relu(x)).reshape(b, n, 4)
+
+
+def _feature_terms(latent: Tensor | MapSamples, lins: nn.ModuleList, d: int, projected: bool, rows: int):
+    """``i -> the features' term before block i`` (``[rows, d]``): the i-th ``d`` channels of projected features,
+    else ``lins[i]`` of the features; read from the maps at this point when ``latent`` is a :class:`MapSamples`."""
+    if isinstance(latent, MapSamples):
+        corners = latent.corners()
+        if projected:
+            return lambda i: latent.read(corners, i * d, (i + 1) * d)
+        z = latent.read(corners)
+        return lambda i: lins[i](z)
+    z = latent.reshape(rows, -1)
+    if projected:
+        parts = z.split(d, dim=1)  # split's backward is one cat, not zero-fill + add
+        return lambda i: parts[i]
+    return lambda i: lins[i](z)

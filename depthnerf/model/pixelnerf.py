@@ -38,7 +38,15 @@ from depthnerf.data.symmetry import has_plane, reflect_dirs, reflect_points
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import ENCODER_NORMS, PRIOR_POINT_SCALE, EncoderNorm, PixelNeRFConfig
 from depthnerf.model.encoder import ImageEncoder
-from depthnerf.model.features import in_frame, project_points, rotate_dirs, sample_projected, to_source_frames
+from depthnerf.model.features import (
+    MapSamples,
+    in_frame,
+    map_samples,
+    project_points,
+    rotate_dirs,
+    sample_projected,
+    to_source_frames,
+)
 from depthnerf.model.field import MirrorQuery, ResidualField
 
 
@@ -95,6 +103,13 @@ class FieldRuntime:
     residual: torch.dtype | None = None
     """Without autograd, the dtype of the MLPs' residual stream (None: fp32; ``torch.bfloat16`` with bf16
     ``autocast``: :meth:`ResidualField.forward`'s ``residual_dtype``)."""
+    fused_gather: bool = False
+    """Without autograd, the MLP forward gets the feature maps and the points' grid coordinates
+    (:class:`~depthnerf.model.features.MapSamples`) and gathers the features itself; with a compiled forward
+    the gather is then in the compiled graph (``--gather fused``). False: features are sampled before the call."""
+    map_dtype: torch.dtype | None = None
+    """With ``fused_gather``, the dtype the maps are read in (None: fp32; ``torch.bfloat16``: half the bytes,
+    the features rounded to bf16, ``--gather fused-bf16``); coordinates and corner weights stay fp32."""
     forwards: Mapping[str, Callable[..., Tensor]] = field(default_factory=dict)
     """What runs in place of a pass's MLP forward, by pass (``"coarse"``, ``"fine"``): e.g. a ``torch.compile``
     wrapper of it, held here by the caller (the module is not changed); a pass not listed calls its MLP."""
@@ -194,6 +209,9 @@ class PixelNeRF(nn.Module):
             maps = enc.features.permute(0, 1, 3, 4, 2).contiguous()  # channels-last for row gathers
             maps_m = maps
         chunk = runtime.chunk_points or mlp.cfg.chunk_points
+        if runtime.fused_gather and runtime.map_dtype is not None and not torch.is_grad_enabled():
+            cast = maps.to(runtime.map_dtype)  # once per call of field(); inference only, as fused_gather
+            maps, maps_m = cast, (cast if maps_m is maps else None if maps_m is None else maps_m.to(cast.dtype))
         amp_dtype = runtime.autocast
         point_map = enc.point_map if self.cfg.point_columns else None
         given = 0 if point_map is None else point_map.shape[-1]
@@ -207,12 +225,19 @@ class PixelNeRF(nn.Module):
                 return inputs
             return torch.cat([inputs, sample_projected(point_map, uv, enc.image_size).to(inputs.dtype)], dim=-1)
 
+        def features(source_maps: Tensor, uv: Tensor, grad: bool) -> Tensor | MapSamples:
+            """The features at projections ``uv``: sampled now, or (``fused_gather`` at inference) the maps and
+            the points' grid coordinates, gathered by the MLP forward."""
+            if runtime.fused_gather and not grad:
+                return map_samples(source_maps, uv, enc.image_size)
+            return sample_projected(source_maps, uv, enc.image_size)
+
         def run(points: Tensor, dirs: Tensor, grad: bool) -> Tensor:
             rotated, cam = to_source_frames(points, enc.w2c)
             coords = rotated if mlp.cfg.point_frame == "rotated" else cam
             dirs_src = rotate_dirs(dirs, enc.w2c) if mlp.cfg.use_viewdirs else None
             uv = project_points(cam, enc.focal, enc.principal)
-            latent = sample_projected(maps, uv, enc.image_size)
+            latent = features(maps, uv, grad)
             mirror = None
             if use_mirror:
                 rotated_m, cam_m = to_source_frames(reflect_points(points, plane), enc.w2c)
@@ -221,8 +246,7 @@ class PixelNeRF(nn.Module):
                 flags = torch.stack([in_frame(cam, uv, enc.image_size), in_frame(cam_m, uv_m, enc.image_size)], -1)
                 inputs_m = mlp.inputs(rotated_m if mlp.cfg.point_frame == "rotated" else cam_m, dirs_m)
                 inputs_m = with_pixels(torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1), uv_m)
-                mirror = MirrorQuery(inputs=inputs_m, latent=sample_projected(maps_m, uv_m, enc.image_size),
-                                     gate=gate)
+                mirror = MirrorQuery(inputs=inputs_m, latent=features(maps_m, uv_m, grad), gate=gate)
             return forward(with_pixels(mlp.inputs(coords, dirs_src), uv), latent, projected=mlp.cfg.lin_z_on_map,
                            mirror=mirror, residual_dtype=None if grad else runtime.residual)
 

@@ -16,6 +16,9 @@ torch.compile      off                         off; ``--compile`` compiles the f
                                                the element-wise work fused into them)
 residual stream    fp32                        fp32; ``--bf16-residual`` keeps the MLPs' residual stream in
                                                bf16 (opt-in: half its memory traffic, rounded to bf16)
+feature gather     before the MLP call         before the MLP call (``grid_sample``); ``--gather fused``: in the
+                   (``embedding_bag``);        MLP forward, so in ``--compile``'s graph; ``fused-bf16``: from
+                   ``--gather`` as on CUDA     bf16 maps (:data:`~depthnerf.render.config.GATHERS`; opt-in)
 =================  ==========================  ============================================================
 
 The CUDA values are sized from memory arithmetic; their speed on one H100 is in docs/speed.md ("GPU"), with the
@@ -23,7 +26,7 @@ profile that shows what bounds a view (the feature gather and the fields' elemen
 The policy is an argument, never state on the model: every inference path (``depthnerf eval``, ``depthnerf
 reconstruct``, the Python API ``Reconstructor``, the demo and the app) gets it from its
 :class:`~depthnerf.infer.session.InferenceSession`, which builds it once with :func:`inference_policy` for its
-device (``--fp32`` / ``--compile`` / ``--compile-mode`` / ``--bf16-residual``), turns it once into the :class:`~depthnerf.model.pixelnerf.FieldRuntime` its
+device (``--fp32`` / ``--compile`` / ``--compile-mode`` / ``--bf16-residual`` / ``--gather``), turns it once into the :class:`~depthnerf.model.pixelnerf.FieldRuntime` its
 field calls take (:func:`field_runtime`: the compiled MLP forwards are wrappers that it holds) and renders
 ``ray_chunk`` rays per pass unless ``--chunk`` says otherwise.
 """
@@ -36,7 +39,7 @@ import torch
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import FieldRuntime, PixelNeRF
-from depthnerf.render.config import COMPILE_MODES
+from depthnerf.render.config import COMPILE_MODES, GATHERS
 
 CPU_RAY_CHUNK = 4096
 """Rays per render pass on the CPU (the value every CPU figure in docs/speed.md was measured with)."""
@@ -68,14 +71,19 @@ class InferencePolicy:
     """The wrappers' ``torch.compile`` mode (:data:`COMPILE_MODES`)."""
     residual: torch.dtype | None = None
     """Dtype of the MLPs' residual stream (None: fp32; :attr:`FieldRuntime.residual`)."""
+    gather: str = "sampled"
+    """Where the features are gathered (:data:`~depthnerf.render.config.GATHERS`, ``--gather``)."""
 
 
 def check_precision_flags(device: torch.device | str, *, fp32: bool = False, compile_mode: str | None = None,
-                          bf16_residual: bool = False) -> None:
+                          bf16_residual: bool = False, gather: str = "sampled") -> None:
     """One line naming the flag when a combination cannot run on ``device`` (``--compile-mode`` not one of
-    :data:`COMPILE_MODES`; ``--bf16-residual`` without bf16 autocast: on the CPU or with ``--fp32``)."""
+    :data:`COMPILE_MODES`, ``--gather`` not one of :data:`GATHERS`; ``--bf16-residual`` without bf16 autocast: on
+    the CPU or with ``--fp32``)."""
     if compile_mode is not None and compile_mode not in COMPILE_MODES:
         raise DepthnerfError(f"--compile-mode must be one of {', '.join(COMPILE_MODES)}, got {compile_mode!r}")
+    if gather not in GATHERS:
+        raise DepthnerfError(f"--gather must be one of {', '.join(GATHERS)}, got {gather!r}")
     if bf16_residual and torch.device(device).type != "cuda":
         raise DepthnerfError(f"--bf16-residual is a CUDA setting (bf16 autocast); on {torch.device(device).type} "
                              "the fields render in fp32")
@@ -85,18 +93,20 @@ def check_precision_flags(device: torch.device | str, *, fp32: bool = False, com
 
 
 def inference_policy(device: torch.device | str, *, fp32: bool = False, compile: bool = False,
-                     compile_mode: str | None = None, bf16_residual: bool = False) -> InferencePolicy:
-    """The policy for ``device`` (see the module table). ``compile_mode`` implies ``compile``; the flags are
-    checked by :func:`check_precision_flags`."""
-    check_precision_flags(device, fp32=fp32, compile_mode=compile_mode, bf16_residual=bf16_residual)
-    compile = compile or compile_mode is not None
+                     compile_mode: str | None = None, bf16_residual: bool = False,
+                     gather: str = "sampled") -> InferencePolicy:
+    """The policy for ``device`` (see the module table). ``compile_mode`` implies ``compile``, and so does a
+    ``fused`` gather (it is written for inductor: run eagerly it materialises every corner read, slower than the
+    sampled gather); the flags are checked by :func:`check_precision_flags`."""
+    check_precision_flags(device, fp32=fp32, compile_mode=compile_mode, bf16_residual=bf16_residual, gather=gather)
+    compile = compile or compile_mode is not None or gather != "sampled"
     mode = compile_mode or "default"
     if torch.device(device).type == "cuda":
         return InferencePolicy(autocast=None if fp32 else torch.bfloat16, ray_chunk=CUDA_RAY_CHUNK,
                                point_chunk=CUDA_POINT_CHUNK, compile=compile, compile_mode=mode,
-                               residual=torch.bfloat16 if bf16_residual else None)
+                               residual=torch.bfloat16 if bf16_residual else None, gather=gather)
     return InferencePolicy(autocast=None, ray_chunk=CPU_RAY_CHUNK, point_chunk=CPU_POINT_CHUNK, compile=compile,
-                           compile_mode=mode)
+                           compile_mode=mode, gather=gather)
 
 
 def field_runtime(model: PixelNeRF, policy: InferencePolicy | None) -> FieldRuntime:
@@ -112,4 +122,5 @@ def field_runtime(model: PixelNeRF, policy: InferencePolicy | None) -> FieldRunt
                     for mlp in (model.coarse, model.fine) if mlp is not None}
         forwards = {which: compiled[id(model.network(which))] for which in ("coarse", "fine")}
     return FieldRuntime(autocast=policy.autocast, chunk_points=policy.point_chunk, residual=policy.residual,
-                        forwards=forwards)
+                        fused_gather=policy.gather != "sampled",
+                        map_dtype=torch.bfloat16 if policy.gather == "fused-bf16" else None, forwards=forwards)
