@@ -5,7 +5,10 @@ fp32 residual stream is read and written around every bf16 linear, and the featu
 ``grid_sample`` before the compiled MLP. Three opt-in settings cut that traffic (:mod:`depthnerf.render.precision`):
 ``--bf16-residual`` keeps the stream in bf16, ``--compile-mode max-autotune-no-cudagraphs`` lets inductor fuse
 the element-wise work into Triton matrix products, and ``--gather fused`` / ``fused-bf16`` moves the gather into
-the compiled MLP forward (from fp32 / bf16 maps).
+the compiled MLP forward (from fp32 / bf16 maps). ``triton-mm+fused-bf16`` (:data:`INDUCTOR_OPTIONS`, no CLI
+flag) makes every linear a Triton template with the element-wise work fused into it;
+``compiled+fused-bf16+relu-ep`` (:data:`RUNTIME_FIELDS`) also runs each block's first bias and ReLU in the
+cuBLASLt matrix product's epilogue (``FieldRuntime.relu_epilogue``).
 
 Speed (CUDA; the paper preset's MLPs with seeded random weights, one synthetic source view, 128x128 views, as
 ``benchmarks/bench_gpu.py``): ms per view for each variant, and how far its renders are from the fp32 renders of
@@ -49,14 +52,27 @@ VARIANTS = {
     "compiled": {"compile": True},
     "compiled+fused": {"compile": True, "gather": "fused"},
     "compiled+fused-bf16": {"compile": True, "gather": "fused-bf16"},
+    "compiled+fused-bf16+relu-ep": {"compile": True, "gather": "fused-bf16"},
     "eager+bf16res": {"bf16_residual": True},
     "compiled+bf16res": {"compile": True, "bf16_residual": True},
     "autotuned+bf16res": {"compile_mode": "max-autotune-no-cudagraphs", "bf16_residual": True},
     "autotuned": {"compile_mode": "max-autotune-no-cudagraphs"},
+    "triton-mm+fused-bf16": {"gather": "fused-bf16", "bf16_residual": True},
 }
 """Speed variants, in the default order: name -> :func:`~depthnerf.render.precision.inference_policy` flags (all
 under bf16 autocast; ``eager`` and ``compiled`` are what ``eval`` / ``reconstruct`` run without and with
-``--compile``)."""
+``--compile``). Variants in :data:`INDUCTOR_OPTIONS` compile with those inductor options instead of a mode."""
+RUNTIME_FIELDS = {
+    "compiled+fused-bf16+relu-ep": {"relu_epilogue": True},
+}
+"""Benchmark-only variants (no CLI flag): :class:`~depthnerf.model.pixelnerf.FieldRuntime` fields set on top of
+the policy's runtime (``relu_epilogue``: each block's first bias and ReLU in the matrix product's epilogue)."""
+INDUCTOR_OPTIONS = {
+    "triton-mm+fused-bf16": {"max_autotune": True, "max_autotune_gemm_backends": "TRITON", "epilogue_fusion": True},
+}
+"""Benchmark-only variants (no CLI flag): ``torch.compile(options=...)``. ``TRITON`` as the only matrix-product
+backend makes every linear a Triton template, into which inductor fuses the element-wise work around it (bias,
+ReLU, residual add, casts, the fused gather's reads); ``max-autotune`` alone may keep cuBLAS, which fuses none."""
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -91,8 +107,14 @@ def speed(args, out: dict, save: Callable[[], None]) -> None:
     with torch.no_grad():
         enc = model.encode(view_source(batch))
 
-        def render(policy: InferencePolicy) -> tuple[Callable[[], object], torch.Tensor]:
-            runtime = field_runtime(model, policy)
+        def render(policy: InferencePolicy, options: dict | None = None, fields: dict | None = None
+                   ) -> tuple[Callable[[], object], torch.Tensor]:
+            runtime = dataclasses.replace(field_runtime(model, policy), **(fields or {}))
+            if options is not None:
+                compiled = {id(m): torch.compile(m.forward, dynamic=True, options=options)
+                            for m in (model.coarse, model.fine)}
+                runtime = dataclasses.replace(runtime, forwards={w: compiled[id(model.network(w))]
+                                                                 for w in ("coarse", "fine")})
 
             def call():
                 return render_poses(model, enc, poses, intr, 0.8, 1.8, cfg.render, policy.ray_chunk, device,
@@ -102,7 +124,8 @@ def speed(args, out: dict, save: Callable[[], None]) -> None:
         # CUDA's policies wherever this runs (on a CPU: a smoke test of the variants, bf16 autocast in software)
         _, reference = render(inference_policy("cuda", fp32=True))
         for name in args.variants:
-            row = out["variants"][name] = {"flags": VARIANTS[name]}
+            row = out["variants"][name] = {"flags": VARIANTS[name], "inductor_options": INDUCTOR_OPTIONS.get(name),
+                                           "runtime_fields": RUNTIME_FIELDS.get(name)}
             if time.perf_counter() - t_start > args.budget_s:
                 row["skipped"] = f"the --budget-s of {args.budget_s} s was spent"
                 print(f"{name:18s} skipped: budget spent")
@@ -110,7 +133,8 @@ def speed(args, out: dict, save: Callable[[], None]) -> None:
                 continue
             torch._dynamo.reset()
             t0 = time.perf_counter()
-            call, rgb = render(inference_policy("cuda", **VARIANTS[name]))
+            call, rgb = render(inference_policy("cuda", **VARIANTS[name]), INDUCTOR_OPTIONS.get(name),
+                               RUNTIME_FIELDS.get(name))
             call()  # torch.compile(dynamic=True) may recompile on the second call's shapes
             if device.type == "cuda":
                 torch.cuda.synchronize()

@@ -228,3 +228,30 @@ def test_the_fused_gather_is_an_inference_setting():
         (rgb.sum() + sigma.sum()).backward()
         grads.append(model.coarse.lin_z[0].weight.grad.clone())
     assert torch.equal(grads[0], grads[1]) and grads[0].abs().sum() > 0
+
+
+@torch.no_grad()
+def test_the_relu_epilogue_gives_the_blocks_values():
+    """``FieldRuntime.relu_epilogue``: each block's first linear as one ``_addmm_activation`` (bias and ReLU in
+    the matrix product's epilogue on CUDA). The field's values are the plain blocks' in fp32 (to float rounding)
+    and under bf16 autocast (to bf16 rounding: the same bf16 operands, the bias added in another order), eager and
+    traced by dynamo (``aot_eager``); the op keeps the autocast dtype."""
+    from depthnerf.model.field import linear_relu
+
+    layer = torch.nn.Linear(6, 5)
+    x = torch.randn(7, 6)
+    torch.testing.assert_close(linear_relu(x, layer), torch.relu(layer(x)))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert linear_relu(x, layer).dtype == torch.bfloat16
+    model = randomize(PixelNeRF(small_config(), depth_aware=False))
+    enc = model.encode(sources())
+    pts, dirs = query(r=9, s=5)
+    forwards = {w: torch.compile(model.network(w).forward, dynamic=True, backend="aot_eager")
+                for w in ("coarse", "fine")}
+    for autocast, atol in ((None, 1e-5), (torch.bfloat16, 2e-2)):
+        plain = FieldRuntime(autocast=autocast)
+        ref = model.field(enc, "fine", plain)(pts, dirs)
+        for runtime in (dataclasses.replace(plain, relu_epilogue=True),
+                        dataclasses.replace(plain, relu_epilogue=True, forwards=forwards)):
+            for a, b in zip(model.field(enc, "fine", runtime)(pts, dirs), ref, strict=True):
+                torch.testing.assert_close(a, b, rtol=0, atol=atol)

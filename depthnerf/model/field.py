@@ -74,6 +74,19 @@ def _kaiming(layer: nn.Linear) -> nn.Linear:
     return layer
 
 
+def linear_relu(x: Float[Tensor, "N I"], layer: nn.Linear) -> Float[Tensor, "N O"]:
+    """``relu(layer(x))`` as one ``torch._addmm_activation``: on CUDA the bias and the ReLU are the epilogue of the
+    cuBLASLt matrix product (elsewhere an addmm, then a ReLU), also under ``torch.compile``, which keeps the op as
+    it is (an extern kernel) where it gives a plain addmm its own ReLU kernel. Under autocast the operands are cast
+    to the autocast dtype first, as ``F.linear`` would be."""
+    weight, bias = layer.weight, layer.bias
+    device = x.device.type
+    if torch.is_autocast_enabled(device):
+        dtype = torch.get_autocast_dtype(device)
+        x, weight, bias = x.to(dtype), weight.to(dtype), bias.to(dtype)
+    return torch._addmm_activation(bias, x, weight.t())
+
+
 class ResidualBlock(nn.Module):
     """``x + fc_1(relu(fc_0(relu(x))))`` with fc_1 zero-initialised (pixelNeRF's ResnetBlockFC)."""
 
@@ -88,11 +101,15 @@ class ResidualBlock(nn.Module):
         h = F.relu(self.fc_0(F.relu(x)))
         return x + self.fc_1(h)  # the residual sum stays in x's dtype (fp32) under bf16 autocast
 
-    def forward_(self, x: Float[Tensor, "N D"]) -> Float[Tensor, "N D"]:
+    def forward_(self, x: Float[Tensor, "N D"], relu_epilogue: bool = False) -> Float[Tensor, "N D"]:
         """Inference only (no autograd): same result, updates ``x`` in place with fewer memory passes. Under
         bf16 autocast the linears run in bf16 and the residual stream ``x`` keeps its own dtype (fp32, or bf16
-        with ``residual_dtype``, :meth:`ResidualField.forward`)."""
-        h = F.linear(x.clamp_min(0.0), self.fc_0.weight, self.fc_0.bias).relu_()
+        with ``residual_dtype``, :meth:`ResidualField.forward`). ``relu_epilogue``: fc_0's bias and the ReLU
+        after it run in the matrix product's epilogue (:func:`linear_relu`) instead of a kernel of their own."""
+        if relu_epilogue:
+            h = linear_relu(x.clamp_min(0.0), self.fc_0)
+        else:
+            h = F.linear(x.clamp_min(0.0), self.fc_0.weight, self.fc_0.bias).relu_()
         if h.dtype == x.dtype:  # fp32 throughout, or a bf16 stream under bf16 autocast (addmm_ is not autocast)
             return x.addmm_(h, self.fc_1.weight.t().to(x.dtype)).add_(self.fc_1.bias)
         return x.add_(F.linear(h, self.fc_1.weight)).add_(self.fc_1.bias)
@@ -138,7 +155,7 @@ class ResidualField(nn.Module):
 
     def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"] | MapSamples, *,
                 projected: bool, mirror: MirrorQuery | None = None,
-                residual_dtype: torch.dtype | None = None) -> Float[Tensor, "B N 4"]:
+                residual_dtype: torch.dtype | None = None, relu_epilogue: bool = False) -> Float[Tensor, "B N 4"]:
         """Raw outputs (rgb logits, sigma pre-activation). ``latent`` is either the sampled features
         (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z); ``mirror``
         (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike. Either
@@ -148,7 +165,8 @@ class ResidualField(nn.Module):
         ``residual_dtype``: without autograd, the dtype the residual stream ``x`` is kept in (None: the inputs'
         dtype, fp32). ``torch.bfloat16`` under bf16 autocast halves the stream's memory traffic, at the cost of
         rounding the stream to 8 mantissa bits after every addition (docs/speed.md). With autograd it must be
-        None: training keeps the fp32 stream."""
+        None: training keeps the fp32 stream. ``relu_epilogue``: without autograd, the blocks' first linear
+        runs with its bias and ReLU in the matrix product's epilogue (:meth:`ResidualBlock.forward_`)."""
         b, v, n, _ = inputs.shape
         d = self.cfg.d_hidden
         x = self.lin_in(inputs.reshape(b * v * n, -1))
@@ -173,7 +191,7 @@ class ResidualField(nn.Module):
                 if zm_part is not None:
                     zi = zi + zm_part(i) * gate
                 x = x.add_(zi) if inplace else x + zi
-            x = block.forward_(x) if inplace else block(x)
+            x = block.forward_(x, relu_epilogue) if inplace else block(x)
         if self.cfg.combine_layer == self.cfg.n_blocks and v > 1:
             x = x.reshape(b, v, n, d).mean(dim=1).reshape(b * n, d)
         return self.lin_out(F.relu(x)).reshape(b, n, 4)

@@ -110,6 +110,10 @@ class FieldRuntime:
     map_dtype: torch.dtype | None = None
     """With ``fused_gather``, the dtype the maps are read in (None: fp32; ``torch.bfloat16``: half the bytes,
     the features rounded to bf16, ``--gather fused-bf16``); coordinates and corner weights stay fp32."""
+    relu_epilogue: bool = False
+    """Without autograd, each residual block's first linear runs with its bias and ReLU in the matrix product's
+    epilogue (:func:`~depthnerf.model.field.linear_relu`; one kernel fewer per block on CUDA). Same values up to
+    float rounding."""
     forwards: Mapping[str, Callable[..., Tensor]] = field(default_factory=dict)
     """What runs in place of a pass's MLP forward, by pass (``"coarse"``, ``"fine"``): e.g. a ``torch.compile``
     wrapper of it, held here by the caller (the module is not changed); a pass not listed calls its MLP."""
@@ -210,8 +214,9 @@ class PixelNeRF(nn.Module):
             maps_m = maps
         chunk = runtime.chunk_points or mlp.cfg.chunk_points
         if runtime.fused_gather and runtime.map_dtype is not None and not torch.is_grad_enabled():
-            cast = maps.to(runtime.map_dtype)  # once per call of field(); inference only, as fused_gather
-            maps, maps_m = cast, (cast if maps_m is maps else None if maps_m is None else maps_m.to(cast.dtype))
+            shared = maps_m is maps  # cast once per call of field(); inference only, as fused_gather
+            maps = maps.to(runtime.map_dtype)
+            maps_m = maps if shared else None if maps_m is None else maps_m.to(runtime.map_dtype)
         amp_dtype = runtime.autocast
         point_map = enc.point_map if self.cfg.point_columns else None
         given = 0 if point_map is None else point_map.shape[-1]
@@ -248,7 +253,8 @@ class PixelNeRF(nn.Module):
                 inputs_m = with_pixels(torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1), uv_m)
                 mirror = MirrorQuery(inputs=inputs_m, latent=features(maps_m, uv_m, grad), gate=gate)
             return forward(with_pixels(mlp.inputs(coords, dirs_src), uv), latent, projected=mlp.cfg.lin_z_on_map,
-                           mirror=mirror, residual_dtype=None if grad else runtime.residual)
+                           mirror=mirror, residual_dtype=None if grad else runtime.residual,
+                           relu_epilogue=runtime.relu_epilogue and not grad)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]
                      ) -> tuple[Float[Tensor, "B R S 3"], Float[Tensor, "B R S"]]:
