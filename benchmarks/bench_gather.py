@@ -10,7 +10,7 @@ the same values as ``sample_maps`` (largest absolute difference, printed):
   the grid coordinates to ~0.1 feature pixel, so it is not a candidate);
 * ``index``: :func:`~depthnerf.model.features.sample_maps_gather`, the ``--deterministic`` training path;
 * ``compiled_index``: :meth:`~depthnerf.model.features.MapSamples.read` through ``torch.compile`` (the kernel
-  inductor writes for ``--gather fused``, here alone; in a view it is part of the compiled MLP's graph), from fp32
+  inductor writes for ``--gather inside``, here alone; in a view it is part of the compiled MLP's graph), from fp32
   and from bf16 maps with fp32 coordinates.
 
     python benchmarks/bench_gather.py                  # CUDA: 2^20 points, 64x64 maps, 512 channels

@@ -173,7 +173,7 @@ def view_source(batch: TrainBatch) -> SourceViews:
 
 def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, device: torch.device, views: int,
                  repeat: int, out: dict, compile: bool = False, profile_dir: str | None = None,
-                 gather: str = "sampled") -> None:
+                 gather: str = "before") -> None:
     """Print (and put in ``out``) ms per view with the paper's sampler and guided, and the SRN eval projection
     (``compile``: the field MLPs through ``torch.compile``; ``profile_dir``: also profile one paper-sampler call;
     ``gather``: where the features are gathered, ``--gather``)."""
@@ -307,7 +307,7 @@ def main() -> None:
     p.add_argument("--compile-step", action="store_true",
                    help="CUDA: the training step as depthnerf train --compile-step runs it (one compiled graph, "
                         "replayed as CUDA graphs); views stay eager unless --compile")
-    p.add_argument("--gather", default="sampled", choices=["sampled", "fused", "fused-bf16"],
+    p.add_argument("--gather", default="before", choices=["before", "inside", "inside-bf16"],
                    help="CUDA views: where the fields gather their features (as eval / reconstruct --gather)")
     p.add_argument("--profile", metavar="DIR", help="CUDA: write torch.profiler tables of one training step and one "
                    "paper-sampler view call to DIR/profile_{train,view}.txt")

@@ -4,10 +4,10 @@ A paper-sampler view is bound by the MLPs' memory traffic, not their matrix prod
 fp32 residual stream is read and written around every bf16 linear, and the features are gathered by
 ``grid_sample`` before the compiled MLP. Three opt-in settings cut that traffic (:mod:`depthnerf.render.precision`):
 ``--bf16-residual`` keeps the stream in bf16, ``--compile-mode max-autotune-no-cudagraphs`` lets inductor fuse
-the element-wise work into Triton matrix products, and ``--gather fused`` / ``fused-bf16`` moves the gather into
-the compiled MLP forward (from fp32 / bf16 maps). ``triton-mm+fused-bf16`` (:data:`INDUCTOR_OPTIONS`, no CLI
+the element-wise work into Triton matrix products, and ``--gather inside`` / ``inside-bf16`` moves the gather into
+the compiled MLP forward (from fp32 / bf16 maps). ``triton-mm+inside-bf16`` (:data:`INDUCTOR_OPTIONS`, no CLI
 flag) makes every linear a Triton template with the element-wise work fused into it;
-``compiled+fused-bf16+relu-ep`` (:data:`RUNTIME_FIELDS`) also runs each block's first bias and ReLU in the
+``compiled+inside-bf16+relu-ep`` (:data:`RUNTIME_FIELDS`) also runs each block's first bias and ReLU in the
 cuBLASLt matrix product's epilogue (``FieldRuntime.relu_epilogue``).
 
 Speed (CUDA; the paper preset's MLPs with seeded random weights, one synthetic source view, 128x128 views, as
@@ -50,29 +50,29 @@ from depthnerf.render.precision import InferencePolicy, field_runtime, inference
 VARIANTS = {
     "eager": {},
     "compiled": {"compile": True},
-    "compiled+fused": {"compile": True, "gather": "fused"},
-    "compiled+fused-bf16": {"compile": True, "gather": "fused-bf16"},
-    "compiled+fused-bf16+relu-ep": {"compile": True, "gather": "fused-bf16"},
+    "compiled+inside": {"compile": True, "gather": "inside"},
+    "compiled+inside-bf16": {"compile": True, "gather": "inside-bf16"},
+    "compiled+inside-bf16+relu-ep": {"compile": True, "gather": "inside-bf16"},
     "eager+bf16res": {"bf16_residual": True},
     "compiled+bf16res": {"compile": True, "bf16_residual": True},
     "autotuned+bf16res": {"compile_mode": "max-autotune-no-cudagraphs", "bf16_residual": True},
     "autotuned": {"compile_mode": "max-autotune-no-cudagraphs"},
-    "triton-mm+fused-bf16": {"gather": "fused-bf16", "bf16_residual": True},
+    "triton-mm+inside-bf16": {"gather": "inside-bf16", "bf16_residual": True},
 }
 """Speed variants, in the default order: name -> :func:`~depthnerf.render.precision.inference_policy` flags (all
 under bf16 autocast; ``eager`` and ``compiled`` are what ``eval`` / ``reconstruct`` run without and with
 ``--compile``). Variants in :data:`INDUCTOR_OPTIONS` compile with those inductor options instead of a mode."""
 RUNTIME_FIELDS = {
-    "compiled+fused-bf16+relu-ep": {"relu_epilogue": True},
+    "compiled+inside-bf16+relu-ep": {"relu_epilogue": True},
 }
 """Benchmark-only variants (no CLI flag): :class:`~depthnerf.model.pixelnerf.FieldRuntime` fields set on top of
 the policy's runtime (``relu_epilogue``: each block's first bias and ReLU in the matrix product's epilogue)."""
 INDUCTOR_OPTIONS = {
-    "triton-mm+fused-bf16": {"max_autotune": True, "max_autotune_gemm_backends": "TRITON", "epilogue_fusion": True},
+    "triton-mm+inside-bf16": {"max_autotune": True, "max_autotune_gemm_backends": "TRITON", "epilogue_fusion": True},
 }
 """Benchmark-only variants (no CLI flag): ``torch.compile(options=...)``. ``TRITON`` as the only matrix-product
 backend makes every linear a Triton template, into which inductor fuses the element-wise work around it (bias,
-ReLU, residual add, casts, the fused gather's reads); ``max-autotune`` alone may keep cuBLAS, which fuses none."""
+ReLU, residual add, casts, the gather's reads inside the forward); ``max-autotune`` alone may keep cuBLAS, which fuses none."""
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -29,7 +29,7 @@ GPU_CHECK_CRASH (state@<2 x CKPT_EVERY>), GPU_CHECK_RES (128 / 32), GPU_CHECK_OB
 (24 / 4), GPU_CHECK_PRESET (paper-cars), GPU_CHECK_DEPTH (oracle), GPU_CHECK_TRAIN_ARGS (extra train flags;
 CPU: tiny model sizes), GPU_CHECK_PYTEST_ARGS (instead of the whole suite), GPU_CHECK_PYTEST_WORKERS,
 GPU_CHECK_BENCH_CASES (CUDA: some of the bench stage's cases, e.g. ``compiled_step view_variants``; default all),
-GPU_CHECK_VIEW_VARIANTS (the ``view_variants`` case's variants, e.g. ``compiled compiled+fused``; default all).
+GPU_CHECK_VIEW_VARIANTS (the ``view_variants`` case's variants, e.g. ``compiled compiled+inside``; default all).
 """
 
 from __future__ import annotations

@@ -79,13 +79,13 @@ def test_a_bf16_residual_evaluation_is_not_resumed_as_another(tmp_path):
         evaluate_protocol(default, out, cfg)
 
 
-def test_the_fused_variants_compile_with_inductor_on_a_named_cpu(tmp_path):
+def test_the_inside_variants_compile_with_inductor_on_a_named_cpu(tmp_path):
     """The gather in the compiled graph from bf16 maps, with the ReLU epilogue: inductor's code (C++ on the CPU) for
     the paper's MLPs renders what the fp32 reference renders, to bf16 rounding (1 view of 8 px)."""
-    out = tmp_path / "fused.json"
+    out = tmp_path / "inside.json"
     r = run_bench("--device", "cpu", "--resolution", "8", "--views", "1", "--repeat", "1",
-                  "--variants", "compiled+fused-bf16+relu-ep", "--json", str(out))
+                  "--variants", "compiled+inside-bf16+relu-ep", "--json", str(out))
     assert r.returncode == 0, r.stderr[-2000:]
-    row = json.loads(out.read_text())["variants"]["compiled+fused-bf16+relu-ep"]
-    assert row["flags"] == {"compile": True, "gather": "fused-bf16"} and row["runtime_fields"] == {"relu_epilogue": True}
+    row = json.loads(out.read_text())["variants"]["compiled+inside-bf16+relu-ep"]
+    assert row["flags"] == {"compile": True, "gather": "inside-bf16"} and row["runtime_fields"] == {"relu_epilogue": True}
     assert row["ms_per_view"] > 0 and 0 < row["max_abs_diff_vs_fp32"] < 0.05

@@ -199,16 +199,16 @@ def test_max_objects_checks_the_files_of_the_objects_it_scores(case, tmp_path, c
     assert str(broken) in _one_error_line(capsys)
 
 
-def test_gather_fused_reaches_the_fields_and_scores_the_same(case, tmp_path, monkeypatch):
-    """``eval --gather fused``: the session's fields gather in the MLP forward (``torch.compile`` replaced by the
-    eager forward here, so no compilation) and the scores are the sampled gather's up to float rounding."""
+def test_gather_inside_reaches_the_fields_and_scores_the_same(case, tmp_path, monkeypatch):
+    """``eval --gather inside``: the session's fields gather in the MLP forward (``torch.compile`` replaced by the
+    eager forward here, so no compilation) and the scores are those of the gather before the MLP up to float rounding."""
     import depthnerf.render.precision as precision
 
     seen = []
     monkeypatch.setattr(precision.torch, "compile", lambda fn, **kw: seen.append(kw) or fn)
     psnr = {}
-    for gather in ("sampled", "fused"):
+    for gather in ("before", "inside"):
         assert _eval(case, tmp_path / gather, "--no-mesh", "--gather", gather) == 0
         psnr[gather] = json.loads((tmp_path / gather / "summary.json").read_text())["psnr"]
-    assert len(seen) == 2  # the fused run's coarse and fine forwards (--gather fused implies --compile)
-    assert psnr["fused"] == pytest.approx(psnr["sampled"], abs=1e-4)
+    assert len(seen) == 2  # the inside run's coarse and fine forwards (--gather inside implies --compile)
+    assert psnr["inside"] == pytest.approx(psnr["before"], abs=1e-4)

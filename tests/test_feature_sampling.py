@@ -70,7 +70,7 @@ def test_in_frame_is_in_front_and_inside_the_closed_image_rectangle():
 
 
 def test_deferred_reads_equal_the_fused_gather():
-    """:class:`MapSamples` (``--gather fused``: the MLP forward reads the maps) gives :func:`sample_maps`' values,
+    """:class:`MapSamples` (``--gather inside``: the MLP forward reads the maps) gives :func:`sample_maps`' values,
     whole or by channel ranges, for coordinates outside the map and non-finite ones; from bf16 maps it returns
     fp32 within bf16's rounding of the features; and traced by dynamo the same values."""
     from depthnerf.model.features import MapSamples, sample_maps

@@ -41,7 +41,7 @@ def test_policy_per_device():
                                                     "autocast; --fp32 turns autocast off: pass one of them"),
     ("cuda", {"compile_mode": "fastest"}, "--compile-mode must be one of default, reduce-overhead, max-autotune, "
                                           "max-autotune-no-cudagraphs, got 'fastest'"),
-    ("cpu", {"gather": "inline"}, "--gather must be one of sampled, fused, fused-bf16, got 'inline'"),
+    ("cpu", {"gather": "inline"}, "--gather must be one of before, inside, inside-bf16, got 'inline'"),
 ])
 def test_flags_a_device_cannot_run_are_one_line(device, flags, line):
     with pytest.raises(DepthnerfError) as err:
@@ -177,10 +177,10 @@ def test_a_compiled_field_keeps_the_bf16_residual_stream():
 
 @pytest.mark.parametrize("mirror, on_map, views", [(False, True, 1), (True, True, 2), (True, False, 1)])
 @torch.no_grad()
-def test_the_fused_gather_gives_the_sampled_fields_values(mirror, on_map, views):
-    """``--gather fused``: the MLP forward reads the maps itself (:class:`MapSamples`), with projected features
-    or not, the mirror branch and several source views; the fields' values are the sampled gather's up to float
-    rounding, ``fused-bf16`` within the features' bf16 rounding, and traced by dynamo (``aot_eager``) the same."""
+def test_the_gather_inside_the_mlp_gives_the_same_fields(mirror, on_map, views):
+    """``--gather inside``: the MLP forward reads the maps itself (:class:`MapSamples`), with projected features
+    or not, the mirror branch and several source views; the fields' values are those of the gather before the MLP up to float
+    rounding, ``inside-bf16`` within the features' bf16 rounding, and traced by dynamo (``aot_eager``) the same."""
     cfg = small_config(lin_z_on_map=on_map)
     cfg.mirror = mirror
     model = randomize(PixelNeRF(cfg, depth_aware=False))
@@ -189,40 +189,40 @@ def test_the_fused_gather_gives_the_sampled_fields_values(mirror, on_map, views)
         src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
     enc = model.encode(src)
     pts, dirs = query(r=9, s=5)
-    runtimes = {"sampled": FieldRuntime(), "fused": FieldRuntime(fused_gather=True),
-                "fused-bf16": FieldRuntime(fused_gather=True, map_dtype=torch.bfloat16)}
-    ref = model.field(enc, "fine", runtimes["sampled"])(pts, dirs)
-    for a, b in zip(model.field(enc, "fine", runtimes["fused"])(pts, dirs), ref, strict=True):
+    runtimes = {"before": FieldRuntime(), "inside": FieldRuntime(gather_inside=True),
+                "inside-bf16": FieldRuntime(gather_inside=True, map_dtype=torch.bfloat16)}
+    ref = model.field(enc, "fine", runtimes["before"])(pts, dirs)
+    for a, b in zip(model.field(enc, "fine", runtimes["inside"])(pts, dirs), ref, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-5)
-    half = model.field(enc, "fine", runtimes["fused-bf16"])(pts, dirs)
+    half = model.field(enc, "fine", runtimes["inside-bf16"])(pts, dirs)
     gaps = [float((a - b).abs().max()) for a, b in zip(half, ref, strict=True)]
     assert 0 < max(gaps) < 0.05  # the features rounded to bf16 (8 bits of mantissa)
     forwards = {w: torch.compile(model.network(w).forward, dynamic=True, backend="aot_eager")
                 for w in ("coarse", "fine")}
-    compiled = dataclasses.replace(runtimes["fused-bf16"], forwards=forwards)
+    compiled = dataclasses.replace(runtimes["inside-bf16"], forwards=forwards)
     for a, b in zip(model.field(enc, "fine", compiled)(pts, dirs), half, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
 
 
 def test_the_gather_flag_reaches_the_runtime_and_implies_compile(monkeypatch):
-    """``--gather``: ``fused*`` implies ``--compile`` (no compilation here: the call is recorded) and sets the
-    runtime's ``fused_gather`` / ``map_dtype``; ``sampled`` leaves both off."""
+    """``--gather``: ``inside*`` implies ``--compile`` (no compilation here: the call is recorded) and sets the
+    runtime's ``gather_inside`` / ``map_dtype``; ``before`` leaves both off."""
     monkeypatch.setattr(precision.torch, "compile", lambda fn, **kw: fn)
     model = PixelNeRF(small_config(), depth_aware=False)
-    for gather, fused, dtype in (("sampled", False, None), ("fused", True, None), ("fused-bf16", True, torch.bfloat16)):
+    for gather, inside, dtype in (("before", False, None), ("inside", True, None), ("inside-bf16", True, torch.bfloat16)):
         policy = inference_policy("cpu", gather=gather)
         runtime = field_runtime(model, policy)
-        assert policy.gather == gather and policy.compile == fused and bool(runtime.forwards) == fused
-        assert runtime.fused_gather == fused and runtime.map_dtype == dtype
+        assert policy.gather == gather and policy.compile == inside and bool(runtime.forwards) == inside
+        assert runtime.gather_inside == inside and runtime.map_dtype == dtype
 
 
-def test_the_fused_gather_is_an_inference_setting():
+def test_the_gather_inside_is_an_inference_setting():
     """With autograd (training) the features are sampled before the MLP whatever the runtime says, so the
     gradients are the fused ``embedding_bag``'s; the maps are not cast."""
     model = randomize(PixelNeRF(small_config(), depth_aware=False))
     pts, dirs = query()
     grads = []
-    for runtime in (FieldRuntime(), FieldRuntime(fused_gather=True, map_dtype=torch.bfloat16)):
+    for runtime in (FieldRuntime(), FieldRuntime(gather_inside=True, map_dtype=torch.bfloat16)):
         model.zero_grad()
         rgb, sigma = model.field(model.encode(sources()), "coarse", runtime)(pts, dirs)
         (rgb.sum() + sigma.sum()).backward()

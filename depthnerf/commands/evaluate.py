@@ -114,9 +114,9 @@ def add_precision_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bf16-residual", action="store_true",
                    help="CUDA: keep the field MLPs' residual stream in bf16 under bf16 autocast (half its memory "
                         "traffic; renders differ by bf16 rounding; opt-in)")
-    p.add_argument("--gather", choices=GATHERS, default="sampled",
-                   help="where the fields gather their pixel-aligned features: sampled (default) before the MLP, "
-                        "fused in the MLP forward, inside the compiled graph (implies --compile), fused-bf16 the "
+    p.add_argument("--gather", choices=GATHERS, default="before",
+                   help="where the fields gather their pixel-aligned features: before (default) the MLP call, "
+                        "inside the MLP forward, so inside the compiled graph (implies --compile), inside-bf16 the "
                         "same from bf16 maps (opt-in; renders differ by float rounding)")
 
 

@@ -99,7 +99,7 @@ class SessionOptions:
     """``--compile-mode``: the ``torch.compile`` mode (implies :attr:`compile`); None: torch's default."""
     bf16_residual: bool = False
     """``--bf16-residual``: keep the MLPs' residual stream in bf16 under CUDA's bf16 autocast."""
-    gather: str = "sampled"
+    gather: str = "before"
     """``--gather``: where the fields gather their features (:data:`~depthnerf.render.config.GATHERS`)."""
     chunk: int | None = None
     """Rays per render pass (``--chunk``); None: the device policy's."""

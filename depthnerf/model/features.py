@@ -166,7 +166,7 @@ def sample_projected(maps: Float[Tensor, "B V Hf Wf C"], uv: Float[Tensor, "B V 
 @dataclass
 class MapSamples(TensorBundle):
     """Channels-last maps and the points to read them at, the bilinear gather left to whoever consumes the
-    features (``--gather fused``: the field MLP's forward, so that under ``--compile`` the gather is part of the
+    features (``--gather inside``: the field MLP's forward, so that under ``--compile`` the gather is part of the
     compiled graph). :meth:`read` gives :func:`sample_maps`' values with plain index loads of whole channel rows,
     which inductor generates into its own kernel; the maps may be bf16 while the coordinates and corner weights
     stay fp32 (``grid_sample`` takes its coordinates in the map's dtype, :func:`sample_maps_inference`)."""

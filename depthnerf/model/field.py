@@ -48,7 +48,7 @@ class MirrorQuery(TensorBundle):
     pixels at its projection for ``prior_at_point`` / ``rgb_at_point`` models (``PixelNeRFConfig.point_columns``)."""
     latent: Float[Tensor, "B V N L"] | MapSamples
     """Features at the mirror image's projection (sampled ``latent_map(..., mirror=True)`` when projected), or
-    the maps and the mirror images' grid coordinates, read by the forward (``--gather fused``)."""
+    the maps and the mirror images' grid coordinates, read by the forward (``--gather inside``)."""
     gate: Float[Tensor, " B"]
     """1.0 for objects with a symmetry plane, 0.0 without (the branch then adds nothing)."""
 
@@ -160,7 +160,7 @@ class ResidualField(nn.Module):
         (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z); ``mirror``
         (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike. Either
         may instead be a :class:`~depthnerf.model.features.MapSamples` of those maps (``[B*V, Hf, Wf, L]``, grid
-        ``[B*V, N, 2]``): the forward gathers each block's channels itself (``--gather fused``), same values.
+        ``[B*V, N, 2]``): the forward gathers each block's channels itself (``--gather inside``), same values.
 
         ``residual_dtype``: without autograd, the dtype the residual stream ``x`` is kept in (None: the inputs'
         dtype, fp32). ``torch.bfloat16`` under bf16 autocast halves the stream's memory traffic, at the cost of

@@ -103,13 +103,13 @@ class FieldRuntime:
     residual: torch.dtype | None = None
     """Without autograd, the dtype of the MLPs' residual stream (None: fp32; ``torch.bfloat16`` with bf16
     ``autocast``: :meth:`ResidualField.forward`'s ``residual_dtype``)."""
-    fused_gather: bool = False
+    gather_inside: bool = False
     """Without autograd, the MLP forward gets the feature maps and the points' grid coordinates
     (:class:`~depthnerf.model.features.MapSamples`) and gathers the features itself; with a compiled forward
-    the gather is then in the compiled graph (``--gather fused``). False: features are sampled before the call."""
+    the gather is then in the compiled graph (``--gather inside``). False: features are sampled before the call."""
     map_dtype: torch.dtype | None = None
-    """With ``fused_gather``, the dtype the maps are read in (None: fp32; ``torch.bfloat16``: half the bytes,
-    the features rounded to bf16, ``--gather fused-bf16``); coordinates and corner weights stay fp32."""
+    """With ``gather_inside``, the dtype the maps are read in (None: fp32; ``torch.bfloat16``: half the bytes,
+    the features rounded to bf16, ``--gather inside-bf16``); coordinates and corner weights stay fp32."""
     relu_epilogue: bool = False
     """Without autograd, each residual block's first linear runs with its bias and ReLU in the matrix product's
     epilogue (:func:`~depthnerf.model.field.linear_relu`; one kernel fewer per block on CUDA). Same values up to
@@ -213,8 +213,8 @@ class PixelNeRF(nn.Module):
             maps = enc.features.permute(0, 1, 3, 4, 2).contiguous()  # channels-last for row gathers
             maps_m = maps
         chunk = runtime.chunk_points or mlp.cfg.chunk_points
-        if runtime.fused_gather and runtime.map_dtype is not None and not torch.is_grad_enabled():
-            shared = maps_m is maps  # cast once per call of field(); inference only, as fused_gather
+        if runtime.gather_inside and runtime.map_dtype is not None and not torch.is_grad_enabled():
+            shared = maps_m is maps  # cast once per call of field(); inference only, as gather_inside
             maps = maps.to(runtime.map_dtype)
             maps_m = maps if shared else None if maps_m is None else maps_m.to(runtime.map_dtype)
         amp_dtype = runtime.autocast
@@ -231,9 +231,9 @@ class PixelNeRF(nn.Module):
             return torch.cat([inputs, sample_projected(point_map, uv, enc.image_size).to(inputs.dtype)], dim=-1)
 
         def features(source_maps: Tensor, uv: Tensor, grad: bool) -> Tensor | MapSamples:
-            """The features at projections ``uv``: sampled now, or (``fused_gather`` at inference) the maps and
+            """The features at projections ``uv``: sampled now, or (``gather_inside`` at inference) the maps and
             the points' grid coordinates, gathered by the MLP forward."""
-            if runtime.fused_gather and not grad:
+            if runtime.gather_inside and not grad:
                 return map_samples(source_maps, uv, enc.image_size)
             return sample_projected(source_maps, uv, enc.image_size)
 

@@ -12,12 +12,12 @@ from typing import Literal
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
 """``torch.compile`` modes of the field MLPs at inference (``--compile-mode``; inductor's own names):
 :func:`depthnerf.render.precision.field_runtime` compiles with the one a policy names."""
-GATHERS = ("sampled", "fused", "fused-bf16")
-"""Where the field's pixel-aligned features are gathered at inference (``--gather``): ``sampled`` before the MLP
-call (``grid_sample`` on CUDA, the fused ``embedding_bag`` on the CPU); ``fused`` by the MLP forward itself, from
+GATHERS = ("before", "inside", "inside-bf16")
+"""Where the field's pixel-aligned features are gathered at inference (``--gather``): ``before`` the MLP
+call (``grid_sample`` on CUDA, the fused ``embedding_bag`` on the CPU); ``inside`` the MLP forward, from
 the fp32 maps (under ``--compile`` inside the compiled graph: index loads of whole channel rows in inductor's
-kernels); ``fused-bf16`` the same from maps rounded to bf16 (half the bytes read; coordinates and weights fp32).
-Same values but for float rounding (``fused-bf16``: the features' bf16 rounding). ``fused*`` implies
+kernels); ``inside-bf16`` the same from maps rounded to bf16 (half the bytes read; coordinates and weights fp32).
+Same values but for float rounding (``inside-bf16``: the features' bf16 rounding). ``inside*`` implies
 ``--compile``."""
 
 @dataclass

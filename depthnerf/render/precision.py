@@ -16,9 +16,10 @@ torch.compile      off                         off; ``--compile`` compiles the f
                                                the element-wise work fused into them)
 residual stream    fp32                        fp32; ``--bf16-residual`` keeps the MLPs' residual stream in
                                                bf16 (opt-in: half its memory traffic, rounded to bf16)
-feature gather     before the MLP call         before the MLP call (``grid_sample``); ``--gather fused``: in the
-                   (``embedding_bag``);        MLP forward, so in ``--compile``'s graph; ``fused-bf16``: from
-                   ``--gather`` as on CUDA     bf16 maps (:data:`~depthnerf.render.config.GATHERS`; opt-in)
+feature gather     before the MLP call         before the MLP call (``grid_sample``); ``--gather inside``:
+                   (``embedding_bag``);        in the MLP forward, so in ``--compile``'s graph;
+                   ``--gather`` as on CUDA     ``inside-bf16``: from bf16 maps (opt-in;
+                                               :data:`~depthnerf.render.config.GATHERS`)
 =================  ==========================  ============================================================
 
 The CUDA values are sized from memory arithmetic; their speed on one H100 is in docs/speed.md ("GPU"), with the
@@ -26,9 +27,10 @@ profile that shows what bounds a view (the feature gather and the fields' elemen
 The policy is an argument, never state on the model: every inference path (``depthnerf eval``, ``depthnerf
 reconstruct``, the Python API ``Reconstructor``, the demo and the app) gets it from its
 :class:`~depthnerf.infer.session.InferenceSession`, which builds it once with :func:`inference_policy` for its
-device (``--fp32`` / ``--compile`` / ``--compile-mode`` / ``--bf16-residual`` / ``--gather``), turns it once into the :class:`~depthnerf.model.pixelnerf.FieldRuntime` its
-field calls take (:func:`field_runtime`: the compiled MLP forwards are wrappers that it holds) and renders
-``ray_chunk`` rays per pass unless ``--chunk`` says otherwise.
+device (``--fp32`` / ``--compile`` / ``--compile-mode`` / ``--bf16-residual`` / ``--gather``), turns it once
+into the :class:`~depthnerf.model.pixelnerf.FieldRuntime` its field calls take (:func:`field_runtime`: the
+compiled MLP forwards are wrappers that it holds) and renders ``ray_chunk`` rays per pass unless ``--chunk`` says
+otherwise.
 """
 
 from __future__ import annotations
@@ -71,12 +73,12 @@ class InferencePolicy:
     """The wrappers' ``torch.compile`` mode (:data:`COMPILE_MODES`)."""
     residual: torch.dtype | None = None
     """Dtype of the MLPs' residual stream (None: fp32; :attr:`FieldRuntime.residual`)."""
-    gather: str = "sampled"
+    gather: str = "before"
     """Where the features are gathered (:data:`~depthnerf.render.config.GATHERS`, ``--gather``)."""
 
 
 def check_precision_flags(device: torch.device | str, *, fp32: bool = False, compile_mode: str | None = None,
-                          bf16_residual: bool = False, gather: str = "sampled") -> None:
+                          bf16_residual: bool = False, gather: str = "before") -> None:
     """One line naming the flag when a combination cannot run on ``device`` (``--compile-mode`` not one of
     :data:`COMPILE_MODES`, ``--gather`` not one of :data:`GATHERS`; ``--bf16-residual`` without bf16 autocast: on
     the CPU or with ``--fp32``)."""
@@ -94,12 +96,12 @@ def check_precision_flags(device: torch.device | str, *, fp32: bool = False, com
 
 def inference_policy(device: torch.device | str, *, fp32: bool = False, compile: bool = False,
                      compile_mode: str | None = None, bf16_residual: bool = False,
-                     gather: str = "sampled") -> InferencePolicy:
+                     gather: str = "before") -> InferencePolicy:
     """The policy for ``device`` (see the module table). ``compile_mode`` implies ``compile``, and so does a
-    ``fused`` gather (it is written for inductor: run eagerly it materialises every corner read, slower than the
-    sampled gather); the flags are checked by :func:`check_precision_flags`."""
+    gather ``inside`` the MLP forward (written for inductor: run eagerly it materialises every corner read, slower
+    than the gather before it); the flags are checked by :func:`check_precision_flags`."""
     check_precision_flags(device, fp32=fp32, compile_mode=compile_mode, bf16_residual=bf16_residual, gather=gather)
-    compile = compile or compile_mode is not None or gather != "sampled"
+    compile = compile or compile_mode is not None or gather != "before"
     mode = compile_mode or "default"
     if torch.device(device).type == "cuda":
         return InferencePolicy(autocast=None if fp32 else torch.bfloat16, ray_chunk=CUDA_RAY_CHUNK,
@@ -122,5 +124,5 @@ def field_runtime(model: PixelNeRF, policy: InferencePolicy | None) -> FieldRunt
                     for mlp in (model.coarse, model.fine) if mlp is not None}
         forwards = {which: compiled[id(model.network(which))] for which in ("coarse", "fine")}
     return FieldRuntime(autocast=policy.autocast, chunk_points=policy.point_chunk, residual=policy.residual,
-                        fused_gather=policy.gather != "sampled",
-                        map_dtype=torch.bfloat16 if policy.gather == "fused-bf16" else None, forwards=forwards)
+                        gather_inside=policy.gather != "before",
+                        map_dtype=torch.bfloat16 if policy.gather == "inside-bf16" else None, forwards=forwards)
