@@ -150,8 +150,10 @@ def cuda_launches(fn) -> tuple[int, int]:
     return device, host
 
 
-def profile_table(fn, path: str, rows: int = 30) -> None:
-    """Write ``torch.profiler``'s operator table of one ``fn()`` call, by CUDA time, to ``path``."""
+def profile_table(fn, path: str, rows: int = 30) -> dict[str, dict[str, float]]:
+    """Write ``torch.profiler``'s operator table of one ``fn()`` call, by CUDA time, to ``path``; return its GPU
+    time by kind of kernel (``kernel_shares``)."""
+    from kernel_shares import kernel_shares  # beside this file
     from torch.profiler import ProfilerActivity, profile
 
     torch.cuda.synchronize()
@@ -160,7 +162,10 @@ def profile_table(fn, path: str, rows: int = 30) -> None:
         torch.cuda.synchronize()
     with open(path, "w") as f:
         f.write(prof.key_averages().table(sort_by="cuda_time_total", row_limit=rows))
-    print(f"profile: {path}")
+    shares = kernel_shares(prof)
+    print(f"profile: {path}; GPU time by kind: "
+          + ", ".join(f"{kind} {v['ms']:.1f} ms ({v['share']:.0%})" for kind, v in shares.items()))
+    return shares
 
 
 def view_source(batch: TrainBatch) -> SourceViews:
@@ -197,7 +202,8 @@ def view_timings(model: PixelNeRF, cfg, batch: TrainBatch, intr: Intrinsics, dev
             paper()  # torch.compile(dynamic=True) may recompile on the second call's shapes
         t = timed(paper, repeat, device)
         if profile_dir:
-            profile_table(paper, f"{profile_dir}/profile_view{'_compiled' if compile else ''}.txt")
+            shares = profile_table(paper, f"{profile_dir}/profile_view{'_compiled' if compile else ''}.txt")
+            out["view_profile_ms_per_view"] = {kind: v["ms"] / views for kind, v in shares.items()}
         print(f"view  paper sampler 64+16+16, {intr.height}x{intr.width}, {views} views per call, chunk "
               f"{policy.ray_chunk}, {'bf16' if policy.autocast else 'fp32'}: {min(t) / views * 1e3:.1f} ms per view")
         out.update(view_paper_ms=min(t) / views * 1e3, view_resolution=intr.height, views_per_call=views,
@@ -377,7 +383,8 @@ def run(args, out: dict) -> None:
         print(f"peak GPU memory (training): {out['peak_memory_gib']:.2f} GiB in the timed steps, "
               f"{out['peak_memory_gib_warmup']:.2f} GiB in the warm-up")
         if args.profile:
-            profile_table(step, f"{args.profile}/profile_train.txt")
+            out["train_profile_ms"] = {k: v["ms"] for k, v in
+                                       profile_table(step, f"{args.profile}/profile_train.txt").items()}
         if not args.no_views:
             view_timings(model, cfg, batch, intr, device, args.views, max(3, args.repeat // 4), out, args.compile,
                          args.profile, args.gather)
