@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from kernel_shares import profile_table  # noqa: E402
 from op_count import CountOps  # noqa: E402
 
 from depthnerf.data.cameras import Intrinsics, look_at
@@ -148,24 +149,6 @@ def cuda_launches(fn) -> tuple[int, int]:
     device = sum(1 for e in events if e.device_type == torch.autograd.DeviceType.CUDA)
     host = sum(1 for e in events if e.device_type == torch.autograd.DeviceType.CPU and e.name in HOST_LAUNCH_CALLS)
     return device, host
-
-
-def profile_table(fn, path: str, rows: int = 30) -> dict[str, dict[str, float]]:
-    """Write ``torch.profiler``'s operator table of one ``fn()`` call, by CUDA time, to ``path``; return its GPU
-    time by kind of kernel (``kernel_shares``)."""
-    from kernel_shares import kernel_shares  # beside this file
-    from torch.profiler import ProfilerActivity, profile
-
-    torch.cuda.synchronize()
-    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
-        fn()
-        torch.cuda.synchronize()
-    with open(path, "w") as f:
-        f.write(prof.key_averages().table(sort_by="cuda_time_total", row_limit=rows))
-    shares = kernel_shares(prof)
-    print(f"profile: {path}; GPU time by kind: "
-          + ", ".join(f"{kind} {v['ms']:.1f} ms ({v['share']:.0%})" for kind, v in shares.items()))
-    return shares
 
 
 def view_source(batch: TrainBatch) -> SourceViews:

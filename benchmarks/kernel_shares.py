@@ -14,8 +14,9 @@ kernel's name:
 * ``elementwise_aten``: eager ATen element-wise kernels (``elementwise_kernel``, ``vectorized_elementwise``);
 * ``other``: the rest.
 
-    from kernel_shares import kernel_shares
+    from kernel_shares import kernel_shares, profile_table
     shares = kernel_shares(prof)      # {kind: {"ms": ..., "share": ...}}, kinds by GPU time
+    shares = profile_table(fn, "profile.txt")   # profile one fn() call: the operator table, and the shares
 """
 
 from __future__ import annotations
@@ -59,3 +60,21 @@ def kernel_shares(prof) -> dict[str, dict[str, float]]:
 
     return shares_of((evt.name, evt.device_time_total) for evt in prof.events()
                      if evt.device_type == DeviceType.CUDA)
+
+
+def profile_table(fn, path: str, rows: int = 30) -> dict[str, dict[str, float]]:
+    """Write ``torch.profiler``'s operator table of one ``fn()`` call, by CUDA time, to ``path``; return its GPU
+    time by kind of kernel (``kernel_shares``)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        fn()
+        torch.cuda.synchronize()
+    with open(path, "w") as f:
+        f.write(prof.key_averages().table(sort_by="cuda_time_total", row_limit=rows))
+    shares = kernel_shares(prof)
+    print(f"profile: {path}; GPU time by kind: "
+          + ", ".join(f"{kind} {v['ms']:.1f} ms ({v['share']:.0%})" for kind, v in shares.items()))
+    return shares
