@@ -188,9 +188,12 @@ def test_encoder_walk_equals_torchvision_blocks():
 
 # --- the batched step ----------------------------------------------------------------------------------------------
 
-def tiny_setup(b: int, depth_aware: bool = False, seed: int = 0, device: str = "cpu"):
+def tiny_setup(b: int, depth_aware: bool = False, seed: int = 0, device: str = "cpu", sym_pp: bool = False):
+    """A tiny model, loss and batch of ``b`` objects; ``sym_pp``: as the shipped ``cpu-*-sym-pp`` models, the mirror
+    branch and the prior read at each point (depth-aware), the first object with a symmetry plane, the rest without."""
     field = FieldConfig(d_hidden=32, n_blocks=3, combine_layer=2, density_bias_init=0.5)
-    cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18"), coarse=field, fine=field)
+    cfg = PixelNeRFConfig(encoder=EncoderConfig(backbone="resnet18"), coarse=field, fine=field, mirror=sym_pp,
+                          prior_at_point=sym_pp)
     torch.manual_seed(seed)
     model = PixelNeRF(cfg, depth_aware=depth_aware).to(device).train()
     gen = torch.Generator().manual_seed(seed + 1)
@@ -199,9 +202,14 @@ def tiny_setup(b: int, depth_aware: bool = False, seed: int = 0, device: str = "
     eye = torch.stack([1.3 * torch.cos(az), 1.3 * torch.sin(az), 0.3 + 0.4 * torch.rand(b, 1, generator=gen)], -1)
     origins = torch.randn(b, r, 3, generator=gen) * 0.1 + torch.tensor([1.2, 0.0, 0.3])
     dirs = F.normalize(-origins + torch.randn(b, r, 3, generator=gen) * 0.1, dim=-1)
+    plane = None
+    if sym_pp:  # object 0 mirror-symmetric in the y = 0 plane, the others without a plane
+        plane = torch.zeros(b, 4)
+        plane[0, 1] = 1.0
     source = SourceViews(images=torch.rand(b, 1, 3, size, size, generator=gen), poses=look_at(eye),
                          focal=torch.full((b,), size * 1.0), principal=torch.full((b, 2), (size - 1) / 2),
-                         disparity=torch.rand(b, 1, 1, size, size, generator=gen) if depth_aware else None)
+                         disparity=torch.rand(b, 1, 1, size, size, generator=gen) if depth_aware else None,
+                         symmetry_plane=plane)
     batch = TrainBatch(source=source, ray_origins=origins, ray_dirs=dirs, target_rgb=torch.rand(b, r, 3, generator=gen),
                        target_prior=torch.rand(b, r, generator=gen), target_fg=torch.rand(b, r, generator=gen) > 0.4,
                        target_cos=torch.rand(b, r, generator=gen) * 0.2 + 0.8)
@@ -260,9 +268,9 @@ def compiled_step_check() -> None:
     assert type(model.coarse.forward).__name__ == "method"  # the wrapper is held by the runtime, not the module
 
 
-def compiled_whole_step_check() -> None:
+def compiled_whole_step_check(sym_pp: bool = False) -> None:
     """The body of :func:`test_compiled_whole_step_is_one_graph_and_equals_the_eager_step` (fresh interpreter)."""
-    model, loss, batch, keys = tiny_setup(2, depth_aware=True)
+    model, loss, batch, keys = tiny_setup(2, depth_aware=True, sym_pp=sym_pp)
     state = {k: v.clone() for k, v in model.state_dict().items()}
     eager = train_step(loss, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
     g_eager = grads(model)
@@ -282,14 +290,17 @@ def compiled_whole_step_check() -> None:
 
 
 @pytest.mark.slow
-def test_compiled_whole_step_is_one_graph_and_equals_the_eager_step():
+@pytest.mark.parametrize("sym_pp", [False, True])
+def test_compiled_whole_step_is_one_graph_and_equals_the_eager_step(sym_pp):
     """``depthnerf train --compile-step``: :meth:`BatchLoss.losses` (encoder with per-object BatchNorm, both
     render passes, the loss terms) traces as ONE graph with no break, and its loss terms, gradients and updated
     running statistics equal the eager step's up to float32 rounding (fresh interpreter, as below). Backend
     ``aot_eager``: dynamo's graph and AOT autograd's forward/backward without inductor's code generation, which
-    takes minutes on this CPU (inductor's numerics: the fields test below)."""
+    takes minutes on this CPU (inductor's numerics: the fields test below). ``sym_pp``: the shipped ``cpu-*-sym-pp``
+    models' mirror branch and prior at each point, which the GPU checkpoints continue training."""
     here = Path(__file__).resolve().parent
-    code = f"import sys; sys.path.insert(0, {str(here)!r}); import test_train_step as t; t.compiled_whole_step_check()"
+    code = (f"import sys; sys.path.insert(0, {str(here)!r}); import test_train_step as t; "
+            f"t.compiled_whole_step_check(sym_pp={sym_pp})")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=here.parent,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]

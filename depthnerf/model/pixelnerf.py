@@ -204,7 +204,9 @@ class PixelNeRF(nn.Module):
         b, v, c, hf, wf = enc.features.shape
         plane = enc.symmetry_plane if self.cfg.mirror else None
         gate = has_plane(plane) if plane is not None else None
-        use_mirror = gate is not None and bool(gate.any())
+        # eagerly the branch is skipped when no object has a plane; traced (``--compile-step``) it always runs, its
+        # gate zeroing it per object, the same values without a host sync and a graph break on ``gate.any()``
+        use_mirror = gate is not None and (torch.compiler.is_compiling() or bool(gate.any()))
         if mlp.cfg.lin_z_on_map:
             flat = enc.features.reshape(b * v, c, hf, wf)
             maps = mlp.latent_map(flat).reshape(b, v, hf, wf, -1)
