@@ -82,8 +82,8 @@ def main() -> None:
             try:
                 diff = float((fn().float().reshape(reference.shape) - reference).abs().max())  # also the warm-up
                 ms = min(timed(fn, args.repeat, device)) * 1e3
-            except Exception as err:  # noqa: BLE001  e.g. a dtype a kernel does not take, a compiler missing  # e.g. a dtype a kernel does not take on this device
-                out[name] = {"error": str(err).splitlines()[0]}
+            except Exception as err:  # e.g. a dtype a kernel does not take on this device, or no compiler for inductor
+                out[name] = {"error": (str(err).splitlines() or [type(err).__name__])[0]}
                 print(f"  {name:20s} failed: {out[name]['error']}")
                 continue
             moved = args.points * 4 * args.channels * (4 if "fp32" in name else 2)  # 4 corners x bytes per value

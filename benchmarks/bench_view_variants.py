@@ -57,7 +57,7 @@ VARIANTS = {
     "compiled+bf16res": {"compile": True, "bf16_residual": True},
     "autotuned+bf16res": {"compile_mode": "max-autotune-no-cudagraphs", "bf16_residual": True},
     "autotuned": {"compile_mode": "max-autotune-no-cudagraphs"},
-    "triton-mm+inside-bf16": {"gather": "inside-bf16", "bf16_residual": True},
+    "triton-mm+inside-bf16": {"gather": "inside-bf16"},
 }
 """Speed variants, in the default order: name -> :func:`~depthnerf.render.precision.inference_policy` flags (all
 under bf16 autocast; ``eager`` and ``compiled`` are what ``eval`` / ``reconstruct`` run without and with

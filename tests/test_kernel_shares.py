@@ -23,7 +23,7 @@ def device_kernels(table: str) -> list[tuple[str, float]]:
     rows = []
     for line in table.splitlines():
         cells = re.split(r"\s{2,}", line.strip())
-        if len(cells) != 11 or cells[2] != "0.000us" or cells[6].endswith("us") and float(cells[6][:-2]) == 0:
+        if len(cells) != 11 or cells[2] != "0.000us" or (cells[6].endswith("us") and float(cells[6][:-2]) == 0):
             continue
         value, unit = re.fullmatch(r"([\d.]+)(us|ms|s)", cells[6]).groups()
         rows.append((cells[0], float(value) * UNITS[unit]))

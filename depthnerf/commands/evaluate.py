@@ -290,8 +290,8 @@ def _session(args: argparse.Namespace, info, out: Path, guided):
     return InferenceSession(pre, SessionOptions(
         device=info.device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset",
         data_root=data, fp32=args.fp32, compile=args.compile, compile_mode=args.compile_mode,
-        bf16_residual=args.bf16_residual, gather=args.gather, chunk=args.chunk, guided=guided, pixel_center=args.pixel_center,
-        encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
+        bf16_residual=args.bf16_residual, gather=args.gather, chunk=args.chunk, guided=guided,
+        pixel_center=args.pixel_center, encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
         symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane)))
 
 

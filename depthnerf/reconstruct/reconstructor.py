@@ -173,8 +173,8 @@ class Reconstructor:
         """Load a shipped name, weights file, checkpoint folder, run folder or Hub file (``hf://OWNER/REPO``;
         ``load_pretrained``) into a session on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` /
         ``--depth-checkpoint``) override the checkpoint's prior, ``options`` are further
-        :class:`~depthnerf.infer.session.SessionOptions` (``fp32``, ``compile``, ``compile_mode``, ``bf16_residual``, ``gather``,
-        ``chunk``, ``guided``, ``pixel_center``, ``policy``, ``inputs``)."""
+        :class:`~depthnerf.infer.session.SessionOptions` (``fp32``, ``compile``, ``compile_mode``, ``bf16_residual``,
+        ``gather``, ``chunk``, ``guided``, ``pixel_center``, ``policy``, ``inputs``)."""
         return cls(InferenceSession(checkpoint, SessionOptions(device=device, depth=depth_estimator,
                                                                depth_checkpoint=depth_checkpoint, **options)))
 

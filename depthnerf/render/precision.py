@@ -113,9 +113,10 @@ def inference_policy(device: torch.device | str, *, fp32: bool = False, compile:
 
 def field_runtime(model: PixelNeRF, policy: InferencePolicy | None) -> FieldRuntime:
     """What ``model.field`` takes to render under ``policy`` (None: the default runtime, as the model is): its
-    autocast dtype, point chunk and residual dtype and, with ``policy.compile``, ``torch.compile`` wrappers of the MLPs' forwards,
-    held by the returned runtime (the modules are not changed). Build it once per model and keep it: each
-    wrapper compiles on its first calls."""
+    autocast dtype, point chunk, residual dtype and where the features are gathered (``policy.gather``: the
+    runtime's ``gather_inside`` and ``map_dtype``) and, with ``policy.compile``, ``torch.compile`` wrappers of the
+    MLPs' forwards, held by the returned runtime (the modules are not changed). Build it once per model and keep
+    it: each wrapper compiles on its first calls."""
     if policy is None:
         return FieldRuntime()
     forwards = {}
