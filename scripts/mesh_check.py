@@ -1,16 +1,23 @@
-"""Is a reconstruction's mesh one clean object? Connected pieces and stray faces above it.
+"""Is a reconstruction's mesh one clean object? Its pieces, the ones the photo shows, and stray faces above it.
 
 For each ``depthnerf reconstruct`` output folder (``mesh.ply``: world frame, +z up; ``depths.npz``: view 0 is the
 input camera; ``input_mask.png``) prints: ``components`` (connected pieces), ``main_share`` (fraction of all faces
-in the largest piece), ``inside_share`` (fraction of faces whose centroid projects inside the input's own mask:
-the object the input view shows), ``above_share`` (fraction of faces whose centroid lies above the object's top
-by more than ``--above`` of its height, default 0.10; the object = the faces projecting inside the mask) and
-``white_share`` (vertices with every colour channel >= 0.95: density the white background hides). For the faces
-off the mask, ``outside_edge_px`` gives how far their centroids project from it (pixels to the nearest mask pixel's
-centre: median, 95th percentile, and the share within ``--edge`` pixels, default 3): a mesh a little wider than the
+in the largest piece), ``seen_pieces`` and ``object_share`` (the detached pieces the photo shows, and the fraction
+of all faces in the main piece or one of them; a piece is shown by the photo when at least ``--min-seen`` of its
+faces, default 0.25, are both visible from the input camera, no other face nearer along the ray to their centroid,
+and on the input's mask: a chair's runner cut off from the seat by a lost strut is such a piece, a slab hidden
+behind the object or beside its silhouette is not; a closed piece seen from one side shows about half its faces),
+``inside_share`` (fraction of faces whose centroid projects inside the input's own mask: the object the input view
+shows), ``above_share`` (fraction of faces whose centroid lies above the object's top by more than ``--above`` of
+its height, default 0.10; the object = the faces projecting inside the mask) and ``white_share`` (vertices with
+every colour channel >= 0.95: density the white background hides). For the faces off the mask,
+``outside_edge_px`` gives how far their centroids project from it (pixels to the nearest mask pixel's centre:
+median, 95th percentile, and the share within ``--edge`` pixels, default 3): a mesh a little wider than the
 silhouette (within a pixel or two: the mask's own rounding, the surface's extraction) is not a floater.
-Exit 1 when any mesh misses ``--min-main-share`` (default 0.95) or has a face above the limit, so it can gate a
-release.
+Exit 1 when any mesh misses ``--min-object-share`` (default 0.95) or ``--min-main-share`` (default 0: off; 0.95
+is the stricter gate that counts every detached piece as stray) or has a face above the limit, so it can gate a
+release. The photo cannot vouch for what it does not see: a piece in front of the object, on its mask, counts as
+shown.
 
     python scripts/mesh_check.py out/car out/chair
 """
@@ -29,7 +36,6 @@ from PIL import Image
 from scipy.spatial import cKDTree
 
 from depthnerf.data.cameras import project, world_to_camera
-from depthnerf.render.mesh import keep_pieces
 
 
 def image_points(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -63,16 +69,41 @@ def edge_distance_px(points: np.ndarray, c2w: np.ndarray, intrinsics: np.ndarray
     return out
 
 
+def visible_faces(mesh: trimesh.Trimesh, origin: np.ndarray) -> np.ndarray:
+    """True for the faces whose centroid a camera at ``origin`` sees: the first face the ray from ``origin`` to the
+    centroid meets is not nearer than the centroid (relative tolerance 1e-4 of its distance: embree hits in float32)."""
+    centroids = np.asarray(mesh.triangles_center, dtype=np.float64)
+    offsets = centroids - origin
+    dist = np.linalg.norm(offsets, axis=1)
+    hits, rays, _ = mesh.ray.intersects_location(np.repeat(origin[None], len(centroids), axis=0),
+                                                 offsets / dist[:, None], multiple_hits=False)
+    first = np.full(len(centroids), np.inf)
+    first[rays] = np.linalg.norm(hits - origin, axis=1)
+    return first >= dist * (1.0 - 1e-4)
+
+
+def seen_pieces(labels: np.ndarray, main: int, shown: np.ndarray, min_seen: float) -> list[int]:
+    """The piece labels other than ``main`` in which at least ``min_seen`` of the faces are ``shown`` (per face:
+    visible from the input camera and on its mask)."""
+    counts = np.bincount(labels)
+    seen = np.bincount(labels, weights=shown.astype(np.float64), minlength=len(counts))
+    return [k for k in range(len(counts)) if k != main and seen[k] >= min_seen * counts[k]]
+
+
 def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, mask: np.ndarray,
-                above: float, edge: float = 3.0) -> dict:
-    """Components, the largest one's face share, the faces on the input's mask and those above it (module
-    docstring)."""
+                above: float, edge: float = 3.0, min_seen: float = 0.25) -> dict:
+    """Components, the largest one's face share, the detached pieces the photo shows, the faces on the input's mask
+    and those above it (module docstring)."""
     if len(mesh.faces) == 0:
-        return {"faces": 0, "components": 0, "main_share": 0.0, "inside_share": 0.0, "above_share": 0.0,
-                "white_share": 0.0, "outside_edge_px": None}
-    pieces = keep_pieces(mesh, "largest")[1]
+        return {"faces": 0, "components": 0, "main_share": 0.0, "seen_pieces": 0, "object_share": 0.0,
+                "inside_share": 0.0, "above_share": 0.0, "white_share": 0.0, "outside_edge_px": None}
     centroids = mesh.triangles_center
     inside = inside_mask(centroids, c2w, intrinsics, mask)
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    counts = np.bincount(labels)
+    main = int(np.argmax(counts))  # the first largest piece, as depthnerf.render.mesh.keep_pieces keeps
+    shown = seen_pieces(labels, main, inside & visible_faces(mesh, np.asarray(c2w, np.float64)[:3, 3]), min_seen)
+    in_object = np.isin(labels, [main, *shown])
     object_z = centroids[inside, 2] if inside.any() else centroids[:, 2]
     top, height = float(object_z.max()), float(object_z.max() - object_z.min())
     white = 0.0
@@ -84,8 +115,9 @@ def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, 
         dist = edge_distance_px(centroids[~inside], c2w, intrinsics, mask)
         off = {"median": float(np.median(dist)), "p95": float(np.percentile(dist, 95)),
                f"within_{edge:g}px_share": float((dist <= edge).mean())}
-    return {"faces": int(len(mesh.faces)), "components": pieces.pieces,
-            "main_share": pieces.kept_faces / pieces.faces, "inside_share": float(inside.mean()),
+    return {"faces": int(len(mesh.faces)), "components": len(counts),
+            "main_share": float(counts[main] / len(mesh.faces)), "seen_pieces": len(shown),
+            "object_share": float(in_object.mean()), "inside_share": float(inside.mean()),
             "above_share": float((centroids[:, 2] > top + above * height).mean()), "white_share": white,
             "outside_edge_px": off}
 
@@ -94,7 +126,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paths", nargs="+", type=Path, help="depthnerf reconstruct output folders")
     ap.add_argument("--above", type=float, default=0.10, help="stray-face margin above the main piece (heights)")
-    ap.add_argument("--min-main-share", type=float, default=0.95)
+    ap.add_argument("--min-object-share", type=float, default=0.95,
+                    help="least share of faces in the main piece and the detached pieces the photo shows")
+    ap.add_argument("--min-main-share", type=float, default=0.0,
+                    help="least share of faces in the main piece alone (0.95: every detached piece is stray)")
+    ap.add_argument("--min-seen", type=float, default=0.25,
+                    help="share of a detached piece's faces the input camera must see on its mask to show it")
     ap.add_argument("--edge", type=float, default=3.0, help="pixels from the mask that count as its edge")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
@@ -108,10 +145,12 @@ def main(argv: list[str] | None = None) -> int:
         cams = np.load(path / "depths.npz")
         mask = np.asarray(Image.open(path / "input_mask.png").convert("L")) > 127
         rep = mesh_report(trimesh.load(path / "mesh.ply", process=False, force="mesh"), cams["poses"][0],
-                          cams["intrinsics"], mask, args.above, args.edge)
+                          cams["intrinsics"], mask, args.above, args.edge, args.min_seen)
         reports[str(path)] = rep
-        ok &= rep["main_share"] >= args.min_main_share and rep["above_share"] == 0.0
+        ok &= (rep["object_share"] >= args.min_object_share and rep["main_share"] >= args.min_main_share
+               and rep["above_share"] == 0.0)
         print(f"{path}: {rep['faces']} faces, {rep['components']} components, main piece {rep['main_share']:.1%}, "
+              f"with the detached pieces the photo shows ({rep['seen_pieces']}) {rep['object_share']:.1%}, "
               f"on the input's mask {rep['inside_share']:.1%}, above the object {rep['above_share']:.1%}, "
               f"white vertices {rep['white_share']:.1%}")
         off = rep["outside_edge_px"]

@@ -87,3 +87,60 @@ def test_edge_report_tells_a_rim_from_a_slab() -> None:
     slab = mc.mesh_report(_scene(True), c2w, intr, sil, 0.10)["outside_edge_px"]
     assert rim["within_3px_share"] == 1.0 and rim["p95"] <= 3.0
     assert slab["p95"] > 5.0 and slab["within_3px_share"] < 1.0
+
+
+def _box(extents: tuple[float, float, float], centre: tuple[float, float, float]) -> trimesh.Trimesh:
+    return trimesh.creation.box(extents=extents, transform=trimesh.transformations.translation_matrix(centre))
+
+
+def _ray_hits_triangle(origin: np.ndarray, direction: np.ndarray, tri: np.ndarray) -> float:
+    """Distance along a unit ray to a triangle, inf on a miss: the plane hit, then the same-side test per edge."""
+    normal = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+    denom = normal @ direction
+    if abs(denom) < 1e-12:
+        return np.inf
+    t = normal @ (tri[0] - origin) / denom
+    if t <= 0:
+        return np.inf
+    hit = origin + t * direction
+    signs = [np.cross(tri[(k + 1) % 3] - tri[k], hit - tri[k]) @ normal for k in range(3)]
+    return t if min(signs) >= -1e-12 or max(signs) <= 1e-12 else np.inf
+
+
+def test_visible_faces_match_a_ray_loop() -> None:
+    mc = _load()
+    c2w, _ = _camera()
+    scene = trimesh.util.concatenate([_box((1.0, 1.0, 0.5), (0.0, 0.0, 0.0)), _box((0.3, 0.3, 0.3), (0.2, 1.5, 0.0)),
+                                      _box((0.2, 0.2, 0.2), (0.9, -0.2, 0.1))])
+    got = mc.visible_faces(scene, c2w[:3, 3])
+    origin = c2w[:3, 3]
+    for k, centre in enumerate(scene.triangles_center):
+        dist = np.linalg.norm(centre - origin)
+        direction = (centre - origin) / dist
+        nearest = min(_ray_hits_triangle(origin, direction, tri) for tri in scene.triangles)
+        assert got[k] == (nearest >= dist * (1.0 - 1e-4)), k
+    assert 0 < got.sum() < len(got)  # the front faces only; the box behind the body is hidden whole
+    assert not got[12:24].any() and got[24:36].any()  # boxes: body 0-11, behind it 12-23, beside it 24-35
+
+
+def test_a_detached_part_the_photo_shows_counts_as_the_object() -> None:
+    mc = _load()
+    c2w, intr = _camera()
+    body = _box((1.0, 1.0, 0.5), (0.0, 0.0, 0.0))
+    runner = _box((0.6, 0.2, 0.05), (0.0, 0.0, -0.4))  # below the body, cut off from it: a chair's floor runner
+    hidden = _box((0.3, 0.3, 0.3), (0.0, 1.5, 0.0))  # on the mask, behind the body: the camera never sees it
+    beside = _box((0.2, 0.2, 0.2), (1.2, 0.0, 0.0))  # in view, off the mask
+    sil = np.zeros((32, 32), dtype=bool)
+    sil[11:23, 6:26] = True  # the body (rows 12-19) and the runner (rows 19-21)
+    assert mc.inside_mask(runner.triangles_center, c2w, intr, sil).all()
+    assert mc.inside_mask(hidden.triangles_center, c2w, intr, sil).all()
+    assert not mc.inside_mask(beside.triangles_center, c2w, intr, sil).any()
+    with_runner = mc.mesh_report(trimesh.util.concatenate([body, runner]), c2w, intr, sil, 0.10)
+    assert with_runner["components"] == 2 and with_runner["main_share"] == 0.5  # 12 + 12 faces
+    assert with_runner["seen_pieces"] == 1 and with_runner["object_share"] == 1.0
+    for stray in (hidden, beside):
+        rep = mc.mesh_report(trimesh.util.concatenate([body, stray]), c2w, intr, sil, 0.10)
+        assert rep["seen_pieces"] == 0 and rep["object_share"] == rep["main_share"] == 0.5
+    # a box shows at most 3 of its 6 sides: 0.5 of its faces, so --min-seen above that counts it stray
+    strict = mc.mesh_report(trimesh.util.concatenate([body, runner]), c2w, intr, sil, 0.10, min_seen=0.6)
+    assert strict["seen_pieces"] == 0 and strict["object_share"] == 0.5
