@@ -226,6 +226,28 @@ def test_a_damaged_latest_pointer_names_what_it_says_and_the_way_out(tmp_path, t
                               f"{tmp_path}; delete it to use the newest complete one, step_00000001")
 
 
+def test_a_binary_latest_pointer_is_one_line(tmp_path):
+    _tiny_checkpoint(tmp_path, 1)
+    (tmp_path / "latest").write_bytes(b"\x00\xff")
+    with pytest.raises(DepthnerfError) as err:  # was a UnicodeDecodeError traceback
+        ckpt.latest_checkpoint(tmp_path)
+    assert str(err.value) == (f"{tmp_path / 'latest'}: not a text file naming a checkpoint folder (corrupt "
+                              f"pointer); delete it to use the newest complete one, step_00000001")
+
+
+def test_a_best_folder_without_its_weights_is_refused_not_skipped(tmp_path):
+    from depthnerf.pretrained.load import resolve_checkpoint
+
+    root = tmp_path / "run" / "checkpoints"
+    _tiny_checkpoint(root, 1)
+    (root / "best").mkdir()
+    (root / "best" / "state.json").write_text("{}")
+    with pytest.raises(DepthnerfError) as err:  # was: step_00000001's weights, silently
+        resolve_checkpoint(tmp_path / "run")
+    assert str(err.value) == (f"{root / 'best'}: best checkpoint without model.safetensors; delete it to use the "
+                              f"latest checkpoint, step_00000001")
+
+
 def test_a_training_object_with_one_view_is_one_line(tmp_path, capsys):
     """pixelNeRF's items need a source and a target view: a one-view object stops training before anything is
     written, naming it (it used to fail in a loader worker with an indexing traceback, and then hang)."""

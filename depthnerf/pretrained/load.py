@@ -71,9 +71,13 @@ def resolve_checkpoint(checkpoint: str | Path) -> Path:
         return path / "model.safetensors"
     ckpt_root = path / "checkpoints"
     if ckpt_root.is_dir():
-        if (ckpt_root / "best" / "model.safetensors").is_file():
-            return ckpt_root / "best" / "model.safetensors"
+        best = ckpt_root / "best"
+        if (best / "model.safetensors").is_file():
+            return best / "model.safetensors"
         latest = latest_checkpoint(ckpt_root)
+        if best.exists():  # written whole by a rename, so a best/ without its weights was damaged afterwards
+            instead = f"; delete it to use the latest checkpoint, {latest.name}" if latest is not None else ""
+            raise DepthnerfError(f"{best}: best checkpoint without model.safetensors{instead}")
         if latest is not None:
             return latest / "model.safetensors"
         raise DepthnerfError(f"{path}: run folder has no complete checkpoint yet")

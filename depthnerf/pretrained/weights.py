@@ -72,10 +72,13 @@ def latest_checkpoint(ckpt_root: Path) -> Path | None:
     complete = sorted(p for p in ckpt_root.glob("step_*") if (p / "state.json").is_file())
     newest = complete[-1] if complete else None
     if pointer.is_file():
-        text = pointer.read_text().strip()
+        fix = f"; delete it to use the newest complete one, {newest.name}" if newest is not None else ""
+        try:
+            text = pointer.read_bytes().decode("utf-8").strip()
+        except UnicodeDecodeError:
+            raise DepthnerfError(f"{pointer}: not a text file naming a checkpoint folder (corrupt pointer){fix}") from None
         named = ckpt_root / text
         if not text or "/" in text or not (named / "state.json").is_file():
-            fix = f"; delete it to use the newest complete one, {newest.name}" if newest is not None else ""
             raise DepthnerfError(f"{pointer}: names {text!r}, which is not a complete checkpoint in {ckpt_root}{fix}")
     if named is None or (newest is not None and newest.name > named.name):
         return newest
