@@ -387,3 +387,20 @@ def test_image_statistics_at_inference_are_trainings_and_leave_the_buffers():
     assert all(torch.equal(v, state[k]) for k, v in model.state_dict().items())  # nothing updated
     with pytest.raises(DepthnerfError, match="encoder_norm must be one of running, image"):
         model.encode(src, encoder_norm="batch")
+
+
+@pytest.mark.parametrize(("num_layers", "first_pool", "image_scale"),
+                         [(4, True, 1.0), (3, True, 1.0), (4, False, 1.0), (1, True, 1.0), (4, True, 0.5)])
+def test_deepest_side_is_the_trunks_last_stage(num_layers, first_pool, image_scale):
+    """EncoderConfig.deepest_side (what training's resolution check uses) against the trunk run on real inputs."""
+    from depthnerf.model.encoder import ResNetTrunk
+
+    cfg = EncoderConfig(backbone="resnet18", num_layers=num_layers, use_first_pool=first_pool, image_scale=image_scale)
+    trunk = ResNetTrunk(cfg, depth_aware=False).eval()
+    for resolution in (8, 15, 16, 17, 23, 33, 64):
+        x = torch.zeros(1, 3, resolution, resolution)
+        if image_scale != 1.0:
+            x = torch.nn.functional.interpolate(x, scale_factor=image_scale, mode="area", recompute_scale_factor=True)
+        with torch.no_grad():
+            last = trunk(x)[-1]
+        assert last.shape[-2:] == (cfg.deepest_side(resolution),) * 2, resolution

@@ -277,6 +277,16 @@ def test_a_validation_that_would_score_nothing_is_refused(tmp_path, capsys, flag
     assert main([*args, "--log.val_every", "0"]) == 0
 
 
+def test_a_resolution_the_encoder_shrinks_to_one_pixel_is_refused(tmp_path, capsys):
+    """At 16 px the deepest stage is 1x1, and per-object BatchNorm over one value crashed the first step."""
+    args = ["train", "--preset", "cpu-cars", "--out", str(tmp_path / "r"), "--print-config", "--data.resolution"]
+    assert main([*args, "16"]) == 2
+    assert one_error(capsys) == ("error: --data.resolution must be >= 17 with this encoder, got 16: its deepest "
+                                 "stage would be 1x1 pixel, and training normalises each object's features over "
+                                 "their pixels (BatchNorm per object)")
+    assert main([*args, "17"]) == 0
+
+
 def test_the_run_lock_waits_for_a_lock_released_meanwhile(tmp_path):
     """A lock held elsewhere (a crashed node's, until its lease ends) is waited for: released after ~1 s, it is
     taken; held past the wait, one line."""

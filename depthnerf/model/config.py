@@ -10,6 +10,8 @@ the model's constructor) is :attr:`depthnerf.depth.prior.PriorConfig.enabled`, n
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -68,6 +70,16 @@ class EncoderConfig:
         if self.depth_channels < 1 or self.depth_hidden < 1:
             raise DepthnerfError(f"model config: encoder.depth_channels and depth_hidden must be >= 1, got "
                                  f"{self.depth_channels} and {self.depth_hidden}")
+
+    def deepest_side(self, resolution: int) -> int:
+        """Side in pixels of the deepest feature stage for square ``resolution`` inputs: ``image_scale`` (floored,
+        as ``F.interpolate`` sizes it), then a ceil-halving for conv1, for the max-pool (with more than one stage)
+        and for each of layer2 and layer3 that is built (layer1 keeps its input size)."""
+        side = math.floor(resolution * self.image_scale) if self.image_scale != 1.0 else resolution
+        halvings = 1 + int(self.num_layers > 1 and self.use_first_pool) + max(0, self.num_layers - 2)
+        for _ in range(halvings):
+            side = -(-side // 2)
+        return side
 
     @property
     def trunk_channels(self) -> int:

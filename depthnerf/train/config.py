@@ -198,6 +198,12 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
         if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
             flag = NAMED_FLAGS.get(path, f"--{path}")
             raise DepthnerfError(f"{flag} must be {'>=' if inclusive else '>'} {bound:g}, got {value}")
+    encoder = cfg.model.encoder
+    if encoder.deepest_side(cfg.data.resolution) < 2:  # one value per channel: per-object BatchNorm cannot train
+        least = next(r for r in range(cfg.data.resolution, 4096) if encoder.deepest_side(r) >= 2)
+        raise DepthnerfError(f"--data.resolution must be >= {least} with this encoder, got {cfg.data.resolution}: "
+                             f"its deepest stage would be 1x1 pixel, and training normalises each object's features "
+                             f"over their pixels (BatchNorm per object)")
     if cfg.schedule.lr_final > cfg.schedule.lr:
         raise DepthnerfError(f"--schedule.lr_final must be <= --schedule.lr ({cfg.schedule.lr:g}), got "
                              f"{cfg.schedule.lr_final:g}")
