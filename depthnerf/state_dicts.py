@@ -24,13 +24,15 @@ def check_finite(tensors: dict[str, torch.Tensor], path: Path, why: str) -> None
 
 def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor], path: Path,
                       mismatch: str = "checkpoint does not match the model config") -> None:
-    """Load weights with every key and shape checked; a mismatch is one line naming the file, ``mismatch`` (what
-    does not fit what), then the missing, unexpected and mis-shaped tensors."""
+    """Load weights with every key, shape and kind of dtype (floating or not) checked; a mismatch is one line naming
+    the file, ``mismatch`` (what does not fit what), then the missing, unexpected, mis-shaped and mis-typed
+    tensors. Floating tensors of another precision (fp16 files) are cast."""
     own = module.state_dict()
     missing = sorted(set(own) - set(tensors))
     unexpected = sorted(set(tensors) - set(own))
     shapes = [k for k in own if k in tensors and own[k].shape != tensors[k].shape]
-    if missing or unexpected or shapes:
+    kinds = [k for k in own if k in tensors and own[k].is_floating_point() != tensors[k].is_floating_point()]
+    if missing or unexpected or shapes or kinds:
         parts = []
         if missing:
             parts.append(f"missing {len(missing)} tensors (e.g. {missing[0]})")
@@ -39,6 +41,9 @@ def load_state_strict(module: torch.nn.Module, tensors: dict[str, torch.Tensor],
         if shapes:
             k = shapes[0]
             parts.append(f"shape mismatch for {k}: file {tuple(tensors[k].shape)} vs model {tuple(own[k].shape)}")
+        if kinds:  # a float weight stored as integers (truncated) or a counter stored as a float
+            k = kinds[0]
+            parts.append(f"dtype mismatch for {k}: file {tensors[k].dtype} vs model {own[k].dtype}")
         raise DepthnerfError(f"{path}: {mismatch}: {'; '.join(parts)}")
     module.load_state_dict({k: v.to(own[k].dtype) for k, v in tensors.items()}, strict=True)
 

@@ -165,12 +165,39 @@ def test_checkpoint_metadata_a_user_did_not_write(tmp_path):
     assert load_pretrained(good).spec.framing == "srn"
     cases = {"step": ({"step": "abc"}, "metadata 'step' is 'abc'"),  # was a ValueError traceback
              "framing": ({SPEC_KEY: json.dumps({**spec, "framing": "weird"})}, "framing 'weird'"),
-             "prior": ({SPEC_KEY: json.dumps({**spec, "prior": {"estimator": "midas"}})}, "'midas'")}
+             "prior": ({SPEC_KEY: json.dumps({**spec, "prior": {"estimator": "midas"}})}, "'midas'"),
+             # numbers training never writes: each was a traceback in rendering, or (pixel_center) silently used
+             "z-range": ({SPEC_KEY: json.dumps({**spec, "z_near": 5.0, "z_far": 1.0})},
+                         "inference spec: z_near / z_far must satisfy 0 <= z_near < z_far (finite), got 5.0, 1.0"),
+             "nan-near": ({SPEC_KEY: json.dumps({**spec, "z_near": float("nan")})}, "got nan, "),
+             "resolution": ({SPEC_KEY: json.dumps({**spec, "resolution": -3})},
+                            "inference spec: resolution must be >= 8, got -3"),
+             "samples": ({SPEC_KEY: json.dumps({**spec, "render": {**spec["render"], "sampler": {
+                 **spec["render"]["sampler"], "n_coarse": 0}}})}, "render.sampler.n_coarse must be >= 1, got 0"),
+             "pixel-centre": ({SPEC_KEY: json.dumps({**spec, "pixel_center": 5.0})},
+                              "pixel_center must be in [0, 1), got 5.0")}
     for name, (changes, says) in cases.items():
         path = _with_meta(good, tmp_path / f"{name}.safetensors", **changes)
         with pytest.raises(DepthnerfError) as err:
             load_pretrained(path)
         assert str(err.value).startswith(f"{path}: ") and says in str(err.value), str(err.value)
+
+
+def test_weights_of_the_wrong_kind_of_dtype_are_refused(tmp_path):
+    """Float weights stored as integers were cast and truncated silently (a model scoring nonsense)."""
+    good = save_tiny(tmp_path / "good.safetensors", tiny_config("cars", "none"))
+    with safe_open(str(good), "pt") as handle:
+        meta = handle.metadata()
+    tensors = load_file(good)
+    name = next(k for k, v in tensors.items() if v.is_floating_point())
+    save_file({**tensors, name: tensors[name].long()}, tmp_path / "ints.safetensors", metadata=meta)
+    with pytest.raises(DepthnerfError) as err:
+        load_pretrained(tmp_path / "ints.safetensors")
+    assert str(err.value) == (f"{tmp_path / 'ints.safetensors'}: checkpoint does not match the model config: dtype "
+                              f"mismatch for {name}: file torch.int64 vs model torch.float32")
+    save_file({k: v.half() if v.is_floating_point() else v for k, v in tensors.items()}, tmp_path / "fp16.safetensors",
+              metadata=meta)
+    assert load_pretrained(tmp_path / "fp16.safetensors").step == 7  # another precision is cast, as shipped fp16 is
 
 
 def test_misspelled_checkpoint_names_suggest_the_closest(tmp_path):

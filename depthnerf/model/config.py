@@ -11,7 +11,6 @@ the model's constructor) is :attr:`depthnerf.depth.prior.PriorConfig.enabled`, n
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass, field
 from typing import Literal
 

@@ -126,10 +126,36 @@ def spec_from_train_config(train: dict[str, Any], model: dict[str, Any], where: 
                          preset=str(train.get("preset", "custom")))
 
 
+SPEC_RULES: dict[str, tuple[float, bool]] = {
+    "resolution": (8, True), "render.sampler.n_coarse": (1, True), "render.sampler.n_importance": (0, True),
+    "render.sampler.n_gaussian": (0, True), "render.sampler.gaussian_std": (0, True),
+    "render.sampler.pdf_epsilon": (0, True)}
+"""Spec field -> (bound, inclusive), as training enforces them (``depthnerf.train.config.NUMBER_RULES``)."""
+
+
+def check_spec(spec: InferenceSpec, where: str) -> InferenceSpec:
+    """``spec`` if its numbers are ones training could have written, else one line naming ``where`` and the field:
+    a damaged or hand-edited spec fails here, not as a traceback deep in rendering."""
+    for path, (bound, inclusive) in SPEC_RULES.items():
+        value: Any = spec
+        for name in path.split("."):
+            value = getattr(value, name)
+        if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
+            raise DepthnerfError(f"{where}: inference spec: {path} must be {'>=' if inclusive else '>'} {bound:g}, "
+                                 f"got {value}")
+    if not 0 <= spec.z_near < spec.z_far < float("inf"):  # NaN fails too
+        raise DepthnerfError(f"{where}: inference spec: z_near / z_far must satisfy 0 <= z_near < z_far (finite), "
+                             f"got {spec.z_near}, {spec.z_far}")
+    if not 0 <= spec.pixel_center < 1:
+        raise DepthnerfError(f"{where}: inference spec: pixel_center must be in [0, 1), got {spec.pixel_center}")
+    return spec
+
+
 def spec_from_metadata(meta: dict[str, str], where: str) -> InferenceSpec:
-    """The spec of a weights file: its own, else derived from an older checkpoint's configs (module docstring)."""
+    """The spec of a weights file: its own, else derived from an older checkpoint's configs (module docstring);
+    checked (:func:`check_spec`)."""
     if SPEC_KEY in meta:
-        return spec_from_json(meta[SPEC_KEY], where)
+        return check_spec(spec_from_json(meta[SPEC_KEY], where), where)
     if "train_config" not in meta:
         raise DepthnerfError(f"{where}: checkpoint has neither an inference spec nor a training config in its "
                              "metadata (not written by depthnerf train or scripts/export_checkpoint.py)")
@@ -137,4 +163,4 @@ def spec_from_metadata(meta: dict[str, str], where: str) -> InferenceSpec:
         train, model = json.loads(meta["train_config"]), json.loads(meta["config"])
     except (KeyError, json.JSONDecodeError):
         raise DepthnerfError(f"{where}: checkpoint's training or model config is not valid JSON") from None
-    return spec_from_train_config(train, model, where)
+    return check_spec(spec_from_train_config(train, model, where), where)
