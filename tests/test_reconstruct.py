@@ -280,6 +280,28 @@ def test_baseline_has_no_prior_and_other_resolution(models, tmp_path, monkeypatc
     assert "imageio-ffmpeg is not installed" in manifest["turntable_mp4_status"]
 
 
+def test_an_odd_render_size_still_writes_the_mp4(models, tmp_path):
+    """libx264 needs even sides: at 17 px ffmpeg wrote an empty turntable.mp4 that the manifest called "ok"."""
+    pytest.importorskip("imageio_ffmpeg")
+    rec = Reconstructor.from_pretrained(models["baseline"])
+    res = rec.reconstruct(disc_photo(), views=2, config=ReconstructConfig(mesh_resolution=0, render_resolution=17))
+    manifest = rec.save(res, tmp_path / "odd")
+    assert manifest["turntable_mp4_status"] == "ok"
+    frames = iio.imread(tmp_path / "odd" / "turntable.mp4", plugin="FFMPEG")
+    assert frames.shape[1:3] == (18, 18)  # one edge-copied row and column; the GIF and views keep 17
+    assert iio.imread(tmp_path / "odd" / "turntable.gif").shape == (2, 17, 17, 3)
+
+
+def test_even_sized_copies_the_last_row_and_column():
+    from depthnerf.reconstruct.exports import even_sized
+
+    frames = np.arange(2 * 3 * 5 * 3, dtype=np.uint8).reshape(2, 3, 5, 3)
+    grown = even_sized(frames)
+    assert grown.shape == (2, 4, 6, 3) and np.array_equal(grown[:, :3, :5], frames)
+    assert np.array_equal(grown[:, 3, :5], frames[:, 2]) and np.array_equal(grown[:, :3, 5], frames[:, :, 4])
+    assert even_sized(grown) is grown
+
+
 def test_bad_checkpoints(models, tmp_path, capsys):
     (tmp_path / "notes.txt").write_text("hello")
     photo = tmp_path / "photo.png"  # a real photo: a missing one is refused before the checkpoint loads

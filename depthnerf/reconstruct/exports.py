@@ -114,6 +114,15 @@ def to_u8(x: np.ndarray) -> np.ndarray:
     return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
+def even_sized(frames: np.ndarray) -> np.ndarray:
+    """``frames`` ``[T, H, W, 3]`` with an odd height or width grown by one edge-copied row or column: H.264 in
+    yuv420p (the MP4 turntable) needs both even, and ffmpeg writes an empty file otherwise."""
+    pad_h, pad_w = frames.shape[1] % 2, frames.shape[2] % 2
+    if not (pad_h or pad_w):
+        return frames
+    return np.pad(frames, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+
+
 def prior_image(prior: np.ndarray) -> np.ndarray:
     """8-bit grey of a normalised prior: foreground [-4, 4] -> [64, 255], background (-5) -> 0."""
     fg = prior > BACKGROUND_VALUE + 0.5
@@ -199,8 +208,13 @@ def write_outputs(result: Reconstruction, out: Path, provenance: dict[str, Any],
     iio.imwrite(out / "turntable.gif", frames, duration=round(1000 / TURNTABLE_FPS), loop=0)
     files["turntable_gif"] = "turntable.gif"
     if importlib.util.find_spec("imageio_ffmpeg") is not None:
-        iio.imwrite(out / "turntable.mp4", frames, fps=TURNTABLE_FPS, plugin="FFMPEG", macro_block_size=1)
-        files["turntable_mp4"], mp4_status = "turntable.mp4", "ok"
+        iio.imwrite(out / "turntable.mp4", even_sized(frames), fps=TURNTABLE_FPS, plugin="FFMPEG",
+                    macro_block_size=1)
+        if (out / "turntable.mp4").stat().st_size > 0:
+            files["turntable_mp4"], mp4_status = "turntable.mp4", "ok"
+        else:  # ffmpeg reports on stderr and leaves an empty file
+            (out / "turntable.mp4").unlink()
+            files["turntable_mp4"], mp4_status = None, "not written: ffmpeg wrote an empty file"
     else:
         files["turntable_mp4"] = None
         mp4_status = "not written: imageio-ffmpeg is not installed (pip install 'depthnerf[video]')"
