@@ -205,3 +205,18 @@ def test_cli(tmp_path: Path, capsys) -> None:
     (tmp_path / "file").write_text("x")
     assert cli_main(["synth", "--category", "chairs", "--out", str(tmp_path / "file")]) == 2
     assert "not a directory" in capsys.readouterr().err
+
+
+def test_cli_out_of_memory_is_one_line(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A resolution too large for memory was the CPU allocator's traceback (rc 1)."""
+    def too_big(config):
+        raise RuntimeError("[enforce fail at alloc_cpu.cpp:121] data. DefaultCPUAllocator: can't allocate memory: "
+                           "you tried to allocate 40000000000 bytes. Error code 12 (Cannot allocate memory)")
+
+    monkeypatch.setattr("depthnerf.commands.synth.generate", too_big)
+    args = ["synth", "--category", "cars", "--out", str(tmp_path / "big"), "--resolution", "100000", "--quiet"]
+    assert cli_main(args) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: out of memory (could not allocate 37.3 GiB) rendering cars at --resolution 100000 "
+                   f"(--views-train 50, --views-test 251); lower them (finished objects in {tmp_path / 'big'} are "
+                   f"kept)\n")

@@ -16,6 +16,8 @@ from depthnerf.data.synth.framing import DEFAULT_FRAMING, FRAMINGS
 from depthnerf.data.synth.generate import FAMILIES, SynthConfig, generate
 from depthnerf.data.synth.hits import ENGINES
 from depthnerf.data.synth.raycast import SynthRenderConfig
+from depthnerf.errors import DepthnerfError
+from depthnerf.train.memory import failed_allocation, is_out_of_memory
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +54,14 @@ def run(args: argparse.Namespace) -> int:
         render=SynthRenderConfig(antialias=not args.no_antialias), progress=not args.quiet, framing=args.framing,
         family=args.family, raycaster=args.raycaster,
     )
-    card = generate(config)
+    try:
+        card = generate(config)
+    except (RuntimeError, MemoryError) as err:  # a huge --resolution: one line, not the allocator's traceback
+        if not is_out_of_memory(err):
+            raise
+        raise DepthnerfError(f"out of memory ({failed_allocation(err)}) rendering {args.category} at --resolution "
+                             f"{args.resolution} (--views-train {args.views_train}, --views-test {args.views_test}); "
+                             f"lower them (finished objects in {args.out} are kept)") from None
     counts = ", ".join(f"{k} {v}" for k, v in card["counts"].items())
     print(f"wrote {args.category} ({counts}) to {args.out}; card: {args.out / (args.category + '_card.json')}")
     return 0
