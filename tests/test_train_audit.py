@@ -287,6 +287,19 @@ def test_a_resolution_the_encoder_shrinks_to_one_pixel_is_refused(tmp_path, caps
     assert main([*args, "17"]) == 0
 
 
+def test_validation_views_an_object_lacks_are_refused_not_replaced(tmp_path, capsys):
+    """View 999 of 3-view val objects was dropped and view 1 scored instead, silently."""
+    data = make_srn_fixture(tmp_path / "d", "cars", {"train": 2, "val": 1}, views=3, size=16)
+    obj = next((data / "cars_val").iterdir())
+    args = ["train", "--preset", "cpu-cars", "--data", str(data), "--depth", "none", "--max-steps", "1",
+            "--device", "cpu", "--log.val_every", "1", "--data.num_workers", "0"]
+    assert main([*args, "--out", str(tmp_path / "a"), "--log.val_views", "1,999"]) == 2
+    assert one_error(capsys) == (f"error: --log.val_views 1,999: {obj} has 3 views (indices 0-2), so view 999 "
+                                 f"does not exist")
+    assert main([*args, "--out", str(tmp_path / "b"), "--log.val_views", "0"]) == 2  # view 0: a 3-view input
+    assert one_error(capsys) == f"error: --log.val_views 0: names only {obj}'s input view; name a view to render from it"
+
+
 def test_the_run_lock_waits_for_a_lock_released_meanwhile(tmp_path):
     """A lock held elsewhere (a crashed node's, until its lease ends) is waited for: released after ~1 s, it is
     taken; held past the wait, one line."""

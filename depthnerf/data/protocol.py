@@ -5,6 +5,7 @@ Used by ``depthnerf eval``, training validation, the demo and the benchmarks.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from depthnerf.errors import DepthnerfError
@@ -36,3 +37,17 @@ def protocol_views(num_views: int, stride: int = 1) -> ProtocolViews:
     src = INPUT_VIEW if num_views > INPUT_VIEW else 0
     others = [v for v in range(num_views) if v != src]
     return ProtocolViews(input_view=src, targets=tuple(others[::stride]), others=len(others))
+
+
+def check_validation_views(views: Sequence[int], objects: Sequence[tuple[str, int]]) -> None:
+    """One line when ``--log.val_views`` cannot be scored as given on the val ``objects`` (``(path, views)``
+    pairs): an index past an object's views, or only the object's input view (:func:`protocol_views`), either of
+    which validation would have replaced with another view, silently."""
+    for path, count in objects:
+        past = [v for v in views if v >= count]
+        if past:
+            raise DepthnerfError(f"--log.val_views {','.join(map(str, views))}: {path} has {count} views (indices "
+                                 f"0-{count - 1}), so view {past[0]} does not exist")
+        if all(v == protocol_views(count).input_view for v in views):
+            raise DepthnerfError(f"--log.val_views {','.join(map(str, views))}: names only {path}'s input view; "
+                                 f"name a view to render from it")
