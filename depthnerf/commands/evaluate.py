@@ -229,6 +229,9 @@ def _request(args: argparse.Namespace):
     from depthnerf.render.mesh_level import parse_level
 
     check_flags(args)
+    if args.run is not None and not args.run.is_dir():  # else "its parent is a file" about the default --out
+        raise DepthnerfError(f"{args.run}: --run needs a training run folder, "
+                             f"{'this is a file' if args.run.exists() else 'no such folder'}")
     choices = _choices(args)
     out = args.out
     if out is None:
