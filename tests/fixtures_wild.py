@@ -98,6 +98,14 @@ def _mesh_garbage(root: Path) -> tuple[Path, str]:
     return path, "not a PLY mesh"
 
 
+def _mesh_truncated(root: Path) -> tuple[Path, str]:
+    path = first_object(root) / "mesh.ply"
+    data = path.read_bytes()
+    assert b"format binary_little_endian" in data  # trimesh's export: a binary PLY, sized by its header
+    path.write_bytes(data[: len(data) - 20])
+    return path, "truncated PLY mesh"
+
+
 BAD_OPTIONAL_CASES = {
     "mask_size_vs_intrinsics": ("mask", _mask_size),
     "mask_truncated": ("mask", _mask_truncated),
@@ -115,6 +123,7 @@ BAD_OPTIONAL_CASES = {
     "depth_wrong_shape_npy": ("depth", _depth_array("000001.npy", np.ones((16, 15), np.float32), "shape (16, 15)")),
     "depth_integer_npy": ("depth", _depth_array("000001.npy", np.ones((16, 16), np.uint16), "expected floats")),
     "mesh_not_ply": ("mesh", _mesh_garbage),
+    "mesh_truncated": ("mesh", _mesh_truncated),
 }
 """Ways to break an *optional* part of the first train object of a ``make_srn_fixture(..., with_depth=True,
 with_mask=True, with_mesh=True)`` folder: ``name -> (part, mutate)``; ``mutate(root)`` returns ``(path, text)``.

@@ -206,3 +206,18 @@ def test_extras_are_ignored_in_both_modes_but_rgb_stays_strict(tmp_path: Path):
     shutil.copy(first_object(root) / "render_log.txt", first_object(root) / "rgb" / "log.txt")
     with pytest.raises(DepthnerfError, match=r"rgb/log\.txt: unexpected entry in rgb/"):
         srn.index_split(root, "cars", "train")
+
+
+def test_binary_ply_min_bytes_is_a_triangle_meshs_exact_size(tmp_path: Path):
+    """For triangle meshes (every face a 3-list) the lower bound is the body's exact size; ASCII is not sized."""
+    import trimesh
+
+    from depthnerf.data.validate import binary_ply_min_bytes
+
+    for k, mesh in enumerate([trimesh.creation.box(), trimesh.creation.icosphere(1), trimesh.creation.cylinder(0.5, 1)]):
+        mesh.visual.vertex_colors = [200, 10, 10, 255] if k == 1 else mesh.visual.vertex_colors  # uchar properties too
+        data = trimesh.exchange.ply.export_ply(mesh, encoding="binary")
+        end = data.index(b"end_header\n") + len(b"end_header\n")
+        assert binary_ply_min_bytes(data[:end].split(b"end_header")[0].decode()) == len(data) - end
+        ascii_header = trimesh.exchange.ply.export_ply(mesh, encoding="ascii").split(b"end_header")[0].decode()
+        assert binary_ply_min_bytes(ascii_header) is None

@@ -89,6 +89,39 @@ def check_mesh_header(path: Path) -> None:
     vertices = re.search(r"^element vertex (\d+)", text, flags=re.MULTILINE)
     if not head.startswith(b"ply") or b"end_header" not in head or not vertices or int(vertices.group(1)) == 0:
         raise DepthnerfError(f"{path}: not a PLY mesh with vertices (bad or missing header)")
+    need = binary_ply_min_bytes(text)
+    if need is not None:
+        body = path.stat().st_size - (head.index(b"end_header") + len(b"end_header\n"))
+        if body < need:
+            raise DepthnerfError(f"{path}: truncated PLY mesh (its header needs at least {need} bytes of data, the "
+                                 f"file has {max(body, 0)})")
+
+
+PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+             "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+"""Bytes of each PLY scalar type."""
+
+
+def binary_ply_min_bytes(header: str) -> int | None:
+    """The fewest data bytes a binary PLY ``header`` (its text before ``end_header``) describes: every element's
+    fixed properties, and a list property as its count plus 3 entries (a face has at least 3 vertices); None for
+    an ASCII PLY or a header this cannot size (an unknown type)."""
+    if not re.search(r"^format binary_(little|big)_endian ", header, flags=re.MULTILINE):
+        return None
+    total, count, stride = 0, 0, 0
+    for line in header.splitlines():
+        words = line.split()
+        if words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
+            total, count, stride = total + count * stride, int(words[2]), 0
+        elif words[:2] == ["property", "list"] and len(words) == 5:
+            if words[2] not in PLY_SIZES or words[3] not in PLY_SIZES:
+                return None
+            stride += PLY_SIZES[words[2]] + 3 * PLY_SIZES[words[3]]
+        elif words[:1] == ["property"] and len(words) == 3:
+            if words[1] not in PLY_SIZES:
+                return None
+            stride += PLY_SIZES[words[1]]
+    return total + count * stride
 
 
 def _size_checked(path: Path, what: str, expected: tuple[int, int], intrinsics: Path) -> str:
