@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -203,3 +204,65 @@ def test_depth_anything_cache_from_a_local_checkpoint(data, tmp_path, capsys):
     assert torch.allclose(store.load(record, [0, 1, 2]), expect, rtol=2e-3, atol=1e-3)
     with pytest.raises(DepthnerfError, match="--depth depth-anything-v2 --depth-checkpoint .*--splits train"):
         store.load(index_split(data, "cars", "train").objects[0], [0])
+
+
+def _damage(path: Path, kind: str) -> None:
+    """Damage a cache file written by ``depthnerf depth`` (its metadata kept, so only the damage is wrong)."""
+    from safetensors.torch import load_file, safe_open, save_file
+
+    with safe_open(str(path), framework="pt") as handle:
+        meta = handle.metadata()
+    disparity = load_file(str(path))["disparity"]
+    if kind in ("text", "truncated"):
+        path.write_bytes(b"not a tensor file" if kind == "text" else path.read_bytes()[:100])
+        return
+    tensors = {"shape": {"disparity": torch.ones(3, 9, 9, dtype=disparity.dtype)},
+               "renamed": {"disp": disparity},
+               "views": {"disparity": disparity[:2].contiguous()},
+               "float64": {"disparity": disparity.double()},
+               "nan": {"disparity": torch.full_like(disparity, float("nan"))},
+               "inf": {"disparity": disparity.index_put((torch.tensor(2), torch.tensor(3), torch.tensor(4)),
+                                                        torch.tensor(float("inf"), dtype=disparity.dtype))}}[kind]
+    save_file(tensors, str(path), metadata=meta)
+
+
+@pytest.mark.parametrize("kind, problem, at", [
+    ("shape", r"depth prior is 3x9x9, the object's 3 views at 16 px are 3x16x16", "check"),  # was a ValueError
+    ("renamed", r"unreadable depth prior \(no 'disparity' tensor; tensors: disp\)", "check"),  # was in a worker
+    ("views", r"depth prior holds 2 views, the object has 3", "check"),  # was in a worker
+    ("float64", r"unreadable depth prior \(disparity is F64, not F16 or F32\)", "check"),
+    ("text", r"unreadable depth prior \(.*header.*\)", "check"),  # was "depth prior missing"
+    ("truncated", r"unreadable depth prior \(.*\)", "check"),  # was "depth prior missing"
+    ("nan", r"depth prior holds non-finite values \(view 1\)", "load"),  # trained silently
+    ("inf", r"depth prior holds non-finite values \(view 2\)", "load"),
+])
+def test_a_damaged_cache_file_is_one_line_and_depth_recomputes_it(data, tmp_path, capsys, kind, problem, at):
+    """Reading names the file, the damage and the command; that command recomputes the file (it said "already up
+    to date" and the advice looped). The header is checked up front, the values when they are read."""
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    record = index_split(data, "cars", "train").objects[0]
+    store = PriorStore.open(data, "bundled", ckpt, resolution=16)
+    path = store.root / "cars_train" / f"{record.object_id}.safetensors"
+    before = store.load(record, [0, 1, 2])
+    _damage(path, kind)
+    fresh = PriorStore.open(data, "bundled", ckpt, resolution=16)
+    line = (re.escape(f"{path}: ") + problem + re.escape(f"; run: depthnerf depth --data {data} --depth bundled "
+                                                        f"--depth-checkpoint {ckpt} --category cars --splits train "
+                                                        "--resolution 16"))
+    if at == "load":
+        fresh.check([record])  # a sound header: values are checked where they are read
+    with pytest.raises(DepthnerfError) as err:
+        fresh.check([record]) if at == "check" else fresh.load(record, [1, 2] if kind == "nan" else [2, 0])
+    assert re.fullmatch(line, str(err.value)) and "\n" not in str(err.value)
+    if kind == "inf":  # the views without damage still read
+        assert torch.equal(fresh.load(record, [0, 1]), before[:2])
+    capsys.readouterr()
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    out = capsys.readouterr().out
+    assert f"note: {path}: " in out and "1 objects computed (0 were stale, 1 were unreadable or damaged), 1 already " \
+        "up to date" in out
+    assert torch.equal(PriorStore.open(data, "bundled", ckpt, resolution=16).load(record, [0, 1, 2]), before)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    assert "0 objects computed (0 were stale), 2 already up to date" in capsys.readouterr().out
+
