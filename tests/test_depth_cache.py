@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from fixtures_checkpoints import TINY_TRAIN_FLAGS
 from fixtures_srn import first_object, make_srn_fixture
 
 from depthnerf.cli import main
@@ -266,3 +267,44 @@ def test_a_damaged_cache_file_is_one_line_and_depth_recomputes_it(data, tmp_path
     assert _depth(data, ckpt, "--splits", "train") == 0
     assert "0 objects computed (0 were stale), 2 already up to date" in capsys.readouterr().out
 
+
+def test_an_error_in_a_loader_worker_is_its_one_line(data, tmp_path, capsys):
+    """torch re-raises a worker's DepthnerfError with the worker's traceback as its text (25 lines reached the
+    user); the main process gets the line the worker raised, through a real DataLoader with a worker."""
+    from torch.utils.data import DataLoader
+
+    from depthnerf.depth.prior import PriorConfig, open_prior
+    from depthnerf.train.batching import ItemKey, collate_packed
+    from depthnerf.train.items import TrainItems
+
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    records = index_split(data, "cars", "train").objects
+    source = open_prior(PriorConfig("bundled", ckpt), data_root=data, resolution=16, records=records)
+    _damage(source.store.root / "cars_train" / f"{records[0].object_id}.safetensors", "nan")
+    items = TrainItems(records, source, resolution=16, target_views=1, rays_per_object=4, target_priors=False)
+    key = ItemKey(0, 0, False)
+    with pytest.raises(DepthnerfError) as direct:  # in this process
+        items[key]
+    loader = DataLoader(items, batch_sampler=[[key]], collate_fn=collate_packed, num_workers=1)
+    with pytest.raises(DepthnerfError) as err:
+        next(iter(loader))
+    assert str(err.value) == str(direct.value) and "non-finite" in str(err.value) and "\n" not in str(err.value)
+    assert str(DepthnerfError("a\nb")) == "a\nb"  # any other text is kept as given
+
+
+def test_train_with_a_worker_prints_a_damaged_prior_as_one_line(data, tmp_path, capsys):
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    record = index_split(data, "cars", "train").objects[0]
+    path = PriorStore.open(data, "bundled", ckpt, resolution=16).root / "cars_train" / f"{record.object_id}.safetensors"
+    _damage(path, "nan")
+    capsys.readouterr()
+    assert main(["train", "--preset", "cpu-cars", "--data", str(data), "--depth", "bundled", "--depth-checkpoint", ckpt,
+                 "--out", str(tmp_path / "run"), "--max-steps", "1", "--log.val_every", "0", "--device", "cpu",
+                 *TINY_TRAIN_FLAGS, "--data.resolution", "16", "--data.num_workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.endswith(f"error: {path}: depth prior holds non-finite values (view 0); run: depthnerf depth --data "
+                        f"{data} --depth bundled --depth-checkpoint {ckpt} --category cars --splits train "
+                        "--resolution 16\n"), err
+    assert "Traceback" not in err
