@@ -8,10 +8,36 @@ the CLI does not print (:func:`refusal`).
 """
 
 import os
+import re
+
+_WORKER_TRACEBACK = re.compile(r"Caught \w+ in DataLoader worker process \d+\.\n"
+                               r"Original Traceback \(most recent call last\):\n")
+"""How torch's ``ExceptionWrapper.reraise`` begins the message of an exception it re-raises in the main process."""
 
 
 class DepthnerfError(Exception):
-    """Bad user input or state: the message is one line naming the file and the problem."""
+    """Bad user input or state: the message is one line naming the file and the problem.
+
+    Raised in a DataLoader worker, it keeps that line in the main process: torch re-raises a worker's exception as
+    its type called with ``Caught <type> in DataLoader worker process N.``, a new line and the formatted traceback
+    (the instance itself does not cross the process boundary), whose last line is ``<module>.<class>: <message>``;
+    the constructor takes the message back from there (:func:`worker_message`), so the CLI prints one line.
+    """
+
+    def __init__(self, *args: object) -> None:
+        if len(args) == 1 and isinstance(args[0], str):
+            args = (worker_message(args[0], type(self)),)
+        super().__init__(*args)
+
+
+def worker_message(text: str, kind: type[BaseException]) -> str:
+    """The one-line message of a ``kind`` exception raised in a DataLoader worker, taken from the ``text`` torch
+    re-raises it with in the main process (see :class:`DepthnerfError`); any other ``text`` unchanged."""
+    if not _WORKER_TRACEBACK.match(text):
+        return text
+    prefix = f"{kind.__module__}.{kind.__qualname__}: "
+    last = text.rstrip("\n").rsplit("\n", 1)[-1]
+    return last[len(prefix):] if last.startswith(prefix) else text
 
 
 class RefusedOnMain(DepthnerfError):

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from fixtures_checkpoints import TINY_TRAIN_FLAGS
 from fixtures_srn import first_object, make_srn_fixture
 
 from depthnerf.cli import main
@@ -203,3 +205,106 @@ def test_depth_anything_cache_from_a_local_checkpoint(data, tmp_path, capsys):
     assert torch.allclose(store.load(record, [0, 1, 2]), expect, rtol=2e-3, atol=1e-3)
     with pytest.raises(DepthnerfError, match="--depth depth-anything-v2 --depth-checkpoint .*--splits train"):
         store.load(index_split(data, "cars", "train").objects[0], [0])
+
+
+def _damage(path: Path, kind: str) -> None:
+    """Damage a cache file written by ``depthnerf depth`` (its metadata kept, so only the damage is wrong)."""
+    from safetensors.torch import load_file, safe_open, save_file
+
+    with safe_open(str(path), framework="pt") as handle:
+        meta = handle.metadata()
+    disparity = load_file(str(path))["disparity"]
+    if kind in ("text", "truncated"):
+        path.write_bytes(b"not a tensor file" if kind == "text" else path.read_bytes()[:100])
+        return
+    tensors = {"shape": {"disparity": torch.ones(3, 9, 9, dtype=disparity.dtype)},
+               "renamed": {"disp": disparity},
+               "views": {"disparity": disparity[:2].contiguous()},
+               "float64": {"disparity": disparity.double()},
+               "nan": {"disparity": torch.full_like(disparity, float("nan"))},
+               "inf": {"disparity": disparity.index_put((torch.tensor(2), torch.tensor(3), torch.tensor(4)),
+                                                        torch.tensor(float("inf"), dtype=disparity.dtype))}}[kind]
+    save_file(tensors, str(path), metadata=meta)
+
+
+@pytest.mark.parametrize("kind, problem, at", [
+    ("shape", r"depth prior is 3x9x9, the object's 3 views at 16 px are 3x16x16", "check"),  # was a ValueError
+    ("renamed", r"unreadable depth prior \(no 'disparity' tensor; tensors: disp\)", "check"),  # was in a worker
+    ("views", r"depth prior holds 2 views, the object has 3", "check"),  # was in a worker
+    ("float64", r"unreadable depth prior \(disparity is F64, not F16 or F32\)", "check"),
+    ("text", r"unreadable depth prior \(.*header.*\)", "check"),  # was "depth prior missing"
+    ("truncated", r"unreadable depth prior \(.*\)", "check"),  # was "depth prior missing"
+    ("nan", r"depth prior holds non-finite values \(view 1\)", "load"),  # trained silently
+    ("inf", r"depth prior holds non-finite values \(view 2\)", "load"),
+])
+def test_a_damaged_cache_file_is_one_line_and_depth_recomputes_it(data, tmp_path, capsys, kind, problem, at):
+    """Reading names the file, the damage and the command; that command recomputes the file (it said "already up
+    to date" and the advice looped). The header is checked up front, the values when they are read."""
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    record = index_split(data, "cars", "train").objects[0]
+    store = PriorStore.open(data, "bundled", ckpt, resolution=16)
+    path = store.root / "cars_train" / f"{record.object_id}.safetensors"
+    before = store.load(record, [0, 1, 2])
+    _damage(path, kind)
+    fresh = PriorStore.open(data, "bundled", ckpt, resolution=16)
+    line = (re.escape(f"{path}: ") + problem + re.escape(f"; run: depthnerf depth --data {data} --depth bundled "
+                                                        f"--depth-checkpoint {ckpt} --category cars --splits train "
+                                                        "--resolution 16"))
+    if at == "load":
+        fresh.check([record])  # a sound header: values are checked where they are read
+    with pytest.raises(DepthnerfError) as err:
+        fresh.check([record]) if at == "check" else fresh.load(record, [1, 2] if kind == "nan" else [2, 0])
+    assert re.fullmatch(line, str(err.value)) and "\n" not in str(err.value)
+    if kind == "inf":  # the views without damage still read
+        assert torch.equal(fresh.load(record, [0, 1]), before[:2])
+    capsys.readouterr()
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    out = capsys.readouterr().out
+    assert f"note: {path}: " in out and "1 objects computed (0 were stale, 1 were unreadable or damaged), 1 already " \
+        "up to date" in out
+    assert torch.equal(PriorStore.open(data, "bundled", ckpt, resolution=16).load(record, [0, 1, 2]), before)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    assert "0 objects computed (0 were stale), 2 already up to date" in capsys.readouterr().out
+
+
+def test_an_error_in_a_loader_worker_is_its_one_line(data, tmp_path, capsys):
+    """torch re-raises a worker's DepthnerfError with the worker's traceback as its text (25 lines reached the
+    user); the main process gets the line the worker raised, through a real DataLoader with a worker."""
+    from torch.utils.data import DataLoader
+
+    from depthnerf.depth.prior import PriorConfig, open_prior
+    from depthnerf.train.batching import ItemKey, collate_packed
+    from depthnerf.train.items import TrainItems
+
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    records = index_split(data, "cars", "train").objects
+    source = open_prior(PriorConfig("bundled", ckpt), data_root=data, resolution=16, records=records)
+    _damage(source.store.root / "cars_train" / f"{records[0].object_id}.safetensors", "nan")
+    items = TrainItems(records, source, resolution=16, target_views=1, rays_per_object=4, target_priors=False)
+    key = ItemKey(0, 0, False)
+    with pytest.raises(DepthnerfError) as direct:  # in this process
+        items[key]
+    loader = DataLoader(items, batch_sampler=[[key]], collate_fn=collate_packed, num_workers=1)
+    with pytest.raises(DepthnerfError) as err:
+        next(iter(loader))
+    assert str(err.value) == str(direct.value) and "non-finite" in str(err.value) and "\n" not in str(err.value)
+    assert str(DepthnerfError("a\nb")) == "a\nb"  # any other text is kept as given
+
+
+def test_train_with_a_worker_prints_a_damaged_prior_as_one_line(data, tmp_path, capsys):
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, "--splits", "train") == 0
+    record = index_split(data, "cars", "train").objects[0]
+    path = PriorStore.open(data, "bundled", ckpt, resolution=16).root / "cars_train" / f"{record.object_id}.safetensors"
+    _damage(path, "nan")
+    capsys.readouterr()
+    assert main(["train", "--preset", "cpu-cars", "--data", str(data), "--depth", "bundled", "--depth-checkpoint", ckpt,
+                 "--out", str(tmp_path / "run"), "--max-steps", "1", "--log.val_every", "0", "--device", "cpu",
+                 *TINY_TRAIN_FLAGS, "--data.resolution", "16", "--data.num_workers", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.endswith(f"error: {path}: depth prior holds non-finite values (view 0); run: depthnerf depth --data "
+                        f"{data} --depth bundled --depth-checkpoint {ckpt} --category cars --splits train "
+                        "--resolution 16\n"), err
+    assert "Traceback" not in err

@@ -89,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
     summary = precompute_priors(cfg)
     for group in summary.missing_splits:
         print(f"note: {group} does not exist under {args.data}, skipped")
-    print(f"{summary.cache_dir}: {summary.computed} objects computed ({summary.stale} were stale), "
+    for line in summary.damaged:
+        print(f"note: {line}; recomputed")
+    damaged = f", {len(summary.damaged)} were unreadable or damaged" if summary.damaged else ""
+    print(f"{summary.cache_dir}: {summary.computed} objects computed ({summary.stale} were stale{damaged}), "
           f"{summary.skipped} already up to date")
     return 0

@@ -20,6 +20,13 @@ they are not recomputed, and checking them reads no more than that (the byte-wis
 ``rgb-bytes:`` entries and for entries being written). A missing, partial, stale or other-estimator cache is a
 :class:`~depthnerf.errors.DepthnerfError` naming the exact ``depthnerf depth ...`` command that makes it.
 
+Damage (:func:`header_problem`, :func:`values_problem`): a file that is no safetensors file, lacks the
+``disparity`` tensor, has another dtype or a shape other than ``[V, res, res * W / H]`` of the object, or holds a
+non-finite value is an error naming the file and the same command, which recomputes it (``depthnerf depth`` checks
+every value of an entry it would keep). Reading for training checks the header of each object once and the
+values it reads. The sign is not checked: a raw relative disparity is defined up to a shift, so negative values
+are valid (the ``bundled`` net's output is about half negative).
+
 ``oracle`` priors need no cache (computed from ``depth/`` on the fly) but are served through the same
 :class:`PriorStore` API; ``none`` has no store (:meth:`PriorStore.open` returns None).
 """
@@ -172,6 +179,59 @@ def read_object_metadata(path: Path) -> dict[str, str] | None:
         return None
 
 
+STORED_DTYPES = ("F16", "F32")
+"""safetensors dtype names of a cached ``disparity`` tensor (:func:`storage_dtype`)."""
+
+
+def cached_shape(record: ObjectRecord, resolution: int) -> tuple[int, int, int]:
+    """``[V, H, W]`` of an object's cached disparity: every view at height ``resolution``, the width scaled with it
+    (as :func:`depthnerf.data.srn.load_object` resizes)."""
+    height, width = record.intrinsics.height, record.intrinsics.width
+    return len(record.view_names), int(resolution), int(resolution) * width // height
+
+
+def header_problem(handle: Any, record: ObjectRecord, resolution: int) -> str | None:
+    """What is wrong with the header of an open cache file (``safe_open`` handle) for ``record`` at ``resolution``,
+    to follow ``<path>: `` in an error line; None when its ``disparity`` tensor has a stored dtype and the shape
+    :func:`cached_shape`. Reads no values."""
+    if "disparity" not in handle.keys():
+        held = ", ".join(sorted(handle.keys())) or "none"
+        return f"unreadable depth prior (no 'disparity' tensor; tensors: {held})"
+    sliced = handle.get_slice("disparity")
+    shape, dtype = tuple(sliced.get_shape()), sliced.get_dtype()
+    want = cached_shape(record, resolution)
+    if dtype not in STORED_DTYPES:
+        return f"unreadable depth prior (disparity is {dtype}, not {' or '.join(STORED_DTYPES)})"
+    if len(shape) == 3 and shape[0] != want[0]:
+        return f"depth prior holds {shape[0]} views, the object has {want[0]}"
+    if shape != want:
+        return (f"depth prior is {'x'.join(map(str, shape)) or 'a scalar'}, the object's {want[0]} views at "
+                f"{resolution} px are {'x'.join(map(str, want))}")
+    return None
+
+
+def values_problem(disparity: Float[Tensor, "V H W"], views: Sequence[int]) -> str | None:
+    """What is wrong with disparity values read from a cache file (``views``: the object's view of each row), to
+    follow ``<path>: `` in an error line; None when every value is finite."""
+    finite = torch.isfinite(disparity).flatten(1).all(dim=1)
+    if bool(finite.all()):
+        return None
+    return f"depth prior holds non-finite values (view {views[int((~finite).nonzero()[0])]})"
+
+
+def object_file_problem(path: Path, record: ObjectRecord, resolution: int) -> str | None:
+    """Everything wrong with a cache file that exists (:func:`header_problem`, then every value:
+    :func:`values_problem`), to follow ``<path>: ``; None when it is sound. Metadata is not compared here."""
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            problem = header_problem(handle, record, resolution)
+            if problem is None:
+                problem = values_problem(handle.get_tensor("disparity"), range(len(record.view_names)))
+    except (SafetensorError, OSError) as err:
+        return f"unreadable depth prior ({err})"
+    return problem
+
+
 class PriorStore:
     """Read access to one estimator's depth priors for a dataset (cached, or on the fly for ``oracle``).
 
@@ -283,15 +343,21 @@ class CachedPriorStore(PriorStore):
         if key in self._verified:
             return path
         cmd = self.command(record.category, record.split)
-        meta = read_object_metadata(path)
-        if meta is None:
+        if not path.exists():
             raise DepthnerfError(f"{path}: depth prior missing (cache incomplete); run: {cmd}")
+        try:
+            with safe_open(str(path), framework="pt") as handle:
+                meta, problem = dict(handle.metadata() or {}), header_problem(handle, record, self.resolution)
+        except (SafetensorError, OSError) as err:
+            raise DepthnerfError(f"{path}: unreadable depth prior ({err}); run: {cmd}") from None
         if meta.get("weights_hash") != self._provenance.weights_hash or meta.get("resolution") != str(
                 self.resolution):
             raise DepthnerfError(f"{path}: depth prior made by other weights or resolution; run: {cmd}")
         if not fingerprint_matches(meta.get("fingerprint"), record):
             raise DepthnerfError(f"{path}: depth prior is stale (the object's images changed since it was "
                                  f"computed); run: {cmd}")
+        if problem is not None:
+            raise DepthnerfError(f"{path}: {problem}; run: {cmd}")
         self._verified.add(key)
         return path
 
@@ -300,18 +366,22 @@ class CachedPriorStore(PriorStore):
             self._verify(record)
 
     def load(self, record: ObjectRecord, views: Sequence[int]) -> Float[Tensor, "V H W"]:
+        """Raw relative disparity of the given views (float32); the file's header is checked again (it may have
+        changed since :meth:`check`) and the values read must be finite."""
         path = self._verify(record)
         views = self._check_views(record, views, path)
         try:
             with safe_open(str(path), framework="pt") as handle:
-                sliced = handle.get_slice("disparity")
-                if sliced.get_shape()[0] != len(record.view_names):
-                    raise DepthnerfError(f"{path}: holds {sliced.get_shape()[0]} views, the object has "
-                                         f"{len(record.view_names)}; run: {self.command(record.category, record.split)}")
-                if views and views == list(range(views[0], views[0] + len(views))):
-                    disparity = sliced[views[0]:views[-1] + 1]
-                else:
-                    disparity = handle.get_tensor("disparity")[views]
+                problem = header_problem(handle, record, self.resolution)
+                if problem is None:
+                    sliced = handle.get_slice("disparity")
+                    if views and views == list(range(views[0], views[0] + len(views))):
+                        disparity = sliced[views[0]:views[-1] + 1]
+                    else:
+                        disparity = handle.get_tensor("disparity")[views]
+                    problem = values_problem(disparity, views)
         except (SafetensorError, OSError) as err:
-            raise DepthnerfError(f"{path}: unreadable depth prior ({err})") from None
+            problem = f"unreadable depth prior ({err})"
+        if problem is not None:
+            raise DepthnerfError(f"{path}: {problem}; run: {self.command(record.category, record.split)}")
         return disparity.float()

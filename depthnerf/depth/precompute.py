@@ -2,8 +2,9 @@
 
 Every object of every requested ``<category>_<split>`` gets one file with the raw disparity of all its views at
 the requested resolution (default: the dataset's own). The run is resumable: an object whose file exists with
-the same weights hash, resolution and source fingerprint is skipped; a stale one is recomputed. The manifest
-records the provenance and, per ``<category>_<split>``, how many objects are done.
+the same weights hash, resolution and source fingerprint, and is sound (the tensor, its shape and every value
+finite: :func:`~depthnerf.depth.cache.object_file_problem`), is skipped; a stale or damaged one is recomputed.
+The manifest records the provenance and, per ``<category>_<split>``, how many objects are done.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from depthnerf.depth.cache import (
     cache_dir,
     fingerprint_matches,
     is_bytes_fingerprint,
+    object_file_problem,
     object_path,
     read_object_metadata,
     rgb_fingerprint,
@@ -68,6 +70,9 @@ class PrecomputeSummary:
     """Objects already up to date."""
     stale: int = 0
     """Objects recomputed because their cached file was stale or from other weights."""
+    damaged: list[str] = field(default_factory=list)
+    """``<path>: <problem>`` of each object recomputed because its cached file was unreadable or damaged (no
+    ``disparity`` tensor, another shape or view count, non-finite values)."""
     missing_splits: list[str] = field(default_factory=list)
     """``<category>_<split>`` folders that do not exist (skipped)."""
 
@@ -157,11 +162,17 @@ def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
         stored = None if meta is None else meta.get("fingerprint")
         # the full-bytes fingerprint only where the entry's scheme compares it, or when an entry is (re)written
         fingerprint = rgb_fingerprint(record) if is_bytes_fingerprint(stored) else None
-        if meta is not None and fingerprint_matches(stored, record, fingerprint) and (
-                meta.get("weights_hash"), meta.get("resolution")) == (provenance.weights_hash, str(resolution)):
+        current = meta is not None and fingerprint_matches(stored, record, fingerprint) and (
+            meta.get("weights_hash"), meta.get("resolution")) == (provenance.weights_hash, str(resolution))
+        problem = object_file_problem(path, record, resolution) if current or (
+            meta is None and path.exists()) else None
+        if current and problem is None:
             summary.skipped += 1
         else:
-            summary.stale += meta is not None
+            if problem is not None:
+                summary.damaged.append(f"{path}: {problem}")
+            else:
+                summary.stale += meta is not None
             fingerprint = fingerprint or rgb_fingerprint(record)
             if estimator is None:  # loaded (and the manifest written) only once there is work to do
                 estimator = make_estimator(cfg.estimator, cfg.checkpoint, device=cfg.device)
