@@ -30,6 +30,8 @@ INTRINSICS = "8.2 8. 8. 0.\n0. 0. 0.\n1.\n{}\n"
     (b"\xe3\x81\x00\xff binary", "malformed intrinsics (not a text file)"),
     (INTRINSICS.format("16.5 16").encode(), "image size '16.5 16' on the last line is not two whole numbers 'H W'"),
     (INTRINSICS.format("nan 16").encode(), "image size 'nan 16' on the last line is not two whole numbers 'H W'"),
+    (b"8.2 1e9 8. 0.\n0. 0. 0.\n1.\n16 16\n", "principal point (1e+09, 8) lies outside the 16x16 image"),
+    (b"8.2 8. -0.5 0.\n0. 0. 0.\n1.\n16 16\n", "principal point (8, -0.5) lies outside the 16x16 image"),
 ])
 def test_bad_intrinsics_are_one_line(tmp_path: Path, content: bytes, problem: str, capsys):
     root = make_srn_fixture(tmp_path, splits={"train": 1})

@@ -63,6 +63,8 @@ def read_intrinsics(path: Path) -> Intrinsics:
     height, width = (int(x) for x in size)
     if not all(np.isfinite([focal, cx, cy])) or focal <= 0 or height <= 0 or width <= 0:
         raise DepthnerfError(f"{path}: invalid intrinsics values f={focal} c=({cx},{cy}) size={height}x{width}")
+    if not (0 <= cx <= width and 0 <= cy <= height):  # a camera's optical axis meets its own image
+        raise DepthnerfError(f"{path}: principal point ({cx:g}, {cy:g}) lies outside the {height}x{width} image")
     return Intrinsics(focal=focal, cx=cx, cy=cy, height=height, width=width)
 
 
