@@ -302,7 +302,8 @@ def test_train_with_a_worker_prints_a_damaged_prior_as_one_line(data, tmp_path, 
     capsys.readouterr()
     assert main(["train", "--preset", "cpu-cars", "--data", str(data), "--depth", "bundled", "--depth-checkpoint", ckpt,
                  "--out", str(tmp_path / "run"), "--max-steps", "1", "--log.val_every", "0", "--device", "cpu",
-                 *TINY_TRAIN_FLAGS, "--data.resolution", "16", "--data.num_workers", "1"]) == 2
+                 *TINY_TRAIN_FLAGS, "--data.resolution", "16", "--data.num_workers", "1",
+                 "--model.encoder.num_layers", "2"]) == 2  # 2 stages: 16 px keeps a 4x4 deepest stage
     err = capsys.readouterr().err
     assert err.endswith(f"error: {path}: depth prior holds non-finite values (view 0); run: depthnerf depth --data "
                         f"{data} --depth bundled --depth-checkpoint {ckpt} --category cars --splits train "

@@ -287,17 +287,18 @@ def test_a_resolution_the_encoder_shrinks_to_one_pixel_is_refused(tmp_path, caps
     assert main([*args, "17"]) == 0
 
 
-def test_validation_views_an_object_lacks_are_refused_not_replaced(tmp_path, capsys):
-    """View 999 of 3-view val objects was dropped and view 1 scored instead, silently."""
-    data = make_srn_fixture(tmp_path / "d", "cars", {"train": 2, "val": 1}, views=3, size=16)
-    obj = next((data / "cars_val").iterdir())
-    args = ["train", "--preset", "cpu-cars", "--data", str(data), "--depth", "none", "--max-steps", "1",
-            "--device", "cpu", "--log.val_every", "1", "--data.num_workers", "0"]
-    assert main([*args, "--out", str(tmp_path / "a"), "--log.val_views", "1,999"]) == 2
-    assert one_error(capsys) == (f"error: --log.val_views 1,999: {obj} has 3 views (indices 0-2), so view 999 "
-                                 f"does not exist")
-    assert main([*args, "--out", str(tmp_path / "b"), "--log.val_views", "0"]) == 2  # view 0: a 3-view input
-    assert one_error(capsys) == f"error: --log.val_views 0: names only {obj}'s input view; name a view to render from it"
+def test_validation_views_an_object_lacks_are_named_with_what_is_rendered(tmp_path):
+    """View 999 of 3-view val objects was dropped and view 1 scored instead, silently; now a note says so."""
+    from depthnerf.data.protocol import validation_targets, validation_views_note
+
+    assert validation_targets([1, 999], 3) == [1] and validation_targets([0], 3) == [1]  # view 0: a 3-view input
+    assert validation_targets([0, 125, 200], 251) == [0, 125, 200] and validation_targets([64], 251) == [65]
+    assert validation_views_note([0, 125, 200], [("a", 251), ("b", 251)]) is None
+    assert validation_views_note([1, 999], [("a", 3), ("b", 251), ("c", 3)]) == (  # b lacks view 999 too
+        "note: --log.val_views 1,999: a has 3 views, input view 0; validation renders its views 1 (and 2 more val "
+        "objects)")
+    assert validation_views_note([0], [("a", 3)]) == (
+        "note: --log.val_views 0: a has 3 views, input view 0; validation renders its views 1")
 
 
 def test_the_run_lock_waits_for_a_lock_released_meanwhile(tmp_path):

@@ -39,15 +39,23 @@ def protocol_views(num_views: int, stride: int = 1) -> ProtocolViews:
     return ProtocolViews(input_view=src, targets=tuple(others[::stride]), others=len(others))
 
 
-def check_validation_views(views: Sequence[int], objects: Sequence[tuple[str, int]]) -> None:
-    """One line when ``--log.val_views`` cannot be scored as given on the val ``objects`` (``(path, views)``
-    pairs): an index past an object's views, or only the object's input view (:func:`protocol_views`), either of
-    which validation would have replaced with another view, silently."""
-    for path, count in objects:
-        past = [v for v in views if v >= count]
-        if past:
-            raise DepthnerfError(f"--log.val_views {','.join(map(str, views))}: {path} has {count} views (indices "
-                                 f"0-{count - 1}), so view {past[0]} does not exist")
-        if all(v == protocol_views(count).input_view for v in views):
-            raise DepthnerfError(f"--log.val_views {','.join(map(str, views))}: names only {path}'s input view; "
-                                 f"name a view to render from it")
+def validation_targets(views: Sequence[int], num_views: int) -> list[int]:
+    """The views training validation renders of an object with ``num_views`` views, asked for ``views``
+    (``--log.val_views``): those the object has, other than its input view (:func:`protocol_views`); when none is
+    left, the view after the input view."""
+    src = protocol_views(num_views).input_view
+    return [v for v in views if v < num_views and v != src] or [(src + 1) % num_views]
+
+
+def validation_views_note(views: Sequence[int], objects: Sequence[tuple[str, int]]) -> str | None:
+    """A note saying what validation renders instead of ``--log.val_views`` where some val ``objects``
+    (``(path, views)`` pairs) lack those views (:func:`validation_targets`; the presets' views are for SRN's
+    251-view val objects); None when every object renders them as asked."""
+    changed = [(path, count) for path, count in objects if validation_targets(views, count) != list(views)]
+    if not changed:
+        return None
+    path, count = changed[0]
+    more = f" (and {len(changed) - 1} more val objects)" if len(changed) > 1 else ""
+    rendered = ",".join(map(str, validation_targets(views, count)))
+    return (f"note: --log.val_views {','.join(map(str, views))}: {path} has {count} views, input view "
+            f"{protocol_views(count).input_view}; validation renders its views {rendered}{more}")

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from depthnerf.data.protocol import protocol_views
+from depthnerf.data.protocol import protocol_views, validation_targets
 from depthnerf.data.srn import ObjectRecord, load_object
 from depthnerf.depth.prior import DatasetViews, PriorSource
 from depthnerf.eval.metrics import object_metrics
@@ -52,7 +52,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: Pr
     try:
         for i, record in enumerate(records):
             src = protocol_views(record.num_views).input_view
-            targets = [v for v in views if v < record.num_views and v != src] or [(src + 1) % record.num_views]
+            targets = validation_targets(views, record.num_views)
             obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=spec.pixel_center)
             cond = condition(prior_source, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
                              where=DatasetViews(record, (src,)), symmetry_plane=symmetry_plane)

@@ -39,7 +39,7 @@ from tqdm import tqdm
 from depthnerf.config_io import to_dict
 from depthnerf.crash_hook import crash_point
 from depthnerf.data.card import card_path, read_dataset_card
-from depthnerf.data.protocol import check_validation_views
+from depthnerf.data.protocol import validation_views_note
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
@@ -211,7 +211,9 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                 raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
                                      ) from None
             prior_source.check(val_records)
-            check_validation_views(cfg.log.val_views, [(str(r.path), r.num_views) for r in val_records])
+            views_note = validation_views_note(cfg.log.val_views, [(str(r.path), r.num_views) for r in val_records])
+            if views_note is not None:
+                print(views_note, file=sys.stderr, flush=True)
         plane = None
         if cfg.model.mirror:
             plane, plane_from = dataset_plane(root, cat, cfg.data.symmetry_plane)
