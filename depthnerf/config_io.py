@@ -157,3 +157,19 @@ def differences(old: dict[str, Any], new: dict[str, Any]) -> dict[str, tuple[Any
     ``{key: (old value, new value)}``, None for a key one side lacks."""
     a, b = flat_keys(old), flat_keys(new)
     return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
+
+
+NumberRules = dict[str, tuple[float, bool]]
+"""Dotted attribute path -> ``(bound, inclusive)``: the value must be ``>= bound`` (inclusive) or ``> bound``."""
+
+
+def broken_rule(cfg: Any, rules: NumberRules) -> tuple[str, Any, float, bool] | None:
+    """The first of ``rules`` that ``cfg`` breaks, as ``(path, value, bound, inclusive)`` (NaN breaks every rule);
+    None when it keeps them all."""
+    for path, (bound, inclusive) in rules.items():
+        value = cfg
+        for name in path.split("."):
+            value = getattr(value, name)
+        if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
+            return path, value, bound, inclusive
+    return None

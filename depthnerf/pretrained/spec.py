@@ -19,12 +19,12 @@ import json
 from dataclasses import dataclass
 from typing import Any
 
-from depthnerf.config_io import from_dict, to_dict
+from depthnerf.config_io import NumberRules, broken_rule, from_dict, to_dict
 from depthnerf.data.srn import category_defaults
 from depthnerf.depth.prior import PriorConfig
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import PixelNeRFConfig
-from depthnerf.render.config import RenderConfig
+from depthnerf.render.config import RENDER_NUMBER_RULES, RenderConfig
 
 SPEC_KEY = "inference_spec"
 """Weights-metadata key of the spec's JSON."""
@@ -126,23 +126,18 @@ def spec_from_train_config(train: dict[str, Any], model: dict[str, Any], where: 
                          preset=str(train.get("preset", "custom")))
 
 
-SPEC_RULES: dict[str, tuple[float, bool]] = {
-    "resolution": (8, True), "render.sampler.n_coarse": (1, True), "render.sampler.n_importance": (0, True),
-    "render.sampler.n_gaussian": (0, True), "render.sampler.gaussian_std": (0, True),
-    "render.sampler.pdf_epsilon": (0, True)}
+SPEC_RULES: NumberRules = {"resolution": (8, True), **RENDER_NUMBER_RULES}
 """Spec field -> (bound, inclusive), as training enforces them (``depthnerf.train.config.NUMBER_RULES``)."""
 
 
 def check_spec(spec: InferenceSpec, where: str) -> InferenceSpec:
     """``spec`` if its numbers are ones training could have written, else one line naming ``where`` and the field:
     a damaged or hand-edited spec fails here, not as a traceback deep in rendering."""
-    for path, (bound, inclusive) in SPEC_RULES.items():
-        value: Any = spec
-        for name in path.split("."):
-            value = getattr(value, name)
-        if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
-            raise DepthnerfError(f"{where}: inference spec: {path} must be {'>=' if inclusive else '>'} {bound:g}, "
-                                 f"got {value}")
+    broken = broken_rule(spec, SPEC_RULES)
+    if broken is not None:
+        path, value, bound, inclusive = broken
+        raise DepthnerfError(f"{where}: inference spec: {path} must be {'>=' if inclusive else '>'} {bound:g}, "
+                             f"got {value}")
     if not 0 <= spec.z_near < spec.z_far < float("inf"):  # NaN fails too
         raise DepthnerfError(f"{where}: inference spec: z_near / z_far must satisfy 0 <= z_near < z_far (finite), "
                              f"got {spec.z_near}, {spec.z_far}")

@@ -20,6 +20,14 @@ kernels); ``inside-bf16`` the same from maps rounded to bf16 (half the bytes rea
 Same values but for float rounding (``inside-bf16``: the features' bf16 rounding). ``inside*`` implies
 ``--compile``."""
 
+RENDER_NUMBER_RULES: dict[str, tuple[float, bool]] = {
+    "render.sampler.n_coarse": (1, True), "render.sampler.n_importance": (0, True),
+    "render.sampler.n_gaussian": (0, True), "render.sampler.gaussian_std": (0, True),
+    "render.sampler.pdf_epsilon": (0, True)}
+"""The sampler's bounds (``depthnerf.config_io.NumberRules``), as paths from a config holding a ``render`` field:
+training checks them on its config, loading on a checkpoint's inference spec."""
+
+
 @dataclass
 class SamplerConfig:
     """The paper's coarse-to-fine sampler (pixelNeRF ``NeRFRenderer`` with ``n_fine_depth``)."""

@@ -17,13 +17,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from depthnerf.config_io import flat_keys, from_dict, to_dict
+from depthnerf.config_io import NumberRules, broken_rule, flat_keys, from_dict, to_dict
 from depthnerf.data.srn import CATEGORY_DEFAULTS, category_defaults
 from depthnerf.depth.prior import PriorConfig, portable_prior
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.config import EncoderConfig, FieldConfig, PixelNeRFConfig
 from depthnerf.pretrained.spec import InferenceSpec, model_config_from_dict
-from depthnerf.render.config import RenderConfig, SamplerConfig
+from depthnerf.render.config import RENDER_NUMBER_RULES, RenderConfig, SamplerConfig
 
 DENSITY_BIAS = 0.5
 """Initial bias of the density output in every preset: with randomly initialised encoders pixelNeRF's zero bias
@@ -167,7 +167,7 @@ def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) 
     return dataclasses.replace(cfg, prior=PriorConfig(estimator=estimator, checkpoint=checkpoint))
 
 
-NUMBER_RULES: dict[str, tuple[float, bool]] = {
+NUMBER_RULES: NumberRules = {
     "data.resolution": (8, True), "data.target_views": (0, True), "data.num_workers": (0, True),
     "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
@@ -176,28 +176,20 @@ NUMBER_RULES: dict[str, tuple[float, bool]] = {
     "schedule.foreground_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "log.log_every": (1, True),
     "log.val_every": (0, True),
     "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
-    "log.render_chunk": (1, True), "render.sampler.n_coarse": (1, True), "render.sampler.n_importance": (0, True),
-    "render.sampler.n_gaussian": (0, True), "render.sampler.gaussian_std": (0, True),
-    "render.sampler.pdf_epsilon": (0, True)}
+    "log.render_chunk": (1, True), **RENDER_NUMBER_RULES}
 """Config path -> (bound, inclusive): the value must be ``>= bound`` (inclusive) or ``> bound``."""
 NAMED_FLAGS = {"schedule.max_steps": "--max-steps", "log.checkpoint_every": "--checkpoint-every"}
 """Config paths that have a named ``depthnerf train`` flag (the others are set as ``--section.field``)."""
 
 
-def _field(cfg: Any, path: str) -> Any:
-    for name in path.split("."):
-        cfg = getattr(cfg, name)
-    return cfg
-
-
 def check_config(cfg: TrainConfig) -> TrainConfig:
     """``cfg`` if every setting in it is honoured by training, else a one-line :class:`DepthnerfError` (naming
     the flag, before anything is written)."""
-    for path, (bound, inclusive) in NUMBER_RULES.items():
-        value = _field(cfg, path)
-        if not (value >= bound if inclusive else value > bound) or value != value:  # value != value: NaN
-            flag = NAMED_FLAGS.get(path, f"--{path}")
-            raise DepthnerfError(f"{flag} must be {'>=' if inclusive else '>'} {bound:g}, got {value}")
+    broken = broken_rule(cfg, NUMBER_RULES)
+    if broken is not None:
+        path, value, bound, inclusive = broken
+        flag = NAMED_FLAGS.get(path, f"--{path}")
+        raise DepthnerfError(f"{flag} must be {'>=' if inclusive else '>'} {bound:g}, got {value}")
     encoder = cfg.model.encoder
     if encoder.deepest_side(cfg.data.resolution) < 2:  # one value per channel: per-object BatchNorm cannot train
         least = next(r for r in range(cfg.data.resolution, 4096) if encoder.deepest_side(r) >= 2)
