@@ -59,7 +59,7 @@ from depthnerf.data.synth.generate import ObjectJob, SynthConfig, generate, job_
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import object_metrics
 from depthnerf.eval.objects import prepare_object
-from depthnerf.files import write_text_atomic
+from depthnerf.files import folder_problem, make_folder, write_text_atomic
 from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.pretrained.hub import is_hub_reference
 from depthnerf.pretrained.load import resolve_checkpoint, shipped_checkpoints
@@ -291,17 +291,14 @@ def run_demo(cfg: DemoConfig, device: torch.device | str = "cpu") -> dict:
             raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
     if cfg.seed < 0:
         raise DepthnerfError(f"--seed must be >= 0 (a synthesis seed), got {cfg.seed}")
-    if cfg.out.exists() and not cfg.out.is_dir():
-        raise DepthnerfError(f"{cfg.out}: --out is a file, not a folder")
+    if (problem := folder_problem(cfg.out, "--out")) is not None:  # before the checkpoints load
+        raise DepthnerfError(problem)
     checkpoints = {c: cfg.checkpoints.get(c, DEFAULT_CHECKPOINTS[c]) for c in cfg.categories}
     loaded = {}
     for category, checkpoint in checkpoints.items():  # every checkpoint loads before any work starts
         t = time.perf_counter()
         loaded[category] = (load_checkpoint_for(category, checkpoint, device), time.perf_counter() - t)
-    try:
-        cfg.out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise DepthnerfError(f"{cfg.out}: cannot create the output folder ({err.strerror or err})") from None
+    make_folder(cfg.out, "--out")
     results = []
     for category, (session, load_s) in loaded.items():
         results.append(run_category(category, session, checkpoints[category], cfg))

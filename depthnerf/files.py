@@ -1,5 +1,5 @@
-"""Crash-safe file writes, content hashes and JSON-object reads shared by the data, depth-cache, training and
-checkpoint code.
+"""Crash-safe file writes, output folders, content hashes and JSON-object reads shared by the data, depth-cache,
+training and checkpoint code.
 
 A write goes to a temporary file in the destination folder (so the rename stays on one file system), is flushed
 and fsynced, then renamed over the destination with ``os.replace``: a reader sees the old file or the new one,
@@ -23,6 +23,40 @@ def temporary_sibling(path: Path) -> Path:
     """The temporary name used for an atomic write of ``path`` (hidden; unique per call, also across machines and
     containers whose processes share a file system and a process id)."""
     return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+
+
+def nearest_existing(path: Path) -> Path:
+    """``path`` itself when it exists, else its nearest ancestor that does (the file system's root at worst)."""
+    path = Path(path)
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def folder_problem(path: Path, what: str) -> str | None:
+    """Why ``path`` cannot be (or become) a folder, as one line naming it and ``what`` it is for (a flag such as
+    ``--out``), or None. Looks only: the path itself or its nearest existing ancestor must be a folder."""
+    path = Path(path)
+    existing = nearest_existing(path)
+    if existing.is_dir():
+        return None
+    if existing == path:
+        return f"{path}: {what} is a file, not a folder"
+    return f"{path}: {what} lies under {existing}, which is a file, not a folder"
+
+
+def make_folder(path: Path, what: str) -> Path:
+    """Create ``path`` and its parents (``exist_ok``) as the folder for ``what``, or raise one line naming it: a file
+    in the way (:func:`folder_problem`) or the system's reason (permission denied, read-only file system)."""
+    path = Path(path)
+    problem = folder_problem(path, what)
+    if problem is not None:
+        raise DepthnerfError(problem)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise DepthnerfError(f"{path}: cannot create {what} ({err.strerror or err})") from None
+    return path
 
 
 def write_text_atomic(path: Path, text: str) -> None:

@@ -77,6 +77,9 @@ def test_same_file_twice_is_one_row(runs, capsys):
     [
         (lambda d: d.pop("checkpoint_sha256"), "summary is missing checkpoint_sha256"),
         (lambda d: d.update(psnr="22.1"), "'psnr' must be a finite number"),
+        (lambda d: d.update(psnr=-1e9), "'psnr' is -1000000000.0, which no evaluation gives (it is >= 0)"),
+        (lambda d: d.update(ssim=1.5), "'ssim' is 1.5, which no evaluation gives (it is within [-1, 1])"),
+        (lambda d: d.update(fscore=-0.1), "'fscore' is -0.1, which no evaluation gives (it is within [0, 1])"),
         (lambda d: d.update(views=-1), "'views' must be a non-negative integer"),
         (lambda d: d.update(method=""), "'method' must be a non-empty string"),
     ],
@@ -100,6 +103,8 @@ def test_bad_paths_and_conflicts(runs, tmp_path, capsys):
         ([str(tmp_path / "nowhere")], "no such file or directory"),
         ([str(tmp_path / "empty_dir")], "no summary.json here"),
         ([str(runs["run"]), str(twin)], "is also given by"),
+        ([str(twin), "--out", str(tmp_path)], f"{tmp_path}: --out is a folder; name the Markdown file to write"),
+        ([str(twin), "--out", str(twin / "t.md")], f"--out lies under {twin}, which is a file, not a folder"),
     ]:
         assert main(["compare", *args]) == 2
         err = capsys.readouterr().err

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from fixtures_srn import first_object, make_srn_fixture
+from fixtures_srn import first_object, make_srn_fixture, write_png16
 from PIL import Image
 
 from depthnerf.cli import main
@@ -254,3 +254,42 @@ def test_a_legacy_prior_entry_is_checked_without_hashing_every_image(tmp_path: P
     assert (summary.computed, summary.stale, summary.skipped) == (1, 1, 1)
     assert hashed == [legacy.object_id, current.object_id]  # rewritten in the byte-wise scheme
     assert cache.read_object_metadata(path)["fingerprint"] == real(legacy)
+
+
+def test_eight_bit_values_in_a_16_bit_colour_png_are_refused_not_read_as_blank(tmp_path: Path, capsys):
+    """Pillow reads 16-bit colour by its high bytes: 8-bit values stored in 16 bits would read as a black image
+    (RGB) or a blank one (RGBA, alpha 0); full-range 16-bit values (v * 257) read as their 8-bit selves."""
+    root = make_srn_fixture(tmp_path, splits={"train": 1}, with_mask=True)
+    path = first_object(root) / "rgb" / "000001.png"
+    rgb8 = np.round(srn_format.read_rgb(path) * 255).astype(np.uint16)
+    for layout in (rgb8, np.concatenate([rgb8, np.full_like(rgb8[..., :1], 255)], axis=-1)):
+        write_png16(path, layout * 257)
+        assert np.array_equal(np.round(srn_format.read_rgb(path) * 255), rgb8)
+        write_png16(path, layout)
+        with pytest.raises(DepthnerfError, match="16-bit colour PNG whose values all lie below 256"):
+            srn_format.read_rgb(path)
+    assert main(["inspect", "--data", str(root)]) == 2  # a required file: an error in inspect too
+    assert "16-bit colour PNG whose values all lie below 256" in capsys.readouterr().err
+
+
+def test_an_all_background_mask_of_a_view_that_shows_an_object_is_refused(tmp_path: Path):
+    root = make_srn_fixture(tmp_path, splits={"train": 1}, with_mask=True)
+    obj = first_object(root)
+    record = index_split(root, "cars", "train").objects[0]
+    mask = srn_format.read_mask(obj / "mask" / "000001.png")
+    assert mask.any() and not mask.all()
+    srn_format.write_mask(obj / "mask" / "000001.png", np.zeros_like(mask))
+    with pytest.raises(DepthnerfError, match=r"000001.png: mask is all background but rgb/000001.png shows an "
+                                             r"object on a white background"):
+        load_object(record, pixel_center=0.0)
+    srn_format.write_rgb(obj / "rgb" / "000001.png", np.ones(mask.shape + (3,)))  # an empty view: a valid mask
+    assert not load_object(record, views=[1], pixel_center=0.0).masks.any()
+    srn_format.write_rgb(obj / "rgb" / "000001.png", np.zeros(mask.shape + (3,)))  # no white: the mask is believed
+    assert not load_object(record, views=[1], pixel_center=0.0).masks.any()
+    write_png16(obj / "mask" / "000002.png", np.repeat(mask[..., None], 3, -1).astype(np.uint16) * 255)
+    with warnings.catch_warnings(record=True) as caught:  # a 16-bit colour mask is decoded by inspect: lenient...
+        warnings.simplefilter("always")
+        assert not index_split(root, "cars", "train").objects[0].has_mask
+    assert any("000002.png: mask is all background" in str(w.message) for w in caught)
+    with pytest.raises(DepthnerfError, match="000002.png: mask is all background"):  # ... or strict
+        index_split(root, "cars", "train", strict=True)

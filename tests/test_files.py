@@ -4,8 +4,19 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 
-from depthnerf.files import sha256_file, sha256_files, write_json_atomic, write_text_atomic
+import pytest
+
+from depthnerf.errors import DepthnerfError
+from depthnerf.files import (
+    folder_problem,
+    make_folder,
+    sha256_file,
+    sha256_files,
+    write_json_atomic,
+    write_text_atomic,
+)
 
 
 def test_atomic_writes_replace_and_leave_no_temporary(tmp_path):
@@ -25,3 +36,23 @@ def test_hashes_match_hashlib(tmp_path):
     named = hashlib.sha256(b"a.bin\0" + a.read_bytes() + b"b.bin\0" + b"xyz").hexdigest()
     assert sha256_files([a, b]) == named
     assert sha256_files([a, b], names=False) == hashlib.sha256(a.read_bytes() + b"xyz").hexdigest()
+
+
+def test_make_folder_makes_parents_and_names_a_file_in_the_way(tmp_path):
+    made = make_folder(tmp_path / "a" / "b", "--out")
+    assert made.is_dir() and make_folder(made, "--out") == made  # an existing folder is fine
+    (tmp_path / "f").write_text("x")
+    assert folder_problem(tmp_path / "f", "--out") == f"{tmp_path / 'f'}: --out is a file, not a folder"
+    deep = tmp_path / "f" / "x" / "y"
+    assert folder_problem(deep, "--out") == f"{deep}: --out lies under {tmp_path / 'f'}, which is a file, not a folder"
+    with pytest.raises(DepthnerfError, match="lies under"):
+        make_folder(deep, "--out")
+    assert not (tmp_path / "f").is_dir()
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write anywhere")
+def test_make_folder_gives_the_systems_reason(tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    with pytest.raises(DepthnerfError, match=r"cannot create --out \(Permission denied\)"):
+        make_folder(locked / "run", "--out")

@@ -125,6 +125,7 @@ def test_compare_and_resume_refuse_a_binary_json_file(tmp_path, capsys):
 @pytest.mark.parametrize("flags, line", [
     (["--seed", "-1"], "--seed must be >= 0 (a synthesis seed), got -1"),
     (["--out", "{d}/file"], "{d}/file: --out is a file, not a folder"),
+    (["--out", "{d}/file/demo"], "{d}/file/demo: --out lies under {d}/file, which is a file, not a folder"),
     (["--views-stride", "0"], "--views-stride must be >= 1, got 0"),  # one line named all three flags
     (["--mesh-resolution", "1"], "--mesh-resolution must be >= 2, got 1"),
 ])
@@ -179,7 +180,7 @@ def test_eval_refuses_a_file_as_out_before_loading(tmp_path, capsys):
 @pytest.mark.parametrize("flags, line", [
     (["--device", "gpu"], "--device gpu: choose auto, cpu, cuda or cuda:N"),
     (["--work-dir", "{d}/file"], "{d}/file: --work-dir is a file, not a folder"),
-    (["--work-dir", "{d}/file/runs"], "{d}/file/runs: cannot create --work-dir (Not a directory)"),
+    (["--work-dir", "{d}/file/runs"], "{d}/file/runs: --work-dir lies under {d}/file, which is a file, not a folder"),
 ])
 def test_app_refuses_a_bad_device_or_work_dir_before_serving(tmp_path, capsys, flags, line):
     """Both were tracebacks: the device one from the first model's ``.to("gpu")``, the other from ``mkdir``."""

@@ -88,6 +88,26 @@ def test_inspect_reads_the_dataset_card_as_train_and_eval_do(tmp_path: Path, car
     assert err == [f"error: {root / 'cars_card.json'}{said}" + err[0].split(said, 1)[1]]
 
 
+def test_inspect_compares_the_cards_camera_with_the_files(tmp_path: Path, capsys):
+    """A card's camera fields were written and never read: a card made for other files (another resolution, say)
+    passed silently, its pixel centre and framing then applied to files it does not describe."""
+    root = make_srn_fixture(tmp_path / "data", splits={"train": 1}, views=2, size=16)
+    card = root / "cars_card.json"
+    camera = {"height": 16, "width": 16, "focal": 131.25 * 16 / 128, "radius": 1.3, "pixel_center": 0.5}
+    card.write_text(json.dumps({"camera": camera}))
+    assert main(["inspect", "--data", str(root), "--json", str(tmp_path / "s.json")]) == 0
+    assert "warning" not in capsys.readouterr().err  # agreeing to the files' 6 decimals
+    card.write_text(json.dumps({"camera": {**camera, "height": 32, "width": 32, "focal": 32.8125, "radius": 1.5}}))
+    assert main(["inspect", "--data", str(root), "--json", str(tmp_path / "s.json")]) == 0
+    said = (f"{card}: the card's camera says images 32x32, the files 16x16; focal 32.81 px, the files 16.41 px; "
+            f"cameras 1.5 from the origin, the files 1.3 ({root / 'cars_train'}): the card describes other files, and "
+            "its pixel_center and framing may not hold for these")
+    assert capsys.readouterr().err.strip() == f"warning: {said}"
+    assert json.loads((tmp_path / "s.json").read_text())["splits"][0]["warnings"] == [said]
+    assert main(["inspect", "--data", str(root), "--strict"]) == 2
+    assert capsys.readouterr().err.strip() == f"error: {said}"
+
+
 def test_inspect_skip_bad_lists_skipped(tmp_path: Path, capsys):
     root = make_srn_fixture(tmp_path, splits={"train": 3, "test": 1})
     _, bad_pose, _ = BAD_INPUT_CASES["pose_not_rigid"](root)

@@ -204,7 +204,34 @@ def test_cli(tmp_path: Path, capsys) -> None:
     assert capsys.readouterr().err.strip().startswith("error: synth:")
     (tmp_path / "file").write_text("x")
     assert cli_main(["synth", "--category", "chairs", "--out", str(tmp_path / "file")]) == 2
-    assert "not a directory" in capsys.readouterr().err
+    assert capsys.readouterr().err == f"error: {tmp_path / 'file'}: --out is a file, not a folder\n"
+
+
+def test_work_the_disk_cannot_hold_is_refused_before_anything_is_written(tmp_path: Path, capsys, monkeypatch):
+    """10^8 views an object was the kernel's out-of-memory kill, without a message."""
+    out = tmp_path / "huge" / "data"
+    args = ["synth", "--category", "cars", "--out", str(out), "--train-objects", "2", "--val-objects", "0",
+            "--test-objects", "1", "--resolution", "64", "--views-train", "100000000", "--views-test", "3", "--quiet"]
+    free = shutil.disk_usage(tmp_path).free
+    need = (2 * 100_000_000 + 3) * (1024 + 0.25 * 64 * 64)
+    assert need > free  # 205 GB: more than this machine's disk
+    assert cli_main(args) == 2
+    assert capsys.readouterr().err == (f"error: {out}: 3 objects of 200,000,003 views in all need at least "
+                                       f"{need / 1e9:,.1f} GB, and the disk has {free / 1e9:,.1f} GB free; lower "
+                                       "--views-train, --views-test, --resolution or the object counts\n")
+    assert not (tmp_path / "huge").exists()
+    monkeypatch.setattr("shutil.disk_usage", lambda path: shutil._ntuple_diskusage(10**6, 10**6 - 4000, 4000))
+
+    def small(name: str, views: int) -> list[str]:
+        return ["synth", "--category", "cars", "--out", str(tmp_path / name), "--train-objects", "1",
+                "--val-objects", "0", "--test-objects", "0", "--resolution", "16", "--views-train", str(views),
+                "--quiet"]
+
+    assert cli_main(small("fits", 2)) == 0  # 2 x (1024 + 64) bytes fit in 4000
+    assert cli_main(small("fits", 2)) == 0  # nothing left to make: nothing to fit
+    assert cli_main(small("four", 4)) == 2  # 4352 bytes do not
+    assert "1 object of 4 views in all need at least 0.0 GB" in capsys.readouterr().err
+    assert not (tmp_path / "four").exists()
 
 
 def test_cli_out_of_memory_is_one_line(tmp_path: Path, capsys, monkeypatch) -> None:

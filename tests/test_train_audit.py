@@ -125,7 +125,16 @@ def test_out_must_be_a_new_empty_or_run_folder(data, tmp_path, capsys):
     a_file = tmp_path / "a_file"
     a_file.write_text("notes")
     assert main([*BASE, "--data", str(data), "--out", str(a_file), "--max-steps", "1"]) == 2
-    assert one_error(capsys) == f"error: {a_file}: --out is a file, not a run folder; choose another --out"
+    assert one_error(capsys) == f"error: {a_file}: --out is a file, not a folder; choose another --out"
+    under = a_file / "run" / "x"  # was an OS traceback from the run lock's mkdir
+    assert main([*BASE, "--data", str(data), "--out", str(under), "--max-steps", "1"]) == 2
+    assert one_error(capsys) == (f"error: {under}: --out lies under {a_file}, which is a file, not a folder; choose "
+                                 "another --out")
+    run = tmp_path / "store_run"  # a --data.view_store in the way is refused before the run folder is written
+    assert main([*BASE, "--data", str(data), "--out", str(run), "--max-steps", "1", "--data.view_store",
+                 str(a_file)]) == 2
+    assert one_error(capsys) == f"error: {a_file}: --data.view_store is a file, not a folder"
+    assert not run.exists()
     other = tmp_path / "papers"
     other.mkdir()
     (other / "config.json").write_text('{"not": "a run"}')

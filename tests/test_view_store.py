@@ -244,8 +244,15 @@ def test_the_dataset_itself_or_a_foreign_folder_is_never_a_store(tmp_path):
         store.ensure(records)
     assert (store.object_dir(records[0]) / "notes.txt").read_text() == "mine"
     (tmp_path / "afile").write_text("x")
-    with pytest.raises(DepthnerfError, match=r"afile: is a file, not a folder for --data.view_store"):
-        ViewStore(tmp_path / "afile", 16, 0.5).ensure(records)
+    for where, said in ((tmp_path / "afile", "--data.view_store is a file, not a folder"),
+                        (tmp_path / "afile" / "s", "--data.view_store lies under")):
+        for probe in (ViewStore(where, 16, 0.5).check, lambda w=where: ViewStore(w, 16, 0.5).ensure(records)):
+            with pytest.raises(DepthnerfError, match=said):
+                probe()
+    with pytest.raises(DepthnerfError, match=r"srn: not empty and not a view store"):
+        ViewStore(root, 16, 0.5).check()
+    ViewStore(tmp_path / "new" / "store", 16, 0.5).check()  # a new folder passes, and nothing is made yet
+    assert not (tmp_path / "new").exists()
 
 
 def test_an_object_rebuilt_from_other_data_under_a_run_is_refused(tmp_path):

@@ -13,6 +13,7 @@ import importlib.util
 from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
+from depthnerf.files import make_folder
 
 INSTALL_HINT = "depthnerf app needs gradio, which is not installed: pip install -e \".[app]\" (or 'depthnerf[app]')"
 
@@ -52,12 +53,7 @@ def run(args: argparse.Namespace) -> int:
         raise DepthnerfError(f"--port must be within 1..65535, got {args.port}")
     device = pick_device(args.device)  # a device that is not there: one line, not the first model's traceback
     if args.work_dir is not None:  # a file or a folder that cannot be made: one line
-        if args.work_dir.exists() and not args.work_dir.is_dir():
-            raise DepthnerfError(f"{args.work_dir}: --work-dir is a file, not a folder")
-        try:
-            args.work_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise DepthnerfError(f"{args.work_dir}: cannot create --work-dir ({err.strerror or err})") from None
+        make_folder(args.work_dir, "--work-dir")
     check_port(args.host, args.port)  # before gradio is imported and the first model loaded
     config = AppConfig(host=args.host, port=args.port,
                        checkpoints=tuple(args.checkpoint or SHIPPED_MODELS.values()), share=args.share,

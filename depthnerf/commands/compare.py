@@ -24,7 +24,7 @@ from pathlib import Path
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.config import protocol_mismatch
 from depthnerf.eval.table import find_summaries, load_summary, markdown_table, sample_warnings
-from depthnerf.files import write_text_atomic
+from depthnerf.files import folder_problem, make_folder, write_text_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -39,6 +39,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out is not None:  # before any reading: a path the table cannot go to is one line, not a late OSError
+        if args.out.is_dir():
+            raise DepthnerfError(f"{args.out}: --out is a folder; name the Markdown file to write")
+        problem = None if args.out.exists() else folder_problem(args.out, "--out")
+        if problem is not None:
+            raise DepthnerfError(problem)
+        make_folder(args.out.parent, "--out's folder")
     files: list[Path] = []
     for path in args.paths:
         files += [f for f in find_summaries(path) if f.resolve() not in {g.resolve() for g in files}]
@@ -60,7 +67,6 @@ def run(args: argparse.Namespace) -> int:
     print(table, end="")
     if args.out is not None:
         try:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
             write_text_atomic(args.out, table)
         except OSError as err:
             raise DepthnerfError(f"{args.out}: cannot write the table ({err.strerror or err})") from None

@@ -7,7 +7,8 @@ unless ``--skip-bad``, which leaves bad objects out and lists them. A bad *optio
 not used for that object, with a ``warning: <file>: <problem>`` line on stderr (equal problems of a split grouped
 into one line); ``--strict`` makes it an error. Entries the layout does not know are ignored (one ``note:`` line
 per split). A category's dataset card (``<category>_card.json``), where there is one, is read as training and
-evaluation read it: a bad one is an error naming it. Accepted formats and rules: docs/data.md. A tqdm bar on
+evaluation read it: a bad one is an error naming it, and a card whose camera (image size, focal length, camera
+distance) disagrees with a split's files gets a warning (``--strict``: an error). Accepted formats and rules: docs/data.md. A tqdm bar on
 stderr shows progress when stderr is a terminal.
 
 ``--json PATH`` writes the same summary as JSON::
@@ -35,14 +36,15 @@ import argparse
 import dataclasses
 import json
 import math
+import warnings
 from pathlib import Path
 
 from depthnerf.data.card import card_path, read_dataset_card
 from depthnerf.data.srn import SPLITS, discover_categories, index_split, split_dir
 from depthnerf.data.symmetry import plane_from_card
 from depthnerf.data.synth.framing import dataset_framing
-from depthnerf.data.validate import SplitSummary, summarize_split
-from depthnerf.errors import DepthnerfError
+from depthnerf.data.validate import SplitSummary, card_camera_disagreements, summarize_split
+from depthnerf.errors import DataWarning, DepthnerfError
 from depthnerf.files import write_text_atomic
 
 
@@ -103,7 +105,7 @@ def format_summary(s: SplitSummary) -> list[str]:
     return lines
 
 
-def _check_card(root: Path, category: str) -> None:
+def _check_card(root: Path, category: str) -> dict | None:
     """The category's dataset card, if it has one, read as training and evaluation read it (its pixel centre,
     framing and symmetry plane): a bad one is the error they would stop with."""
     card = read_dataset_card(root, category)
@@ -111,6 +113,18 @@ def _check_card(root: Path, category: str) -> None:
         where = str(card_path(root, category))
         dataset_framing(card, where)
         plane_from_card(card, where)
+    return card
+
+
+def _card_against_files(card: dict, where: str, summary: SplitSummary, strict: bool) -> SplitSummary:
+    """``summary`` with a warning for each way the card's camera disagrees with the split's files (an error with
+    ``strict``)."""
+    lines = card_camera_disagreements(card, where, summary)
+    if lines and strict:
+        raise DepthnerfError(lines[0])
+    for line in lines:
+        warnings.warn(line, DataWarning, stacklevel=2)
+    return dataclasses.replace(summary, warnings=[*summary.warnings, *lines])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -123,11 +137,13 @@ def run(args: argparse.Namespace) -> int:
         splits = [args.split] if args.split else [s for s in SPLITS if split_dir(root, category, s).is_dir()]
         if not splits:
             raise DepthnerfError(f"{root}: no {category}_<split> folders found")
-        _check_card(root, category)
+        card = _check_card(root, category)
         for split in splits:
             index = index_split(root, category, split, skip_bad=args.skip_bad, check_files=True, progress=True,
                                 strict=args.strict)
             summary = summarize_split(index)
+            if card is not None:
+                summary = _card_against_files(card, str(card_path(root, category)), summary, args.strict)
             print("\n".join(format_summary(summary)), flush=True)
             summaries.append(summary)
     if args.json is not None:

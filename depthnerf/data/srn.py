@@ -380,6 +380,8 @@ def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, res
         intr = _resized(intr, height, width, record.path)
     if record.has_mask:
         masks = [srn_format.read_mask(record.mask_path(v)) for v in indices]
+        for v, img, mask in zip(indices, images, masks, strict=True):
+            srn_format.check_empty_mask(record.mask_path(v), mask, record.rgb_path(v), img)
     else:
         masks = [srn_format.mask_from_white(img) for img in images]
     depths = None

@@ -99,8 +99,34 @@ def write_pose(path: Path, c2w: np.ndarray) -> None:
     write_text_atomic(path, " ".join(f"{v:.8f}" for v in np.asarray(c2w, dtype=np.float64).reshape(-1)) + "\n")
 
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+"""The first 8 bytes of every PNG file."""
+
+
+def png_ihdr(head: bytes) -> tuple[int, int] | None:
+    """Bit depth and colour type (0 grey, 2 RGB, 3 palette, 4 grey+alpha, 6 RGBA) from a file's first 26 bytes,
+    or None when they are not a PNG's signature and ``IHDR`` chunk."""
+    if len(head) < 26 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    return head[24], head[25]
+
+
+def _eight_bit_values_in_16_bits(path: Path) -> bool:
+    """Whether ``path`` is a 16-bit colour PNG (RGB or RGBA, the layouts Pillow reads by their high bytes)."""
+    try:
+        with open(path, "rb") as fh:
+            ihdr = png_ihdr(fh.read(26))
+    except OSError:
+        return False
+    return ihdr is not None and ihdr[0] == 16 and ihdr[1] in (2, 6)
+
+
 def read_rgb(path: Path) -> np.ndarray:
-    """Read an RGB(A) PNG of 8 or 16 bits as float32 ``H x W x 3`` in [0, 1], alpha composited on white."""
+    """Read an RGB(A) PNG of 8 or 16 bits as float32 ``H x W x 3`` in [0, 1], alpha composited on white.
+
+    A 16-bit colour PNG whose high bytes are all zero (8-bit values stored in 16 bits, which Pillow's 8-bit reading
+    of 16-bit colour would turn into a black or, with alpha, a blank image) is an error naming the file.
+    """
     path = Path(path)
     try:
         with Image.open(path) as im:
@@ -116,6 +142,9 @@ def read_rgb(path: Path) -> np.ndarray:
     except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable image ({err})") from None
     if arr.dtype == np.uint8:
+        if not arr.any() and _eight_bit_values_in_16_bits(path):
+            raise DepthnerfError(f"{path}: a 16-bit colour PNG whose values all lie below 256 (8-bit values saved as "
+                                 "16-bit?); it would read as a blank image: re-save it as an 8-bit PNG")
         img = arr.astype(np.float32) / 255.0
     elif arr.dtype in (np.uint16, np.int32, np.uint32) or mode.startswith("I;16") or mode == "I":
         img = arr.astype(np.float32) / 65535.0
@@ -242,6 +271,19 @@ def check_depth(path: Path, depth: np.ndarray, shape: tuple[int, int] | None = N
     if not allow_empty and not depth.any():
         raise DepthnerfError(f"{path}: depth map is all zero (no surface)")
     return depth.astype(np.float32)
+
+
+def check_empty_mask(path: Path, mask: np.ndarray, image_path: Path, image: np.ndarray) -> None:
+    """An all-background mask is valid only for a view whose image shows nothing; where the image has a white
+    background with something on it (pixelNeRF's rule finds object pixels, and not every pixel), the mask is broken
+    (a 16-bit colour mask of 8-bit values reads as all zero, say): an error naming ``path``. On an image without
+    white pixels the rule says nothing, and the mask is believed."""
+    if mask.any():
+        return
+    shown = mask_from_white(image)
+    if shown.any() and not shown.all():
+        raise DepthnerfError(f"{path}: mask is all background but {image_path.parent.name}/{image_path.name} shows "
+                             "an object on a white background; fix the mask or remove the object's mask/ folder")
 
 
 def check_empty_depth(path: Path, depth: np.ndarray, image_path: Path, image: np.ndarray) -> None:

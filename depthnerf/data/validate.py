@@ -16,6 +16,7 @@ origin, where SRN objects are centred).
 
 from __future__ import annotations
 
+import math
 import re
 import warnings
 from collections import Counter
@@ -29,8 +30,11 @@ from depthnerf.data.records import ObjectCheck, ObjectRecord, SplitIndex
 from depthnerf.data.srn_format import (
     NOT_AN_IMAGE,
     check_empty_depth,
+    check_empty_mask,
     mask_not_png,
+    png_ihdr,
     read_depth,
+    read_mask,
     read_pose,
     read_rgb,
 )
@@ -45,8 +49,9 @@ LOSSY_FORMATS = frozenset({"JPEG", "MPO"})
 
 
 def _format_name(head: bytes, im: Image.Image) -> str:
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
-        return f"PNG {head[24]}-bit {PNG_COLOUR_TYPES.get(head[25], f'colour type {head[25]}')}"
+    ihdr = png_ihdr(head)
+    if ihdr is not None:
+        return f"PNG {ihdr[0]}-bit {PNG_COLOUR_TYPES.get(ihdr[1], f'colour type {ihdr[1]}')}"
     return f"{im.format} {im.mode}"
 
 
@@ -142,16 +147,25 @@ def _lossy(fmt: str) -> str:
     return " (lossy)" if fmt in LOSSY_FORMATS else ""
 
 
-def _mask_format(path: Path, expected: tuple[int, int], intrinsics: Path) -> str:
+SIXTEEN_BIT_COLOUR = ("PNG 16-bit RGB", "PNG 16-bit RGBA")
+"""Format names of the PNGs Pillow reads by their high bytes: their pixels are decoded when checked (8-bit values
+stored in 16 bits read as zero)."""
+
+
+def _mask_format(path: Path, expected: tuple[int, int], intrinsics: Path, image: Path) -> str:
     name = _size_checked(path, "mask", expected, intrinsics)
     if (fmt := not_png(name)) is not None:
         raise DepthnerfError(mask_not_png(path, fmt))
+    if name in SIXTEEN_BIT_COLOUR:
+        check_empty_mask(path, read_mask(path), image, read_rgb(image))
     return name
 
 
 def _rgb_format(path: Path, expected: tuple[int, int], intrinsics: Path, strict: bool) -> tuple[str, str | None]:
     """Format name of an RGB image and, when it is not PNG data, its real format (an error with ``strict``)."""
     name = _size_checked(path, "image", expected, intrinsics)
+    if name in SIXTEEN_BIT_COLOUR:
+        read_rgb(path)
     fmt = not_png(name)
     if fmt is not None and strict:
         raise DepthnerfError(f"{path}: image holds {fmt} data under a .png name{_lossy(fmt)}; re-save it as PNG")
@@ -186,7 +200,7 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
             rgb_not_png.append((fmt, record.rgb_path(view)))
         if masks_ok:
             try:
-                masks[_mask_format(record.mask_path(view), expected, intrinsics)] += 1
+                masks[_mask_format(record.mask_path(view), expected, intrinsics, record.rgb_path(view))] += 1
             except DepthnerfError as err:
                 report.add_error("mask", record.mask_path(view), err)
                 masks_ok = False
@@ -326,3 +340,43 @@ def _sum_counts(counts) -> dict[str, int]:
         total.update(c)
     return dict(sorted(total.items()))
 
+
+
+CARD_TOLERANCE = 1e-3
+"""Relative tolerance when a dataset card's camera is compared with the files (``intrinsics.txt`` keeps 6 decimals)."""
+
+
+def card_camera_disagreements(card: dict, card_file: str, summary: SplitSummary) -> list[str]:
+    """Where a dataset card's ``camera`` (``height``/``width``, ``focal``, ``radius``) says other than a split's
+    files: one line each, naming the card and the split. The files are what is read; a card that disagrees with
+    them describes other data, and its ``pixel_center`` and framing may not hold for these files."""
+    camera = card.get("camera")
+    if not isinstance(camera, dict):
+        return []
+
+    def stated(key: str) -> float | None:
+        value = camera.get(key)
+        return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else None
+
+    def off(value: float, low: float, high: float) -> bool:
+        return not (low * (1 - CARD_TOLERANCE) <= value <= high * (1 + CARD_TOLERANCE))
+
+    found = []
+    size = [stated("height"), stated("width")]
+    if None not in size and summary.resolutions and any(s != size for s in summary.resolutions):
+        found.append(f"images {int(size[0])}x{int(size[1])}, the files "
+                     + ", ".join(f"{h}x{w}" for h, w in summary.resolutions))
+    focal = stated("focal")
+    if focal is not None and off(focal, summary.focal_min, summary.focal_max):
+        found.append(f"focal {focal:.4g} px, the files {_range(summary.focal_min, summary.focal_max)} px")
+    radius = stated("radius")
+    if radius is not None and summary.radius_min is not None and off(radius, summary.radius_min, summary.radius_max):
+        found.append(f"cameras {radius:.4g} from the origin, the files {_range(summary.radius_min, summary.radius_max)}")
+    if not found:
+        return []
+    return [f"{card_file}: the card's camera says {'; '.join(found)} ({summary.path}): the card describes other "
+            "files, and its pixel_center and framing may not hold for these"]
+
+
+def _range(low: float, high: float) -> str:
+    return f"{low:.4g}" if math.isclose(low, high, rel_tol=CARD_TOLERANCE) else f"{low:.4g}-{high:.4g}"

@@ -53,7 +53,7 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.records import ObjectRecord
 from depthnerf.data.srn import ObjectViews, load_object
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_bytes_atomic, write_json_atomic
+from depthnerf.files import folder_problem, write_bytes_atomic, write_json_atomic
 
 STORE_FORMAT = 1
 """Version of the layout above; a store of another version is refused."""
@@ -164,13 +164,20 @@ class ViewStore:
         """Folder of one object's arrays."""
         return self.root / f"{record.category}_{record.split}" / record.object_id
 
-    def _check_manifest(self) -> None:
-        """Write the manifest of a new store; refuse one made for another resolution, pixel centre or format, and
-        a folder that holds other things (the dataset itself, say: the store would replace its object folders)."""
+    def check(self) -> None:
+        """Refuse, writing nothing, a folder that cannot be this store (:meth:`_check_manifest`'s refusals): a run
+        calls it before it writes its own folder."""
+        self._check_manifest(write=False)
+
+    def _check_manifest(self, write: bool = True) -> None:
+        """Write the manifest of a new store (``write``); refuse one made for another resolution, pixel centre or
+        format, a file in the way, and a folder that holds other things (the dataset itself, say: the store would
+        replace its object folders)."""
         want = {"format": STORE_FORMAT, "resolution": self.resolution, "pixel_center": self.pixel_center}
         path = self.root / "manifest.json"
-        if self.root.exists() and not self.root.is_dir():
-            raise DepthnerfError(f"{self.root}: is a file, not a folder for --data.view_store")
+        problem = folder_problem(self.root, "--data.view_store")
+        if problem is not None:
+            raise DepthnerfError(problem)
         if not path.exists():
             others = sorted(p.name for p in self.root.iterdir() if not p.name.startswith(".")) \
                 if self.root.is_dir() else []
@@ -179,6 +186,8 @@ class ViewStore:
                     raise DepthnerfError(f"{self.root}: not empty and not a view store (it holds "
                                          f"{', '.join(others[:3])}{', ...' if len(others) > 3 else ''}); name an "
                                          "empty or new folder for --data.view_store, never the dataset's")
+                if not write:
+                    return
                 try:
                     write_json_atomic(path, want)
                 except OSError as err:

@@ -31,6 +31,11 @@ REQUIRED_KEYS = ("psnr", "ssim", "objects", "views", "checkpoint_sha256", "prese
 """Keys every ``summary.json`` must have."""
 OPTIONAL_METRICS = ("chamfer_l1", "fscore", "floater_fraction", "lpips")
 """Optional metric keys (number or null)."""
+METRIC_RANGES = {"psnr": (0.0, math.inf), "ssim": (-1.0, 1.0), "chamfer_l1": (0.0, math.inf), "fscore": (0.0, 1.0),
+                 "floater_fraction": (0.0, 1.0), "lpips": (0.0, math.inf)}
+"""The values each metric can take (inclusive): PSNR of images in [0, 1] is >= 0 (an error of at most 1 a pixel),
+SSIM lies in [-1, 1], distances are >= 0, F-score and the floater share are fractions. A summary outside them was
+not written by ``depthnerf eval``."""
 PAPER_LABEL = "reported in the paper (real SRN)"
 """Suffix of the reference rows: numbers copied from the paper, measured on the real SRN data, not by us."""
 PAPER_TABLE1 = (
@@ -95,6 +100,10 @@ def _number(path: Path, data: dict, key: str, optional: bool) -> float | None:
         return None
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise DepthnerfError(f"{path}: '{key}' must be a finite number, got {value!r}")
+    low, high = METRIC_RANGES[key]
+    if not low <= value <= high:
+        span = f">= {low:g}" if high == math.inf else f"within [{low:g}, {high:g}]"
+        raise DepthnerfError(f"{path}: '{key}' is {value!r}, which no evaluation gives (it is {span})")
     return float(value)
 
 

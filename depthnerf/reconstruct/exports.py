@@ -50,7 +50,7 @@ from PIL import Image
 
 from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_text_atomic
+from depthnerf.files import nearest_existing, write_text_atomic
 from depthnerf.reconstruct.result import Reconstruction
 
 TURNTABLE_FPS = 12
@@ -79,9 +79,7 @@ def check_output_dir(out: Path, overwrite: bool = False) -> None:
     """Fail at once, before any work, when ``out`` cannot take a reconstruction: a file, not creatable or not
     writable, or holding an earlier reconstruction (unless ``overwrite``). Creates nothing."""
     out = Path(out)
-    existing = out
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
+    existing = nearest_existing(out)
     if not existing.is_dir():
         what = "--out" if existing == out else f"the output folder's parent {existing}"
         raise DepthnerfError(f"{out}: {what} is a file, not a folder")

@@ -183,6 +183,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             raise DepthnerfError(f"{run_dir}: already holds a run (last checkpoint {latest.name}); pass --resume to "
                                  "continue it or choose another --out")
         check_run_dir(run_dir, latest is not None)
+        if cfg.data.view_store:  # before the run writes its folder
+            ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center).check()
         root, cat = Path(cfg.data.root), cfg.data.category
         try:
             records = index_split(root, cat, "train").objects

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_text_atomic
+from depthnerf.files import folder_problem, make_folder, write_text_atomic
 
 try:
     import fcntl
@@ -161,12 +161,13 @@ def read_run_record(path: Path) -> dict[str, Any] | None:
 
 
 def check_run_dir(run_dir: Path, has_checkpoint: bool) -> None:
-    """Refuse a ``--out`` that is a file, holds a ``checkpoints`` file, or (for a run without a checkpoint of its
+    """Refuse a ``--out`` that is a file or lies under one, holds a ``checkpoints`` file, or (for a run without a checkpoint of its
     own) holds a ``config.json`` that is not a depthnerf run's: training would overwrite it. Other files (a job's
     log redirected into the folder, notes) are left alone and allowed: training writes none of their names."""
     run_dir = Path(run_dir)
-    if run_dir.exists() and not run_dir.is_dir():
-        raise DepthnerfError(f"{run_dir}: --out is a file, not a run folder; choose another --out")
+    problem = folder_problem(run_dir, "--out")
+    if problem is not None:
+        raise DepthnerfError(f"{problem}; choose another --out")
     if (run_dir / "checkpoints").exists() and not (run_dir / "checkpoints").is_dir():
         raise DepthnerfError(f"{run_dir / 'checkpoints'}: is a file, not a run's checkpoints folder; choose another "
                              "--out")
@@ -190,8 +191,7 @@ def run_lock(run_dir: Path, wait_s: float | None = None) -> Iterator[None]:
     (default :data:`LOCK_WAIT_S`) for the lock, saying so on stderr: a shared file system may hold a crashed node's
     lock until its lease ends, and a requeued job should not fail on that. SIGTERM or Ctrl+C during the wait ends
     the process with one line (it has written nothing to the run yet) and the signal's exit status."""
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    run_dir = make_folder(Path(run_dir), "--out")
     if fcntl is None:
         yield
         return

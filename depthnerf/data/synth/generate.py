@@ -72,7 +72,7 @@ from depthnerf.data.synth.views import (
     srn_spiral_angles,
 )
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_json_atomic
+from depthnerf.files import folder_problem, make_folder, nearest_existing, write_json_atomic
 
 FAMILIES = ("standard", "heldout")
 """Shape families: the grammars' training mix, and styles it never draws (generalisation checks)."""
@@ -256,9 +256,29 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _run_jobs(config: SynthConfig, jobs: list[ObjectJob]) -> None:
-    """Generate the unfinished objects, in this process or in a pool, with a progress bar."""
-    todo = [j for j in jobs if job_status(j) != "done"]
+VIEW_BYTES_FLOOR = 1024
+"""Bytes a view's four files take at least, besides its pixels (a 64 px view of the benchmark takes 2.3 KB)."""
+PIXEL_BYTES_FLOOR = 0.25
+"""Bytes a pixel takes at least over a view's compressed RGB, depth and mask files."""
+
+
+def check_disk_space(out: Path, todo: list[ObjectJob]) -> None:
+    """Refuse, before any object is made, work whose files cannot fit the free space under ``out``: a lower bound
+    (:data:`VIEW_BYTES_FLOOR`, :data:`PIXEL_BYTES_FLOOR` a view) against ``shutil.disk_usage``. Huge view counts
+    would otherwise end in a full disk or the kernel's out-of-memory kill, without a message."""
+    views = sum(j.settings()["views"] for j in todo)
+    if not views:
+        return
+    need = views * (VIEW_BYTES_FLOOR + PIXEL_BYTES_FLOOR * todo[0].config.resolution ** 2)
+    free = shutil.disk_usage(nearest_existing(out)).free
+    if need > free:
+        raise DepthnerfError(f"{out}: {len(todo):,} object{'s' if len(todo) > 1 else ''} of {views:,} views in all need at least {need / 1e9:,.1f} "
+                             f"GB, and the disk has {free / 1e9:,.1f} GB free; lower --views-train, --views-test, "
+                             "--resolution or the object counts")
+
+
+def _run_jobs(config: SynthConfig, jobs: list[ObjectJob], todo: list[ObjectJob]) -> None:
+    """Generate ``todo`` (the unfinished ones of ``jobs``), in this process or in a pool, with a progress bar."""
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc=f"synth {config.category}", unit="obj",
                disable=not config.progress)
     if config.workers == 1 or len(todo) <= 1:
@@ -305,12 +325,14 @@ def generate(config: SynthConfig) -> dict:
                              "auto needs nothing more")
     config = replace(config, raycaster=resolve_engine(config.raycaster))  # once here, not in every worker
     out = Path(config.out)
-    if out.exists() and not out.is_dir():
-        raise DepthnerfError(f"{out}: output path exists and is not a directory")
+    if (problem := folder_problem(out, "--out")) is not None:
+        raise DepthnerfError(problem)
     jobs = [ObjectJob(config, split, k) for split in SPLITS for k in range(config.counts()[split])]
+    todo = [j for j in jobs if job_status(j) != "done"]
+    check_disk_space(out, todo)  # before anything is written
+    make_folder(out, "--out")
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        _run_jobs(config, jobs)
+        _run_jobs(config, jobs, todo)
     except OSError as err:  # disk full, permissions, ...
         raise DepthnerfError(f"{err.filename or out}: cannot write ({err.strerror or err})") from None
     card = build_card(config, spec, [_read_marker(j.folder / MARKER) for j in jobs])
