@@ -30,6 +30,7 @@ import csv
 import dataclasses
 import json
 import sys
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -273,6 +274,11 @@ def build_rows(evals: Sequence[EvalDir], data_root: Path, object_ids: Sequence[s
     return grid
 
 
+TITLE_WIDTH = 26
+"""Characters per line of a column title: a column is 1.9 inches wide, and 8-point text overlapped its neighbours
+beyond about 28 characters."""
+
+
 def draw(object_ids: Sequence[str], grid: Sequence[Sequence[Cell]], out: Path, title: str | None = None) -> None:
     """Draw the grid into ``out`` (Agg backend, no pyplot state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -289,10 +295,11 @@ def draw(object_ids: Sequence[str], grid: Sequence[Sequence[Cell]], out: Path, t
             ax.set_xticks([])
             ax.set_yticks([])
             if r == 0:
-                ax.set_title(cell.column, fontsize=8)
+                ax.set_title("\n".join(textwrap.wrap(cell.column, TITLE_WIDTH)), fontsize=8)  # long method names
             label = f"view {cell.view}" + (f", PSNR {cell.psnr:.2f} dB" if cell.psnr is not None else "")
             ax.set_xlabel(label, fontsize=7)
-        axes[r][0].set_ylabel(object_ids[r][:12], fontsize=7)
+        name = object_ids[r]  # both ends: synthetic ids differ only at the end, ShapeNet hashes anywhere
+        axes[r][0].set_ylabel(name if len(name) <= 16 else f"{name[:8]}...{name[-6:]}", fontsize=7)
     if title:
         fig.suptitle(title)
     fig.savefig(out, dpi=150)

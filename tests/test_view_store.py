@@ -273,7 +273,7 @@ def test_an_object_rebuilt_from_other_data_under_a_run_is_refused(tmp_path):
 
 def test_each_rank_checks_every_object_after_the_barrier(tmp_path):
     """Ranks that do not share a disk: an object changed in another rank's share is still decoded again by the
-    full check that follows the barrier (depthnerf.train.loop._view_store)."""
+    full check that follows the barrier (depthnerf.train.items.ready_view_store)."""
     root = make_srn_fixture(tmp_path / "srn", splits={"train": 2}, views=3, size=16)
     records = index_split(root, "cars", "train").objects
     store = ViewStore(tmp_path / "store", 16, 0.5)
@@ -309,14 +309,14 @@ from depthnerf.data.srn import index_split
 from depthnerf.distributed import DistInfo
 from depthnerf.errors import DepthnerfError
 from depthnerf.train.config import preset
-from depthnerf.train.loop import _view_store
+from depthnerf.train.items import ready_view_store
 import dataclasses
 rank, port, root, store = int(sys.argv[1]), sys.argv[2], sys.argv[3], sys.argv[4]
 dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=2)
 cfg = preset("cpu-cars")
 cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, resolution=16, pixel_center=0.5, view_store=store))
 try:
-    _view_store(cfg, index_split(root, "cars", "train").objects, DistInfo(rank, 2, torch.device("cpu")))
+    ready_view_store(cfg.data, index_split(root, "cars", "train").objects, DistInfo(rank, 2, torch.device("cpu")))
     print("no error")
 except DepthnerfError as err:
     print(f"error: {err}")

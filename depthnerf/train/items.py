@@ -1,4 +1,5 @@
-"""Building one training item (one object: its conditioned source view, target rays) from an :class:`ItemKey`.
+"""Building one training item (one object: its conditioned source view, target rays) from an :class:`ItemKey`,
+and the run's store of decoded views the items read (:func:`ready_view_store`).
 
 Used as a map-style ``Dataset`` indexed by keys from :func:`depthnerf.train.batching.step_keys`, so DataLoader
 workers produce exactly what the main process would.
@@ -6,6 +7,8 @@ workers produce exactly what the main process would.
 
 from __future__ import annotations
 
+import sys
+import time
 from collections.abc import Sequence
 
 import torch
@@ -15,8 +18,10 @@ from depthnerf.data.cameras import pixel_directions
 from depthnerf.data.srn import ObjectRecord, load_object
 from depthnerf.data.view_store import StoredObject, ViewStore
 from depthnerf.depth.prior import DatasetViews, PriorSource
+from depthnerf.distributed import DistInfo, checked_together
 from depthnerf.model.conditioning import condition
 from depthnerf.train.batching import ItemKey, TrainBatch, pick_views, sample_pixels
+from depthnerf.train.config import DataConfig
 
 
 class TrainItems(Dataset):
@@ -82,3 +87,28 @@ class TrainItems(Dataset):
             target_rgb=target_rgb[None], target_prior=target_prior, target_fg=target_fg[None],
             target_cos=dirs_cam[:, 2][None],
         )
+
+
+def ready_view_store(data: DataConfig, records: Sequence[ObjectRecord], info: DistInfo) -> ViewStore | None:
+    """The run's view store, brought up to date (None without ``data.view_store``, with a hint on CUDA). Each rank
+    builds or checks its share of the objects; once every rank has reported (a rank that failed stops them all with
+    its message), every rank checks the other ranks' shares too and builds what it still lacks there (where the
+    ranks do not share a disk)."""
+    if not data.view_store:
+        if info.device.type == "cuda" and info.is_main:
+            print("data: each item decodes its object's views from PNG, which can hold a GPU back; "
+                  "--data.view_store DIR decodes them once (docs/training.md, \"Decoded views\")", file=sys.stderr,
+                  flush=True)
+        return None
+    t0 = time.perf_counter()
+    store = ViewStore(data.view_store, data.resolution, data.pixel_center)
+    with checked_together(info, "building the view store"):  # every rank stops with a rank's failure
+        counts = store.ensure(records, rank=info.rank, world=info.world, progress=info.is_main)
+    others = [record for i, record in enumerate(records) if i % info.world != info.rank]  # the others' shares
+    store.ensure(others)  # fingerprints only, where the ranks share a disk; built here, where not
+    if info.is_main:
+        share = f" (rank 0's share of {len(records)})" if info.world > 1 else ""
+        print(f"view store {store.root}: {counts['built']} objects decoded, {counts['rebuilt']} changed since and "
+              f"decoded again, {counts['reused']} reused{share}, {time.perf_counter() - t0:.1f} s",
+              file=sys.stderr, flush=True)
+    return store

@@ -54,7 +54,7 @@ from depthnerf.train import checkpoint as ckpt
 from depthnerf.train import memory
 from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate_packed, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
-from depthnerf.train.items import TrainItems
+from depthnerf.train.items import TrainItems, ready_view_store
 from depthnerf.train.run_log import RunLog, check_run_dir, read_run_record, record_launch, run_lock
 from depthnerf.train.step import BatchLoss, compiled_fields, train_step
 from depthnerf.train.stop import STOP_SIGNALS, StopRequest, ValidationInterrupted, exit_code, signal_name
@@ -119,31 +119,6 @@ def _write_run_files(run_dir: Path, cfg: TrainConfig, prior_source: PriorSource,
                  "train_object_ids_sha256": _object_ids_digest(records), "resolution": cfg.data.resolution,
                  "dataset_card": card}
     write_text_atomic(run_dir / "data_card.json", json.dumps(data_card, indent=1) + "\n")
-
-
-def _view_store(cfg: TrainConfig, records: list, info: DistInfo) -> ViewStore | None:
-    """The run's view store, brought up to date (None without ``data.view_store``, with a hint on CUDA). Each rank
-    builds or checks its share of the objects; once every rank has reported (a rank that failed stops them all with
-    its message), every rank checks the other ranks' shares too and builds what it still lacks there (where the
-    ranks do not share a disk)."""
-    if not cfg.data.view_store:
-        if info.device.type == "cuda" and info.is_main:
-            print("data: each item decodes its object's views from PNG, which can hold a GPU back; "
-                  "--data.view_store DIR decodes them once (docs/training.md, \"Decoded views\")", file=sys.stderr,
-                  flush=True)
-        return None
-    t0 = time.perf_counter()
-    store = ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center)
-    with checked_together(info, "building the view store"):  # every rank stops with a rank's failure
-        counts = store.ensure(records, rank=info.rank, world=info.world, progress=info.is_main)
-    others = [record for i, record in enumerate(records) if i % info.world != info.rank]  # the others' shares
-    store.ensure(others)  # fingerprints only, where the ranks share a disk; built here, where not
-    if info.is_main:
-        share = f" (rank 0's share of {len(records)})" if info.world > 1 else ""
-        print(f"view store {store.root}: {counts['built']} objects decoded, {counts['rebuilt']} changed since and "
-              f"decoded again, {counts['reused']} reused{share}, {time.perf_counter() - t0:.1f} s",
-              file=sys.stderr, flush=True)
-    return store
 
 
 def train(cfg: TrainConfig, run_dir: Path, info: DistInfo, *, resume: bool = False, progress: bool = True,
@@ -279,7 +254,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
                        pixel_center=cfg.data.pixel_center, symmetry_plane=plane,
-                       mirror_dropout=s.mirror_dropout, view_store=_view_store(cfg, records, info))
+                       mirror_dropout=s.mirror_dropout, view_store=ready_view_store(cfg.data, records, info))
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate_packed, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
