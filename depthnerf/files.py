@@ -59,10 +59,19 @@ def make_folder(path: Path, what: str) -> Path:
     return path
 
 
+def _make_parent(path: Path) -> None:
+    """Create the folder ``path`` goes in; a file in the way is one line naming both, not ``mkdir``'s bare "File
+    exists" or "Not a directory"."""
+    existing = nearest_existing(path.parent)
+    if not existing.is_dir():
+        raise DepthnerfError(f"{path}: cannot be written there: {existing} is a file, not a folder")
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+
 def write_text_atomic(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically and durably (temporary sibling, fsync, rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path)
     tmp = temporary_sibling(path)
     with open(tmp, "w") as handle:
         handle.write(text)
@@ -78,7 +87,7 @@ def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> None:
     (``safetensors.torch.save``) and written through here, like the text writers.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path)
     tmp = temporary_sibling(path)
     try:
         with open(tmp, "wb") as handle:

@@ -56,3 +56,12 @@ def test_make_folder_gives_the_systems_reason(tmp_path):
     locked.mkdir(mode=0o500)
     with pytest.raises(DepthnerfError, match=r"cannot create --out \(Permission denied\)"):
         make_folder(locked / "run", "--out")
+
+
+def test_an_atomic_write_under_a_file_names_both(tmp_path):
+    (tmp_path / "f").write_text("x")
+    for write in (lambda p: write_text_atomic(p, "t"), lambda p: write_json_atomic(p, {})):
+        with pytest.raises(DepthnerfError) as err:  # was mkdir's "[Errno 17] File exists: 'f'"
+            write(tmp_path / "f" / "sub" / "out.json")
+        assert str(err.value) == (f"{tmp_path / 'f' / 'sub' / 'out.json'}: cannot be written there: {tmp_path / 'f'} "
+                                  "is a file, not a folder")
