@@ -8,7 +8,8 @@ not used for that object, with a ``warning: <file>: <problem>`` line on stderr (
 into one line); ``--strict`` makes it an error. Entries the layout does not know are ignored (one ``note:`` line
 per split). A category's dataset card (``<category>_card.json``), where there is one, is read as training and
 evaluation read it: a bad one is an error naming it, and a card whose camera (image size, focal length, camera
-distance) disagrees with a split's files gets a warning (``--strict``: an error). Accepted formats and rules: docs/data.md. A tqdm bar on
+distance) disagrees with a split's files gets a warning (``--strict``: an error). Accepted formats and rules:
+docs/data.md. A tqdm bar on
 stderr shows progress when stderr is a terminal.
 
 ``--json PATH`` writes the same summary as JSON::

@@ -111,7 +111,7 @@ def png_ihdr(head: bytes) -> tuple[int, int] | None:
     return head[24], head[25]
 
 
-def _eight_bit_values_in_16_bits(path: Path) -> bool:
+def _is_sixteen_bit_colour_png(path: Path) -> bool:
     """Whether ``path`` is a 16-bit colour PNG (RGB or RGBA, the layouts Pillow reads by their high bytes)."""
     try:
         with open(path, "rb") as fh:
@@ -142,7 +142,7 @@ def read_rgb(path: Path) -> np.ndarray:
     except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable image ({err})") from None
     if arr.dtype == np.uint8:
-        if not arr.any() and _eight_bit_values_in_16_bits(path):
+        if not arr.any() and _is_sixteen_bit_colour_png(path):
             raise DepthnerfError(f"{path}: a 16-bit colour PNG whose values all lie below 256 (8-bit values saved as "
                                  "16-bit?); it would read as a blank image: re-save it as an 8-bit PNG")
         img = arr.astype(np.float32) / 255.0

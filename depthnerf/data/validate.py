@@ -371,7 +371,8 @@ def card_camera_disagreements(card: dict, card_file: str, summary: SplitSummary)
         found.append(f"focal {focal:.4g} px, the files {_range(summary.focal_min, summary.focal_max)} px")
     radius = stated("radius")
     if radius is not None and summary.radius_min is not None and off(radius, summary.radius_min, summary.radius_max):
-        found.append(f"cameras {radius:.4g} from the origin, the files {_range(summary.radius_min, summary.radius_max)}")
+        found.append(f"cameras {radius:.4g} from the origin, the files "
+                     f"{_range(summary.radius_min, summary.radius_max)}")
     if not found:
         return []
     return [f"{card_file}: the card's camera says {'; '.join(found)} ({summary.path}): the card describes other "

@@ -161,9 +161,10 @@ def read_run_record(path: Path) -> dict[str, Any] | None:
 
 
 def check_run_dir(run_dir: Path, has_checkpoint: bool) -> None:
-    """Refuse a ``--out`` that is a file or lies under one, holds a ``checkpoints`` file, or (for a run without a checkpoint of its
-    own) holds a ``config.json`` that is not a depthnerf run's: training would overwrite it. Other files (a job's
-    log redirected into the folder, notes) are left alone and allowed: training writes none of their names."""
+    """Refuse a ``--out`` that is a file or lies under one, holds a ``checkpoints`` file, or (for a run without a
+    checkpoint of its own) holds a ``config.json`` that is not a depthnerf run's: training would overwrite it. Other
+    files (a job's log redirected into the folder, notes) are left alone and allowed: training writes none of their
+    names."""
     run_dir = Path(run_dir)
     problem = folder_problem(run_dir, "--out")
     if problem is not None:

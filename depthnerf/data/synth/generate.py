@@ -272,8 +272,9 @@ def check_disk_space(out: Path, todo: list[ObjectJob]) -> None:
     need = views * (VIEW_BYTES_FLOOR + PIXEL_BYTES_FLOOR * todo[0].config.resolution ** 2)
     free = shutil.disk_usage(nearest_existing(out)).free
     if need > free:
-        raise DepthnerfError(f"{out}: {len(todo):,} object{'s' if len(todo) > 1 else ''} of {views:,} views in all need at least {need / 1e9:,.1f} "
-                             f"GB, and the disk has {free / 1e9:,.1f} GB free; lower --views-train, --views-test, "
+        objects = f"{len(todo):,} object{'s' if len(todo) > 1 else ''}"
+        raise DepthnerfError(f"{out}: {objects} of {views:,} views in all need at least {need / 1e9:,.1f} GB, and "
+                             f"the disk has {free / 1e9:,.1f} GB free; lower --views-train, --views-test, "
                              "--resolution or the object counts")
 
 
