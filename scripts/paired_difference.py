@@ -5,12 +5,14 @@ SAME objects are compared far more precisely by the per-object differences. For 
 against the ``--baseline`` one (both written by ``depthnerf eval``; their ``per_object.csv`` files must list the
 same objects, each with the same input view and number of scored views, and their ``summary.json`` files the same
 category, split, ``--views-stride``, ``--resolution``, ``--ssim`` and ``--scored``: evaluations scored on other
-views or another way are refused in one line), this prints, per metric, the mean difference (method - baseline),
-its standard error ``std(d, ddof=1) / sqrt(n)``, a 95% interval ``mean +- t_{0.975, n-1} * SE`` and how many
-objects the method wins.
+views or another way are refused in one line; ``--common-views`` instead pairs PSNR and SSIM over the target
+views both scored, e.g. one input view against two, ``depthnerf eval --input-views 64 104``), this prints, per
+metric, the mean difference (method - baseline), its standard error ``std(d, ddof=1) / sqrt(n)``, a 95% interval
+``mean +- t_{0.975, n-1} * SE`` and how many objects the method wins.
 
     python scripts/paired_difference.py --baseline study/eval/cars-none \
         --method study/eval/cars-bundled study/eval/cars-oracle [--json OUT.json]
+    python scripts/paired_difference.py --baseline eval/one-view --method eval/two-views --common-views
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from pathlib import Path
 
 from scipy import stats
 
+from depthnerf.data.protocol import protocol_views
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.config import protocol_mismatch, recorded_choices
 
@@ -125,9 +128,45 @@ def method_name(folder: Path) -> str:
     return str(read_summary(folder).get("method", folder.name))
 
 
-def paired(baseline: Path, method: Path, common: bool = False) -> list[PairedStat]:
+def scored_views(folder: Path, object_id: str) -> dict[int, dict]:
+    """Target view -> its metrics (``psnr``, ``ssim``) of one object of the evaluation in ``folder``, from its
+    result file (``objects/<id>.json``), the views named by the protocol of its ``summary.json`` (the object's view
+    count read from its ``rgb/`` folder in the data the summary names)."""
+    summary, path = read_summary(folder), folder / "objects" / f"{object_id}.json"
+    try:
+        views = json.loads(path.read_text(encoding="utf-8"))["metrics"]["views"]
+        rgb = Path(summary["data_card"]["root"]) / f"{summary['category']}_{summary['split']}" / object_id / "rgb"
+        inputs = summary.get("input_views")
+        count = sum(1 for f in rgb.iterdir() if f.suffix.lower() == ".png")
+        targets = protocol_views(count, summary["views_stride"],
+                                 inputs if inputs and isinstance(inputs[0], int) else None).targets
+    except (OSError, ValueError, KeyError, TypeError, DepthnerfError) as err:
+        raise SystemExit(f"error: {path}: cannot tell which views it scored ({err})") from None
+    if len(targets) != len(views):
+        raise SystemExit(f"error: {path}: {len(views)} scored views, but its protocol names {len(targets)}")
+    return dict(zip(targets, views, strict=True))
+
+
+def common_view_rows(baseline: Path, method: Path, base: dict, other: dict) -> int:
+    """Set both evaluations' per-object PSNR and SSIM (rows ``base``, ``other`` of their ``per_object.csv``) to
+    their means over the target views both scored (the per-view mean, as ``depthnerf eval``'s own; the mesh metrics
+    do not depend on the targets); return how many views that is per object (the fewest)."""
+    fewest = None
+    for oid in sorted(set(base) & set(other)):
+        a, b = scored_views(baseline, oid), scored_views(method, oid)
+        shared = sorted(set(a) & set(b))
+        if not shared:
+            raise SystemExit(f"error: object {oid}: {baseline} and {method} scored no view in common")
+        fewest = len(shared) if fewest is None else min(fewest, len(shared))
+        for rows, views in ((base, a), (other, b)):
+            rows[oid].update({k: repr(sum(views[v][k] for v in shared) / len(shared)) for k in ("psnr", "ssim")})
+    return fewest or 0
+
+
+def paired(baseline: Path, method: Path, common: bool = False, common_views: bool = False) -> list[PairedStat]:
     """Paired statistics of ``method`` against ``baseline`` for every metric both have (``common``: on the objects
-    both scored, e.g. an evaluation stopped early, instead of requiring the same objects)."""
+    both scored, e.g. an evaluation stopped early, instead of requiring the same objects; ``common_views``: PSNR and
+    SSIM over the target views both scored, whatever their input views, :func:`common_view_rows`)."""
     base, other = read_per_object(baseline), read_per_object(method)
     check_pairable(baseline, method)
     if common:
@@ -136,10 +175,14 @@ def paired(baseline: Path, method: Path, common: bool = False) -> list[PairedSta
     if set(base) != set(other):
         raise SystemExit(f"error: {method}/per_object.csv: objects differ from {baseline}/per_object.csv "
                          "(--common pairs the objects both scored)")
-    for oid in base:
-        if any(base[oid].get(k) != other[oid].get(k) for k in ("views", "input_view")):
+    if common_views:
+        fewest = common_view_rows(baseline, method, base, other)
+        print(f"pairing {method} on the target views both scored: at least {fewest} per object", file=sys.stderr)
+    for oid in base if not common_views else ():
+        inputs = [row.get("input_views") or row.get("input_view") for row in (base[oid], other[oid])]
+        if any(base[oid].get(k) != other[oid].get(k) for k in ("views", "input_view")) or inputs[0] != inputs[1]:
             raise SystemExit(f"error: {method}/per_object.csv: object {oid} was scored on other views than in "
-                             f"{baseline}")
+                             f"{baseline} (--common-views pairs the views both scored)")
     out = []
     for metric, higher in METRICS.items():
         ids = [o for o in sorted(base) if base[o].get(metric) and other[o].get(metric)]
@@ -165,8 +208,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="also write the rows as JSON")
     parser.add_argument("--common", action="store_true",
                         help="pair on the objects both evaluations scored (default: they must be the same)")
+    parser.add_argument("--common-views", action="store_true",
+                        help="pair PSNR and SSIM over the target views both scored (e.g. other --input-views)")
     args = parser.parse_args(argv)
-    rows = [s for folder in args.method for s in paired(args.baseline, folder, args.common)]
+    rows = [s for folder in args.method for s in paired(args.baseline, folder, args.common, args.common_views)]
     print(f"paired against {method_name(args.baseline)} ({args.baseline})")
     print("| method | metric | objects | baseline | method | difference | 95% interval | wins | no worse |")
     print("|---|---|---|---|---|---|---|---|---|")

@@ -52,7 +52,7 @@ def test_picked_targets_are_distinct_other_views(num_views, num_targets):
     gen = torch.Generator().manual_seed(1)
     for _ in range(20):
         src, targets = pick_views(num_views, num_targets, gen)
-        assert src not in targets and len(set(targets)) == len(targets)
+        assert len(src) == 1 and src[0] not in targets and len(set(targets)) == len(targets)
         want = num_views - 1 if num_targets <= 0 else min(num_targets, num_views - 1)
         assert len(targets) == want and set(targets) <= set(range(num_views))
 

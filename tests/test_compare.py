@@ -174,6 +174,7 @@ def test_rows_over_different_samples_are_printed_with_a_warning(tmp_path, capsys
     ({"views_stride": 25}, {"views_stride": 26}, "with different --views-stride (25; 26)"),  # 10 views each
     ({"resolution": 64}, {"resolution": 128}, "with different --resolution (128; 64)"),
     ({"split": "test"}, {"split": "val"}, "with different splits (test; val)"),
+    ({"input_views": [64]}, {"input_views": [64, 104]}, "with different --input-views ([64, 104]; [64])"),
     ({"per_object": _per_object("x", "y", "z")}, {"per_object": _per_object("x", "y", "w")},
      "on different objects (as many in each)"),
 ])

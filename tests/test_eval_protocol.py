@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from depthnerf.cli import main
 from depthnerf.config_io import to_dict
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import world_to_camera
-from depthnerf.data.protocol import protocol_views
+from depthnerf.data.protocol import INPUT_VIEW, TWO_VIEW_INPUTS, protocol_views
 from depthnerf.data.srn import index_split, load_object
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.errors import DepthnerfError
@@ -102,12 +103,30 @@ def test_protocol_views_are_all_but_view_64_with_stride():
             protocol_views(*bad)
 
 
+def test_input_views_are_inputs_and_every_other_view_a_target():
+    """pixelNeRF's two-view protocol: views 64 and 104 in, the other 249 views out (the definition, written out);
+    input views that cannot be are refused in one line."""
+    two = protocol_views(251, 25, TWO_VIEW_INPUTS)
+    assert two.input_views == (64, 104) and two.input_view == 64 and two.others == 249
+    assert two.targets == tuple([v for v in range(251) if v not in (64, 104)][::25])
+    assert 104 not in protocol_views(251, 1, (64, 104)).targets
+    assert protocol_views(10, 1, (7,)).targets == (0, 1, 2, 3, 4, 5, 6, 8, 9)  # an explicit view on a small object
+    assert protocol_views(251).input_views == (INPUT_VIEW,)
+    for args, text in [((66, 1, (64, 70)), "input view 70 does not exist: the object has 66 views (0-65)"),
+                       ((2, 1, (0, 1)), "needs a target view besides its 2 input views"),
+                       ((66, 1, ()), "--input-views needs at least one view index"),
+                       ((66, 1, (-1,)), "--input-views must be view indices >= 0"),
+                       ((66, 1, (3, 3)), "--input-views names a view twice: 3 3")]:
+        with pytest.raises(DepthnerfError, match=re.escape(text)):
+            protocol_views(*args)
+
+
 def test_protocol_text_and_mesh_status_name_what_ran():
     """The protocol line for objects with and without a view 64, with a stride (target counts written out from
     the protocol's definition), and the mesh status for no, some and all predicted meshes empty."""
     from types import SimpleNamespace
 
-    from depthnerf.eval.protocol import mesh_status, protocol_text
+    from depthnerf.eval.summary_lines import input_views_record, mesh_status, protocol_text
 
     mixed = [SimpleNamespace(views=protocol_views(n, 2)) for n in (251, 10)]  # 250 -> 125 and 9 -> 5 targets
     assert protocol_text(mixed, 4, "test", "cars", 2, 64, 64, True) == (
@@ -118,6 +137,14 @@ def test_protocol_text_and_mesh_status_name_what_ran():
         "SRN-style protocol: input view 0 (objects have <= 64 views; SRN uses view 64), targets = all other 9 "
         "views, 1 of 1 objects of chairs_val, 32x32 (input view encoded at the training resolution 64x64), "
         "random sampling (render.sampler.eval_random)")
+    two = [SimpleNamespace(views=protocol_views(251, 25, TWO_VIEW_INPUTS))]
+    assert protocol_text(two, 50, "test", "cars", 25, 128, 64, True) == (
+        "two-view SRN protocol (pixelNeRF's): input views 64 and 104, targets = all other 249 views with stride 25 "
+        "(10 views), 1 of 50 objects of cars_test, 128x128 (input views encoded at the training resolution 64x64), "
+        "deterministic sampling")
+    assert protocol_text([SimpleNamespace(views=protocol_views(66, 1, (3, 9)))], 1, "test", "cars", 1, 32, 32,
+                         True).startswith("SRN-style protocol: input views 3, 9, targets = all other 64 views")
+    assert input_views_record(mixed) == [[0], [64]] and input_views_record(two) == [64, 104]
     assert mesh_status(0, 2, 3) == "ok: 2 of 3 objects have mesh.ply; "
     assert mesh_status(1, 2, 3) == ("1 of 2 predicted meshes empty (worst-case values in the means); "
                                     "2 of 3 objects have mesh.ply; ")
@@ -240,8 +267,31 @@ def test_eval_small_objects_use_view_0_and_max_objects(setup):
     assert [r["object_id"] for r in _read_csv(out / "per_object.csv")] == [first]  # the first by id
 
 
+def test_eval_on_two_input_views_records_them_and_refuses_to_resume_on_one(setup, capsys):
+    """``--input-views 64 10``: every view but those two is a target, the summary, table label and per-object rows
+    say so, and the same folder is not resumed by a one-view evaluation."""
+    out = setup["tmp"] / "eval_two"
+    common = ["--run", setup["base"], "--views-stride", "16", "--out", out, "--no-mesh", "--no-progress"]
+    assert cli("eval", *common, "--input-views", "64", "10") == 0
+    summary = json.loads((out / "summary.json").read_text())
+    targets = [v for v in range(66) if v not in (64, 10)][::16]
+    assert summary["input_views"] == [64, 10] and summary["views"] == 3 * len(targets)
+    assert summary["protocol"].startswith("SRN-style protocol: input views 64, 10, targets = all other 64 views "
+                                          f"with stride 16 ({len(targets)} views)")
+    assert summary["method"] == "pixelNeRF (baseline), 2 input views"
+    rows = _read_csv(out / "per_object.csv")
+    assert {(r["input_view"], r["input_views"], r["views"]) for r in rows} == {("64", "64 10", str(len(targets)))}
+    capsys.readouterr()
+    assert cli("eval", *common) == 2
+    err = capsys.readouterr().err
+    assert "evaluated with other settings (input_views" in err and err.count("\n") == 1
+
+
 @pytest.mark.parametrize("args, text", [
     (["--checkpoint", "no/such/ckpt", "--out", "x"], "not a checkpoint file"),
+    (["--input-views", "64", "70"], "/cars_test/"),  # the object's folder, then what is wrong
+    (["--input-views", "64", "70"], ": input view 70 does not exist: the object has 66 views (0-65)"),
+    (["--input-views", "64", "64"], "--input-views names a view twice: 64 64"),
     (["--checkpoint", "no/such/ckpt"], "--out OUT_DIR is required"),
     (["--views-stride", "0"], "--views-stride must be >= 1"),
     (["--split", "val"], "split folder does not exist"),

@@ -160,3 +160,47 @@ def test_common_objects_metric_directions_and_single_object_metrics(tmp_path: Pa
     assert (f.n, f.wins, f.no_worse) == (3, 2, 2) and (fl.n, fl.wins, fl.no_worse) == (3, 2, 3)
     assert f.baseline_mean == pytest.approx(0.6) and f.mean_diff == pytest.approx(0.1 / 3)
     assert fl.baseline_mean == pytest.approx(0.1) and fl.mean_diff == pytest.approx(-0.05)
+
+
+def _eval_with_views(folder: Path, data: Path, inputs: list[int] | None, per_view: dict[str, list[float]]) -> Path:
+    """An eval folder of 12-view objects (``objects/<id>.json`` per-view PSNR in target order, per_object.csv with
+    the per-object means and a Chamfer-L1), scored on every view but ``inputs`` (None: the default, view 0)."""
+    (folder / "objects").mkdir(parents=True)
+    summary = {"method": folder.name, "data_card": {"root": str(data)}, "category": "cars", "split": "test",
+               "views_stride": 1, **({"input_views": inputs} if inputs else {})}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    with open(folder / "per_object.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["object_id", "input_view", "input_views", "views", "psnr", "ssim",
+                                          "chamfer_l1"])
+        w.writeheader()
+        for k, (oid, psnr) in enumerate(per_view.items()):
+            views = [{"psnr": p, "ssim": 0.5, "lpips": None} for p in psnr]
+            (folder / "objects" / f"{oid}.json").write_text(json.dumps({"metrics": {"views": views}}))
+            w.writerow({"object_id": oid, "input_view": (inputs or [0])[0],
+                        "input_views": " ".join(map(str, inputs or [0])), "views": len(psnr),
+                        "psnr": sum(psnr) / len(psnr), "ssim": 0.5, "chamfer_l1": 0.1 * (k + 1)})
+    return folder
+
+
+def test_common_views_pair_one_input_view_against_two_on_the_views_both_scored(tmp_path: Path) -> None:
+    """One input view (0: targets 1-11) against two (0 and 5: targets 1-4, 6-11): per view, PSNR = the view index
+    for the baseline and index + 0.5 / + 1.5 for the method's two objects, so over the 10 shared views the
+    baseline's mean is (66 - 5) / 10 and the differences 0.5 and 1.5; the Chamfer-L1 is paired as it is."""
+    pd = _load()
+    data = tmp_path / "data"
+    for oid in ("a", "b"):
+        (data / "cars_test" / oid / "rgb").mkdir(parents=True)
+        for v in range(12):
+            (data / "cars_test" / oid / "rgb" / f"{v:06d}.png").write_bytes(b"")
+    one = [float(v) for v in range(1, 12)]
+    two = [v for v in range(1, 12) if v != 5]
+    base = _eval_with_views(tmp_path / "one", data, None, {"a": one, "b": one})
+    meth = _eval_with_views(tmp_path / "two", data, [0, 5],
+                            {"a": [v + 0.5 for v in two], "b": [v + 1.5 for v in two]})
+    with pytest.raises(SystemExit, match=r"object a was scored on other views .* \(--common-views pairs"):
+        pd.paired(base, meth)
+    stats_by = {s.metric: s for s in pd.paired(base, meth, common_views=True)}
+    psnr = stats_by["psnr"]
+    assert psnr.n == 2 and math.isclose(psnr.baseline_mean, 6.1) and math.isclose(psnr.mean_diff, 1.0)
+    assert math.isclose(psnr.std_err, 0.5) and psnr.wins == 2
+    assert stats_by["chamfer_l1"].mean_diff == 0.0 and stats_by["ssim"].mean_diff == 0.0

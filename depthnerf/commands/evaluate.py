@@ -1,7 +1,7 @@
 """``depthnerf eval``: evaluate a run or checkpoint by the SRN protocol (see :mod:`depthnerf.eval.protocol`).
 
 ``depthnerf eval (--run RUN_DIR | --checkpoint PATH_OR_NAME) [--data DIR] [--split test] [--out OUT_DIR]
-[--views-stride K] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M]
+[--views-stride K] [--input-views V [V ...]] [--max-objects N] [--resolution R] [--no-mesh] [--mesh-resolution M]
 [--mesh-threshold auto|silhouette|local|X] [--save-renders] [--ssim uniform7|gaussian11|gaussian11-zeropad] [--scored png8|float] [--objects pixelnerf|all]
 [--overwrite] [--strict]``
 
@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", default="test", choices=["train", "val", "test"], help="split (default test)")
     p.add_argument("--out", type=Path, help="output folder (default RUN_DIR/eval/<split> with --run)")
     p.add_argument("--views-stride", type=int, default=1, help="score every K-th target view (default 1: all)")
+    p.add_argument("--input-views", type=int, nargs="+", metavar="VIEW",
+                   help="views each object is conditioned on, the first the primary one (default: 64, the SRN "
+                        "protocol; 64 104: pixelNeRF's two-view protocol); every other view is a target")
     p.add_argument("--max-objects", type=int, help="only the first N objects (sorted by id)")
     p.add_argument("--resolution", type=int,
                    help="render/score resolution (default: the checkpoint's training resolution; 128 = paper)")
@@ -241,7 +244,8 @@ def _request(args: argparse.Namespace):
     guided = guided_request(args.guided, args.guided_align_samples)
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
-        resolution=args.resolution, mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
+        input_views=None if args.input_views is None else tuple(args.input_views), resolution=args.resolution,
+        mesh=not args.no_mesh, mesh_resolution=args.mesh_resolution,
         mesh_threshold=parse_level(args.mesh_threshold),
         geometry=GeometryConfig(n_points=args.mesh_points, tau=args.fscore_tau), save_renders=args.save_renders,
         choices=choices, method=args.method, lpips=LpipsConfig(trunk_path=args.lpips_trunk),

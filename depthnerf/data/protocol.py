@@ -1,5 +1,8 @@
 """The SRN evaluation protocol's choice of views (pixelNeRF's): view 64 is the input, the other views targets.
 
+pixelNeRF's two-view SRN protocol conditions on views 64 and 104 (:data:`TWO_VIEW_INPUTS`); any list of input
+views can be asked for, and every view that is not an input is a target.
+
 Used by ``depthnerf eval``, training validation, the demo and the benchmarks.
 """
 
@@ -12,6 +15,8 @@ from depthnerf.errors import DepthnerfError
 
 INPUT_VIEW = 64
 """The SRN protocol's input view."""
+TWO_VIEW_INPUTS = (64, 104)
+"""pixelNeRF's input views for its two-view SRN results."""
 SRN_VIEWS = 251
 """Views per object of the SRN val/test sets."""
 
@@ -20,23 +25,51 @@ SRN_VIEWS = 251
 class ProtocolViews:
     """Input and target view indices of one object."""
 
-    input_view: int
-    """The view the model is conditioned on."""
+    input_views: tuple[int, ...]
+    """The views the model is conditioned on, the first being the primary view: the camera whose frustum bounds
+    the mesh, whose rays set its level and guide the sampler, and whose photo colours it."""
     targets: tuple[int, ...]
     """Scored views, in index order."""
     others: int
-    """Number of views other than the input (targets before the stride)."""
+    """Number of views other than the inputs (targets before the stride)."""
+
+    @property
+    def input_view(self) -> int:
+        """The primary input view (the first of :attr:`input_views`)."""
+        return self.input_views[0]
 
 
-def protocol_views(num_views: int, stride: int = 1) -> ProtocolViews:
-    """View 64 as input (view 0 with <= 64 views), every ``stride``-th other view as a target."""
+def check_input_views(inputs: Sequence[int]) -> tuple[int, ...]:
+    """``--input-views`` as given, refused in one line if empty, negative or repeated."""
+    inputs = tuple(int(v) for v in inputs)
+    if not inputs:
+        raise DepthnerfError("--input-views needs at least one view index")
+    if min(inputs) < 0:
+        raise DepthnerfError(f"--input-views must be view indices >= 0, got {' '.join(map(str, inputs))}")
+    if len(set(inputs)) != len(inputs):
+        raise DepthnerfError(f"--input-views names a view twice: {' '.join(map(str, inputs))}")
+    return inputs
+
+
+def protocol_views(num_views: int, stride: int = 1, inputs: Sequence[int] | None = None) -> ProtocolViews:
+    """The input views (None: view 64, view 0 with <= 64 views) and every ``stride``-th other view as a target.
+    Explicit ``inputs`` must all exist: an object with fewer views is refused, never given other inputs."""
     if stride < 1:
         raise DepthnerfError(f"--views-stride must be >= 1, got {stride}")
-    if num_views < 2:
-        raise DepthnerfError(f"an object needs at least 2 views (an input and a target), has {num_views}")
-    src = INPUT_VIEW if num_views > INPUT_VIEW else 0
-    others = [v for v in range(num_views) if v != src]
-    return ProtocolViews(input_view=src, targets=tuple(others[::stride]), others=len(others))
+    if inputs is None:
+        if num_views < 2:
+            raise DepthnerfError(f"an object needs at least 2 views (an input and a target), has {num_views}")
+        chosen: tuple[int, ...] = (INPUT_VIEW if num_views > INPUT_VIEW else 0,)
+    else:
+        chosen = check_input_views(inputs)
+        if max(chosen) >= num_views:
+            raise DepthnerfError(f"input view {max(chosen)} does not exist: the object has {num_views} views "
+                                 f"(0-{num_views - 1})")
+        if num_views - len(chosen) < 1:
+            raise DepthnerfError(f"an object needs a target view besides its {len(chosen)} input views, has "
+                                 f"{num_views} views")
+    others = [v for v in range(num_views) if v not in chosen]
+    return ProtocolViews(input_views=chosen, targets=tuple(others[::stride]), others=len(others))
 
 
 def validation_targets(views: Sequence[int], num_views: int) -> list[int]:

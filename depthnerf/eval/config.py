@@ -37,6 +37,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from depthnerf.data.protocol import check_input_views
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import GeometryConfig
 from depthnerf.eval.metrics import SSIM_WINDOW_SIDE, SSIM_WINDOWS, LpipsConfig
@@ -109,6 +110,10 @@ class ProtocolConfig:
     """Category folder prefix; None = the checkpoint's training category."""
     views_stride: int = 1
     """Score every K-th target view (1 = all 250)."""
+    input_views: tuple[int, ...] | None = None
+    """The views each object is conditioned on, the first the primary one (``--input-views 64 104``: pixelNeRF's
+    two-view protocol); every other view is a target. None: the SRN protocol's single view 64 (view 0 for objects
+    with at most 64 views)."""
     max_objects: int | None = None
     """Evaluate only the first N objects (sorted by id, after the ones ``choices`` leave out); None = all."""
     resolution: int | None = None
@@ -141,6 +146,8 @@ class ProtocolConfig:
                                    ("--mesh-resolution", self.mesh_resolution, 2)):
             if value is not None and value < least:
                 raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
+        if self.input_views is not None:
+            object.__setattr__(self, "input_views", check_input_views(self.input_views))
         if self.resolution is not None:
             side = max(8, SSIM_WINDOW_SIDE.get(self.choices.ssim, 8))
             if self.resolution < side:

@@ -14,11 +14,12 @@ from dataclasses import dataclass
 
 import torch
 
-from depthnerf.data.protocol import INPUT_VIEW, SRN_VIEWS, ProtocolViews, protocol_views
+from depthnerf.data.protocol import INPUT_VIEW, SRN_VIEWS, TWO_VIEW_INPUTS, ProtocolViews, protocol_views
 from depthnerf.data.srn import ObjectRecord, ObjectViews
 from depthnerf.infer.session import EncodedView, InferenceSession
 
-__all__ = ["INPUT_VIEW", "SRN_VIEWS", "ProtocolViews", "protocol_views", "PreparedObject", "prepare_object"]
+__all__ = ["INPUT_VIEW", "SRN_VIEWS", "TWO_VIEW_INPUTS", "ProtocolViews", "protocol_views", "PreparedObject",
+           "prepare_object"]
 
 
 @dataclass
@@ -28,21 +29,22 @@ class PreparedObject:
     views: ProtocolViews
     """Input and target view indices."""
     source: ObjectViews
-    """The input view at the training resolution."""
+    """The input views at the training resolution."""
     targets: ObjectViews
     """The target views at the evaluated resolution."""
     encoded: EncodedView
-    """The input view conditioned on its prior and encoded (``encoded.disparity``: its raw disparity)."""
+    """The input views conditioned on their prior and encoded (``encoded.disparity``: the primary view's raw
+    disparity)."""
 
 
 @torch.no_grad()
 def prepare_object(session: InferenceSession, record: ObjectRecord, views: ProtocolViews,
                    eval_res: int | None = None, symmetry_plane: Sequence[float] | None = None) -> PreparedObject:
-    """Load the input view at the training resolution, condition it on the session's prior source (and, for
-    mirror models, ``symmetry_plane``: :meth:`InferenceSession.dataset_symmetry`) and encode it; load the targets
+    """Load the input views at the training resolution, condition them on the session's prior source (and, for
+    mirror models, ``symmetry_plane``: :meth:`InferenceSession.dataset_symmetry`) and encode them; load the targets
     at ``eval_res`` (None: the training resolution). Both are read with the session's pixel centre."""
     res = session.spec.resolution
-    src = session.load_views(record, [views.input_view], res, with_depth=session.prior_source.needs_depths)
+    src = session.load_views(record, list(views.input_views), res, with_depth=session.prior_source.needs_depths)
     tgt = session.load_views(record, list(views.targets), eval_res or res)
     return PreparedObject(views=views, source=src, targets=tgt,
                           encoded=session.encode_views(src, symmetry_plane=symmetry_plane))

@@ -2,12 +2,15 @@
 
 Protocol
     For every object of the split (sorted by id, without the objects the protocol choices leave out, the first
-    ``max_objects``): view :data:`INPUT_VIEW` (64) is the single input view and every other view is a target (250
-    for SRN's 251 views), optionally every ``stride``-th of them in order (``targets = [v != input][::stride]``).
-    Objects with at most 64 views (tiny fixtures) use view 0 as input, and the protocol text says so. Each object is encoded ONCE (image features of the input view,
-    and its depth prior) and those features serve every target view and the mesh. Target views are rendered with
-    the checkpoint's renderer (deterministic sampling unless the checkpoint's ``render.sampler.eval_random``), in
-    groups of ``max(1, chunk // (H*W))`` views and ``chunk`` rays per pass, so memory is bounded by ``chunk``.
+    ``max_objects``): view 64 (:data:`~depthnerf.data.protocol.INPUT_VIEW`) is the single input view and every other
+    view is a target (250 for SRN's 251 views), optionally every ``stride``-th of them in order (``targets = [v !=
+    input][::stride]``). Objects with at most 64 views (tiny fixtures) use view 0 as input, and the protocol text
+    says so. ``input_views`` (``--input-views 64 104``: pixelNeRF's two-view protocol) conditions on several views
+    instead, every view not among them a target; the model averages their features (``combine_layer``), the
+    first (primary) view's camera bounds and levels the mesh. Each object is encoded ONCE (image features of the
+    input views, and their depth prior) and those features serve every target view and the mesh. Target views are
+    rendered with the checkpoint's renderer (deterministic sampling unless the checkpoint's
+    ``render.sampler.eval_random``), in groups of ``max(1, chunk // (H*W))`` views and ``chunk`` rays per pass, so memory is bounded by ``chunk``.
     Metrics: :mod:`depthnerf.eval.metrics` (PSNR/SSIM as pixelNeRF, LPIPS only from local weights), per object the
     mean over its targets, dataset the mean over objects. Random draws of the renderer (only with
     ``render.sampler.eval_random``) are seeded per object from its id, so no result depends on what else the
@@ -69,7 +72,7 @@ import io
 import json
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -95,8 +98,9 @@ from depthnerf.eval.metrics import (
     object_metrics,
     summarize,
 )
-from depthnerf.eval.objects import INPUT_VIEW, ProtocolViews, prepare_object, protocol_views
+from depthnerf.eval.objects import ProtocolViews, prepare_object, protocol_views
 from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects, prepare_output_folder
+from depthnerf.eval.summary_lines import input_views_record, mesh_status, protocol_text
 from depthnerf.files import write_text_atomic
 from depthnerf.infer.session import InferenceSession
 from depthnerf.render.mesh import MeshConfig
@@ -104,7 +108,7 @@ from depthnerf.render.mesh_level import levels_text
 from depthnerf.render.source_guide import guided_record
 
 __all__ = ["ProtocolChoices", "ProtocolConfig", "ObjectResult", "EvalOutputs", "evaluate_protocol", "method_label",
-           "protocol_text", "PER_OBJECT_COLUMNS"]
+           "PER_OBJECT_COLUMNS"]
 
 
 @dataclass
@@ -139,7 +143,7 @@ class _Evaluator:
     @torch.no_grad()
     def __call__(self, record: ObjectRecord) -> ObjectResult:
         session, cfg = self.session, self.cfg
-        views = protocol_views(record.num_views, cfg.views_stride)
+        views = protocol_views(record.num_views, cfg.views_stride, cfg.input_views)
         torch.manual_seed(object_seed(record.object_id))  # eval_random draws: the same in any process
         t0 = time.perf_counter()
         obj = prepare_object(session, record, views, self.eval_res, self.symmetry_plane)
@@ -202,59 +206,24 @@ def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> None
     write_text_atomic(path, text.getvalue())
 
 
-PER_OBJECT_COLUMNS = ("object_id", "input_view", "views", "psnr", "ssim", "lpips", "chamfer_l1", "fscore",
+PER_OBJECT_COLUMNS = ("object_id", "input_view", "input_views", "views", "psnr", "ssim", "lpips", "chamfer_l1",
+                      "fscore",
                       "floater_fraction", "accuracy", "completeness", "precision", "recall", "empty_mesh",
                       "mesh_level", "seconds")
-"""Columns of ``per_object.csv`` (empty cell = not measured)."""
+"""Columns of ``per_object.csv`` (empty cell = not measured; ``input_view``: the primary input view,
+``input_views``: every input view, space-separated)."""
 
 
 def _per_object_row(r: ObjectResult) -> dict:
     g = r.geometry
-    return {"object_id": r.record.object_id, "input_view": r.views.input_view, "views": len(r.views.targets),
+    return {"object_id": r.record.object_id, "input_view": r.views.input_view,
+            "input_views": " ".join(map(str, r.views.input_views)), "views": len(r.views.targets),
             "psnr": _fmt(r.metrics.psnr), "ssim": _fmt(r.metrics.ssim), "lpips": _fmt(r.metrics.lpips),
             **{k: _fmt(getattr(g, k)) if g is not None else ""
                for k in ("chamfer_l1", "fscore", "floater_fraction", "accuracy", "completeness", "precision",
                          "recall")},
             "empty_mesh": "" if g is None else int(g.empty_prediction), "seconds": f"{sum(r.seconds.values()):.3f}",
             "mesh_level": _fmt(r.mesh_level.level if r.mesh_level else None)}
-
-
-def mesh_status(empty: int, meshed: int, total: int) -> str:
-    """The head of ``summary.json`` ``mesh_status`` (the extraction levels follow it): ``ok`` with how many of
-    ``total`` objects have ``mesh.ply``, unless predicted meshes were empty (then their worst-case Chamfer-L1 and
-    F-score are in the means, :mod:`depthnerf.eval.geometry_metrics`), which it says first."""
-    have = f"{meshed} of {total} objects have mesh.ply; "
-    if empty == 0:
-        return f"ok: {have}"
-    if empty == meshed:
-        return (f"every predicted mesh is empty ({empty} of {meshed}): Chamfer-L1 and F-score are the worst-case "
-                f"values, not a measured surface; {have}")
-    return f"{empty} of {meshed} predicted meshes empty (worst-case values in the means); {have}"
-
-
-def protocol_text(results: Sequence[ObjectResult], total_objects: int, split: str, category: str, stride: int,
-                  eval_res: int, input_res: int, deterministic: bool, skipped: Sequence[str] = ()) -> str:
-    """One line saying exactly which protocol ran."""
-    inputs = sorted({r.views.input_view for r in results})
-    others = sorted({r.views.others for r in results})
-    scored = sorted({len(r.views.targets) for r in results})
-    if inputs == [INPUT_VIEW]:
-        head = f"SRN protocol: input view {INPUT_VIEW}"
-    elif inputs == [0]:
-        head = f"SRN-style protocol: input view 0 (objects have <= {INPUT_VIEW} views; SRN uses view {INPUT_VIEW})"
-    else:
-        head = f"SRN protocol: input view {INPUT_VIEW} (view 0 for objects with <= {INPUT_VIEW} views)"
-    n_other = "/".join(map(str, others))
-    n_scored = "/".join(map(str, scored))
-    targets = (f"targets = all other {n_other} views" if stride == 1
-               else f"targets = all other {n_other} views with stride {stride} ({n_scored} views)")
-    res = f"{eval_res}x{eval_res}"
-    if input_res != eval_res:
-        res += f" (input view encoded at the training resolution {input_res}x{input_res})"
-    sampling = "deterministic sampling" if deterministic else "random sampling (render.sampler.eval_random)"
-    left_out = f" ({', '.join(skipped)} left out: pixelNeRF cannot load it)" if skipped else ""
-    return (f"{head}, {targets}, {len(results)} of {total_objects} objects of {category}_{split}{left_out}, "
-            f"{res}, {sampling}")
 
 
 def _data_card(root: Path, category: str, card: dict | None) -> dict:
@@ -269,6 +238,7 @@ def _settings(session: InferenceSession, cfg: ProtocolConfig, data_root: Path, c
     pre, spec, guided = session.pretrained, session.spec, session.guided
     return {"checkpoint_sha256": pre.sha256, "data_root": str(data_root.resolve()), "category": category,
             "split": cfg.split, "views_stride": cfg.views_stride, "resolution": eval_res,
+            **({"input_views": list(cfg.input_views)} if cfg.input_views is not None else {}),
             "input_resolution": spec.resolution, "chunk": session.chunk, "mesh": cfg.mesh,
             "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
             "geometry": dataclasses.asdict(cfg.geometry), "save_renders": cfg.save_renders,
@@ -281,6 +251,17 @@ def _settings(session: InferenceSession, cfg: ProtocolConfig, data_root: Path, c
             **({"symmetry_plane": None if session.options.symmetry_plane is None
                 else list(session.options.symmetry_plane), "symmetry": session.options.symmetry}
                if session.model.cfg.mirror else {})}
+
+
+def _views_of(cfg: ProtocolConfig) -> Callable[[ObjectRecord], ProtocolViews]:
+    """Each object's views under ``cfg``; every one is checked first (an object lacking an asked-for input view
+    is one line naming it, before anything is rendered)."""
+    def views_of(record: ObjectRecord) -> ProtocolViews:
+        try:
+            return protocol_views(record.num_views, cfg.views_stride, cfg.input_views)
+        except DepthnerfError as err:
+            raise DepthnerfError(f"{record.path}: {err}") from None
+    return views_of
 
 
 def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolConfig | None = None,
@@ -312,6 +293,9 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
                                  f"{choices.objects}")
         chosen = set(kept[: cfg.max_objects] if cfg.max_objects else kept)
         records = index_split(data_root, category, cfg.split, only=chosen).objects  # every file of these checked
+        views_of = _views_of(cfg)
+        for record in records:
+            views_of(record)
         input_res, eval_res = spec.resolution, spec.resolution if cfg.resolution is None else cfg.resolution
         side = max(8, SSIM_WINDOW_SIDE[choices.ssim])
         if eval_res < side:
@@ -324,7 +308,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
         evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category)
         store = ObjectStore(out_dir, _settings(session, cfg, data_root, category, eval_res, lpips is not None),
                             DataFingerprint(data_root, category))
-    results, counts = evaluate_objects(records, evaluator, store, info, cfg.views_stride, overwrite=cfg.overwrite,
+    results, counts = evaluate_objects(records, evaluator, store, info, views_of, overwrite=cfg.overwrite,
                                        progress=cfg.progress)
     if results is None:
         return None
@@ -355,7 +339,9 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
             f" + encoder at {spec.model.encoder.image_scale:g}x input" if spec.model.encoder.image_scale != 1.0
             else "") + (
             " + encoder without first pool" if not spec.model.encoder.use_first_pool else "") + (
-            f" + guided sampling ({guided.budget}/ray)" if guided is not None else ""),
+            f" + guided sampling ({guided.budget}/ray)" if guided is not None else "") + (
+            f", {len(cfg.input_views)} input views" if cfg.input_views is not None and len(cfg.input_views) > 1
+            else ""),
         "guided_sampling": None if guided is None else guided_record(guided),
         "category": category, "split": cfg.split, "preset": spec.preset,
         "depth_prior": estimator, "depth_prior_provenance": session.prior_source.provenance,
@@ -363,7 +349,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
         "data_card": _data_card(data_root, category, card),
         "resolution": eval_res, "input_resolution": input_res, "train_resolution": spec.resolution,
         "native_resolution": [list(s) for s in native],
-        "views_stride": cfg.views_stride, "max_objects": cfg.max_objects,
+        "views_stride": cfg.views_stride, "input_views": input_views_record(results), "max_objects": cfg.max_objects,
         "pixel_center": spec.pixel_center, "trained_pixel_center": pre.spec.pixel_center,
         "encoder_norm": session.options.encoder_norm,
         "symmetry_plane": None if evaluator.symmetry_plane is None else list(evaluator.symmetry_plane),

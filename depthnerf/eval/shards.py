@@ -48,7 +48,7 @@ from tqdm import tqdm
 
 from depthnerf.config_io import differences
 from depthnerf.crash_hook import crash_point
-from depthnerf.data.protocol import ProtocolViews, protocol_views
+from depthnerf.data.protocol import ProtocolViews
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.distributed import DistInfo, broadcast_from_main, gather_to_main
 from depthnerf.errors import DepthnerfError, refusal
@@ -111,13 +111,17 @@ def encode(result: ObjectResult, settings_sha: str, data_fingerprint: str | None
             "seconds": result.seconds, "renders": result.renders}
 
 
-def decode(payload: dict, record: ObjectRecord, stride: int) -> ObjectResult:
+ViewsOf = Callable[[ObjectRecord], ProtocolViews]
+"""An object's input and target views under the evaluation's settings (``views_of(record)``)."""
+
+
+def decode(payload: dict, record: ObjectRecord, views_of: ViewsOf) -> ObjectResult:
     """An :class:`ObjectResult` back from :func:`encode`'s mapping (``KeyError``/``TypeError`` when malformed)."""
     m = payload["metrics"]
     metrics = ObjectMetrics(object_id=record.object_id, views=[ViewMetrics(**v) for v in m["views"]],
                             psnr=m["psnr"], ssim=m["ssim"], lpips=m["lpips"])
     geo, level = payload["geometry"], payload["mesh_level"]
-    return ObjectResult(record=record, views=protocol_views(record.num_views, stride), metrics=metrics,
+    return ObjectResult(record=record, views=views_of(record), metrics=metrics,
                         geometry=None if geo is None else GeometryMetrics(**geo),
                         mesh_level=None if level is None else MeshLevel(**level),
                         seconds=dict(payload["seconds"]), renders=list(payload["renders"]))
@@ -213,7 +217,7 @@ class ObjectStore:
                     "choose another --out")
         write_json_atomic(settings_path, self.settings)
 
-    def finished(self, records: Sequence[ObjectRecord], stride: int) -> dict[str, ObjectResult]:
+    def finished(self, records: Sequence[ObjectRecord], views_of: ViewsOf) -> dict[str, ObjectResult]:
         """The objects of ``records`` whose result file is complete and was made with these settings; a one-line
         error when the files of a finished object are not those it was computed from (:meth:`check_data`)."""
         done, stored = {}, {}
@@ -225,7 +229,7 @@ class ObjectStore:
                 payload = json.loads(path.read_text())
                 if payload.get("format") != FORMAT or payload.get("settings_sha") != self.sha:
                     continue
-                done[record.object_id] = decode(payload, record, stride)
+                done[record.object_id] = decode(payload, record, views_of)
                 stored[record.object_id] = payload.get("data_fingerprint")
             except (OSError, ValueError, KeyError, TypeError, AttributeError):
                 continue  # not a result of this evaluation: computed again
@@ -270,7 +274,7 @@ class RunCounts:
     """Objects whose result file was already there."""
 
 
-def _plan(store: ObjectStore, records: Sequence[ObjectRecord], stride: int, info: DistInfo,
+def _plan(store: ObjectStore, records: Sequence[ObjectRecord], views_of: ViewsOf, info: DistInfo,
           overwrite: bool) -> tuple[dict[str, ObjectResult], list[str]]:
     """Rank 0 prepares the store and finds the finished objects; every rank gets the unfinished ids."""
     done: dict[str, ObjectResult] = {}
@@ -278,7 +282,7 @@ def _plan(store: ObjectStore, records: Sequence[ObjectRecord], stride: int, info
     if info.is_main:
         try:
             store.prepare(overwrite)
-            done = store.finished(records, stride)
+            done = store.finished(records, views_of)
         except DepthnerfError as err:
             message = str(err)
     todo = [r.object_id for r in records if r.object_id not in done]
@@ -289,11 +293,11 @@ def _plan(store: ObjectStore, records: Sequence[ObjectRecord], stride: int, info
 
 
 def evaluate_objects(records: Sequence[ObjectRecord], evaluate: Callable[[ObjectRecord], ObjectResult],
-                     store: ObjectStore, info: DistInfo, stride: int, *, overwrite: bool = False,
+                     store: ObjectStore, info: DistInfo, views_of: ViewsOf, *, overwrite: bool = False,
                      progress: bool = True) -> tuple[list[ObjectResult] | None, RunCounts]:
     """Score ``records`` over the ranks of ``info`` with resume (module docstring). Rank 0 gets every object's
     result in ``records`` order; the other ranks get None."""
-    done, todo = _plan(store, records, stride, info, overwrite)
+    done, todo = _plan(store, records, views_of, info, overwrite)
     by_id = {r.object_id: r for r in records}
     mine = [by_id[i] for i in todo[info.rank::info.world]]
     if info.is_main and done:
@@ -324,7 +328,7 @@ def evaluate_objects(records: Sequence[ObjectRecord], evaluate: Callable[[Object
     for part in gathered:
         for payload in part:
             store.save(payload, only_if_missing=True)  # objects other machines computed, for a later resume
-            results[payload["object_id"]] = decode(payload, by_id[payload["object_id"]], stride)
+            results[payload["object_id"]] = decode(payload, by_id[payload["object_id"]], views_of)
     missing = [r.object_id for r in records if r.object_id not in results]
     if missing:
         raise DepthnerfError(f"{store.dir}: no result for {len(missing)} objects (first {missing[0]})")

@@ -54,7 +54,8 @@ MISSING = "—"
 """Cell text when a method has no value for a column."""
 GEOMETRY_KEYS = ("chamfer_l1", "fscore", "floater_fraction")
 """Columns measured on the predicted meshes (marked when some were empty)."""
-SAMPLE_KEYS = (("split", "splits"), ("views_stride", "--views-stride"), ("resolution", "--resolution"))
+SAMPLE_KEYS = (("split", "splits"), ("views_stride", "--views-stride"), ("resolution", "--resolution"),
+               ("input_views", "--input-views"))
 """``summary.json`` keys that say which views were scored and at which size, with how :func:`sample_warnings`
 names a difference."""
 
@@ -164,8 +165,8 @@ def find_summaries(path: Path) -> list[Path]:
 
 def sample_warnings(summaries: Sequence[EvalSummary]) -> list[str]:
     """One ``warning:`` line per category whose rows average different samples: other numbers of objects or views,
-    other objects (the ids of ``per_object``), another split, ``--views-stride`` or ``--resolution`` (keys a summary
-    does not record are not compared)."""
+    other objects (the ids of ``per_object``), another split, ``--views-stride``, ``--resolution`` or
+    ``--input-views`` (keys a summary does not record are not compared)."""
     lines = []
     for category in sorted({s.category for s in summaries}):
         rows = [s for s in summaries if s.category == category]

@@ -165,20 +165,22 @@ def resolve_prior(trained: PriorConfig, depth: str | None, depth_checkpoint: str
 
 @dataclass
 class EncodedView:
-    """One source view conditioned on its prior and encoded: what every rendering of the object starts from."""
+    """The source views of one object (one photo; V dataset views with ``eval --input-views``) conditioned on their
+    prior and encoded: what every rendering of the object starts from. Renders and meshes read every view's
+    features; the sampler's guide, the mesh's box and level and its photo colours read the primary (first) view."""
 
     inputs: SourceViews
-    """What the encoder saw (image, camera, normalised disparity), on the device."""
+    """What the encoder saw (images, cameras, normalised disparity of the V views), on the device."""
     disparity: Float[torch.Tensor, "1 H W"] | None
-    """Raw relative disparity the prior source served (None: no prior)."""
+    """Raw relative disparity the prior source served for the primary view (None: no prior)."""
     enc: EncodedViews
-    """The model's features of the view."""
+    """The model's features of the V views."""
     pose: Float[torch.Tensor, "4 4"]
-    """Camera-to-world pose of the view."""
+    """Camera-to-world pose of the primary view."""
     intr: Intrinsics
-    """Its intrinsics (the training resolution)."""
+    """Its intrinsics (the training resolution; every view's)."""
     mask: Bool[torch.Tensor, "1 H W"]
-    """Its foreground mask."""
+    """The primary view's foreground mask."""
 
 
 def photo_view(encoded: EncodedView) -> PhotoView:
@@ -295,12 +297,13 @@ class InferenceSession:
 
     @torch.no_grad()
     def encode_views(self, source: ObjectViews, symmetry_plane: Sequence[float] | None = None) -> EncodedView:
-        """:meth:`encode` on one loaded dataset view (the prior source may look it up by its object and view)."""
+        """:meth:`encode` on loaded dataset views, the first the primary one (the prior source may look each up by
+        its object and view)."""
         cond = condition_views(self.prior_source, source, self.device, symmetry_plane=symmetry_plane)
         return self._encoded(cond, source.poses[0], source.intrinsics, source.masks[:1])
 
     def _encoded(self, cond: Conditioned, pose, intr: Intrinsics, mask) -> EncodedView:
-        return EncodedView(inputs=cond.inputs, disparity=cond.disparity,
+        return EncodedView(inputs=cond.inputs, disparity=None if cond.disparity is None else cond.disparity[:1],
                            enc=self.model.encode(cond.inputs, encoder_norm=self.options.encoder_norm),
                            pose=pose, intr=intr, mask=mask)
 

@@ -112,10 +112,12 @@ class ItemKey:
     """Draw target pixels inside the target view's bounding box."""
 
 
-def pick_views(num_views: int, num_targets: int, gen: torch.Generator) -> tuple[int, list[int]]:
-    """One source view and ``num_targets`` distinct target views among the others (all others if fewer)."""
+def pick_views(num_views: int, num_targets: int, gen: torch.Generator, sources: int = 1
+               ) -> tuple[list[int], list[int]]:
+    """``sources`` distinct source views and ``num_targets`` distinct target views among the others (all others
+    if fewer): the first ``sources`` of one random permutation, then the rest (so one source draws as before)."""
     perm = torch.randperm(num_views, generator=gen).tolist()
-    src, others = perm[0], perm[1:]
+    src, others = perm[:sources], perm[sources:]
     return src, others[:num_targets] if num_targets > 0 else others
 
 

@@ -57,7 +57,11 @@ class DataConfig:
     (``--model.mirror true``) only; None = the dataset card's, else ShapeNet's left-right plane x = 0
     (:func:`depthnerf.data.symmetry.dataset_plane`, where the convention is stated)."""
     target_views: int = 0
-    """Target views loaded per object and step (0 = all views but the source, as pixelNeRF)."""
+    """Target views loaded per object and step (0 = all views but the sources, as pixelNeRF)."""
+    source_views: int = 1
+    """Source views each object is conditioned on per step, drawn at random (pixelNeRF's ``--nviews``; 1 = the
+    paper's single view, every preset). The model averages their features at its MLP's ``combine_layer``; a model
+    trained on several is evaluated on as many with ``depthnerf eval --input-views`` (e.g. ``64 104``)."""
     num_workers: int = 2
     """DataLoader worker processes (0 = load in the main process)."""
     view_store: str = ""
@@ -168,7 +172,8 @@ def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) 
 
 
 NUMBER_RULES: NumberRules = {
-    "data.resolution": (8, True), "data.target_views": (0, True), "data.num_workers": (0, True),
+    "data.resolution": (8, True), "data.target_views": (0, True), "data.source_views": (1, True),
+    "data.num_workers": (0, True),
     "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
     "schedule.lr_decay": (0, False), "schedule.lr_final": (0, True), "schedule.depth_loss_weight": (0, True),

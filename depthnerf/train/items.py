@@ -1,4 +1,4 @@
-"""Building one training item (one object: its conditioned source view, target rays) from an :class:`ItemKey`,
+"""Building one training item (one object: its conditioned source views, target rays) from an :class:`ItemKey`,
 and the run's store of decoded views the items read (:func:`ready_view_store`).
 
 Used as a map-style ``Dataset`` indexed by keys from :func:`depthnerf.train.batching.step_keys`, so DataLoader
@@ -30,7 +30,7 @@ class TrainItems(Dataset):
     def __init__(self, records: Sequence[ObjectRecord], prior_source: PriorSource, *, resolution: int,
                  target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0,
                  symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0,
-                 view_store: ViewStore | None = None) -> None:
+                 view_store: ViewStore | None = None, source_views: int = 1) -> None:
         self.records = list(records)
         self.prior_source = prior_source
         self.resolution = resolution
@@ -44,6 +44,8 @@ class TrainItems(Dataset):
         """Fraction of items conditioned with the zero ("no plane") plane instead."""
         self.view_store = view_store
         """Decoded views to read instead of the PNG files (the same items, to the bit); None: decode the files."""
+        self.source_views = source_views
+        """Source views per item (``DataConfig.source_views``)."""
 
     def __len__(self) -> int:
         return len(self.records)
@@ -51,15 +53,16 @@ class TrainItems(Dataset):
     def __getitem__(self, key: ItemKey) -> TrainBatch:
         record = self.records[key.object_index]
         gen = torch.Generator().manual_seed(key.seed)
-        src, targets = pick_views(record.num_views, self.target_views, gen)
-        # pos: where the source and the targets sit in obj's arrays
+        src, targets = pick_views(record.num_views, self.target_views, gen, self.source_views)
+        n_src = len(src)
+        # pos: where the sources and the targets sit in obj's arrays
         if self.view_store is not None:  # every view, at the record's view indices
-            obj, pos = self.view_store.open(record), [src, *targets]
+            obj, pos = self.view_store.open(record), [*src, *targets]
         else:  # only these views are decoded, in this order
-            obj = StoredObject.from_views(load_object(record, [src, *targets], resolution=self.resolution,
+            obj = StoredObject.from_views(load_object(record, [*src, *targets], resolution=self.resolution,
                                                       pixel_center=self.pixel_center))
-            pos = list(range(1 + len(targets)))
-        tgt = torch.tensor(pos[1:])
+            pos = list(range(n_src + len(targets)))
+        tgt = torch.tensor(pos[n_src:])
         view, row, col = sample_pixels(self.rays, (len(targets), *obj.masks.shape[1:]),
                                        obj.bboxes[tgt] if key.use_bbox else None, gen)
         dirs_cam = pixel_directions(obj.intrinsics)[row, col]  # [R 3]
@@ -67,18 +70,18 @@ class TrainItems(Dataset):
         dirs = torch.einsum("rij,rj->ri", rot, dirs_cam)
         origins = obj.poses[tgt][view, :3, 3]
         target_rgb, target_fg = obj.pixels(tgt[view], row, col)
-        # the conditioning stage's own bundle (B = 1, V = 1); the target views' prior, made by the same stage,
-        # feeds the optional depth loss
+        # the conditioning stage's own bundle (B = 1, V = source_views); the target views' prior, made by the same
+        # stage, feeds the optional depth loss
         plane = None
         if self.symmetry_plane is not None:  # drawn last, so the views and rays are a plain model's
             dropped = bool(torch.rand((), generator=gen) < self.mirror_dropout)
             plane = (0.0, 0.0, 0.0, 0.0) if dropped else self.symmetry_plane
-        src_image, src_mask = obj.views(pos[:1])
-        source = condition(self.prior_source, src_image, src_mask, obj.poses[pos[:1]], obj.intrinsics,
-                           where=DatasetViews(record, (src,)), symmetry_plane=plane).inputs
+        src_image, src_mask = obj.views(pos[:n_src])
+        source = condition(self.prior_source, src_image, src_mask, obj.poses[pos[:n_src]], obj.intrinsics,
+                           where=DatasetViews(record, tuple(src)), symmetry_plane=plane).inputs
         target_prior = None
         if self.target_priors and source.disparity is not None:
-            tgt_images, tgt_masks = obj.views(pos[1:])
+            tgt_images, tgt_masks = obj.views(pos[n_src:])
             targets_in = condition(self.prior_source, tgt_images, tgt_masks, obj.poses[tgt], obj.intrinsics,
                                    where=DatasetViews(record, tuple(targets))).inputs
             target_prior = targets_in.disparity[0, :, 0][view, row, col][None]

@@ -168,10 +168,13 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                 raise DepthnerfError(f"{err} (--resume found no checkpoint in {run_dir}, so a new run would start "
                                      "there: check --out)") from None
             raise
-        single = next((r for r in records if r.num_views < 2), None)
-        if single is not None:  # pixelNeRF's items need a source view and at least one other view as the target
-            raise DepthnerfError(f"{single.path}: has {single.num_views} view; a training object needs at least 2 (a "
-                                 "source and a target); remove it from the train split")
+        least = cfg.data.source_views + 1  # pixelNeRF's items need its source views and another view as the target
+        single = next((r for r in records if r.num_views < least), None)
+        if single is not None:
+            plural = "s" if single.num_views != 1 else ""
+            raise DepthnerfError(f"{single.path}: has {single.num_views} view{plural}; "
+                                 f"a training object needs at least {least} (--data.source_views "
+                                 f"{cfg.data.source_views} and a target); remove it from the train split")
         if latest is not None:
             _check_same_objects(run_dir, root, records)
         trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
@@ -254,7 +257,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
                        pixel_center=cfg.data.pixel_center, symmetry_plane=plane,
-                       mirror_dropout=s.mirror_dropout, view_store=ready_view_store(cfg.data, records, info))
+                       mirror_dropout=s.mirror_dropout, view_store=ready_view_store(cfg.data, records, info),
+                       source_views=cfg.data.source_views)
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate_packed, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
