@@ -10,7 +10,8 @@ Protocol
     first (primary) view's camera bounds and levels the mesh. Each object is encoded ONCE (image features of the
     input views, and their depth prior) and those features serve every target view and the mesh. Target views are
     rendered with the checkpoint's renderer (deterministic sampling unless the checkpoint's
-    ``render.sampler.eval_random``), in groups of ``max(1, chunk // (H*W))`` views and ``chunk`` rays per pass, so memory is bounded by ``chunk``.
+    ``render.sampler.eval_random``), in groups of ``max(1, chunk // (H*W))`` views and ``chunk`` rays per pass, so
+    memory is bounded by ``chunk``.
     Metrics: :mod:`depthnerf.eval.metrics` (PSNR/SSIM as pixelNeRF, LPIPS only from local weights), per object the
     mean over its targets, dataset the mean over objects. Random draws of the renderer (only with
     ``render.sampler.eval_random``) are seeded per object from its id, so no result depends on what else the
@@ -207,8 +208,7 @@ def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[dict]) -> None
 
 
 PER_OBJECT_COLUMNS = ("object_id", "input_view", "input_views", "views", "psnr", "ssim", "lpips", "chamfer_l1",
-                      "fscore",
-                      "floater_fraction", "accuracy", "completeness", "precision", "recall", "empty_mesh",
+                      "fscore", "floater_fraction", "accuracy", "completeness", "precision", "recall", "empty_mesh",
                       "mesh_level", "seconds")
 """Columns of ``per_object.csv`` (empty cell = not measured; ``input_view``: the primary input view,
 ``input_views``: every input view, space-separated)."""
