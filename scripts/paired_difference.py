@@ -128,11 +128,11 @@ def method_name(folder: Path) -> str:
     return str(read_summary(folder).get("method", folder.name))
 
 
-def scored_views(folder: Path, object_id: str) -> dict[int, dict]:
+def scored_views(folder: Path, summary: dict, object_id: str) -> dict[int, dict]:
     """Target view -> its metrics (``psnr``, ``ssim``) of one object of the evaluation in ``folder``, from its
-    result file (``objects/<id>.json``), the views named by the protocol of its ``summary.json`` (the object's view
-    count read from its ``rgb/`` folder in the data the summary names)."""
-    summary, path = read_summary(folder), folder / "objects" / f"{object_id}.json"
+    result file (``objects/<id>.json``), the views named by the protocol of its ``summary.json`` mapping
+    ``summary`` (the object's view count read from its ``rgb/`` folder in the data the summary names)."""
+    path = folder / "objects" / f"{object_id}.json"
     try:
         views = json.loads(path.read_text(encoding="utf-8"))["metrics"]["views"]
         rgb = Path(summary["data_card"]["root"]) / f"{summary['category']}_{summary['split']}" / object_id / "rgb"
@@ -151,9 +151,9 @@ def common_view_rows(baseline: Path, method: Path, base: dict, other: dict) -> i
     """Set both evaluations' per-object PSNR and SSIM (rows ``base``, ``other`` of their ``per_object.csv``) to
     their means over the target views both scored (the per-view mean, as ``depthnerf eval``'s own; the mesh metrics
     do not depend on the targets); return how many views that is per object (the fewest)."""
-    fewest = None
+    fewest, summaries = None, (read_summary(baseline), read_summary(method))
     for oid in sorted(set(base) & set(other)):
-        a, b = scored_views(baseline, oid), scored_views(method, oid)
+        a, b = scored_views(baseline, summaries[0], oid), scored_views(method, summaries[1], oid)
         shared = sorted(set(a) & set(b))
         if not shared:
             raise SystemExit(f"error: object {oid}: {baseline} and {method} scored no view in common")
@@ -178,11 +178,12 @@ def paired(baseline: Path, method: Path, common: bool = False, common_views: boo
     if common_views:
         fewest = common_view_rows(baseline, method, base, other)
         print(f"pairing {method} on the target views both scored: at least {fewest} per object", file=sys.stderr)
-    for oid in base if not common_views else ():
-        inputs = [row.get("input_views") or row.get("input_view") for row in (base[oid], other[oid])]
-        if any(base[oid].get(k) != other[oid].get(k) for k in ("views", "input_view")) or inputs[0] != inputs[1]:
-            raise SystemExit(f"error: {method}/per_object.csv: object {oid} was scored on other views than in "
-                             f"{baseline} (--common-views pairs the views both scored)")
+    else:
+        for oid in base:
+            inputs = [row.get("input_views") or row.get("input_view") for row in (base[oid], other[oid])]
+            if any(base[oid].get(k) != other[oid].get(k) for k in ("views", "input_view")) or inputs[0] != inputs[1]:
+                raise SystemExit(f"error: {method}/per_object.csv: object {oid} was scored on other views than "
+                                 f"in {baseline} (--common-views pairs the views both scored)")
     out = []
     for metric, higher in METRICS.items():
         ids = [o for o in sorted(base) if base[o].get(metric) and other[o].get(metric)]

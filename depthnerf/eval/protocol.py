@@ -135,8 +135,10 @@ class _Evaluator:
     """Per-object evaluation with the state shared across objects (the session, LPIPS, settings)."""
 
     def __init__(self, session: InferenceSession, cfg: ProtocolConfig, lpips: LpipsMetric | None, eval_res: int,
-                 out_dir: Path, category: str) -> None:
+                 out_dir: Path, category: str, views_of: Callable[[ObjectRecord], ProtocolViews]) -> None:
         self.session, self.cfg, self.lpips, self.eval_res, self.out_dir = session, cfg, lpips, eval_res, out_dir
+        self.views_of = views_of
+        """Each object's input and target views (:func:`_views_of`)."""
         self.symmetry_plane, self.symmetry_from = session.dataset_symmetry(category)
         self.png8 = cfg.choices.scored == "png8"
         self.metrics_cfg = ImageMetricsConfig(quantize_pred=self.png8, ssim_window=cfg.choices.ssim)
@@ -144,7 +146,7 @@ class _Evaluator:
     @torch.no_grad()
     def __call__(self, record: ObjectRecord) -> ObjectResult:
         session, cfg = self.session, self.cfg
-        views = protocol_views(record.num_views, cfg.views_stride, cfg.input_views)
+        views = self.views_of(record)
         torch.manual_seed(object_seed(record.object_id))  # eval_random draws: the same in any process
         t0 = time.perf_counter()
         obj = prepare_object(session, record, views, self.eval_res, self.symmetry_plane)
@@ -305,7 +307,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
         lpips = load_lpips(cfg.lpips, device)
         lp_reason = "ok" if lpips is not None else lpips_status(cfg.lpips).reason
         prepare_output_folder(out_dir)
-        evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category)
+        evaluator = _Evaluator(session, cfg, lpips, eval_res, out_dir, category, views_of)
         store = ObjectStore(out_dir, _settings(session, cfg, data_root, category, eval_res, lpips is not None),
                             DataFingerprint(data_root, category))
     results, counts = evaluate_objects(records, evaluator, store, info, views_of, overwrite=cfg.overwrite,
