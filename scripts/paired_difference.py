@@ -150,8 +150,10 @@ def scored_views(folder: Path, summary: dict, object_id: str) -> dict[int, dict]
 def common_view_rows(baseline: Path, method: Path, base: dict, other: dict) -> int:
     """Set both evaluations' per-object PSNR and SSIM (rows ``base``, ``other`` of their ``per_object.csv``) to
     their means over the target views both scored (the per-view mean, as ``depthnerf eval``'s own; the mesh metrics
-    do not depend on the targets); return how many views that is per object (the fewest)."""
+    do not depend on the targets); return how many views that is per object (the fewest). Each shared view's own
+    PSNR difference (method - baseline, mean +- standard error over the objects that scored it) goes to stderr."""
     fewest, summaries = None, (read_summary(baseline), read_summary(method))
+    by_view: dict[int, list[float]] = {}
     for oid in sorted(set(base) & set(other)):
         a, b = scored_views(baseline, summaries[0], oid), scored_views(method, summaries[1], oid)
         shared = sorted(set(a) & set(b))
@@ -160,6 +162,11 @@ def common_view_rows(baseline: Path, method: Path, base: dict, other: dict) -> i
         fewest = len(shared) if fewest is None else min(fewest, len(shared))
         for rows, views in ((base, a), (other, b)):
             rows[oid].update({k: repr(sum(views[v][k] for v in shared) / len(shared)) for k in ("psnr", "ssim")})
+        for v in shared:
+            by_view.setdefault(v, []).append(b[v]["psnr"] - a[v]["psnr"])
+    for v, diffs in sorted(by_view.items()):
+        mean, se, _ = t_interval(diffs)
+        print(f"view {v}: PSNR {mean:+.2f} +- {se:.2f} dB over {len(diffs)} objects", file=sys.stderr)
     return fewest or 0
 
 

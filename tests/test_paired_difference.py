@@ -182,7 +182,7 @@ def _eval_with_views(folder: Path, data: Path, inputs: list[int] | None, per_vie
     return folder
 
 
-def test_common_views_pair_one_input_view_against_two_on_the_views_both_scored(tmp_path: Path) -> None:
+def test_common_views_pair_one_input_view_against_two_on_the_views_both_scored(tmp_path: Path, capsys) -> None:
     """One input view (0: targets 1-11) against two (0 and 5: targets 1-4, 6-11): per view, PSNR = the view index
     for the baseline and index + 0.5 / + 1.5 for the method's two objects, so over the 10 shared views the
     baseline's mean is (66 - 5) / 10 and the differences 0.5 and 1.5; the Chamfer-L1 is paired as it is."""
@@ -204,3 +204,5 @@ def test_common_views_pair_one_input_view_against_two_on_the_views_both_scored(t
     assert psnr.n == 2 and math.isclose(psnr.baseline_mean, 6.1) and math.isclose(psnr.mean_diff, 1.0)
     assert math.isclose(psnr.std_err, 0.5) and psnr.wins == 2
     assert stats_by["chamfer_l1"].mean_diff == 0.0 and stats_by["ssim"].mean_diff == 0.0
+    per_view = [line for line in capsys.readouterr().err.splitlines() if line.startswith("view ")]
+    assert per_view == [f"view {v}: PSNR +1.00 +- 0.50 dB over 2 objects" for v in two]  # 0.5 and 1.5 per view
