@@ -1,11 +1,13 @@
 """Training batches as a pure function of ``(seed, step)``: exact resume and rank sharding for free.
 
 Schedule (pixelNeRF / the paper): each step draws ``objects_per_batch`` objects; for each object one random source
-view and ``rays_per_object`` target rays from its *other* views. During the bounding-box phase target rays are drawn
+view (or the step's number of them, :meth:`BatchPlan.sources`) and ``rays_per_object`` target rays from its *other*
+views. During the bounding-box phase target rays are drawn
 inside the object's 2D box in the target view (pixelNeRF's ``bbox`` sampling), afterwards from the whole image.
 
-Determinism: object order is an epoch-wise permutation drawn from ``seed + epoch``; the source view, target views
-and pixels of item ``k`` at step ``s`` come from a generator seeded by ``hash(seed, s, k)``. Nothing depends on
+Determinism: object order is an epoch-wise permutation drawn from ``seed + epoch``; a step's number of source
+views (where several counts are allowed) from a generator seeded by ``hash(seed, s, -2)``; the source views, target
+views and pixels of item ``k`` at step ``s`` from a generator seeded by ``hash(seed, s, k)``. Nothing depends on
 DataLoader workers, on how many ranks share the batch, or on where a run was resumed.
 """
 
@@ -50,6 +52,16 @@ class BatchPlan:
     """Objects per batch in phase 1."""
     objects_phase2: int
     """Objects per batch in phase 2."""
+    source_views: tuple[int, ...] = (1,)
+    """The source-view counts a step draws from (``DataConfig.source_views``)."""
+
+    def sources(self, step: int) -> int:
+        """Source views per object at ``step``: one of :attr:`source_views`, uniformly (no draw, so no change to
+        any other draw, when there is only one)."""
+        if len(self.source_views) == 1:
+            return self.source_views[0]
+        g = torch.Generator().manual_seed(item_seed(self.seed, step, -2))
+        return self.source_views[int(torch.randint(len(self.source_views), (), generator=g))]
 
     def batch_size(self, step: int) -> int:
         return self.objects_phase1 if step < self.bbox_steps else self.objects_phase2
@@ -110,6 +122,8 @@ class ItemKey:
     """Seed of this item's generator (from :func:`item_seed`)."""
     use_bbox: bool
     """Draw target pixels inside the target view's bounding box."""
+    sources: int = 1
+    """Source views the item is conditioned on (:meth:`BatchPlan.sources` of its step)."""
 
 
 def pick_views(num_views: int, num_targets: int, gen: torch.Generator, sources: int = 1
@@ -145,7 +159,7 @@ class TrainBatch(TensorBundle):
     """One collated training batch (B objects of this rank)."""
 
     source: SourceViews
-    """The source view of each object (V = 1), as the conditioning stage makes it
+    """The source views of each object (V: the step's count, 1 in the paper), as the conditioning stage makes it
     (:func:`depthnerf.model.conditioning.condition`): image, camera and normalised prior (None for the baseline)."""
     ray_origins: Float[Tensor, "B R 3"]
     """World ray origins of the target rays."""
@@ -233,7 +247,8 @@ def collate_packed(items: list[TrainBatch]) -> PackedBatch:
 def step_keys(plan: BatchPlan, step: int, rank: int = 0, world: int = 1) -> list[ItemKey]:
     """The item keys this rank builds at ``step``."""
     objs = plan.objects(step)
-    keys = [ItemKey(o, item_seed(plan.seed, step, k), step < plan.bbox_steps) for k, o in enumerate(objs)]
+    sources = plan.sources(step)
+    keys = [ItemKey(o, item_seed(plan.seed, step, k), step < plan.bbox_steps, sources) for k, o in enumerate(objs)]
     return shard(keys, rank, world)
 
 

@@ -58,10 +58,12 @@ class DataConfig:
     (:func:`depthnerf.data.symmetry.dataset_plane`, where the convention is stated)."""
     target_views: int = 0
     """Target views loaded per object and step (0 = all views but the sources, as pixelNeRF)."""
-    source_views: int = 1
-    """Source views each object is conditioned on per step, drawn at random (pixelNeRF's ``--nviews``; 1 = the
-    paper's single view, every preset). The model averages their features at its MLP's ``combine_layer``; a model
-    trained on several is evaluated on as many with ``depthnerf eval --input-views`` (e.g. ``64 104``)."""
+    source_views: tuple[int, ...] = (1,)
+    """Source views each object is conditioned on per step, drawn at random (pixelNeRF's ``--nviews``; ``1`` = the
+    paper's single view, every preset). Several counts (``--data.source_views 1,2``, pixelNeRF's ``--nviews "1 2"``)
+    draw one of them per step, uniformly, the same for every object and rank of the step. The model averages the
+    views' features at its MLP's ``combine_layer``; a model trained on several is evaluated on as many with
+    ``depthnerf eval --input-views`` (e.g. ``64 104``). Each count once, each >= 1 (:func:`check_config`)."""
     num_workers: int = 2
     """DataLoader worker processes (0 = load in the main process)."""
     view_store: str = ""
@@ -172,7 +174,7 @@ def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) 
 
 
 NUMBER_RULES: NumberRules = {
-    "data.resolution": (8, True), "data.target_views": (0, True), "data.source_views": (1, True),
+    "data.resolution": (8, True), "data.target_views": (0, True),
     "data.num_workers": (0, True),
     "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
@@ -201,6 +203,10 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
         raise DepthnerfError(f"--data.resolution must be >= {least} with this encoder, got {cfg.data.resolution}: "
                              f"its deepest stage would be 1x1 pixel, and training normalises each object's features "
                              f"over their pixels (BatchNorm per object)")
+    counts = cfg.data.source_views
+    if not counts or min(counts) < 1 or len(set(counts)) != len(counts):
+        raise DepthnerfError(f"--data.source_views must list source-view counts >= 1, each once (e.g. 1 or 1,2), "
+                             f"got {','.join(map(str, counts)) or 'nothing'}")
     if cfg.schedule.lr_final > cfg.schedule.lr:
         raise DepthnerfError(f"--schedule.lr_final must be <= --schedule.lr ({cfg.schedule.lr:g}), got "
                              f"{cfg.schedule.lr_final:g}")
@@ -286,11 +292,15 @@ def from_dict_config(data: dict[str, Any], where: str = "config.json") -> TrainC
 
     Configs written before the model's depth-awareness was derived from the prior hold
     ``model.encoder.use_depth``: accepted when it agrees with ``prior`` and dropped
-    (:func:`depthnerf.pretrained.spec.model_config_from_dict`).
+    (:func:`depthnerf.pretrained.spec.model_config_from_dict`). Configs written before ``data.source_views`` took
+    several counts hold one number ``n``: read as ``[n]``.
     """
     if not isinstance(data, dict):
         raise DepthnerfError(f"{where}: expected a mapping for TrainConfig")
     data = copy.deepcopy(data)
+    count = data.get("data", {}).get("source_views") if isinstance(data.get("data"), dict) else None
+    if isinstance(count, int) and not isinstance(count, bool):
+        data["data"]["source_views"] = [count]
     prior = from_dict(PriorConfig, data.get("prior", {}), where=f"{where}.prior")
     model = data.pop("model", None)
     cfg = from_dict(TrainConfig, data, where=where)

@@ -30,7 +30,7 @@ class TrainItems(Dataset):
     def __init__(self, records: Sequence[ObjectRecord], prior_source: PriorSource, *, resolution: int,
                  target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0,
                  symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0,
-                 view_store: ViewStore | None = None, source_views: int = 1) -> None:
+                 view_store: ViewStore | None = None) -> None:
         self.records = list(records)
         self.prior_source = prior_source
         self.resolution = resolution
@@ -44,8 +44,6 @@ class TrainItems(Dataset):
         """Fraction of items conditioned with the zero ("no plane") plane instead."""
         self.view_store = view_store
         """Decoded views to read instead of the PNG files (the same items, to the bit); None: decode the files."""
-        self.source_views = source_views
-        """Source views per item (``DataConfig.source_views``)."""
 
     def __len__(self) -> int:
         return len(self.records)
@@ -53,7 +51,7 @@ class TrainItems(Dataset):
     def __getitem__(self, key: ItemKey) -> TrainBatch:
         record = self.records[key.object_index]
         gen = torch.Generator().manual_seed(key.seed)
-        src, targets = pick_views(record.num_views, self.target_views, gen, self.source_views)
+        src, targets = pick_views(record.num_views, self.target_views, gen, key.sources)
         n_src = len(src)
         # pos: where the sources and the targets sit in obj's arrays
         if self.view_store is not None:  # every view, at the record's view indices
@@ -70,7 +68,7 @@ class TrainItems(Dataset):
         dirs = torch.einsum("rij,rj->ri", rot, dirs_cam)
         origins = obj.poses[tgt][view, :3, 3]
         target_rgb, target_fg = obj.pixels(tgt[view], row, col)
-        # the conditioning stage's own bundle (B = 1, V = source_views); the target views' prior, made by the same
+        # the conditioning stage's own bundle (B = 1, V = key.sources); the target views' prior, made by the same
         # stage, feeds the optional depth loss
         plane = None
         if self.symmetry_plane is not None:  # drawn last, so the views and rays are a plain model's

@@ -168,13 +168,15 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                 raise DepthnerfError(f"{err} (--resume found no checkpoint in {run_dir}, so a new run would start "
                                      "there: check --out)") from None
             raise
-        least = cfg.data.source_views + 1  # pixelNeRF's items need its source views and another view as the target
+        most = max(cfg.data.source_views)
+        least = most + 1  # pixelNeRF's items need their source views and another view as the target
         single = next((r for r in records if r.num_views < least), None)
         if single is not None:
             plural = "s" if single.num_views != 1 else ""
-            raise DepthnerfError(f"{single.path}: has {single.num_views} view{plural}; "
-                                 f"a training object needs at least {least} (--data.source_views "
-                                 f"{cfg.data.source_views} and a target); remove it from the train split")
+            counts = ",".join(map(str, cfg.data.source_views))
+            raise DepthnerfError(f"{single.path}: has {single.num_views} view{plural}; a training object needs at "
+                                 f"least {least} (--data.source_views {counts} conditions on up to {most}, and a "
+                                 "target); remove it from the train split")
         if latest is not None:
             _check_same_objects(run_dir, root, records)
         trained_hash = _trained_weights_hash(run_dir) if latest is not None else None
@@ -253,12 +255,12 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     norms = NormMerge(model, info)
     s = cfg.schedule
     plan = BatchPlan(num_objects=len(records), seed=cfg.seed, bbox_steps=s.bbox_steps,
-                     objects_phase1=s.objects_phase1, objects_phase2=s.objects_phase2)
+                     objects_phase1=s.objects_phase1, objects_phase2=s.objects_phase2,
+                     source_views=cfg.data.source_views)
     items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
                        pixel_center=cfg.data.pixel_center, symmetry_plane=plane,
-                       mirror_dropout=s.mirror_dropout, view_store=ready_view_store(cfg.data, records, info),
-                       source_views=cfg.data.source_views)
+                       mirror_dropout=s.mirror_dropout, view_store=ready_view_store(cfg.data, records, info))
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate_packed, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
