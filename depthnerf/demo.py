@@ -68,6 +68,7 @@ from depthnerf.reconstruct.exports import save_reconstruction, to_u8
 from depthnerf.reconstruct.orbit import orbit_poses
 from depthnerf.reconstruct.photo import PreparedImage
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
+from depthnerf.render.mesh import check_mesh_resolution
 from depthnerf.render.mesh_level import LOCAL_LEVEL
 
 DEMO_SEED = 2718
@@ -285,10 +286,11 @@ def run_demo(cfg: DemoConfig, device: torch.device | str = "cpu") -> dict:
     unknown = [c for c in cfg.categories if c not in CATEGORIES]
     if unknown or not cfg.categories:
         raise DepthnerfError(f"--categories: choose from {', '.join(CATEGORIES)} (got {', '.join(unknown) or 'none'})")
-    for flag, value, least in (("--views-stride", cfg.views_stride, 1), ("--turntable-views", cfg.turntable_views, 1),
-                               ("--mesh-resolution", cfg.mesh_resolution, 2)):
+    for flag, value, least in (("--views-stride", cfg.views_stride, 1), ("--turntable-views", cfg.turntable_views, 1)):
         if value < least:
             raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
+    if cfg.mesh:
+        check_mesh_resolution(cfg.mesh_resolution, none_allowed=False)
     if cfg.seed < 0:
         raise DepthnerfError(f"--seed must be >= 0 (a synthesis seed), got {cfg.seed}")
     if (problem := folder_problem(cfg.out, "--out")) is not None:  # before the checkpoints load

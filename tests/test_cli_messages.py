@@ -39,10 +39,11 @@ def one_error(capsys) -> str:
 
 
 def test_mesh_resolution_is_checked_and_0_writes_no_mesh(tmp_path, capsys):
-    assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "bad", "--mesh-resolution",
-                       "-1", *QUICK) == 2
-    assert one_error(capsys) == "error: --mesh-resolution must be 0 (no mesh) or >= 2, got -1"
-    assert not (tmp_path / "bad").exists()
+    for value in ("-1", "5000"):  # 5000 ran the renders first, then sampled 10^11 densities
+        assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "bad", "--mesh-resolution",
+                           value, *QUICK) == 2
+        assert one_error(capsys) == f"error: --mesh-resolution must be 0 (no mesh) or >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got {value}"
+        assert not (tmp_path / "bad").exists()
     for flag in ("--views", "--render-resolution", "--chunk"):
         assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "bad", flag, "0") == 2
         assert one_error(capsys) == f"error: {flag} must be >= 1, got 0"

@@ -94,7 +94,8 @@ def test_reconstruct_refuses_a_bad_photo_or_mask_before_loading_the_model(tmp_pa
     (["--resolution", "0"], "--resolution must be >= 8 (SSIM uniform7), got 0"),
     (["--resolution", "7"], "--resolution must be >= 8 (SSIM uniform7), got 7"),
     (["--ssim", "gaussian11", "--resolution", "10"], "--resolution must be >= 11 (SSIM gaussian11), got 10"),
-    (["--mesh-resolution", "1"], "--mesh-resolution must be >= 2, got 1"),
+    (["--mesh-resolution", "1"], "--mesh-resolution must be >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got 1"),
+    (["--mesh-resolution", "5000"], "--mesh-resolution must be >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got 5000"),
 ])
 def test_eval_checks_its_protocol_flags_before_loading(tmp_path, capsys, flags, line):
     """Before: the checkpoint, the data and the prior cache were loaded first (a missing cache asked for a
@@ -127,7 +128,8 @@ def test_compare_and_resume_refuse_a_binary_json_file(tmp_path, capsys):
     (["--out", "{d}/file"], "{d}/file: --out is a file, not a folder"),
     (["--out", "{d}/file/demo"], "{d}/file/demo: --out lies under {d}/file, which is a file, not a folder"),
     (["--views-stride", "0"], "--views-stride must be >= 1, got 0"),  # one line named all three flags
-    (["--mesh-resolution", "1"], "--mesh-resolution must be >= 2, got 1"),
+    (["--mesh-resolution", "1"], "--mesh-resolution must be >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got 1"),
+    (["--mesh-resolution", "5000"], "--mesh-resolution must be >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got 5000"),
 ])
 def test_demo_refuses_a_negative_seed_and_a_file_as_out(tmp_path, capsys, flags, line):
     """``--seed -1`` was numpy's ValueError traceback after both checkpoints loaded; ``--out FILE`` read

@@ -44,11 +44,11 @@ def run(args: argparse.Namespace) -> int:
         raise DepthnerfError(INSTALL_HINT)
     from depthnerf.app.logic import SHIPPED_MODELS, AppConfig, check_port
     from depthnerf.distributed import pick_device
+    from depthnerf.render.mesh import check_mesh_resolution
 
     if not 1 <= args.views <= args.max_views:
         raise DepthnerfError(f"--views must be within 1..--max-views ({args.max_views}), got {args.views}")
-    if args.mesh_resolution != 0 and args.mesh_resolution < 2:
-        raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {args.mesh_resolution}")
+    check_mesh_resolution(args.mesh_resolution)
     if not 0 < args.port < 65536:
         raise DepthnerfError(f"--port must be within 1..65535, got {args.port}")
     device = pick_device(args.device)  # a device that is not there: one line, not the first model's traceback

@@ -41,6 +41,7 @@ from depthnerf.data.protocol import check_input_views
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import GeometryConfig
 from depthnerf.eval.metrics import SSIM_WINDOW_SIDE, SSIM_WINDOWS, LpipsConfig
+from depthnerf.render.mesh import check_mesh_resolution
 from depthnerf.render.mesh_level import AUTO_LEVEL
 
 SCORED = {"png8": "8-bit PNG renders, truncated as pixelNeRF's eval.py writes them (its paper numbers, "
@@ -142,10 +143,11 @@ class ProtocolConfig:
 
     def __post_init__(self) -> None:
         """One line naming the ``depthnerf eval`` flag when a value cannot work (checked before anything loads)."""
-        for flag, value, least in (("--views-stride", self.views_stride, 1), ("--max-objects", self.max_objects, 1),
-                                   ("--mesh-resolution", self.mesh_resolution, 2)):
+        for flag, value, least in (("--views-stride", self.views_stride, 1), ("--max-objects", self.max_objects, 1)):
             if value is not None and value < least:
                 raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
+        if self.mesh:
+            check_mesh_resolution(self.mesh_resolution, none_allowed=False)
         if self.input_views is not None:
             object.__setattr__(self, "input_views", check_input_views(self.input_views))
         if self.resolution is not None:

@@ -57,7 +57,7 @@ from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsic
 from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
-from depthnerf.render.mesh import MeshConfig, check_mesh_keep, keep_pieces
+from depthnerf.render.mesh import MeshConfig, check_mesh_keep, check_mesh_resolution, keep_pieces
 from depthnerf.render.mesh_colors import check_color_rule, describe_colors
 from depthnerf.render.mesh_level import LOCAL_LEVEL, parse_level
 from depthnerf.render.photo_colors import PHOTO, PHOTO_FILL
@@ -128,14 +128,12 @@ class ReconstructConfig:
     def __post_init__(self) -> None:
         """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
         for name, value, least in (("views", self.views, 1), ("render_resolution", self.render_resolution, 1),
-                                   ("chunk", self.chunk, 1), ("max_points", self.max_points, 0),
-                                   ("mesh_resolution", self.mesh_resolution, None)):  # its rule is below
+                                   ("chunk", self.chunk, 1), ("max_points", self.max_points, 0)):
             if value is not None and (isinstance(value, bool) or not isinstance(value, int | np.integer)):
                 raise DepthnerfError(f"--{name.replace('_', '-')} must be a whole number, got {value!r}")
             if value is not None and least is not None and value < least:
                 raise DepthnerfError(f"--{name.replace('_', '-')} must be >= {least}, got {value}")
-        if self.mesh_resolution != 0 and self.mesh_resolution < 2:
-            raise DepthnerfError(f"--mesh-resolution must be 0 (no mesh) or >= 2, got {self.mesh_resolution}")
+        check_mesh_resolution(self.mesh_resolution)
         check_mesh_keep(self.mesh_keep)
         check_color_rule(self.mesh_colors)
         parse_level(str(self.mesh_threshold))  # a level <= 0 or NaN made an empty mesh or every cell a surface

@@ -199,6 +199,24 @@ def source_mesh(density_fn: DensityFn, c2w: Float[Tensor, "4 4"], intr: Intrinsi
     return mesh, level
 
 
+MAX_RESOLUTION = 1024
+"""The finest mesh grid a command accepts: 1024 samples along the longest side are up to 1024^3 density queries
+(about 10^9), and their float32 densities alone take 4.3 GB before marching cubes copies them."""
+
+
+def check_mesh_resolution(resolution: int, flag: str = "--mesh-resolution", none_allowed: bool = True) -> None:
+    """One line naming ``flag`` when ``resolution`` is not a whole number in ``[2, MAX_RESOLUTION]`` (or 0, "no
+    mesh", where ``none_allowed``): said before any work starts, not when the grid's memory runs out."""
+    if isinstance(resolution, bool) or not isinstance(resolution, int | np.integer):
+        raise DepthnerfError(f"{flag} must be a whole number, got {resolution!r}")
+    if none_allowed and resolution == 0:
+        return
+    if not 2 <= resolution <= MAX_RESOLUTION:
+        lowest = "0 (no mesh) or >= 2" if none_allowed else ">= 2"
+        raise DepthnerfError(f"{flag} must be {lowest} and at most {MAX_RESOLUTION} (up to {MAX_RESOLUTION}^3 "
+                             f"density samples, 4.3 GB), got {resolution}")
+
+
 MESH_KEEP = ("all", "largest")
 """What an export keeps of an extracted mesh: every piece, or the largest connected piece (:func:`keep_pieces`)."""
 
