@@ -115,8 +115,8 @@ def test_an_unusable_output_folder_fails_before_any_work(tmp_path, capsys, monke
     monkeypatch.setattr(session, "load_pretrained", never)
     (tmp_path / "a_file").write_text("x")
     assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "a_file" / "out") == 2
-    assert one_error(capsys) == (f"error: {tmp_path / 'a_file' / 'out'}: the output folder's parent "
-                                 f"{tmp_path / 'a_file'} is a file, not a folder")
+    assert one_error(capsys) == (f"error: {tmp_path / 'a_file' / 'out'}: --out lies under "
+                                 f"{tmp_path / 'a_file'}, which is a file, not a folder")
     assert reconstruct(CAR, "--checkpoint", "cpu-cars-depth", "--out", tmp_path / "a_file") == 2
     assert one_error(capsys) == f"error: {tmp_path / 'a_file'}: --out is a file, not a folder"
     if os.geteuid() != 0:  # root writes anywhere

@@ -169,8 +169,8 @@ def test_eval_refuses_a_file_as_out_before_loading(tmp_path, capsys):
     assert main(argv + ["--out", str(tmp_path / "file")]) == 2
     assert one_error(capsys) == f"error: {tmp_path / 'file'}: --out is a file, not a folder"
     assert main(argv + ["--out", str(tmp_path / "file" / "eval")]) == 2
-    assert one_error(capsys) == (f"error: {tmp_path / 'file' / 'eval'}: the output folder's parent "
-                                 f"{tmp_path / 'file'} is a file, not a folder")
+    assert one_error(capsys) == (f"error: {tmp_path / 'file' / 'eval'}: --out lies under "
+                                 f"{tmp_path / 'file'}, which is a file, not a folder")
     run = ["eval", "--data", str(tmp_path), "--run"]  # was "afile/eval/test: the output folder's parent ..."
     assert main(run + [str(tmp_path / "file")]) == 2
     assert one_error(capsys) == f"error: {tmp_path / 'file'}: --run needs a training run folder, this is a file"

@@ -54,7 +54,7 @@ from depthnerf.distributed import DistInfo, broadcast_from_main, gather_to_main
 from depthnerf.errors import DepthnerfError, refusal
 from depthnerf.eval.geometry_metrics import GeometryMetrics
 from depthnerf.eval.metrics import ObjectMetrics, ViewMetrics
-from depthnerf.files import write_json_atomic
+from depthnerf.files import make_folder, write_json_atomic
 from depthnerf.render.mesh_level import MeshLevel
 
 OBJECTS_DIR = "objects"
@@ -136,13 +136,7 @@ def prepare_output_folder(out_dir: Path) -> None:
     """Make ``out_dir`` (a one-line error when it cannot be used as the output folder, and when a name the
     evaluation writes there, :data:`OUTPUT_FILES`, :data:`OBJECTS_DIR` or an :data:`OUTPUT_TREES` folder, is taken
     by a folder or a file of the other kind)."""
-    out_dir = Path(out_dir)
-    try:
-        if out_dir.exists() and not out_dir.is_dir():
-            raise NotADirectoryError(0, "a file, not a folder")
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise DepthnerfError(f"{out_dir}: cannot use it as the output folder ({err.strerror or err})") from None
+    out_dir = make_folder(Path(out_dir), "--out")
     folders = (OBJECTS_DIR, *(name for name, _ in OUTPUT_TREES))
     for name in (*OUTPUT_FILES, *folders):
         path, folder = out_dir / name, name in folders

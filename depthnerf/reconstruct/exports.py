@@ -50,7 +50,7 @@ from PIL import Image
 
 from depthnerf.depth.normalize import BACKGROUND_VALUE, FOREGROUND_CLAMP
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import nearest_existing, write_text_atomic
+from depthnerf.files import folder_problem, nearest_existing, write_text_atomic
 from depthnerf.reconstruct.result import Reconstruction
 
 TURNTABLE_FPS = 12
@@ -79,10 +79,9 @@ def check_output_dir(out: Path, overwrite: bool = False) -> None:
     """Fail at once, before any work, when ``out`` cannot take a reconstruction: a file, not creatable or not
     writable, or holding an earlier reconstruction (unless ``overwrite``). Creates nothing."""
     out = Path(out)
+    if (problem := folder_problem(out, "--out")) is not None:
+        raise DepthnerfError(problem)
     existing = nearest_existing(out)
-    if not existing.is_dir():
-        what = "--out" if existing == out else f"the output folder's parent {existing}"
-        raise DepthnerfError(f"{out}: {what} is a file, not a folder")
     try:
         handle, probe = tempfile.mkstemp(dir=existing, prefix=".depthnerf-write-check-")
         os.close(handle)
