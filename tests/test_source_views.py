@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 
 import pytest
 import torch
@@ -136,3 +137,34 @@ def test_a_run_on_one_or_two_views_resumes_exactly(tmp_path):
     assert len(losses[0]) == 4 and losses[0] == losses[1]
     weights = [load_file(run / "checkpoints" / "step_00000004" / "model.safetensors") for run in (straight, parts)]
     assert all(torch.equal(weights[0][name], weights[1][name]) for name in weights[0])
+
+
+def test_validation_targets_leave_out_every_input_view():
+    from depthnerf.data.protocol import validation_targets, validation_views_note
+
+    assert validation_targets([0, 104, 200], 251, (64, 104)) == [0, 200]
+    assert validation_targets([64, 104], 251, (64, 104)) == [65]  # nothing left: the first non-input after 64
+    assert validation_targets([1, 2], 3, (2, 0)) == [1] and validation_targets([2, 0], 3, (2, 0)) == [1]
+    for views, count in (([0, 125, 200], 251), ([64], 251), ([1, 999], 3), ([0], 3)):  # None: as before
+        assert validation_targets(views, count, None) == validation_targets(views, count)
+    assert validation_views_note([0, 104], [("a", 251)], (64, 104)) == (
+        "note: --log.val_views 0,104: a has 251 views, input views 64,104; validation renders its views 0")
+
+
+def test_a_two_view_run_validates_on_two_views_and_a_missing_one_is_one_line(tmp_path, capsys):
+    root = tmp_path / "data"
+    make_srn_fixture(root, "cars", {"train": 2, "val": 1}, views=3, size=32, with_mask=True)
+    run = tmp_path / "run"
+    val = ["--log.val_every", "1", "--log.val_objects", "1", "--log.val_views", "0,2"]
+    flags = [*TINY, "--data.source_views", "2", *val, "--log.val_input_views", "0,1"]
+    assert cli("train", "--depth", "none", "--data", root, "--out", run, *flags) == 0
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert any(math.isfinite(row.get("val_psnr", math.nan)) for row in rows), rows
+    assert "note: --log.val_views 0,2: " in capsys.readouterr().err  # view 0 is an input: view 2 alone is scored
+    obj = next((root / "cars_val").iterdir())
+    assert cli("train", "--depth", "none", "--data", root, "--out", tmp_path / "r2", *flags[:-1], "0,5") == 2
+    assert capsys.readouterr().err == (f"error: {obj}: input view 5 does not exist: the object has 3 views (0-2) "
+                                       "(--log.val_input_views)\n")
+    assert not (tmp_path / "r2").exists()
+    assert cli("train", "--depth", "none", "--data", root, "--out", tmp_path / "r3", *flags[:-1], "1,1") == 2
+    assert capsys.readouterr().err == "error: --log.val_input_views names a view twice: 1 1\n"

@@ -39,15 +39,15 @@ class ProtocolViews:
         return self.input_views[0]
 
 
-def check_input_views(inputs: Sequence[int]) -> tuple[int, ...]:
-    """``--input-views`` as given, refused in one line if empty, negative or repeated."""
+def check_input_views(inputs: Sequence[int], flag: str = "--input-views") -> tuple[int, ...]:
+    """``inputs`` (given as ``flag``) as given, refused in one line if empty, negative or repeated."""
     inputs = tuple(int(v) for v in inputs)
     if not inputs:
-        raise DepthnerfError("--input-views needs at least one view index")
+        raise DepthnerfError(f"{flag} needs at least one view index")
     if min(inputs) < 0:
-        raise DepthnerfError(f"--input-views must be view indices >= 0, got {' '.join(map(str, inputs))}")
+        raise DepthnerfError(f"{flag} must be view indices >= 0, got {' '.join(map(str, inputs))}")
     if len(set(inputs)) != len(inputs):
-        raise DepthnerfError(f"--input-views names a view twice: {' '.join(map(str, inputs))}")
+        raise DepthnerfError(f"{flag} names a view twice: {' '.join(map(str, inputs))}")
     return inputs
 
 
@@ -72,23 +72,29 @@ def protocol_views(num_views: int, stride: int = 1, inputs: Sequence[int] | None
     return ProtocolViews(input_views=chosen, targets=tuple(others[::stride]), others=len(others))
 
 
-def validation_targets(views: Sequence[int], num_views: int) -> list[int]:
+def validation_targets(views: Sequence[int], num_views: int, inputs: Sequence[int] | None = None) -> list[int]:
     """The views training validation renders of an object with ``num_views`` views, asked for ``views``
-    (``--log.val_views``): those the object has, other than its input view (:func:`protocol_views`); when none is
-    left, the view after the input view."""
-    src = protocol_views(num_views).input_view
-    return [v for v in views if v < num_views and v != src] or [(src + 1) % num_views]
+    (``--log.val_views``): those the object has, other than its input views (``inputs``, ``--log.val_input_views``;
+    None: the protocol's, :func:`protocol_views`); when none is left, the first view after the primary input view
+    that is not an input."""
+    chosen = protocol_views(num_views, inputs=inputs).input_views
+    left = [v for v in views if v < num_views and v not in chosen]
+    return left or [next((chosen[0] + k) % num_views for k in range(1, num_views)
+                         if (chosen[0] + k) % num_views not in chosen)]
 
 
-def validation_views_note(views: Sequence[int], objects: Sequence[tuple[str, int]]) -> str | None:
+def validation_views_note(views: Sequence[int], objects: Sequence[tuple[str, int]],
+                          inputs: Sequence[int] | None = None) -> str | None:
     """A note saying what validation renders instead of ``--log.val_views`` where some val ``objects``
-    (``(path, views)`` pairs) lack those views (:func:`validation_targets`; the presets' views are for SRN's
-    251-view val objects); None when every object renders them as asked."""
-    changed = [(path, count) for path, count in objects if validation_targets(views, count) != list(views)]
+    (``(path, views)`` pairs) lack those views or use one as an input (:func:`validation_targets`; the presets'
+    views are for SRN's 251-view val objects); None when every object renders them as asked."""
+    changed = [(path, count) for path, count in objects if validation_targets(views, count, inputs) != list(views)]
     if not changed:
         return None
     path, count = changed[0]
     more = f" (and {len(changed) - 1} more val objects)" if len(changed) > 1 else ""
-    rendered = ",".join(map(str, validation_targets(views, count)))
-    return (f"note: --log.val_views {','.join(map(str, views))}: {path} has {count} views, input view "
-            f"{protocol_views(count).input_view}; validation renders its views {rendered}{more}")
+    rendered = ",".join(map(str, validation_targets(views, count, inputs)))
+    chosen = protocol_views(count, inputs=inputs).input_views
+    said = f"input view {chosen[0]}" if len(chosen) == 1 else f"input views {','.join(map(str, chosen))}"
+    return (f"note: --log.val_views {','.join(map(str, views))}: {path} has {count} views, {said}; validation "
+            f"renders its views {rendered}{more}")

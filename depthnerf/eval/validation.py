@@ -1,4 +1,5 @@
-"""Validation during training: PSNR/SSIM on a few fixed val objects, rendered from the protocol's input view.
+"""Validation during training: PSNR/SSIM on a few fixed val objects, rendered from the protocol's input view (or
+the views ``--log.val_input_views`` names).
 
 ``depthnerf train`` passes :func:`validate` to the training loop (:class:`depthnerf.train.validator.Validator`).
 """
@@ -39,9 +40,11 @@ class ValidationResult:
 def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: PriorSource, views: Sequence[int],
              spec: InferenceSpec, chunk: int, device: torch.device,
              progress: Callable[[int], Any] | None = None,
-             symmetry_plane: Sequence[float] | None = None) -> ValidationResult:
-    """Render ``views`` of each record from its input view and score them against the ground truth
-    (``progress(1)`` after each record); ``symmetry_plane``: the objects' mirror plane (mirror models)."""
+             symmetry_plane: Sequence[float] | None = None,
+             inputs: Sequence[int] | None = None) -> ValidationResult:
+    """Render ``views`` of each record from its input views (``inputs``, the first the primary; None: the
+    protocol's one) and score them against the ground truth (``progress(1)`` after each record);
+    ``symmetry_plane``: the objects' mirror plane (mirror models)."""
     was_training = model.training
     model.eval()
     # the device's field point chunk (on the CPU larger than the config's, which is slower there); the precision
@@ -51,17 +54,18 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: Pr
     resolution, (near, far), render_cfg = spec.resolution, spec.z_range, spec.render
     try:
         for i, record in enumerate(records):
-            src = protocol_views(record.num_views).input_view
-            targets = validation_targets(views, record.num_views)
-            obj = load_object(record, [src, *targets], resolution=resolution, pixel_center=spec.pixel_center)
-            cond = condition(prior_source, obj.images[:1], obj.masks[:1], obj.poses[:1], obj.intrinsics, device,
-                             where=DatasetViews(record, (src,)), symmetry_plane=symmetry_plane)
+            srcs = protocol_views(record.num_views, inputs=inputs).input_views
+            targets = validation_targets(views, record.num_views, inputs)
+            obj = load_object(record, [*srcs, *targets], resolution=resolution, pixel_center=spec.pixel_center)
+            n = len(srcs)
+            cond = condition(prior_source, obj.images[:n], obj.masks[:n], obj.poses[:n], obj.intrinsics, device,
+                             where=DatasetViews(record, srcs), symmetry_plane=symmetry_plane)
             disparity = cond.disparity
             enc = model.encode(cond.inputs)
             out = render_views(model.field(enc, "coarse", runtime), model.field(enc, "fine", runtime),
-                               obj.poses[1:].to(device), obj.intrinsics, near, far, render_cfg, chunk=chunk)
+                               obj.poses[n:].to(device), obj.intrinsics, near, far, render_cfg, chunk=chunk)
             preds = out.rgb.cpu().numpy()
-            gts = obj.images[1:].permute(0, 2, 3, 1).numpy()
+            gts = obj.images[n:].permute(0, 2, 3, 1).numpy()
             scores.append(object_metrics(record.object_id, list(preds), list(gts)))
             if i == 0:
                 distance = out.distance[0].cpu().numpy()

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from depthnerf.config_io import NumberRules, broken_rule, flat_keys, from_dict, to_dict
+from depthnerf.data.protocol import check_input_views
 from depthnerf.data.srn import CATEGORY_DEFAULTS, category_defaults
 from depthnerf.depth.prior import PriorConfig, portable_prior
 from depthnerf.errors import DepthnerfError
@@ -133,6 +134,11 @@ class LogConfig:
     """Number of fixed validation objects (the first ones of the val split)."""
     val_views: tuple[int, ...] = (0, 125, 200)
     """Target views rendered per validation object (view 64 is the input, as in the test protocol)."""
+    val_input_views: tuple[int, ...] = ()
+    """Views each validation object is conditioned on, the first the primary (``64,104``: a model trained with
+    ``--data.source_views 2`` validated, and its best checkpoint chosen, as pixelNeRF's two-view protocol scores
+    it); empty = the protocol's input view (64; view 0 for objects with 64 views or fewer). Every val object must
+    have them (checked before training starts)."""
     checkpoint_every: int = 2000
     """Write a checkpoint every this many steps (and at the end)."""
     keep_last: int = 3
@@ -232,6 +238,8 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
         if not cfg.log.val_views or min(cfg.log.val_views) < 0:
             raise DepthnerfError(f"--log.val_views must name at least one view index >= 0 {without}, got "
                                  f"{list(cfg.log.val_views)}")
+        if cfg.log.val_input_views:
+            check_input_views(cfg.log.val_input_views, "--log.val_input_views")
     if cfg.render.guided.enabled:
         raise DepthnerfError("--render.guided.enabled: depth-guided sampling is an inference-time renderer "
                              "(depthnerf eval/reconstruct --guided); training renders with the paper's sampler")

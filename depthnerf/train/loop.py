@@ -39,7 +39,7 @@ from tqdm import tqdm
 from depthnerf.config_io import to_dict
 from depthnerf.crash_hook import crash_point
 from depthnerf.data.card import card_path, read_dataset_card
-from depthnerf.data.protocol import validation_views_note
+from depthnerf.data.protocol import protocol_views, validation_views_note
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
@@ -193,7 +193,14 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                 raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
                                      ) from None
             prior_source.check(val_records)
-            views_note = validation_views_note(cfg.log.val_views, [(str(r.path), r.num_views) for r in val_records])
+            inputs = cfg.log.val_input_views or None
+            for record in val_records:  # a val object without the input views: one line now, not at the first validation
+                try:
+                    protocol_views(record.num_views, inputs=inputs)
+                except DepthnerfError as err:
+                    raise DepthnerfError(f"{record.path}: {err} (--log.val_input_views)") from None
+            views_note = validation_views_note(cfg.log.val_views, [(str(r.path), r.num_views) for r in val_records],
+                                               inputs)
             if views_note is not None:
                 print(views_note, file=sys.stderr, flush=True)
         plane = None
@@ -385,4 +392,4 @@ def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records:
             memory.one_line_out_of_memory(info, lambda: memory.in_validation(cfg, step, checkpoint)):
         crash_point("validation", step)
         return validate(model, records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
-                        progress=vbar.update, symmetry_plane=plane)
+                        progress=vbar.update, symmetry_plane=plane, inputs=cfg.log.val_input_views or None)

@@ -24,11 +24,13 @@ class ValidationScores(Protocol):
 
 
 class Validator(Protocol):
-    """``validate(model, records, prior_source, views, spec, chunk, device, progress=None, symmetry_plane=None)``:
-    render ``views`` of each record from its input view (conditioned on ``prior_source`` and, for mirror models, the
-    symmetry plane) and score them; ``progress(1)`` after each record (the loop's validation progress bar)."""
+    """``validate(model, records, prior_source, views, spec, chunk, device, progress=None, symmetry_plane=None,
+    inputs=None)``: render ``views`` of each record from its input views (``inputs``; None: the protocol's)
+    (conditioned on ``prior_source`` and, for mirror models, the symmetry plane) and score them; ``progress(1)``
+    after each record (the loop's validation progress bar)."""
 
     def __call__(self, model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: PriorSource,
                  views: Sequence[int], spec: InferenceSpec, chunk: int, device: torch.device,
                  progress: Callable[[int], Any] | None = None,
-                 symmetry_plane: Sequence[float] | None = None) -> ValidationScores: ...
+                 symmetry_plane: Sequence[float] | None = None,
+                 inputs: Sequence[int] | None = None) -> ValidationScores: ...
