@@ -168,3 +168,13 @@ def test_a_two_view_run_validates_on_two_views_and_a_missing_one_is_one_line(tmp
     assert not (tmp_path / "r2").exists()
     assert cli("train", "--depth", "none", "--data", root, "--out", tmp_path / "r3", *flags[:-1], "1,1") == 2
     assert capsys.readouterr().err == "error: --log.val_input_views names a view twice: 1 1\n"
+
+
+def test_an_out_of_memory_line_names_the_source_views():
+    from depthnerf.train.memory import step_sizes
+
+    cfg = preset("cpu-chairs")
+    assert "source views" not in step_sizes(cfg, 1, 2)
+    cfg.data.source_views = (1, 2)
+    assert ("n_gaussian 8), each object on up to 2 source views (--data.source_views 1,2), at --data.resolution 64"
+            in step_sizes(cfg, 1, 2))

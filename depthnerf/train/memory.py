@@ -54,9 +54,12 @@ def step_sizes(cfg: TrainConfig, world: int, phase: int) -> str:
     notes = ([f"{objects // world} per rank"] if world > 1 else []) + (
         ["one at a time: --schedule.step_shape per-object"] if s.step_shape == "per-object" else [])
     how = f" ({'; '.join(notes)})" if notes else ""
+    most = max(cfg.data.source_views)  # each source view is encoded, and each sample gathers a feature from each
+    views = (f", each object on up to {most} source views (--data.source_views "
+             f"{','.join(map(str, cfg.data.source_views))})" if most > 1 else "")
     return (f"--schedule.objects_phase{phase} {objects} objects{how} x --schedule.rays_per_object "
             f"{s.rays_per_object} rays x {samples_per_ray(cfg)} samples per ray (--render.sampler.n_coarse "
-            f"{sampler.n_coarse} + n_importance {sampler.n_importance} + n_gaussian {sampler.n_gaussian}), at "
+            f"{sampler.n_coarse} + n_importance {sampler.n_importance} + n_gaussian {sampler.n_gaussian}){views}, at "
             f"--data.resolution {cfg.data.resolution}")
 
 
