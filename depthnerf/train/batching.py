@@ -2,8 +2,8 @@
 
 Schedule (pixelNeRF / the paper): each step draws ``objects_per_batch`` objects; for each object one random source
 view (or the step's number of them, :meth:`BatchPlan.sources`) and ``rays_per_object`` target rays from its *other*
-views. During the bounding-box phase target rays are drawn
-inside the object's 2D box in the target view (pixelNeRF's ``bbox`` sampling), afterwards from the whole image.
+views. During the bounding-box phase target rays are drawn inside the object's 2D box in the target view
+(pixelNeRF's ``bbox`` sampling), afterwards from the whole image.
 
 Determinism: object order is an epoch-wise permutation drawn from ``seed + epoch``; a step's number of source
 views (where several counts are allowed) from a generator seeded by ``hash(seed, s, -2)``; the source views, target
