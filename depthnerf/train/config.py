@@ -65,6 +65,11 @@ class DataConfig:
     draw one of them per step, uniformly, the same for every object and rank of the step. The model averages the
     views' features at its MLP's ``combine_layer``; a model trained on several is evaluated on as many with
     ``depthnerf eval --input-views`` (e.g. ``64 104``). Each count once, each >= 1 (:func:`check_config`)."""
+    channel_permute: float = 0.0
+    """Fraction of training items whose colour channels are permuted, source views and target rays alike (one of
+    the five non-identity permutations, drawn per item; white and grey stay as they are): the field then has to take
+    an object's colour from its input view, not from the colours its category usually has (beyond the paper; 0 in
+    every preset). Must lie in ``[0, 1]``."""
     num_workers: int = 2
     """DataLoader worker processes (0 = load in the main process)."""
     view_store: str = ""
@@ -216,6 +221,8 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
     if cfg.schedule.lr_final > cfg.schedule.lr:
         raise DepthnerfError(f"--schedule.lr_final must be <= --schedule.lr ({cfg.schedule.lr:g}), got "
                              f"{cfg.schedule.lr_final:g}")
+    if not 0 <= cfg.data.channel_permute <= 1:  # NaN fails too
+        raise DepthnerfError(f"--data.channel_permute must be in [0, 1], got {cfg.data.channel_permute}")
     if cfg.schedule.mirror_dropout >= 1:
         raise DepthnerfError(f"--schedule.mirror_dropout must be < 1, got {cfg.schedule.mirror_dropout}")
     if not 0 <= cfg.data.pixel_center < 1:  # NaN fails too

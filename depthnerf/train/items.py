@@ -30,7 +30,7 @@ class TrainItems(Dataset):
     def __init__(self, records: Sequence[ObjectRecord], prior_source: PriorSource, *, resolution: int,
                  target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0,
                  symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0,
-                 view_store: ViewStore | None = None) -> None:
+                 view_store: ViewStore | None = None, channel_permute: float = 0.0) -> None:
         self.records = list(records)
         self.prior_source = prior_source
         self.resolution = resolution
@@ -44,6 +44,8 @@ class TrainItems(Dataset):
         """Fraction of items conditioned with the zero ("no plane") plane instead."""
         self.view_store = view_store
         """Decoded views to read instead of the PNG files (the same items, to the bit); None: decode the files."""
+        self.channel_permute = channel_permute
+        """Fraction of items whose colour channels are permuted (``DataConfig.channel_permute``)."""
 
     def __len__(self) -> int:
         return len(self.records)
@@ -75,6 +77,9 @@ class TrainItems(Dataset):
             dropped = bool(torch.rand((), generator=gen) < self.mirror_dropout)
             plane = (0.0, 0.0, 0.0, 0.0) if dropped else self.symmetry_plane
         src_image, src_mask = obj.views(pos[:n_src])
+        if self.channel_permute > 0:  # drawn after everything else, so the views, rays and plane are as without
+            order = permuted_channels(gen, self.channel_permute)
+            src_image, target_rgb = src_image[:, order], target_rgb[:, order]
         source = condition(self.prior_source, src_image, src_mask, obj.poses[pos[:n_src]], obj.intrinsics,
                            where=DatasetViews(record, tuple(src)), symmetry_plane=plane).inputs
         target_prior = None
@@ -88,6 +93,18 @@ class TrainItems(Dataset):
             target_rgb=target_rgb[None], target_prior=target_prior, target_fg=target_fg[None],
             target_cos=dirs_cam[:, 2][None],
         )
+
+
+CHANNEL_ORDERS = ((0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+"""The five non-identity orders of the RGB channels."""
+
+
+def permuted_channels(gen: torch.Generator, fraction: float) -> list[int]:
+    """An order of the RGB channels for one item: with probability ``fraction`` one of :data:`CHANNEL_ORDERS`,
+    uniformly, else ``[0, 1, 2]`` (two draws from ``gen`` either way)."""
+    permute = bool(torch.rand((), generator=gen) < fraction)
+    which = int(torch.randint(len(CHANNEL_ORDERS), (), generator=gen))
+    return list(CHANNEL_ORDERS[which]) if permute else [0, 1, 2]
 
 
 def ready_view_store(data: DataConfig, records: Sequence[ObjectRecord], info: DistInfo) -> ViewStore | None:
