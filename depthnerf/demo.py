@@ -289,8 +289,7 @@ def run_demo(cfg: DemoConfig, device: torch.device | str = "cpu") -> dict:
     for flag, value, least in (("--views-stride", cfg.views_stride, 1), ("--turntable-views", cfg.turntable_views, 1)):
         if value < least:
             raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
-    if cfg.mesh:
-        check_mesh_resolution(cfg.mesh_resolution, none_allowed=False)
+    check_mesh_resolution(cfg.mesh_resolution, none_allowed=False)
     if cfg.seed < 0:
         raise DepthnerfError(f"--seed must be >= 0 (a synthesis seed), got {cfg.seed}")
     if (problem := folder_problem(cfg.out, "--out")) is not None:  # before the checkpoints load

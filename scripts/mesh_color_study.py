@@ -33,11 +33,11 @@ from paired_difference import t_interval
 from skimage.color import rgb2lab
 
 from depthnerf.data.cameras import Intrinsics, camera_rays
+from depthnerf.data.protocol import protocol_views
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.hits import first_hit_finder
 from depthnerf.eval.objects import prepare_object
-from depthnerf.eval.protocol import protocol_views
 from depthnerf.infer.session import InferenceSession, photo_view
 from depthnerf.render.mesh import MeshConfig, field_radiance
 from depthnerf.render.mesh_colors import NORMAL_RAY, POINT, vertex_colors

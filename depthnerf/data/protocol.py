@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from depthnerf.data.records import ObjectRecord
 from depthnerf.errors import DepthnerfError
 
 INPUT_VIEW = 64
@@ -70,6 +71,16 @@ def protocol_views(num_views: int, stride: int = 1, inputs: Sequence[int] | None
                                  f"{num_views} views")
     others = [v for v in range(num_views) if v not in chosen]
     return ProtocolViews(input_views=chosen, targets=tuple(others[::stride]), others=len(others))
+
+
+def record_views(record: ObjectRecord, stride: int = 1, inputs: Sequence[int] | None = None,
+                 flag: str | None = None) -> ProtocolViews:
+    """:func:`protocol_views` of ``record``; an object lacking an asked-for view is one line naming its folder (and
+    ``flag``, the setting that asked, where given)."""
+    try:
+        return protocol_views(record.num_views, stride, inputs)
+    except DepthnerfError as err:
+        raise DepthnerfError(f"{record.path}: {err}{f' ({flag})' if flag else ''}") from None
 
 
 def validation_targets(views: Sequence[int], num_views: int, inputs: Sequence[int] | None = None) -> list[int]:

@@ -146,8 +146,7 @@ class ProtocolConfig:
         for flag, value, least in (("--views-stride", self.views_stride, 1), ("--max-objects", self.max_objects, 1)):
             if value is not None and value < least:
                 raise DepthnerfError(f"{flag} must be >= {least}, got {value}")
-        if self.mesh:
-            check_mesh_resolution(self.mesh_resolution, none_allowed=False)
+        check_mesh_resolution(self.mesh_resolution, none_allowed=False)
         if self.input_views is not None:
             object.__setattr__(self, "input_views", check_input_views(self.input_views))
         if self.resolution is not None:

@@ -84,6 +84,7 @@ import trimesh
 from depthnerf.data import srn_format
 from depthnerf.data.card import card_path, card_pixel_center, read_dataset_card
 from depthnerf.data.fingerprint import DataFingerprint
+from depthnerf.data.protocol import record_views
 from depthnerf.data.srn import ObjectRecord, index_split, object_dirs
 from depthnerf.distributed import DistInfo, checked_together
 from depthnerf.errors import DepthnerfError
@@ -99,7 +100,7 @@ from depthnerf.eval.metrics import (
     object_metrics,
     summarize,
 )
-from depthnerf.eval.objects import ProtocolViews, prepare_object, protocol_views
+from depthnerf.eval.objects import ProtocolViews, prepare_object
 from depthnerf.eval.shards import ObjectResult, ObjectStore, evaluate_objects, prepare_output_folder
 from depthnerf.eval.summary_lines import input_views_record, mesh_status, protocol_text
 from depthnerf.files import write_text_atomic
@@ -259,10 +260,7 @@ def _views_of(cfg: ProtocolConfig) -> Callable[[ObjectRecord], ProtocolViews]:
     """Each object's views under ``cfg``; every one is checked first (an object lacking an asked-for input view
     is one line naming it, before anything is rendered)."""
     def views_of(record: ObjectRecord) -> ProtocolViews:
-        try:
-            return protocol_views(record.num_views, cfg.views_stride, cfg.input_views)
-        except DepthnerfError as err:
-            raise DepthnerfError(f"{record.path}: {err}") from None
+        return record_views(record, cfg.views_stride, cfg.input_views)
     return views_of
 
 

@@ -313,9 +313,9 @@ def from_dict_config(data: dict[str, Any], where: str = "config.json") -> TrainC
     if not isinstance(data, dict):
         raise DepthnerfError(f"{where}: expected a mapping for TrainConfig")
     data = copy.deepcopy(data)
-    count = data.get("data", {}).get("source_views") if isinstance(data.get("data"), dict) else None
-    if isinstance(count, int) and not isinstance(count, bool):
-        data["data"]["source_views"] = [count]
+    section = data.get("data")
+    if isinstance(section, dict) and type(section.get("source_views")) is int:  # bool is no count
+        section["source_views"] = [section["source_views"]]
     prior = from_dict(PriorConfig, data.get("prior", {}), where=f"{where}.prior")
     model = data.pop("model", None)
     cfg = from_dict(TrainConfig, data, where=where)

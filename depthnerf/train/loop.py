@@ -39,7 +39,7 @@ from tqdm import tqdm
 from depthnerf.config_io import to_dict
 from depthnerf.crash_hook import crash_point
 from depthnerf.data.card import card_path, read_dataset_card
-from depthnerf.data.protocol import protocol_views, validation_views_note
+from depthnerf.data.protocol import record_views, validation_views_note
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
@@ -195,10 +195,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             prior_source.check(val_records)
             inputs = cfg.log.val_input_views or None
             for record in val_records:  # a val object without the input views: one line now, not at the first validation
-                try:
-                    protocol_views(record.num_views, inputs=inputs)
-                except DepthnerfError as err:
-                    raise DepthnerfError(f"{record.path}: {err} (--log.val_input_views)") from None
+                record_views(record, inputs=inputs, flag="--log.val_input_views")
             views_note = validation_views_note(cfg.log.val_views, [(str(r.path), r.num_views) for r in val_records],
                                                inputs)
             if views_note is not None:
