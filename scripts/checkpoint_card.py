@@ -97,6 +97,12 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              *(["- Depth prior at the point (beyond the paper, `--model.prior_at_point true`): the MLP input also "
                 "gets the normalised prior read at full resolution at each point's projection"
                 + (" and at its mirror image's" if m.mirror else "") + "."] if m.prior_at_point else []),
+             *(["- Colour at the point (beyond the paper, `--model.rgb_at_point true`): the MLP input also gets the "
+                "input's colour read at each point's projection" + (" and at its mirror image's" if m.mirror else "")
+                + "."] if m.rgb_at_point else []),
+             *(["- Global features (beyond the paper, `--model.global_features true`): each source view's feature "
+                "maps averaged over the image enter the MLP's first hidden layer at every point."]
+               if m.global_features else []),
              f"- Schedule: {s.max_steps} steps"
              + (f" (the run stopped at step {card['unfinished']['stopped_at']}: exported unfinished)"
                 if card.get("unfinished") else "") + f", Adam lr {s.lr:g}"

@@ -17,8 +17,9 @@ from tests.test_model import bilinear_border, query, randomize, small_config, so
 
 def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
     """Point by point (one source view): pixelNeRF's field, the source pixels (prior, then colour) at the point's
-    projection appended to its input, and for mirror models the mirror branch (the mirror image projected by
-    hand, its flags, and those pixels at its projection)."""
+    projection appended to its input, for mirror models the mirror branch (the mirror image projected by
+    hand, its flags, and those pixels at its projection), and for global-feature models the feature maps' mean
+    through ``lin_global``."""
     mlp = model.network(which)
     h, w = enc.image_size
     hf, wf = enc.features.shape[-2:]
@@ -48,6 +49,8 @@ def reference_field(model: PixelNeRF, enc, src, which: str, pts, dirs):
                     flags.append(float(cam[2] > 0 and 0 <= u <= w and 0 <= vv <= h))
                     pixel_cols.append(bilinear_border(pixels, float(u), float(vv)))
                 x = mlp.lin_in(torch.cat([mlp.encoding(rot @ p), rot @ v, pixel_cols[0]]))
+                if model.cfg.global_features:
+                    x = x + mlp.lin_global(enc.features[bi, 0].mean(dim=(1, 2)))
                 gate = 0.0
                 if model.cfg.mirror:
                     gate = float(plane[bi, :3].abs().sum() > 0)

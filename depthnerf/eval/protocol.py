@@ -336,6 +336,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
             " + mirror symmetry" if evaluator.symmetry_plane is not None else "") + (
             " + prior at each point" if spec.model.prior_at_point else "") + (
             " + colour at each point" if spec.model.rgb_at_point else "") + (
+            " + global features" if spec.model.global_features else "") + (
             f" + encoder at {spec.model.encoder.image_scale:g}x input" if spec.model.encoder.image_scale != 1.0
             else "") + (
             " + encoder without first pool" if not spec.model.encoder.use_first_pool else "") + (

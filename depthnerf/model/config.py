@@ -183,6 +183,13 @@ class PixelNeRFConfig:
     source image's RGB (mapped to [-1, 1]) read bilinearly at the point's projection at full resolution, and
     mirror models also at the mirror image's projection (after the prior column when both are on): the colour
     a visible point (or its visible mirror image) has, which the encoder's features carry only blurred."""
+    global_features: bool = False
+    """Global features (beyond the paper; off in the paper presets; any model): each source view's feature maps
+    averaged over the image, through one more linear per MLP (``lin_global``), are added to the MLP's first
+    hidden layer at every point (before the views are averaged). Pixel-aligned features describe what the input
+    shows along the point's ray; this says what the whole object looks like (its colours), which a surface the
+    input does not see (a chair back seen edge-on) can only get from elsewhere in the image. pixelNeRF's code has
+    the same idea as a separate global encoder, unused in its SRN configuration."""
 
     @property
     def point_columns(self) -> int:

@@ -20,6 +20,10 @@ lin_z_mirror[i](z')``. The mirror linears are initialised like their direct twin
 Source pixels at the point (``PixelNeRFConfig.prior_at_point`` / ``rgb_at_point``): ``extra_inputs`` more input
 columns for ``lin_in`` (the prior and/or colour at the point's projection, appended after ``d``) and for
 ``lin_in_mirror`` (the same at the mirror image's projection, appended after the two flags).
+
+Global features (``PixelNeRFConfig.global_features``): ``lin_global`` maps each source view's feature maps averaged
+over the image (``g``, C channels) to one more term of the first hidden layer, the same at every point of that
+view: ``x = lin_in(u) + lin_global(g)`` (mirror models: plus the gated mirror term), initialised like ``lin_in``.
 """
 
 from __future__ import annotations
@@ -118,7 +122,8 @@ class ResidualBlock(nn.Module):
 class ResidualField(nn.Module):
     """pixelNeRF's ResnetFC conditioned on ``d_latent`` pixel-aligned feature channels."""
 
-    def __init__(self, cfg: FieldConfig, d_latent: int, *, mirror: bool = False, extra_inputs: int = 0):
+    def __init__(self, cfg: FieldConfig, d_latent: int, *, mirror: bool = False, extra_inputs: int = 0,
+                 global_features: bool = False):
         super().__init__()
         self.cfg = cfg
         self.encoding = PositionalEncoding(cfg.num_freqs, cfg.freq_factor, cfg.include_input)
@@ -132,6 +137,10 @@ class ResidualField(nn.Module):
             self.lin_in_mirror = _kaiming(nn.Linear(cfg.d_in + MIRROR_FLAGS + extra_inputs, cfg.d_hidden))
             self.lin_z_mirror = nn.ModuleList([_kaiming(nn.Linear(d_latent, cfg.d_hidden))
                                                for _ in range(self.n_lin_z)])
+        self.global_features = global_features
+        """Whether ``lin_global`` exists (``PixelNeRFConfig.global_features``)."""
+        if global_features:
+            self.lin_global = _kaiming(nn.Linear(d_latent, cfg.d_hidden))
         self.lin_out = _kaiming(nn.Linear(cfg.d_hidden, 4))
         if cfg.density_bias_init is not None:
             with torch.no_grad():
@@ -148,6 +157,13 @@ class ResidualField(nn.Module):
         out = torch.matmul(maps.reshape(n, c, hf * wf).transpose(1, 2), weight.t()) + bias
         return out.reshape(n, hf, wf, -1)
 
+    def global_term(self, features: Float[Tensor, "B V C Hf Wf"]) -> Float[Tensor, "B V D"]:
+        """``lin_global`` of each view's feature maps averaged over the image: the global features' term of the
+        first hidden layer (models built with ``global_features`` only)."""
+        if not self.global_features:
+            raise ValueError("global features asked of a field built without lin_global")
+        return self.lin_global(features.mean(dim=(-2, -1)))
+
     def inputs(self, points: Float[Tensor, "*N 3"], dirs: Float[Tensor, "*N 3"] | None) -> Float[Tensor, "*N Din"]:
         """MLP input ``[gamma(points), dirs]`` (dirs dropped when ``use_viewdirs`` is off)."""
         enc = self.encoding(points)
@@ -155,12 +171,14 @@ class ResidualField(nn.Module):
 
     def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"] | MapSamples, *,
                 projected: bool, mirror: MirrorQuery | None = None,
-                residual_dtype: torch.dtype | None = None, relu_epilogue: bool = False) -> Float[Tensor, "B N 4"]:
+                global_term: Float[Tensor, "B V D"] | None = None, residual_dtype: torch.dtype | None = None, relu_epilogue: bool = False) -> Float[Tensor, "B N 4"]:
         """Raw outputs (rgb logits, sigma pre-activation). ``latent`` is either the sampled features
         (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z); ``mirror``
         (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike. Either
         may instead be a :class:`~depthnerf.model.features.MapSamples` of those maps (``[B*V, Hf, Wf, L]``, grid
         ``[B*V, N, 2]``): the forward gathers each block's channels itself (``--gather inside``), same values.
+        ``global_term`` (models built with ``global_features``; :meth:`global_term`) is added to every point's
+        first hidden layer.
 
         ``residual_dtype``: without autograd, the dtype the residual stream ``x`` is kept in (None: the inputs'
         dtype, fp32). ``torch.bfloat16`` under bf16 autocast halves the stream's memory traffic, at the cost of
@@ -170,6 +188,10 @@ class ResidualField(nn.Module):
         b, v, n, _ = inputs.shape
         d = self.cfg.d_hidden
         x = self.lin_in(inputs.reshape(b * v * n, -1))
+        if global_term is not None:
+            if not self.global_features:
+                raise ValueError("global features given to a field built without lin_global")
+            x = x + global_term.to(x.dtype)[:, :, None, :].expand(b, v, n, d).reshape(b * v * n, d)
         z_part = _feature_terms(latent, self.lin_z, d, projected, b * v * n)
         inplace = not torch.is_grad_enabled()
         if residual_dtype is not None and not inplace:

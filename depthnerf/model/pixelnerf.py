@@ -154,9 +154,10 @@ class PixelNeRF(nn.Module):
         self.encoder = ImageEncoder(cfg.encoder, self.depth_aware)
         latent = cfg.encoder.latent_size(self.depth_aware)
         extra = cfg.point_columns
-        self.coarse = ResidualField(cfg.coarse, latent, mirror=cfg.mirror, extra_inputs=extra)
-        self.fine = (ResidualField(cfg.fine, latent, mirror=cfg.mirror, extra_inputs=extra)
-                     if cfg.fine is not None else None)
+        self.coarse = ResidualField(cfg.coarse, latent, mirror=cfg.mirror, extra_inputs=extra,
+                                    global_features=cfg.global_features)
+        self.fine = (ResidualField(cfg.fine, latent, mirror=cfg.mirror, extra_inputs=extra,
+                                   global_features=cfg.global_features) if cfg.fine is not None else None)
 
     def encode(self, src: SourceViews, *, encoder_norm: EncoderNorm = "running") -> EncodedViews:
         """Feature maps of all source views; nothing is stored on the module. ``encoder_norm`` (evaluation mode):
@@ -220,6 +221,7 @@ class PixelNeRF(nn.Module):
             maps = maps.to(runtime.map_dtype)
             maps_m = maps if shared else None if maps_m is None else maps_m.to(runtime.map_dtype)
         amp_dtype = runtime.autocast
+        global_term = mlp.global_term(enc.features) if self.cfg.global_features else None
         point_map = enc.point_map if self.cfg.point_columns else None
         given = 0 if point_map is None else point_map.shape[-1]
         if given != self.cfg.point_columns:
@@ -255,7 +257,8 @@ class PixelNeRF(nn.Module):
                 inputs_m = with_pixels(torch.cat([inputs_m, flags.to(inputs_m.dtype)], dim=-1), uv_m)
                 mirror = MirrorQuery(inputs=inputs_m, latent=features(maps_m, uv_m, grad), gate=gate)
             return forward(with_pixels(mlp.inputs(coords, dirs_src), uv), latent, projected=mlp.cfg.lin_z_on_map,
-                           mirror=mirror, residual_dtype=None if grad else runtime.residual,
+                           mirror=mirror, global_term=global_term,
+                           residual_dtype=None if grad else runtime.residual,
                            relu_epilogue=runtime.relu_epilogue and not grad)
 
         def field_fn(points: Float[Tensor, "B R S 3"], dirs: Float[Tensor, "B R 3"]

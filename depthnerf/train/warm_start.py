@@ -3,7 +3,10 @@
 Only the weights are taken: the step, the optimiser's moments and the learning-rate schedule start fresh, so a
 warm-started run is "N more steps from that model" with its own schedule (e.g. a cosine decay that anneals a
 shipped model). The source's model config and prior must equal the run's: a different width, mirror or prior
-would load into a different function (or fail on shapes), so any difference is an error naming the first one.
+would load into a different function (or fail on shapes), so any difference is an error naming the first one. One
+difference is allowed because it adds to the network without changing its function: a source without
+``global_features`` starts a run with them (:data:`ADDED_AT_ZERO`), the new linears starting at zero weights and
+bias, so the run's first step starts from the source's function and the new term grows from its gradient.
 
 Steps in all. A chain of warm starts is recorded as the steps behind each source *in all*
 (:attr:`WarmStart.total_steps`, :func:`steps_in_all`): the source's ``total_steps`` metadata (written by
@@ -30,7 +33,11 @@ from depthnerf.pretrained.spec import spec_from_metadata
 from depthnerf.pretrained.weights import read_weights
 from depthnerf.state_dicts import load_state_strict
 
-__all__ = ["WarmStart", "steps_in_all", "warm_start"]
+__all__ = ["ADDED_AT_ZERO", "WarmStart", "steps_in_all", "warm_start"]
+
+ADDED_AT_ZERO: dict[str, str] = {"global_features": "lin_global"}
+"""Model switches a warm start may turn on (source off, run on) -> the name of the modules they add, which start at
+zero: each adds a term to a hidden layer, so at zero the network computes the source's function."""
 
 
 @dataclass(frozen=True)
@@ -100,10 +107,17 @@ def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, 
         raise DepthnerfError(f"{path}: --init-from is {kind[spec.depth_aware]}, the run is {kind[depth_aware]}; "
                              "choose a checkpoint with the run's --depth")
     differ = differences(to_dict(spec.model), to_dict(model_cfg))
+    added = [key for key, (theirs, ours) in differ.items() if key in ADDED_AT_ZERO and not theirs and ours]
+    for key in added:
+        del differ[key]
     if differ:
         k, (theirs, ours) = next(iter(differ.items()))
         raise DepthnerfError(f"{path}: --init-from has model.{k} = {theirs!r}, the run {ours!r} "
                              f"({len(differ)} model setting(s) differ); train with the checkpoint's model config")
+    if added:
+        own = model.state_dict()
+        names = tuple(f".{ADDED_AT_ZERO[key]}." for key in added)
+        tensors = {**tensors, **{k: torch.zeros_like(t) for k, t in own.items() if any(n in k for n in names)}}
     load_state_strict(model, tensors, path)
     sha = sha256_file(path)
     return WarmStart(source=str(source), path=str(Path(path).resolve()), sha256=sha, step=int(meta.get("step", 0)),
