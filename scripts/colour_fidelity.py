@@ -13,6 +13,12 @@ Views are split by the angle between their optical axis and the input view's (``
 object's views averaged per bin, then the objects.
 
     python scripts/colour_fidelity.py study/eval/cpu-cars-baseline study/eval/cars-none-sym [--bins 0 90 180]
+
+``--baseline EVAL`` pairs each folder with that one per object (the objects both scored), as
+``scripts/paired_difference.py`` does PSNR: per bin, the mean difference (folder - baseline) of ``delta_ab`` and of
+the render's chroma with a 95% t-interval, and on how many objects the folder's ``delta_ab`` is lower.
+
+    python scripts/colour_fidelity.py --baseline gl/eval/control gl/eval/global
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from angle_bins import view_angles
+from paired_difference import t_interval
 from skimage.color import rgb2lab
 
 from depthnerf.data.srn_format import read_rgb
@@ -41,8 +48,8 @@ def view_colour(render: np.ndarray, gt: np.ndarray, white: float) -> tuple[float
     return float(chroma_r), float(chroma_g), float(delta_ab)
 
 
-def folder_colour(folder: Path, bins: list[float], white: float) -> dict[str, tuple[float, float, float, int]]:
-    """Bin label -> (chroma, gt_chroma, delta_ab, objects), object means of view means."""
+def object_colour(folder: Path, bins: list[float], white: float) -> dict[str, dict[str, np.ndarray]]:
+    """Bin label -> object id -> the mean over its views in that bin of (chroma, gt_chroma, delta_ab)."""
     angles = view_angles(folder)
     per_object: dict[str, dict[str, list[tuple[float, float, float]]]] = defaultdict(lambda: defaultdict(list))
     with open(folder / "renders.csv", newline="") as f:
@@ -55,10 +62,36 @@ def folder_colour(folder: Path, bins: list[float], white: float) -> dict[str, tu
             got = view_colour(read_rgb(folder / row["render_path"]), gt, white)
             if got is not None:
                 per_object[label][row["object_id"]].append(got)
+    return {label: {key: np.mean(views, axis=0) for key, views in objects.items()}
+            for label, objects in per_object.items()}
+
+
+def folder_colour(folder: Path, bins: list[float], white: float) -> dict[str, tuple[float, float, float, int]]:
+    """Bin label -> (chroma, gt_chroma, delta_ab, objects), object means of view means."""
     out = {}
-    for label, objects in per_object.items():
-        means = np.array([np.mean(v, axis=0) for v in objects.values()])
+    for label, objects in object_colour(folder, bins, white).items():
+        means = np.array(list(objects.values()))
         out[label] = (*means.mean(axis=0), len(means))
+    return out
+
+
+def paired_colour(baseline: dict[str, dict[str, np.ndarray]], method: dict[str, dict[str, np.ndarray]]
+                  ) -> dict[str, dict[str, float]]:
+    """Per bin both have, over the objects both scored there: the mean ``delta_ab`` and chroma of each, the mean
+    differences (method - baseline) with their 95% half-widths, and the objects whose ``delta_ab`` is lower."""
+    out = {}
+    for label in sorted(set(baseline) & set(method), key=lambda s: float(s.split("-")[0])):
+        keys = sorted(set(baseline[label]) & set(method[label]))
+        if not keys:
+            continue
+        base = np.array([baseline[label][k] for k in keys])
+        other = np.array([method[label][k] for k in keys])
+        delta, _, delta_hw = t_interval(list(other[:, 2] - base[:, 2]))
+        chroma, _, chroma_hw = t_interval(list(other[:, 0] - base[:, 0]))
+        out[label] = {"objects": len(keys), "delta_ab_baseline": float(base[:, 2].mean()),
+                      "delta_ab_method": float(other[:, 2].mean()), "delta_ab_diff": delta,
+                      "delta_ab_hw": delta_hw, "chroma_diff": chroma, "chroma_hw": chroma_hw,
+                      "lower": int((other[:, 2] < base[:, 2]).sum())}
     return out
 
 
@@ -67,7 +100,21 @@ def main() -> None:
     p.add_argument("evals", nargs="+", type=Path, help="eval folders (depthnerf eval --save-renders)")
     p.add_argument("--bins", type=float, nargs="+", default=[0, 90, 180], help="bin edges, degrees")
     p.add_argument("--white", type=float, default=0.95, help="ground-truth object pixels: any channel below this")
+    p.add_argument("--baseline", type=Path, help="pair each eval folder with this one per object")
     args = p.parse_args()
+    if args.baseline is not None:
+        base = object_colour(args.baseline, args.bins, args.white)
+        print(f"paired against {args.baseline.name}: method - baseline, 95% interval")
+        print("| eval | bin (deg) | objects | delta ab | difference | chroma difference | lower delta ab |")
+        print("|---|---|---:|---|---|---|---:|")
+        for folder in args.evals:
+            for label, r in paired_colour(base, object_colour(folder, args.bins, args.white)).items():
+                print(f"| {folder.name} | {label} | {r['objects']} | {r['delta_ab_baseline']:.2f} -> "
+                      f"{r['delta_ab_method']:.2f} | {r['delta_ab_diff']:+.2f} [{r['delta_ab_diff'] - r['delta_ab_hw']:+.2f}, "
+                      f"{r['delta_ab_diff'] + r['delta_ab_hw']:+.2f}] | {r['chroma_diff']:+.2f} "
+                      f"[{r['chroma_diff'] - r['chroma_hw']:+.2f}, {r['chroma_diff'] + r['chroma_hw']:+.2f}] | "
+                      f"{r['lower']}/{r['objects']} |")
+        return
     print("| eval | bin (deg) | objects | render chroma | ground-truth chroma | mean delta ab |")
     print("|---|---|---:|---:|---:|---:|")
     for folder in args.evals:

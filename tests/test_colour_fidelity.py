@@ -27,3 +27,21 @@ def test_grey_render_of_a_coloured_object_loses_all_its_chroma():
     white_render = np.full((8, 8, 3), 255, np.uint8)
     assert colour.view_colour(white_render, gt, white=0.95)[0] == pytest.approx(0.0, abs=1e-2)
     assert colour.view_colour(grey, np.full((8, 8, 3), 255, np.uint8), white=0.95) is None  # no object
+
+
+def test_paired_colour_pairs_the_objects_both_scored_per_bin():
+    """Differences over the common objects only, a hand-worked t-interval, the objects with a lower error."""
+    colour = _load()
+    row = lambda chroma, delta: np.array([chroma, 9.0, delta])  # noqa: E731  (chroma, gt chroma, delta ab)
+    base = {"0-90": {"a": row(2.0, 4.0), "b": row(2.0, 5.0), "c": row(1.0, 6.0), "only-base": row(0.0, 0.0)},
+            "90-180": {"a": row(1.0, 7.0)}}
+    method = {"0-90": {"a": row(3.0, 3.0), "b": row(2.5, 5.5), "c": row(1.0, 4.0)}, "90-180": {"b": row(1.0, 1.0)}}
+    got = colour.paired_colour(base, method)
+    assert list(got) == ["0-90"]  # no object scored by both in 90-180
+    r = got["0-90"]
+    diffs = np.array([-1.0, 0.5, -2.0])
+    se = diffs.std(ddof=1) / np.sqrt(3)
+    assert r["objects"] == 3 and r["lower"] == 2
+    assert r["delta_ab_diff"] == pytest.approx(diffs.mean()) and r["delta_ab_hw"] == pytest.approx(4.302653 * se)
+    assert r["delta_ab_baseline"] == pytest.approx(5.0) and r["delta_ab_method"] == pytest.approx(12.5 / 3)
+    assert r["chroma_diff"] == pytest.approx(0.5)

@@ -349,6 +349,12 @@ def test_warm_start_takes_the_source_weights_once_and_refuses_another_network(da
                "--model.fine.d_hidden", "48", check=False)
     assert wide.returncode == 2 and "model.fine.d_hidden = 32, the run 48" in wide.stderr
     assert str(source) in wide.stderr and not (tmp_path / "wide" / "checkpoints").exists()
+    glob = cli(*args, "--data", str(data), "--out", str(tmp_path / "glob"), "--init-from", str(source),
+               "--model.global_features", "true", "--schedule.lr", "1e-12")  # an added term starts at zero
+    grown = final_weights(tmp_path / "glob")
+    assert "warm start" in glob.stderr and all(torch.allclose(grown[k], before[k], rtol=0, atol=1e-9) for k in params)
+    assert [k for k in grown if "lin_global" in k] and all(
+        grown[k].abs().max() < 1e-9 for k in grown if "lin_global" in k)
     depth = cli(*[a if a != "none" else "oracle" for a in args], "--data", str(data), "--out", str(tmp_path / "d"),
                 "--init-from", str(source), check=False)
     assert depth.returncode == 2 and "the run is depth-aware" in depth.stderr
