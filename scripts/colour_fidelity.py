@@ -36,9 +36,16 @@ from skimage.color import rgb2lab
 from depthnerf.data.srn_format import read_rgb
 
 
+def unit_rgb(image: np.ndarray) -> np.ndarray:
+    """An ``H x W x 3`` image as floats in [0, 1]: 8-bit values divided by 255, floats (``read_rgb``'s) as they are."""
+    return image.astype(np.float64) / 255.0 if image.dtype == np.uint8 else image.astype(np.float64)
+
+
 def view_colour(render: np.ndarray, gt: np.ndarray, white: float) -> tuple[float, float, float] | None:
-    """(render chroma, ground-truth chroma, mean delta ab) on the ground truth's object pixels; None: no object."""
-    mask = (gt < white * 255).any(-1)
+    """(render chroma, ground-truth chroma, mean delta ab) on the ground truth's object pixels (any channel below
+    ``white``, in [0, 1]); None: no object. 8-bit or [0, 1] float images alike (:func:`unit_rgb`)."""
+    render, gt = unit_rgb(render), unit_rgb(gt)
+    mask = (gt < white).any(-1)
     if not mask.any():
         return None
     lab_r, lab_g = rgb2lab(render[mask][None]), rgb2lab(gt[mask][None])

@@ -45,3 +45,22 @@ def test_paired_colour_pairs_the_objects_both_scored_per_bin():
     assert r["delta_ab_diff"] == pytest.approx(diffs.mean()) and r["delta_ab_hw"] == pytest.approx(4.302653 * se)
     assert r["delta_ab_baseline"] == pytest.approx(5.0) and r["delta_ab_method"] == pytest.approx(12.5 / 3)
     assert r["chroma_diff"] == pytest.approx(0.5)
+
+
+def test_float_images_as_read_rgb_gives_them_mask_the_same_object_pixels(tmp_path):
+    """``read_rgb`` returns floats in [0, 1]: the white background must stay out of the mask as with 8-bit arrays
+    (it once counted every pixel of a float image, diluting chroma with the background)."""
+    from PIL import Image
+
+    from depthnerf.data.srn_format import read_rgb
+
+    colour = _load()
+    gt = np.full((8, 8, 3), 255, np.uint8)
+    gt[2:6, 2:6] = (40, 160, 60)
+    render = np.full((8, 8, 3), 255, np.uint8)
+    render[2:6, 2:6] = (60, 60, 160)
+    Image.fromarray(gt).save(tmp_path / "gt.png")
+    Image.fromarray(render).save(tmp_path / "render.png")
+    from_files = colour.view_colour(read_rgb(tmp_path / "render.png"), read_rgb(tmp_path / "gt.png"), white=0.95)
+    assert from_files == pytest.approx(colour.view_colour(render, gt, white=0.95), rel=1e-6)
+    assert from_files[1] > 40  # the green square's own chroma, not a mean over 64 mostly white pixels
