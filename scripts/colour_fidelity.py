@@ -102,6 +102,11 @@ def paired_colour(baseline: dict[str, dict[str, np.ndarray]], method: dict[str, 
     return out
 
 
+def interval(mean: float, half_width: float) -> str:
+    """``+m [+lo, +hi]``: a mean difference and its 95% interval."""
+    return f"{mean:+.2f} [{mean - half_width:+.2f}, {mean + half_width:+.2f}]"
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("evals", nargs="+", type=Path, help="eval folders (depthnerf eval --save-renders)")
@@ -116,11 +121,10 @@ def main() -> None:
         print("|---|---|---:|---|---|---|---:|")
         for folder in args.evals:
             for label, r in paired_colour(base, object_colour(folder, args.bins, args.white)).items():
+                delta = interval(r["delta_ab_diff"], r["delta_ab_hw"])
+                chroma = interval(r["chroma_diff"], r["chroma_hw"])
                 print(f"| {folder.name} | {label} | {r['objects']} | {r['delta_ab_baseline']:.2f} -> "
-                      f"{r['delta_ab_method']:.2f} | {r['delta_ab_diff']:+.2f} [{r['delta_ab_diff'] - r['delta_ab_hw']:+.2f}, "
-                      f"{r['delta_ab_diff'] + r['delta_ab_hw']:+.2f}] | {r['chroma_diff']:+.2f} "
-                      f"[{r['chroma_diff'] - r['chroma_hw']:+.2f}, {r['chroma_diff'] + r['chroma_hw']:+.2f}] | "
-                      f"{r['lower']}/{r['objects']} |")
+                      f"{r['delta_ab_method']:.2f} | {delta} | {chroma} | {r['lower']}/{r['objects']} |")
         return
     print("| eval | bin (deg) | objects | render chroma | ground-truth chroma | mean delta ab |")
     print("|---|---|---:|---:|---:|---:|")

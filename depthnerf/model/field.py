@@ -171,7 +171,8 @@ class ResidualField(nn.Module):
 
     def forward(self, inputs: Float[Tensor, "B V N Din"], latent: Float[Tensor, "B V N L"] | MapSamples, *,
                 projected: bool, mirror: MirrorQuery | None = None,
-                global_term: Float[Tensor, "B V D"] | None = None, residual_dtype: torch.dtype | None = None, relu_epilogue: bool = False) -> Float[Tensor, "B N 4"]:
+                global_term: Float[Tensor, "B V D"] | None = None, residual_dtype: torch.dtype | None = None,
+                relu_epilogue: bool = False) -> Float[Tensor, "B N 4"]:
         """Raw outputs (rgb logits, sigma pre-activation). ``latent`` is either the sampled features
         (``projected=False``: L = C, lin_z applied here) or the sampled :meth:`latent_map` (L = Z); ``mirror``
         (models built with ``mirror`` only; None: no object has a plane) feeds the mirror branch alike. Either
