@@ -16,6 +16,7 @@ for cat in ${CATEGORIES:-cars chairs}; do
     [[ "$run" == *-sym* ]] && extra=" --model.mirror true"
     [[ "$run" == *-pp* ]] && extra="$extra --model.prior_at_point true"
     [[ "$run" == *-rgb* ]] && extra="$extra --model.rgb_at_point true"
+    [[ "$run" == *-gf* ]] && extra="$extra --model.global_features true"
     [[ "$run" == *-x2* ]] && extra="$extra --model.encoder.image_scale 2.0"
     [[ "$run" == *-np* ]] && extra="$extra --model.encoder.use_first_pool false"
     [[ "$run" == *-nb* ]] && extra="$extra --schedule.bbox_steps 0"

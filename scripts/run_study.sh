@@ -10,7 +10,8 @@
 # one thread: on 2 cores, two 1-thread jobs beat one 2-thread job), STRIDE (eval view stride, default 25),
 # RUNS (which runs, default all six, e.g. "cars-none cars-bundled"; a "-sym" suffix, e.g. "cars-bundled-sym", adds
 # mirror-symmetric conditioning, "-dl" the scale/shift-invariant depth loss at weight DEPTH_LOSS, default 10, "-pp" the
-# prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-x2" the
+# prior read at each point, --model.prior_at_point, "-rgb" the colour, --model.rgb_at_point, "-gf" global features,
+# --model.global_features, "-x2" the
 # encoder on the input upsampled 2x, "-np" the encoder without its first max-pool, "-nb" no bbox-sampling phase, "-s<N>" training seed N instead of 0 (the data's seed stays 0), "-an" (last) the run
 # without "-an" trained first, then warm-started from its best checkpoint and annealed by the recipe of scripts/anneal_recipe.sh
 # (ANNEAL_STEPS, default 1500, of a cosine learning rate 3e-4 -> 3e-6, whole-image rays, seed 1), "-w" the bundled prior
@@ -69,6 +70,7 @@ one_run() {
       dl) extra+=(--schedule.depth_loss_weight "${DEPTH_LOSS:-10}") ;;  # depth as supervision ("Depth loss")
       pp) extra+=(--model.prior_at_point true) ;;  # the prior read at each point ("Source pixels at the point")
       rgb) extra+=(--model.rgb_at_point true) ;;  # the colour read at each point (same section)
+      gf) extra+=(--model.global_features true) ;;  # image-wide features at every point ("Global features")
       x2) extra+=(--model.encoder.image_scale 2.0) ;;  # encoder on the input upsampled 2x ("Chairs: what was tried")
       np) extra+=(--model.encoder.use_first_pool false) ;;  # encoder without its first max-pool (same section)
       nb) extra+=(--schedule.bbox_steps 0) ;;  # no bbox-sampling phase: whole images from step 0 (same section)

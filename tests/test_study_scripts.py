@@ -67,6 +67,18 @@ def test_run_study_anneal_variant_trains_its_start_then_anneals_it(recorder, tmp
     assert _flag(annealed, "--depth") == "bundled" and _flag(annealed, "--preset") == "cpu-cars"
 
 
+def test_run_study_variants_add_their_model_flags(recorder, tmp_path):
+    env, calls = recorder
+    env.update(RUNS="chairs-bundled-sym-pp-gf-s1", CATEGORIES="chairs", JOBS="1")
+    done = subprocess.run(["bash", str(SCRIPTS / "run_study.sh"), str(tmp_path / "study")], env=env,
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    (args,) = _train_calls(calls)
+    assert _flag(args, "--model.mirror") == "true" and _flag(args, "--model.prior_at_point") == "true"
+    assert _flag(args, "--model.global_features") == "true" and _flag(args, "--seed") == "1"
+    assert "--model.rgb_at_point" not in args
+
+
 def test_run_study_rejects_an_unknown_variant(recorder, tmp_path):
     env, calls = recorder
     env.update(RUNS="cars-bundled-zz", CATEGORIES="cars", JOBS="1")
