@@ -12,7 +12,7 @@ from depthnerf.data.cameras import project, world_to_camera
 from depthnerf.errors import DepthnerfError
 from depthnerf.model import PixelNeRF
 from tests.test_model import bilinear_border, query, randomize, small_config, sources
-from tests.test_pixels_at_point import reference_field
+from tests.test_pixels_at_point import check_against_reference
 
 
 def global_model(mirror: bool = False, on_map: bool = True, prior: bool = False, depth_aware: bool = True,
@@ -64,20 +64,7 @@ def multiview_reference(model: PixelNeRF, enc, src, which: str, pts, dirs):
                          [(False, True, False, False), (True, True, True, True), (True, False, False, True)])
 def test_one_view_field_matches_the_bruteforce_reference(mirror, on_map, prior, depth_aware):
     torch.manual_seed(0)
-    model = global_model(mirror, on_map, prior, depth_aware)
-    src = sources(b=3, v=1, size=40, prior=True)
-    src.disparity = src.disparity * 9.0 - 5.0
-    if mirror:
-        src.symmetry_plane = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.6, 0.0, 0.8, 0.1], [0.0, 0.0, 0.0, 0.0]])
-    pts, dirs = query(b=3, r=3, s=4)
-    with torch.no_grad():
-        enc = model.encode(src)
-        for which in ("coarse", "fine"):
-            rgb, sigma = model.field(enc, which)(pts, dirs)
-            ref_rgb, ref_sigma = reference_field(model, enc, src, which, pts, dirs)
-            torch.testing.assert_close(rgb, ref_rgb, atol=1e-5, rtol=1e-4)
-            torch.testing.assert_close(sigma, ref_sigma, atol=1e-5, rtol=1e-4)
-    assert (sigma > 0).any() and rgb.std() > 1e-3
+    check_against_reference(global_model(mirror, on_map, prior, depth_aware))
 
 
 @pytest.mark.parametrize("on_map", [True, False])

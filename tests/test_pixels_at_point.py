@@ -84,7 +84,13 @@ def prior_model(mirror: bool, on_map: bool = True, prior: bool = True, rgb: bool
                           (True, True, True, True, True)])
 def test_field_matches_bruteforce_reference(mirror, on_map, prior, rgb, depth_aware):
     torch.manual_seed(0)
-    model = prior_model(mirror, on_map, prior, rgb, depth_aware)
+    check_against_reference(prior_model(mirror, on_map, prior, rgb, depth_aware))
+
+
+def check_against_reference(model: PixelNeRF) -> None:
+    """Both passes of ``model``'s field on three one-view objects (planes for mirror models: two objects with one,
+    one without; a point projecting outside the image) equal :func:`reference_field`, with a live density."""
+    mirror = model.cfg.mirror
     src = sources(b=3, v=1, size=40, prior=True)
     src.disparity = src.disparity * 9.0 - 5.0  # the normalised prior's range: [-5, 4]
     if mirror:
