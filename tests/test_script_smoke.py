@@ -133,6 +133,17 @@ def test_floater_probe(tiny):
     assert result["objects"] == 1 and len(result["means"]) == 5
 
 
+def test_input_view_colour(tiny):
+    out, figure = tiny["tmp"] / "input_colour.json", tiny["tmp"] / "input_colour.png"
+    proc = run_script("scripts/input_view_colour.py", "--checkpoint", tiny["plain"], "--data", tiny["data"],
+                      "--objects", "1", "--nearest", "3", "--every", "1", "--bins", "0", "0.5", "180",
+                      "--figure", figure, "--json", out)
+    assert "| 0-0.5 | 1 |" in proc.stdout
+    result = json.loads(out.read_text())
+    assert [r["view"] for r in result["views"]][0] == 64 and result["views"][0]["angle"] < 0.5
+    assert np.asarray(Image.open(figure)).shape == (48, 144, 3)
+
+
 def test_mesh_components_of_a_mesh_and_an_empty_one(tiny):
     run = tiny_run(tiny["tmp"] / "runs" / "tiny", tiny_config("cars", "none"))
     meshes = tiny["tmp"] / "eval" / "tiny" / "meshes"  # the default --eval-root: RUN/../../eval

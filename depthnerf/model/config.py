@@ -22,6 +22,10 @@ their running statistics (pixelNeRF) or each object's own source-view statistics
 ENCODER_NORMS: tuple[str, ...] = ("running", "image")
 """The :data:`EncoderNorm` values (``depthnerf eval --encoder-norm`` takes its choices from here: this module
 imports no torch)."""
+NormStats = Literal["object", "batch"]
+"""Whose statistics the encoder's BatchNorm layers normalise with in training (:attr:`EncoderConfig.norm_stats`)."""
+NORM_STATS: tuple[str, ...] = ("object", "batch")
+"""The :data:`NormStats` values."""
 
 PRIOR_POINT_SCALE = 0.2
 """Factor on the normalised prior (foreground in [-4, 4], background -5) where it enters the MLP input
@@ -57,6 +61,14 @@ class EncoderConfig:
     """Width of the first two conv layers of the depth encoder (depth-aware models only)."""
     depth_channels: int = 64
     """Output channels of the depth encoder, concatenated to the trunk features (depth-aware models only)."""
+    norm_stats: NormStats = "object"
+    """Whose statistics the encoder's BatchNorm layers normalise with in training (evaluation uses their running
+    statistics either way). ``object``: each object's own source views (``depthnerf.model.norm``), so a step's
+    result does not depend on which objects share its batch or rank; with one source view that is the image's own
+    per-channel mean and variance, which removes each image's overall colour from its features (an object's colour
+    against the white background survives only as the sign of each channel's difference: docs/training.md,
+    "Encoder statistics"). ``batch``: pooled over the step's whole batch (on each DDP rank, its own part), as
+    pixelNeRF's BatchNorm does; an object's features then depend on the others in its batch."""
 
     def __post_init__(self) -> None:
         if self.backbone not in TRUNK_CHANNELS:
@@ -66,6 +78,9 @@ class EncoderConfig:
             raise DepthnerfError(f"model config: encoder.num_layers must be 1..4, got {self.num_layers}")
         if not self.image_scale > 0:
             raise DepthnerfError(f"model config: encoder.image_scale must be > 0, got {self.image_scale}")
+        if self.norm_stats not in NORM_STATS:
+            raise DepthnerfError(f"model config: encoder.norm_stats must be one of {', '.join(NORM_STATS)}, "
+                                 f"got {self.norm_stats!r}")
         if self.depth_channels < 1 or self.depth_hidden < 1:
             raise DepthnerfError(f"model config: encoder.depth_channels and depth_hidden must be >= 1, got "
                                  f"{self.depth_channels} and {self.depth_hidden}")

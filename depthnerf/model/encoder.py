@@ -160,8 +160,10 @@ class ImageEncoder(nn.Module):
                 objects: int = 1, *, image_stats: bool = False) -> Float[Tensor, "N C Hf Wf"]:
         """Feature maps of ``N = objects * V`` images; in training mode BatchNorm statistics are per object
         (``depthnerf.model.norm``: one plan per call, passed to every layer, folded at the end), so encoding B
-        objects together equals encoding them one at a time; ``image_stats``: in evaluation mode too."""
-        groups = object_groups(self, objects, image_stats)
+        objects together equals encoding them one at a time; ``image_stats``: in evaluation mode too. With
+        ``cfg.norm_stats == "batch"`` training mode pools them over all ``N`` images instead (one group)."""
+        pooled = self.cfg.norm_stats == "batch" and self.training
+        groups = object_groups(self, 1 if pooled else objects, image_stats)
         feats = self._forward(images, disparity, groups)
         groups.fold()
         return feats

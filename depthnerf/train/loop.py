@@ -205,6 +205,9 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             plane, plane_from = dataset_plane(root, cat, cfg.data.symmetry_plane)
             if info.is_main:
                 print(f"mirror conditioning: symmetry plane {plane} ({plane_from})", file=sys.stderr, flush=True)
+        if cfg.model.encoder.norm_stats == "batch" and info.world > 1 and info.is_main:
+            print(f"note: --model.encoder.norm_stats batch pools the encoder's BatchNorm statistics over each rank's "
+                  f"objects, so this run's result depends on its {info.world} ranks", file=sys.stderr, flush=True)
         card = read_dataset_card(root, cat)
         framing = dataset_framing(card, str(card_path(root, cat)))
         spec = inference_spec(cfg, (prior_source.provenance or {}).get("weights_hash"), framing)

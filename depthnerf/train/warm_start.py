@@ -7,6 +7,7 @@ would load into a different function (or fail on shapes), so any difference is a
 difference is allowed because it adds to the network without changing its function: a source without
 ``global_features`` starts a run with them (:data:`ADDED_AT_ZERO`), the new linears starting at zero weights and
 bias, so the run's first step starts from the source's function and the new term grows from its gradient.
+Settings of training alone (:data:`TRAINING_ONLY`: whose statistics the encoder normalises with) may differ too.
 
 Steps in all. A chain of warm starts is recorded as the steps behind each source *in all*
 (:attr:`WarmStart.total_steps`, :func:`steps_in_all`): the source's ``total_steps`` metadata (written by
@@ -33,11 +34,14 @@ from depthnerf.pretrained.spec import spec_from_metadata
 from depthnerf.pretrained.weights import read_weights
 from depthnerf.state_dicts import load_state_strict
 
-__all__ = ["ADDED_AT_ZERO", "WarmStart", "steps_in_all", "warm_start"]
+__all__ = ["ADDED_AT_ZERO", "TRAINING_ONLY", "WarmStart", "steps_in_all", "warm_start"]
 
 ADDED_AT_ZERO: dict[str, str] = {"global_features": "lin_global"}
 """Model switches a warm start may turn on (source off, run on) -> the name of the modules they add, which start at
 zero: each adds a term to a hidden layer, so at zero the network computes the source's function."""
+TRAINING_ONLY: frozenset[str] = frozenset({"encoder.norm_stats"})
+"""Model settings that change only how training computes (not the weights or the function evaluation computes),
+so a warm start may change them either way."""
 
 
 @dataclass(frozen=True)
@@ -108,7 +112,7 @@ def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, 
                              "choose a checkpoint with the run's --depth")
     differ = differences(to_dict(spec.model), to_dict(model_cfg))
     added = [key for key, (theirs, ours) in differ.items() if key in ADDED_AT_ZERO and not theirs and ours]
-    for key in added:
+    for key in added + [key for key in differ if key in TRAINING_ONLY]:
         del differ[key]
     if differ:
         k, (theirs, ours) = next(iter(differ.items()))

@@ -1,0 +1,92 @@
+"""Does a model give back the input's colours? Render the input view itself and views near it, and measure.
+
+For each of the first ``--objects`` test objects the model is conditioned on view 64 (as ``depthnerf eval`` does)
+and renders view 64 itself plus every ``--every``-th of the ``--nearest`` views closest to it (by the angle between
+the camera positions seen from the object's centre). Per angle bin it prints PSNR and, on the ground truth's object
+pixels, the CIELAB chroma of render and truth and their mean ``(a, b)`` distance (``scripts/colour_fidelity.py``'s
+``delta ab``). At 0 degrees every visible surface point projects to its own input pixel, so a model that reads
+colour from its input should match it there best. ``--figure`` writes truth | render | 3x |difference| at the
+input view for the first objects.
+
+    python scripts/input_view_colour.py --checkpoint cpu-chairs-sym-pp --data DATA --objects 12
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+from colour_fidelity import view_colour
+
+from depthnerf.data.protocol import INPUT_VIEW, ProtocolViews
+from depthnerf.data.srn import index_split
+from depthnerf.eval.objects import prepare_object
+from depthnerf.infer.session import InferenceSession, SessionOptions
+from depthnerf.pretrained.load import load_pretrained
+
+
+def view_angles(poses: torch.Tensor, view: int) -> torch.Tensor:
+    """Degrees between each camera's position and camera ``view``'s, seen from the origin (the object's centre)."""
+    eyes = poses[:, :3, 3]
+    cos = (eyes @ eyes[view]) / (eyes.norm(dim=1) * eyes[view].norm())
+    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--objects", type=int, default=12)
+    ap.add_argument("--nearest", type=int, default=40, help="views closest to the input considered")
+    ap.add_argument("--every", type=int, default=4, help="render every k-th of them (the input view always)")
+    ap.add_argument("--bins", type=float, nargs="+", default=[0, 0.5, 10, 20, 40])
+    ap.add_argument("--white", type=float, default=0.95, help="object pixels: any ground-truth channel below this")
+    ap.add_argument("--figure", type=Path)
+    ap.add_argument("--figure-objects", type=int, default=6)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    pre = load_pretrained(args.checkpoint)
+    records = index_split(args.data, pre.spec.category, "test").objects[: args.objects]
+    session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=args.data, records=records))
+    plane, _ = session.dataset_symmetry(pre.spec.category)
+    rows, panels = [], []
+    with torch.no_grad():
+        for k, record in enumerate(records):
+            views = ProtocolViews((INPUT_VIEW,), tuple(range(record.num_views)), record.num_views - 1)
+            obj = prepare_object(session, record, views, symmetry_plane=plane)
+            angles = view_angles(obj.targets.poses, INPUT_VIEW)
+            pick = [int(i) for i in torch.argsort(angles)[: args.nearest : args.every]]
+            out = session.render(obj.encoded, obj.targets.poses[pick], obj.targets.intrinsics)
+            for j, i in enumerate(pick):
+                render = out.rgb[j].numpy().astype(np.float64)
+                truth = obj.targets.images[i].permute(1, 2, 0).numpy().astype(np.float64)
+                colour = view_colour(render, truth, args.white)
+                psnr = float(-10 * np.log10(max(((render - truth) ** 2).mean(), 1e-12)))
+                rows.append({"object": record.object_id, "view": i, "angle": float(angles[i]), "psnr": psnr,
+                             **({} if colour is None else dict(zip(("chroma", "gt_chroma", "delta_ab"), colour, strict=True)))})
+                if i == INPUT_VIEW and k < args.figure_objects:
+                    panels.append(np.concatenate([truth, render, np.abs(render - truth) * 3], axis=1))
+    table = []
+    print("| angle (deg) | views | PSNR | chroma | ground-truth chroma | delta ab |\n|---|---:|---:|---:|---:|---:|")
+    for lo, hi in zip(args.bins[:-1], args.bins[1:], strict=False):
+        inside = [r for r in rows if lo <= r["angle"] < hi and "delta_ab" in r]
+        if not inside:
+            continue
+        means = {key: float(np.mean([r[key] for r in inside])) for key in ("psnr", "chroma", "gt_chroma", "delta_ab")}
+        table.append({"bin": [lo, hi], "views": len(inside), **means})
+        print(f"| {lo:g}-{hi:g} | {len(inside)} | {means['psnr']:.2f} | {means['chroma']:.2f} | "
+              f"{means['gt_chroma']:.2f} | {means['delta_ab']:.2f} |")
+    if args.figure is not None and panels:
+        image = (np.clip(np.concatenate(panels, axis=0), 0, 1) * 255).round().astype(np.uint8)
+        iio.imwrite(args.figure, np.kron(image, np.ones((3, 3, 1), np.uint8)))
+        print(f"wrote {args.figure}")
+    if args.json is not None:
+        args.json.write_text(json.dumps({"checkpoint": args.checkpoint, "bins": table, "views": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
