@@ -5,8 +5,8 @@ and renders view 64 itself plus every ``--every``-th of the ``--nearest`` views 
 the camera positions seen from the object's centre). Per angle bin it prints PSNR and, on the ground truth's object
 pixels, the CIELAB chroma of render and truth and their mean ``(a, b)`` distance (``scripts/colour_fidelity.py``'s
 ``delta ab``). At 0 degrees every visible surface point projects to its own input pixel, so a model that reads
-colour from its input should match it there best. ``--figure`` writes truth | render | 3x |difference| at the
-input view for the first objects.
+colour from its input should match it there best. ``--figure`` writes, at the input view for the first objects,
+truth | render | 3x |difference|, or with several checkpoints truth | each one's render.
 
     python scripts/input_view_colour.py --checkpoint cpu-chairs-sym-pp --data DATA --objects 12
 """
@@ -36,24 +36,14 @@ def view_angles(poses: torch.Tensor, view: int) -> torch.Tensor:
     return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--checkpoint", required=True)
-    ap.add_argument("--data", required=True)
-    ap.add_argument("--objects", type=int, default=12)
-    ap.add_argument("--nearest", type=int, default=40, help="views closest to the input considered")
-    ap.add_argument("--every", type=int, default=4, help="render every k-th of them (the input view always)")
-    ap.add_argument("--bins", type=float, nargs="+", default=[0, 0.5, 10, 20, 40])
-    ap.add_argument("--white", type=float, default=0.95, help="object pixels: any ground-truth channel below this")
-    ap.add_argument("--figure", type=Path)
-    ap.add_argument("--figure-objects", type=int, default=6)
-    ap.add_argument("--json", type=Path)
-    args = ap.parse_args(argv)
-    pre = load_pretrained(args.checkpoint)
+def measure(checkpoint: str, args: argparse.Namespace) -> tuple[list[dict], list[np.ndarray], list[np.ndarray]]:
+    """Per rendered view: object, view, angle, PSNR and the colour measures; and the truth and the render at the
+    input view of the first ``args.figure_objects`` objects."""
+    pre = load_pretrained(checkpoint)
     records = index_split(args.data, pre.spec.category, "test").objects[: args.objects]
     session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=args.data, records=records))
     plane, _ = session.dataset_symmetry(pre.spec.category)
-    rows, panels = [], []
+    rows, truths, renders = [], [], []
     with torch.no_grad():
         for k, record in enumerate(records):
             views = ProtocolViews((INPUT_VIEW,), tuple(range(record.num_views)), record.num_views - 1)
@@ -67,25 +57,61 @@ def main(argv: list[str] | None = None) -> None:
                 colour = view_colour(render, truth, args.white)
                 psnr = float(-10 * np.log10(max(((render - truth) ** 2).mean(), 1e-12)))
                 rows.append({"object": record.object_id, "view": i, "angle": float(angles[i]), "psnr": psnr,
-                             **({} if colour is None else dict(zip(("chroma", "gt_chroma", "delta_ab"), colour, strict=True)))})
+                             **({} if colour is None else dict(zip(("chroma", "gt_chroma", "delta_ab"), colour,
+                                                                    strict=True)))})
                 if i == INPUT_VIEW and k < args.figure_objects:
-                    panels.append(np.concatenate([truth, render, np.abs(render - truth) * 3], axis=1))
+                    truths.append(truth)
+                    renders.append(render)
+    return rows, truths, renders
+
+
+def bin_table(rows: list[dict], bins: list[float]) -> list[dict]:
+    """Means of PSNR and the colour measures per angle bin ``[lo, hi)`` (bins without object pixels left out)."""
     table = []
-    print("| angle (deg) | views | PSNR | chroma | ground-truth chroma | delta ab |\n|---|---:|---:|---:|---:|---:|")
-    for lo, hi in zip(args.bins[:-1], args.bins[1:], strict=False):
+    for lo, hi in zip(bins[:-1], bins[1:], strict=False):
         inside = [r for r in rows if lo <= r["angle"] < hi and "delta_ab" in r]
-        if not inside:
-            continue
-        means = {key: float(np.mean([r[key] for r in inside])) for key in ("psnr", "chroma", "gt_chroma", "delta_ab")}
-        table.append({"bin": [lo, hi], "views": len(inside), **means})
-        print(f"| {lo:g}-{hi:g} | {len(inside)} | {means['psnr']:.2f} | {means['chroma']:.2f} | "
-              f"{means['gt_chroma']:.2f} | {means['delta_ab']:.2f} |")
-    if args.figure is not None and panels:
-        image = (np.clip(np.concatenate(panels, axis=0), 0, 1) * 255).round().astype(np.uint8)
+        if inside:
+            table.append({"bin": [lo, hi], "views": len(inside),
+                          **{key: float(np.mean([r[key] for r in inside]))
+                             for key in ("psnr", "chroma", "gt_chroma", "delta_ab")}})
+    return table
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--checkpoint", required=True, nargs="+")
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--objects", type=int, default=12)
+    ap.add_argument("--nearest", type=int, default=40, help="views closest to the input considered")
+    ap.add_argument("--every", type=int, default=4, help="render every k-th of them (the input view always)")
+    ap.add_argument("--bins", type=float, nargs="+", default=[0, 0.5, 10, 20, 40])
+    ap.add_argument("--white", type=float, default=0.95, help="object pixels: any ground-truth channel below this")
+    ap.add_argument("--figure", type=Path)
+    ap.add_argument("--figure-objects", type=int, default=6)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args(argv)
+    results, columns = {}, []
+    print("| checkpoint | angle (deg) | views | PSNR | chroma | ground-truth chroma | delta ab |\n"
+          "|---|---|---:|---:|---:|---:|---:|")
+    for checkpoint in args.checkpoint:
+        rows, truths, renders = measure(checkpoint, args)
+        results[checkpoint] = {"bins": bin_table(rows, args.bins), "views": rows}
+        for b in results[checkpoint]["bins"]:
+            lo, hi = b["bin"]
+            print(f"| {checkpoint} | {lo:g}-{hi:g} | {b['views']} | {b['psnr']:.2f} | {b['chroma']:.2f} | "
+                  f"{b['gt_chroma']:.2f} | {b['delta_ab']:.2f} |")
+        if not columns:
+            columns.append(truths)
+        columns.append(renders)
+    if len(args.checkpoint) == 1 and columns:
+        columns.append([np.abs(r - t) * 3 for t, r in zip(columns[0], columns[1], strict=True)])
+    if args.figure is not None and columns and columns[0]:
+        image = np.concatenate([np.concatenate(row, axis=1) for row in zip(*columns, strict=True)], axis=0)
+        image = (np.clip(image, 0, 1) * 255).round().astype(np.uint8)
         iio.imwrite(args.figure, np.kron(image, np.ones((3, 3, 1), np.uint8)))
         print(f"wrote {args.figure}")
     if args.json is not None:
-        args.json.write_text(json.dumps({"checkpoint": args.checkpoint, "bins": table, "views": rows}, indent=1))
+        args.json.write_text(json.dumps(results, indent=1))
 
 
 if __name__ == "__main__":

@@ -64,3 +64,16 @@ def test_float_images_as_read_rgb_gives_them_mask_the_same_object_pixels(tmp_pat
     from_files = colour.view_colour(read_rgb(tmp_path / "render.png"), read_rgb(tmp_path / "gt.png"), white=0.95)
     assert from_files == pytest.approx(colour.view_colour(render, gt, white=0.95), rel=1e-6)
     assert from_files[1] > 40  # the green square's own chroma, not a mean over 64 mostly white pixels
+
+
+def test_colour_probe_recovers_an_exact_linear_map_and_scores_a_constant_guess_at_zero():
+    """scripts/colour_probe.py's ridge probe: colours that are a linear function of the features are predicted on
+    held-out rows with R^2 = 1 (a vanishing penalty); features that carry nothing leave R^2 at or below 0."""
+    probe = load_script("colour_probe")
+    gen = np.random.default_rng(0)
+    x = gen.normal(size=(400, 6))
+    y = x @ gen.normal(size=(6, 3)) + np.array([0.2, 0.5, 0.7])
+    exact = probe.ridge_probe(x[:300], y[:300], x[300:], y[300:], alpha=1e-9)
+    assert np.allclose(exact["r2"], 1.0, atol=1e-9) and exact["rmse"] < 1e-8
+    noise = probe.ridge_probe(gen.normal(size=(300, 6)), y[:300], gen.normal(size=(100, 6)), y[300:], alpha=1.0)
+    assert max(noise["r2"]) < 0.05

@@ -138,10 +138,24 @@ def test_input_view_colour(tiny):
     proc = run_script("scripts/input_view_colour.py", "--checkpoint", tiny["plain"], "--data", tiny["data"],
                       "--objects", "1", "--nearest", "3", "--every", "1", "--bins", "0", "0.5", "180",
                       "--figure", figure, "--json", out)
-    assert "| 0-0.5 | 1 |" in proc.stdout
+    assert f"| {tiny['plain']} | 0-0.5 | 1 |" in proc.stdout
+    views = json.loads(out.read_text())[str(tiny["plain"])]["views"]
+    assert views[0]["view"] == 64 and views[0]["angle"] < 0.5
+    assert np.asarray(Image.open(figure)).shape == (48, 144, 3)  # truth | render | difference, 16 px x 3
+    run_script("scripts/input_view_colour.py", "--checkpoint", tiny["plain"], tiny["depth"], "--data", tiny["data"],
+               "--objects", "2", "--nearest", "1", "--figure", figure, "--figure-objects", "2")
+    assert np.asarray(Image.open(figure)).shape == (96, 144, 3)  # truth | each checkpoint's render, two objects
+
+
+def test_colour_probe(tiny):
+    data = make_srn_fixture(tiny["tmp"] / "probe", "cars", {"train": 3, "test": 1}, views=66, size=16,
+                            with_mask=True)
+    out = tiny["tmp"] / "probe.json"
+    proc = run_script("scripts/colour_probe.py", "--checkpoint", tiny["plain"], "--data", data, "--fit-objects", "3",
+                      "--encoder-norm", "running", "image", "--json", out)
+    assert "| running |" in proc.stdout and "| image |" in proc.stdout
     result = json.loads(out.read_text())
-    assert [r["view"] for r in result["views"]][0] == 64 and result["views"][0]["angle"] < 0.5
-    assert np.asarray(Image.open(figure)).shape == (48, 144, 3)
+    assert len(result["image"]["r2"]) == 3 and result["running"]["test_pixels"] > 0
 
 
 def test_mesh_components_of_a_mesh_and_an_empty_one(tiny):

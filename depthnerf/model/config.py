@@ -64,11 +64,10 @@ class EncoderConfig:
     norm_stats: NormStats = "object"
     """Whose statistics the encoder's BatchNorm layers normalise with in training (evaluation uses their running
     statistics either way). ``object``: each object's own source views (``depthnerf.model.norm``), so a step's
-    result does not depend on which objects share its batch or rank; with one source view that is the image's own
-    per-channel mean and variance, which removes each image's overall colour from its features (an object's colour
-    against the white background survives only as the sign of each channel's difference: docs/training.md,
-    "Encoder statistics"). ``batch``: pooled over the step's whole batch (on each DDP rank, its own part), as
-    pixelNeRF's BatchNorm does; an object's features then depend on the others in its batch."""
+    result does not depend on which objects share its batch or rank; with one source view, the image's own
+    per-channel mean and variance. ``batch``: pooled over the step's whole batch (on each DDP rank, its own part),
+    as pixelNeRF's BatchNorm does; an object's features then depend on the others in its batch. What each keeps of
+    an image's colour, and what each measured: docs/training.md, "Encoder statistics"."""
 
     def __post_init__(self) -> None:
         if self.backbone not in TRUNK_CHANNELS:
