@@ -5,8 +5,10 @@ and renders view 64 itself plus every ``--every``-th of the ``--nearest`` views 
 the camera positions seen from the object's centre). Per angle bin it prints PSNR and, on the ground truth's object
 pixels, the CIELAB chroma of render and truth and their mean ``(a, b)`` distance (``scripts/colour_fidelity.py``'s
 ``delta ab``). At 0 degrees every visible surface point projects to its own input pixel, so a model that reads
-colour from its input should match it there best. ``--figure`` writes, at the input view for the first objects,
-truth | render | 3x |difference|, or with several checkpoints truth | each one's render.
+colour from its input should match it there best. ``--surface`` also queries the fine network at the true surface
+of the input view (its ground-truth depth) and compares that colour, and the render's, with the truth on the same
+pixels: whether the hue is lost in the field itself or in compositing. ``--figure`` writes, at the input view for
+the first objects, truth | render | 3x |difference|, or with several checkpoints truth | each one's render.
 
     python scripts/input_view_colour.py --checkpoint cpu-chairs-sym-pp --data DATA --objects 12
 """
@@ -27,6 +29,7 @@ from depthnerf.data.srn import index_split
 from depthnerf.eval.objects import prepare_object
 from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.pretrained.load import load_pretrained
+from depthnerf.render.rays import camera_z_of_directions, rays_from_camera
 
 
 def view_angles(poses: torch.Tensor, view: int) -> torch.Tensor:
@@ -34,6 +37,27 @@ def view_angles(poses: torch.Tensor, view: int) -> torch.Tensor:
     eyes = poses[:, :3, 3]
     cos = (eyes @ eyes[view]) / (eyes.norm(dim=1) * eyes[view].norm())
     return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+
+
+def surface_colour(session: InferenceSession, obj, record, render: np.ndarray, white: float) -> dict | None:
+    """Delta ab against the truth, on the input view's object pixels with a ground-truth depth, of the fine
+    network's colour at the true surface point of each pixel and of the rendered colour ``render`` (None: no such
+    pixel)."""
+    truth_view = session.load_views(record, [INPUT_VIEW], session.spec.resolution, with_depth=True)
+    depth = truth_view.depths[0].reshape(-1)
+    truth = truth_view.images[0].permute(1, 2, 0).reshape(-1, 3).numpy().astype(np.float64)
+    on = (depth > 0).numpy() & (truth < white).any(-1)
+    if not on.any():
+        return None
+    near, far = session.spec.z_range
+    rays = rays_from_camera(truth_view.poses[:1], truth_view.intrinsics, near, far)
+    distance = depth[None] / camera_z_of_directions(rays.directions, truth_view.poses[:1])
+    points = rays.origins + rays.directions * distance[..., None]
+    rgb, _ = session.model.field(obj.encoded.enc, "fine")(points[:, :, None, :], rays.directions)
+    field = rgb[0, :, 0].double().numpy()
+    flat = render.reshape(-1, 3)
+    return {"field_delta_ab": view_colour(field[on][None], truth[on][None], 2.0)[2],
+            "render_delta_ab": view_colour(flat[on][None], truth[on][None], 2.0)[2], "pixels": int(on.sum())}
 
 
 def measure(checkpoint: str, args: argparse.Namespace) -> tuple[list[dict], list[np.ndarray], list[np.ndarray]]:
@@ -59,6 +83,8 @@ def measure(checkpoint: str, args: argparse.Namespace) -> tuple[list[dict], list
                 rows.append({"object": record.object_id, "view": i, "angle": float(angles[i]), "psnr": psnr,
                              **({} if colour is None else dict(zip(("chroma", "gt_chroma", "delta_ab"), colour,
                                                                     strict=True)))})
+                if i == INPUT_VIEW and args.surface:
+                    rows[-1]["surface"] = surface_colour(session, obj, record, render, args.white)
                 if i == INPUT_VIEW and k < args.figure_objects:
                     truths.append(truth)
                     renders.append(render)
@@ -86,6 +112,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--every", type=int, default=4, help="render every k-th of them (the input view always)")
     ap.add_argument("--bins", type=float, nargs="+", default=[0, 0.5, 10, 20, 40])
     ap.add_argument("--white", type=float, default=0.95, help="object pixels: any ground-truth channel below this")
+    ap.add_argument("--surface", action="store_true", help="also the field's colour at the true surface")
     ap.add_argument("--figure", type=Path)
     ap.add_argument("--figure-objects", type=int, default=6)
     ap.add_argument("--json", type=Path)
@@ -100,6 +127,14 @@ def main(argv: list[str] | None = None) -> None:
             lo, hi = b["bin"]
             print(f"| {checkpoint} | {lo:g}-{hi:g} | {b['views']} | {b['psnr']:.2f} | {b['chroma']:.2f} | "
                   f"{b['gt_chroma']:.2f} | {b['delta_ab']:.2f} |")
+        surface = [r["surface"] for r in rows if r.get("surface")]
+        if surface:
+            field, rendered = (float(np.mean([x[key] for x in surface])) for key in ("field_delta_ab",
+                                                                                        "render_delta_ab"))
+            results[checkpoint]["surface"] = {"objects": len(surface), "field_delta_ab": field,
+                                              "render_delta_ab": rendered}
+            print(f"{checkpoint}: at the input view's true surface ({len(surface)} objects), the field's colour "
+                  f"has delta ab {field:.2f}, the render's {rendered:.2f} on the same pixels")
         if not columns:
             columns.append(truths)
         columns.append(renders)

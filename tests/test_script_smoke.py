@@ -137,10 +137,12 @@ def test_input_view_colour(tiny):
     out, figure = tiny["tmp"] / "input_colour.json", tiny["tmp"] / "input_colour.png"
     proc = run_script("scripts/input_view_colour.py", "--checkpoint", tiny["plain"], "--data", tiny["data"],
                       "--objects", "1", "--nearest", "3", "--every", "1", "--bins", "0", "0.5", "180",
-                      "--figure", figure, "--json", out)
-    assert f"| {tiny['plain']} | 0-0.5 | 1 |" in proc.stdout
-    views = json.loads(out.read_text())[str(tiny["plain"])]["views"]
+                      "--surface", "--figure", figure, "--json", out)
+    assert f"| {tiny['plain']} | 0-0.5 | 1 |" in proc.stdout and "at the input view's true surface" in proc.stdout
+    result = json.loads(out.read_text())[str(tiny["plain"])]
+    views = result["views"]
     assert views[0]["view"] == 64 and views[0]["angle"] < 0.5
+    assert result["surface"]["objects"] == 1 and result["surface"]["field_delta_ab"] >= 0
     assert np.asarray(Image.open(figure)).shape == (48, 144, 3)  # truth | render | difference, 16 px x 3
     run_script("scripts/input_view_colour.py", "--checkpoint", tiny["plain"], tiny["depth"], "--data", tiny["data"],
                "--objects", "2", "--nearest", "1", "--figure", figure, "--figure-objects", "2")
