@@ -91,6 +91,17 @@ def read_renders(folder: Path, summary: dict, records: dict[str, ObjectRecord]) 
     return rows
 
 
+def optical_axis(record: ObjectRecord, view: int) -> np.ndarray:
+    """The unit optical axis (the camera's +z in the world) of view ``view`` of ``record``, from its pose file."""
+    z = read_pose(record.pose_path(view))[:3, 2]
+    return z / np.linalg.norm(z)
+
+
+def axis_angle(a: np.ndarray, b: np.ndarray) -> float:
+    """Degrees between two unit axes."""
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(np.dot(a, b))))))
+
+
 def view_angles(folder: Path) -> dict[tuple[str, int], float]:
     """(object id, view) -> degrees between the view's optical axis and its object's input view's."""
     summary = read_summary(folder)
@@ -99,19 +110,10 @@ def view_angles(folder: Path) -> dict[tuple[str, int], float]:
                                                    check_files=False).objects}
     inputs = {row["object_id"]: int(row["input_view"]) for row in _read_csv(folder / "per_object.csv")}
     rows = read_renders(folder, summary, records)
-
-    def axis(oid: str, view: int) -> np.ndarray:
-        rec = records[oid]
-        z = read_pose(rec.path / "pose" / f"{rec.view_names[view]}.txt")[:3, 2]
-        return z / np.linalg.norm(z)
-
-    input_axes = {oid: axis(oid, view) for oid, view in inputs.items()}
-    angles = {}
-    for row in rows:
-        oid, view = row["object_id"], int(row["view"])
-        cos = float(np.dot(input_axes[oid], axis(oid, view)))
-        angles[(oid, view)] = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
-    return angles
+    input_axes = {oid: optical_axis(records[oid], view) for oid, view in inputs.items()}
+    return {(row["object_id"], int(row["view"])): axis_angle(input_axes[row["object_id"]],
+                                                             optical_axis(records[row["object_id"]], int(row["view"])))
+            for row in rows}
 
 
 def bin_index(angle: float, edges: list[float]) -> int | None:

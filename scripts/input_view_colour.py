@@ -2,7 +2,7 @@
 
 For each of the first ``--objects`` test objects the model is conditioned on view 64 (as ``depthnerf eval`` does)
 and renders view 64 itself plus every ``--every``-th of the ``--nearest`` views closest to it (by the angle between
-the camera positions seen from the object's centre). Per angle bin it prints PSNR and, on the ground truth's object
+their optical axes, as ``scripts/angle_bins.py`` bins views). Per angle bin it prints PSNR and, on the ground truth's object
 pixels, the CIELAB chroma of render and truth and their mean ``(a, b)`` distance (``scripts/colour_fidelity.py``'s
 ``delta ab``). At 0 degrees every visible surface point projects to its own input pixel, so a model that reads
 colour from its input should match it there best. ``--surface`` also queries the fine network at the true surface
@@ -22,21 +22,16 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import torch
+from angle_bins import axis_angle, optical_axis
 from colour_fidelity import view_colour
 
 from depthnerf.data.protocol import INPUT_VIEW, ProtocolViews
 from depthnerf.data.srn import index_split
+from depthnerf.eval.metrics import psnr
 from depthnerf.eval.objects import prepare_object
 from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.rays import camera_z_of_directions, rays_from_camera
-
-
-def view_angles(poses: torch.Tensor, view: int) -> torch.Tensor:
-    """Degrees between each camera's position and camera ``view``'s, seen from the origin (the object's centre)."""
-    eyes = poses[:, :3, 3]
-    cos = (eyes @ eyes[view]) / (eyes.norm(dim=1) * eyes[view].norm())
-    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
 
 
 def surface_colour(session: InferenceSession, obj, record, render: np.ndarray, white: float) -> dict | None:
@@ -70,17 +65,19 @@ def measure(checkpoint: str, args: argparse.Namespace) -> tuple[list[dict], list
     rows, truths, renders = [], [], []
     with torch.no_grad():
         for k, record in enumerate(records):
-            views = ProtocolViews((INPUT_VIEW,), tuple(range(record.num_views)), record.num_views - 1)
-            obj = prepare_object(session, record, views, symmetry_plane=plane)
-            angles = view_angles(obj.targets.poses, INPUT_VIEW)
-            pick = [int(i) for i in torch.argsort(angles)[: args.nearest : args.every]]
-            out = session.render(obj.encoded, obj.targets.poses[pick], obj.targets.intrinsics)
-            for j, i in enumerate(pick):
+            axis = optical_axis(record, INPUT_VIEW)
+            angles = [axis_angle(axis, optical_axis(record, v)) for v in range(record.num_views)]
+            pick = sorted(range(record.num_views), key=angles.__getitem__)[: args.nearest : args.every]
+            loaded = sorted(pick)  # targets in index order (ProtocolViews); rows below in order of angle
+            obj = prepare_object(session, record, ProtocolViews((INPUT_VIEW,), tuple(loaded), record.num_views - 1),
+                                 symmetry_plane=plane)
+            out = session.render(obj.encoded, obj.targets.poses, obj.targets.intrinsics)
+            for i in pick:
+                j = loaded.index(i)
                 render = out.rgb[j].numpy().astype(np.float64)
-                truth = obj.targets.images[i].permute(1, 2, 0).numpy().astype(np.float64)
+                truth = obj.targets.images[j].permute(1, 2, 0).numpy().astype(np.float64)
                 colour = view_colour(render, truth, args.white)
-                psnr = float(-10 * np.log10(max(((render - truth) ** 2).mean(), 1e-12)))
-                rows.append({"object": record.object_id, "view": i, "angle": float(angles[i]), "psnr": psnr,
+                rows.append({"object": record.object_id, "view": i, "angle": angles[i], "psnr": psnr(render, truth),
                              **({} if colour is None else dict(zip(("chroma", "gt_chroma", "delta_ab"), colour,
                                                                     strict=True)))})
                 if i == INPUT_VIEW and args.surface:
