@@ -30,6 +30,7 @@ from depthnerf.data.srn import index_split
 from depthnerf.eval.metrics import psnr
 from depthnerf.eval.objects import prepare_object
 from depthnerf.infer.session import InferenceSession, SessionOptions
+from depthnerf.model.config import ENCODER_NORMS
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.render.rays import camera_z_of_directions, rays_from_camera
 
@@ -60,7 +61,8 @@ def measure(checkpoint: str, args: argparse.Namespace) -> tuple[list[dict], list
     input view of the first ``args.figure_objects`` objects."""
     pre = load_pretrained(checkpoint)
     records = index_split(args.data, pre.spec.category, "test").objects[: args.objects]
-    session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=args.data, records=records))
+    session = InferenceSession(pre, SessionOptions(inputs="dataset", data_root=args.data, records=records,
+                                                   encoder_norm=args.encoder_norm))
     plane, _ = session.dataset_symmetry(pre.spec.category)
     rows, truths, renders = [], [], []
     with torch.no_grad():
@@ -110,6 +112,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--bins", type=float, nargs="+", default=[0, 0.5, 10, 20, 40])
     ap.add_argument("--white", type=float, default=0.95, help="object pixels: any ground-truth channel below this")
     ap.add_argument("--surface", action="store_true", help="also the field's colour at the true surface")
+    ap.add_argument("--encoder-norm", choices=ENCODER_NORMS, default="running",
+                    help="the encoder's BatchNorm statistics: running (evaluation's) or each image's own (training's)")
     ap.add_argument("--figure", type=Path)
     ap.add_argument("--figure-objects", type=int, default=6)
     ap.add_argument("--json", type=Path)

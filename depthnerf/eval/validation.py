@@ -45,7 +45,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: Pr
     """Render ``views`` of each record from its input views (``inputs``, the first the primary; None: the
     protocol's one) and score them against the ground truth (``progress(1)`` after each record);
     ``symmetry_plane``: the objects' mirror plane (mirror models)."""
-    was_training = model.training
+    modes = [(module, module.training) for module in model.modules()]  # each restored (frozen modules stay in eval)
     model.eval()
     # the device's field point chunk (on the CPU larger than the config's, which is slower there); the precision
     # stays the model's: validation scores the fp32 model on every device
@@ -77,6 +77,7 @@ def validate(model: PixelNeRF, records: Sequence[ObjectRecord], prior_source: Pr
             if progress is not None:
                 progress(1)
     finally:
-        model.train(was_training)
+        for module, mode in modes:
+            module.training = mode
     return ValidationResult(psnr=float(np.mean([s.psnr for s in scores])),
                             ssim=float(np.mean([s.ssim for s in scores])), images=images)

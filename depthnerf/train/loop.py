@@ -54,6 +54,7 @@ from depthnerf.train import checkpoint as ckpt
 from depthnerf.train import memory
 from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate_packed, step_keys
 from depthnerf.train.config import TrainConfig, inference_spec
+from depthnerf.train.freeze import freeze_parameters, hold_frozen_modules, trainable_parameters
 from depthnerf.train.items import TrainItems, ready_view_store
 from depthnerf.train.run_log import RunLog, check_run_dir, read_run_record, record_launch, run_lock
 from depthnerf.train.step import BatchLoss, compiled_fields, train_step
@@ -221,7 +222,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
         if info.device.type == "cuda":
             model.encoder.to(memory_format=torch.channels_last)
         cuda = info.device.type == "cuda"
-        optimizer = torch.optim.Adam(model.parameters(), lr=cfg.schedule.lr, fused=cuda or None)
+        frozen = freeze_parameters(model, cfg.schedule.freeze)
+        optimizer = torch.optim.Adam(trainable_parameters(model), lr=cfg.schedule.lr, fused=cuda or None)
         model_cfg = to_dict(cfg.model)
         state = ckpt.TrainingState(step=0, best_psnr=-math.inf)
         if latest is not None:
@@ -245,6 +247,10 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             in_all = f", {warm.total_steps} in all" if warm.total_steps != warm.step else ""
             print(f"warm start: the network's weights from {warm.path} (step {warm.step}{in_all})", file=sys.stderr,
                   flush=True)
+        if frozen:
+            held = sum(p.numel() for p in model.parameters() if not p.requires_grad)
+            print(f"frozen (--schedule.freeze {','.join(cfg.schedule.freeze)}): {len(frozen)} parameter tensors, "
+                  f"{held:,} of {sum(p.numel() for p in model.parameters()):,} values", file=sys.stderr, flush=True)
         note = record_launch(run_dir, start, info.world, str(info.device),
                              deterministic=torch.are_deterministic_algorithms_enabled())
         if note:
@@ -279,6 +285,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
     per_object = s.step_shape == "per-object"
     model.train()
+    hold_frozen_modules(model)
     step, best, best_step, last_saved = start, state.best_psnr, state.best_step, None
     saved_step, stopping = None, False
     t_last, rays_since = time.perf_counter(), 0
