@@ -22,9 +22,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from depthnerf.data.protocol import INPUT_VIEW, ProtocolViews
+from depthnerf.data.protocol import INPUT_VIEW
 from depthnerf.data.srn import index_split
-from depthnerf.eval.objects import prepare_object
 from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.model.config import ENCODER_NORMS
 from depthnerf.pretrained.load import load_pretrained
@@ -36,12 +35,12 @@ def object_pixels(session: InferenceSession, records: list, plane) -> tuple[np.n
     with torch.no_grad():
         for k, record in enumerate(records):
             view = INPUT_VIEW if record.num_views > INPUT_VIEW else 0
-            obj = prepare_object(session, record, ProtocolViews((view,), (view,), record.num_views - 1),
-                                 symmetry_plane=plane)
-            maps = obj.encoded.enc.features[0, 0]
+            source = session.load_views(record, [view], session.spec.resolution,
+                                        with_depth=session.prior_source.needs_depths)
+            maps = session.encode_views(source, symmetry_plane=plane).enc.features[0, 0]
             size = maps.shape[-2:]
-            inside = F.adaptive_avg_pool2d(obj.source.masks[0][None].float(), size)[0] >= 1.0
-            colour = F.adaptive_avg_pool2d(obj.source.images[0], size)
+            inside = F.adaptive_avg_pool2d(source.masks[0][None].float(), size)[0] >= 1.0
+            colour = F.adaptive_avg_pool2d(source.images[0], size)
             feats.append(maps[:, inside].T.double().numpy())
             colours.append(colour[:, inside].T.double().numpy())
             owners.append(np.full(int(inside.sum()), k))
