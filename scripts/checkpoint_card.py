@@ -108,7 +108,8 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
                 if card.get("unfinished") else "") + f", Adam lr {s.lr:g}"
              + (f" with a half-cosine decay to {s.lr_final:g}" if s.lr_schedule == "cosine" else "")
              + f", {s.objects_phase1}/{s.objects_phase2} objects x {s.rays_per_object} rays per step, bbox sampling "
-             f"for {s.bbox_steps} steps; seed {cfg.seed}.",
+             f"for {s.bbox_steps} steps; seed {cfg.seed}"
+             + (f"; parameters held fixed (`--schedule.freeze {','.join(s.freeze)}`)" if s.freeze else "") + ".",
              *([f"- Warm start (`--init-from`): these steps continue from the network weights of "
                 f"`{card['init_from']['source']}` (step {card['init_from']['step']}, sha256 "
                 f"`{card['init_from']['sha256'][:16]}...`), with a fresh optimiser and schedule."]

@@ -6,6 +6,7 @@ Runs are tiny random models written by the training checkpoint writer (``fixture
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 import shutil
@@ -382,3 +383,14 @@ def test_fix_cards_records_a_chains_total_steps(exporter, run, tmp_path):
     plain = exporter.export(run, "plain", tmp_path / "plain")
     assert fixer.main([str(plain.card_json), "--total-steps", "8005"]) == 2
     assert fixer.main([str(res.card_json), "--total-steps", "4"]) == 2
+
+
+
+def test_card_names_the_parameters_a_run_held_fixed(exporter, run, tmp_path):
+    """A run trained with ``--schedule.freeze`` says so on its card's schedule line (and a run without does not)."""
+    plain = exporter.export(run, "cpu-cars-depth", tmp_path / "plain")
+    assert "--schedule.freeze" not in plain.card_md.read_text()
+    cfg = tiny_config("cars", "bundled", tiny_bundled(tmp_path / "bundled.safetensors"))
+    cfg = dataclasses.replace(cfg, schedule=dataclasses.replace(cfg.schedule, freeze=("encoder", "fine.lin_out")))
+    res = exporter.export(tiny_run(tmp_path / "frozen-run", cfg), "cpu-cars-depth", tmp_path / "ship")
+    assert "; parameters held fixed (`--schedule.freeze encoder,fine.lin_out`)." in res.card_md.read_text()
