@@ -95,3 +95,25 @@ def test_training_with_a_frozen_encoder_keeps_it_bit_for_bit_and_resumes_exactly
     bad = cli(*args, "--out", str(tmp_path / "bad"), "--schedule.freeze", "encoder.nothing", check=False)
     assert bad.returncode == 2 and "'encoder.nothing' names no parameter" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_two_process_ddp_with_a_frozen_encoder_keeps_it_bit_for_bit(tmp_path):
+    """Under torchrun (gloo, 2 CPU processes) the frozen encoder is left out of DDP's gradient reduction and of the
+    BatchNorm merge's updates: its weights and running statistics end as the ``--init-from`` start had them, and
+    the fields train."""
+    data = make_srn_fixture(tmp_path / "srn", "cars", {"train": 4, "val": 1}, views=4, size=32, with_mask=True)
+    start = tmp_path / "start"
+    base = ["train", "--preset", "cpu-cars", "--depth", "none", "--data", str(data), "--log.val_every", "0",
+            "--device", "cpu", *TINY]
+    cli(*base, "--max-steps", "2", "--out", str(start))
+    ddp = tmp_path / "ddp"
+    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2",
+                           "-m", "depthnerf", *base, "--max-steps", "3", "--init-from", str(start),
+                           "--schedule.freeze", "encoder", "--out", str(ddp)], capture_output=True, text=True,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    first = ckpt.read_weights(ckpt.latest_checkpoint(start / "checkpoints") / "model.safetensors")[0]
+    last = ckpt.read_weights(ckpt.latest_checkpoint(ddp / "checkpoints") / "model.safetensors")[0]
+    assert all(torch.equal(first[k], last[k]) for k in first if k.startswith("encoder."))
+    assert any(not torch.equal(first[k], last[k]) for k in first if k.startswith("fine."))
