@@ -3,13 +3,18 @@
 :func:`tiny_config` is the ``cpu-<category>`` preset shrunk (resnet18 trunk with 2 feature stages, 2-block MLPs
 of width 16, 8 + 4 + 2 samples, ``resolution`` px) with the given depth prior; ``bundled`` uses a tiny random
 bundled depth network written by :func:`tiny_bundled`. :func:`tiny_run` writes a run folder the way training
-does (``checkpoints/step_*``, ``best``, ``latest``, ``data_card.json``, ``prior.json``).
+does (``checkpoints/step_*``, ``best``, ``latest``, ``data_card.json``, ``prior.json``). For tests that do train:
+:func:`cli` runs ``depthnerf`` in a subprocess (with :data:`TINY_TRAIN_FLAGS` a run takes seconds) and
+:func:`final_weights` reads a run's last checkpoint.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import torch
@@ -28,6 +33,21 @@ TINY_TRAIN_FLAGS = ["--data.resolution", "32", "--data.num_workers", "0", "--mod
 """``depthnerf train`` flags that shrink the ``cpu-cars`` preset to seconds per run on 32 px data (the training
 tests' and ``scripts/determinism_probe.py``'s runs)."""
 
+
+
+def cli(*args: str, check: bool = True, env: dict | None = None) -> subprocess.CompletedProcess:
+    """``python -m depthnerf ARGS`` with ``env`` added to the environment; with ``check``, an AssertionError
+    carrying the end of stderr when it fails."""
+    proc = subprocess.run([sys.executable, "-m", "depthnerf", *args], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})})
+    if check and proc.returncode != 0:
+        raise AssertionError(f"depthnerf {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
+    return proc
+
+
+def final_weights(run: Path) -> dict[str, torch.Tensor]:
+    """The network weights of a run folder's latest checkpoint."""
+    return ckpt.read_weights(ckpt.latest_checkpoint(run / "checkpoints") / "model.safetensors")[0]
 
 def tiny_bundled(path: Path, input_size: int = 16) -> Path:
     """A random bundled depth network small enough for 16 px images."""

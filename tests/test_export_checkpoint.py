@@ -385,7 +385,6 @@ def test_fix_cards_records_a_chains_total_steps(exporter, run, tmp_path):
     assert fixer.main([str(res.card_json), "--total-steps", "4"]) == 2
 
 
-
 def test_card_names_the_parameters_a_run_held_fixed(exporter, run, tmp_path):
     """A run trained with ``--schedule.freeze`` says so on its card's schedule line (and a run without does not)."""
     plain = exporter.export(run, "cpu-cars-depth", tmp_path / "plain")

@@ -9,11 +9,10 @@ import sys
 import pytest
 import torch
 from fixtures_checkpoints import TINY_TRAIN_FLAGS as TINY
-from fixtures_checkpoints import tiny_config, tiny_model
+from fixtures_checkpoints import cli, final_weights, tiny_config, tiny_model
 from fixtures_srn import make_srn_fixture
 
 from depthnerf.errors import DepthnerfError
-from depthnerf.train import checkpoint as ckpt
 from depthnerf.train.freeze import freeze_parameters, hold_frozen_modules, trainable_parameters
 
 
@@ -58,14 +57,6 @@ def test_a_frozen_encoder_runs_on_its_running_statistics_and_leaves_them_unchang
         torch.testing.assert_close(trained, model.eval().encoder(images, None, objects=2), rtol=0, atol=0)
 
 
-def cli(*args: str, check: bool = True) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "depthnerf", *args], capture_output=True, text=True,
-                          env=dict(os.environ))
-    if check and proc.returncode != 0:
-        raise AssertionError(f"depthnerf {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
-    return proc
-
-
 def test_training_with_a_frozen_encoder_keeps_it_bit_for_bit_and_resumes_exactly(tmp_path):
     """A run with ``--schedule.freeze encoder`` (validation included, which must not switch the encoder back to
     training mode) ends with the encoder's weights and running statistics of its ``--init-from`` start bit for bit
@@ -81,8 +72,7 @@ def test_training_with_a_frozen_encoder_keeps_it_bit_for_bit_and_resumes_exactly
     full = tmp_path / "full"
     said = cli(*args, "--out", str(full)).stderr
     assert "frozen (--schedule.freeze encoder):" in said
-    first = ckpt.read_weights(ckpt.latest_checkpoint(start / "checkpoints") / "model.safetensors")[0]
-    last = ckpt.read_weights(ckpt.latest_checkpoint(full / "checkpoints") / "model.safetensors")[0]
+    first, last = final_weights(start), final_weights(full)
     encoder = [k for k in first if k.startswith("encoder.")]
     assert any("running_mean" in k for k in encoder)
     assert all(torch.equal(first[k], last[k]) for k in encoder)
@@ -90,7 +80,7 @@ def test_training_with_a_frozen_encoder_keeps_it_bit_for_bit_and_resumes_exactly
     part = tmp_path / "part"
     cli(*args, "--out", str(part), "--max-steps", "2")
     cli(*args, "--out", str(part), "--resume")
-    again = ckpt.read_weights(ckpt.latest_checkpoint(part / "checkpoints") / "model.safetensors")[0]
+    again = final_weights(part)
     assert all(torch.equal(last[k], again[k]) for k in last)
     bad = cli(*args, "--out", str(tmp_path / "bad"), "--schedule.freeze", "encoder.nothing", check=False)
     assert bad.returncode == 2 and "'encoder.nothing' names no parameter" in bad.stderr
@@ -113,7 +103,6 @@ def test_two_process_ddp_with_a_frozen_encoder_keeps_it_bit_for_bit(tmp_path):
                            "--schedule.freeze", "encoder", "--out", str(ddp)], capture_output=True, text=True,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert proc.returncode == 0, proc.stderr[-3000:]
-    first = ckpt.read_weights(ckpt.latest_checkpoint(start / "checkpoints") / "model.safetensors")[0]
-    last = ckpt.read_weights(ckpt.latest_checkpoint(ddp / "checkpoints") / "model.safetensors")[0]
+    first, last = final_weights(start), final_weights(ddp)
     assert all(torch.equal(first[k], last[k]) for k in first if k.startswith("encoder."))
     assert any(not torch.equal(first[k], last[k]) for k in first if k.startswith("fine."))

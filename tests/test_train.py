@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shlex
 import shutil
 import signal
@@ -18,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 from fixtures_checkpoints import TINY_TRAIN_FLAGS as TINY
-from fixtures_checkpoints import tiny_config, tiny_model
+from fixtures_checkpoints import cli, final_weights, tiny_config, tiny_model
 from fixtures_srn import make_srn_fixture
 
 from depthnerf.config_io import apply_overrides, to_dict
@@ -29,14 +28,6 @@ from depthnerf.train.config import check_config, preset, with_prior
 from depthnerf.train.loop import learning_rate
 from depthnerf.train.run_log import read_launches, read_metrics
 from depthnerf.train.step import background_opacity_per_object, foreground_opacity_per_object
-
-
-def cli(*args: str, check: bool = True, env: dict | None = None) -> subprocess.CompletedProcess:
-    proc = subprocess.run([sys.executable, "-m", "depthnerf", *args], capture_output=True, text=True,
-                          env={**os.environ, **(env or {})})
-    if check and proc.returncode != 0:
-        raise AssertionError(f"depthnerf {' '.join(args)} failed:\n{proc.stderr[-3000:]}")
-    return proc
 
 
 @pytest.fixture(scope="module")
@@ -218,10 +209,6 @@ def test_train_run_folder_determinism_and_refusal_to_overwrite(data, tmp_path):
     again = cli("train", "--preset", "cpu-cars", "--data", str(data), "--out", str(runs[0]), "--max-steps", "4",
                 *TINY, check=False)
     assert again.returncode == 2 and "--resume" in again.stderr
-
-
-def final_weights(run: Path) -> dict[str, torch.Tensor]:
-    return ckpt.read_weights(ckpt.latest_checkpoint(run / "checkpoints") / "model.safetensors")[0]
 
 
 CRASH_ARGS = ["train", "--preset", "cpu-cars", "--depth", "none", "--max-steps", "6", "--checkpoint-every", "2",
@@ -445,8 +432,7 @@ def test_torchrun_two_processes_match_one_process(data, tmp_path):
     assert ddp_losses[1] == pytest.approx(single_losses[1], rel=1e-5)  # before any update: rounding only
     assert ddp_losses == pytest.approx(single_losses, rel=5e-4)  # after 2 Adam steps: measured up to 1.3e-4
     assert [x["world_size"] for x in read_launches(ddp)] == [2] and read_launches(single)[0]["world_size"] == 1
-    w_single = ckpt.read_weights(ckpt.latest_checkpoint(single / "checkpoints") / "model.safetensors")[0]
-    w_ddp = ckpt.read_weights(ckpt.latest_checkpoint(ddp / "checkpoints") / "model.safetensors")[0]
+    w_single, w_ddp = final_weights(single), final_weights(ddp)
     for key, value in w_single.items():
         if "running_" in key or "num_batches" in key:
             continue  # BatchNorm running statistics are rank 0's own (DDP broadcasts buffers from rank 0)

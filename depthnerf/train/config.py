@@ -125,11 +125,11 @@ class ScheduleConfig:
     background term it is a silhouette loss on the target's mask; it pushes thin and light-coloured parts, whose
     colour error is small, to full opacity; measured on chairs it fattens the shapes instead (docs/RESULTS.md, "A
     foreground-opacity term"). Measured and logged (``loss_foreground``) at every weight."""
-
     freeze: tuple[str, ...] = ()
     """Parameter-name prefixes held fixed (beyond the paper; empty = train everything): ``encoder`` is pixelNeRF's
     ``--freeze_enc``, ``fine.lin_out,coarse.lin_out`` the output layers; a module whose parameters are all frozen
     runs in evaluation mode (BatchNorm on its running statistics, not updated). See :mod:`depthnerf.train.freeze`."""
+
 
 @dataclass
 class LogConfig:
