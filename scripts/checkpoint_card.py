@@ -91,7 +91,8 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              f"- NeRF MLP: {f.n_blocks} residual blocks of width {f.d_hidden}; samples {r.n_coarse} coarse + "
              f"{r.n_importance} importance + {r.n_gaussian} Gaussian per ray; z-range {list(inference_spec(cfg).z_range)}.",
              *([f"- Mirror-symmetric conditioning (beyond the paper): each point also reads the features at its "
-                f"mirror image's projection; trained with {s.mirror_dropout:g} of the items without a plane. "
+                f"mirror image's projection; trained with {s.mirror_dropout:g} of the items without a plane"
+                + (f" and each plane turned by up to {s.mirror_jitter:g} degrees" if s.mirror_jitter else "") + ". "
                 "`depthnerf eval` uses the dataset's plane (`--no-symmetry`: none), `depthnerf reconstruct "
                 "--facing DEG` a photo's (default 90, a side view; `none`: none)."] if m.mirror else []),
              *(["- Depth prior at the point (beyond the paper, `--model.prior_at_point true`): the MLP input also "

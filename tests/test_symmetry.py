@@ -226,7 +226,7 @@ def test_reconstruct_facing_sets_the_plane(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["reconstruct", str(tmp_path / "car.png"), "--checkpoint", str(mirror_path), "--out",
               str(tmp_path / "out2"), "--facing", "left"])
-    assert "--facing: expected an angle in degrees or 'none'" in capsys.readouterr().err
+    assert "--facing: expected an angle in degrees, 'auto' or 'none'" in capsys.readouterr().err
 
 
 def test_eval_records_the_plane_it_used(tmp_path):
@@ -273,3 +273,5 @@ def test_app_passes_the_facing_and_says_which_plane(tmp_path):
     assert side.ok and off.ok, (side.message, off.message)
     assert "**Symmetry** on: the object faces 90 degrees (the default: a side view)" in side.details
     assert "**Symmetry** off: no facing given" in off.details
+    auto = session.run(RunRequest(example, "car", checkpoint_path=str(mirror), views=1, facing="auto"))
+    assert auto.ok and "--facing auto" in auto.details, auto.message

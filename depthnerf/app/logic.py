@@ -120,9 +120,9 @@ class RunRequest:
     """Input camera (and orbit) elevation, degrees."""
     views: int = 8
     """Orbit views."""
-    facing: float | None = 90.0
+    facing: float | str | None = 90.0
     """Which way the object's front points (``ReconstructConfig.facing``; models with mirror-symmetric
-    conditioning only); None = no symmetry plane."""
+    conditioning only); ``"auto"`` = estimated from the photo; None = no symmetry plane."""
     remove_background: bool = True
     """Remove the background of a photo without alpha with a background model when one is installed."""
     background_model: str = ""
@@ -348,11 +348,13 @@ class AppSession:
         rec = self.models.get(checkpoint, request.depth_prior, request.depth_checkpoint)
         progress(0.05, "reconstructing")
         mode, background_model = self.background(request)
+        from depthnerf.infer.facing import AUTO
+
         cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),
                                 fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
                                 mesh_threshold=request.mesh_level, mesh_colors=request.mesh_colors,
                                 progress=True, background_removal=mode, background_model=background_model,
-                                facing=None if request.facing is None else float(request.facing),
+                                facing=request.facing if request.facing in (None, AUTO) else float(request.facing),
                                 guided=bool(request.guided))
         result = rec.reconstruct(path, config=cfg)
         progress(0.95, "writing outputs")

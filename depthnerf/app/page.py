@@ -70,6 +70,8 @@ FACING_DEFAULT = 90.0
 """The facing slider's start: a side view with the front to the right (``ReconstructConfig.facing``)."""
 FACING_INFO = ("which way the object's front points: 0 = towards the camera, 90 = right (a side view, the "
                "default), 180 = away, 270 = left; sets the mirror plane of models with mirror-symmetric conditioning")
+FACING_AUTO_INFO = ("instead of the slider: the plane whose render of the photo is closest, or none (a few "
+                    "seconds more; docs/reconstruction.md, \"Facing\")")
 MESH_LEVEL_INFO = ("local: each part at its own half-maximum, outlined by the photo's mask, which keeps thin parts "
                    "(legs, frames) in a looser surface; auto: one tight piece at half the object's typical density "
                    "(docs/RESULTS.md, \"Mesh level rules\")")
@@ -133,11 +135,14 @@ def build_page(session: AppSession) -> gr.Blocks:
 
     def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg, bg_model,
                     facing=FACING_DEFAULT, use_symmetry=True, mesh_level="local", guided=True, mesh_colors="photo",
-                    progress=gr.Progress(track_tqdm=True)):  # noqa: B008 - Gradio's way to ask for a progress bar
+                    facing_auto=False, progress=gr.Progress(track_tqdm=True)):  # noqa: B008 - Gradio's way to ask for a progress bar
+        from depthnerf.infer.facing import AUTO  # torch loads on the first run, not with the page
+
         request = RunRequest(image=image, model=model, checkpoint_path=ckpt_path or "", depth_prior=prior,
                              depth_checkpoint=prior_ckpt or "", foreground_ratio=ratio, elevation=elevation,
                              views=int(views), remove_background=bool(remove_bg), background_model=bg_model or "",
-                             facing=float(facing) if use_symmetry else None, mesh_level=mesh_level,
+                             facing=(AUTO if facing_auto else float(facing)) if use_symmetry else None,
+                             mesh_level=mesh_level,
                              guided=bool(guided), mesh_colors=mesh_colors)
         return _outputs(session.run(request, lambda frac, text: progress(frac, desc=text)))
 
@@ -177,6 +182,8 @@ def build_page(session: AppSession) -> gr.Blocks:
                                            elem_id="use-symmetry")
                 facing = gr.Slider(0, 359, value=FACING_DEFAULT, step=1, label="Object facing (degrees)",
                                    info=FACING_INFO, elem_id="facing")
+                facing_auto = gr.Checkbox(value=False, label="Estimate the facing from the photo",
+                                          info=FACING_AUTO_INFO, elem_id="facing-auto")
                 mesh_level = gr.Radio(["local", "auto"], value="local", label="Mesh surface", info=MESH_LEVEL_INFO,
                                       elem_id="mesh-level")
                 mesh_colors = gr.Radio(["photo", "normal-ray"], value="photo", label="Mesh colours",
@@ -212,7 +219,7 @@ def build_page(session: AppSession) -> gr.Blocks:
         for trigger in (prior.change, prior_ckpt.change):
             trigger(prior_description, [prior, prior_ckpt], [prior_info], api_visibility="private")
         run.click(reconstruct, [upload, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg,
-                                bg_model, facing, use_symmetry, mesh_level, guided, mesh_colors],
+                                bg_model, facing, use_symmetry, mesh_level, guided, mesh_colors, facing_auto],
                   [status, prepared, prior_img, video, gif, viewer, downloads, details, clutter],
                   api_name="reconstruct", concurrency_limit=1, concurrency_id="reconstruct")
     return page

@@ -18,6 +18,7 @@ from pathlib import Path
 from depthnerf.commands.evaluate import add_guided_flags, add_precision_flags, guided_request
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.distributed import pick_device
+from depthnerf.infer.facing import AUTO
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
 from depthnerf.render.mesh_colors import MESH_COLOR_RULES
@@ -49,10 +50,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="auto (default): crop around the object to --fill; keep: only pad to square")
     p.add_argument("--fill", type=float, help="object's longer side / frame side with --framing auto (default: the "
                    "fill of the checkpoint's training data)")
-    p.add_argument("--facing", type=_facing, default=argparse.SUPPRESS, metavar="DEG|none",
+    p.add_argument("--facing", type=_facing, default=argparse.SUPPRESS, metavar="DEG|auto|none",
                    help="mirror models: which way the object's front points, degrees from the camera towards the "
                         "image's right (0 = facing the camera, 90 = facing right, 270 = left; default 90, a side "
-                        "view); none = no symmetry plane")
+                        "view; a few degrees off costs more than no plane); auto = estimated from the photo (the "
+                        "plane whose render of the photo is closest, or none); none = no symmetry plane")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128,
                    help="marching-cubes grid samples (default 128; 0 = no mesh)")
@@ -95,14 +97,16 @@ def _budget(text: str) -> int:
             f"image, or write --guided {DEFAULT_BUDGET}") from None
 
 
-def _facing(text: str) -> float | None:
-    """``--facing``: an angle in degrees or ``none``."""
+def _facing(text: str) -> float | str | None:
+    """``--facing``: an angle in degrees, ``auto`` or ``none``."""
     if text.strip().lower() == "none":
         return None
+    if text.strip().lower() == AUTO:
+        return AUTO
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an angle in degrees or 'none', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected an angle in degrees, 'auto' or 'none', got {text!r}") from None
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"expected a finite angle in degrees, got {text!r}")
     return value

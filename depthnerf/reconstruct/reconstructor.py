@@ -49,6 +49,7 @@ from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import SRN_IMAGE_SIZE, category_defaults
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.errors import DepthnerfError
+from depthnerf.infer.facing import AUTO, FacingFit, fit_facing, with_plane
 from depthnerf.infer.session import EncodedView, InferenceSession, SessionOptions
 from depthnerf.pretrained.load import Pretrained
 from depthnerf.reconstruct.background import MODES, BackgroundRemover, choose_remover
@@ -118,12 +119,13 @@ class ReconstructConfig:
     (:mod:`depthnerf.reconstruct.background`)."""
     background_model: str | None = None
     """rembg model name or ONNX file; None = :data:`~depthnerf.reconstruct.background.DEFAULT_MODEL`."""
-    facing: float | None = DEFAULT_FACING
+    facing: float | str | None = DEFAULT_FACING
     """Mirror models (``PixelNeRFConfig.mirror``): which way the object's front points, degrees from the direction
     towards the camera, turning towards the image's right (0 = facing the camera, 90 = facing right, 180 = away,
     270 = facing left; 90 and 270 give the same plane). Its mirror plane is the vertical plane through the object
     centre along the front (:func:`~depthnerf.data.symmetry.facing_plane`). Default 90: a side view, as the SRN
-    protocol's input view. None = no plane: the model's no-plane mode. Ignored by other models."""
+    protocol's input view. ``"auto"``: estimated from the photo (:mod:`depthnerf.infer.facing`; no plane when
+    none renders the photo better). None = no plane: the model's no-plane mode. Ignored by other models."""
 
     def __post_init__(self) -> None:
         """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
@@ -147,8 +149,10 @@ class ReconstructConfig:
             raise DepthnerfError(f"--elevation must be within [-89, 89] degrees, got {self.elevation}")
         if self.fill is not None and not 0 < self.fill <= 1:
             raise DepthnerfError(f"--fill must be in (0, 1], got {self.fill}")
-        if self.facing is not None and not math.isfinite(self.facing):
-            raise DepthnerfError(f"--facing must be a finite angle in degrees or 'none', got {self.facing}")
+        if self.facing is not None and self.facing != AUTO and (
+                isinstance(self.facing, bool) or not isinstance(self.facing, int | float)
+                or not math.isfinite(self.facing)):
+            raise DepthnerfError(f"--facing must be a finite angle in degrees, 'auto' or 'none', got {self.facing!r}")
         if self.framing not in ("auto", "keep"):
             raise DepthnerfError(f"--framing must be 'auto' or 'keep', got {self.framing!r}")
         if self.background_removal not in MODES:
@@ -236,13 +240,25 @@ class Reconstructor:
         img_t = torch.from_numpy(prepared.image).permute(2, 0, 1)[None].contiguous()
         mask_t = torch.from_numpy(prepared.mask)[None]
         t = time.perf_counter()
-        plane, symmetry = self.symmetry(cfg.facing)
-        encoded = self.session.encode(img_t, mask_t, poses[0], intr, symmetry_plane=plane)
-        times["encode_s"] = time.perf_counter() - t
+        fit = None
+        if cfg.facing == AUTO and self.session.model.cfg.mirror:
+            encoded = self.session.encode(img_t, mask_t, poses[0], intr)
+            times["encode_s"] = time.perf_counter() - t
+            t = time.perf_counter()
+            fit = fit_facing(self.session, encoded)
+            times["facing_s"] = time.perf_counter() - t
+            plane, symmetry = self.symmetry(fit.facing, fit)
+            encoded = replace(encoded, enc=with_plane(encoded.enc, plane))
+        else:
+            plane, symmetry = self.symmetry(None if cfg.facing == AUTO else cfg.facing)
+            encoded = self.session.encode(img_t, mask_t, poses[0], intr, symmetry_plane=plane)
+            times["encode_s"] = time.perf_counter() - t
         result = self.reconstruct_encoded(encoded, poses, render_intr, cfg, prepared)
         result.timings = {**times, **result.timings}
         result.settings = {"radius": radius, "elevation": cfg.elevation, "focal": focal, "focal_frame": image_size,
-                           "framing": cfg.framing, "fill": fill, "facing": cfg.facing,
+                           "framing": cfg.framing, "fill": fill,
+                           "facing": cfg.facing if fit is None else fit.facing,
+                           "facing_fit": None if fit is None else fit.as_dict(),
                            "symmetry_plane": None if plane is None else list(plane), "symmetry": symmetry,
                            "training_framing": self.framing,
                            "background_removal": cfg.background_removal,
@@ -251,11 +267,18 @@ class Reconstructor:
                            **result.settings}
         return result
 
-    def symmetry(self, facing: float | None) -> tuple[tuple[float, float, float, float] | None, str]:
-        """The mirror plane for an object facing ``facing`` degrees (``ReconstructConfig.facing``) and a line
-        saying which plane is used, or why none."""
+    def symmetry(self, facing: float | None, fit: FacingFit | None = None
+                 ) -> tuple[tuple[float, float, float, float] | None, str]:
+        """The mirror plane for an object facing ``facing`` degrees (``ReconstructConfig.facing``; ``fit``: the
+        estimate it came from) and a line saying which plane is used, or why none."""
         if not self.session.model.cfg.mirror:
             return None, "off: the model has no mirror-symmetric conditioning"
+        if fit is not None:
+            errors = f"input-view error {fit.error:.5f} with it, {fit.none_error:.5f} without a plane"
+            if facing is None:
+                return None, (f"off: --facing auto found no plane that renders the photo better than none (best: "
+                              f"{fit.best:g} degrees, {errors})")
+            return facing_plane(facing), f"on: the object faces {facing:g} degrees (--facing auto: {errors})"
         if facing is None:
             return None, "off: no facing given (the model's no-plane mode)"
         default = " (the default: a side view)" if facing == DEFAULT_FACING else ""

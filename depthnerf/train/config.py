@@ -114,6 +114,11 @@ class ScheduleConfig:
     """Mirror models only: the fraction of training items conditioned WITHOUT their symmetry plane (drawn per item
     from the item's seed), so that one model also serves inputs without a plane (a photo whose facing is not
     given); 0 = always with the plane."""
+    mirror_jitter: float = 0.0
+    """Mirror models only (beyond the paper): each item's plane is turned by an angle drawn uniformly from
+    [-mirror_jitter, +mirror_jitter] degrees about a random axis in the plane, so the model learns to read its
+    mirror features from a plane that is a little off, as a photo's guessed facing is (docs/RESULTS.md, "Facing");
+    0 = the exact plane (every preset)."""
     background_opacity_weight: float = 0.0
     """Weight of :func:`~depthnerf.train.step.background_opacity_per_object` on coarse and fine opacity of
     background target rays, averaged over objects (beyond the paper; 0 = off). On white backgrounds, white density on a background ray costs no
@@ -195,7 +200,8 @@ NUMBER_RULES: NumberRules = {
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
     "schedule.lr_decay": (0, False), "schedule.lr_final": (0, True), "schedule.depth_loss_weight": (0, True),
     "schedule.background_opacity_weight": (0, True),
-    "schedule.foreground_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "log.log_every": (1, True),
+    "schedule.foreground_opacity_weight": (0, True), "schedule.mirror_dropout": (0, True), "schedule.mirror_jitter": (0, True),
+    "log.log_every": (1, True),
     "log.val_every": (0, True),
     "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
     "log.render_chunk": (1, True), **RENDER_NUMBER_RULES}
@@ -229,6 +235,9 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
         raise DepthnerfError(f"--data.channel_permute must be in [0, 1], got {cfg.data.channel_permute}")
     if cfg.schedule.mirror_dropout >= 1:
         raise DepthnerfError(f"--schedule.mirror_dropout must be < 1, got {cfg.schedule.mirror_dropout}")
+    if not cfg.schedule.mirror_jitter <= 90:  # NaN fails too
+        raise DepthnerfError(f"--schedule.mirror_jitter must be an angle in [0, 90] degrees, got "
+                             f"{cfg.schedule.mirror_jitter}")
     if not 0 <= cfg.data.pixel_center < 1:  # NaN fails too
         raise DepthnerfError(f"--data.pixel_center must be in [0, 1) (a principal-point shift of a fraction of a "
                              f"pixel: 0.0 = pixelNeRF's reading, 0.5 = Blender's), got {cfg.data.pixel_center}")

@@ -7,6 +7,7 @@ workers produce exactly what the main process would.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -30,7 +31,7 @@ class TrainItems(Dataset):
     def __init__(self, records: Sequence[ObjectRecord], prior_source: PriorSource, *, resolution: int,
                  target_views: int, rays_per_object: int, target_priors: bool, pixel_center: float = 0.0,
                  symmetry_plane: tuple[float, float, float, float] | None = None, mirror_dropout: float = 0.0,
-                 view_store: ViewStore | None = None, channel_permute: float = 0.0) -> None:
+                 mirror_jitter: float = 0.0, view_store: ViewStore | None = None, channel_permute: float = 0.0) -> None:
         self.records = list(records)
         self.prior_source = prior_source
         self.resolution = resolution
@@ -42,6 +43,8 @@ class TrainItems(Dataset):
         """The objects' plane (mirror models; None: sources carry none)."""
         self.mirror_dropout = mirror_dropout
         """Fraction of items conditioned with the zero ("no plane") plane instead."""
+        self.mirror_jitter = mirror_jitter
+        """Largest angle (degrees) by which an item's plane is turned (:func:`jittered_plane`; 0: never)."""
         self.view_store = view_store
         """Decoded views to read instead of the PNG files (the same items, to the bit); None: decode the files."""
         self.channel_permute = channel_permute
@@ -76,6 +79,8 @@ class TrainItems(Dataset):
         if self.symmetry_plane is not None:  # drawn last, so the views and rays are a plain model's
             dropped = bool(torch.rand((), generator=gen) < self.mirror_dropout)
             plane = (0.0, 0.0, 0.0, 0.0) if dropped else self.symmetry_plane
+            if self.mirror_jitter > 0:  # two more draws, only then: runs without jitter keep their items
+                plane = plane if dropped else jittered_plane(plane, self.mirror_jitter, gen)
         src_image, src_mask = obj.views(pos[:n_src])
         if self.channel_permute > 0:  # drawn after everything else, so the views, rays and plane are as without
             order = permuted_channels(gen, self.channel_permute)
@@ -93,6 +98,22 @@ class TrainItems(Dataset):
             target_rgb=target_rgb[None], target_prior=target_prior, target_fg=target_fg[None],
             target_cos=dirs_cam[:, 2][None],
         )
+
+
+def jittered_plane(plane: tuple[float, float, float, float], max_deg: float, gen: torch.Generator
+                   ) -> tuple[float, float, float, float]:
+    """``plane`` (``n . x = d``, unit ``n``) turned by an angle drawn uniformly from [-max_deg, max_deg] degrees
+    about an axis ``a`` through its point ``d n``, ``a`` drawn uniformly among the unit vectors in the plane:
+    ``n' = n cos t + (a x n) sin t``, ``d' = d cos t`` (two draws from ``gen``)."""
+    angle = math.radians(max_deg) * (2.0 * float(torch.rand((), generator=gen)) - 1.0)
+    turn = 2.0 * math.pi * float(torch.rand((), generator=gen))
+    n = torch.tensor(plane[:3], dtype=torch.float64)
+    helper = torch.eye(3, dtype=torch.float64)[int(torch.argmin(n.abs()))]
+    u = torch.linalg.cross(n, helper)
+    u = u / u.norm()
+    axis = u * math.cos(turn) + torch.linalg.cross(n, u) * math.sin(turn)
+    turned = n * math.cos(angle) + torch.linalg.cross(axis, n) * math.sin(angle)
+    return (*(float(v) for v in turned), float(plane[3]) * math.cos(angle))
 
 
 CHANNEL_ORDERS = ((0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))

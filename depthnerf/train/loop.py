@@ -273,7 +273,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     items = TrainItems(records, prior_source, resolution=cfg.data.resolution, target_views=cfg.data.target_views,
                        rays_per_object=s.rays_per_object, target_priors=s.depth_loss_weight > 0,
                        pixel_center=cfg.data.pixel_center, symmetry_plane=plane,
-                       mirror_dropout=s.mirror_dropout, view_store=ready_view_store(cfg.data, records, info),
+                       mirror_dropout=s.mirror_dropout, mirror_jitter=s.mirror_jitter, view_store=ready_view_store(cfg.data, records, info),
                        channel_permute=cfg.data.channel_permute)
     loader = DataLoader(items, batch_sampler=StepSampler(plan, start, s.max_steps, info.rank, info.world),
                         collate_fn=collate_packed, num_workers=cfg.data.num_workers, pin_memory=cuda,

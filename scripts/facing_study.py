@@ -1,0 +1,122 @@
+"""How well ``--facing auto`` finds a mirror model's plane, and what the plane is worth, on a synthetic test set.
+
+For each object and each input view (``--input-views``), the object is encoded from that view alone and its mirror
+plane estimated as ``depthnerf reconstruct --facing auto`` does (:func:`depthnerf.infer.facing.fit_facing`). The
+protocol's target views (every ``--views-stride``-th of the others) are then rendered and scored (PSNR, as ``eval``
+scores) with four planes:
+
+- ``true``: the dataset's plane (its card);
+- ``auto``: the estimate (no plane where the estimate chose none);
+- ``best``: the plane that rendered the input view best, kept or not;
+- ``none``: no plane;
+- ``side``: the plane reconstruct's default ``--facing 90`` assumes: the vertical plane facing the input camera,
+  right for a side view only.
+
+Prints the estimate's angle error (against the true plane, modulo 180 degrees) and each plane's PSNR, per input
+view and overall, with paired 95% intervals of ``auto`` against the others; ``--json`` keeps every case.
+The candidate planes are vertical planes through the origin of a +z-up world, which the synthetic benchmark's
+objects are (``depthnerf synth``: up +z, centred at the origin)::
+
+    python scripts/facing_study.py --checkpoint cpu-cars-sym-pp --data cars50 --category cars --objects 12 \
+        --input-views 64 74 84 94 54 --json facing-cars.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from depthnerf.data.srn import index_split
+from depthnerf.data.symmetry import facing_plane
+from depthnerf.eval.metrics import psnr
+from depthnerf.eval.objects import prepare_object, protocol_views
+from depthnerf.infer.facing import fit_facing, with_plane
+from depthnerf.infer.session import InferenceSession, SessionOptions
+
+PLANES = ("true", "auto", "best", "none", "side")
+
+
+def plane_angle(plane) -> float:
+    """The facing ``a`` in [0, 180) whose :func:`~depthnerf.data.symmetry.facing_plane` is ``plane``'s (vertical)."""
+    return math.degrees(math.atan2(-plane[0], plane[1])) % 180
+
+
+def side_plane(c2w: torch.Tensor) -> tuple[float, float, float, float]:
+    """The vertical plane through the origin whose normal is the input camera's horizontal viewing direction."""
+    forward = c2w[:3, 2].double().numpy().copy()
+    forward[2] = 0.0
+    n = forward / np.linalg.norm(forward)
+    return float(n[0]), float(n[1]), 0.0, 0.0
+
+
+def interval(d: np.ndarray) -> str:
+    half = 1.96 * d.std(ddof=1) / math.sqrt(len(d)) if len(d) > 1 else float("nan")
+    return f"{d.mean():+.2f} [{d.mean() - half:+.2f}, {d.mean() + half:+.2f}]"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--data", required=True, type=Path)
+    ap.add_argument("--category", required=True)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--objects", type=int, default=12)
+    ap.add_argument("--input-views", type=int, nargs="+", default=[64])
+    ap.add_argument("--views-stride", type=int, default=50)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    records = index_split(args.data, args.category, args.split).objects[: args.objects]
+    session = InferenceSession(args.checkpoint, SessionOptions(inputs="dataset", data_root=args.data,
+                                                               records=records))
+    if not session.model.cfg.mirror:
+        print(f"error: {args.checkpoint} is not a mirror model: it reads no plane", file=sys.stderr)
+        return 2
+    true_plane, _ = session.dataset_symmetry(args.category)
+    cases = []
+    for record in records:
+        for view in args.input_views:
+            views = protocol_views(record.num_views, args.views_stride, inputs=[view])
+            obj = prepare_object(session, record, views, symmetry_plane=true_plane)
+            fit = fit_facing(session, obj.encoded)
+            planes = {"true": tuple(true_plane), "none": None, "side": side_plane(obj.encoded.pose),
+                      "auto": None if fit.facing is None else facing_plane(fit.facing), "best": facing_plane(fit.best)}
+            gts = obj.targets.images.permute(0, 2, 3, 1).numpy()
+            scores = {}
+            for name in PLANES:
+                enc = dataclasses.replace(obj.encoded, enc=with_plane(obj.encoded.enc, planes[name]))
+                rgb = session.render(enc, obj.targets.poses, obj.targets.intrinsics).rgb.numpy()
+                scores[name] = float(np.mean([psnr(rgb[k], gts[k]) for k in range(len(gts))]))
+            error = (fit.best - plane_angle(true_plane) + 90) % 180 - 90
+            case = {"object": record.object_id, "view": view, "best": fit.best, "chosen": fit.facing,
+                    "angle_error": error, "fit": fit.as_dict(), "psnr": scores}
+            cases.append(case)
+            print(f"{record.object_id} view {view}: estimate {fit.best:g} (error {error:+.0f} deg), "
+                  f"{'kept' if fit.facing is not None else 'none chosen'}; PSNR "
+                  + " ".join(f"{k} {v:.2f}" for k, v in scores.items()), file=sys.stderr, flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(cases, indent=1))
+    for view in [*args.input_views, None]:
+        sel = [c for c in cases if view is None or c["view"] == view]
+        err = np.abs([c["angle_error"] for c in sel])
+        kept = [c for c in sel if c["chosen"] is not None]
+        head = "all input views" if view is None else f"input view {view}"
+        print(f"{head} ({len(sel)} cases): |angle error| median {np.median(err):.1f}, within 3 deg "
+              f"{np.mean(err <= 3):.0%}; plane kept {len(kept)}/{len(sel)}"
+              + (f" (|error| median {np.median(np.abs([c['angle_error'] for c in kept])):.1f})" if kept else ""))
+        mean = {k: np.mean([c["psnr"][k] for c in sel]) for k in PLANES}
+        print("  PSNR " + ", ".join(f"{k} {v:.2f}" for k, v in mean.items()))
+        auto = np.array([c["psnr"]["auto"] for c in sel])
+        print("  auto against " + ", ".join(
+            f"{k} {interval(auto - np.array([c['psnr'][k] for c in sel]))}" for k in ("true", "best", "none", "side")))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
