@@ -3,10 +3,11 @@
 For each object and each input view (``--input-views``), the object is encoded from that view alone and its mirror
 plane estimated as ``depthnerf reconstruct --facing auto`` does (:func:`depthnerf.infer.facing.fit_facing`). The
 protocol's target views (every ``--views-stride``-th of the others) are then rendered and scored (PSNR, as ``eval``
-scores) with four planes:
+scores) with these planes:
 
 - ``true``: the dataset's plane (its card);
-- ``auto``: the estimate (no plane where the estimate chose none);
+- ``auto``: the estimate: ``best`` where it was kept, ``none`` where the estimate chose no plane (the same renders,
+  not rendered again);
 - ``best``: the plane that rendered the input view best, kept or not;
 - ``none``: no plane;
 - ``side``: the plane reconstruct's default ``--facing 90`` assumes: the vertical plane facing the input camera,
@@ -32,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from paired_difference import t_interval
 
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import facing_plane
@@ -41,6 +43,8 @@ from depthnerf.infer.facing import fit_facing, with_plane
 from depthnerf.infer.session import InferenceSession, SessionOptions
 
 PLANES = ("true", "auto", "best", "none", "side")
+RENDERED = ("true", "best", "none", "side")
+"""The planes rendered; ``auto`` is ``best`` or ``none``."""
 
 
 def plane_angle(plane) -> float:
@@ -57,8 +61,9 @@ def side_plane(c2w: torch.Tensor) -> tuple[float, float, float, float]:
 
 
 def interval(d: np.ndarray) -> str:
-    half = 1.96 * d.std(ddof=1) / math.sqrt(len(d)) if len(d) > 1 else float("nan")
-    return f"{d.mean():+.2f} [{d.mean() - half:+.2f}, {d.mean() + half:+.2f}]"
+    """Mean paired difference with its 95% t-interval (``paired_difference.t_interval``)."""
+    mean, _, half = t_interval(d.tolist())
+    return f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}]"
 
 
 def main() -> int:
@@ -85,14 +90,16 @@ def main() -> int:
             views = protocol_views(record.num_views, args.views_stride, inputs=[view])
             obj = prepare_object(session, record, views, symmetry_plane=true_plane)
             fit = fit_facing(session, obj.encoded)
-            planes = {"true": tuple(true_plane), "none": None, "side": side_plane(obj.encoded.pose),
-                      "auto": None if fit.facing is None else facing_plane(fit.facing), "best": facing_plane(fit.best)}
+            planes = {"true": tuple(true_plane), "best": facing_plane(fit.best), "none": None,
+                      "side": side_plane(obj.encoded.pose)}
             gts = obj.targets.images.permute(0, 2, 3, 1).numpy()
             scores = {}
-            for name in PLANES:
+            for name in RENDERED:
                 enc = dataclasses.replace(obj.encoded, enc=with_plane(obj.encoded.enc, planes[name]))
                 rgb = session.render(enc, obj.targets.poses, obj.targets.intrinsics).rgb.numpy()
                 scores[name] = float(np.mean([psnr(rgb[k], gts[k]) for k in range(len(gts))]))
+            scores = {k: scores["none" if k == "auto" and fit.facing is None else "best" if k == "auto" else k]
+                      for k in PLANES}
             error = (fit.best - plane_angle(true_plane) + 90) % 180 - 90
             case = {"object": record.object_id, "view": view, "best": fit.best, "chosen": fit.facing,
                     "angle_error": error, "fit": fit.as_dict(), "psnr": scores}
