@@ -19,8 +19,9 @@ METRIC_KEYS = ("psnr", "ssim", "lpips", "chamfer_l1", "fscore")
 
 
 def eval_command(name: str, ev: dict, train_res: int) -> str:
-    """The ``depthnerf eval`` command that measures the card's metrics for a shipped checkpoint."""
-    parts = ["depthnerf eval", f"--checkpoint {name}", "--data $DATA", f"--split {ev['split']}",
+    """The ``depthnerf eval`` command that measures the card's metrics for a shipped checkpoint: on ``$DATA``, or on
+    ``$EVAL_DATA`` when the evaluation read other data than the training (:func:`separate_eval_data`)."""
+    parts = ["depthnerf eval", f"--checkpoint {name}", f"--data {eval_data_variable(ev)}", f"--split {ev['split']}",
              f"--out eval/{name}", f"--views-stride {ev['views_stride']}"]
     if ev.get("max_objects"):
         parts.append(f"--max-objects {ev['max_objects']}")
@@ -29,13 +30,25 @@ def eval_command(name: str, ev: dict, train_res: int) -> str:
     return " ".join(parts)
 
 
-def synth_command(dataset_card: dict | None, category: str) -> str:
-    """The ``depthnerf synth`` command of the training data (from the dataset card)."""
+def separate_eval_data(ev: dict | None) -> bool:
+    """Whether the evaluation read another dataset folder than the training (its ``data_root`` and its dataset card
+    are then in the card's ``evaluation`` section, recorded by the export)."""
+    return bool(ev and ev.get("dataset") and ev.get("data_root") and ev.get("train_data_root")
+                and ev["data_root"] != ev["train_data_root"])
+
+
+def eval_data_variable(ev: dict) -> str:
+    """The shell variable the reproduce commands name the evaluation data by."""
+    return "$EVAL_DATA" if separate_eval_data(ev) else "$DATA"
+
+
+def synth_command(dataset_card: dict | None, category: str, out: str = "$DATA") -> str:
+    """The ``depthnerf synth`` command of a dataset (from its dataset card), written to ``out``."""
     if not dataset_card:
         return f"# dataset card missing: the {category} data's generation settings are unknown"
     counts = dataset_card.get("counts", {})
     family = dataset_card.get("family", "standard")
-    return (f"depthnerf synth --category {category} --out $DATA --train-objects {counts.get('train')} "
+    return (f"depthnerf synth --category {category} --out {out} --train-objects {counts.get('train')} "
             f"--val-objects {counts.get('val')} --test-objects {counts.get('test')} --resolution "
             f"{dataset_card.get('resolution')} --seed {dataset_card.get('seed')} --framing "
             f"{card_framing(dataset_card)}" + (f" --family {family}" if family != "standard" else ""))
@@ -111,8 +124,10 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              + f", {s.objects_phase1}/{s.objects_phase2} objects x {s.rays_per_object} rays per step, bbox sampling "
              f"for {s.bbox_steps} steps; seed {cfg.seed}"
              + (f"; parameters held fixed (`--schedule.freeze {','.join(s.freeze)}`)" if s.freeze else "") + ".",
-             *([f"- Warm start (`--init-from`): these steps continue from the network weights of "
-                f"`{card['init_from']['source']}` (step {card['init_from']['step']}, sha256 "
+             *(["- Warm start (`--init-from`): these steps continue from the network weights of "
+                + (f"the `{name}` shipped before this one" if card["init_from"]["source"] == name
+                   else f"`{card['init_from']['source']}`")
+                + f" (step {card['init_from']['step']}, sha256 "
                 f"`{card['init_from']['sha256'][:16]}...`), with a fresh optimiser and schedule."]
                if card.get("init_from") else []),
              "- Full config: the `train_config` entry of the weights' metadata "
@@ -131,7 +146,9 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
                   f"- LPIPS: {ev['lpips_status']}." + (f" Mesh: {ev['mesh_status']}." if ev.get("mesh_status") else "")]
     else:
         lines += ["Not evaluated at export time (no `--eval-summary`)."]
-    data_root = card.get("data_root") or (ev or {}).get("data_root") or data_card.get("root", "data/synth")
+    separate = separate_eval_data(ev) and not card.get("data_root")
+    data_root = (card.get("data_root") or (ev["train_data_root"] if separate else (ev or {}).get("data_root"))
+                 or data_card.get("root", "data/synth"))
     reproduce = [f"DATA={data_root}", synth_command(ds, cat)]
     if est in CACHED_ESTIMATORS:
         reproduce.append(depth_command(Path("$DATA"), est, card.get("depth_weights"), cfg.data.resolution,
@@ -141,6 +158,11 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
     reproduce.append(f"python scripts/export_checkpoint.py --run {card.get('run_path') or 'runs/' + card['source']['run']} "
                      f"--name {name}"
                      + (" --eval-summary SUMMARY" if ev else ""))
+    if ev and separate:  # scored on a dataset folder of its own: made the same way
+        reproduce += [f"EVAL_DATA={ev['data_root']}", synth_command(ev["dataset"], cat, "$EVAL_DATA")]
+        if est in CACHED_ESTIMATORS:
+            reproduce.append(depth_command(Path("$EVAL_DATA"), est, card.get("depth_weights"), cfg.data.resolution,
+                                           category=cat))
     if ev:
         reproduce.append(eval_command(name, ev, cfg.data.resolution))
     lines += ["", "## Reproduce", "", "```bash", *reproduce, "```", "",

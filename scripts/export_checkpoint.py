@@ -218,12 +218,21 @@ def steps_behind(warm: dict) -> int:
     return step
 
 
-def _eval_section(summary: dict, path: Path, base: Path = REPO_ROOT) -> dict:
+DATASET_KEYS = ("counts", "resolution", "seed", "framing", "family", "generator")
+"""What the card keeps of the evaluation data's dataset card: enough to make it again (``synth_command``)."""
+
+
+def _eval_section(summary: dict, path: Path, data_card: dict, base: Path = REPO_ROOT) -> dict:
+    """The card's ``evaluation`` entry; ``data_card`` is the run's (its training data)."""
     keys = ("split", "objects", "views", "views_stride", "max_objects", "resolution", "input_resolution",
             "method", "metrics_path", "aggregation", "lpips_status", "fscore_tau", "mesh_status",
             "checkpoint_sha256")
+    evaluated = summary.get("data_card") or {}
     section = {"summary": portable_path(path.resolve(), base), **{k: summary.get(k) for k in keys},
-               "data_root": portable_path((summary.get("data_card") or {}).get("root"), base)}
+               "data_root": portable_path(evaluated.get("root"), base),
+               "train_data_root": portable_path(data_card.get("root"), base)}
+    if isinstance(evaluated.get("card"), dict):
+        section["dataset"] = {k: evaluated["card"][k] for k in DATASET_KEYS if k in evaluated["card"]}
     for key in ("lpips_status", "mesh_status"):
         section[key] = portable_text(section[key], base)
     return section
@@ -298,7 +307,7 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
         if summary is not None:
             card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
             card["protocol"] = summary["protocol"]
-            card["evaluation"] = _eval_section(summary, Path(summary_path), base)
+            card["evaluation"] = _eval_section(summary, Path(summary_path), data_card, base)
             card["eval_command"] = eval_command(name, card["evaluation"], cfg.data.resolution)
         card_text = model_card(card, cfg, data_card, prior)
     except BaseException:

@@ -129,6 +129,37 @@ def test_cards_from_eval_summary(exporter, run, tmp_path):
         assert text in md, text
 
 
+def test_card_remakes_separate_evaluation_data(exporter, run, tmp_path):
+    """A run scored on another dataset folder than it trained on: the card's reproduce block makes both, each with
+    its own counts, and scores on the evaluation's; one folder for both keeps the single $DATA."""
+    best_sha = sha256_file(run / "checkpoints" / "best" / "model.safetensors")
+    test_card = {"generator": "depthnerf-synth-2/cars-r2", "framing": "srn", "seed": 4, "resolution": 16,
+                 "counts": {"train": 0, "val": 0, "test": 50}, "styles": {"test": {}}}
+    summary = _summary(tmp_path / "summary.json", best_sha, data_card={"root": "/data/test50", "card": test_card})
+    res = exporter.export(run, "cpu-cars-depth", tmp_path / "ship", summary, "depthnerf train --data $DATA",
+                          base=Path("/data"))
+    card = json.loads(res.card_json.read_text())
+    assert card["evaluation"]["dataset"] == {k: v for k, v in test_card.items() if k != "styles"}
+    assert card["evaluation"]["data_root"] == "test50" and card["evaluation"]["train_data_root"] == "synth"
+    assert "--data $EVAL_DATA" in card["eval_command"]
+    block = res.card_md.read_text().split("## Reproduce")[1].split("## Intended use")[0]
+    lines = [line for line in block.splitlines() if line and not line.startswith("```")]
+    assert lines[0] == "DATA=synth"
+    assert lines[1].startswith("depthnerf synth --category cars --out $DATA --train-objects 3 --val-objects 1 "
+                               "--test-objects 2 --resolution 16 --seed 0")
+    assert lines[2].startswith("depthnerf depth --data $DATA")
+    i = lines.index("EVAL_DATA=test50")
+    assert i > lines.index("depthnerf train --data $DATA")
+    assert lines[i + 1] == ("depthnerf synth --category cars --out $EVAL_DATA --train-objects 0 --val-objects 0 "
+                            "--test-objects 50 --resolution 16 --seed 4 --framing srn")
+    assert lines[i + 2].startswith("depthnerf depth --data $EVAL_DATA --depth bundled")
+    assert lines[i + 3] == card["eval_command"] and lines[i + 3].startswith("depthnerf eval --checkpoint cpu-cars")
+    same = _summary(tmp_path / "same.json", best_sha, data_card={"root": "/data/synth", "card": test_card})
+    res = exporter.export(run, "cpu-cars-depth", tmp_path / "ship2", same, "depthnerf train --data $DATA")
+    text = res.card_md.read_text()
+    assert "EVAL_DATA" not in text and "--data $DATA --split test" in text
+
+
 def test_refuses_summary_of_another_checkpoint(exporter, run, tmp_path):
     summary = _summary(tmp_path / "summary.json", "0" * 64)
     with pytest.raises(exporter.DepthnerfError, match="evaluates checkpoint 000000000000"):
@@ -235,6 +266,9 @@ def test_card_of_a_warm_started_run_names_its_source(exporter, run, tmp_path):
     listed = describe("cpu-cars-depth", res.weights)
     assert listed["steps"] == 5 and listed["warm_start_steps"] == 3500 and listed["total_steps"] == 3505
     assert describe("cpu-cars-depth", plain.weights)["warm_start_steps"] is None
+    again = exporter.export(warm, "cpu-cars-sym-pp", tmp_path / "again")  # a shipped name continued: its successor
+    assert "continue from the network weights of the `cpu-cars-sym-pp` shipped before this one (step 3500, sha256 " \
+        "`abababababababab...`)" in again.card_md.read_text()
 
 
 def test_warm_start_from_a_run_folder_is_written_relative(exporter, run, tmp_path):

@@ -97,3 +97,27 @@ def test_demo_and_app_default_to_the_best_shipped_model_per_category():
                 if card["category"] == category and card.get("protocol") == best["protocol"] and card["metrics"]}
         assert same, f"no other {category} model evaluated on {name}'s protocol to rank it against"
         assert best["metrics"]["psnr"] > max(same.values()), f"{name} is not the best shipped {category} model: {same}"
+
+
+def test_readme_table_of_the_shipped_checkpoints_agrees_with_their_cards():
+    """README's table of the shipped checkpoints prints each model's card metrics (to the digits it shows), so a
+    re-export cannot leave the front page quoting the model it replaced."""
+    shipped = shipped_checkpoints()
+    rows = [line for line in (ROOT / "README.md").read_text().splitlines() if line.startswith("| `cpu-*-")]
+    assert len(rows) == 3, rows
+    keys = ("psnr", "ssim", "chamfer_l1", "fscore")
+    checked = 0
+    for row in rows:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        pattern = cells[0].strip("`")
+        printed = {"cars": cells[2:6], "chairs": cells[7:11]}
+        for category, values in printed.items():
+            name = pattern.replace("*", category)
+            assert name in shipped, f"README names {name}, which does not ship"
+            metrics = _card(shipped[name])["metrics"]
+            for key, text in zip(keys, values, strict=True):
+                text = text.strip("*")
+                digits = len(text.split(".")[1])
+                assert f"{metrics[key]:.{digits}f}" == text, f"README: {name} {key} {text}, its card {metrics[key]}"
+                checked += 1
+    assert checked == 24

@@ -207,6 +207,16 @@ def test_cli(tmp_path: Path, capsys) -> None:
     assert capsys.readouterr().err == f"error: {tmp_path / 'file'}: --out is a file, not a folder\n"
 
 
+def test_no_progress_is_the_flag_every_command_shares_and_quiet_stays_its_alias(tmp_path: Path, capsys) -> None:
+    base = ["synth", "--category", "cars", "--train-objects", "1", "--val-objects", "0", "--test-objects", "0",
+            "--resolution", "16", "--views-train", "2"]
+    assert cli_main(base + ["--out", str(tmp_path / "shown")]) == 0
+    assert "synth cars" in capsys.readouterr().err  # the bar, by default
+    for flag in ("--no-progress", "--quiet"):
+        assert cli_main(base + ["--out", str(tmp_path / flag.strip("-")), flag]) == 0
+        assert "synth cars" not in capsys.readouterr().err
+
+
 def test_work_the_disk_cannot_hold_is_refused_before_anything_is_written(tmp_path: Path, capsys, monkeypatch):
     """10^8 views an object was the kernel's out-of-memory kill, without a message."""
     out = tmp_path / "huge" / "data"

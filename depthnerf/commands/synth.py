@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="first-hit engine: embree (embreex; fast on a CPU), torch (brute force, on CUDA when "
                              "there is one; needs no embreex) or auto (embree where embreex imports, else torch; "
                              "default). The same images up to ties on shared triangle edges")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
+                        help="no progress bar (the name every other command uses; --quiet is the same flag)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
         category=args.category, out=args.out, train_objects=args.train_objects, val_objects=args.val_objects,
         test_objects=args.test_objects, resolution=args.resolution, seed=args.seed, workers=args.workers,
         views_train=args.views_train, views_test=args.views_test,
-        render=SynthRenderConfig(antialias=not args.no_antialias), progress=not args.quiet, framing=args.framing,
+        render=SynthRenderConfig(antialias=not args.no_antialias), progress=not args.no_progress, framing=args.framing,
         family=args.family, raycaster=args.raycaster,
     )
     try:
