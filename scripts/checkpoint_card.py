@@ -18,10 +18,13 @@ METRIC_KEYS = ("psnr", "ssim", "lpips", "chamfer_l1", "fscore")
 """Metrics copied from the eval summary (null ones are left out), in the card's order."""
 
 
-def eval_command(name: str, ev: dict, train_res: int) -> str:
-    """The ``depthnerf eval`` command that measures the card's metrics for a shipped checkpoint: on ``$DATA``, or on
-    ``$EVAL_DATA`` when the evaluation read other data than the training (:func:`separate_eval_data`)."""
-    parts = ["depthnerf eval", f"--checkpoint {name}", f"--data {eval_data_variable(ev)}", f"--split {ev['split']}",
+def eval_command(name: str, card: dict, train_res: int) -> str:
+    """The ``depthnerf eval`` command that measures the card's metrics (its ``evaluation``) for a shipped checkpoint:
+    on ``$DATA``, or on ``$EVAL_DATA`` when the evaluation read other data than the training
+    (:func:`separate_eval_data`)."""
+    ev = card["evaluation"]
+    data = "$EVAL_DATA" if separate_eval_data(card) else "$DATA"
+    parts = ["depthnerf eval", f"--checkpoint {name}", f"--data {data}", f"--split {ev['split']}",
              f"--out eval/{name}", f"--views-stride {ev['views_stride']}"]
     if ev.get("max_objects"):
         parts.append(f"--max-objects {ev['max_objects']}")
@@ -30,16 +33,13 @@ def eval_command(name: str, ev: dict, train_res: int) -> str:
     return " ".join(parts)
 
 
-def separate_eval_data(ev: dict | None) -> bool:
-    """Whether the evaluation read another dataset folder than the training (its ``data_root`` and its dataset card
-    are then in the card's ``evaluation`` section, recorded by the export)."""
-    return bool(ev and ev.get("dataset") and ev.get("data_root") and ev.get("train_data_root")
-                and ev["data_root"] != ev["train_data_root"])
-
-
-def eval_data_variable(ev: dict) -> str:
-    """The shell variable the reproduce commands name the evaluation data by."""
-    return "$EVAL_DATA" if separate_eval_data(ev) else "$DATA"
+def separate_eval_data(card: dict) -> bool:
+    """Whether the card's reproduce commands make the evaluation data apart from the training data: the evaluation
+    read another dataset folder (its ``data_root`` and its dataset card are then in the card's ``evaluation``
+    section, recorded by the export), and no ``--data-root`` given at export names one folder for both."""
+    ev = card.get("evaluation") or {}
+    return bool(not card.get("data_root") and ev.get("dataset") and ev.get("data_root")
+                and ev.get("train_data_root") and ev["data_root"] != ev["train_data_root"])
 
 
 def synth_command(dataset_card: dict | None, category: str, out: str = "$DATA") -> str:
@@ -146,7 +146,7 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
                   f"- LPIPS: {ev['lpips_status']}." + (f" Mesh: {ev['mesh_status']}." if ev.get("mesh_status") else "")]
     else:
         lines += ["Not evaluated at export time (no `--eval-summary`)."]
-    separate = separate_eval_data(ev) and not card.get("data_root")
+    separate = separate_eval_data(card)
     data_root = (card.get("data_root") or (ev["train_data_root"] if separate else (ev or {}).get("data_root"))
                  or data_card.get("root", "data/synth"))
     reproduce = [f"DATA={data_root}", synth_command(ds, cat)]
@@ -158,13 +158,13 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
     reproduce.append(f"python scripts/export_checkpoint.py --run {card.get('run_path') or 'runs/' + card['source']['run']} "
                      f"--name {name}"
                      + (" --eval-summary SUMMARY" if ev else ""))
-    if ev and separate:  # scored on a dataset folder of its own: made the same way
+    if separate:  # scored on a dataset folder of its own: made the same way
         reproduce += [f"EVAL_DATA={ev['data_root']}", synth_command(ev["dataset"], cat, "$EVAL_DATA")]
         if est in CACHED_ESTIMATORS:
             reproduce.append(depth_command(Path("$EVAL_DATA"), est, card.get("depth_weights"), cfg.data.resolution,
                                            category=cat))
     if ev:
-        reproduce.append(eval_command(name, ev, cfg.data.resolution))
+        reproduce.append(eval_command(name, card, cfg.data.resolution))
     lines += ["", "## Reproduce", "", "```bash", *reproduce, "```", "",
               "## Intended use", "",
               f"Demonstrating and testing the depthnerf pipeline offline: `depthnerf demo`, `depthnerf eval "

@@ -308,7 +308,7 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
             card["metrics"] = {k: float(summary[k]) for k in METRIC_KEYS if summary.get(k) is not None}
             card["protocol"] = summary["protocol"]
             card["evaluation"] = _eval_section(summary, Path(summary_path), data_card, base)
-            card["eval_command"] = eval_command(name, card["evaluation"], cfg.data.resolution)
+            card["eval_command"] = eval_command(name, card, cfg.data.resolution)
         card_text = model_card(card, cfg, data_card, prior)
     except BaseException:
         staged.unlink(missing_ok=True)

@@ -98,8 +98,8 @@ def main() -> int:
                 enc = dataclasses.replace(obj.encoded, enc=with_plane(obj.encoded.enc, planes[name]))
                 rgb = session.render(enc, obj.targets.poses, obj.targets.intrinsics).rgb.numpy()
                 scores[name] = float(np.mean([psnr(rgb[k], gts[k]) for k in range(len(gts))]))
-            scores = {k: scores["none" if k == "auto" and fit.facing is None else "best" if k == "auto" else k]
-                      for k in PLANES}
+            scores["auto"] = scores["none" if fit.facing is None else "best"]
+            scores = {k: scores[k] for k in PLANES}
             error = (fit.best - plane_angle(true_plane) + 90) % 180 - 90
             case = {"object": record.object_id, "view": view, "best": fit.best, "chosen": fit.facing,
                     "angle_error": error, "fit": fit.as_dict(), "psnr": scores}

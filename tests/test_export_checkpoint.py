@@ -154,6 +154,11 @@ def test_card_remakes_separate_evaluation_data(exporter, run, tmp_path):
                             "--test-objects 50 --resolution 16 --seed 4 --framing srn")
     assert lines[i + 2].startswith("depthnerf depth --data $EVAL_DATA --depth bundled")
     assert lines[i + 3] == card["eval_command"] and lines[i + 3].startswith("depthnerf eval --checkpoint cpu-cars")
+    named = exporter.export(run, "cpu-cars-depth", tmp_path / "named", summary, "depthnerf train --data $DATA",
+                            data_root="study/data")  # --data-root: one folder for both, the eval on it too
+    text = named.card_md.read_text()
+    assert "DATA=study/data" in text and "EVAL_DATA" not in text and "--data $DATA --split test" in text
+    assert "EVAL_DATA" not in named.card["eval_command"]
     same = _summary(tmp_path / "same.json", best_sha, data_card={"root": "/data/synth", "card": test_card})
     res = exporter.export(run, "cpu-cars-depth", tmp_path / "ship2", same, "depthnerf train --data $DATA")
     text = res.card_md.read_text()
