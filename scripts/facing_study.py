@@ -11,7 +11,10 @@ scores) with these planes:
 - ``best``: the plane that rendered the input view best, kept or not;
 - ``none``: no plane;
 - ``side``: the plane reconstruct's default ``--facing 90`` assumes: the vertical plane facing the input camera,
-  right for a side view only.
+  right for a side view only;
+- ``prefer``: a side-view preference on top of ``auto`` (measured here, not in reconstruct): the side plane
+  wherever its input-view error is within ``1 + --side-tolerance`` times the error of ``auto``'s choice, else
+  ``auto`` (the same renders).
 
 Prints the estimate's angle error (against the true plane, modulo 180 degrees) and each plane's PSNR, per input
 view and overall, with paired 95% intervals of ``auto`` against the others; ``--json`` keeps every case.
@@ -39,12 +42,12 @@ from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.eval.metrics import psnr
 from depthnerf.eval.objects import prepare_object, protocol_views
-from depthnerf.infer.facing import fit_facing, with_plane
+from depthnerf.infer.facing import input_view_error, search_facing, with_plane
 from depthnerf.infer.session import InferenceSession, SessionOptions
 
-PLANES = ("true", "auto", "best", "none", "side")
+PLANES = ("true", "auto", "best", "none", "side", "prefer")
 RENDERED = ("true", "best", "none", "side")
-"""The planes rendered; ``auto`` is ``best`` or ``none``."""
+"""The planes rendered; ``auto`` is ``best`` or ``none``, ``prefer`` ``side`` or ``auto``."""
 
 
 def plane_angle(plane) -> float:
@@ -75,8 +78,13 @@ def main() -> int:
     ap.add_argument("--objects", type=int, default=12)
     ap.add_argument("--input-views", type=int, nargs="+", default=[64])
     ap.add_argument("--views-stride", type=int, default=50)
+    ap.add_argument("--side-tolerance", type=float, default=0.5,
+                    help="prefer the side plane within 1 + this of auto's input-view error (the 'prefer' column)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.side_tolerance < 0:
+        print(f"error: --side-tolerance must be >= 0, got {args.side_tolerance}", file=sys.stderr)
+        return 2
     records = index_split(args.data, args.category, args.split).objects[: args.objects]
     session = InferenceSession(args.checkpoint, SessionOptions(inputs="dataset", data_root=args.data,
                                                                records=records))
@@ -89,9 +97,13 @@ def main() -> int:
         for view in args.input_views:
             views = protocol_views(record.num_views, args.views_stride, inputs=[view])
             obj = prepare_object(session, record, views, symmetry_plane=true_plane)
-            fit = fit_facing(session, obj.encoded)
+            error = input_view_error(session, obj.encoded)
+            fit = search_facing(error)
             planes = {"true": tuple(true_plane), "best": facing_plane(fit.best), "none": None,
                       "side": side_plane(obj.encoded.pose)}
+            side_error = error(plane_angle(planes["side"]))
+            auto_error = fit.none_error if fit.facing is None else fit.error
+            prefer_side = side_error <= (1 + args.side_tolerance) * auto_error
             gts = obj.targets.images.permute(0, 2, 3, 1).numpy()
             scores = {}
             for name in RENDERED:
@@ -99,12 +111,14 @@ def main() -> int:
                 rgb = session.render(enc, obj.targets.poses, obj.targets.intrinsics).rgb.numpy()
                 scores[name] = float(np.mean([psnr(rgb[k], gts[k]) for k in range(len(gts))]))
             scores["auto"] = scores["none" if fit.facing is None else "best"]
+            scores["prefer"] = scores["side"] if prefer_side else scores["auto"]
             scores = {k: scores[k] for k in PLANES}
-            error = (fit.best - plane_angle(true_plane) + 90) % 180 - 90
+            angle_error = (fit.best - plane_angle(true_plane) + 90) % 180 - 90
             case = {"object": record.object_id, "view": view, "best": fit.best, "chosen": fit.facing,
-                    "angle_error": error, "fit": fit.as_dict(), "psnr": scores}
+                    "angle_error": angle_error, "fit": fit.as_dict(), "side_error": side_error,
+                    "prefer_side": prefer_side, "psnr": scores}
             cases.append(case)
-            print(f"{record.object_id} view {view}: estimate {fit.best:g} (error {error:+.0f} deg), "
+            print(f"{record.object_id} view {view}: estimate {fit.best:g} (error {angle_error:+.0f} deg), "
                   f"{'kept' if fit.facing is not None else 'none chosen'}; PSNR "
                   + " ".join(f"{k} {v:.2f}" for k, v in scores.items()), file=sys.stderr, flush=True)
     if args.json:
@@ -122,6 +136,10 @@ def main() -> int:
         auto = np.array([c["psnr"]["auto"] for c in sel])
         print("  auto against " + ", ".join(
             f"{k} {interval(auto - np.array([c['psnr'][k] for c in sel]))}" for k in ("true", "best", "none", "side")))
+        prefer = np.array([c["psnr"]["prefer"] for c in sel])
+        print(f"  prefer (side plane in {sum(c['prefer_side'] for c in sel)}/{len(sel)}, tolerance "
+              f"{args.side_tolerance:g}) against auto {interval(prefer - auto)}, better in "
+              f"{int(np.sum(prefer > auto))}, worse in {int(np.sum(prefer < auto))}")
     return 0
 
 

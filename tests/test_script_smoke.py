@@ -203,6 +203,32 @@ def test_measure_fill(monkeypatch, capsys):
     assert any(line.startswith("srn     cars") and line.endswith(f"Framing.fill: {table}") for line in lines)
 
 
+def test_facing_study_side_preference(tiny, monkeypatch, capsys):
+    """``--side-tolerance``: the ``prefer`` column is the side plane's PSNR exactly where the side plane's
+    input-view error is within ``1 + tolerance`` of ``auto``'s choice, else ``auto``'s; a huge tolerance always
+    prefers it. In this process: a subprocess per tolerance would cost more than the renders."""
+    from depthnerf.config_io import apply_overrides
+
+    mirror = save_tiny(tiny["tmp"] / "mirror.safetensors",
+                       apply_overrides(tiny_config("cars", "none"), ["--model.mirror", "true"]))
+    common = ["--checkpoint", mirror, "--data", tiny["data"], "--category", "cars", "--objects", "2",
+              "--input-views", "64", "--views-stride", "65"]
+    for tolerance in ("0", "1e9"):
+        out = tiny["tmp"] / f"facing-{tolerance}.json"
+        code, printed = run_main(monkeypatch, capsys, "facing_study", *common, "--side-tolerance", tolerance,
+                                 "--json", out)
+        assert code == 0 and f"tolerance {float(tolerance):g}) against auto" in printed
+        for case in json.loads(out.read_text()):
+            fit = case["fit"]
+            chosen = fit["none_error"] if fit["facing"] is None else fit["error"]
+            assert case["prefer_side"] == (case["side_error"] <= (1 + float(tolerance)) * chosen)
+            assert case["psnr"]["prefer"] == case["psnr"]["side" if case["prefer_side"] else "auto"]
+            assert case["prefer_side"] or tolerance == "0"
+    monkeypatch.setattr(sys, "argv", ["facing_study.py", *map(str, common), "--side-tolerance", "-1"])
+    assert load_script("facing_study").main() == 2
+    assert "--side-tolerance must be >= 0, got -1.0" in capsys.readouterr().err
+
+
 def test_bench_loader(tmp_path):
     data = make_srn_fixture(tmp_path / "data", "cars", {"train": 2}, views=5, size=16, with_mask=True)
     out = tmp_path / "loader.json"

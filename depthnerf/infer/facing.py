@@ -117,17 +117,24 @@ def with_plane(enc, plane: tuple[float, float, float, float] | None):
     return dataclasses.replace(enc, symmetry_plane=row.to(enc.features.device, enc.features.dtype))
 
 
-@torch.no_grad()
-def fit_facing(session: InferenceSession, encoded: EncodedView, scale: int = 2) -> FacingFit:
-    """The facing of the object ``encoded`` shows (module docstring): ``session`` renders its primary view with each
-    candidate plane at ``1 / scale`` of the view's resolution."""
+def input_view_error(session: InferenceSession, encoded: EncodedView,
+                     scale: int = 2) -> Callable[[float | None], float]:
+    """``error(facing)`` of :func:`facing_error` for the object ``encoded`` shows: ``session`` renders its primary
+    view conditioned on the facing's plane at ``1 / scale`` of the view's resolution (no gradients)."""
     if not session.model.cfg.mirror:
         raise DepthnerfError(f"{session.name} is not a mirror model: it reads no symmetry plane, so there is no "
                              "facing to estimate")
     photo = encoded.inputs.images[0, 0].float().cpu()
 
+    @torch.no_grad()
     def render(plane: tuple[float, float, float, float] | None, side: int) -> torch.Tensor:
         view = dataclasses.replace(encoded, enc=with_plane(encoded.enc, plane))
         return session.render(view, encoded.pose[None], encoded.intr.resized(side, side)).rgb[0]
 
-    return search_facing(facing_error(render, photo, scale))
+    return facing_error(render, photo, scale)
+
+
+def fit_facing(session: InferenceSession, encoded: EncodedView, scale: int = 2) -> FacingFit:
+    """The facing of the object ``encoded`` shows (module docstring): :func:`search_facing` over
+    :func:`input_view_error`."""
+    return search_facing(input_view_error(session, encoded, scale))
