@@ -39,6 +39,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "compare": ("compare", "print a Table-1 style Markdown table from runs or eval summaries"),
     "reconstruct": ("reconstruct", "reconstruct one photo: depth, novel views, turntable, mesh"),
     "checkpoints": ("checkpoints", "list the shipped checkpoints"),
+    "fit-facing": ("fit_facing", "fit a mirror model's facing head (the plane's angle from the photo) into a checkpoint"),
     "demo": ("demo", "one-command demo: synthesise an unseen car and chair, reconstruct each from one view"),
     "app": ("app", "serve the local web page: one photo in, novel views, mesh and point cloud out (needs [app])"),
 }

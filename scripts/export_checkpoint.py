@@ -24,6 +24,10 @@ Writes into ``--out`` (default: the package's ``depthnerf/checkpoints``, where `
     metrics with their protocol, the reproduce commands, intended use, limitations and licence
     (``scripts/checkpoint_card.py``).
 
+``--facing-head FILE`` (a weights file written by ``depthnerf fit-facing``) copies that file's facing head into the
+exported weights (:mod:`depthnerf.model.facing_head`); the head must have been fitted on this run's encoder (the
+fingerprint of its float16-rounded weights), and ``--facing-command`` records how it was fitted in the cards.
+
 A run that has not reached its ``schedule.max_steps`` (stopped early, or still training) is refused unless
 ``--allow-unfinished`` (then the cards say where it stopped); an ``--eval-summary`` must be of this checkpoint (its
 SHA-256, before or after export), its preset and category, and its own depth prior (estimator and weights).
@@ -63,10 +67,11 @@ from depthnerf.errors import DepthnerfError  # noqa: E402
 from depthnerf.eval.metrics import psnr  # noqa: E402
 from depthnerf.eval.table import load_summary  # noqa: E402
 from depthnerf.files import read_json_object, sha256_file, write_text_atomic  # noqa: E402
+from depthnerf.model.facing_head import FacingHead, encoder_fingerprint, head_from_tensors  # noqa: E402
 from depthnerf.model.pixelnerf import SourceViews  # noqa: E402
 from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint  # noqa: E402
 from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec  # noqa: E402
-from depthnerf.pretrained.weights import latest_checkpoint  # noqa: E402
+from depthnerf.pretrained.weights import latest_checkpoint, save_with_head  # noqa: E402
 from depthnerf.reconstruct.orbit import orbit_poses, srn_intrinsics  # noqa: E402
 from depthnerf.render.views import render_poses  # noqa: E402
 from depthnerf.train import checkpoint as ckpt  # noqa: E402
@@ -245,9 +250,23 @@ def _check_fp16_range(pre: Pretrained) -> None:
                                  "or non-finite values; cannot export as fp16")
 
 
+def read_facing_head(path: Path, source: Pretrained) -> FacingHead:
+    """The facing head stored in ``path``, checked to be fitted on ``source``'s encoder."""
+    tensors, meta = ckpt.read_weights(path)
+    head = head_from_tensors(tensors, meta, str(path))
+    if head is None:
+        raise DepthnerfError(f"--facing-head {path}: the file carries no facing head (write one with depthnerf "
+                             "fit-facing)")
+    if head.info.get("encoder") != encoder_fingerprint(source.model):
+        raise DepthnerfError(f"--facing-head {path}: fitted on another encoder (fingerprint {head.info.get('encoder')}"
+                             f", the run's is {encoder_fingerprint(source.model)})")
+    return head
+
+
 def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | None = None,
            command: str | None = None, data_root: str | None = None, base: Path = REPO_ROOT,
-           allow_unfinished: bool = False) -> ExportResult:
+           allow_unfinished: bool = False, facing_head: Path | None = None,
+           facing_command: str | None = None) -> ExportResult:
     """Export ``run``'s best (else latest) checkpoint as ``out/<name>.*`` (see the module docstring); an unfinished
     run only with ``allow_unfinished`` (:func:`check_finished`)."""
     if not NAME_PATTERN.match(name):
@@ -274,9 +293,12 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
              "source_file": source_path.resolve().relative_to(run.resolve()).as_posix(), "dtype": "float16",
              "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})",
              "total_steps": str(total_steps), SPEC_KEY: source.spec.to_json()}
+    head = read_facing_head(Path(facing_head), source) if facing_head is not None else None
     ckpt.save_weights(staged, source.model, ckpt.checkpoint_config(meta, source_path), step=source.step,
                       dtype=torch.float16, extra=extra)
     try:  # every check passes and both cards are built before any file takes its shipped name
+        if head is not None:
+            save_with_head(staged, head, staged)
         exported = load_pretrained(staged)
         check = roundtrip_check(source, exported)
         if not check["max_abs_rgb"] <= FP16_TOLERANCE:
@@ -296,6 +318,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
                 "run_path": portable_path(run, base), "metrics": None, "protocol": None, "evaluation": None}
         if unfinished is not None:
             card["unfinished"] = unfinished
+        if head is not None:
+            card["facing_head"] = {**head.describe(), "command": portable_text(facing_command, base)}
         ds = data_card.get("dataset_card") or {}
         if ds:
             card.update(framing=card_framing(ds), generator=ds.get("generator"))
@@ -332,6 +356,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    "path the evaluation used, relative to --relative-to)")
     p.add_argument("--allow-unfinished", action="store_true",
                    help="export a run that stopped before its --max-steps (the card says so); refused otherwise")
+    p.add_argument("--facing-head", type=Path, help="a weights file from 'depthnerf fit-facing' whose facing head "
+                   "(fitted on this run's encoder) the export carries")
+    p.add_argument("--facing-command", help="the fit-facing command (quoted; goes into the model card)")
     p.add_argument("--relative-to", type=Path, default=REPO_ROOT,
                    help=f"base of the relative paths written into cards (default the repository, {REPO_ROOT})")
     return p.parse_args(argv)
@@ -342,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with torch.no_grad():  # scoped: main() also runs inside test processes
             res = export(args.run, args.name, args.out, args.eval_summary, args.command, args.data_root,
-                         args.relative_to, args.allow_unfinished)
+                         args.relative_to, args.allow_unfinished, args.facing_head, args.facing_command)
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -6,15 +6,19 @@ protocol's target views (every ``--views-stride``-th of the others) are then ren
 scores) with these planes:
 
 - ``true``: the dataset's plane (its card);
-- ``auto``: the estimate: ``best`` where it was kept, ``none`` where the estimate chose no plane (the same renders,
-  not rendered again);
+- ``auto``: the search over the input view's error alone (``--facing auto`` of a checkpoint without a facing
+  head): ``best`` where it was kept, ``none`` where it chose no plane (the same renders, not rendered again);
 - ``best``: the plane that rendered the input view best, kept or not;
 - ``none``: no plane;
 - ``side``: the plane reconstruct's default ``--facing 90`` assumes: the vertical plane facing the input camera,
   right for a side view only;
 - ``prefer``: a side-view preference on top of ``auto`` (measured here, not in reconstruct): the side plane
   wherever its input-view error is within ``1 + --side-tolerance`` times the error of ``auto``'s choice, else
-  ``auto`` (the same renders).
+  ``auto`` (the same renders);
+- with a checkpoint that carries a facing head (``depthnerf fit-facing``), also ``head``: the head's plane, which
+  ``--facing auto`` takes with such a checkpoint (:func:`depthnerf.infer.facing.fit_facing`), and ``head_search``:
+  the search's fine passes started at the head's plane, kept only when it renders the input view better than no
+  plane (measured here, not in reconstruct).
 
 Prints the estimate's angle error (against the true plane, modulo 180 degrees) and each plane's PSNR, per input
 view and overall, with paired 95% intervals of ``auto`` against the others; ``--json`` keeps every case.
@@ -42,12 +46,14 @@ from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.eval.metrics import psnr
 from depthnerf.eval.objects import prepare_object, protocol_views
-from depthnerf.infer.facing import input_view_error, search_facing, with_plane
+from depthnerf.infer.facing import head_facing, input_view_error, search_facing, with_plane
 from depthnerf.infer.session import InferenceSession, SessionOptions
 
 PLANES = ("true", "auto", "best", "none", "side", "prefer")
 RENDERED = ("true", "best", "none", "side")
 """The planes rendered; ``auto`` is ``best`` or ``none``, ``prefer`` ``side`` or ``auto``."""
+HEAD_PLANES = ("head", "head_search")
+"""The planes a checkpoint with a facing head adds (rendered)."""
 
 
 def plane_angle(plane) -> float:
@@ -104,19 +110,29 @@ def main() -> int:
             side_error = error(plane_angle(planes["side"]))
             auto_error = fit.none_error if fit.facing is None else fit.error
             prefer_side = side_error <= (1 + args.side_tolerance) * auto_error
+            has_head = session.pretrained.facing_head is not None
+            if has_head:
+                head_fit = search_facing(error, start=head_facing(session, obj.encoded))
+                planes["head"] = facing_plane(head_fit.start)
+                planes["head_search"] = None if head_fit.facing is None else facing_plane(head_fit.facing)
             gts = obj.targets.images.permute(0, 2, 3, 1).numpy()
             scores = {}
-            for name in RENDERED:
+            for name in RENDERED + (HEAD_PLANES if has_head else ()):
                 enc = dataclasses.replace(obj.encoded, enc=with_plane(obj.encoded.enc, planes[name]))
                 rgb = session.render(enc, obj.targets.poses, obj.targets.intrinsics).rgb.numpy()
                 scores[name] = float(np.mean([psnr(rgb[k], gts[k]) for k in range(len(gts))]))
             scores["auto"] = scores["none" if fit.facing is None else "best"]
             scores["prefer"] = scores["side"] if prefer_side else scores["auto"]
-            scores = {k: scores[k] for k in PLANES}
-            angle_error = (fit.best - plane_angle(true_plane) + 90) % 180 - 90
+            scores = {k: scores[k] for k in PLANES + (HEAD_PLANES if has_head else ())}
+            true_angle = plane_angle(true_plane)
+            angle_error = (fit.best - true_angle + 90) % 180 - 90
             case = {"object": record.object_id, "view": view, "best": fit.best, "chosen": fit.facing,
                     "angle_error": angle_error, "fit": fit.as_dict(), "side_error": side_error,
                     "prefer_side": prefer_side, "psnr": scores}
+            if has_head:
+                case["head_fit"] = head_fit.as_dict()
+                case["head_angle_error"] = (head_fit.start - true_angle + 90) % 180 - 90
+                case["head_search_angle_error"] = (head_fit.best - true_angle + 90) % 180 - 90
             cases.append(case)
             print(f"{record.object_id} view {view}: estimate {fit.best:g} (error {angle_error:+.0f} deg), "
                   f"{'kept' if fit.facing is not None else 'none chosen'}; PSNR "
@@ -131,7 +147,7 @@ def main() -> int:
         print(f"{head} ({len(sel)} cases): |angle error| median {np.median(err):.1f}, within 3 deg "
               f"{np.mean(err <= 3):.0%}; plane kept {len(kept)}/{len(sel)}"
               + (f" (|error| median {np.median(np.abs([c['angle_error'] for c in kept])):.1f})" if kept else ""))
-        mean = {k: np.mean([c["psnr"][k] for c in sel]) for k in PLANES}
+        mean = {k: np.mean([c["psnr"][k] for c in sel]) for k in sel[0]["psnr"]}
         print("  PSNR " + ", ".join(f"{k} {v:.2f}" for k, v in mean.items()))
         auto = np.array([c["psnr"]["auto"] for c in sel])
         print("  auto against " + ", ".join(
@@ -140,6 +156,15 @@ def main() -> int:
         print(f"  prefer (side plane in {sum(c['prefer_side'] for c in sel)}/{len(sel)}, tolerance "
               f"{args.side_tolerance:g}) against auto {interval(prefer - auto)}, better in "
               f"{int(np.sum(prefer > auto))}, worse in {int(np.sum(prefer < auto))}")
+        if "head" in sel[0]["psnr"]:
+            for key in HEAD_PLANES:
+                e = np.abs([c[f"{key}_angle_error"] for c in sel])
+                d = np.array([c["psnr"][key] for c in sel]) - auto
+                print(f"  {key}: |angle error| median {np.median(e):.1f}, within 3 deg {np.mean(e <= 3):.0%}; "
+                      f"against auto {interval(d)}, better in {int(np.sum(d > 0))}, worse in {int(np.sum(d < 0))}; "
+                      f"against true {interval(np.array([c['psnr'][key] - c['psnr']['true'] for c in sel]))}")
+            kept = sum(c["head_fit"]["facing"] is not None for c in sel)
+            print(f"  head_search kept its plane in {kept}/{len(sel)}")
     return 0
 
 

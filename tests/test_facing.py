@@ -55,7 +55,7 @@ def test_no_plane_wins_when_it_renders_the_input_view_better():
     fit = search_facing(lambda a: 0.5 if a is None else 1.0 + 1e-3 * wrapped(a, 20.0) ** 2)
     assert fit.facing is None and fit.best == pytest.approx(20.0) and fit.none_error == 0.5
     assert fit.as_dict() == {"facing": None, "best": fit.best, "error": fit.error, "none_error": 0.5,
-                             "tried": len(fit.errors)}
+                             "tried": len(fit.errors), "head": None}
     with pytest.raises(DepthnerfError, match="coarse_step must divide 180"):
         search_facing(lambda a: 0.0, coarse_step=7)
 

@@ -70,8 +70,9 @@ FACING_DEFAULT = 90.0
 """The facing slider's start: a side view with the front to the right (``ReconstructConfig.facing``)."""
 FACING_INFO = ("which way the object's front points: 0 = towards the camera, 90 = right (a side view, the "
                "default), 180 = away, 270 = left; sets the mirror plane of models with mirror-symmetric conditioning")
-FACING_AUTO_INFO = ("instead of the slider: the plane whose render of the photo is closest, or none (a few "
-                    "seconds more; docs/reconstruction.md, \"Facing\")")
+FACING_AUTO_INFO = ("instead of the slider: read from the photo by the model's facing head when it has one "
+                    "(depthnerf fit-facing), else the plane whose render of the photo is closest, or none "
+                    "(docs/reconstruction.md, \"Facing\")")
 MESH_LEVEL_INFO = ("local: each part at its own half-maximum, outlined by the photo's mask, which keeps thin parts "
                    "(legs, frames) in a looser surface; auto: one tight piece at half the object's typical density "
                    "(docs/RESULTS.md, \"Mesh level rules\")")

@@ -53,8 +53,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--facing", type=_facing, default=argparse.SUPPRESS, metavar="DEG|auto|none",
                    help="mirror models: which way the object's front points, degrees from the camera towards the "
                         "image's right (0 = facing the camera, 90 = facing right, 270 = left; default 90, a side "
-                        "view; a few degrees off costs more than no plane); auto = estimated from the photo (the "
-                        "plane whose render of the photo is closest, or none); none = no symmetry plane")
+                        "view; a few degrees off costs more than no plane); auto = estimated from the photo (read by "
+                        "the checkpoint's facing head when it has one, else the plane whose render of the photo is "
+                        "closest, or none); none = no symmetry plane")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128,
                    help="marching-cubes grid samples (default 128; 0 = no mesh)")

@@ -112,3 +112,36 @@ def facing_plane(facing_deg: float) -> tuple[float, float, float, float]:
     0)``. Facing ``a`` and ``a + 180`` give the same plane."""
     a = np.radians(float(facing_deg))
     return normalized_plane((round(-np.sin(a), 12), round(np.cos(a), 12), 0.0, 0.0), "facing")
+
+
+def relative_facing(plane: tuple[float, ...] | np.ndarray, c2w: np.ndarray) -> float:
+    """The angle ``psi`` in [0, 180) degrees of a vertical plane's normal seen from a camera without roll: measured
+    from the camera's horizontal viewing direction, turning towards the image's right (0: the plane faces the
+    camera square on, as at a side view; 90: it contains the viewing direction, as at a front view). With ``n`` the
+    unit normal and ``r``, ``f`` the camera's right and forward axes (``c2w[:3, 0]``, ``c2w[:3, 2]``, OpenCV axes),
+    both ``n`` and ``r`` are horizontal, so ``sin psi = n . r`` and ``cos psi = sign(n . f) sqrt(1 - (n . r)^2)``:
+    no up axis is needed. The inverse, for a +z-up world, is :func:`facing_from_relative`."""
+    n = np.asarray(plane[:3], dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    c2w = np.asarray(c2w, dtype=np.float64)
+    right = c2w[:3, 0] / np.linalg.norm(c2w[:3, 0])
+    sin_psi = float(n @ right)
+    cos_psi = float(np.copysign(np.linalg.norm(n - sin_psi * right), n @ c2w[:3, 2]))  # no cancellation near 90
+    return float(np.degrees(np.arctan2(sin_psi, cos_psi)) % 180.0)
+
+
+def facing_from_relative(psi_deg: float, c2w: np.ndarray) -> float:
+    """The facing ``a`` in [0, 180) (:func:`facing_plane`, a +z-up world) of the vertical plane whose normal is at
+    ``psi_deg`` from the camera ``c2w``'s horizontal viewing direction ``u`` (:func:`relative_facing`): normal
+    ``n = cos psi u + sin psi (u x z)``, and ``a = atan2(-n_x, n_y)``. For the camera at azimuth 0 of
+    :func:`facing_plane` (looking along -x) this is ``a = 90 - psi``."""
+    forward = np.asarray(c2w, dtype=np.float64)[:3, 2].copy()
+    forward[2] = 0.0
+    length = np.linalg.norm(forward)
+    if length < 1e-9:
+        raise DepthnerfError("the camera looks straight down or up: its horizontal viewing direction is undefined")
+    u = forward / length
+    right = np.cross(u, (0.0, 0.0, 1.0))
+    psi = np.radians(float(psi_deg))
+    n = np.cos(psi) * u + np.sin(psi) * right
+    return float(np.degrees(np.arctan2(-n[0], n[1])) % 180.0)

@@ -18,6 +18,13 @@ and "no plane" (the model's no-plane mode, which ``--schedule.mirror_dropout`` t
 3. the best facing is kept only if its error is below no plane's (:class:`FacingFit`); otherwise no plane.
 
 Cost: about 30 renders of a quarter-size input view (``scale`` 2), a few seconds on the CPU for the shipped models.
+
+The input view cannot tell a side view from a front view: at both, the plane square to the viewing direction
+renders it about as well as the true one, and so does no plane. A checkpoint that carries a facing head
+(:mod:`depthnerf.model.facing_head`, ``depthnerf fit-facing``) reads the plane's angle from the encoder's features
+instead, and :func:`fit_facing` takes the head's plane as it is: on held-out synthetic objects it is closer to the
+true plane than the search, and starting the search there moves it away (docs/RESULTS.md, "A facing head"). The
+input-view errors with it and without a plane are still computed (two renders) for the record.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from depthnerf.data.symmetry import facing_plane
+from depthnerf.data.symmetry import facing_from_relative, facing_plane
 from depthnerf.errors import DepthnerfError
 from depthnerf.infer.session import EncodedView, InferenceSession
 
@@ -55,17 +62,21 @@ class FacingFit:
     """The error without a plane."""
     errors: dict[float, float]
     """Every facing tried and its error."""
+    start: float | None = None
+    """Where the search started (:func:`search_facing`'s ``start``), or the facing head's estimate when
+    :func:`fit_facing` took it; None: the coarse pass."""
 
     def as_dict(self) -> dict:
         """JSON-ready (``manifest.json``'s ``facing_fit``)."""
         return {"facing": self.facing, "best": self.best, "error": self.error, "none_error": self.none_error,
-                "tried": len(self.errors)}
+                "tried": len(self.errors), "head": self.start}
 
 
 def search_facing(error: Callable[[float | None], float], coarse_step: int = COARSE_STEP,
-                  fine_steps: tuple[tuple[int, int], ...] = FINE_STEPS) -> FacingFit:
+                  fine_steps: tuple[tuple[int, int], ...] = FINE_STEPS, start: float | None = None) -> FacingFit:
     """Minimise ``error(facing)`` over facings in [0, 180) degrees (module docstring, steps 2 and 3); ``error(None)``
-    is no plane's. Each facing is evaluated once; angles wrap modulo 180."""
+    is no plane's. ``start``: begin at this facing instead of the coarse pass (``fine_steps`` then search around
+    it). Each facing is evaluated once; angles wrap modulo 180."""
     if coarse_step < 1 or 180 % coarse_step:
         raise DepthnerfError(f"coarse_step must divide 180 degrees, got {coarse_step}")
     errors: dict[float, float] = {}
@@ -76,8 +87,11 @@ def search_facing(error: Callable[[float | None], float], coarse_step: int = COA
             errors[a] = float(error(a))
         return errors[a]
 
-    for a in range(0, 180, coarse_step):
-        tried(a)
+    if start is None:
+        for a in range(0, 180, coarse_step):
+            tried(a)
+    else:
+        tried(start)
     best = min(errors, key=errors.get)
     for step, reach in fine_steps:
         for k in range(-reach, reach + 1):
@@ -90,7 +104,8 @@ def search_facing(error: Callable[[float | None], float], coarse_step: int = COA
         best = min(errors, key=errors.get)
     none_error = float(error(None))
     chosen = best if errors[best] < none_error else None
-    return FacingFit(facing=chosen, best=best, error=errors[best], none_error=none_error, errors=errors)
+    return FacingFit(facing=chosen, best=best, error=errors[best], none_error=none_error, errors=errors,
+                     start=None if start is None else float(start % 180))
 
 
 def facing_error(render: Callable[[tuple[float, float, float, float] | None, int], torch.Tensor],
@@ -134,7 +149,24 @@ def input_view_error(session: InferenceSession, encoded: EncodedView,
     return facing_error(render, photo, scale)
 
 
+def head_facing(session: InferenceSession, encoded: EncodedView) -> float | None:
+    """The facing in [0, 180) degrees that the checkpoint's facing head reads from the primary view's features
+    (:func:`~depthnerf.data.symmetry.facing_from_relative` of its relative angle), None without a head."""
+    head = session.pretrained.facing_head
+    if head is None:
+        return None
+    with torch.no_grad():
+        psi = float(head(encoded.enc.features[0, :1])[0])
+    return facing_from_relative(psi, encoded.pose.double().cpu().numpy())
+
+
 def fit_facing(session: InferenceSession, encoded: EncodedView, scale: int = 2) -> FacingFit:
-    """The facing of the object ``encoded`` shows (module docstring): :func:`search_facing` over
-    :func:`input_view_error`."""
-    return search_facing(input_view_error(session, encoded, scale))
+    """The facing of the object ``encoded`` shows (module docstring): the facing head's when the checkpoint has
+    one (kept whatever the input-view errors), else :func:`search_facing` over :func:`input_view_error`."""
+    error = input_view_error(session, encoded, scale)
+    head = head_facing(session, encoded)
+    if head is None:
+        return search_facing(error)
+    with_head, without = error(head), error(None)
+    return FacingFit(facing=head, best=head, error=with_head, none_error=without, errors={head: with_head},
+                     start=head)

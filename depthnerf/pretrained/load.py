@@ -30,6 +30,8 @@ from depthnerf.depth.prior import portable_prior
 from depthnerf.distributed import pick_device
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
+from depthnerf.model.facing_head import PREFIX as HEAD_PREFIX
+from depthnerf.model.facing_head import FacingHead, encoder_fingerprint, head_from_tensors
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.hub import fetch_hub_checkpoint, is_hub_reference
 from depthnerf.pretrained.spec import InferenceSpec, spec_from_metadata
@@ -113,6 +115,9 @@ class Pretrained:
     framing_origin: str = SPEC_FRAMING
     """Where ``spec.framing`` was read: :data:`SPEC_FRAMING`, or for older checkpoints the card it was derived
     from (:func:`~depthnerf.data.synth.framing.checkpoint_framing`)."""
+    facing_head: FacingHead | None = None
+    """The plane-angle head fitted on this model's features (:mod:`depthnerf.model.facing_head`), None when the
+    file carries none."""
 
 
 def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") -> Pretrained:
@@ -140,10 +145,17 @@ def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") 
         raise DepthnerfError(f"{path}: metadata 'step' is {step!r}, not a step count")
     inference = replace(inference, prior=portable_prior(inference.prior, inference.prior_weights_hash))
     model = PixelNeRF(inference.model, depth_aware=inference.depth_aware)
-    load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()}, path)
+    head = head_from_tensors(tensors, meta, str(path))
+    load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()
+                              if not k.startswith(HEAD_PREFIX)}, path)
+    if head is not None and head.info.get("encoder") != encoder_fingerprint(model):
+        raise DepthnerfError(f"{path}: its facing head was fitted on another encoder (fingerprint "
+                             f"{head.info.get('encoder')}, the file's is {encoder_fingerprint(model)})")
     model.to(device).eval()
+    if head is not None:
+        head.to(device).eval()
     return Pretrained(model=model, spec=inference, path=path, sha256=sha256_file(path),
-                      step=int(step), data_root=data_root, framing_origin=origin)
+                      step=int(step), data_root=data_root, framing_origin=origin, facing_head=head)
 
 
 def _data_root(meta: dict[str, str]) -> str | None:

@@ -1,8 +1,9 @@
 """Model weights files: safetensors tensors + JSON metadata, written atomically, loaded strictly.
 
 Metadata of a weights file: ``format`` (:data:`FORMAT`), ``config`` (the model config JSON), ``step``,
-``inference_spec`` (:mod:`depthnerf.pretrained.spec`) and, from training, ``train_config`` (provenance).
-Nothing here unpickles.
+``inference_spec`` (:mod:`depthnerf.pretrained.spec`) and, from training, ``train_config`` (provenance); a file
+may also carry a facing head (:mod:`depthnerf.model.facing_head`: ``facing_head.*`` tensors and ``facing_head``
+metadata). Nothing here unpickles.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from safetensors.torch import load_file, save
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_bytes_atomic
+from depthnerf.model.facing_head import PREFIX as HEAD_PREFIX
+from depthnerf.model.facing_head import FacingHead, head_tensors
 from depthnerf.state_dicts import check_finite
 
 FORMAT = "depthnerf-checkpoint-1"
@@ -30,6 +33,15 @@ def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], st
                for k, v in module.state_dict().items()}
     meta = {"format": FORMAT, "config": json.dumps(config, sort_keys=True), "step": str(step), **(extra or {})}
     write_bytes_atomic(Path(path), save(tensors, metadata=meta))
+
+
+def save_with_head(source: Path, head: FacingHead, out: Path) -> None:
+    """Write ``source``'s weights file to ``out`` (atomically; ``out`` may be ``source``) with ``head`` as its
+    facing head, replacing any it had; tensors and other metadata unchanged."""
+    tensors, meta = read_weights(source)
+    own, own_meta = head_tensors(head)
+    tensors = {**{k: v for k, v in tensors.items() if not k.startswith(HEAD_PREFIX)}, **own}
+    write_bytes_atomic(Path(out), save(tensors, metadata={**meta, **own_meta}))
 
 
 def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:

@@ -124,8 +124,9 @@ class ReconstructConfig:
     towards the camera, turning towards the image's right (0 = facing the camera, 90 = facing right, 180 = away,
     270 = facing left; 90 and 270 give the same plane). Its mirror plane is the vertical plane through the object
     centre along the front (:func:`~depthnerf.data.symmetry.facing_plane`). Default 90: a side view, as the SRN
-    protocol's input view. ``"auto"``: estimated from the photo (:mod:`depthnerf.infer.facing`; no plane when
-    none renders the photo better). None = no plane: the model's no-plane mode. Ignored by other models."""
+    protocol's input view. ``"auto"``: estimated from the photo (:mod:`depthnerf.infer.facing`): read by the
+    checkpoint's facing head when it has one (``depthnerf fit-facing``), else the plane that renders the photo best
+    (no plane when none renders it better). None = no plane: the model's no-plane mode. Ignored by other models."""
 
     def __post_init__(self) -> None:
         """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
@@ -278,7 +279,8 @@ class Reconstructor:
             if facing is None:
                 return None, (f"off: --facing auto found no plane that renders the photo better than none (best: "
                               f"{fit.best:g} degrees, {errors})")
-            return facing_plane(facing), f"on: the object faces {facing:g} degrees (--facing auto: {errors})"
+            how = "the checkpoint's facing head; " if fit.start is not None else ""
+            return facing_plane(facing), f"on: the object faces {facing:g} degrees (--facing auto: {how}{errors})"
         if facing is None:
             return None, "off: no facing given (the model's no-plane mode)"
         default = " (the default: a side view)" if facing == DEFAULT_FACING else ""

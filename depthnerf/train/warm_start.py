@@ -29,6 +29,7 @@ from depthnerf.config_io import differences, to_dict
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.config import PixelNeRFConfig
+from depthnerf.model.facing_head import PREFIX as HEAD_PREFIX
 from depthnerf.pretrained.load import resolve_checkpoint
 from depthnerf.pretrained.spec import spec_from_metadata
 from depthnerf.pretrained.weights import read_weights
@@ -105,6 +106,7 @@ def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, 
     """Load ``source``'s weights into ``model`` (strictly) after checking that it is the same network."""
     path = resolve_checkpoint(source)
     tensors, meta = read_weights(path)
+    tensors = {k: v for k, v in tensors.items() if not k.startswith(HEAD_PREFIX)}  # a facing head is refitted
     spec = spec_from_metadata(meta, str(path))
     if spec.depth_aware != depth_aware:
         kind = {True: "depth-aware", False: "a baseline (no prior)"}

@@ -1,0 +1,112 @@
+"""Fit a checkpoint's facing head (:mod:`depthnerf.model.facing_head`) on dataset views whose plane is known.
+
+For each of ``objects`` objects of a split, ``views_per_object`` views drawn at random (seeded) are encoded one at a
+time, as reconstruct encodes a photo (:meth:`~depthnerf.infer.session.InferenceSession.encode_views`, the prior from
+the dataset's cache), and paired with the relative angle of the dataset's mirror plane
+(:func:`~depthnerf.data.symmetry.relative_facing`). The ridge weight is chosen on a held-out fifth of the objects
+(the smallest median angle error over :data:`LAMBDAS`), then the head is refitted on all of them. The planes must
+be vertical and the cameras without roll (as in SRN and the synthetic benchmark).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from depthnerf.data.srn import index_split
+from depthnerf.data.symmetry import relative_facing
+from depthnerf.errors import DepthnerfError
+from depthnerf.infer.session import InferenceSession, SessionOptions
+from depthnerf.model.facing_head import FacingHead, angle_error, encoder_fingerprint, fit_ridge
+
+LAMBDAS = (10.0, 100.0, 1000.0, 10000.0)
+"""Ridge weights tried on the held-out objects."""
+
+
+@dataclass(frozen=True)
+class FacingHeadConfig:
+    """What :func:`fit_facing_head` fits on."""
+
+    data: Path
+    """Dataset root (``<category>_<split>/`` and its prior cache)."""
+    category: str
+    """Category folder prefix, e.g. ``cars``."""
+    split: str = "train"
+    """Split to fit on (the training split: the head learns what the network was trained on)."""
+    objects: int = 300
+    """At most this many objects (the first of the split)."""
+    views_per_object: int = 8
+    """Views drawn per object (seeded)."""
+    grid: int = 4
+    """Pooling grid of the head (``grid x grid`` cells per feature channel)."""
+    seed: int = 0
+    """Seed of the view draw and of the held-out objects."""
+    device: str = "cpu"
+    """Torch device of the encoder."""
+
+
+@dataclass(frozen=True)
+class FacingHeadFit:
+    """A fitted head and how well it did."""
+
+    head: FacingHead
+    """The head refitted on every object with the chosen weight."""
+    validation: dict[str, dict[str, float]]
+    """Per ridge weight tried: median and 90th-percentile absolute angle error (degrees) on the held-out objects."""
+
+
+def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[torch.Tensor, torch.Tensor,
+                                                                                 np.ndarray]:
+    """``(pooled features [N, D], relative angles [N], object index [N])`` of the drawn views."""
+    plane, _ = session.dataset_symmetry(cfg.category)
+    if plane is None or not any(plane[:3]):
+        raise DepthnerfError(f"{cfg.data}: no mirror plane for {cfg.category} (a facing head needs one)")
+    probe = FacingHead(session.model.encoder.latent_size, cfg.grid)
+    rng = np.random.default_rng(cfg.seed)
+    pooled, psi, owner = [], [], []
+    for i, record in enumerate(records):
+        picks = sorted(rng.choice(record.num_views, size=min(cfg.views_per_object, record.num_views),
+                                  replace=False).tolist())
+        for view in picks:
+            src = session.load_views(record, [view], session.spec.resolution,
+                                     with_depth=session.prior_source.needs_depths)
+            encoded = session.encode_views(src, symmetry_plane=plane)
+            pooled.append(probe.pooled(encoded.enc.features[0, :1]).cpu())
+            psi.append(relative_facing(plane, src.poses[0].double().numpy()))
+            owner.append(i)
+    return torch.cat(pooled), torch.tensor(psi, dtype=torch.float64), np.array(owner)
+
+
+def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHeadFit:
+    """Fit a head for ``checkpoint`` (module docstring)."""
+    records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
+    if len(records) < 5:
+        raise DepthnerfError(f"{cfg.data}/{cfg.category}_{cfg.split}: {len(records)} objects; a facing head needs "
+                             "at least 5 (one fifth is held out to choose the ridge weight)")
+    session = InferenceSession(checkpoint, SessionOptions(device=cfg.device, inputs="dataset", data_root=cfg.data,
+                                                          records=records))
+    if not session.model.cfg.mirror:
+        raise DepthnerfError(f"{checkpoint}: not a mirror model, so it has no plane for a facing head to find")
+    pooled, psi, owner = gather(session, cfg, records)
+    channels = session.model.encoder.latent_size
+    held = np.random.default_rng(cfg.seed + 1).permutation(len(records))[: max(1, len(records) // 5)]
+    val = torch.from_numpy(np.isin(owner, held))
+    scores = {}
+    for lam in LAMBDAS:
+        head = fit_ridge(pooled[~val], psi[~val], lam, channels, cfg.grid)
+        err = angle_error(head(_as_maps(pooled[val], channels, cfg.grid)).double(), psi[val]).abs()
+        scores[f"{lam:g}"] = {"median_deg": float(err.median()), "p90_deg": float(torch.quantile(err, 0.9))}
+    lam = min(LAMBDAS, key=lambda x: scores[f"{x:g}"]["median_deg"])
+    info = {"encoder": encoder_fingerprint(session.model), "lambda": lam, "views": int(len(psi)),
+            "objects": len(records), "data": f"{Path(cfg.data).name}/{cfg.category}_{cfg.split}",
+            "validation_median_deg": scores[f"{lam:g}"]["median_deg"],
+            "validation_p90_deg": scores[f"{lam:g}"]["p90_deg"]}
+    return FacingHeadFit(head=fit_ridge(pooled, psi, lam, channels, cfg.grid, info), validation=scores)
+
+
+def _as_maps(pooled: torch.Tensor, channels: int, grid: int) -> torch.Tensor:
+    """Pooled rows back as ``[N, C, grid, grid]`` maps (pooling them again is the identity)."""
+    return pooled.reshape(-1, channels, grid, grid)

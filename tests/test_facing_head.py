@@ -1,0 +1,256 @@
+"""The facing head (:mod:`depthnerf.model.facing_head`): the relative plane angle against closed forms, the ridge
+fit against exact linear data and against itself in its two forms, the head in a weights file (round trip, a
+head of another encoder refused), ``--facing auto`` taking the head's plane, and ``depthnerf fit-facing`` end to
+end on a tiny mirror model."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from depthnerf.data.cameras import Intrinsics, look_at
+from depthnerf.data.symmetry import facing_from_relative, facing_plane, relative_facing
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.facing_head import (
+    FacingHead,
+    angle_error,
+    doubled_angle,
+    encoder_fingerprint,
+    fit_ridge,
+    head_from_tensors,
+    head_tensors,
+)
+
+
+def camera(azimuth_deg: float, elevation_deg: float, radius: float = 1.3) -> np.ndarray:
+    """A z-up look-at camera at the given azimuth and elevation, looking at the origin (no roll)."""
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    eye = radius * torch.tensor([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)],
+                                dtype=torch.float64)
+    return look_at(eye).double().numpy()
+
+
+def wrapped(estimate: float, true: float) -> float:
+    """:func:`angle_error` of two floats, in float64."""
+    return angle_error(torch.tensor(estimate, dtype=torch.float64), torch.tensor(true, dtype=torch.float64)).item()
+
+
+@pytest.mark.parametrize("facing", [0.0, 30.0, 90.0, 135.5, 179.0])
+def test_relative_angle_at_azimuth_zero_is_ninety_minus_the_facing(facing):
+    """``facing_plane`` is stated for the camera at azimuth 0 (looking along -x): there psi = 90 - a, at any
+    elevation (the plane is vertical, so looking down at it does not turn it)."""
+    for elevation in (0.0, 20.0, 60.0):
+        psi = relative_facing(facing_plane(facing), camera(0.0, elevation))
+        assert wrapped(psi, 90.0 - facing) == pytest.approx(0.0, abs=1e-5)
+
+
+def test_relative_angle_round_trips_for_any_camera():
+    """Turning the camera 10 degrees about +z (counter-clockwise from above) turns psi by +10, and
+    facing_from_relative inverts relative_facing."""
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        facing, azimuth, elevation = rng.uniform(0, 180), rng.uniform(0, 360), rng.uniform(-60, 80)
+        c2w = camera(azimuth, elevation)
+        psi = relative_facing(facing_plane(facing), c2w)
+        assert 0 <= psi < 180
+        back = facing_from_relative(psi, c2w)
+        assert wrapped(back, facing) == pytest.approx(0.0, abs=1e-5)
+        turned = relative_facing(facing_plane(facing), camera(azimuth + 10.0, elevation))
+        assert wrapped(turned, psi + 10.0) == pytest.approx(0.0, abs=1e-5)
+    with pytest.raises(DepthnerfError, match="looks straight down"):
+        facing_from_relative(10.0, np.array([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 1], [0, 0, 0, 1.0]]))
+
+
+def test_angle_error_wraps_modulo_180():
+    assert wrapped(179.0, 1.0) == pytest.approx(-2.0)
+    assert wrapped(1.0, 179.0) == pytest.approx(2.0)
+    torch.testing.assert_close(doubled_angle(torch.tensor([0.0, 90.0, 180.0])),
+                               torch.tensor([[1.0, 0.0], [-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64))
+
+
+def linear_data(n: int, channels: int, grid: int, seed: int = 0):
+    """Pooled features that are one fixed linear function of the doubled angle plus a fixed offset, at ``n``
+    random angles (``seed``)."""
+    fixed = torch.Generator().manual_seed(100)
+    mix = torch.randn(2, channels * grid * grid, generator=fixed, dtype=torch.float64)
+    offset = torch.randn(channels * grid * grid, generator=fixed, dtype=torch.float64)
+    psi = torch.rand(n, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 180
+    return (doubled_angle(psi) @ mix + offset).float(), psi
+
+
+@pytest.mark.parametrize("n", [20, 200])
+def test_ridge_recovers_an_exactly_linear_angle(n):
+    """Features linear in (cos 2 psi, sin 2 psi): a weak ridge reads psi back to a small fraction of a degree, in
+    the dual form (N < D, n = 20) and the primal one (N > D, n = 200)."""
+    channels, grid = 3, 2
+    x, psi = linear_data(n, channels, grid)
+    head = fit_ridge(x, psi, 1e-6, channels, grid)
+    maps = x.reshape(n, channels, grid, grid)
+    assert angle_error(head(maps).double(), psi).abs().max().item() < 0.05
+    held_x, held_psi = linear_data(10, channels, grid, seed=1)  # the same linear map at other angles
+    assert angle_error(head(held_x.reshape(10, channels, grid, grid)).double(), held_psi).abs().max() < 0.05
+
+
+@pytest.mark.parametrize("n", [11, 13])
+def test_ridge_matches_the_other_form_of_its_solution(n):
+    """D = 12 features: 11 rows are solved in the dual form, 13 in the primal; each equals the other form's
+    closed solution on the same standardised, centred data."""
+    channels, grid = 3, 2
+    x, psi = linear_data(n, channels, grid, seed=3)
+    x = x + 0.1 * torch.randn(x.shape, generator=torch.Generator().manual_seed(4))
+    head = fit_ridge(x, psi, 5.0, channels, grid)
+    z = (x.double() - x.double().mean(0)) / (x.double().std(0, correction=0) + 1e-6)
+    y = doubled_angle(psi) - doubled_angle(psi).mean(0)
+    primal = torch.linalg.solve(z.T @ z + 5.0 * torch.eye(12, dtype=z.dtype), z.T @ y)
+    dual = z.T @ torch.linalg.solve(z @ z.T + 5.0 * torch.eye(n, dtype=z.dtype), y)
+    torch.testing.assert_close(primal, dual)
+    torch.testing.assert_close(head.weight.double(), primal, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(head.bias.double(), doubled_angle(psi).mean(0), rtol=1e-5, atol=1e-6)
+
+
+def test_head_checks_its_inputs():
+    head = FacingHead(channels=4, grid=2)
+    with pytest.raises(DepthnerfError, match=r"expects \[B, 4, H, W\] features"):
+        head(torch.zeros(1, 5, 8, 8))
+    x, psi = linear_data(6, 4, 2)
+    with pytest.raises(DepthnerfError, match="expected N x 16"):
+        fit_ridge(x[:, :15], psi, 1.0, 4, 2)
+    with pytest.raises(DepthnerfError, match="lambda must be a positive number"):
+        fit_ridge(x, psi, 0.0, 4, 2)
+
+
+def test_head_round_trips_through_weights_file_entries():
+    x, psi = linear_data(30, 3, 2)
+    head = fit_ridge(x, psi, 1.0, 3, 2, {"encoder": "abc", "lambda": 1.0})
+    tensors, meta = head_tensors(head)
+    back = head_from_tensors({**tensors, "encoder.x": torch.zeros(1)}, meta, "f.safetensors")
+    maps = x.reshape(-1, 3, 2, 2)
+    torch.testing.assert_close(back(maps), head(maps))
+    assert back.describe() == head.describe() == {"grid": 2, "channels": 3, "encoder": "abc", "lambda": 1.0}
+    assert head_from_tensors({"encoder.x": torch.zeros(1)}, {}, "f") is None
+    with pytest.raises(DepthnerfError, match="f.safetensors: facing head tensors without a valid"):
+        head_from_tensors(tensors, {}, "f.safetensors")
+    tensors["facing_head.weight"] = torch.zeros(5, 2)
+    with pytest.raises(DepthnerfError, match="do not match its metadata"):
+        head_from_tensors(tensors, meta, "f.safetensors")
+
+
+def test_checkpoint_carries_the_head_and_refuses_another_encoders(tmp_path):
+    """A head saved into a weights file loads with it; a head whose encoder fingerprint is another model's is
+    refused in one line naming the file; a warm start from a file with a head ignores the head."""
+    from depthnerf.config_io import apply_overrides
+    from depthnerf.infer.facing import fit_facing
+    from depthnerf.infer.session import InferenceSession
+    from depthnerf.model.pixelnerf import PixelNeRF
+    from depthnerf.pretrained.load import load_pretrained
+    from depthnerf.pretrained.weights import save_with_head
+    from depthnerf.train.warm_start import warm_start
+    from tests.fixtures_checkpoints import save_tiny, tiny_config, tiny_model
+
+    cfg = apply_overrides(tiny_config("cars", "none"), ["--model.mirror", "true"])
+    path = save_tiny(tmp_path / "m.safetensors", cfg)
+    model = load_pretrained(path).model
+    channels = model.encoder.latent_size
+    x, psi = linear_data(40, channels, 2)
+    good = fit_ridge(x, psi, 1.0, channels, 2, {"encoder": encoder_fingerprint(model)})
+    save_with_head(path, good, tmp_path / "h.safetensors")
+    loaded = load_pretrained(tmp_path / "h.safetensors")
+    assert loaded.facing_head is not None and loaded.facing_head.describe() == good.describe()
+    torch.testing.assert_close(loaded.facing_head.weight, good.weight)
+    assert load_pretrained(path).facing_head is None
+
+    other = fit_ridge(x, psi, 1.0, channels, 2, {"encoder": encoder_fingerprint(tiny_model(cfg, seed=5))})
+    save_with_head(path, other, tmp_path / "bad.safetensors")
+    with pytest.raises(DepthnerfError, match=r"bad.safetensors: its facing head was fitted on another encoder"):
+        load_pretrained(tmp_path / "bad.safetensors")
+
+    fresh = PixelNeRF(cfg.model, depth_aware=False)
+    warm_start(fresh, str(tmp_path / "h.safetensors"), cfg.model, False)
+    torch.testing.assert_close(fresh.state_dict(), model.state_dict())
+
+    session = InferenceSession(tmp_path / "h.safetensors")
+    image = torch.rand(1, 3, 16, 16)
+    intr = Intrinsics(focal=16.4, cx=8.0, cy=8.0, height=16, width=16)
+    c2w = torch.from_numpy(camera(0.0, 20.0)).float()
+    encoded = session.encode(image, torch.ones(1, 16, 16, dtype=torch.bool), c2w, intr)
+    fit = fit_facing(session, encoded)
+    psi_head = float(good(encoded.enc.features[0, :1])[0])
+    assert fit.facing == fit.best == fit.start == pytest.approx(facing_from_relative(psi_head, c2w.numpy()))
+    assert len(fit.errors) == 1 and fit.as_dict()["head"] == fit.start and fit.as_dict()["tried"] == 1
+
+
+def test_fit_facing_command_end_to_end(tmp_path, capsys):
+    """``depthnerf fit-facing`` on a tiny mirror model and a fixture dataset writes a checkpoint that loads with a
+    head of this encoder, prints the held-out errors, and refuses nonsense flags and non-mirror models."""
+    import json
+
+    from depthnerf.cli import main
+    from depthnerf.config_io import apply_overrides
+    from depthnerf.pretrained.load import load_pretrained
+    from tests.fixtures_checkpoints import save_tiny, tiny_config
+    from tests.fixtures_srn import make_srn_fixture
+
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"train": 6}, views=4, size=16)
+    path = save_tiny(tmp_path / "m.safetensors", apply_overrides(tiny_config("cars", "none"),
+                                                                 ["--model.mirror", "true"]))
+    out = tmp_path / "with-head.safetensors"
+    assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",
+                 "--views-per-object", "3", "--grid", "2", "--out", str(out), "--json", str(tmp_path / "s.json")]) == 0
+    printed = capsys.readouterr().out
+    assert "<- chosen" in printed and f"wrote {out}" in printed
+    loaded = load_pretrained(out)
+    info = loaded.facing_head.describe()
+    assert info["views"] == 18 and info["objects"] == 6 and info["grid"] == 2
+    assert info["encoder"] == encoder_fingerprint(loaded.model)
+    scores = json.loads((tmp_path / "s.json").read_text())
+    assert set(scores["validation"]) == {"10", "100", "1000", "10000"} and scores["head"] == info
+    assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",
+                 "--grid", "0", "--out", str(out)]) == 2
+    assert "--grid must be >= 1, got 0" in capsys.readouterr().err
+    plain = save_tiny(tmp_path / "plain.safetensors", tiny_config("cars", "none"))
+    assert main(["fit-facing", "--checkpoint", str(plain), "--data", str(root), "--category", "cars",
+                 "--out", str(out)]) == 2
+    assert "not a mirror model" in capsys.readouterr().err
+
+
+def test_export_carries_a_head_fitted_on_the_runs_encoder(tmp_path):
+    """``scripts/export_checkpoint.py --facing-head``: the fp16 export loads with the head and its cards describe
+    it; a head fitted on another encoder is refused before anything takes the shipped name."""
+    from fixtures_scripts import load_script
+
+    from depthnerf.config_io import apply_overrides
+    from depthnerf.pretrained.load import load_pretrained
+    from depthnerf.pretrained.weights import save_with_head
+    from tests.fixtures_checkpoints import tiny_config, tiny_model, tiny_run
+
+    exporter = load_script("export_checkpoint")
+    cfg = apply_overrides(tiny_config("cars", "none"), ["--model.mirror", "true"])
+    run = tiny_run(tmp_path / "run", cfg)
+    source = load_pretrained(run)
+    channels = source.model.encoder.latent_size
+    x, psi = linear_data(40, channels, 2)
+    info = {"encoder": encoder_fingerprint(source.model), "lambda": 10.0, "views": 40, "objects": 10,
+            "data": "d/cars_train", "validation_median_deg": 1.5, "validation_p90_deg": 4.0}
+    save_with_head(source.path, fit_ridge(x, psi, 10.0, channels, 2, info), tmp_path / "head.safetensors")
+    ship = tmp_path / "ship"
+    res = exporter.export(run, "cpu-cars-mirror", ship, facing_head=tmp_path / "head.safetensors",
+                          facing_command="depthnerf fit-facing --checkpoint run --data d --category cars --out h")
+    exported = load_pretrained(res.weights)
+    assert exported.facing_head is not None and exported.facing_head.describe() == {"grid": 2, "channels": channels,
+                                                                                    **info}
+    assert res.card["facing_head"]["command"].startswith("depthnerf fit-facing")
+    text = res.card_md.read_text()
+    assert "## Facing head" in text and "median angle error 1.50 degrees" in text and "--facing-head HEAD" in text
+
+    other = tiny_model(cfg, seed=9)
+    wrong = {**info, "encoder": encoder_fingerprint(other)}
+    save_with_head(source.path, fit_ridge(x, psi, 10.0, channels, 2, wrong), tmp_path / "wrong.safetensors")
+    before = res.weights.read_bytes()
+    with pytest.raises(DepthnerfError, match="--facing-head .*wrong.safetensors: fitted on another encoder"):
+        exporter.export(run, "cpu-cars-mirror", ship, facing_head=tmp_path / "wrong.safetensors")
+    with pytest.raises(DepthnerfError, match="carries no facing head"):
+        exporter.export(run, "cpu-cars-mirror", ship, facing_head=source.path)
+    assert res.weights.read_bytes() == before
