@@ -67,7 +67,7 @@ from depthnerf.errors import DepthnerfError  # noqa: E402
 from depthnerf.eval.metrics import psnr  # noqa: E402
 from depthnerf.eval.table import load_summary  # noqa: E402
 from depthnerf.files import read_json_object, sha256_file, write_text_atomic  # noqa: E402
-from depthnerf.model.facing_head import FacingHead, encoder_fingerprint, head_from_tensors  # noqa: E402
+from depthnerf.model.facing_head import FacingHead, check_encoder, head_from_tensors  # noqa: E402
 from depthnerf.model.pixelnerf import SourceViews  # noqa: E402
 from depthnerf.pretrained.load import SHIPPED_DIR, Pretrained, load_pretrained, resolve_checkpoint  # noqa: E402
 from depthnerf.pretrained.spec import SPEC_KEY, InferenceSpec  # noqa: E402
@@ -257,9 +257,7 @@ def read_facing_head(path: Path, source: Pretrained) -> FacingHead:
     if head is None:
         raise DepthnerfError(f"--facing-head {path}: the file carries no facing head (write one with depthnerf "
                              "fit-facing)")
-    if head.info.get("encoder") != encoder_fingerprint(source.model):
-        raise DepthnerfError(f"--facing-head {path}: fitted on another encoder (fingerprint {head.info.get('encoder')}"
-                             f", the run's is {encoder_fingerprint(source.model)})")
+    check_encoder(head, source.model, f"--facing-head {path}")
     return head
 
 

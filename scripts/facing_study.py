@@ -98,6 +98,7 @@ def main() -> int:
         print(f"error: {args.checkpoint} is not a mirror model: it reads no plane", file=sys.stderr)
         return 2
     true_plane, _ = session.dataset_symmetry(args.category)
+    has_head = session.pretrained.facing_head is not None
     cases = []
     for record in records:
         for view in args.input_views:
@@ -110,7 +111,6 @@ def main() -> int:
             side_error = error(plane_angle(planes["side"]))
             auto_error = fit.none_error if fit.facing is None else fit.error
             prefer_side = side_error <= (1 + args.side_tolerance) * auto_error
-            has_head = session.pretrained.facing_head is not None
             if has_head:
                 head_fit = search_facing(error, start=head_facing(session, obj.encoded))
                 planes["head"] = facing_plane(head_fit.start)

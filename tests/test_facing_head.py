@@ -249,7 +249,7 @@ def test_export_carries_a_head_fitted_on_the_runs_encoder(tmp_path):
     wrong = {**info, "encoder": encoder_fingerprint(other)}
     save_with_head(source.path, fit_ridge(x, psi, 10.0, channels, 2, wrong), tmp_path / "wrong.safetensors")
     before = res.weights.read_bytes()
-    with pytest.raises(DepthnerfError, match="--facing-head .*wrong.safetensors: fitted on another encoder"):
+    with pytest.raises(DepthnerfError, match="--facing-head .*wrong.safetensors: its facing head was fitted on another encoder"):
         exporter.export(run, "cpu-cars-mirror", ship, facing_head=tmp_path / "wrong.safetensors")
     with pytest.raises(DepthnerfError, match="carries no facing head"):
         exporter.export(run, "cpu-cars-mirror", ship, facing_head=source.path)

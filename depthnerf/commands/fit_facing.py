@@ -4,7 +4,7 @@
 [--views-per-object 8] [--grid 4] [--seed 0] [--device cpu] [--json PATH]``
 
 The head reads the angle of the object's mirror plane from the input view's features
-(:mod:`depthnerf.model.facing_head`); ``reconstruct --facing auto`` starts its search there
+(:mod:`depthnerf.model.facing_head`); ``reconstruct --facing auto`` then takes the plane it reads
 (:mod:`depthnerf.infer.facing`). It is fitted on dataset views whose plane is known
 (:mod:`depthnerf.train.facing_head`) and written into ``--out``: the checkpoint's weights file with the head added
 (any head it had is replaced; ``--out`` may name the checkpoint's own file). Prints, per ridge weight tried, the

@@ -36,6 +36,11 @@ META_KEY = "facing_head"
 """Metadata key of the head's JSON description (:meth:`FacingHead.describe`) in a weights file."""
 
 
+def pool_features(features: Float[Tensor, "B C Hf Wf"], grid: int) -> Float[Tensor, "B D"]:
+    """The regression's input: feature maps average-pooled to ``grid x grid`` and flattened (D = C grid^2)."""
+    return F.adaptive_avg_pool2d(features.float(), grid).flatten(1)
+
+
 class FacingHead(nn.Module):
     """``psi`` (degrees, [0, 180)) from one view's feature maps (module docstring). Buffers only: it is fitted in
     closed form, never by gradients."""
@@ -56,16 +61,16 @@ class FacingHead(nn.Module):
     def channels(self) -> int:
         return self.mean.shape[0] // (self.grid * self.grid)
 
-    def pooled(self, features: Float[Tensor, "B C Hf Wf"]) -> Float[Tensor, "B D"]:
-        """The regression's input: the feature maps average-pooled to ``grid x grid``, flattened (D = C grid^2)."""
+    def predict(self, pooled: Float[Tensor, "B D"]) -> Float[Tensor, " B"]:
+        """``psi`` from already pooled features (:func:`pool_features` with this head's grid)."""
+        y = ((pooled - self.mean) * self.inv_std) @ self.weight + self.bias
+        return torch.rad2deg(torch.atan2(y[:, 1], y[:, 0]) / 2) % 180.0
+
+    def forward(self, features: Float[Tensor, "B C Hf Wf"]) -> Float[Tensor, " B"]:
         if features.ndim != 4 or features.shape[1] != self.channels:
             raise DepthnerfError(f"facing head: expects [B, {self.channels}, H, W] features, got "
                                  f"{list(features.shape)} (a head fitted on another model?)")
-        return F.adaptive_avg_pool2d(features.float(), self.grid).flatten(1)
-
-    def forward(self, features: Float[Tensor, "B C Hf Wf"]) -> Float[Tensor, " B"]:
-        y = ((self.pooled(features) - self.mean) * self.inv_std) @ self.weight + self.bias
-        return torch.rad2deg(torch.atan2(y[:, 1], y[:, 0]) / 2) % 180.0
+        return self.predict(pool_features(features, self.grid))
 
     def describe(self) -> dict:
         """JSON-ready: the grid, channels and what :func:`fit_ridge`'s caller recorded (``info``)."""
@@ -124,6 +129,15 @@ def encoder_fingerprint(model: nn.Module) -> str:
             digest.update(key.encode())
             digest.update(v.contiguous().numpy().tobytes())
     return digest.hexdigest()[:16]
+
+
+def check_encoder(head: FacingHead, model: nn.Module, where: str) -> None:
+    """Refuse ``head`` unless it was fitted on ``model``'s encoder (:func:`encoder_fingerprint`); ``where`` starts
+    the one-line error."""
+    fingerprint = encoder_fingerprint(model)
+    if head.info.get("encoder") != fingerprint:
+        raise DepthnerfError(f"{where}: its facing head was fitted on another encoder (fingerprint "
+                             f"{head.info.get('encoder')}, this model's is {fingerprint})")
 
 
 def head_tensors(head: FacingHead) -> tuple[dict[str, Tensor], dict[str, str]]:

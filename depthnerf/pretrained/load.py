@@ -31,7 +31,7 @@ from depthnerf.distributed import pick_device
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_file
 from depthnerf.model.facing_head import PREFIX as HEAD_PREFIX
-from depthnerf.model.facing_head import FacingHead, encoder_fingerprint, head_from_tensors
+from depthnerf.model.facing_head import FacingHead, check_encoder, head_from_tensors
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.hub import fetch_hub_checkpoint, is_hub_reference
 from depthnerf.pretrained.spec import InferenceSpec, spec_from_metadata
@@ -148,9 +148,8 @@ def load_pretrained(checkpoint: str | Path, device: torch.device | str = "cpu") 
     head = head_from_tensors(tensors, meta, str(path))
     load_state_strict(model, {k: v.float() if v.is_floating_point() else v for k, v in tensors.items()
                               if not k.startswith(HEAD_PREFIX)}, path)
-    if head is not None and head.info.get("encoder") != encoder_fingerprint(model):
-        raise DepthnerfError(f"{path}: its facing head was fitted on another encoder (fingerprint "
-                             f"{head.info.get('encoder')}, the file's is {encoder_fingerprint(model)})")
+    if head is not None:
+        check_encoder(head, model, str(path))
     model.to(device).eval()
     if head is not None:
         head.to(device).eval()

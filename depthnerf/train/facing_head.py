@@ -20,7 +20,7 @@ from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import relative_facing
 from depthnerf.errors import DepthnerfError
 from depthnerf.infer.session import InferenceSession, SessionOptions
-from depthnerf.model.facing_head import FacingHead, angle_error, encoder_fingerprint, fit_ridge
+from depthnerf.model.facing_head import FacingHead, angle_error, encoder_fingerprint, fit_ridge, pool_features
 
 LAMBDAS = (10.0, 100.0, 1000.0, 10000.0)
 """Ridge weights tried on the held-out objects."""
@@ -64,7 +64,6 @@ def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[t
     plane, _ = session.dataset_symmetry(cfg.category)
     if plane is None or not any(plane[:3]):
         raise DepthnerfError(f"{cfg.data}: no mirror plane for {cfg.category} (a facing head needs one)")
-    probe = FacingHead(session.model.encoder.latent_size, cfg.grid)
     rng = np.random.default_rng(cfg.seed)
     pooled, psi, owner = [], [], []
     for i, record in enumerate(records):
@@ -74,7 +73,7 @@ def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[t
             src = session.load_views(record, [view], session.spec.resolution,
                                      with_depth=session.prior_source.needs_depths)
             encoded = session.encode_views(src, symmetry_plane=plane)
-            pooled.append(probe.pooled(encoded.enc.features[0, :1]).cpu())
+            pooled.append(pool_features(encoded.enc.features[0, :1], cfg.grid).cpu())
             psi.append(relative_facing(plane, src.poses[0].double().numpy()))
             owner.append(i)
     return torch.cat(pooled), torch.tensor(psi, dtype=torch.float64), np.array(owner)
@@ -97,7 +96,7 @@ def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHead
     scores = {}
     for lam in LAMBDAS:
         head = fit_ridge(pooled[~val], psi[~val], lam, channels, cfg.grid)
-        err = angle_error(head(_as_maps(pooled[val], channels, cfg.grid)).double(), psi[val]).abs()
+        err = angle_error(head.predict(pooled[val]).double(), psi[val]).abs()
         scores[f"{lam:g}"] = {"median_deg": float(err.median()), "p90_deg": float(torch.quantile(err, 0.9))}
     lam = min(LAMBDAS, key=lambda x: scores[f"{x:g}"]["median_deg"])
     info = {"encoder": encoder_fingerprint(session.model), "lambda": lam, "views": int(len(psi)),
@@ -105,8 +104,3 @@ def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHead
             "validation_median_deg": scores[f"{lam:g}"]["median_deg"],
             "validation_p90_deg": scores[f"{lam:g}"]["p90_deg"]}
     return FacingHeadFit(head=fit_ridge(pooled, psi, lam, channels, cfg.grid, info), validation=scores)
-
-
-def _as_maps(pooled: torch.Tensor, channels: int, grid: int) -> torch.Tensor:
-    """Pooled rows back as ``[N, C, grid, grid]`` maps (pooling them again is the identity)."""
-    return pooled.reshape(-1, channels, grid, grid)
