@@ -54,6 +54,37 @@ def synth_command(dataset_card: dict | None, category: str, out: str = "$DATA") 
             f"{card_framing(dataset_card)}" + (f" --family {family}" if family != "standard" else ""))
 
 
+def file_rows(card: dict) -> list[str]:
+    """The card table's rows naming the weights file: its size and SHA-256."""
+    return [f"| weights | `{card['name']}.safetensors`, float16 ({card['size_bytes']:,} bytes), loaded as float32 |",
+            f"| sha256 | `{card['sha256']}` |"]
+
+
+def facing_head_lines(fh: dict) -> list[str]:
+    """The card's "Facing head" section (from the card's ``facing_head`` entry)."""
+    text = (f"The weights carry a facing head (`depthnerf fit-facing`): ridge regression from the input view's "
+            f"features pooled to {fh['grid']}x{fh['grid']} to the angle of the mirror plane, which "
+            "`depthnerf reconstruct --facing auto` takes. Fitted on "
+            f"{fh['views']} views of {fh['objects']} objects (`{fh['data']}`), ridge weight {fh['lambda']:g}, "
+            f"chosen on a held-out fifth of them: median angle error {fh['validation_median_deg']:.2f} "
+            f"degrees, 90th percentile {fh['validation_p90_deg']:.2f}.")
+    if fh.get("attached"):
+        text += (" The head was added to the exported file afterwards (`scripts/attach_facing_head.py`), which "
+                 "leaves the network's tensors and metadata as they were: the evaluation above is of this network.")
+    return ["## Facing head", "", text]
+
+
+def facing_fit_line(fh: dict, category: str) -> str:
+    """The reproduce line that fits the facing head into the file ``HEAD``."""
+    return ((fh.get("command") or f"depthnerf fit-facing --checkpoint RUN --data $DATA --category {category} "
+             "--out HEAD") + "  # HEAD: the facing head's file")
+
+
+def attach_line(name: str) -> str:
+    """The reproduce line that adds the head of ``HEAD`` to the exported ``name``."""
+    return f"python scripts/attach_facing_head.py --name {name} --facing-head HEAD"
+
+
 def training_steps(card: dict) -> str:
     """The card's training steps: the run's own, and for a warm-started run those behind its source and the total
     (``total_steps``; cards written before that field give the source's own steps)."""
@@ -77,8 +108,7 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
              "**synthetic** SRN-format benchmark (`depthnerf synth`: procedural shapes, ray-traced) — **not** on "
              "real ShapeNet; the numbers below are not comparable with the paper's Table 1.", "",
              "| field | value |", "|---|---|",
-             f"| weights | `{name}.safetensors`, float16 ({card['size_bytes']:,} bytes), loaded as float32 |",
-             f"| sha256 | `{card['sha256']}` |",
+             *file_rows(card),
              f"| training steps | {training_steps(card)} |",
              f"| source | run `{card['source']['run']}`, `{card['source']['file']}` (sha256 "
              f"`{card['source']['sha256'][:16]}...`) |",
@@ -148,13 +178,7 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
         lines += ["Not evaluated at export time (no `--eval-summary`)."]
     fh = card.get("facing_head")
     if fh:
-        lines += ["", "## Facing head", "",
-                  f"The weights carry a facing head (`depthnerf fit-facing`): ridge regression from the input view's "
-                  f"features pooled to {fh['grid']}x{fh['grid']} to the angle of the mirror plane, which "
-                  "`depthnerf reconstruct --facing auto` takes. Fitted on "
-                  f"{fh['views']} views of {fh['objects']} objects (`{fh['data']}`), ridge weight {fh['lambda']:g}, "
-                  f"chosen on a held-out fifth of them: median angle error {fh['validation_median_deg']:.2f} "
-                  f"degrees, 90th percentile {fh['validation_p90_deg']:.2f}."]
+        lines += ["", *facing_head_lines(fh)]
     separate = separate_eval_data(card)
     data_root = (card.get("data_root") or (ev["train_data_root"] if separate else (ev or {}).get("data_root"))
                  or data_card.get("root", "data/synth"))
@@ -164,12 +188,14 @@ def model_card(card: dict, cfg: TrainConfig, data_card: dict, prior: dict | None
                                        category=cat))
     reproduce.append(card.get("command") or f"depthnerf train --preset {cfg.preset} --data $DATA --depth {est} "
                      f"--out runs/{name}  # --command not given at export: check the config in the weights")
-    if fh:
-        reproduce.append((fh.get("command") or f"depthnerf fit-facing --checkpoint RUN --data $DATA --category {cat} "
-                          "--out HEAD") + "  # HEAD: the facing head's file")
+    if fh and not fh.get("attached"):
+        reproduce.append(facing_fit_line(fh, cat))
     reproduce.append(f"python scripts/export_checkpoint.py --run {card.get('run_path') or 'runs/' + card['source']['run']} "
                      f"--name {name}"
-                     + (" --eval-summary SUMMARY" if ev else "") + (" --facing-head HEAD" if fh else ""))
+                     + (" --eval-summary SUMMARY" if ev else "") + (" --facing-head HEAD" if fh and not fh.get("attached")
+                                                                     else ""))
+    if fh and fh.get("attached"):
+        reproduce += [facing_fit_line(fh, cat), attach_line(name)]
     if separate:  # scored on a dataset folder of its own: made the same way
         reproduce += [f"EVAL_DATA={ev['data_root']}", synth_command(ev["dataset"], cat, "$EVAL_DATA")]
         if est in CACHED_ESTIMATORS:

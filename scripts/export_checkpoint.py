@@ -356,10 +356,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="export a run that stopped before its --max-steps (the card says so); refused otherwise")
     p.add_argument("--facing-head", type=Path, help="a weights file from 'depthnerf fit-facing' whose facing head "
                    "(fitted on this run's encoder) the export carries")
+    add_card_arguments(p)
+    return p.parse_args(argv)
+
+
+def add_card_arguments(p: argparse.ArgumentParser) -> None:
+    """``--facing-command`` and ``--relative-to``, as this script and ``scripts/attach_facing_head.py`` take them."""
     p.add_argument("--facing-command", help="the fit-facing command (quoted; goes into the model card)")
     p.add_argument("--relative-to", type=Path, default=REPO_ROOT,
                    help=f"base of the relative paths written into cards (default the repository, {REPO_ROOT})")
-    return p.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -48,6 +48,7 @@ from depthnerf.eval.metrics import psnr
 from depthnerf.eval.objects import prepare_object, protocol_views
 from depthnerf.infer.facing import head_facing, input_view_error, search_facing, with_plane
 from depthnerf.infer.session import InferenceSession, SessionOptions
+from depthnerf.model.facing_head import angle_error
 
 PLANES = ("true", "auto", "best", "none", "side", "prefer")
 RENDERED = ("true", "best", "none", "side")
@@ -125,16 +126,16 @@ def main() -> int:
             scores["prefer"] = scores["side"] if prefer_side else scores["auto"]
             scores = {k: scores[k] for k in PLANES + (HEAD_PLANES if has_head else ())}
             true_angle = plane_angle(true_plane)
-            angle_error = (fit.best - true_angle + 90) % 180 - 90
+            error = angle_error(fit.best, true_angle)
             case = {"object": record.object_id, "view": view, "best": fit.best, "chosen": fit.facing,
-                    "angle_error": angle_error, "fit": fit.as_dict(), "side_error": side_error,
+                    "angle_error": error, "fit": fit.as_dict(), "side_error": side_error,
                     "prefer_side": prefer_side, "psnr": scores}
             if has_head:
                 case["head_fit"] = head_fit.as_dict()
-                case["head_angle_error"] = (head_fit.start - true_angle + 90) % 180 - 90
-                case["head_search_angle_error"] = (head_fit.best - true_angle + 90) % 180 - 90
+                case["head_angle_error"] = angle_error(head_fit.start, true_angle)
+                case["head_search_angle_error"] = angle_error(head_fit.best, true_angle)
             cases.append(case)
-            print(f"{record.object_id} view {view}: estimate {fit.best:g} (error {angle_error:+.0f} deg), "
+            print(f"{record.object_id} view {view}: estimate {fit.best:g} (error {error:+.0f} deg), "
                   f"{'kept' if fit.facing is not None else 'none chosen'}; PSNR "
                   + " ".join(f"{k} {v:.2f}" for k, v in scores.items()), file=sys.stderr, flush=True)
     if args.json:

@@ -345,24 +345,27 @@ def test_a_new_upload_clears_every_earlier_output(session, tmp_path):
         assert (values["prepared"] is not None) == (image == examples()[0])
 
 
-def test_the_fill_slider_keeps_its_value_only_for_a_bad_checkpoint(session, monkeypatch):
-    """Choosing a model sets the fill slider to its training fill; a bad checkpoint keeps the slider (the run
-    reports it in one line), any other failure is a bug and surfaces."""
+def test_choosing_a_model_sets_its_fill_and_facing_box_unless_the_checkpoint_is_bad(session, monkeypatch):
+    """Choosing a model sets the fill slider to its training fill and ticks "Estimate the facing" when it carries a
+    facing head; a bad checkpoint keeps both (the run reports it in one line), any other failure is a bug and
+    surfaces."""
     pytest.importorskip("gradio", reason="gradio is not installed (pip install -e '.[app]')")
     import gradio as gr
 
     from depthnerf.app.page import build_page
 
-    fill_for = {f.name: f for f in build_page(session).fns.values()}["fill_for"].fn
-    assert fill_for("car", "") == pytest.approx(session.training_fill("car"))
-    assert isinstance(fill_for("car", "/no/such/checkpoint"), gr.Slider)
+    defaults_for = {f.name: f for f in build_page(session).fns.values()}["defaults_for"].fn
+    fill, auto = defaults_for("car", "")
+    assert fill == pytest.approx(session.training_fill("car")) and auto is True  # the shipped car carries a head
+    slider, box = defaults_for("car", "/no/such/checkpoint")
+    assert isinstance(slider, gr.Slider) and isinstance(box, gr.Checkbox)
 
     def broken(model, checkpoint_path=""):
         raise RuntimeError("a bug in training_fill")
 
     monkeypatch.setattr(session, "training_fill", broken)
     with pytest.raises(RuntimeError, match="a bug in training_fill"):
-        fill_for("car", "")
+        defaults_for("car", "")
 
 
 def test_the_temporary_run_folder_is_removed_on_sigterm(monkeypatch, capsys, tmp_path):

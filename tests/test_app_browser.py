@@ -148,6 +148,7 @@ def test_page_in_headless_chromium(server, browser, tmp_path):
     d.get(url)
     wait_for(lambda: d.find_elements(By.CSS_SELECTOR, "#upload input[type=file]"), 60, "the page")
     assert wait_for(lambda: d.find_element(By.CSS_SELECTOR, "#status textarea").is_displayed(), 30, "the status box")
+    assert d.find_element(By.CSS_SELECTOR, "#facing-auto input[type=checkbox]").is_selected()  # the car's facing head
 
     # bad input: a non-image file, then a photo on a cluttered background -> one line each, the RGBA hint
     notes = tmp_path / "notes.png"
@@ -212,6 +213,8 @@ def test_page_in_headless_chromium(server, browser, tmp_path):
     assert {"mesh.glb", "mesh.ply", "points.ply"} <= set(links), links
     assert fetch(links["mesh.glb"])[:4] == b"glTF" and fetch(links["points.ply"]).startswith(b"ply")
     assert "Traceback" not in log.read_text()
+    assert wait_for(lambda: "--facing auto: the checkpoint's facing head" in d.find_element(By.ID, "details").text,
+                    30, "the details naming the facing head")
 
     # screenshot of the whole page
     for _ in range(2):  # the layout settles after a resize

@@ -200,6 +200,7 @@ def test_checkpoints_command_lists_card_metrics(exporter, run, tmp_path, monkeyp
     assert cli_main(["checkpoints", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)
     assert rows[0]["metrics"]["psnr"] == 23.4567 and rows[1]["metrics"] is None
+    assert rows[0]["facing_head"] is False and "facing head" not in "".join(lines)
     assert load_pretrained("cpu-cars-depth").step == 5  # the shipped name resolves
 
 

@@ -67,6 +67,7 @@ def test_relative_angle_round_trips_for_any_camera():
 def test_angle_error_wraps_modulo_180():
     assert wrapped(179.0, 1.0) == pytest.approx(-2.0)
     assert wrapped(1.0, 179.0) == pytest.approx(2.0)
+    assert angle_error(179.0, 1.0) == pytest.approx(-2.0) and angle_error(-100.0, 80.0) == pytest.approx(0.0)
     torch.testing.assert_close(doubled_angle(torch.tensor([0.0, 90.0, 180.0])),
                                torch.tensor([[1.0, 0.0], [-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64))
 
@@ -147,6 +148,7 @@ def test_checkpoint_carries_the_head_and_refuses_another_encoders(tmp_path):
     from depthnerf.model.pixelnerf import PixelNeRF
     from depthnerf.pretrained.load import load_pretrained
     from depthnerf.pretrained.weights import save_with_head
+    from depthnerf.reconstruct.reconstructor import Reconstructor
     from depthnerf.train.warm_start import warm_start
     from tests.fixtures_checkpoints import save_tiny, tiny_config, tiny_model
 
@@ -161,6 +163,8 @@ def test_checkpoint_carries_the_head_and_refuses_another_encoders(tmp_path):
     assert loaded.facing_head is not None and loaded.facing_head.describe() == good.describe()
     torch.testing.assert_close(loaded.facing_head.weight, good.weight)
     assert load_pretrained(path).facing_head is None
+    assert Reconstructor.from_pretrained(tmp_path / "h.safetensors").has_facing_head
+    assert not Reconstructor.from_pretrained(path).has_facing_head
 
     other = fit_ridge(x, psi, 1.0, channels, 2, {"encoder": encoder_fingerprint(tiny_model(cfg, seed=5))})
     save_with_head(path, other, tmp_path / "bad.safetensors")
@@ -207,6 +211,20 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
     assert info["encoder"] == encoder_fingerprint(loaded.model)
     scores = json.loads((tmp_path / "s.json").read_text())
     assert set(scores["validation"]) == {"10", "100", "1000", "10000"} and scores["head"] == info
+
+    from fixtures_scripts import load_script
+
+    errors = load_script("facing_head_error")  # the head's error on a split, as scripts/facing_head_error.py reports it
+    assert errors.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
+                        "--views-per-object", "2", "--json", str(tmp_path / "e.json")]) == 0
+    report = json.loads((tmp_path / "e.json").read_text())[str(out)]
+    assert report["views"] == 12 and 0.0 <= report["median_deg"] <= report["p90_deg"] <= 90.0
+    assert "12 views, |angle error| median" in capsys.readouterr().out
+    assert errors.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
+                        "--objects", "2", "--views-per-object", "1", "--photo"]) == 0  # through reconstruct
+    assert "2 views, |angle error| median" in capsys.readouterr().out
+    assert errors.main(["--checkpoint", str(path), "--data", str(root), "--category", "cars", "--split", "train"]) == 2
+    assert "carries no facing head" in capsys.readouterr().err
     assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",
                  "--grid", "0", "--out", str(out)]) == 2
     assert "--grid must be >= 1, got 0" in capsys.readouterr().err

@@ -263,6 +263,12 @@ class AppSession:
         self.check_paths(request)
         return self.models.get(resolve_model(request)).default_fill
 
+    def has_facing_head(self, model: str, checkpoint_path: str = "") -> bool:
+        """Whether the model carries a facing head (the page then ticks "Estimate the facing from the photo")."""
+        request = RunRequest(None, model, checkpoint_path)
+        self.check_paths(request)
+        return self.models.get(resolve_model(request)).has_facing_head
+
     def check_paths(self, request: RunRequest) -> None:
         """One line when ``request`` names a local file or folder, or a model outside the menu, and
         ``AppConfig.allow_checkpoint_paths`` is off."""

@@ -71,8 +71,8 @@ FACING_DEFAULT = 90.0
 FACING_INFO = ("which way the object's front points: 0 = towards the camera, 90 = right (a side view, the "
                "default), 180 = away, 270 = left; sets the mirror plane of models with mirror-symmetric conditioning")
 FACING_AUTO_INFO = ("instead of the slider: read from the photo by the model's facing head when it has one "
-                    "(depthnerf fit-facing), else the plane whose render of the photo is closest, or none "
-                    "(docs/reconstruction.md, \"Facing\")")
+                    "(ticked then; depthnerf fit-facing), else the plane whose render of the photo is closest, or "
+                    "none; for a side view untick it, the slider's 90 is right (docs/reconstruction.md, \"Facing\")")
 MESH_LEVEL_INFO = ("local: each part at its own half-maximum, outlined by the photo's mask, which keeps thin parts "
                    "(legs, frames) in a looser surface; auto: one tight piece at half the object's typical density "
                    "(docs/RESULTS.md, \"Mesh level rules\")")
@@ -118,7 +118,7 @@ def build_page(session: AppSession) -> gr.Blocks:
     config = session.config
     choices = model_choices(config)
     first = choices[0][1]
-    start_fill = session.training_fill(first)
+    start_fill, start_auto = session.training_fill(first), session.has_facing_head(first)
 
     def preview(image, model, ckpt_path, ratio, remove_bg, bg_model):
         if not image:  # the upload was cleared: nothing to complain about yet
@@ -128,11 +128,11 @@ def build_page(session: AppSession) -> gr.Blocks:
                                                   background_model=bg_model or ""))
         return _cleared(img, message, img is None and "background is not a plain colour" in message)
 
-    def fill_for(model, ckpt_path):
+    def defaults_for(model, ckpt_path):
         try:
-            return session.training_fill(model, ckpt_path or "")
+            return session.training_fill(model, ckpt_path or ""), session.has_facing_head(model, ckpt_path or "")
         except DepthnerfError:  # a bad path or model shows up (one line) when the user runs it; a bug surfaces
-            return gr.Slider()
+            return gr.Slider(), gr.Checkbox()
 
     def reconstruct(image, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg, bg_model,
                     facing=FACING_DEFAULT, use_symmetry=True, mesh_level="local", guided=True, mesh_colors="photo",
@@ -183,7 +183,7 @@ def build_page(session: AppSession) -> gr.Blocks:
                                            elem_id="use-symmetry")
                 facing = gr.Slider(0, 359, value=FACING_DEFAULT, step=1, label="Object facing (degrees)",
                                    info=FACING_INFO, elem_id="facing")
-                facing_auto = gr.Checkbox(value=False, label="Estimate the facing from the photo",
+                facing_auto = gr.Checkbox(value=start_auto, label="Estimate the facing from the photo",
                                           info=FACING_AUTO_INFO, elem_id="facing-auto")
                 mesh_level = gr.Radio(["local", "auto"], value="local", label="Mesh surface", info=MESH_LEVEL_INFO,
                                       elem_id="mesh-level")
@@ -215,8 +215,8 @@ def build_page(session: AppSession) -> gr.Blocks:
         ratio.release(preview, preview_in, preview_out, api_visibility="private")
         remove_bg.change(preview, preview_in, preview_out, api_visibility="private")
         bg_model.submit(preview, preview_in, preview_out, api_visibility="private")
-        model.change(fill_for, [model, ckpt_path], [ratio], api_visibility="private")
-        ckpt_path.submit(fill_for, [model, ckpt_path], [ratio], api_visibility="private")
+        model.change(defaults_for, [model, ckpt_path], [ratio, facing_auto], api_visibility="private")
+        ckpt_path.submit(defaults_for, [model, ckpt_path], [ratio, facing_auto], api_visibility="private")
         for trigger in (prior.change, prior_ckpt.change):
             trigger(prior_description, [prior, prior_ckpt], [prior_info], api_visibility="private")
         run.click(reconstruct, [upload, model, ckpt_path, prior, prior_ckpt, ratio, elevation, views, remove_bg,

@@ -3,7 +3,8 @@
 A shipped checkpoint is ``depthnerf/checkpoints/<name>.safetensors`` (written by training or
 ``scripts/export_checkpoint.py``); ``--checkpoint <name>`` then works in ``eval`` and ``reconstruct``. Shown per
 checkpoint: name, preset, category, depth prior, training steps (all from the weights' metadata; the card adds a
-warm start's steps before them), and metrics when
+warm start's steps before them), whether it carries a facing head (:mod:`depthnerf.model.facing_head`), and
+metrics when
 recorded: the metadata key ``metrics`` (a JSON object) or a model card ``<name>.json`` next to the weights with a
 ``metrics`` object (keys such as ``psnr``, ``ssim``, plus free text under ``protocol``; ``null`` = not evaluated,
 as ``scripts/export_checkpoint.py`` writes it without ``--eval-summary``). A ``<name>.md`` model card
@@ -53,6 +54,8 @@ def describe(name: str, path: Path) -> dict:
     """The model-card summary of one shipped checkpoint (metadata only, the weights are not loaded)."""
     from safetensors import SafetensorError, safe_open
 
+    from depthnerf.model.facing_head import META_KEY as HEAD_META_KEY
+
     try:
         with safe_open(str(path), framework="pt") as f:
             meta = dict(f.metadata() or {})
@@ -75,6 +78,7 @@ def describe(name: str, path: Path) -> dict:
             "category": train.get("data", {}).get("category", "unknown"),
             "depth_prior": train.get("prior", {}).get("estimator", "unknown"), "steps": steps,
             "warm_start_steps": warm_steps, "total_steps": total, "metrics": metrics or None, "protocol": protocol,
+            "facing_head": HEAD_META_KEY in meta,
             "model_card": str(card_md) if card_md.is_file() else (str(card_json) if card_json.is_file() else None)}
 
 
@@ -99,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
               + (f" after a {r['warm_start_steps']}-step warm start ({r['total_steps']} in all)"
                  if r["warm_start_steps"] else "")
               + f"; {metrics}" + (f" ({r['protocol']})" if r["protocol"] else "")
+              + ("; a facing head (--facing auto reads the plane from the photo)" if r["facing_head"] else "")
               + (f"; card {r['model_card']}" if r["model_card"] else ""))
     retired = pretrained.retired_checkpoints()
     if retired:

@@ -83,8 +83,8 @@ def doubled_angle(psi_deg: Float[Tensor, " N"]) -> Float[Tensor, "N 2"]:
     return torch.stack([torch.cos(t), torch.sin(t)], dim=-1)
 
 
-def angle_error(estimate_deg: Tensor, true_deg: Tensor) -> Tensor:
-    """``estimate - true`` for plane angles (modulo 180), in [-90, 90) degrees."""
+def angle_error(estimate_deg: Tensor | float, true_deg: Tensor | float) -> Tensor | float:
+    """``estimate - true`` for plane angles (modulo 180), in [-90, 90) degrees (tensors or plain floats)."""
     return (estimate_deg - true_deg + 90.0) % 180.0 - 90.0
 
 

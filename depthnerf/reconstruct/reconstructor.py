@@ -203,6 +203,12 @@ class Reconstructor:
         return self._removers[key]
 
     @property
+    def has_facing_head(self) -> bool:
+        """Whether the checkpoint carries a facing head, which ``facing="auto"`` then takes
+        (:mod:`depthnerf.infer.facing`)."""
+        return self.session.pretrained.facing_head is not None
+
+    @property
     def default_fill(self) -> float:
         """The fill the model was trained at (``ReconstructConfig.fill`` when it is None): that of the framing of
         its training data (``InferenceSpec.framing``, :func:`category_fill`)."""

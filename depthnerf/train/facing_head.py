@@ -58,17 +58,22 @@ class FacingHeadFit:
     """Per ridge weight tried: median and 90th-percentile absolute angle error (degrees) on the held-out objects."""
 
 
+def drawn_views(records, cfg: FacingHeadConfig) -> list[list[int]]:
+    """The views of each record :func:`gather` encodes: ``views_per_object`` of them (all when it has fewer), drawn
+    without replacement with ``cfg.seed``, in index order."""
+    rng = np.random.default_rng(cfg.seed)
+    return [sorted(rng.choice(r.num_views, size=min(cfg.views_per_object, r.num_views), replace=False).tolist())
+            for r in records]
+
+
 def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[torch.Tensor, torch.Tensor,
                                                                                  np.ndarray]:
     """``(pooled features [N, D], relative angles [N], object index [N])`` of the drawn views."""
     plane, _ = session.dataset_symmetry(cfg.category)
     if plane is None or not any(plane[:3]):
         raise DepthnerfError(f"{cfg.data}: no mirror plane for {cfg.category} (a facing head needs one)")
-    rng = np.random.default_rng(cfg.seed)
     pooled, psi, owner = [], [], []
-    for i, record in enumerate(records):
-        picks = sorted(rng.choice(record.num_views, size=min(cfg.views_per_object, record.num_views),
-                                  replace=False).tolist())
+    for i, (record, picks) in enumerate(zip(records, drawn_views(records, cfg), strict=True)):
         for view in picks:
             src = session.load_views(record, [view], session.spec.resolution,
                                      with_depth=session.prior_source.needs_depths)
