@@ -25,18 +25,15 @@ import torch
 
 from depthnerf import ReconstructConfig, Reconstructor
 from depthnerf.data.srn import index_split
-from depthnerf.data.symmetry import relative_facing
+from depthnerf.data.symmetry import dataset_plane, relative_facing
 from depthnerf.errors import DepthnerfError
-from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.model.facing_head import angle_error
-from depthnerf.train.facing_head import FacingHeadConfig, drawn_views, gather
+from depthnerf.train.facing_head import FacingHeadConfig, dataset_session, drawn_views, gather
 
 
 def head_errors(checkpoint: str, cfg: FacingHeadConfig) -> np.ndarray:
     """Absolute angle error (degrees) of ``checkpoint``'s facing head on the views :func:`gather` draws."""
-    records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
-    session = InferenceSession(checkpoint, SessionOptions(device=cfg.device, inputs="dataset", data_root=cfg.data,
-                                                          records=records))
+    session, records = dataset_session(checkpoint, cfg)
     head = session.pretrained.facing_head
     if head is None:
         raise DepthnerfError(f"{checkpoint}: carries no facing head (depthnerf fit-facing writes one)")
@@ -51,14 +48,15 @@ def photo_errors(checkpoint: str, cfg: FacingHeadConfig) -> np.ndarray:
     :func:`depthnerf.prepare_photo`), its prior computed from it, and encoded from the photo camera at azimuth 0,
     where the true facing is ``90 - psi`` (:func:`depthnerf.data.symmetry.facing_from_relative`)."""
     rec = Reconstructor.from_pretrained(checkpoint)
+    if not rec.session.model.cfg.mirror:
+        raise DepthnerfError(f"{checkpoint}: not a mirror model, so it has no plane to estimate")
     records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
-    session = InferenceSession(checkpoint, SessionOptions(inputs="dataset", data_root=cfg.data, records=records))
-    plane, _ = session.dataset_symmetry(cfg.category)
+    plane, _ = dataset_plane(cfg.data, cfg.category)
     settings = ReconstructConfig(facing="auto", mesh_resolution=0)
     errors = []
     for record, picks in zip(records, drawn_views(records, cfg), strict=True):
         for view in picks:
-            src = session.load_views(record, [view], record.intrinsics.height)
+            src = rec.session.load_views(record, [view], record.intrinsics.height)
             rgba = np.dstack([src.images[0].permute(1, 2, 0).numpy(), src.masks[0].numpy()])
             out = rec.reconstruct((rgba * 255).round().astype(np.uint8), views=1, config=settings)
             true = 90.0 - relative_facing(plane, src.poses[0].double().numpy())

@@ -58,6 +58,14 @@ class FacingHeadFit:
     """Per ridge weight tried: median and 90th-percentile absolute angle error (degrees) on the held-out objects."""
 
 
+def dataset_session(checkpoint: str | Path, cfg: FacingHeadConfig) -> tuple[InferenceSession, list]:
+    """A session of ``checkpoint`` reading ``cfg``'s dataset (views, cached prior, plane) and the split's first
+    ``cfg.objects`` records."""
+    records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
+    return InferenceSession(checkpoint, SessionOptions(device=cfg.device, inputs="dataset", data_root=cfg.data,
+                                                       records=records)), records
+
+
 def drawn_views(records, cfg: FacingHeadConfig) -> list[list[int]]:
     """The views of each record :func:`gather` encodes: ``views_per_object`` of them (all when it has fewer), drawn
     without replacement with ``cfg.seed``, in index order."""
@@ -86,12 +94,10 @@ def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[t
 
 def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHeadFit:
     """Fit a head for ``checkpoint`` (module docstring)."""
-    records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
+    session, records = dataset_session(checkpoint, cfg)
     if len(records) < 5:
         raise DepthnerfError(f"{cfg.data}/{cfg.category}_{cfg.split}: {len(records)} objects; a facing head needs "
                              "at least 5 (one fifth is held out to choose the ridge weight)")
-    session = InferenceSession(checkpoint, SessionOptions(device=cfg.device, inputs="dataset", data_root=cfg.data,
-                                                          records=records))
     if not session.model.cfg.mirror:
         raise DepthnerfError(f"{checkpoint}: not a mirror model, so it has no plane for a facing head to find")
     pooled, psi, owner = gather(session, cfg, records)
