@@ -2,13 +2,17 @@
 shape the module's. One mechanism for the pixelNeRF checkpoints (:mod:`depthnerf.pretrained.weights`) and the
 bundled depth net (:mod:`depthnerf.depth.bundled`); each mismatch is one :class:`DepthnerfError` line naming the
 file. :func:`read_state_dict` reads the state dicts other code wrote (ImageNet trunks, LPIPS, pixelNeRF's own
-weights). A neutral module: any stage may use it."""
+weights). :func:`safetensors_bytes` writes them, the same bytes in every process. A neutral module: any stage may
+use it."""
 
 from __future__ import annotations
 
+import json
+import struct
 from pathlib import Path
 
 import torch
+from safetensors.torch import save
 
 from depthnerf.errors import DepthnerfError
 
@@ -68,3 +72,23 @@ def read_state_dict(path: str | Path, kind: str) -> dict[str, torch.Tensor]:
     if not isinstance(state, dict) or not state or not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise DepthnerfError(f"{path}: not a state dict of tensors (expected {kind})")
     return dict(state)
+
+
+def safetensors_bytes(tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> bytes:
+    """A safetensors file of ``tensors`` and ``metadata``, the same bytes for the same content in every process.
+
+    ``safetensors.torch.save`` writes the metadata map in the order of a hash map seeded per process, so two runs
+    of one export give files with equal content and different sha256s. The header it wrote (8-byte little-endian
+    length, then JSON padded with spaces to a multiple of 8) is written again with the metadata keys sorted; the
+    tensor entries and the data after the header are kept as they are (their offsets count from the data's
+    start)."""
+    raw = save(tensors, metadata=metadata)
+    size = struct.unpack("<Q", raw[:8])[0]
+    header = json.loads(raw[8:8 + size])
+    if "__metadata__" in header:
+        header = {"__metadata__": dict(sorted(header["__metadata__"].items())),
+                  **{k: v for k, v in header.items() if k != "__metadata__"}}
+    text = json.dumps(header, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 8)
+    return struct.pack("<Q", len(text)) + text + raw[8 + size:]
+

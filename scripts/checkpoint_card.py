@@ -60,12 +60,20 @@ def file_rows(card: dict) -> list[str]:
             f"| sha256 | `{card['sha256']}` |"]
 
 
+INPUTS_TEXT = {"photo": ", each framed as `reconstruct` frames a photo",
+               "both": ", each encoded both as it is and framed as `reconstruct` frames a photo"}
+"""How the card says a head's views were encoded (``fit-facing --inputs``; ``dataset``, the first heads' way, says
+nothing)."""
+
+
 def facing_head_lines(fh: dict) -> list[str]:
     """The card's "Facing head" section (from the card's ``facing_head`` entry)."""
     text = (f"The weights carry a facing head (`depthnerf fit-facing`): ridge regression from the input view's "
             f"features pooled to {fh['grid']}x{fh['grid']} to the angle of the mirror plane, which "
             "`depthnerf reconstruct --facing auto` takes. Fitted on "
-            f"{fh['views']} views of {fh['objects']} objects (`{fh['data']}`), ridge weight {fh['lambda']:g}, "
+            f"{fh['views']} views of {fh['objects']} objects (`{fh['data']}`)"
+            + (f"{INPUTS_TEXT[fh['inputs']]};" if fh.get("inputs") in INPUTS_TEXT else ",")
+            + f" ridge weight {fh['lambda']:g}, "
             f"chosen on a held-out fifth of them: median angle error {fh['validation_median_deg']:.2f} "
             f"degrees, 90th percentile {fh['validation_p90_deg']:.2f}.")
     if fh.get("attached"):

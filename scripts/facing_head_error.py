@@ -1,13 +1,14 @@
 """How far a checkpoint's facing head is from the true mirror plane on a dataset's views, with no rendering.
 
 ``python scripts/facing_head_error.py --checkpoint CKPT [CKPT ...] --data DIR --category C [--split test]
-[--objects 20] [--views-per-object 25] [--seed 0] [--photo] [--json PATH]``
+[--objects 20] [--views-per-object 25] [--seed 0] [--inputs dataset|photo] [--photo] [--json PATH]``
 
 Each view is encoded as ``depthnerf fit-facing`` encodes its training views (:func:`depthnerf.train.facing_head.gather`:
 the same seeded draw of views per object, one view at a time) and the head's angle is compared with the dataset's
 plane (modulo 180 degrees). Prints, per checkpoint, the median, 90th percentile and share within 3 and 10 degrees of
 the absolute error: a quick check of heads fitted in different ways on objects none of them saw, before the
-rendering study (``scripts/facing_study.py``) measures what the plane is worth in PSNR. ``--photo`` gives each view
+rendering study (``scripts/facing_study.py``) measures what the plane is worth in PSNR. ``--inputs photo`` frames
+each view as ``reconstruct`` frames a photo first (``fit-facing --inputs photo``'s encoding). ``--photo`` gives each view
 to ``reconstruct --facing auto`` as an RGBA photo instead (:func:`photo_errors`): what a user's photo of such an
 object goes through (recentring, scaling to the model's fill, the prior computed from the prepared photo).
 """
@@ -82,12 +83,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", type=int, default=20, help="at most N objects (default 20)")
     p.add_argument("--views-per-object", type=int, default=25, help="views drawn per object (default 25)")
     p.add_argument("--seed", type=int, default=0, help="seed of the view draw")
+    p.add_argument("--inputs", choices=("dataset", "photo"), default="dataset",
+                   help="encode each view as it is (default) or framed as a photo, as fit-facing --inputs does")
     p.add_argument("--photo", action="store_true", help="give each view to reconstruct as an RGBA photo (prepared "
                    "as photos are) instead of encoding it as a dataset view")
     p.add_argument("--json", type=Path, help="write the summaries here")
     args = p.parse_args(argv)
     cfg = FacingHeadConfig(data=args.data, category=args.category, split=args.split, objects=args.objects,
-                           views_per_object=args.views_per_object, seed=args.seed)
+                           views_per_object=args.views_per_object, seed=args.seed, inputs=args.inputs)
     results = {}
     try:
         with torch.no_grad():

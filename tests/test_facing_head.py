@@ -5,6 +5,7 @@ end on a tiny mirror model."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -112,6 +113,23 @@ def test_ridge_matches_the_other_form_of_its_solution(n):
     torch.testing.assert_close(head.bias.double(), doubled_angle(psi).mean(0), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("n", [11, 13])
+def test_ridges_share_one_gram_matrix_and_give_each_weights_head(n):
+    """:func:`fit_ridges` over several weights (one Gram matrix) gives, per weight, the head :func:`fit_ridge`
+    fits alone, in the dual (n = 11 < D = 12) and the primal form (n = 13)."""
+    from depthnerf.model.facing_head import fit_ridges
+
+    x, psi = linear_data(n, 3, 2)
+    x = x + 0.1 * torch.randn(x.shape, generator=torch.Generator().manual_seed(3))
+    lams = (0.5, 5.0, 50.0)
+    heads = fit_ridges(x, psi, lams, 3, 2)
+    for lam, head in zip(lams, heads, strict=True):
+        torch.testing.assert_close(head.weight, fit_ridge(x, psi, lam, 3, 2).weight, rtol=0, atol=0)
+    assert not torch.allclose(heads[0].weight, heads[2].weight)
+    with pytest.raises(DepthnerfError, match="lambda must be a positive number, got -1"):
+        fit_ridges(x, psi, (1.0, -1.0), 3, 2)
+
+
 def test_head_checks_its_inputs():
     head = FacingHead(channels=4, grid=2)
     with pytest.raises(DepthnerfError, match=r"expects \[B, 4, H, W\] features"):
@@ -207,7 +225,7 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
     assert "<- chosen" in printed and f"wrote {out}" in printed
     loaded = load_pretrained(out)
     info = loaded.facing_head.describe()
-    assert info["views"] == 18 and info["objects"] == 6 and info["grid"] == 2
+    assert info["views"] == 18 and info["objects"] == 6 and info["grid"] == 2 and info["inputs"] == "both"
     assert info["encoder"] == encoder_fingerprint(loaded.model)
     scores = json.loads((tmp_path / "s.json").read_text())
     assert set(scores["validation"]) == {"10", "100", "1000", "10000"} and scores["head"] == info
@@ -226,12 +244,58 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
     assert errors.main(["--checkpoint", str(path), "--data", str(root), "--category", "cars", "--split", "train"]) == 2
     assert "carries no facing head" in capsys.readouterr().err
     assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",
+                 "--views-per-object", "3", "--grid", "2", "--inputs", "photo", "--out", str(out)]) == 0
+    info = load_pretrained(out).facing_head.describe()
+    assert info["views"] == 18 and info["inputs"] == "photo"
+    assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",
                  "--grid", "0", "--out", str(out)]) == 2
     assert "--grid must be >= 1, got 0" in capsys.readouterr().err
     plain = save_tiny(tmp_path / "plain.safetensors", tiny_config("cars", "none"))
     assert main(["fit-facing", "--checkpoint", str(plain), "--data", str(root), "--category", "cars",
                  "--out", str(out)]) == 2
     assert "not a mirror model" in capsys.readouterr().err
+
+
+def test_photo_inputs_encode_a_view_as_reconstruct_encodes_it_as_a_photo(tmp_path):
+    """``fit-facing --inputs both``: each drawn view gives two rows, the first the dataset view's features (as
+    ``--inputs dataset`` gathers them) and the second the features ``reconstruct`` computes from that view given as
+    an RGBA photo (recentred and scaled to the model's fill), so a head fitted on them reads what a photo shows."""
+    from depthnerf.config_io import apply_overrides
+    from depthnerf.model.facing_head import pool_features
+    from depthnerf.reconstruct.photo import prepare_photo
+    from depthnerf.reconstruct.reconstructor import Reconstructor
+    from depthnerf.train.facing_head import FacingHeadConfig, dataset_session, drawn_views, gather
+    from tests.fixtures_checkpoints import save_tiny, tiny_config
+    from tests.fixtures_srn import make_srn_fixture
+
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"train": 3}, views=4, size=16)
+    path = save_tiny(tmp_path / "m.safetensors", apply_overrides(tiny_config("cars", "none"),
+                                                                 ["--model.mirror", "true"]))
+    base = FacingHeadConfig(data=root, category="cars", objects=3, views_per_object=2, grid=2, inputs="dataset")
+    rows = {}
+    for inputs in ("dataset", "both"):
+        cfg = dataclasses.replace(base, inputs=inputs)
+        session, records = dataset_session(path, cfg)
+        rows[inputs] = gather(session, cfg, records)
+    (dx, dpsi, down), (bx, bpsi, bown) = rows["dataset"], rows["both"]
+    assert bx.shape[0] == 2 * dx.shape[0] == 12
+    torch.testing.assert_close(bx[0::2], dx)
+    torch.testing.assert_close(bpsi[0::2], dpsi) and torch.testing.assert_close(bpsi[1::2], dpsi)
+    assert (bown[0::2] == down).all() and (bown[1::2] == down).all()
+    rec = Reconstructor.from_pretrained(path)
+    photo_rows = []
+    for record, picks in zip(records, drawn_views(records, base), strict=True):
+        for view in picks:
+            src = rec.session.load_views(record, [view], 16)
+            rgba = np.dstack([src.images[0].permute(1, 2, 0).numpy(), src.masks[0].numpy()]).astype(np.float32)
+            prepared = prepare_photo(rgba, None, 16, "auto", rec.default_fill)
+            encoded = rec.encode_view(torch.from_numpy(prepared.image).permute(2, 0, 1)[None].contiguous(),
+                                      torch.from_numpy(prepared.mask)[None], src.poses[0], src.intrinsics)
+            photo_rows.append(pool_features(encoded.enc.features[0, :1], 2))
+    assert not torch.allclose(bx[1::2], dx)  # framing moved the object: the features differ
+    torch.testing.assert_close(bx[1::2], torch.cat(photo_rows))
+    with pytest.raises(DepthnerfError, match="--inputs must be one of dataset, photo, both, got 'photos'"):
+        FacingHeadConfig(data=root, category="cars", inputs="photos")
 
 
 def test_export_carries_a_head_fitted_on_the_runs_encoder(tmp_path):

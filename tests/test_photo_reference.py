@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from depthnerf.data.photo_framing import frame_photo
 from depthnerf.errors import DepthnerfError
-from depthnerf.reconstruct.photo import frame_photo, photo_mask, prepare_photo, read_photo
+from depthnerf.reconstruct.photo import photo_mask, prepare_photo, read_photo
 
 
 def _photo(h: int, w: int, seed: int = 0) -> np.ndarray:

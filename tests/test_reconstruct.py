@@ -27,13 +27,14 @@ from scipy import ndimage
 from depthnerf.cli import main
 from depthnerf.config_io import to_dict
 from depthnerf.data.cameras import project, world_to_camera
+from depthnerf.data.photo_framing import category_fill
 from depthnerf.depth.bundled import BundledDepthNet, BundledNetConfig, save_bundled
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.load import load_pretrained
 from depthnerf.reconstruct.orbit import srn_intrinsics
-from depthnerf.reconstruct.photo import category_fill, prepare_photo
+from depthnerf.reconstruct.photo import prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
 from depthnerf.render.config import DEFAULT_BUDGET
 from depthnerf.render.mesh import CameraGrid
@@ -172,7 +173,7 @@ def test_a_small_fill_frames_in_bounded_memory_as_the_full_square_would(monkeypa
     photo's scale): it is framed at a reduced scale, in bounded memory, and gives what the full square gives."""
     import tracemalloc
 
-    from depthnerf.reconstruct import photo
+    from depthnerf.data import photo_framing
 
     disc = disc_photo(600, 600, (300, 300), 200)
     tracemalloc.start()
@@ -185,7 +186,7 @@ def test_a_small_fill_frames_in_bounded_memory_as_the_full_square_would(monkeypa
     x0, y0, x1, y1 = _bbox(tiny.mask)
     assert 3 <= max(x1 - x0 + 1, y1 - y0 + 1) <= 5 and abs((x0 + x1) / 2 - 31.5) <= 1 and abs((y0 + y1) / 2 - 31.5) <= 1
     reduced = prepare_photo(disc, None, 64, "auto", 0.075)  # a 5334 px square: just above MAX_CANVAS
-    monkeypatch.setattr(photo, "MAX_CANVAS", 10**6)
+    monkeypatch.setattr(photo_framing, "MAX_CANVAS", 10**6)
     full = prepare_photo(disc, None, 64, "auto", 0.075)
     assert np.abs(reduced.image - full.image).max() < 0.02 and (reduced.mask == full.mask).all()
 

@@ -1,12 +1,13 @@
 """``depthnerf fit-facing``: fit a mirror model's facing head and write the checkpoint with it.
 
 ``depthnerf fit-facing --checkpoint C --data DIR --category C --out FILE [--split train] [--objects 300]
-[--views-per-object 8] [--grid 4] [--seed 0] [--device cpu] [--json PATH]``
+[--views-per-object 8] [--inputs both|dataset|photo] [--grid 4] [--seed 0] [--device cpu] [--json PATH]``
 
 The head reads the angle of the object's mirror plane from the input view's features
 (:mod:`depthnerf.model.facing_head`); ``reconstruct --facing auto`` then takes the plane it reads
 (:mod:`depthnerf.infer.facing`). It is fitted on dataset views whose plane is known
-(:mod:`depthnerf.train.facing_head`) and written into ``--out``: the checkpoint's weights file with the head added
+(:mod:`depthnerf.train.facing_head`; ``--inputs``: encoded as the evaluation encodes them, framed as
+``reconstruct`` frames a photo, or both ways) and written into ``--out``: the checkpoint's weights file with the head added
 (any head it had is replaced; ``--out`` may name the checkpoint's own file). Prints, per ridge weight tried, the
 median and 90th-percentile angle error on the held-out objects; ``--json`` writes them with the head's description.
 """
@@ -20,6 +21,9 @@ from pathlib import Path
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
 
+INPUT_CHOICES = ("dataset", "photo", "both")
+"""``--inputs`` (:data:`depthnerf.train.facing_head.INPUTS`, spelled here so the parser imports no torch)."""
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, help="a mirror model: shipped name, run folder or weights file")
@@ -29,6 +33,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", choices=("train", "val", "test"), default="train", help="split (default train)")
     p.add_argument("--objects", type=int, default=300, help="at most N objects (default 300)")
     p.add_argument("--views-per-object", type=int, default=8, help="views drawn per object (default 8)")
+    p.add_argument("--inputs", choices=INPUT_CHOICES, default="both",
+                   help="encode each view both as the dataset view and framed as reconstruct frames a photo "
+                   "(default), or only one way")
     p.add_argument("--grid", type=int, default=4, help="pooling grid of the head (default 4: 4 x 4 cells)")
     p.add_argument("--seed", type=int, default=0, help="seed of the view draw and the held-out objects")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:N)")
@@ -47,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix != ".safetensors":
         raise DepthnerfError(f"--out {args.out}: write a .safetensors file")
     cfg = FacingHeadConfig(data=args.data, category=args.category, split=args.split, objects=args.objects,
-                           views_per_object=args.views_per_object, grid=args.grid, seed=args.seed, device=args.device)
+                           views_per_object=args.views_per_object, grid=args.grid, seed=args.seed, device=args.device,
+                           inputs=args.inputs)
     source = resolve_checkpoint(args.checkpoint)
     fit = fit_facing_head(source, cfg)
     for lam, score in fit.validation.items():

@@ -39,13 +39,13 @@ import torch
 import torch.nn.functional as F
 from jaxtyping import Float
 from safetensors import SafetensorError
-from safetensors.torch import load_file, safe_open, save
+from safetensors.torch import load_file, safe_open
 from torch import Tensor, nn
 
 from depthnerf.depth.backend import FrozenNetworkEstimator, PriorProvenance
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import sha256_files, write_bytes_atomic
-from depthnerf.state_dicts import check_finite, load_state_strict
+from depthnerf.state_dicts import check_finite, load_state_strict, safetensors_bytes
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 """Where the shipped nets live inside the package."""
@@ -173,7 +173,7 @@ def save_bundled(net: BundledDepthNet, path: Path, notes: dict[str, str] | None 
     state.update({k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()
                   if not v.dtype.is_floating_point})
     metadata = {"config": net.config.to_json(), "format": FORMAT, **(notes or {})}
-    write_bytes_atomic(path, save(state, metadata=metadata))  # shared data: 0644
+    write_bytes_atomic(path, safetensors_bytes(state, metadata=metadata))  # shared data: 0644
 
 
 def shipped_net_name(checkpoint: str | os.PathLike | None) -> str | None:

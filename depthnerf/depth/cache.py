@@ -43,7 +43,7 @@ from typing import Any
 import torch
 from jaxtyping import Float
 from safetensors import SafetensorError
-from safetensors.torch import safe_open, save
+from safetensors.torch import safe_open
 from torch import Tensor
 
 from depthnerf.data.records import ObjectRecord
@@ -51,6 +51,7 @@ from depthnerf.depth.backend import PriorProvenance, oracle_disparity
 from depthnerf.depth.estimators import describe_estimator
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_bytes_atomic
+from depthnerf.state_dicts import safetensors_bytes
 
 CACHE_DIRNAME = "depth_priors"
 """Folder under the dataset root that holds every cache."""
@@ -167,7 +168,7 @@ def write_object_priors(path: Path, disparity: Float[Tensor, "V H W"], metadata:
     if not torch.isfinite(disparity).all():
         raise DepthnerfError(f"{path}: estimator produced non-finite disparity; refusing to cache it")
     dtype = storage_dtype(disparity)
-    write_bytes_atomic(path, save({"disparity": disparity.to(dtype).contiguous()}, metadata=metadata))
+    write_bytes_atomic(path, safetensors_bytes({"disparity": disparity.to(dtype).contiguous()}, metadata))
 
 
 def read_object_metadata(path: Path) -> dict[str, str] | None:

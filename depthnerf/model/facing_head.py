@@ -22,6 +22,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -91,13 +92,21 @@ def angle_error(estimate_deg: Tensor | float, true_deg: Tensor | float) -> Tenso
 def fit_ridge(pooled: Float[Tensor, "N D"], psi_deg: Float[Tensor, " N"], lam: float, channels: int, grid: int,
               info: dict | None = None) -> FacingHead:
     """The :class:`FacingHead` minimising the ridge objective (module docstring) on standardised ``pooled``
-    features, solved in float64 in whichever of the primal (``D x D``) and dual (``N x N``) forms is smaller; the
-    targets are centred, so the bias is their mean."""
+    features (:func:`fit_ridges` with one weight)."""
+    return fit_ridges(pooled, psi_deg, [lam], channels, grid, info)[0]
+
+
+def fit_ridges(pooled: Float[Tensor, "N D"], psi_deg: Float[Tensor, " N"], lams: Sequence[float], channels: int,
+               grid: int, info: dict | None = None) -> list[FacingHead]:
+    """:func:`fit_ridge` for each weight of ``lams``, solved in float64 in whichever of the primal (``D x D``) and
+    dual (``N x N``) forms is smaller, its Gram matrix formed once for all of them; the targets are centred, so
+    the bias is their mean."""
     if pooled.ndim != 2 or pooled.shape[0] != psi_deg.shape[0] or pooled.shape[1] != channels * grid * grid:
         raise DepthnerfError(f"fit_ridge: {list(pooled.shape)} features for {psi_deg.shape[0]} angles "
                              f"(expected N x {channels * grid * grid})")
-    if not lam > 0 or not math.isfinite(lam):
-        raise DepthnerfError(f"fit_ridge: lambda must be a positive number, got {lam}")
+    for lam in lams:
+        if not lam > 0 or not math.isfinite(lam):
+            raise DepthnerfError(f"fit_ridge: lambda must be a positive number, got {lam}")
     x = pooled.double()
     mean = x.mean(0)
     inv_std = 1.0 / (x.std(0, correction=0) + 1e-6)
@@ -106,16 +115,19 @@ def fit_ridge(pooled: Float[Tensor, "N D"], psi_deg: Float[Tensor, " N"], lam: f
     bias = y.mean(0)
     y = y - bias
     n, d = z.shape
-    if d <= n:
-        weight = torch.linalg.solve(z.T @ z + lam * torch.eye(d, dtype=z.dtype), z.T @ y)
-    else:
-        weight = z.T @ torch.linalg.solve(z @ z.T + lam * torch.eye(n, dtype=z.dtype), y)
-    head = FacingHead(channels, grid, info)
-    head.mean.copy_(mean.float())
-    head.inv_std.copy_(inv_std.float())
-    head.weight.copy_(weight.float())
-    head.bias.copy_(bias.float())
-    return head
+    primal = d <= n
+    gram = z.T @ z if primal else z @ z.T
+    heads = []
+    for lam in lams:
+        system = gram + lam * torch.eye(gram.shape[0], dtype=z.dtype)
+        weight = torch.linalg.solve(system, z.T @ y) if primal else z.T @ torch.linalg.solve(system, y)
+        head = FacingHead(channels, grid, info)
+        head.mean.copy_(mean.float())
+        head.inv_std.copy_(inv_std.float())
+        head.weight.copy_(weight.float())
+        head.bias.copy_(bias.float())
+        heads.append(head)
+    return heads
 
 
 def encoder_fingerprint(model: nn.Module) -> str:

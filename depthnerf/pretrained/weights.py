@@ -14,13 +14,13 @@ from typing import Any
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, save
+from safetensors.torch import load_file
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_bytes_atomic
 from depthnerf.model.facing_head import PREFIX as HEAD_PREFIX
 from depthnerf.model.facing_head import FacingHead, head_tensors
-from depthnerf.state_dicts import check_finite
+from depthnerf.state_dicts import check_finite, safetensors_bytes
 
 FORMAT = "depthnerf-checkpoint-1"
 """Format tag stored in every weights file's metadata."""
@@ -32,7 +32,7 @@ def save_weights(path: Path, module: torch.nn.Module, config: dict[str, Any], st
     tensors = {k: (v.to(dtype) if dtype is not None and v.is_floating_point() else v).detach().contiguous().cpu()
                for k, v in module.state_dict().items()}
     meta = {"format": FORMAT, "config": json.dumps(config, sort_keys=True), "step": str(step), **(extra or {})}
-    write_bytes_atomic(Path(path), save(tensors, metadata=meta))
+    write_bytes_atomic(Path(path), safetensors_bytes(tensors, metadata=meta))
 
 
 def save_with_head(source: Path, head: FacingHead, out: Path) -> None:
@@ -41,7 +41,7 @@ def save_with_head(source: Path, head: FacingHead, out: Path) -> None:
     tensors, meta = read_weights(source)
     own, own_meta = head_tensors(head)
     tensors = {**{k: v for k, v in tensors.items() if not k.startswith(HEAD_PREFIX)}, **own}
-    write_bytes_atomic(Path(out), save(tensors, metadata={**meta, **own_meta}))
+    write_bytes_atomic(Path(out), safetensors_bytes(tensors, metadata={**meta, **own_meta}))
 
 
 def read_weights(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:

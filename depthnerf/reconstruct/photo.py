@@ -22,22 +22,12 @@ Cluttered background (border-colour mask only)
     object but the scene: a :class:`~depthnerf.errors.DepthnerfError` says why no background model removed it
     (the extra or its weights missing: how to get them) and asks for an RGBA cut-out or a mask instead of
     reconstructing smears. (An object may touch the border: it then covers a minority of the ring.)
-Framing rule (``framing="auto"``)
-    A square crop centred on the mask's bounding box, of side ``max(box width, box height) / fill``, padded with
-    white where it leaves the image, then resampled to the model's training resolution (area averaging, bilinear
-    when enlarging; mask = any area coverage, as :func:`depthnerf.data.srn.load_object` resizes masks; a square
-    wider than :data:`MAX_CANVAS` px, which a small ``fill`` asks for, is built at a reduced scale, the photo's part
-    of it area-resampled first, so memory stays bounded at any fill). ``fill`` is the fraction of the
-    frame the object's longer box side takes in training images: :func:`category_fill`, the fill of the synthetic
-    benchmark's framing the checkpoint was trained on (``Framing.fill`` in :mod:`depthnerf.data.synth.framing`,
-    measured by ``scripts/measure_fill.py``), :data:`DEFAULT_FILL` for other categories.
-    ``framing="keep"`` only pads the image to a square (centred) and resamples it, for images already framed like
-    the training data (e.g. an SRN view at the training camera).
+Framing rule
+    :mod:`depthnerf.data.photo_framing` (recentred on the mask, scaled to the model's fill, resampled).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -49,8 +39,7 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Float
 from PIL import Image, ImageOps
 
-from depthnerf.data.srn import mask_bboxes
-from depthnerf.data.synth.framing import DEFAULT_FRAMING, get_framing
+from depthnerf.data.photo_framing import DEFAULT_FILL, frame_photo
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import BackgroundRemover
 
@@ -64,14 +53,10 @@ BACKGROUND_TOLERANCE = 0.1
 """Largest per-channel difference from the border colour that still counts as background (in [0, 1])."""
 ALPHA_THRESHOLD = 0.5
 """Alpha above this is object."""
-MAX_CANVAS = 4096
-"""Widest square the framing builds before resampling (a smaller ``fill`` frames at a reduced scale first)."""
 MAX_BORDER_OBJECT = 0.35
 """Largest fraction of the border ring the border-colour mask may cover before the background counts as cluttered."""
 MAX_OBJECT_AREA = 0.9
 """Largest fraction of the image the border-colour mask may cover before the background counts as cluttered."""
-DEFAULT_FILL = 0.62
-"""``fill`` for other categories."""
 PHOTO_FORMATS = {"PNG": "PNG", "JPEG": "JPEG", "MPO": "JPEG", "WEBP": "WebP"}
 """Accepted photo file formats: Pillow's format name -> the name shown (MPO: a camera's multi-picture JPEG)."""
 ImageLike = str | Path | np.ndarray | Image.Image
@@ -300,56 +285,6 @@ def check_plain_background(mask: np.ndarray, ring: int, name: str, hint: str | N
             f"{name}: the background is not a plain colour (the border-colour mask covers {border:.0%} of the border "
             f"and {area:.0%} of the image), so no object can be cut out; {hint + '; or ' if hint else ''}use an "
             "RGBA cut-out with a transparent background or pass a mask (--mask)")
-
-
-def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, resolution: int, framing: str,
-                fill: float, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Composite on white, crop/pad square by the framing rule and resample to ``resolution``."""
-    if alpha is not None:
-        rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None])
-    rgb = np.where(mask[..., None], rgb, 1.0).astype(np.float32)
-    height, width = mask.shape
-    if framing == "auto":
-        if not 0 < fill <= 1:
-            raise DepthnerfError(f"--fill must be in (0, 1], got {fill}")
-        x0, y0, x1, y1 = mask_bboxes(torch.from_numpy(mask)[None])[0].tolist()
-        side = max(x1 - x0 + 1, y1 - y0 + 1) / fill
-        cx, cy = (x0 + x1 + 1) / 2, (y0 + y1 + 1) / 2
-    elif framing == "keep":
-        side, cx, cy = max(height, width), width / 2, height / 2
-    else:
-        raise DepthnerfError(f"framing must be 'auto' or 'keep', got {framing!r}")
-    side_px = max(1, math.ceil(side))
-    left, top = round(cx - side_px / 2), round(cy - side_px / 2)
-    sx0, sy0 = max(0, left), max(0, top)
-    sx1, sy1 = min(width, left + side_px), min(height, top + side_px)
-    notes.append(f"framing {framing}: square crop x {left}..{left + side_px}, y {top}..{top + side_px} of the "
-                 f"{width}x{height} image, resampled to {resolution}x{resolution}")
-    scale = min(1.0, MAX_CANVAS / side_px)  # a small fill pads a huge square: built at most MAX_CANVAS px wide
-    n = max(1, round(side_px * scale))
-    canvas = np.ones((n, n, 3), dtype=np.float32)
-    cmask = np.zeros((n, n), dtype=bool)
-    part, part_mask = rgb[sy0:sy1, sx0:sx1], mask[sy0:sy1, sx0:sx1]
-    px, py = round((sx0 - left) * scale), round((sy0 - top) * scale)
-    if scale < 1.0:  # the photo's part of the square, area-resampled to the canvas's scale
-        pw, ph = min(max(1, round((sx1 - sx0) * scale)), n - px), min(max(1, round((sy1 - sy0) * scale)), n - py)
-        part = F.interpolate(torch.from_numpy(np.ascontiguousarray(part)).permute(2, 0, 1)[None], size=(ph, pw),
-                             mode="area")[0].permute(1, 2, 0).numpy()
-        part_mask = (F.interpolate(torch.from_numpy(part_mask)[None, None].float(), size=(ph, pw),
-                                   mode="area")[0, 0] > 0).numpy()
-    canvas[py:py + part.shape[0], px:px + part.shape[1]] = part
-    cmask[py:py + part.shape[0], px:px + part.shape[1]] = part_mask
-    img_t = torch.from_numpy(canvas).permute(2, 0, 1)[None]
-    size = (resolution, resolution)
-    img_t = (F.interpolate(img_t, size=size, mode="area") if n >= resolution
-             else F.interpolate(img_t, size=size, mode="bilinear", align_corners=False)).clamp(0, 1)
-    cover = F.interpolate(torch.from_numpy(cmask)[None, None].float(), size=size, mode="area")
-    return img_t[0].permute(1, 2, 0).numpy(), (cover[0, 0] > 0).numpy()
-
-
-def category_fill(category: str, framing: str = DEFAULT_FRAMING) -> float:
-    """The fill a model of ``category`` trained on ``framing``'s data was trained at (else :data:`DEFAULT_FILL`)."""
-    return get_framing(framing).fill(category, DEFAULT_FILL)
 
 
 def prepare_photo(image: ImageLike, mask: ImageLike | None, resolution: int, framing: str = "auto",

@@ -46,6 +46,7 @@ from jaxtyping import Bool, Float
 from tqdm import tqdm
 
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.photo_framing import category_fill
 from depthnerf.data.srn import SRN_IMAGE_SIZE, category_defaults
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.errors import DepthnerfError
@@ -55,7 +56,7 @@ from depthnerf.pretrained.load import Pretrained
 from depthnerf.reconstruct.background import MODES, BackgroundRemover, choose_remover
 from depthnerf.reconstruct.exports import save_reconstruction
 from depthnerf.reconstruct.orbit import orbit_points, orbit_poses, srn_intrinsics
-from depthnerf.reconstruct.photo import ImageLike, PreparedImage, category_fill, prepare_photo
+from depthnerf.reconstruct.photo import ImageLike, PreparedImage, prepare_photo
 from depthnerf.reconstruct.result import Reconstruction
 from depthnerf.render.config import GuidedConfig
 from depthnerf.render.mesh import MeshConfig, check_mesh_keep, check_mesh_resolution, keep_pieces

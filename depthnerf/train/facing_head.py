@@ -1,29 +1,43 @@
 """Fit a checkpoint's facing head (:mod:`depthnerf.model.facing_head`) on dataset views whose plane is known.
 
 For each of ``objects`` objects of a split, ``views_per_object`` views drawn at random (seeded) are encoded one at a
-time, as reconstruct encodes a photo (:meth:`~depthnerf.infer.session.InferenceSession.encode_views`, the prior from
-the dataset's cache), and paired with the relative angle of the dataset's mirror plane
-(:func:`~depthnerf.data.symmetry.relative_facing`). The ridge weight is chosen on a held-out fifth of the objects
+time and paired with the relative angle of the dataset's mirror plane (:func:`~depthnerf.data.symmetry.relative_facing`).
+``inputs`` says how a view is encoded (:data:`INPUTS`): as the evaluation encodes it (``dataset``: the dataset's
+framing, the prior from its cache), as ``reconstruct`` encodes a photo of it (``photo``: recentred and scaled to the
+model's fill by :func:`~depthnerf.data.photo_framing.frame_photo`, the prior computed from the framed image), or
+both ways (``both``: two rows per view). A head reads the features it was fitted on best: one fitted on dataset
+views alone is several degrees looser on photos (docs/RESULTS.md, "Through the photo path the head is looser"). The ridge weight is chosen on a held-out fifth of the objects
 (the smallest median angle error over :data:`LAMBDAS`), then the head is refitted on all of them. The planes must
 be vertical and the cameras without roll (as in SRN and the synthetic benchmark).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from depthnerf.data.srn import index_split
+from depthnerf.data.photo_framing import category_fill, frame_photo
+from depthnerf.data.srn import ObjectViews, index_split
 from depthnerf.data.symmetry import relative_facing
 from depthnerf.errors import DepthnerfError
-from depthnerf.infer.session import InferenceSession, SessionOptions
-from depthnerf.model.facing_head import FacingHead, angle_error, encoder_fingerprint, fit_ridge, pool_features
+from depthnerf.infer.session import EncodedView, InferenceSession, SessionOptions
+from depthnerf.model.facing_head import (
+    FacingHead,
+    angle_error,
+    encoder_fingerprint,
+    fit_ridge,
+    fit_ridges,
+    pool_features,
+)
 
 LAMBDAS = (10.0, 100.0, 1000.0, 10000.0)
 """Ridge weights tried on the held-out objects."""
+INPUTS = ("dataset", "photo", "both")
+"""How a drawn view is encoded (``FacingHeadConfig.inputs``, module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -46,6 +60,13 @@ class FacingHeadConfig:
     """Seed of the view draw and of the held-out objects."""
     device: str = "cpu"
     """Torch device of the encoder."""
+    inputs: str = "both"
+    """How each drawn view is encoded, one of :data:`INPUTS` (module docstring); ``both`` is the closest on
+    photos and on dataset views alike (docs/RESULTS.md, "A facing head for photos")."""
+
+    def __post_init__(self) -> None:
+        if self.inputs not in INPUTS:
+            raise DepthnerfError(f"--inputs must be one of {', '.join(INPUTS)}, got {self.inputs!r}")
 
 
 @dataclass(frozen=True)
@@ -59,11 +80,16 @@ class FacingHeadFit:
 
 
 def dataset_session(checkpoint: str | Path, cfg: FacingHeadConfig) -> tuple[InferenceSession, list]:
-    """A session of ``checkpoint`` reading ``cfg``'s dataset (views, cached prior, plane) and the split's first
-    ``cfg.objects`` records."""
+    """A session of ``checkpoint`` reading ``cfg``'s dataset (views, plane; the cached prior for ``dataset`` inputs,
+    else the prior computed from each encoded image) and the split's first ``cfg.objects`` records."""
     records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
-    return InferenceSession(checkpoint, SessionOptions(device=cfg.device, inputs="dataset", data_root=cfg.data,
-                                                       records=records)), records
+    options = (SessionOptions(device=cfg.device, inputs="dataset", data_root=cfg.data, records=records)
+               if cfg.inputs == "dataset" else SessionOptions(device=cfg.device, data_root=cfg.data))
+    session = InferenceSession(checkpoint, options)
+    if cfg.inputs != "dataset" and session.prior_source.needs_depths:
+        raise DepthnerfError(f"{checkpoint}: its prior reads ground-truth depth, which a view framed as a photo has "
+                             "not; fit with --inputs dataset")
+    return session, records
 
 
 def drawn_views(records, cfg: FacingHeadConfig) -> list[list[int]]:
@@ -80,16 +106,30 @@ def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[t
     plane, _ = session.dataset_symmetry(cfg.category)
     if plane is None or not any(plane[:3]):
         raise DepthnerfError(f"{cfg.data}: no mirror plane for {cfg.category} (a facing head needs one)")
+    fill = category_fill(session.spec.category, session.framing)
     pooled, psi, owner = [], [], []
     for i, (record, picks) in enumerate(zip(records, drawn_views(records, cfg), strict=True)):
         for view in picks:
             src = session.load_views(record, [view], session.spec.resolution,
                                      with_depth=session.prior_source.needs_depths)
-            encoded = session.encode_views(src, symmetry_plane=plane)
-            pooled.append(pool_features(encoded.enc.features[0, :1], cfg.grid).cpu())
-            psi.append(relative_facing(plane, src.poses[0].double().numpy()))
-            owner.append(i)
+            for encoded in encodings(session, src, cfg.inputs, plane, fill):
+                pooled.append(pool_features(encoded.enc.features[0, :1], cfg.grid).cpu())
+                psi.append(relative_facing(plane, src.poses[0].double().numpy()))
+                owner.append(i)
     return torch.cat(pooled), torch.tensor(psi, dtype=torch.float64), np.array(owner)
+
+
+def encodings(session: InferenceSession, src: ObjectViews, inputs: str, plane: Sequence[float], fill: float
+              ) -> Iterator[EncodedView]:
+    """The first view of ``src`` encoded as ``inputs`` says (module docstring): as it is, and/or framed as a photo
+    at ``fill``."""
+    if inputs != "photo":
+        yield session.encode_views(src, symmetry_plane=plane)
+    if inputs != "dataset":
+        image, mask = frame_photo(src.images[0].permute(1, 2, 0).numpy(), None, src.masks[0].numpy(),
+                                  session.spec.resolution, "auto", fill, [])
+        yield session.encode(torch.from_numpy(image).permute(2, 0, 1)[None].contiguous(),
+                             torch.from_numpy(mask)[None], src.poses[0], src.intrinsics, symmetry_plane=plane)
 
 
 def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHeadFit:
@@ -105,13 +145,13 @@ def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHead
     held = np.random.default_rng(cfg.seed + 1).permutation(len(records))[: max(1, len(records) // 5)]
     val = torch.from_numpy(np.isin(owner, held))
     scores = {}
-    for lam in LAMBDAS:
-        head = fit_ridge(pooled[~val], psi[~val], lam, channels, cfg.grid)
+    for lam, head in zip(LAMBDAS, fit_ridges(pooled[~val], psi[~val], LAMBDAS, channels, cfg.grid), strict=True):
         err = angle_error(head.predict(pooled[val]).double(), psi[val]).abs()
         scores[f"{lam:g}"] = {"median_deg": float(err.median()), "p90_deg": float(torch.quantile(err, 0.9))}
     lam = min(LAMBDAS, key=lambda x: scores[f"{x:g}"]["median_deg"])
-    info = {"encoder": encoder_fingerprint(session.model), "lambda": lam, "views": int(len(psi)),
-            "objects": len(records), "data": f"{Path(cfg.data).name}/{cfg.category}_{cfg.split}",
+    info = {"encoder": encoder_fingerprint(session.model), "lambda": lam,
+            "views": int(len(psi)) // (2 if cfg.inputs == "both" else 1),
+            "objects": len(records), "inputs": cfg.inputs, "data": f"{Path(cfg.data).name}/{cfg.category}_{cfg.split}",
             "validation_median_deg": scores[f"{lam:g}"]["median_deg"],
             "validation_p90_deg": scores[f"{lam:g}"]["p90_deg"]}
     return FacingHeadFit(head=fit_ridge(pooled, psi, lam, channels, cfg.grid, info), validation=scores)

@@ -14,7 +14,7 @@ fill (median, train views) cars 0.66, chairs 0.43                        cars 0.
 
 Facts and sources: docs/data.md ("Synthetic benchmark framing"). The fill (the longer side of the object's box
 over the image side) is what a photo is framed to for a model trained on this data
-(:func:`depthnerf.reconstruct.photo.category_fill`). A checkpoint's inference spec states the framing of its
+(:func:`depthnerf.data.photo_framing.category_fill`). A checkpoint's inference spec states the framing of its
 training data (``InferenceSpec.framing``); for checkpoints written before that field (the shipped ``cpu-*`` ones,
 trained on ``srn`` data), :func:`checkpoint_framing` derives it once, at load, from what they carry.
 """
