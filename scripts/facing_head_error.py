@@ -8,8 +8,8 @@ the same seeded draw of views per object, one view at a time) and the head's ang
 plane (modulo 180 degrees). Prints, per checkpoint, the median, 90th percentile and share within 3 and 10 degrees of
 the absolute error: a quick check of heads fitted in different ways on objects none of them saw, before the
 rendering study (``scripts/facing_study.py``) measures what the plane is worth in PSNR. ``--inputs photo`` frames
-each view as ``reconstruct`` frames a photo first (``fit-facing --inputs photo``'s encoding). ``--photo`` gives each view
-to ``reconstruct --facing auto`` as an RGBA photo instead (:func:`photo_errors`): what a user's photo of such an
+each view as ``reconstruct`` frames a photo first (``fit-facing --inputs photo``'s encoding). ``--photo`` gives each
+view to ``reconstruct --facing auto`` as an RGBA photo instead (:func:`photo_errors`): what a user's photo of such an
 object goes through (recentring, scaling to the model's fill, the prior computed from the prepared photo).
 """
 
@@ -89,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
                    "as photos are) instead of encoding it as a dataset view")
     p.add_argument("--json", type=Path, help="write the summaries here")
     args = p.parse_args(argv)
+    if args.photo and args.inputs != "dataset":
+        p.error("--photo gives each view to reconstruct, which frames it itself: drop --inputs")
     cfg = FacingHeadConfig(data=args.data, category=args.category, split=args.split, objects=args.objects,
                            views_per_object=args.views_per_object, seed=args.seed, inputs=args.inputs)
     results = {}

@@ -241,6 +241,10 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
     assert errors.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
                         "--objects", "2", "--views-per-object", "1", "--photo"]) == 0  # through reconstruct
     assert "2 views, |angle error| median" in capsys.readouterr().out
+    with pytest.raises(SystemExit):  # reconstruct frames each photo itself
+        errors.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--photo", "--inputs",
+                     "photo"])
+    assert "--photo gives each view to reconstruct, which frames it itself" in capsys.readouterr().err
     assert errors.main(["--checkpoint", str(path), "--data", str(root), "--category", "cars", "--split", "train"]) == 2
     assert "carries no facing head" in capsys.readouterr().err
     assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",

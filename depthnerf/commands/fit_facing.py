@@ -7,8 +7,8 @@ The head reads the angle of the object's mirror plane from the input view's feat
 (:mod:`depthnerf.model.facing_head`); ``reconstruct --facing auto`` then takes the plane it reads
 (:mod:`depthnerf.infer.facing`). It is fitted on dataset views whose plane is known
 (:mod:`depthnerf.train.facing_head`; ``--inputs``: encoded as the evaluation encodes them, framed as
-``reconstruct`` frames a photo, or both ways) and written into ``--out``: the checkpoint's weights file with the head added
-(any head it had is replaced; ``--out`` may name the checkpoint's own file). Prints, per ridge weight tried, the
+``reconstruct`` frames a photo, or both ways) and written into ``--out``: the checkpoint's weights file with the
+head added (any head it had is replaced; ``--out`` may name the checkpoint's own file). Prints, per ridge weight tried, the
 median and 90th-percentile angle error on the held-out objects; ``--json`` writes them with the head's description.
 """
 
@@ -20,9 +20,7 @@ from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
-
-INPUT_CHOICES = ("dataset", "photo", "both")
-"""``--inputs`` (:data:`depthnerf.train.facing_head.INPUTS`, spelled here so the parser imports no torch)."""
+from depthnerf.train.facing_head import INPUTS
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -33,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", choices=("train", "val", "test"), default="train", help="split (default train)")
     p.add_argument("--objects", type=int, default=300, help="at most N objects (default 300)")
     p.add_argument("--views-per-object", type=int, default=8, help="views drawn per object (default 8)")
-    p.add_argument("--inputs", choices=INPUT_CHOICES, default="both",
+    p.add_argument("--inputs", choices=INPUTS, default="both",
                    help="encode each view both as the dataset view and framed as reconstruct frames a photo "
                    "(default), or only one way")
     p.add_argument("--grid", type=int, default=4, help="pooling grid of the head (default 4: 4 x 4 cells)")

@@ -1,12 +1,14 @@
 """Fit a checkpoint's facing head (:mod:`depthnerf.model.facing_head`) on dataset views whose plane is known.
 
 For each of ``objects`` objects of a split, ``views_per_object`` views drawn at random (seeded) are encoded one at a
-time and paired with the relative angle of the dataset's mirror plane (:func:`~depthnerf.data.symmetry.relative_facing`).
-``inputs`` says how a view is encoded (:data:`INPUTS`): as the evaluation encodes it (``dataset``: the dataset's
-framing, the prior from its cache), as ``reconstruct`` encodes a photo of it (``photo``: recentred and scaled to the
-model's fill by :func:`~depthnerf.data.photo_framing.frame_photo`, the prior computed from the framed image), or
-both ways (``both``: two rows per view). A head reads the features it was fitted on best: one fitted on dataset
-views alone is several degrees looser on photos (docs/RESULTS.md, "Through the photo path the head is looser"). The ridge weight is chosen on a held-out fifth of the objects
+time and paired with the relative angle of the dataset's mirror plane
+(:func:`~depthnerf.data.symmetry.relative_facing`). ``inputs`` says how a view is encoded (:data:`INPUTS`): as the
+evaluation encodes it (``dataset``: the dataset's framing, the prior from its cache), as ``reconstruct`` encodes a
+photo of it (``photo``: recentred and scaled to the model's fill by
+:func:`~depthnerf.data.photo_framing.frame_photo`, the prior computed from the framed image), or both ways
+(``both``: two rows per view). A head reads the features it was fitted on best: one fitted on dataset views alone
+is several degrees looser on photos (docs/RESULTS.md, "Through the photo path the head is looser"). The ridge
+weight is chosen on a held-out fifth of the objects
 (the smallest median angle error over :data:`LAMBDAS`), then the head is refitted on all of them. The planes must
 be vertical and the cameras without roll (as in SRN and the synthetic benchmark).
 """
@@ -61,8 +63,9 @@ class FacingHeadConfig:
     device: str = "cpu"
     """Torch device of the encoder."""
     inputs: str = "both"
-    """How each drawn view is encoded, one of :data:`INPUTS` (module docstring); ``both`` is the closest on
-    photos and on dataset views alike (docs/RESULTS.md, "A facing head for photos")."""
+    """How each drawn view is encoded, one of :data:`INPUTS` (module docstring); ``both`` reads photos nearly as
+    closely as ``photo`` and dataset views nearly as closely as ``dataset`` (docs/RESULTS.md, "A facing head for
+    photos")."""
 
     def __post_init__(self) -> None:
         if self.inputs not in INPUTS:
@@ -112,9 +115,10 @@ def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[t
         for view in picks:
             src = session.load_views(record, [view], session.spec.resolution,
                                      with_depth=session.prior_source.needs_depths)
+            angle = relative_facing(plane, src.poses[0].double().numpy())
             for encoded in encodings(session, src, cfg.inputs, plane, fill):
                 pooled.append(pool_features(encoded.enc.features[0, :1], cfg.grid).cpu())
-                psi.append(relative_facing(plane, src.poses[0].double().numpy()))
+                psi.append(angle)
                 owner.append(i)
     return torch.cat(pooled), torch.tensor(psi, dtype=torch.float64), np.array(owner)
 
@@ -150,8 +154,8 @@ def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHead
         scores[f"{lam:g}"] = {"median_deg": float(err.median()), "p90_deg": float(torch.quantile(err, 0.9))}
     lam = min(LAMBDAS, key=lambda x: scores[f"{x:g}"]["median_deg"])
     info = {"encoder": encoder_fingerprint(session.model), "lambda": lam,
-            "views": int(len(psi)) // (2 if cfg.inputs == "both" else 1),
-            "objects": len(records), "inputs": cfg.inputs, "data": f"{Path(cfg.data).name}/{cfg.category}_{cfg.split}",
+            "views": sum(len(picks) for picks in drawn_views(records, cfg)), "objects": len(records),
+            "inputs": cfg.inputs, "data": f"{Path(cfg.data).name}/{cfg.category}_{cfg.split}",
             "validation_median_deg": scores[f"{lam:g}"]["median_deg"],
             "validation_p90_deg": scores[f"{lam:g}"]["p90_deg"]}
     return FacingHeadFit(head=fit_ridge(pooled, psi, lam, channels, cfg.grid, info), validation=scores)
