@@ -31,30 +31,36 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.model.facing_head import angle_error
 from depthnerf.train.facing_head import FacingHeadConfig, dataset_session, drawn_views, gather
 
+UNSURE = 0.4
+"""A head confidence (:meth:`depthnerf.model.facing_head.FacingHead.confidence`) below which the printed summary
+counts a view as one the head is unsure of."""
 
-def head_errors(checkpoint: str, cfg: FacingHeadConfig) -> np.ndarray:
-    """Absolute angle error (degrees) of ``checkpoint``'s facing head on the views :func:`gather` draws."""
+
+def head_errors(checkpoint: str, cfg: FacingHeadConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Absolute angle error (degrees) of ``checkpoint``'s facing head on the views :func:`gather` draws, and the
+    head's confidence on each."""
     session, records = dataset_session(checkpoint, cfg)
     head = session.pretrained.facing_head
     if head is None:
         raise DepthnerfError(f"{checkpoint}: carries no facing head (depthnerf fit-facing writes one)")
     pooled, psi, _ = gather(session, dataclasses.replace(cfg, grid=head.grid), records)  # pooled as the head was
-    return angle_error(head.predict(pooled).double(), psi).abs().numpy()
+    return angle_error(head.predict(pooled).double(), psi).abs().numpy(), head.confidence(pooled).numpy()
 
 
-def photo_errors(checkpoint: str, cfg: FacingHeadConfig) -> np.ndarray:
+def photo_errors(checkpoint: str, cfg: FacingHeadConfig) -> tuple[np.ndarray, np.ndarray]:
     """Absolute angle error (degrees) of ``checkpoint``'s facing head (without one: of the search's best plane,
     :func:`depthnerf.infer.facing.search_facing`) on the same views given to ``reconstruct`` as RGBA photos
     (``--photo``): each view is prepared as a photo is (recentred and scaled to the model's fill,
     :func:`depthnerf.prepare_photo`), its prior computed from it, and encoded from the photo camera at azimuth 0,
-    where the true facing is ``90 - psi`` (:func:`depthnerf.data.symmetry.facing_from_relative`)."""
+    where the true facing is ``90 - psi`` (:func:`depthnerf.data.symmetry.facing_from_relative`); and the head's
+    confidence on each (NaN without a head)."""
     rec = Reconstructor.from_pretrained(checkpoint)
     if not rec.session.model.cfg.mirror:
         raise DepthnerfError(f"{checkpoint}: not a mirror model, so it has no plane to estimate")
     records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
     plane, _ = dataset_plane(cfg.data, cfg.category)
     settings = ReconstructConfig(facing="auto", mesh_resolution=0)
-    errors = []
+    errors, confidence = [], []
     for record, picks in zip(records, drawn_views(records, cfg), strict=True):
         for view in picks:
             src = rec.session.load_views(record, [view], record.intrinsics.height)
@@ -64,14 +70,28 @@ def photo_errors(checkpoint: str, cfg: FacingHeadConfig) -> np.ndarray:
             fit = out.settings["facing_fit"]
             estimate = fit["head"] if rec.has_facing_head else fit["best"]
             errors.append(abs(angle_error(float(estimate), true)))
-    return np.array(errors)
+            confidence.append(fit["head_confidence"] if rec.has_facing_head else float("nan"))
+    return np.array(errors), np.array(confidence)
 
 
-def summary(errors: np.ndarray) -> dict[str, float]:
-    """Median, 90th percentile and shares within 3 and 10 degrees of absolute errors."""
+def summary(errors: np.ndarray, confidence: np.ndarray) -> dict[str, float]:
+    """Median, 90th percentile and shares within 3 and 10 degrees of absolute errors; the share of views whose
+    head confidence is below :data:`UNSURE` and the median error of those views and of the rest (None where there
+    are none)."""
+    unsure = confidence < UNSURE
+
+    def median(e: np.ndarray) -> float | None:
+        return float(np.median(e)) if e.size else None
+
     return {"views": int(errors.size), "median_deg": float(np.median(errors)),
             "p90_deg": float(np.quantile(errors, 0.9)), "within_3": float(np.mean(errors <= 3.0)),
-            "within_10": float(np.mean(errors <= 10.0))}
+            "within_10": float(np.mean(errors <= 10.0)), "unsure": float(np.mean(unsure)),
+            "unsure_median_deg": median(errors[unsure]), "sure_median_deg": median(errors[~unsure])}
+
+
+def degrees(value: float | None) -> str:
+    """A median of :func:`summary` for printing (``-`` where there were no views)."""
+    return "-" if value is None else f"{value:.1f}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -97,10 +117,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with torch.no_grad():
             for ckpt in args.checkpoint:
-                results[ckpt] = summary((photo_errors if args.photo else head_errors)(ckpt, cfg))
+                results[ckpt] = summary(*(photo_errors if args.photo else head_errors)(ckpt, cfg))
                 r = results[ckpt]
                 print(f"{ckpt}: {r['views']} views, |angle error| median {r['median_deg']:.2f} deg, 90th percentile "
-                      f"{r['p90_deg']:.2f}, within 3 deg {r['within_3']:.0%}, within 10 deg {r['within_10']:.0%}")
+                      f"{r['p90_deg']:.2f}, within 3 deg {r['within_3']:.0%}, within 10 deg {r['within_10']:.0%}; "
+                      f"confidence below {UNSURE:g} in {r['unsure']:.0%} (|angle error| median "
+                      f"{degrees(r['unsure_median_deg'])} there, {degrees(r['sure_median_deg'])} elsewhere)")
     except DepthnerfError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

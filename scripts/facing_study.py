@@ -113,7 +113,7 @@ def main() -> int:
             auto_error = fit.none_error if fit.facing is None else fit.error
             prefer_side = side_error <= (1 + args.side_tolerance) * auto_error
             if has_head:
-                head_fit = search_facing(error, start=head_facing(session, obj.encoded))
+                head_fit = search_facing(error, start=head_facing(session, obj.encoded).facing)
                 planes["head"] = facing_plane(head_fit.start)
                 planes["head_search"] = None if head_fit.facing is None else facing_plane(head_fit.facing)
             gts = obj.targets.images.permute(0, 2, 3, 1).numpy()

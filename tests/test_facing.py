@@ -55,7 +55,7 @@ def test_no_plane_wins_when_it_renders_the_input_view_better():
     fit = search_facing(lambda a: 0.5 if a is None else 1.0 + 1e-3 * wrapped(a, 20.0) ** 2)
     assert fit.facing is None and fit.best == pytest.approx(20.0) and fit.none_error == 0.5
     assert fit.as_dict() == {"facing": None, "best": fit.best, "error": fit.error, "none_error": 0.5,
-                             "tried": len(fit.errors), "head": None}
+                             "tried": len(fit.errors), "head": None, "head_confidence": None}
     with pytest.raises(DepthnerfError, match="coarse_step must divide 180"):
         search_facing(lambda a: 0.0, coarse_step=7)
 
@@ -180,3 +180,10 @@ def test_reconstruct_facing_auto_is_the_estimate_applied(tmp_path, capsys):
     assert "(--facing auto: input-view error" in capsys.readouterr().out or fit["facing"] is None
     with pytest.raises(DepthnerfError, match="--facing must be a finite angle in degrees, 'auto' or 'none'"):
         ReconstructConfig(facing="sideways")
+    for bad in (-1.0, float("nan"), True, "0.4"):
+        with pytest.raises(DepthnerfError, match="--facing-min-confidence must be a number >= 0"):
+            ReconstructConfig(facing=AUTO, facing_min_confidence=bad)
+    assert main(["reconstruct", str(tmp_path / "car.png"), "--checkpoint", str(path), "--out", str(tmp_path / "o2"),
+                 "--facing", "auto", "--facing-min-confidence", "-1", "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip() == "error: --facing-min-confidence must be a number >= 0, got -1.0"
+    assert not (tmp_path / "o2").exists()

@@ -23,6 +23,7 @@ from depthnerf.model.facing_head import (
     fit_ridge,
     head_from_tensors,
     head_tensors,
+    pool_features,
 )
 
 
@@ -73,14 +74,18 @@ def test_angle_error_wraps_modulo_180():
                                torch.tensor([[1.0, 0.0], [-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64))
 
 
-def linear_data(n: int, channels: int, grid: int, seed: int = 0):
-    """Pooled features that are one fixed linear function of the doubled angle plus a fixed offset, at ``n``
-    random angles (``seed``)."""
+def linear_features(psi: torch.Tensor, channels: int, grid: int) -> torch.Tensor:
+    """Pooled features that are one fixed linear function of the doubled angle of ``psi`` plus a fixed offset."""
     fixed = torch.Generator().manual_seed(100)
     mix = torch.randn(2, channels * grid * grid, generator=fixed, dtype=torch.float64)
     offset = torch.randn(channels * grid * grid, generator=fixed, dtype=torch.float64)
+    return (doubled_angle(psi) @ mix + offset).float()
+
+
+def linear_data(n: int, channels: int, grid: int, seed: int = 0):
+    """:func:`linear_features` at ``n`` random angles (``seed``), and the angles."""
     psi = torch.rand(n, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 180
-    return (doubled_angle(psi) @ mix + offset).float(), psi
+    return linear_features(psi, channels, grid), psi
 
 
 @pytest.mark.parametrize("n", [20, 200])
@@ -128,6 +133,26 @@ def test_ridges_share_one_gram_matrix_and_give_each_weights_head(n):
     assert not torch.allclose(heads[0].weight, heads[2].weight)
     with pytest.raises(DepthnerfError, match="lambda must be a positive number, got -1"):
         fit_ridges(x, psi, (1.0, -1.0), 3, 2)
+
+
+def test_confidence_is_the_length_of_the_doubled_estimate():
+    """``confidence`` = |doubled|, with ``predict`` its half-angle: closed forms on a hand-set head; on exactly
+    linear data a fitted head is sure of every view (|y| = 1), and the mean of two views' features whose planes are
+    90 degrees apart, which a linear head maps to the mean of opposite unit vectors, has confidence 0."""
+    head = FacingHead(3, 1)
+    head.weight.copy_(torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]]))
+    pooled = torch.tensor([[0.3, 0.4, 5.0], [0.0, -2.0, 1.0]])
+    torch.testing.assert_close(head.doubled(pooled), pooled[:, :2])
+    torch.testing.assert_close(head.confidence(pooled), torch.tensor([0.5, 2.0]))
+    expected = torch.tensor([math.degrees(math.atan2(0.4, 0.3)) / 2, 135.0])
+    torch.testing.assert_close(head.predict(pooled), expected)
+
+    channels, grid = 3, 2
+    x, psi = linear_data(200, channels, grid)
+    fitted = fit_ridge(x, psi, 1e-6, channels, grid)
+    torch.testing.assert_close(fitted.confidence(x), torch.ones(200), atol=1e-3, rtol=0)
+    between = linear_features(torch.tensor([20.0, 110.0], dtype=torch.float64), channels, grid).mean(0, keepdim=True)
+    assert fitted.confidence(between).item() == pytest.approx(0.0, abs=1e-3)
 
 
 def test_head_checks_its_inputs():
@@ -198,10 +223,25 @@ def test_checkpoint_carries_the_head_and_refuses_another_encoders(tmp_path):
     intr = Intrinsics(focal=16.4, cx=8.0, cy=8.0, height=16, width=16)
     c2w = torch.from_numpy(camera(0.0, 20.0)).float()
     encoded = session.encode(image, torch.ones(1, 16, 16, dtype=torch.bool), c2w, intr)
-    fit = fit_facing(session, encoded)
-    psi_head = float(good(encoded.enc.features[0, :1])[0])
+    fit = fit_facing(session, encoded, min_confidence=0.0)
+    pooled = pool_features(encoded.enc.features[0, :1], 2)
+    psi_head, sure = float(good.predict(pooled)[0]), float(good.confidence(pooled)[0])
     assert fit.facing == fit.best == fit.start == pytest.approx(facing_from_relative(psi_head, c2w.numpy()))
     assert len(fit.errors) == 1 and fit.as_dict()["head"] == fit.start and fit.as_dict()["tried"] == 1
+    assert fit.confidence == fit.as_dict()["head_confidence"] == pytest.approx(sure)
+    # the gate: no plane below the threshold (the head's reading kept as ``best``), the head's plane at or above
+    unsure = fit_facing(session, encoded, min_confidence=sure * 1.01)
+    assert unsure.facing is None and unsure.best == unsure.start == fit.best and unsure.confidence == fit.confidence
+    assert fit_facing(session, encoded, min_confidence=sure * 0.99).facing == fit.facing
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(DepthnerfError, match="--facing-min-confidence must be a number >= 0"):
+            fit_facing(session, encoded, min_confidence=bad)
+    rec = Reconstructor(session)
+    _, line = rec.symmetry(unsure.facing, unsure, sure * 1.01)
+    assert line.startswith("off: the checkpoint's facing head is unsure of the facing (confidence")
+    _, line = rec.symmetry(fit.facing, fit, 0.0)
+    assert line.startswith(f"on: the object faces {fit.facing:g} degrees (--facing auto: the checkpoint's facing "
+                           f"head, confidence {sure:.2f}")
 
 
 def test_fit_facing_command_end_to_end(tmp_path, capsys):
@@ -237,7 +277,28 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
                         "--views-per-object", "2", "--json", str(tmp_path / "e.json")]) == 0
     report = json.loads((tmp_path / "e.json").read_text())[str(out)]
     assert report["views"] == 12 and 0.0 <= report["median_deg"] <= report["p90_deg"] <= 90.0
+    assert 0.0 <= report["unsure"] <= 1.0 and (report["unsure_median_deg"] is None) == (report["unsure"] == 0.0)
     assert "12 views, |angle error| median" in capsys.readouterr().out
+    gate = load_script("facing_gate_study")  # the head's plane against none, by the head's confidence
+    assert gate.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
+                      "--objects", "2", "--views-per-object", "2", "--views-stride", "20", "--thresholds", "0", "1e9",
+                      "--json", str(tmp_path / "g.json")]) == 0
+    cases = json.loads((tmp_path / "g.json").read_text())
+    assert len(cases) == 4 and all(set(c["psnr"]) == {"true", "head", "none"} for c in cases)
+    printed = capsys.readouterr().out
+    assert "4 cases, 2 objects" in printed and "\n0 | 0/4 | +0.00" in printed and "\n1e+09 | 4/4 |" in printed
+    none_minus_head = np.mean([c["psnr"]["none"] - c["psnr"]["head"] for c in cases])
+    assert f"\n1e+09 | 4/4 | {none_minus_head:+.2f}" in printed  # every case gated: no plane's PSNR
+    assert gate.main(["--checkpoint", "x", "--data", "x", "--category", "cars", "--from-json", str(tmp_path / "g.json"),
+                      str(tmp_path / "g.json"), "--thresholds", "0"]) == 0
+    assert "8 cases, 2 objects" in capsys.readouterr().out
+    assert gate.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
+                      "--objects", "1", "--views-per-object", "1", "--views-stride", "20", "--inputs", "photo",
+                      "--json", str(tmp_path / "p.json")]) == 0  # framed as a photo, rendered from its camera
+    framed = json.loads((tmp_path / "p.json").read_text())[0]
+    first = next(c for c in cases if c["object"] == framed["object"] and c["view"] == framed["view"])
+    assert framed["confidence"] != pytest.approx(first["confidence"])  # the framing moves the features it reads
+    assert "1 cases, 1 objects" in capsys.readouterr().out
     assert errors.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
                         "--objects", "2", "--views-per-object", "1", "--photo"]) == 0  # through reconstruct
     assert "2 views, |angle error| median" in capsys.readouterr().out

@@ -104,6 +104,31 @@ def test_framing_centres_the_object_at_the_training_fill():
     assert _bbox(keep.mask) == (11, 11, 20, 20)  # only resampled by 1/2: 20 px disc -> 10 px
 
 
+@pytest.mark.parametrize(("box", "fill"), [((30, 50, 20, 60), 0.5), ((5, 25, 70, 95), 0.8), ((40, 60, 40, 60), 1.0)])
+def test_framed_intrinsics_project_a_point_where_the_framed_image_shows_it(box, fill):
+    """A point that projects to the centre of a dark block projects, with :func:`framed_intrinsics`, to the
+    block's intensity centroid in the framed image (to a tenth of a framed pixel: area resampling moves it by
+    less), also where the square reaches past the image (second case)."""
+    from depthnerf.data.cameras import Intrinsics, project
+    from depthnerf.data.photo_framing import frame_photo, framed_intrinsics, square_crop
+
+    r0, r1, c0, c1 = box
+    rgb = np.ones((100, 100, 3), np.float32)
+    rgb[r0:r1, c0:c1] = 0.0
+    mask = rgb[..., 0] < 0.5
+    intr = Intrinsics(focal=120.0, cx=49.5, cy=49.5, height=100, width=100)
+    u, v = (c0 + c1 - 1) / 2, (r0 + r1 - 1) / 2  # the block's centre in integer-centred pixel coordinates
+    point = torch.tensor([[(u - intr.cx) / intr.focal * 2.0, (v - intr.cy) / intr.focal * 2.0, 2.0]])
+    image, _ = frame_photo(rgb, None, mask, 32, "auto", fill, [])
+    framed = framed_intrinsics(intr, square_crop(mask, "auto", fill), 32)
+    expected = project(point, framed.focal, (framed.cx, framed.cy))[0].numpy()
+    weight = 1.0 - image.mean(axis=2)
+    rows, cols = np.mgrid[0:32, 0:32]
+    centroid = np.array([(weight * cols).sum(), (weight * rows).sum()]) / weight.sum()
+    np.testing.assert_allclose(centroid, expected, atol=0.1)
+    assert framed.height == framed.width == 32
+
+
 def test_mask_sources_alpha_given_grayscale():
     rgba = np.zeros((40, 40, 4), np.uint8)
     rgba[10:30, 5:25] = (0, 200, 0, 255)  # transparent black elsewhere: alpha decides, not colour

@@ -18,7 +18,7 @@ from pathlib import Path
 from depthnerf.commands.evaluate import add_guided_flags, add_precision_flags, guided_request
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.distributed import pick_device
-from depthnerf.infer.facing import AUTO
+from depthnerf.infer.facing import AUTO, MIN_CONFIDENCE
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
 from depthnerf.render.mesh_colors import MESH_COLOR_RULES
@@ -56,6 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "view; a few degrees off costs more than no plane); auto = estimated from the photo (read by "
                         "the checkpoint's facing head when it has one, else the plane whose render of the photo is "
                         "closest, or none); none = no symmetry plane")
+    p.add_argument("--facing-min-confidence", type=float, default=MIN_CONFIDENCE, metavar="C",
+                   help="--facing auto with a facing head: no plane where the head's confidence in its reading "
+                        f"(printed; about 1 when sure) is below C (default {MIN_CONFIDENCE:g}: the head's plane always)")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128,
                    help="marching-cubes grid samples (default 128; 0 = no mesh)")
@@ -130,7 +133,8 @@ def run(args: argparse.Namespace) -> int:
                             mesh_keep=args.mesh_keep, mesh_colors=args.mesh_colors, mesh_fill=args.mesh_fill,
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model,
-                            facing=getattr(args, "facing", DEFAULT_FACING))
+                            facing=getattr(args, "facing", DEFAULT_FACING),
+                            facing_min_confidence=args.facing_min_confidence)
     options = SessionOptions(device=pick_device(args.device), depth=args.depth,
                              depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
                              compile_mode=args.compile_mode, bf16_residual=args.bf16_residual, gather=args.gather,

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.srn import mask_bboxes
 from depthnerf.data.synth.framing import DEFAULT_FRAMING, get_framing
 from depthnerf.errors import DepthnerfError
@@ -35,12 +36,9 @@ DEFAULT_FILL = 0.62
 """``fill`` for other categories."""
 
 
-def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, resolution: int, framing: str,
-                fill: float, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Composite on white, crop/pad square by the framing rule and resample to ``resolution``."""
-    if alpha is not None:
-        rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None])
-    rgb = np.where(mask[..., None], rgb, 1.0).astype(np.float32)
+def square_crop(mask: np.ndarray, framing: str, fill: float) -> tuple[int, int, int]:
+    """``(left, top, side)`` in pixels of the square the framing rule crops from an image with ``mask`` (module
+    docstring); it may reach past the image, where :func:`frame_photo` pads with white."""
     height, width = mask.shape
     if framing == "auto":
         if not 0 < fill <= 1:
@@ -53,7 +51,27 @@ def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, res
     else:
         raise DepthnerfError(f"framing must be 'auto' or 'keep', got {framing!r}")
     side_px = max(1, math.ceil(side))
-    left, top = round(cx - side_px / 2), round(cy - side_px / 2)
+    return round(cx - side_px / 2), round(cy - side_px / 2), side_px
+
+
+def framed_intrinsics(intr: Intrinsics, crop: tuple[int, int, int], resolution: int) -> Intrinsics:
+    """The camera of the image :func:`frame_photo` makes from one taken with ``intr``: the :func:`square_crop`
+    ``crop`` shifts the principal point by ``(left, top)``, the resampling to ``resolution`` scales it
+    (:meth:`~depthnerf.data.cameras.Intrinsics.resized`)."""
+    left, top, side = crop
+    return Intrinsics(focal=intr.focal, cx=intr.cx - left, cy=intr.cy - top, height=side,
+                      width=side).resized(resolution, resolution)
+
+
+def frame_photo(rgb: np.ndarray, alpha: np.ndarray | None, mask: np.ndarray, resolution: int, framing: str,
+                fill: float, notes: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Composite on white, crop/pad square by the framing rule (:func:`square_crop`) and resample to
+    ``resolution``."""
+    if alpha is not None:
+        rgb = rgb * alpha[..., None] + (1.0 - alpha[..., None])
+    rgb = np.where(mask[..., None], rgb, 1.0).astype(np.float32)
+    height, width = mask.shape
+    left, top, side_px = square_crop(mask, framing, fill)
     sx0, sy0 = max(0, left), max(0, top)
     sx1, sy1 = min(width, left + side_px), min(height, top + side_px)
     notes.append(f"framing {framing}: square crop x {left}..{left + side_px}, y {top}..{top + side_px} of the "

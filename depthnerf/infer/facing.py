@@ -24,7 +24,11 @@ renders it about as well as the true one, and so does no plane. A checkpoint tha
 (:mod:`depthnerf.model.facing_head`, ``depthnerf fit-facing``) reads the plane's angle from the encoder's features
 instead, and :func:`fit_facing` takes the head's plane as it is: on held-out synthetic objects it is closer to the
 true plane than the search, and starting the search there moves it away (docs/RESULTS.md, "A facing head"). The
-input-view errors with it and without a plane are still computed (two renders) for the record.
+input-view errors with the head's plane and without a plane are still computed (two renders) for the record, and
+the head's :meth:`~depthnerf.model.facing_head.FacingHead.confidence`: where it is low the reading is often tens of
+degrees off. Below ``min_confidence`` :func:`fit_facing` chooses no plane; by default (:data:`MIN_CONFIDENCE`) it
+never does, because on the shipped chair model, whose head is the one that is unsure, dropping the plane did not
+render better than the head's plane even there (docs/RESULTS.md, "When the facing head is unsure").
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ import torch.nn.functional as F
 from depthnerf.data.symmetry import facing_from_relative, facing_plane
 from depthnerf.errors import DepthnerfError
 from depthnerf.infer.session import EncodedView, InferenceSession
+from depthnerf.model.facing_head import pool_features
 
 COARSE_STEP = 10
 """Degrees between the facings of the first pass."""
@@ -46,6 +51,10 @@ FINE_STEPS = ((2, 4), (1, 1))
 """Later passes: ``(step, reach)`` tries ``best + k * step`` for ``0 < |k| <= reach`` around the best so far."""
 AUTO = "auto"
 """``--facing auto`` / ``ReconstructConfig.facing``: estimate the facing (:func:`fit_facing`)."""
+MIN_CONFIDENCE = 0.0
+"""Below this confidence of the facing head (:meth:`~depthnerf.model.facing_head.FacingHead.confidence`)
+:func:`fit_facing` chooses no plane (``--facing-min-confidence``). 0, the head's plane always: on the shipped chair
+model dropping the plane did not render better than the head's plane where the head was unsure (module docstring)."""
 
 
 @dataclass(frozen=True)
@@ -64,12 +73,14 @@ class FacingFit:
     """Every facing tried and its error."""
     start: float | None = None
     """Where the search started (:func:`search_facing`'s ``start``), or the facing head's estimate when
-    :func:`fit_facing` took it; None: the coarse pass."""
+    :func:`fit_facing` read it; None: the coarse pass."""
+    confidence: float | None = None
+    """The facing head's confidence in its estimate (:class:`HeadReading`); None without a head."""
 
     def as_dict(self) -> dict:
         """JSON-ready (``manifest.json``'s ``facing_fit``)."""
         return {"facing": self.facing, "best": self.best, "error": self.error, "none_error": self.none_error,
-                "tried": len(self.errors), "head": self.start}
+                "tried": len(self.errors), "head": self.start, "head_confidence": self.confidence}
 
 
 def search_facing(error: Callable[[float | None], float], coarse_step: int = COARSE_STEP,
@@ -149,24 +160,41 @@ def input_view_error(session: InferenceSession, encoded: EncodedView,
     return facing_error(render, photo, scale)
 
 
-def head_facing(session: InferenceSession, encoded: EncodedView) -> float | None:
-    """The facing in [0, 180) degrees that the checkpoint's facing head reads from the primary view's features
-    (:func:`~depthnerf.data.symmetry.facing_from_relative` of its relative angle), None without a head."""
+@dataclass(frozen=True)
+class HeadReading:
+    """What a facing head reads from the primary view (:func:`head_facing`)."""
+
+    facing: float
+    """The facing in [0, 180) degrees (:func:`~depthnerf.data.symmetry.facing_from_relative` of the head's
+    relative angle)."""
+    confidence: float
+    """:meth:`~depthnerf.model.facing_head.FacingHead.confidence`: about 1 when sure, near 0 when not."""
+
+
+def head_facing(session: InferenceSession, encoded: EncodedView) -> HeadReading | None:
+    """The facing the checkpoint's facing head reads from the primary view's features, and how sure it is; None
+    without a head."""
     head = session.pretrained.facing_head
     if head is None:
         return None
     with torch.no_grad():
-        psi = float(head(encoded.enc.features[0, :1])[0])
-    return facing_from_relative(psi, encoded.pose.double().cpu().numpy())
+        pooled = pool_features(encoded.enc.features[0, :1], head.grid)
+        psi, confidence = float(head.predict(pooled)[0]), float(head.confidence(pooled)[0])
+    return HeadReading(facing_from_relative(psi, encoded.pose.double().cpu().numpy()), confidence)
 
 
-def fit_facing(session: InferenceSession, encoded: EncodedView, scale: int = 2) -> FacingFit:
-    """The facing of the object ``encoded`` shows (module docstring): the facing head's when the checkpoint has
-    one (kept whatever the input-view errors), else :func:`search_facing` over :func:`input_view_error`."""
+def fit_facing(session: InferenceSession, encoded: EncodedView, scale: int = 2,
+               min_confidence: float = MIN_CONFIDENCE) -> FacingFit:
+    """The facing of the object ``encoded`` shows (module docstring): with a facing head, the head's (whatever
+    the input-view errors), or no plane where the head's confidence is below ``min_confidence``; without one,
+    :func:`search_facing` over :func:`input_view_error`."""
+    if not 0.0 <= min_confidence < float("inf"):
+        raise DepthnerfError(f"--facing-min-confidence must be a number >= 0, got {min_confidence}")
     error = input_view_error(session, encoded, scale)
-    head = head_facing(session, encoded)
-    if head is None:
+    reading = head_facing(session, encoded)
+    if reading is None:
         return search_facing(error)
+    head = reading.facing
     with_head, without = error(head), error(None)
-    return FacingFit(facing=head, best=head, error=with_head, none_error=without, errors={head: with_head},
-                     start=head)
+    return FacingFit(facing=head if reading.confidence >= min_confidence else None, best=head, error=with_head,
+                     none_error=without, errors={head: with_head}, start=head, confidence=reading.confidence)

@@ -50,7 +50,7 @@ from depthnerf.data.photo_framing import category_fill
 from depthnerf.data.srn import SRN_IMAGE_SIZE, category_defaults
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.errors import DepthnerfError
-from depthnerf.infer.facing import AUTO, FacingFit, fit_facing, with_plane
+from depthnerf.infer.facing import AUTO, MIN_CONFIDENCE, FacingFit, fit_facing, with_plane
 from depthnerf.infer.session import EncodedView, InferenceSession, SessionOptions
 from depthnerf.pretrained.load import Pretrained
 from depthnerf.reconstruct.background import MODES, BackgroundRemover, choose_remover
@@ -128,6 +128,9 @@ class ReconstructConfig:
     protocol's input view. ``"auto"``: estimated from the photo (:mod:`depthnerf.infer.facing`): read by the
     checkpoint's facing head when it has one (``depthnerf fit-facing``), else the plane that renders the photo best
     (no plane when none renders it better). None = no plane: the model's no-plane mode. Ignored by other models."""
+    facing_min_confidence: float = MIN_CONFIDENCE
+    """``facing="auto"`` with a facing head: no plane where the head's confidence in its reading is below this
+    (:meth:`~depthnerf.model.facing_head.FacingHead.confidence`; 0, the default: the head's plane always)."""
 
     def __post_init__(self) -> None:
         """One line naming the setting (as its ``depthnerf reconstruct`` flag) when a value cannot work."""
@@ -155,6 +158,9 @@ class ReconstructConfig:
                 isinstance(self.facing, bool) or not isinstance(self.facing, int | float)
                 or not math.isfinite(self.facing)):
             raise DepthnerfError(f"--facing must be a finite angle in degrees, 'auto' or 'none', got {self.facing!r}")
+        if isinstance(self.facing_min_confidence, bool) or not isinstance(self.facing_min_confidence, int | float) \
+                or not (math.isfinite(self.facing_min_confidence) and self.facing_min_confidence >= 0):
+            raise DepthnerfError(f"--facing-min-confidence must be a number >= 0, got {self.facing_min_confidence!r}")
         if self.framing not in ("auto", "keep"):
             raise DepthnerfError(f"--framing must be 'auto' or 'keep', got {self.framing!r}")
         if self.background_removal not in MODES:
@@ -253,9 +259,9 @@ class Reconstructor:
             encoded = self.session.encode(img_t, mask_t, poses[0], intr)
             times["encode_s"] = time.perf_counter() - t
             t = time.perf_counter()
-            fit = fit_facing(self.session, encoded)
+            fit = fit_facing(self.session, encoded, min_confidence=cfg.facing_min_confidence)
             times["facing_s"] = time.perf_counter() - t
-            plane, symmetry = self.symmetry(fit.facing, fit)
+            plane, symmetry = self.symmetry(fit.facing, fit, cfg.facing_min_confidence)
             encoded = replace(encoded, enc=with_plane(encoded.enc, plane))
         else:
             plane, symmetry = self.symmetry(None if cfg.facing == AUTO else cfg.facing)
@@ -275,18 +281,24 @@ class Reconstructor:
                            **result.settings}
         return result
 
-    def symmetry(self, facing: float | None, fit: FacingFit | None = None
+    def symmetry(self, facing: float | None, fit: FacingFit | None = None, min_confidence: float = MIN_CONFIDENCE
                  ) -> tuple[tuple[float, float, float, float] | None, str]:
         """The mirror plane for an object facing ``facing`` degrees (``ReconstructConfig.facing``; ``fit``: the
-        estimate it came from) and a line saying which plane is used, or why none."""
+        estimate it came from, with ``min_confidence`` its head's threshold) and a line saying which plane is
+        used, or why none."""
         if not self.session.model.cfg.mirror:
             return None, "off: the model has no mirror-symmetric conditioning"
         if fit is not None:
             errors = f"input-view error {fit.error:.5f} with it, {fit.none_error:.5f} without a plane"
+            if facing is None and fit.confidence is not None:
+                return None, (f"off: the checkpoint's facing head is unsure of the facing (confidence "
+                              f"{fit.confidence:.2f} < --facing-min-confidence {min_confidence:g}; it read "
+                              f"{fit.best:g} degrees, {errors})")
             if facing is None:
                 return None, (f"off: --facing auto found no plane that renders the photo better than none (best: "
                               f"{fit.best:g} degrees, {errors})")
-            how = "the checkpoint's facing head; " if fit.start is not None else ""
+            how = (f"the checkpoint's facing head, confidence {fit.confidence:.2f}; " if fit.confidence is not None
+                   else "")
             return facing_plane(facing), f"on: the object faces {facing:g} degrees (--facing auto: {how}{errors})"
         if facing is None:
             return None, "off: no facing given (the model's no-plane mode)"
