@@ -146,6 +146,10 @@ def test_confidence_is_the_length_of_the_doubled_estimate():
     torch.testing.assert_close(head.confidence(pooled), torch.tensor([0.5, 2.0]))
     expected = torch.tensor([math.degrees(math.atan2(0.4, 0.3)) / 2, 135.0])
     torch.testing.assert_close(head.predict(pooled), expected)
+    maps = pooled[:, :, None, None].expand(2, 3, 4, 5)  # constant maps pool to themselves
+    for got, want in zip(head.read(maps), (expected, torch.tensor([0.5, 2.0])), strict=True):
+        torch.testing.assert_close(got, want)
+    torch.testing.assert_close(head(maps), expected)
 
     channels, grid = 3, 2
     x, psi = linear_data(200, channels, grid)

@@ -43,7 +43,6 @@ import torch.nn.functional as F
 from depthnerf.data.symmetry import facing_from_relative, facing_plane
 from depthnerf.errors import DepthnerfError
 from depthnerf.infer.session import EncodedView, InferenceSession
-from depthnerf.model.facing_head import pool_features
 
 COARSE_STEP = 10
 """Degrees between the facings of the first pass."""
@@ -178,9 +177,8 @@ def head_facing(session: InferenceSession, encoded: EncodedView) -> HeadReading 
     if head is None:
         return None
     with torch.no_grad():
-        pooled = pool_features(encoded.enc.features[0, :1], head.grid)
-        psi, confidence = float(head.predict(pooled)[0]), float(head.confidence(pooled)[0])
-    return HeadReading(facing_from_relative(psi, encoded.pose.double().cpu().numpy()), confidence)
+        psi, confidence = head.read(encoded.enc.features[0, :1])
+    return HeadReading(facing_from_relative(float(psi[0]), encoded.pose.double().cpu().numpy()), float(confidence[0]))
 
 
 def fit_facing(session: InferenceSession, encoded: EncodedView, scale: int = 2,

@@ -80,10 +80,15 @@ class FacingHead(nn.Module):
         return self.doubled(pooled).norm(dim=1)
 
     def forward(self, features: Float[Tensor, "B C Hf Wf"]) -> Float[Tensor, " B"]:
+        return self.read(features)[0]
+
+    def read(self, features: Float[Tensor, "B C Hf Wf"]) -> tuple[Float[Tensor, " B"], Float[Tensor, " B"]]:
+        """``(psi, confidence)`` from one view's feature maps (:meth:`predict`, :meth:`confidence`)."""
         if features.ndim != 4 or features.shape[1] != self.channels:
             raise DepthnerfError(f"facing head: expects [B, {self.channels}, H, W] features, got "
                                  f"{list(features.shape)} (a head fitted on another model?)")
-        return self.predict(pool_features(features, self.grid))
+        pooled = pool_features(features, self.grid)
+        return self.predict(pooled), self.confidence(pooled)
 
     def describe(self) -> dict:
         """JSON-ready: the grid, channels and what :func:`fit_ridge`'s caller recorded (``info``)."""
