@@ -10,15 +10,13 @@ dataset's), ``head`` and ``none``. ``gated`` is what ``reconstruct --facing auto
 does (:func:`depthnerf.infer.facing.fit_facing`): the head's plane, or no plane where the confidence is below
 ``T`` (no further renders). ``--inputs dataset`` encodes the view as the evaluation does; ``--inputs photo``
 as ``reconstruct`` encodes a photo of it: recentred and scaled to the model's fill
-(:func:`~depthnerf.data.photo_framing.frame_photo`), the prior computed from the framed image, and the camera's
-intrinsics those of the framed image (:func:`~depthnerf.data.photo_framing.framed_intrinsics`), so the targets
-keep their true cameras. Photos are where the head is unsure more often (``scripts/facing_head_error.py
---photo``).
+(:func:`depthnerf.train.facing_head.encodings`, as ``fit-facing --inputs photo``), the prior computed from the
+framed image, and the camera's intrinsics those of the framed image, so the targets keep their true cameras.
+Photos are where the head is unsure more often (``scripts/facing_head_error.py --photo``).
 
 Prints, per confidence bin, the head's angle error and the head's plane against no plane; the same for the cases
-read more than 15 and 30 degrees off; then, per threshold
-(``--thresholds``), how many cases the gate sends to no plane and the gated PSNR against the head's and the true
-plane's. Intervals are 95% t-intervals over objects (each object's cases averaged first: the views of one object
+read more than 15 and 30 degrees off; then, per threshold (``--thresholds``), how many cases the gate sends to no
+plane and the gated PSNR against the head's and the true plane's. Intervals are 95% t-intervals over objects (each object's cases averaged first: the views of one object
 are not independent)::
 
     python scripts/facing_gate_study.py --checkpoint cpu-chairs-sym-pp --data unseen --category chairs \\
@@ -37,15 +35,14 @@ import numpy as np
 import torch
 from paired_difference import t_interval
 
-from depthnerf.data.photo_framing import category_fill, frame_photo, framed_intrinsics, square_crop
+from depthnerf.data.photo_framing import category_fill
 from depthnerf.data.protocol import protocol_views
 from depthnerf.data.symmetry import facing_plane, relative_facing
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import psnr
 from depthnerf.infer.facing import head_facing, with_plane
-from depthnerf.infer.session import EncodedView, InferenceSession
 from depthnerf.model.facing_head import angle_error
-from depthnerf.train.facing_head import FacingHeadConfig, dataset_session, drawn_views
+from depthnerf.train.facing_head import FacingHeadConfig, dataset_session, drawn_views, encodings
 
 PLANES = ("true", "head", "none")
 """The planes rendered per case."""
@@ -65,19 +62,6 @@ def object_interval(cases: list[dict], value) -> str:
     return f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}]"
 
 
-def encoded_case(session: InferenceSession, record, view: int, inputs: str, plane) -> EncodedView:
-    """The input ``view`` of ``record`` encoded as ``inputs`` says (module docstring)."""
-    src = session.load_views(record, [view], session.spec.resolution, with_depth=session.prior_source.needs_depths)
-    if inputs == "dataset":
-        return session.encode_views(src, symmetry_plane=plane)
-    res, mask = session.spec.resolution, src.masks[0].numpy()
-    fill = category_fill(session.spec.category, session.framing)
-    image, framed_mask = frame_photo(src.images[0].permute(1, 2, 0).numpy(), None, mask, res, "auto", fill, [])
-    intr = framed_intrinsics(src.intrinsics, square_crop(mask, "auto", fill), res)
-    return session.encode(torch.from_numpy(image).permute(2, 0, 1)[None].contiguous(),
-                          torch.from_numpy(framed_mask)[None], src.poses[0], intr, symmetry_plane=plane)
-
-
 def run_cases(args: argparse.Namespace) -> list[dict]:
     """Render and score every case (module docstring)."""
     draw = FacingHeadConfig(data=args.data, category=args.category, split=args.split, objects=args.objects,
@@ -88,10 +72,13 @@ def run_cases(args: argparse.Namespace) -> list[dict]:
     true_plane, _ = session.dataset_symmetry(args.category)
     if true_plane is None or not any(true_plane[:3]):
         raise DepthnerfError(f"{args.data}: no mirror plane for {args.category}")
+    fill = category_fill(session.spec.category, session.framing)
     cases = []
     for record, picks in zip(records, drawn_views(records, draw), strict=True):
         for view in picks:
-            encoded = encoded_case(session, record, view, args.inputs, true_plane)
+            src = session.load_views(record, [view], session.spec.resolution,
+                                     with_depth=session.prior_source.needs_depths)
+            encoded = next(encodings(session, src, args.inputs, true_plane, fill))
             targets = protocol_views(record.num_views, args.views_stride, inputs=[view]).targets
             tgt = session.load_views(record, list(targets), session.spec.resolution)
             reading = head_facing(session, encoded)

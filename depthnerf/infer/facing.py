@@ -34,6 +34,7 @@ render better than the head's plane even there (docs/RESULTS.md, "When the facin
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -159,6 +160,12 @@ def input_view_error(session: InferenceSession, encoded: EncodedView,
     return facing_error(render, photo, scale)
 
 
+def check_min_confidence(value: object) -> None:
+    """One line naming ``--facing-min-confidence`` unless ``value`` is a finite number >= 0."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
+        raise DepthnerfError(f"--facing-min-confidence must be a number >= 0, got {value!r}")
+
+
 @dataclass(frozen=True)
 class HeadReading:
     """What a facing head reads from the primary view (:func:`head_facing`)."""
@@ -186,8 +193,7 @@ def fit_facing(session: InferenceSession, encoded: EncodedView, scale: int = 2,
     """The facing of the object ``encoded`` shows (module docstring): with a facing head, the head's (whatever
     the input-view errors), or no plane where the head's confidence is below ``min_confidence``; without one,
     :func:`search_facing` over :func:`input_view_error`."""
-    if not 0.0 <= min_confidence < float("inf"):
-        raise DepthnerfError(f"--facing-min-confidence must be a number >= 0, got {min_confidence}")
+    check_min_confidence(min_confidence)
     error = input_view_error(session, encoded, scale)
     reading = head_facing(session, encoded)
     if reading is None:

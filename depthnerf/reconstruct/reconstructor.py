@@ -50,7 +50,14 @@ from depthnerf.data.photo_framing import category_fill
 from depthnerf.data.srn import SRN_IMAGE_SIZE, category_defaults
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.errors import DepthnerfError
-from depthnerf.infer.facing import AUTO, MIN_CONFIDENCE, FacingFit, fit_facing, with_plane
+from depthnerf.infer.facing import (
+    AUTO,
+    MIN_CONFIDENCE,
+    FacingFit,
+    check_min_confidence,
+    fit_facing,
+    with_plane,
+)
 from depthnerf.infer.session import EncodedView, InferenceSession, SessionOptions
 from depthnerf.pretrained.load import Pretrained
 from depthnerf.reconstruct.background import MODES, BackgroundRemover, choose_remover
@@ -158,9 +165,7 @@ class ReconstructConfig:
                 isinstance(self.facing, bool) or not isinstance(self.facing, int | float)
                 or not math.isfinite(self.facing)):
             raise DepthnerfError(f"--facing must be a finite angle in degrees, 'auto' or 'none', got {self.facing!r}")
-        if isinstance(self.facing_min_confidence, bool) or not isinstance(self.facing_min_confidence, int | float) \
-                or not (math.isfinite(self.facing_min_confidence) and self.facing_min_confidence >= 0):
-            raise DepthnerfError(f"--facing-min-confidence must be a number >= 0, got {self.facing_min_confidence!r}")
+        check_min_confidence(self.facing_min_confidence)
         if self.framing not in ("auto", "keep"):
             raise DepthnerfError(f"--framing must be 'auto' or 'keep', got {self.framing!r}")
         if self.background_removal not in MODES:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from depthnerf.data.photo_framing import category_fill, frame_photo
+from depthnerf.data.photo_framing import category_fill, frame_photo, framed_intrinsics, square_crop
 from depthnerf.data.srn import ObjectViews, index_split
 from depthnerf.data.symmetry import relative_facing
 from depthnerf.errors import DepthnerfError
@@ -126,14 +126,16 @@ def gather(session: InferenceSession, cfg: FacingHeadConfig, records) -> tuple[t
 def encodings(session: InferenceSession, src: ObjectViews, inputs: str, plane: Sequence[float], fill: float
               ) -> Iterator[EncodedView]:
     """The first view of ``src`` encoded as ``inputs`` says (module docstring): as it is, and/or framed as a photo
-    at ``fill``."""
+    at ``fill``, with the framed image's own camera (:func:`~depthnerf.data.photo_framing.framed_intrinsics`), so
+    that it renders the dataset's other views where they are."""
     if inputs != "photo":
         yield session.encode_views(src, symmetry_plane=plane)
     if inputs != "dataset":
-        image, mask = frame_photo(src.images[0].permute(1, 2, 0).numpy(), None, src.masks[0].numpy(),
-                                  session.spec.resolution, "auto", fill, [])
+        res, mask = session.spec.resolution, src.masks[0].numpy()
+        image, framed_mask = frame_photo(src.images[0].permute(1, 2, 0).numpy(), None, mask, res, "auto", fill, [])
+        intr = framed_intrinsics(src.intrinsics, square_crop(mask, "auto", fill), res)
         yield session.encode(torch.from_numpy(image).permute(2, 0, 1)[None].contiguous(),
-                             torch.from_numpy(mask)[None], src.poses[0], src.intrinsics, symmetry_plane=plane)
+                             torch.from_numpy(framed_mask)[None], src.poses[0], intr, symmetry_plane=plane)
 
 
 def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHeadFit:
