@@ -21,6 +21,10 @@ are not independent)::
 
     python scripts/facing_gate_study.py --checkpoint cpu-chairs-sym-pp --data unseen --category chairs \\
         --objects 20 --views-per-object 8 [--inputs photo] --json gate-chairs.json
+
+With ``--json`` every case is written as soon as it is scored (``{"settings": ..., "cases": [...]}``, replaced
+atomically), and a run that finds the file holding cases of the same settings renders only the missing ones: an
+interrupted run resumes where it stopped. A file of other settings is refused, naming the setting.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from depthnerf.data.protocol import protocol_views
 from depthnerf.data.symmetry import facing_plane, relative_facing
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.metrics import psnr
+from depthnerf.files import write_json_atomic
 from depthnerf.infer.facing import head_facing, with_plane
 from depthnerf.model.facing_head import angle_error
 from depthnerf.train.facing_head import FacingHeadConfig, dataset_session, drawn_views, encodings
@@ -62,8 +67,39 @@ def object_interval(cases: list[dict], value) -> str:
     return f"{mean:+.2f} [{mean - half:+.2f}, {mean + half:+.2f}]"
 
 
+SETTINGS = ("checkpoint", "data", "category", "split", "objects", "views_per_object", "seed", "views_stride", "inputs")
+"""The arguments that decide the cases; a ``--json`` file to resume must hold the same."""
+
+
+def load_cases(path: Path) -> tuple[dict | None, list[dict]]:
+    """The settings and cases of a ``--json`` file; a list (files written before the settings were) has none."""
+    data = json.loads(path.read_text())
+    if isinstance(data, list):
+        return None, data
+    if not isinstance(data, dict) or not isinstance(data.get("cases"), list):
+        raise DepthnerfError(f"{path}: not a facing_gate_study file (a list of cases or settings and cases expected)")
+    return data.get("settings"), data["cases"]
+
+
+def resumed_cases(path: Path | None, settings: dict) -> dict[tuple[str, int], dict]:
+    """The cases already in ``path`` by (object, view), after checking that it was written with ``settings``."""
+    if path is None or not path.exists():
+        return {}
+    found, cases = load_cases(path)
+    if found is None:
+        raise DepthnerfError(f"{path}: holds cases without their settings; pass another --json to render afresh")
+    for key in SETTINGS:
+        if found.get(key) != settings[key]:
+            raise DepthnerfError(f"{path}: holds cases of {key} {found.get(key)!r}, this run has {settings[key]!r}; "
+                                 "pass another --json or the same settings")
+    print(f"resuming: {len(cases)} cases from {path}", file=sys.stderr)
+    return {(c["object"], c["view"]): c for c in cases}
+
+
 def run_cases(args: argparse.Namespace) -> list[dict]:
-    """Render and score every case (module docstring)."""
+    """Render and score every case (module docstring), skipping those an earlier run wrote to ``--json``."""
+    settings = {key: str(v) if isinstance(v := getattr(args, key), Path) else v for key in SETTINGS}
+    done = resumed_cases(args.json, settings)
     draw = FacingHeadConfig(data=args.data, category=args.category, split=args.split, objects=args.objects,
                             views_per_object=args.views_per_object, seed=args.seed, inputs=args.inputs)
     session, records = dataset_session(args.checkpoint, draw)
@@ -76,6 +112,9 @@ def run_cases(args: argparse.Namespace) -> list[dict]:
     cases = []
     for record, picks in zip(records, drawn_views(records, draw), strict=True):
         for view in picks:
+            if (record.object_id, view) in done:
+                cases.append(done[(record.object_id, view)])
+                continue
             src = session.load_views(record, [view], session.spec.resolution,
                                      with_depth=session.prior_source.needs_depths)
             encoded = next(encodings(session, src, args.inputs, true_plane, fill))
@@ -95,6 +134,8 @@ def run_cases(args: argparse.Namespace) -> list[dict]:
             case = {"object": record.object_id, "view": view, "confidence": reading.confidence,
                     "head_angle_error": float(angle_error(psi_head, psi_true)), "psnr": scores}
             cases.append(case)
+            if args.json:
+                write_json_atomic(args.json, {"settings": settings, "cases": cases})
             print(f"{record.object_id} view {view}: confidence {reading.confidence:.2f}, head "
                   f"{case['head_angle_error']:+.1f} deg; PSNR " + " ".join(f"{k} {v:.2f}" for k, v in scores.items()),
                   file=sys.stderr, flush=True)
@@ -149,11 +190,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="confidence thresholds of the gate to report (default 0.3 0.4 0.5 0.6)")
     ap.add_argument("--from-json", type=Path, nargs="+",
                     help="report the cases of earlier --json files (e.g. runs with other seeds) instead of rendering")
-    ap.add_argument("--json", type=Path, help="write every case here")
+    ap.add_argument("--json", type=Path, help="write every case here as it is scored; a run finding the file resumes "
+                                                 "it (module docstring)")
     args = ap.parse_args(argv)
     try:
         with torch.no_grad():
-            cases = ([c for f in args.from_json for c in json.loads(f.read_text())] if args.from_json
+            cases = ([c for f in args.from_json for c in load_cases(f)[1]] if args.from_json
                      else run_cases(args))
     except (DepthnerfError, OSError, json.JSONDecodeError) as err:
         print(f"error: {err}", file=sys.stderr)
@@ -161,8 +203,6 @@ def main(argv: list[str] | None = None) -> int:
     if not cases:
         print("error: no cases", file=sys.stderr)
         return 2
-    if args.json:
-        args.json.write_text(json.dumps(cases, indent=1) + "\n")
     report(cases, args.thresholds)
     return 0
 

@@ -361,10 +361,10 @@ def test_choosing_a_model_sets_its_fill_and_facing_box_unless_the_checkpoint_is_
     assert isinstance(slider, gr.Slider) and isinstance(box, gr.Checkbox)
 
     def broken(model, checkpoint_path=""):
-        raise RuntimeError("a bug in training_fill")
+        raise RuntimeError("a bug in model_defaults")
 
-    monkeypatch.setattr(session, "training_fill", broken)
-    with pytest.raises(RuntimeError, match="a bug in training_fill"):
+    monkeypatch.setattr(session, "model_defaults", broken)
+    with pytest.raises(RuntimeError, match="a bug in model_defaults"):
         defaults_for("car", "")
 
 

@@ -287,19 +287,35 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
     assert gate.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
                       "--objects", "2", "--views-per-object", "2", "--views-stride", "20", "--thresholds", "0", "1e9",
                       "--json", str(tmp_path / "g.json")]) == 0
-    cases = json.loads((tmp_path / "g.json").read_text())
-    assert len(cases) == 4 and all(set(c["psnr"]) == {"true", "head", "none"} for c in cases)
+    written = json.loads((tmp_path / "g.json").read_text())
+    cases = written["cases"]
+    assert written["settings"]["views_stride"] == 20 and len(cases) == 4 and all(set(c["psnr"]) == {"true", "head", "none"} for c in cases)
     printed = capsys.readouterr().out
     assert "4 cases, 2 objects" in printed and "\n0 | 0/4 | +0.00" in printed and "\n1e+09 | 4/4 |" in printed
     none_minus_head = np.mean([c["psnr"]["none"] - c["psnr"]["head"] for c in cases])
     assert f"\n1e+09 | 4/4 | {none_minus_head:+.2f}" in printed  # every case gated: no plane's PSNR
+    gate_args = ["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
+                 "--objects", "2", "--views-per-object", "2", "--thresholds", "0", "--json", str(tmp_path / "g.json")]
+    assert gate.main([*gate_args, "--views-stride", "20"]) == 0  # every case found in the file: nothing rendered
+    resumed = capsys.readouterr()
+    assert "resuming: 4 cases from" in resumed.err and "confidence" not in resumed.err
+    assert "4 cases, 2 objects" in resumed.out
+    written["cases"] = cases[:3]  # a run stopped after its third case renders the fourth only, to the same scores
+    (tmp_path / "g.json").write_text(json.dumps(written))
+    assert gate.main([*gate_args, "--views-stride", "20"]) == 0
+    assert capsys.readouterr().err.count("confidence") == 1
+    again = json.loads((tmp_path / "g.json").read_text())["cases"]
+    assert again[:3] == cases[:3] and again[3]["psnr"] == pytest.approx(cases[3]["psnr"], abs=1e-4)
+    assert gate.main([*gate_args, "--views-stride", "10"]) == 2
+    assert "holds cases of views_stride 20, this run has 10" in capsys.readouterr().err
+    (tmp_path / "old.json").write_text(json.dumps(cases))  # a plain list of cases: reported, never resumed
     assert gate.main(["--checkpoint", "x", "--data", "x", "--category", "cars", "--from-json", str(tmp_path / "g.json"),
-                      str(tmp_path / "g.json"), "--thresholds", "0"]) == 0
+                      str(tmp_path / "old.json"), "--thresholds", "0"]) == 0
     assert "8 cases, 2 objects" in capsys.readouterr().out
     assert gate.main(["--checkpoint", str(out), "--data", str(root), "--category", "cars", "--split", "train",
                       "--objects", "1", "--views-per-object", "1", "--views-stride", "20", "--inputs", "photo",
                       "--json", str(tmp_path / "p.json")]) == 0  # framed as a photo, rendered from its camera
-    framed = json.loads((tmp_path / "p.json").read_text())[0]
+    framed = json.loads((tmp_path / "p.json").read_text())["cases"][0]
     first = next(c for c in cases if c["object"] == framed["object"] and c["view"] == framed["view"])
     assert framed["confidence"] != pytest.approx(first["confidence"])  # the framing moves the features it reads
     assert "1 cases, 1 objects" in capsys.readouterr().out

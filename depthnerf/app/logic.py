@@ -257,17 +257,18 @@ class AppSession:
         self._runs = max(run_folders(self.work_dir), default=0)  # a reused --work-dir continues its numbering
         self._lock = threading.Lock()
 
-    def training_fill(self, model: str, checkpoint_path: str = "") -> float:
-        """The fill (foreground ratio) the model was trained at (see the module docstring)."""
+    def model_defaults(self, model: str, checkpoint_path: str = "") -> tuple[float, bool]:
+        """The page's defaults for a model, from one load: the fill (foreground ratio) it was trained at (see the
+        module docstring) and whether it carries a facing head (the page then ticks "Estimate the facing from the
+        photo")."""
         request = RunRequest(None, model, checkpoint_path)
         self.check_paths(request)
-        return self.models.get(resolve_model(request)).default_fill
+        loaded = self.models.get(resolve_model(request))
+        return loaded.default_fill, loaded.has_facing_head
 
-    def has_facing_head(self, model: str, checkpoint_path: str = "") -> bool:
-        """Whether the model carries a facing head (the page then ticks "Estimate the facing from the photo")."""
-        request = RunRequest(None, model, checkpoint_path)
-        self.check_paths(request)
-        return self.models.get(resolve_model(request)).has_facing_head
+    def training_fill(self, model: str, checkpoint_path: str = "") -> float:
+        """The fill (foreground ratio) the model was trained at: :meth:`model_defaults`' first value."""
+        return self.model_defaults(model, checkpoint_path)[0]
 
     def check_paths(self, request: RunRequest) -> None:
         """One line when ``request`` names a local file or folder, or a model outside the menu, and

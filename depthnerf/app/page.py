@@ -118,7 +118,7 @@ def build_page(session: AppSession) -> gr.Blocks:
     config = session.config
     choices = model_choices(config)
     first = choices[0][1]
-    start_fill, start_auto = session.training_fill(first), session.has_facing_head(first)
+    start_fill, start_auto = session.model_defaults(first)
 
     def preview(image, model, ckpt_path, ratio, remove_bg, bg_model):
         if not image:  # the upload was cleared: nothing to complain about yet
@@ -130,7 +130,7 @@ def build_page(session: AppSession) -> gr.Blocks:
 
     def defaults_for(model, ckpt_path):
         try:
-            return session.training_fill(model, ckpt_path or ""), session.has_facing_head(model, ckpt_path or "")
+            return session.model_defaults(model, ckpt_path or "")
         except DepthnerfError:  # a bad path or model shows up (one line) when the user runs it; a bug surfaces
             return gr.Slider(), gr.Checkbox()
 
