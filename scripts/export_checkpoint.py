@@ -287,6 +287,8 @@ def export(run: Path, name: str, out: Path = SHIPPED_DIR, summary_path: Path | N
     total_steps = source.step + behind
     out.mkdir(parents=True, exist_ok=True)
     weights, staged = out / f"{name}.safetensors", out / f".{name}.export.safetensors"
+    if warm is not None and weights.is_file() and warm.get("sha256") == sha256_file(weights):
+        warm = {**warm, "source": name}  # started from a copy of the checkpoint this export replaces: its successor
     extra = {"train_config": meta["train_config"], "source_sha256": source.sha256, "source_run": run.resolve().name,
              "source_file": source_path.resolve().relative_to(run.resolve()).as_posix(), "dtype": "float16",
              "exported_by": f"scripts/export_checkpoint.py (depthnerf {__version__})",

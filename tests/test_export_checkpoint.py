@@ -275,6 +275,15 @@ def test_card_of_a_warm_started_run_names_its_source(exporter, run, tmp_path):
     again = exporter.export(warm, "cpu-cars-sym-pp", tmp_path / "again")  # a shipped name continued: its successor
     assert "continue from the network weights of the `cpu-cars-sym-pp` shipped before this one (step 3500, sha256 " \
         "`abababababababab...`)" in again.card_md.read_text()
+    copy = tmp_path / "previous.safetensors"  # a run started from a copy of the file the export replaces
+    shutil.copyfile(again.weights, copy)
+    (warm / "init_from.json").write_text(json.dumps({"source": str(copy), "path": str(copy), "step": 5,
+                                                     "sha256": sha256_file(copy)}))
+    successor = exporter.export(warm, "cpu-cars-sym-pp", tmp_path / "again")
+    assert successor.card["init_from"]["source"] == "cpu-cars-sym-pp"
+    assert "the `cpu-cars-sym-pp` shipped before this one (step 5, sha256" in successor.card_md.read_text()
+    elsewhere = exporter.export(warm, "cpu-cars-sym-pp", tmp_path / "fresh")  # nothing to replace: the path stays
+    assert elsewhere.card["init_from"]["source"].endswith("previous.safetensors")
 
 
 def test_warm_start_from_a_run_folder_is_written_relative(exporter, run, tmp_path):
