@@ -44,7 +44,8 @@ def head_errors(checkpoint: str, cfg: FacingHeadConfig) -> tuple[np.ndarray, np.
     if head is None:
         raise DepthnerfError(f"{checkpoint}: carries no facing head (depthnerf fit-facing writes one)")
     pooled, psi, _ = gather(session, dataclasses.replace(cfg, grid=head.grid), records)  # pooled as the head was
-    return angle_error(head.predict(pooled).double(), psi).abs().numpy(), head.confidence(pooled).numpy()
+    predicted, confidence = head.estimate(pooled)
+    return angle_error(predicted.double(), psi).abs().numpy(), confidence.numpy()
 
 
 def photo_errors(checkpoint: str, cfg: FacingHeadConfig) -> tuple[np.ndarray, np.ndarray]:

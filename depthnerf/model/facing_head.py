@@ -69,26 +69,30 @@ class FacingHead(nn.Module):
 
     def predict(self, pooled: Float[Tensor, "B D"]) -> Float[Tensor, " B"]:
         """``psi`` from already pooled features: ``atan2(y_sin, y_cos) / 2`` of :meth:`doubled`."""
-        y = self.doubled(pooled)
-        return torch.rad2deg(torch.atan2(y[:, 1], y[:, 0]) / 2) % 180.0
+        return self.estimate(pooled)[0]
 
     def confidence(self, pooled: Float[Tensor, "B D"]) -> Float[Tensor, " B"]:
         """The length of :meth:`doubled`: about 1 for a view whose features the head maps onto one angle, near 0
         where they fall between angles (the ridge fit averages unit vectors that point apart). A low value marks
         the head's large errors: on unseen synthetic chairs, views below 0.4 were 14-19 degrees off at the
         median, the rest 4-5 (docs/RESULTS.md, "When the facing head is unsure")."""
-        return self.doubled(pooled).norm(dim=1)
+        return self.estimate(pooled)[1]
+
+    def estimate(self, pooled: Float[Tensor, "B D"]) -> tuple[Float[Tensor, " B"], Float[Tensor, " B"]]:
+        """``(psi, confidence)`` (:meth:`predict`, :meth:`confidence`) from one regression of ``pooled``."""
+        y = self.doubled(pooled)
+        return torch.rad2deg(torch.atan2(y[:, 1], y[:, 0]) / 2) % 180.0, y.norm(dim=1)
 
     def forward(self, features: Float[Tensor, "B C Hf Wf"]) -> Float[Tensor, " B"]:
         return self.read(features)[0]
 
     def read(self, features: Float[Tensor, "B C Hf Wf"]) -> tuple[Float[Tensor, " B"], Float[Tensor, " B"]]:
-        """``(psi, confidence)`` from one view's feature maps (:meth:`predict`, :meth:`confidence`)."""
+        """``(psi, confidence)`` from one view's feature maps (:meth:`estimate`)."""
         if features.ndim != 4 or features.shape[1] != self.channels:
             raise DepthnerfError(f"facing head: expects [B, {self.channels}, H, W] features, got "
                                  f"{list(features.shape)} (a head fitted on another model?)")
         pooled = pool_features(features, self.grid)
-        return self.predict(pooled), self.confidence(pooled)
+        return self.estimate(pooled)
 
     def describe(self) -> dict:
         """JSON-ready: the grid, channels and what :func:`fit_ridge`'s caller recorded (``info``)."""
