@@ -89,3 +89,36 @@ def test_align_disparity_to_depth_recovers_metric_depth():
     out = align_disparity_to_depth(disp, ref, mask)
     assert torch.allclose(out, z, rtol=1e-4)  # the fit extends to every pixel
     assert torch.all(align_disparity_to_depth(disp, ref, torch.zeros_like(mask)) == 0)
+
+
+def test_ssi_loss_leaves_out_rays_fainter_than_min_opacity():
+    """An empty foreground ray (opacity 0, normalised depth 0, so disparity 1 / min_depth) skews the fit for every
+    other ray; with the render's opacity passed, the loss is exactly the loss without that ray, and its gradient
+    on the other rays is theirs alone."""
+    g, depth, mask = _data(3, b=1, r=64)
+    mask[:] = True
+    prior = 1 / depth + 0.02 * torch.randn(depth.shape, generator=g)
+    opacity = torch.full_like(depth, 0.9)
+    depth_with_hole, opacity[0, 5] = depth.clone(), 0.0
+    depth_with_hole[0, 5] = 0.0  # what normalized_distance gives an empty ray
+    keep = torch.ones_like(mask)
+    keep[0, 5] = False
+    clean = ssi_depth_loss(depth[keep][None], prior[keep][None], mask[keep][None])
+    skewed = ssi_depth_loss(depth_with_hole, prior, mask)
+    assert skewed.item() > 1e3 * clean.item()  # the outlier: what happens without the opacity
+    d = depth_with_hole.clone().requires_grad_(True)
+    guarded = ssi_depth_loss(d, prior, mask, opacity=opacity, min_opacity=0.5)
+    assert guarded.item() == pytest.approx(clean.item(), rel=1e-6)
+    guarded.backward()
+    d_ref = depth[keep][None].clone().requires_grad_(True)
+    ssi_depth_loss(d_ref, prior[keep][None], mask[keep][None]).backward()
+    assert d.grad[0, 5].item() == 0.0
+    torch.testing.assert_close(d.grad[keep][None], d_ref.grad, rtol=1e-5, atol=1e-12)
+    # the threshold is inclusive, and the opacity never carries gradient
+    opacity = torch.full_like(depth, 0.9)
+    o = opacity.clone().requires_grad_(True)
+    ssi_depth_loss(depth.clone().requires_grad_(True), prior, mask, opacity=o, min_opacity=0.9).backward()
+    assert o.grad is None
+    assert ssi_depth_loss(depth, prior, mask, opacity=opacity, min_opacity=0.9).item() == pytest.approx(
+        ssi_depth_loss(depth, prior, mask).item(), rel=1e-6)
+

@@ -202,3 +202,17 @@ def test_ray_bounds_must_have_positive_length():
         with pytest.raises(ValueError, match="far > near"):
             rays_from_camera(c2w, INTR, near, far)
     rays_from_camera(c2w, INTR, 1.0, 1.0 + 1e-4)  # any positive length is accepted
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_analytic_scene_hits_and_renders_on_cuda():
+    """The analytic scene builds its constants on the rays' device: the same hits and render as on the CPU."""
+    rays = rays_from_camera(_camera(40, 30), INTR, 0.8, 1.8)
+    dist, hit = SCENE.ray_hits(rays)
+    cuda_rays = rays.to("cuda")
+    dist_c, hit_c = SCENE.ray_hits(cuda_rays)
+    assert torch.equal(hit_c.cpu(), hit)
+    torch.testing.assert_close(dist_c.cpu()[hit], dist[hit], rtol=1e-5, atol=1e-6)
+    out = render_rays(SCENE, SCENE, cuda_rays, RenderConfig(), train=False)
+    ref = render_rays(SCENE, SCENE, rays, RenderConfig(), train=False)
+    torch.testing.assert_close(out.fine.rgb.cpu(), ref.fine.rgb, rtol=1e-4, atol=1e-4)

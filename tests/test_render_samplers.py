@@ -124,6 +124,22 @@ def test_importance_epsilon_goes_to_bins_of_positive_width_only():
     assert torch.allclose(t, torch.tensor([[expect]], dtype=torch.float64), atol=1e-12)
 
 
+
+def test_importance_on_a_ray_without_mass_spreads_over_its_positive_width_bins():
+    """All weights 0 and ``epsilon = 0``: equal mass on the three positive-width bins of [0, 3] (the zero-width
+    one gets none), so the quantiles (j + 0.5) / 6 land at 3 (j + 0.5) / 6, not all at the far edge; a ray with
+    mass beside it is sampled as before."""
+    edges = torch.tensor([[0.0, 1.0, 1.0, 2.0, 3.0], [0.0, 1.0, 1.0, 2.0, 3.0]], dtype=torch.float64)
+    weights = torch.tensor([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    t = sample_pdf(edges, weights, 6, random=False, epsilon=0.0)
+    assert torch.allclose(t[0], torch.tensor([3 * (j + 0.5) / 6 for j in range(6)], dtype=torch.float64),
+                          atol=1e-12)
+    assert torch.allclose(t[1], torch.tensor([1 + (j + 0.5) / 6 for j in range(6)], dtype=torch.float64),
+                          atol=1e-12)
+    g = torch.Generator().manual_seed(0)
+    drawn = sample_pdf(edges[:1], weights[:1], 4000, random=True, generator=g, epsilon=0.0)
+    assert drawn.min() >= 0 and drawn.max() <= 3 and abs(drawn.mean().item() - 1.5) < 0.05
+
 def test_stratified_eval_offset_places_samples_at_that_fraction_of_each_bin():
     near, far = torch.tensor([[0.8, 1.0]]), torch.tensor([[1.8, 3.0]])
     t = stratified_samples(near, far, 8, random=False, eval_offset=0.25)

@@ -53,15 +53,16 @@ def test_loss_terms_from_known_render_outputs(monkeypatch, background_weight, fo
         assert (coarse_fn, fine_fn, train) == ("coarse", "fine", True)
         return SimpleNamespace(coarse=coarse, fine=fine)
 
-    def depth_loss(distance, prior, fg, *, dirs_cam_z):
+    def depth_loss(distance, prior, fg, *, dirs_cam_z, opacity, min_opacity):
         assert distance is fine.normalized_distance() and prior is batch.target_prior
         assert fg is batch.target_fg and dirs_cam_z is batch.target_cos
+        assert opacity is fine.opacity and min_opacity == 0.3
         return torch.tensor([0.3, 0.5], dtype=torch.float64), torch.ones(2, dtype=torch.bool)
 
     monkeypatch.setattr(step, "render_rays", render)
     monkeypatch.setattr(step, "ssi_depth_loss_per_image", depth_loss)
-    terms = BatchLoss(_FakeModel(), RenderConfig(), 0.25, background_weight,
-                      foreground_weight=foreground_weight).losses(batch, 0.8, 1.8, None)
+    terms = BatchLoss(_FakeModel(), RenderConfig(), 0.25, background_weight, foreground_weight=foreground_weight,
+                      depth_min_opacity=0.3).losses(batch, 0.8, 1.8, None)
     assert terms.coarse.item() == pytest.approx(0.05, abs=1e-12)
     assert terms.fine.item() == pytest.approx(0.02, abs=1e-12)
     assert terms.depth.item() == pytest.approx(0.4, abs=1e-12)

@@ -12,8 +12,9 @@ from pathlib import Path
 import pytest
 
 from depthnerf.cli import main
-from depthnerf.config_io import to_dict
-from depthnerf.train.config import preset
+from depthnerf.config_io import apply_overrides, to_dict
+from depthnerf.errors import DepthnerfError
+from depthnerf.train.config import check_config, preset
 
 
 def printed(capsys, *flags: str) -> dict:
@@ -99,3 +100,14 @@ def test_on_resume_the_file_may_change_only_what_a_flag_may(capsys, tmp_path):
     other = write(tmp_path / "other.json", {"schedule": {"lr": 1e-5}})
     line = one_error(capsys, "--out", str(run), "--resume", "--config", other)
     assert f"--resume: the flags and --config {other} contradict the run's config" in line and "schedule.lr" in line
+
+
+def test_train_config_refuses_a_depth_loss_min_opacity_outside_0_1():
+    cfg = preset("cpu-cars")
+    assert cfg.schedule.depth_loss_min_opacity == 0.5
+    for good in ("0", "0.25", "0.99"):
+        flags = ["--schedule.depth_loss_min_opacity", good]
+        assert check_config(apply_overrides(cfg, flags)).schedule.depth_loss_min_opacity == float(good)
+    for bad in ("1", "-0.1", "nan", "2"):
+        with pytest.raises(DepthnerfError, match=r"^--schedule\.depth_loss_min_opacity must be in \[0, 1\), got"):
+            check_config(apply_overrides(cfg, ["--schedule.depth_loss_min_opacity", bad]))

@@ -215,7 +215,9 @@ def tiny_setup(b: int, depth_aware: bool = False, seed: int = 0, device: str = "
                        target_cos=torch.rand(b, r, generator=gen) * 0.2 + 0.8)
     keys = [ItemKey(k, 1000 + 17 * k, True) for k in range(b)]
     render = RenderConfig(sampler=SamplerConfig(n_coarse=8, n_importance=4, n_gaussian=4))
-    loss = BatchLoss(model, render, depth_weight=0.1, background_weight=0.2, foreground_weight=0.3)
+    # every ray of the untrained tiny field has opacity ~0.39: a floor of 0 keeps them all in the depth term
+    loss = BatchLoss(model, render, depth_weight=0.1, background_weight=0.2, foreground_weight=0.3,
+                     depth_min_opacity=0.0)
     return model, loss, batch.to(device), keys
 
 
@@ -258,7 +260,7 @@ def compiled_step_check() -> None:
     runtime = compiled_fields(model)
     assert set(runtime.forwards) == {"coarse", "fine"}
     compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, runtime,
-                         foreground_weight=loss.foreground_weight)
+                         foreground_weight=loss.foreground_weight, depth_min_opacity=loss.depth_min_opacity)
     torch._dynamo.utils.counters.clear()
     fused = train_step(compiled, batch, keys, 3, 0.8, 1.8, torch.device("cpu"))
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 2  # coarse and fine MLPs went through dynamo
@@ -277,7 +279,7 @@ def compiled_whole_step_check(sym_pp: bool = False) -> None:
     stats_eager = {k: v.clone() for k, v in model.state_dict().items() if "running" in k}
     model.load_state_dict(state)
     compiled = BatchLoss(model, loss.render_cfg, loss.depth_weight, loss.background_weight, compile_step="aot_eager",
-                         foreground_weight=loss.foreground_weight)
+                         foreground_weight=loss.foreground_weight, depth_min_opacity=loss.depth_min_opacity)
     torch._dynamo.utils.counters.clear()
     packed = PackedBatch.pack(batch).to("cpu")  # as the loop gets it from a worker: the fields view one storage
     whole = train_step(compiled, packed, keys, 3, 0.8, 1.8, torch.device("cpu"))

@@ -49,7 +49,10 @@ def project_points(cam: Float[Tensor, "B V N 3"], focal: Float[Tensor, " B"],
 def in_frame(cam: Float[Tensor, "B V N 3"], uv: Float[Tensor, "B V N 2"], image_size: tuple[int, int]
              ) -> Float[Tensor, "B V N"]:
     """1.0 where a camera-frame point is in front of the camera and its projection ``uv``
-    (:func:`project_points`) lies inside the ``H x W`` image (``0 <= u <= W``, ``0 <= v <= H``), else 0.0."""
+    (:func:`project_points`) lies inside ``0 <= u <= W``, ``0 <= v <= H``, else 0.0. With pixel centres at
+    integer coordinates the image covers ``[-0.5, W - 0.5]``: this test is half a pixel off that at both ends, as
+    the shipped mirror models were trained with it (a flag, not a coordinate: features are sampled by
+    :func:`uv_to_grid`)."""
     h, w = image_size
     inside = (cam[..., 2] > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= w) & (uv[..., 1] >= 0) & (uv[..., 1] <= h)
     return inside.to(cam.dtype)

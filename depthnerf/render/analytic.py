@@ -58,7 +58,7 @@ class SphereScene:
         """Exact ray distance of the first surface hit in ``[near, far]`` and whether there is one."""
         best = torch.full_like(rays.near, float("inf"))
         for sph in self.spheres:
-            oc = rays.origins - torch.tensor(sph.center, dtype=rays.origins.dtype)
+            oc = rays.origins - torch.tensor(sph.center, dtype=rays.origins.dtype, device=rays.origins.device)
             bq = (oc * rays.directions).sum(-1)
             disc = bq * bq - ((oc * oc).sum(-1) - sph.radius ** 2)
             root = -bq - disc.clamp_min(0).sqrt()

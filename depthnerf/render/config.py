@@ -136,4 +136,5 @@ class RenderConfig:
     white_background: bool = True
     """Composite on white: ``rgb += 1 - opacity`` (SRN renders are on white)."""
     sigma_noise_std: float = 0.0
-    """Std of Gaussian noise added to raw sigma in training only (pixelNeRF ``noise_std``; the paper uses 0)."""
+    """Std of Gaussian noise added to sigma in training only, after the field's ReLU (the sum clamped at 0 again
+    when compositing), as pixelNeRF's ``noise_std``; the paper uses 0."""

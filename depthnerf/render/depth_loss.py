@@ -21,7 +21,8 @@ MIN_PIXELS = 3
 
 
 def ssi_depth_loss(depth: Float[Tensor, "B R"], prior_disp: Float[Tensor, "B R"], mask: Bool[Tensor, "B R"], *,
-                   dirs_cam_z: Float[Tensor, "B R"] | None = None, min_depth: float = 1e-2) -> Float[Tensor, ""]:
+                   dirs_cam_z: Float[Tensor, "B R"] | None = None, min_depth: float = 1e-2,
+                   opacity: Float[Tensor, "B R"] | None = None, min_opacity: float = 0.0) -> Float[Tensor, ""]:
     """Scale-and-shift-invariant L2 loss between rendered depth and a relative-disparity prior, on foreground.
 
     Per image (row): ``d = 1 / max(z, min_depth)`` with ``z = depth * dirs_cam_z`` if ``dirs_cam_z`` is given
@@ -36,17 +37,23 @@ def ssi_depth_loss(depth: Float[Tensor, "B R"], prior_disp: Float[Tensor, "B R"]
     detaching it would give the same gradient: at the least-squares optimum ``dL/ds = dL/db = 0`` (envelope
     theorem), so ``dL/dd`` is the residual ``2 r / n``, the component of ``d`` the prior cannot explain. That
     gradient is orthogonal to ``{p, 1}``: the part of the rendered geometry the prior agrees with is never
-    pushed towards flat. Pass the opacity-normalised depth if low-opacity rays should not blow up ``1 / z``.
+    pushed towards flat.
+
+    Rays the render leaves (nearly) empty: their opacity-normalised depth is undefined (0 on an empty ray, so
+    disparity ``1 / min_depth``, an outlier that skews ``s, b`` and with them every other ray's residual) and its
+    gradient grows as ``1 / opacity``. Pass the render's ``opacity`` (detached) and ``min_opacity``: rays with
+    ``opacity < min_opacity`` leave the mask, so neither the fit nor the loss sees them.
     """
     per_image, usable = ssi_depth_loss_per_image(depth, prior_disp, mask, dirs_cam_z=dirs_cam_z,
-                                                 min_depth=min_depth)
+                                                 min_depth=min_depth, opacity=opacity, min_opacity=min_opacity)
     # mean over the usable images, 0 (with a graph) when there is none; no host sync
     return per_image.sum() / usable.sum().clamp_min(1).to(per_image.dtype)
 
 
 def ssi_depth_loss_per_image(depth: Float[Tensor, "B R"], prior_disp: Float[Tensor, "B R"],
                              mask: Bool[Tensor, "B R"], *, dirs_cam_z: Float[Tensor, "B R"] | None = None,
-                             min_depth: float = 1e-2) -> tuple[Float[Tensor, " B"], Bool[Tensor, " B"]]:
+                             min_depth: float = 1e-2, opacity: Float[Tensor, "B R"] | None = None,
+                             min_opacity: float = 0.0) -> tuple[Float[Tensor, " B"], Bool[Tensor, " B"]]:
     """The loss of :func:`ssi_depth_loss` per image (row), 0 for images with fewer than :data:`MIN_PIXELS`
     foreground rays, and which images are usable."""
     if not (depth.shape == prior_disp.shape == mask.shape):
@@ -55,6 +62,8 @@ def ssi_depth_loss_per_image(depth: Float[Tensor, "B R"], prior_disp: Float[Tens
     z = depth * dirs_cam_z if dirs_cam_z is not None else depth
     disp = 1.0 / z.clamp_min(min_depth)
     mask = mask.bool() & torch.isfinite(prior_disp)
+    if opacity is not None:
+        mask = mask & (opacity.detach() >= min_opacity)
     s, b = fit_scale_shift(prior_disp, disp, mask)
     prior = torch.where(mask, prior_disp, torch.zeros_like(prior_disp))
     res = torch.where(mask, disp - (s[:, None] * prior + b[:, None]), torch.zeros_like(disp))

@@ -74,7 +74,9 @@ def sample_pdf(edges: Float[Tensor, "*N K+1"], weights: Float[Tensor, "*N K"], n
                generator: Generators = None, epsilon: float = 1e-5,
                u: Float[Tensor, "*N n"] | None = None) -> Float[Tensor, "*N n"]:
     """Inverse-CDF samples of the piecewise-constant pdf with mass ``w_k + epsilon`` on bin ``[e_k, e_{k+1}]``
-    (zero-width bins get no mass, so samples never pile up on duplicate edges).
+    (zero-width bins get no mass, so samples never pile up on duplicate edges); a ray with no mass at all (every
+    weight 0 with ``epsilon = 0``) gets equal mass on its positive-width bins instead of every sample at its far
+    edge.
 
     ``weights`` are detached (no gradient flows into sample positions). ``u`` is uniform (``random``: the given
     ``u``, else drawn from ``generator``) or the quantiles ``(j + 0.5) / n``; the bin is
@@ -82,7 +84,9 @@ def sample_pdf(edges: Float[Tensor, "*N K+1"], weights: Float[Tensor, "*N K"], n
     sorted.
     """
     edges = edges.detach()
-    w = (weights.detach() + epsilon) * (edges[..., 1:] > edges[..., :-1])
+    width = (edges[..., 1:] > edges[..., :-1]).to(weights.dtype)
+    w = (weights.detach() + epsilon) * width
+    w = torch.where(w.sum(-1, keepdim=True) > 0, w, width)
     pdf = w / w.sum(-1, keepdim=True).clamp_min(1e-30)
     cdf = torch.cat([torch.zeros_like(pdf[..., :1]), torch.cumsum(pdf, -1)], dim=-1).contiguous()
     u = _quantiles(tuple(weights.shape[:-1]), n, random=random, generator=generator, like=w, u=u).contiguous()

@@ -105,6 +105,10 @@ class ScheduleConfig:
     """Learning rate at ``max_steps`` of the ``cosine`` schedule (0 <= lr_final <= lr)."""
     depth_loss_weight: float = 0.0
     """Weight of the scale/shift-invariant depth loss against the target view's prior (beyond the paper; 0 = off)."""
+    depth_loss_min_opacity: float = 0.5
+    """Foreground rays whose fine render has less opacity than this are left out of the depth loss and its
+    scale/shift fit (``depthnerf.render.depth_loss``): their expected depth is undefined (an empty ray's is 0, a
+    disparity outlier that would skew the fit for every other ray), and its gradient grows as 1 / opacity. In [0, 1)."""
     step_shape: Literal["batched", "per-object"] = "batched"
     """How a step runs its objects: ``batched`` = all of a rank's objects through the encoder and the fields
     together (one call each); ``per-object`` = one object at a time with gradients accumulated. Same per-object
@@ -233,6 +237,9 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
                              f"{cfg.schedule.lr_final:g}")
     if not 0 <= cfg.data.channel_permute <= 1:  # NaN fails too
         raise DepthnerfError(f"--data.channel_permute must be in [0, 1], got {cfg.data.channel_permute}")
+    if not 0 <= cfg.schedule.depth_loss_min_opacity < 1:  # NaN fails too; 1 would leave no ray
+        raise DepthnerfError(f"--schedule.depth_loss_min_opacity must be in [0, 1), got "
+                             f"{cfg.schedule.depth_loss_min_opacity}")
     if cfg.schedule.mirror_dropout >= 1:
         raise DepthnerfError(f"--schedule.mirror_dropout must be < 1, got {cfg.schedule.mirror_dropout}")
     if not cfg.schedule.mirror_jitter <= 90:  # NaN fails too

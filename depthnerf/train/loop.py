@@ -259,7 +259,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
 
     loss_module = BatchLoss(model, cfg.render, cfg.schedule.depth_loss_weight, cfg.schedule.background_opacity_weight,
                             compiled_fields(model) if compile else None, "inductor" if compile_step else None,
-                            foreground_weight=cfg.schedule.foreground_opacity_weight)
+                            foreground_weight=cfg.schedule.foreground_opacity_weight,
+                            depth_min_opacity=cfg.schedule.depth_loss_min_opacity)
     # buffers: merged after each step (NormMerge), not rank 0's broadcast before each forward (the flag's newer name
     # where torch has it)
     no_sync = "forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(

@@ -81,9 +81,11 @@ class BatchLoss(torch.nn.Module):
 
     def __init__(self, model: PixelNeRF, render_cfg: RenderConfig, depth_weight: float,
                  background_weight: float = 0.0, runtime: FieldRuntime | None = None,
-                 compile_step: str | None = None, foreground_weight: float = 0.0) -> None:
+                 compile_step: str | None = None, foreground_weight: float = 0.0,
+                 depth_min_opacity: float = 0.5) -> None:
         """``background_weight`` / ``foreground_weight``: weights of the background- and foreground-opacity terms
-        (0 = measured, not back-propagated). ``runtime``: how the field passes run (e.g. :func:`compiled_fields`;
+        (0 = measured, not back-propagated). ``depth_min_opacity``: rays fainter than this stay out of the depth
+        loss (``ScheduleConfig.depth_loss_min_opacity``). ``runtime``: how the field passes run (e.g. :func:`compiled_fields`;
         None: the MLPs as they are).
         ``compile_step``: a ``torch.compile`` backend (``"inductor"``; ``"aot_eager"`` traces without code
         generation) through which :meth:`losses` runs (:func:`compiled_losses`); None: eagerly."""
@@ -91,6 +93,7 @@ class BatchLoss(torch.nn.Module):
         self.model = model
         self.render_cfg = render_cfg
         self.depth_weight = depth_weight
+        self.depth_min_opacity = depth_min_opacity
         self.background_weight = background_weight
         self.foreground_weight = foreground_weight
         self.runtime = runtime
@@ -120,7 +123,8 @@ class BatchLoss(torch.nn.Module):
         depth = total * 0
         if self.depth_weight > 0 and batch.target_prior is not None:
             per_object, _ = ssi_depth_loss_per_image(out.fine.normalized_distance(), batch.target_prior,
-                                                     batch.target_fg, dirs_cam_z=batch.target_cos)
+                                                     batch.target_fg, dirs_cam_z=batch.target_cos,
+                                                     opacity=out.fine.opacity, min_opacity=self.depth_min_opacity)
             depth = per_object.mean()
             total = total + self.depth_weight * depth
         # the mask terms: always measured (logged as loss_background, the floater diagnostic, and loss_foreground),
