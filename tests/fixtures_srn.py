@@ -253,6 +253,14 @@ def _stray_file(root: Path) -> tuple[str, Path, str]:
     return "train", path, "unexpected entry"
 
 
+
+def _opengl_poses(root: Path) -> tuple[str, Path, str]:
+    """Every pose of the first object in OpenGL camera axes (y up, looking down -z): each camera looks away."""
+    obj = first_object(root)
+    for path in sorted((obj / "pose").iterdir()):
+        srn_format.write_pose(path, srn_format.read_pose(path) @ np.diag([1.0, -1.0, -1.0, 1.0]))
+    return "train", obj / "pose" / "000000.txt", "every camera of this object looks away from the world origin"
+
 BAD_INPUT_CASES = {
     "missing_png": _missing_png,
     "unreadable_png": _rgb_bytes(lambda data: b"this is not a PNG file"),
@@ -268,6 +276,7 @@ BAD_INPUT_CASES = {
     "empty_split": _empty_split,
     "image_size_vs_intrinsics": _image_size,
     "stray_file_in_rgb": _stray_file,
+    "poses_in_opengl_axes": _opengl_poses,
 }
 """Ways to break the *required* files of a ``make_srn_fixture(..., with_depth=True, with_mask=True)`` folder. Each
 mutates the folder and returns ``(split, path, text)``: indexing that split must fail with a one-line message

@@ -179,6 +179,17 @@ def test_resume_into_a_folder_without_a_run_says_so_when_the_data_is_missing(tmp
                         "there: check --out)"), err
 
 
+
+def test_resume_of_a_run_without_its_config_is_refused(tmp_path, capsys):
+    """Its checkpoints were trained with settings only config.json holds: the preset's would silently replace them."""
+    run = tmp_path / "run"
+    (run / "checkpoints" / "step_00000002").mkdir(parents=True)
+    assert main(["train", "--out", str(run), "--resume", "--device", "cpu", "--data", str(tmp_path)]) == 2
+    assert one_error(capsys) == (f"error: {run / 'config.json'}: missing, so the run's checkpoints cannot be resumed "
+                                 "with the settings they were trained with; restore it, or train a new run in "
+                                 "another --out")
+    assert not (run / "config.json").exists()
+
 def test_guided_before_the_image_says_how_to_write_it(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["reconstruct", "--checkpoint", "cpu-cars-depth", "--out", str(tmp_path / "o"), "--guided", str(CAR)])

@@ -166,6 +166,11 @@ def resolve_config(args: argparse.Namespace) -> TrainConfig:
     config takes the preset's place."""
     if args.resume and args.out and (Path(args.out) / "config.json").is_file():
         return _resume_config(args, Path(args.out) / "config.json")
+    checkpoints = Path(args.out) / "checkpoints" if args.resume and args.out else None
+    if checkpoints is not None and checkpoints.is_dir() and any(checkpoints.iterdir()):
+        raise DepthnerfError(f"{Path(args.out) / 'config.json'}: missing, so the run's checkpoints cannot be resumed "
+                             "with the settings they were trained with; restore it, or train a new run in another "
+                             "--out")
     cfg = _apply_flags(_with_config_file(preset(_base_preset(args)), args), args)
     root = Path(cfg.data.root)
     return check_config(_absolute_store(dataclasses.replace(cfg, data=dataclasses.replace(cfg.data,

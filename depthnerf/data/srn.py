@@ -395,6 +395,7 @@ def load_object(record: ObjectRecord, views: Sequence[int] | None = None, *, res
                 raise DepthnerfError(f"{path_of(v)}: {kind} is {arr.shape[0]}x{arr.shape[1]} but the image is "
                                      f"{height}x{width}")
     poses = np.stack([srn_format.read_pose(record.pose_path(v)) for v in indices])
+    srn_format.check_cameras_face_origin(record.pose_path(indices[0]), poses)
     images_t = torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).contiguous()
     masks_t = torch.from_numpy(np.stack(masks))
     depths_t = torch.from_numpy(np.stack(depths)) if depths is not None else None

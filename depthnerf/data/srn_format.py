@@ -94,6 +94,16 @@ def read_pose(path: Path) -> np.ndarray:
     return pose.astype(np.float32)
 
 
+def check_cameras_face_origin(first_pose: Path, poses: np.ndarray) -> None:
+    """Refuse poses ``[V, 4, 4]`` every one of which looks away from the world origin, where the object is
+    expected: the camera's +z axis (OpenCV's viewing direction) at more than 90 degrees from the direction to the
+    origin. That is what OpenGL / Blender camera axes (looking down -z) give; the loaders do not convert them."""
+    away = np.einsum("vi,vi->v", poses[:, :3, 2], -poses[:, :3, 3]) < 0
+    if away.size and away.all():
+        raise DepthnerfError(f"{first_pose}: every camera of this object looks away from the world origin, where the "
+                             "object is expected (its +z axis, OpenCV's viewing direction, points away): OpenGL / "
+                             "Blender camera axes look down -z; convert each pose with c2w @ diag(1, -1, -1, 1)")
+
 def write_pose(path: Path, c2w: np.ndarray) -> None:
     """Write a 4x4 camera-to-world pose as 16 numbers on one line (atomically)."""
     write_text_atomic(path, " ".join(f"{v:.8f}" for v in np.asarray(c2w, dtype=np.float64).reshape(-1)) + "\n")

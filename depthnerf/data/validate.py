@@ -11,7 +11,9 @@ saved under a ``.png`` name), found from the header it opens anyway, is listed f
 (:func:`warn_rgb_not_png`), or raises with ``strict``.
 
 The *camera radius* of a view is the norm of its pose translation (the distance of the camera from the world
-origin, where SRN objects are centred).
+origin, where SRN objects are centred). An object all of whose cameras look away from the origin (the camera's +z
+axis, OpenCV's viewing direction, at more than 90 degrees from the direction to the origin) is refused: those are
+OpenGL / Blender camera axes (looking down -z), which the loaders do not convert.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from PIL import Image, UnidentifiedImageError
 from depthnerf.data.records import ObjectCheck, ObjectRecord, SplitIndex
 from depthnerf.data.srn_format import (
     NOT_AN_IMAGE,
+    check_cameras_face_origin,
     check_empty_depth,
     check_empty_mask,
     mask_not_png,
@@ -191,9 +194,11 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
     rgb_not_png: list[tuple[str, Path]] = []
     rgb, masks, depths = Counter(), Counter(), Counter()
     masks_ok, depths_ok = record.has_mask, record.has_depth
+    poses = []
     for view in range(record.num_views):
         pose = read_pose(record.pose_path(view))
         radii.append(float(np.linalg.norm(pose[:3, 3])))
+        poses.append(pose)
         name, fmt = _rgb_format(record.rgb_path(view), expected, intrinsics, strict)
         rgb[name] += 1
         if fmt is not None:
@@ -214,6 +219,7 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
             except DepthnerfError as err:
                 report.add_error("depth", path, err)
                 depths_ok = False
+    check_cameras_face_origin(record.pose_path(0), np.stack(poses))
     if record.mesh_path is not None:
         try:
             check_mesh_header(record.mesh_path)
