@@ -107,15 +107,17 @@ def test_alpha_above_one_half_is_object():
     assert not out[5:10, 5:10].any() and out[12:15, 12:15].all() and out.sum() == 9
 
 
-def test_a_given_mask_is_object_above_127_and_a_clean_mask_gets_no_note():
-    """``value > 127 of 255``: 127 is background, 128 object; a mask of dark (<= 32) and bright (>= 223) values
-    only is no photo (no note), one of middle greys is."""
+def test_a_given_mask_is_object_above_half_its_maximum_and_a_clean_mask_gets_no_note():
+    """A pixel is object where its value is above half the mask's own maximum: with 255 present, 127 is
+    background and 128 object (an anti-aliased edge splits at 127.5); a mask of dark (<= 32 of 255) and bright
+    (>= 223) values only, both scaled by its maximum, is no photo (no note), one of middle greys is."""
     rgb = np.zeros((20, 20, 3), np.float32)
     given = np.zeros((20, 20), np.uint8)
-    given[2:6, 2:6], given[10:14, 10:14] = 127, 128
+    given[2:6, 2:6], given[10:14, 10:14], given[0, 19] = 127, 128, 255
     notes: list[str] = []
     out = photo_mask(rgb, None, given, notes)
-    assert not out[2:6, 2:6].any() and out[10:14, 10:14].all() and out.sum() == 16
+    assert not out[2:6, 2:6].any() and out[10:14, 10:14].all() and out.sum() == 17
+    assert "mask: given (object: value > 127.5, half its maximum 255)" in notes
     assert not any("neither dark nor bright" in n for n in notes)
     clean = np.full((20, 20), 10, np.uint8)  # dark and bright, not 0 and 255
     clean[:, 10:] = 240
@@ -123,8 +125,27 @@ def test_a_given_mask_is_object_above_127_and_a_clean_mask_gets_no_note():
     photo_mask(rgb, None, clean, notes)
     assert not any("neither dark nor bright" in n for n in notes), notes
     notes = []
-    photo_mask(rgb, None, np.full((20, 20), 200, np.uint8), notes)
-    assert any("100% of its pixels are neither dark nor bright" in n for n in notes), notes
+    photo_mask(rgb, None, np.linspace(0, 255, 400).reshape(20, 20).astype(np.uint8), notes)
+    assert any("74% of its pixels are neither dark nor bright" in n for n in notes), notes
+
+
+@pytest.mark.parametrize("peak", [1, 100, 255])
+def test_a_mask_of_0_and_any_value_marks_the_same_object(peak):
+    """0/1 (a boolean array saved as it is), 0/100 and 0/255 masks mark the same pixels, with no note; also when
+    the mask is downscaled with a photo larger than ``MAX_SIDE`` (a 0/1 mask's averages are kept)."""
+    given = np.zeros((20, 20), np.uint8)
+    given[3:9, 4:15] = peak
+    notes: list[str] = []
+    assert np.array_equal(photo_mask(np.zeros((20, 20, 3), np.float32), None, given, notes), given > 0)
+    assert not any("neither dark nor bright" in n for n in notes), notes
+    big = np.kron(given, np.ones((2, 2), np.uint8))  # the mask of a photo twice the side, downscaled with it
+    small = photo_mask(np.zeros((20, 20, 3), np.float32), None, big, [], source_size=big.shape)
+    assert np.array_equal(small, given > 0)
+
+
+def test_an_all_zero_mask_is_refused():
+    with pytest.raises(DepthnerfError, match=r"^mask: the mask marks no object \(every pixel is 0\)$"):
+        photo_mask(np.zeros((20, 20, 3), np.float32), None, np.zeros((20, 20), np.uint8), [])
 
 
 def test_16_bit_pixels_are_divided_by_65535():

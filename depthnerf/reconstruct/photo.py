@@ -8,7 +8,9 @@ Input photo (assumption: ONE object, roughly centred, on a plain background)
     a file with an EXIF orientation tag (a camera's portrait JPEG) is turned upright as viewers show it, and so
     is a mask file (noted); grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
     images larger than :data:`MAX_SIDE` px are first downscaled (box filter, aspect ratio kept) so the longer side
-    is ``MAX_SIDE`` (noted). Mask, in order: the given mask (non-zero = object, same size as the upright image);
+    is ``MAX_SIDE`` (noted). Mask, in order: the given mask (a pixel is object where its value is above half the
+    mask's own maximum, so 0/1, 0/100 and 0/255 masks all work and an anti-aliased 0..255 edge splits at 127.5; an
+    all-zero mask is an error; same size as the upright image);
     else the alpha channel (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
     (:mod:`depthnerf.reconstruct.background`), its foreground score as the alpha (then as for alpha; the RGBA
     cut-out is kept in :attr:`PreparedImage.cutout`); else the *background colour* = the per-channel median
@@ -63,7 +65,8 @@ ImageLike = str | Path | np.ndarray | Image.Image
 EXIF_ORIENTATION = 0x0112
 """The EXIF tag that says how a file's stored pixels are turned for display (1: as stored)."""
 MASK_DARK = 32
-"""A given mask's values <= this (or >= 255 - this) count as dark (bright); a mask is mostly one or the other."""
+"""A given mask's values <= this (or >= 255 - this) count as dark (bright) when its maximum is 255, scaled by its
+own maximum else; a mask is mostly one or the other."""
 MASK_GREY_SHARE = 0.1
 """A given mask with more than this share of values between dark and bright gets a note (it may be a photo)."""
 
@@ -234,19 +237,23 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
         with _read_errors(where, "mask", TypeError):  # TypeError: an array Pillow cannot take
             im = Image.fromarray(np.asarray(mask)) if isinstance(mask, np.ndarray) else (
                 mask if isinstance(mask, Image.Image) else upright(Image.open(mask), notes, "mask"))
-            im = im.convert("L")
+            im = im.convert("L").convert("F")  # float: a downscaled 0/1 mask keeps its averages
         if source_size is not None and (im.height, im.width) == source_size != (height, width):
             im = im.resize((width, height), Image.Resampling.BOX)
         if (im.height, im.width) != (height, width):
             raise DepthnerfError(f"{where}: mask is {im.width}x{im.height} but the image is "
                                  f"{(source_size or (height, width))[1]}x{(source_size or (height, width))[0]}")
-        notes.append("mask: given (value > 127 of 255 = object)")
-        values = np.asarray(im)
-        grey = float(((values > MASK_DARK) & (values < 255 - MASK_DARK)).mean())
+        values = np.asarray(im, dtype=np.float32)
+        peak = float(values.max())
+        if peak <= 0:
+            raise DepthnerfError(f"{where}: the mask marks no object (every pixel is 0)")
+        notes.append(f"mask: given (object: value > {peak / 2:g}, half its maximum {peak:g})")
+        dark, bright = peak * MASK_DARK / 255, peak * (255 - MASK_DARK) / 255
+        grey = float(((values > dark) & (values < bright)).mean())
         if grey > MASK_GREY_SHARE:
             notes.append(f"mask: {grey:.0%} of its pixels are neither dark nor bright (a photo rather than a mask?); "
                          "check input_mask.png")
-        out = values > 127
+        out = values > peak / 2
     elif alpha is not None:
         notes.append(f"mask: alpha > {ALPHA_THRESHOLD}")
         out = alpha > ALPHA_THRESHOLD
@@ -260,8 +267,6 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
                      f"more than {BACKGROUND_TOLERANCE}")
         check_plain_background(out, ring, name, hint)
     if not out.any():
-        if mask is not None:
-            raise DepthnerfError(f"{where}: the mask marks no object (no pixel above 127 of 255)")
         if alpha is not None:
             raise DepthnerfError(f"{name}: no object found (the alpha channel is transparent everywhere)")
         raise DepthnerfError(f"{name}: no object found (every pixel has the border's colour); pass a mask (--mask)")
