@@ -155,12 +155,12 @@ def check_fit(session: InferenceSession, checkpoint: str | Path, cfg: FacingHead
 def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHeadFit:
     """Fit a head for ``checkpoint`` (module docstring)."""
     session, records = dataset_session(checkpoint, cfg)
+    check_fit(session, checkpoint, cfg)
     if len(records) < 5:
         raise DepthnerfError(f"{cfg.data}/{cfg.category}_{cfg.split}: {len(records)} objects; a facing head needs "
                              "at least 5 (one fifth is held out to choose the ridge weight)")
     if not session.model.cfg.mirror:
         raise DepthnerfError(f"{checkpoint}: not a mirror model, so it has no plane for a facing head to find")
-    check_fit(session, checkpoint, cfg)
     pooled, psi, owner = gather(session, cfg, records)
     channels = session.model.encoder.latent_size
     held = np.random.default_rng(cfg.seed + 1).permutation(len(records))[: max(1, len(records) // 5)]
