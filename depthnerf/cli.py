@@ -17,6 +17,7 @@ import importlib
 import os
 import sys
 import warnings
+from pathlib import Path
 
 from depthnerf import __version__
 from depthnerf.cpu_runtime import configure_process
@@ -61,6 +62,28 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, line if launch_rank() == 0 else None)
 
 
+def _refusing_empty(convert, flag: str):
+    """``convert`` (an argparse ``type``) for ``flag`` that first refuses an empty value in one line (``--out ''``
+    would otherwise be ``Path('')``, the current folder)."""
+    def checked(value: str):
+        if not value:
+            raise argparse.ArgumentError(None, f"{flag} is empty")  # not caught by argparse: the line as it is
+        return convert(value)
+    return checked
+
+
+PATH_FLAGS = ("--out", "--data")
+"""Options that name a path in every subcommand that has them, also where it takes them as strings (``train``)."""
+
+
+def refuse_empty_paths(parser: argparse.ArgumentParser) -> None:
+    """Make every option of ``parser`` that names a path (``type=Path``, and :data:`PATH_FLAGS`) refuse an empty
+    value: ``error: PROG: --out is empty``, before any command runs."""
+    for action in parser._actions:
+        if action.option_strings and (action.type is Path or set(PATH_FLAGS) & set(action.option_strings)):
+            action.type = _refusing_empty(action.type or str, action.option_strings[-1])
+
+
 def _command_module(name: str):
     module, _ = SUBCOMMANDS[name]
     return importlib.import_module(f"depthnerf.commands.{module}")
@@ -77,6 +100,7 @@ def build_parser(argv: list[str]) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == chosen:
             _command_module(name).add_arguments(p)
+            refuse_empty_paths(p)
             p.set_defaults(subcommand_parser=p)  # an error about its arguments names it
     return parser
 

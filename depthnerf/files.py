@@ -45,6 +45,21 @@ def folder_problem(path: Path, what: str) -> str | None:
     return f"{path}: {what} lies under {existing}, which is a file, not a folder"
 
 
+def file_problem(path: Path, what: str) -> str | None:
+    """Why ``path`` cannot be written as a file, as one line naming it and ``what`` it is for (a flag such as
+    ``--json``), or None. Looks only: ``path`` must not be a folder, and its nearest existing ancestor must be a
+    writable folder (an atomic write creates a sibling file there, then renames it)."""
+    path = Path(path)
+    if path.is_dir():
+        return f"{path}: {what} is a folder; name the file to write"
+    existing = nearest_existing(path.parent)
+    if not existing.is_dir():
+        return f"{path}: {what} lies under {existing}, which is a file, not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"{path}: {what} cannot be written ({existing}: permission denied)"
+    return None
+
+
 def make_folder(path: Path, what: str) -> Path:
     """Create ``path`` and its parents (``exist_ok``) as the folder for ``what``, or raise one line naming it: a file
     in the way (:func:`folder_problem`) or the system's reason (permission denied, read-only file system)."""

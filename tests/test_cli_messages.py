@@ -326,6 +326,26 @@ def test_an_unknown_flag_is_named_with_its_subcommand(capsys):
         assert line.startswith(start) and line.endswith(end), line
 
 
+@pytest.mark.parametrize(("argv", "flag"), [
+    (["reconstruct", "photo.png", "--checkpoint", "cpu-cars-sym-pp", "--out", ""], "--out"),
+    (["reconstruct", "photo.png", "--checkpoint", "cpu-cars-sym-pp", "--out="], "--out"),
+    (["eval", "--checkpoint", "cpu-cars-sym-pp", "--out", ""], "--out"), (["train", "--out", ""], "--out"),
+    (["train", "--data", ""], "--data"), (["synth", "--category", "cars", "--out", ""], "--out"),
+    (["compare", "x", "--out", ""], "--out"), (["demo", "--out", ""], "--out"),
+    (["fit-facing", "--checkpoint", "x", "--data", "d", "--category", "cars", "--out", ""], "--out"),
+    (["inspect", "d", "--json", ""], "--json"), (["depth-eval", "--data", "d", "--json", ""], "--json")])
+def test_an_empty_path_flag_is_refused_before_any_work(argv, flag, tmp_path, capsys, monkeypatch):
+    """``--out ''`` would be ``Path('')``, the current folder, where ``reconstruct`` wrote its files: every option
+    naming a path refuses an empty value while the flags are parsed."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    assert one_error(capsys) == (f"error: depthnerf {argv[0]}: {flag} is empty (depthnerf {argv[0]} --help lists "
+                                 "its options)")
+    assert not list(tmp_path.iterdir())
+
+
 def test_a_shortened_flag_is_refused_not_taken_for_a_longer_one(capsys):
     """Flags count as spelled in full: ``eval --views`` is not ``--views-stride`` (``reconstruct --views`` is the
     number of orbit views), nor ``train --max`` ``--max-steps``."""

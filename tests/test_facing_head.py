@@ -329,7 +329,7 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
     assert errors.main(["--checkpoint", str(path), "--data", str(root), "--category", "cars", "--split", "train"]) == 2
     assert "carries no facing head" in capsys.readouterr().err
     assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",
-                 "--views-per-object", "3", "--grid", "2", "--inputs", "photo", "--out", str(out)]) == 0
+                 "--views-per-object", "3", "--grid", "2", "--inputs", "photo", "--out", str(out), "--overwrite"]) == 0
     info = load_pretrained(out).facing_head.describe()
     assert info["views"] == 18 and info["inputs"] == "photo"
     assert main(["fit-facing", "--checkpoint", str(path), "--data", str(root), "--category", "cars",
@@ -337,7 +337,7 @@ def test_fit_facing_command_end_to_end(tmp_path, capsys):
     assert "--grid must be >= 1, got 0" in capsys.readouterr().err
     plain = save_tiny(tmp_path / "plain.safetensors", tiny_config("cars", "none"))
     assert main(["fit-facing", "--checkpoint", str(plain), "--data", str(root), "--category", "cars",
-                 "--out", str(out)]) == 2
+                 "--out", str(out), "--overwrite"]) == 2
     assert "not a mirror model" in capsys.readouterr().err
 
 

@@ -55,16 +55,19 @@ def test_a_photo_with_an_exif_orientation_is_read_upright(tmp_path):
 
 
 def test_a_very_long_photo_keeps_its_aspect_ratio_when_downscaled():
-    """5000x20 px -> 1024x4 (its shape), not 1024x16 (the object stretched four times in height)."""
-    rgb = np.full((20, 5000, 3), 255, np.uint8)
-    rgb[5:15, 2000:2500] = (200, 0, 0)
+    """5000x80 px -> 1024x16 (its shape), not 1024x64 (the object stretched four times in height); 5000x20 would
+    be 1024x4, below the 16 px a side needs, and is refused."""
+    rgb = np.full((80, 5000, 3), 255, np.uint8)
+    rgb[30:50, 1500:3500] = (200, 0, 0)
     notes: list[str] = []
     img, _, size = read_photo(Image.fromarray(rgb), notes)
-    assert size == (20, 5000) and img.shape[:2] == (4, MAX_SIDE)
-    assert notes == [f"downscaled from 5000x20 to {MAX_SIDE}x4 (box filter) first"]
+    assert size == (80, 5000) and img.shape[:2] == (16, MAX_SIDE)
+    assert notes == [f"downscaled from 5000x80 to {MAX_SIDE}x16 (box filter) first"]
     prepared = prepare_photo(Image.fromarray(rgb), None, 64, fill=0.5)
     rows = np.flatnonzero(prepared.mask.any(axis=1))
-    assert rows.size <= 2  # a bar 50 times longer than thick stays a bar one or two pixels thick at 64 px
+    assert rows.size <= 2  # a bar 100 times longer than thick stays a bar one or two pixels thick at 64 px
+    with pytest.raises(DepthnerfError, match=r"^image: image is 5000x20 px, 1024x4 once downscaled to 1024 px"):
+        read_photo(Image.fromarray(rgb[:20]), [])
 
 
 @pytest.mark.parametrize("photo, mask, line", [

@@ -4,6 +4,8 @@ is a copy of photo pixels), masks reduced by a loop over blocks, and thresholds 
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -102,20 +104,22 @@ def test_the_border_colour_mask_uses_the_largest_channel_difference(levels, is_o
 def test_alpha_above_one_half_is_object():
     rgb = np.zeros((20, 20, 3), np.float32)
     alpha = np.zeros((20, 20), np.float32)
-    alpha[5:10, 5:10], alpha[12:15, 12:15] = 0.5, 0.75
+    alpha[5:10, 5:10], alpha[12:16, 12:16] = 0.5, 0.75
     out = photo_mask(rgb, alpha, None, [])
-    assert not out[5:10, 5:10].any() and out[12:15, 12:15].all() and out.sum() == 9
+    assert not out[5:10, 5:10].any() and out[12:16, 12:16].all() and out.sum() == 16
 
 
-def test_a_given_mask_is_object_above_127_and_a_clean_mask_gets_no_note():
-    """``value > 127 of 255``: 127 is background, 128 object; a mask of dark (<= 32) and bright (>= 223) values
-    only is no photo (no note), one of middle greys is."""
+def test_a_given_mask_is_object_above_half_its_maximum_and_a_clean_mask_gets_no_note():
+    """A pixel is object where its value is above half the mask's own maximum: with 255 present, 127 is
+    background and 128 object (an anti-aliased edge splits at 127.5); a mask of dark (<= 32 of 255) and bright
+    (>= 223) values only, both scaled by its maximum, is no photo (no note), one of middle greys is."""
     rgb = np.zeros((20, 20, 3), np.float32)
     given = np.zeros((20, 20), np.uint8)
-    given[2:6, 2:6], given[10:14, 10:14] = 127, 128
+    given[2:6, 2:6], given[10:14, 10:14], given[0, 19] = 127, 128, 255
     notes: list[str] = []
     out = photo_mask(rgb, None, given, notes)
-    assert not out[2:6, 2:6].any() and out[10:14, 10:14].all() and out.sum() == 16
+    assert not out[2:6, 2:6].any() and out[10:14, 10:14].all() and out.sum() == 17
+    assert "mask: given (object: value > 127.5, half its maximum 255)" in notes
     assert not any("neither dark nor bright" in n for n in notes)
     clean = np.full((20, 20), 10, np.uint8)  # dark and bright, not 0 and 255
     clean[:, 10:] = 240
@@ -123,8 +127,27 @@ def test_a_given_mask_is_object_above_127_and_a_clean_mask_gets_no_note():
     photo_mask(rgb, None, clean, notes)
     assert not any("neither dark nor bright" in n for n in notes), notes
     notes = []
-    photo_mask(rgb, None, np.full((20, 20), 200, np.uint8), notes)
-    assert any("100% of its pixels are neither dark nor bright" in n for n in notes), notes
+    photo_mask(rgb, None, np.linspace(0, 255, 400).reshape(20, 20).astype(np.uint8), notes)
+    assert any("74% of its pixels are neither dark nor bright" in n for n in notes), notes
+
+
+@pytest.mark.parametrize("peak", [1, 100, 255])
+def test_a_mask_of_0_and_any_value_marks_the_same_object(peak):
+    """0/1 (a boolean array saved as it is), 0/100 and 0/255 masks mark the same pixels, with no note; also when
+    the mask is downscaled with a photo larger than ``MAX_SIDE`` (a 0/1 mask's averages are kept)."""
+    given = np.zeros((20, 20), np.uint8)
+    given[3:9, 4:15] = peak
+    notes: list[str] = []
+    assert np.array_equal(photo_mask(np.zeros((20, 20, 3), np.float32), None, given, notes), given > 0)
+    assert not any("neither dark nor bright" in n for n in notes), notes
+    big = np.kron(given, np.ones((2, 2), np.uint8))  # the mask of a photo twice the side, downscaled with it
+    small = photo_mask(np.zeros((20, 20, 3), np.float32), None, big, [], source_size=big.shape)
+    assert np.array_equal(small, given > 0)
+
+
+def test_an_all_zero_mask_is_refused():
+    with pytest.raises(DepthnerfError, match=r"^mask: the mask marks no object \(every pixel is 0\)$"):
+        photo_mask(np.zeros((20, 20, 3), np.float32), None, np.zeros((20, 20), np.uint8), [])
 
 
 def test_16_bit_pixels_are_divided_by_65535():
@@ -133,3 +156,51 @@ def test_16_bit_pixels_are_divided_by_65535():
     rgb, alpha, _ = read_photo(arr, [])
     assert alpha is None and rgb[0, 0].tolist() == [1.0, 1.0, 1.0]
     np.testing.assert_allclose(rgb[0, 1], [32768 / 65535, 1 / 65535, 0.0], rtol=1e-6)
+
+
+def test_a_side_below_the_minimum_once_downscaled_is_refused(tmp_path, capsys):
+    """A 4000x20 photo is 1024x5 once its longer side is downscaled to ``MAX_SIDE``: refused like a 5 px photo
+    (it was reconstructed into nothing, with exit status 0), by the header check ``reconstruct`` makes before
+    loading a model and by the reader alike; 4000x63 (1024x16) is taken."""
+    from PIL import Image
+
+    from depthnerf.cli import main
+
+    line = (f"{tmp_path / 'long.png'}: image is 4000x20 px, 1024x5 once downscaled to 1024 px on its longer side; "
+            "at least 16 px per side are needed")
+    Image.fromarray(np.full((20, 4000, 3), 255, np.uint8)).save(tmp_path / "long.png")
+    assert main(["reconstruct", str(tmp_path / "long.png"), "--checkpoint", "cpu-cars-sym-pp", "--out",
+                 str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == f"error: {line}\n"
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(DepthnerfError, match=f"^{re.escape(line)}$"):
+        read_photo(tmp_path / "long.png", [])
+    with pytest.raises(DepthnerfError, match=r"^image: image is 20x4000 px, 5x1024 once downscaled"):
+        read_photo(np.zeros((4000, 20, 3), np.uint8), [])
+    notes: list[str] = []
+    rgb, _, size = read_photo(np.zeros((63, 4000, 3), np.uint8), notes)
+    assert rgb.shape[:2] == (16, 1024) and size == (63, 4000)
+    assert notes == ["downscaled from 4000x63 to 1024x16 (box filter) first"]
+
+
+def test_an_object_below_the_minimum_size_is_refused():
+    """An object whose mask box is under ``MIN_OBJECT_SIDE`` (4) px on its longer side is a speck that framing
+    would blow up to the model's fill: refused in one line naming the mask (or the photo, for a found mask)."""
+    rgb = np.ones((40, 40, 3), np.float32)
+    for box, taken in (((1, 1), False), ((3, 2), False), ((4, 1), True)):
+        given = np.zeros((40, 40), np.uint8)
+        given[10:10 + box[1], 20:20 + box[0]] = 255
+        if taken:
+            assert photo_mask(rgb, None, given, []).sum() == box[0] * box[1]
+        else:
+            with pytest.raises(DepthnerfError, match=rf"^mask: the object is {box[0]}x{box[1]} px \(its mask's box\); "
+                                                     r"at least 4 px on its longer side are needed$"):
+                photo_mask(rgb, None, given, [])
+    speck = rgb.copy()
+    speck[20, 20] = 0.0  # one dark pixel on white: the border-colour mask finds it alone
+    with pytest.raises(DepthnerfError, match=r"^photo.png: the object is 1x1 px \(its mask's box\)"):
+        photo_mask(speck, None, None, [], "photo.png")
+    big = np.zeros((2048, 2048), np.uint8)
+    big[1000:1006, 1000:1006] = 255  # 3 x 3 px once downscaled with a 2048 px photo
+    with pytest.raises(DepthnerfError, match=r"^mask: the object is 3x3 px of the photo downscaled to 1024x1024 "):
+        photo_mask(np.ones((1024, 1024, 3), np.float32), None, big, [], source_size=(2048, 2048))

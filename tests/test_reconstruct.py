@@ -138,7 +138,7 @@ def test_mask_sources_alpha_given_grayscale():
     mask = np.zeros((40, 40), np.uint8)
     mask[0:8, 0:8] = 255
     given = prepare_photo(disc_photo(40, 40, (20, 20), 8), mask, 40, "keep")
-    assert "mask: given (value > 127 of 255 = object)" in given.notes and _bbox(given.mask) == (0, 0, 7, 7)
+    assert "mask: given (object: value > 127.5, half its maximum 255)" in given.notes and _bbox(given.mask) == (0, 0, 7, 7)
     grey = prepare_photo(Image.fromarray(disc_photo(40, 40, (20, 20), 8)[..., 0]), None, 40, "keep")
     assert "grayscale image: replicated to RGB" in grey.notes
     assert np.all(grey.image[..., 0] == grey.image[..., 2])
@@ -176,7 +176,7 @@ def test_bad_photos(tmp_path):
     binary[10:30, 10:30] = 255
     assert not any("neither dark nor bright" in n for n in prepare_photo(photo, binary, 32).notes)
     # an empty mask is named as the mask's fault, a transparent cut-out as the alpha channel's
-    with pytest.raises(DepthnerfError, match=r"^mask: the mask marks no object \(no pixel above 127 of 255\)$"):
+    with pytest.raises(DepthnerfError, match=r"^mask: the mask marks no object \(every pixel is 0\)$"):
         prepare_photo(disc_photo(40, 40, (20, 20), 8), np.zeros((40, 40), np.uint8), 32)
     clear = np.zeros((40, 40, 4), np.uint8)
     clear[..., :3] = 200
@@ -290,7 +290,7 @@ def test_cli_writes_every_listed_output(models, tmp_path, capsys):
     settings = manifest["settings"]
     assert settings["mesh_keep"] == "largest" and "seen along the input camera's ray" in settings["mesh_colors"]
     assert len(ply.faces) == settings["mesh_faces_kept"] <= settings["mesh_faces_extracted"]
-    assert "mask: given (value > 127 of 255 = object)" in manifest["input"]["notes"]
+    assert "mask: given (object: value > 127.5, half its maximum 255)" in manifest["input"]["notes"]
 
 
 def test_baseline_has_no_prior_and_other_resolution(models, tmp_path, monkeypatch):

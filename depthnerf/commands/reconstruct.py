@@ -34,7 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="output folder (manifest.json lists every file); checked before any work")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier reconstruction in --out (only the files reconstruct writes)")
-    p.add_argument("--mask", type=Path, help="object mask, same size as the image (non-zero = object)")
+    p.add_argument("--mask", type=Path,
+                   help="object mask, same size as the image (object: values above half the mask's maximum, so "
+                        "0/1 and 0/255 masks both work)")
     p.add_argument("--background-removal", choices=MODES, default="auto",
                    help="remove the background of a photo without alpha or mask with a rembg model: auto (default: "
                         "when rembg and the model are installed, pip install 'depthnerf[bg]'), on, off")

@@ -84,6 +84,13 @@ class EncoderConfig:
             raise DepthnerfError(f"model config: encoder.depth_channels and depth_hidden must be >= 1, got "
                                  f"{self.depth_channels} and {self.depth_hidden}")
 
+    def feature_side(self, resolution: int) -> int:
+        """Side in pixels of the encoded feature maps (``Hf``) for square ``resolution`` inputs: ``image_scale``
+        (floored, as ``F.interpolate`` sizes it), then conv1's ceil-halving (the deeper stages are resized up to
+        it)."""
+        side = math.floor(resolution * self.image_scale) if self.image_scale != 1.0 else resolution
+        return -(-side // 2)
+
     def deepest_side(self, resolution: int) -> int:
         """Side in pixels of the deepest feature stage for square ``resolution`` inputs: ``image_scale`` (floored,
         as ``F.interpolate`` sizes it), then a ceil-halving for conv1, for the max-pool (with more than one stage)

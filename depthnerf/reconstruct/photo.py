@@ -8,7 +8,10 @@ Input photo (assumption: ONE object, roughly centred, on a plain background)
     a file with an EXIF orientation tag (a camera's portrait JPEG) is turned upright as viewers show it, and so
     is a mask file (noted); grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
     images larger than :data:`MAX_SIDE` px are first downscaled (box filter, aspect ratio kept) so the longer side
-    is ``MAX_SIDE`` (noted). Mask, in order: the given mask (non-zero = object, same size as the upright image);
+    is ``MAX_SIDE`` (noted), and a side that this leaves below :data:`MIN_SIDE` is an error too (a 4000x20
+    photo). An object whose mask box is below :data:`MIN_OBJECT_SIDE` px on its longer side is an error. Mask, in order: the given mask (a pixel is object where its value is above half the
+    mask's own maximum, so 0/1, 0/100 and 0/255 masks all work and an anti-aliased 0..255 edge splits at 127.5; an
+    all-zero mask is an error; same size as the upright image);
     else the alpha channel (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
     (:mod:`depthnerf.reconstruct.background`), its foreground score as the alpha (then as for alpha; the RGBA
     cut-out is kept in :attr:`PreparedImage.cutout`); else the *background colour* = the per-channel median
@@ -44,7 +47,10 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import BackgroundRemover
 
 MIN_SIDE = 16
-"""Smallest accepted image side (pixels)."""
+"""Smallest accepted image side (pixels), also after a downscale to :data:`MAX_SIDE`."""
+MIN_OBJECT_SIDE = 4
+"""Smallest accepted longer side (pixels) of the object's mask box: a smaller object is a speck, which framing
+would blow up to the model's fill."""
 MAX_SIDE = 1024
 """Longer image sides are downscaled to this first."""
 FLOAT_SLACK = 0.01
@@ -63,7 +69,8 @@ ImageLike = str | Path | np.ndarray | Image.Image
 EXIF_ORIENTATION = 0x0112
 """The EXIF tag that says how a file's stored pixels are turned for display (1: as stored)."""
 MASK_DARK = 32
-"""A given mask's values <= this (or >= 255 - this) count as dark (bright); a mask is mostly one or the other."""
+"""A given mask's values <= this (or >= 255 - this) count as dark (bright) when its maximum is 255, scaled by its
+own maximum else; a mask is mostly one or the other."""
 MASK_GREY_SHARE = 0.1
 """A given mask with more than this share of values between dark and bright gets a note (it may be a photo)."""
 
@@ -150,17 +157,35 @@ def _read_errors(name: str, what: str, *more: type[Exception]) -> Iterator[None]
         raise DepthnerfError(f"{name}: unreadable {what} ({err})") from None
 
 
+def checked_size(size: tuple[int, int], name: str) -> tuple[int, int]:
+    """The ``(height, width)`` a photo of ``size`` is read at: downscaled so that its longer side is at most
+    :data:`MAX_SIDE` (aspect ratio kept); either side below :data:`MIN_SIDE`, as given or after the downscale, is
+    one line naming the photo ``name`` and its sizes."""
+    height, width = size
+    if min(size) < MIN_SIDE:
+        raise DepthnerfError(f"{name}: image is {width}x{height} px; at least {MIN_SIDE} px per side are needed")
+    if max(size) <= MAX_SIDE:
+        return size
+    scale = MAX_SIDE / max(size)
+    small = (max(1, round(height * scale)), max(1, round(width * scale)))
+    if min(small) < MIN_SIDE:
+        raise DepthnerfError(f"{name}: image is {width}x{height} px, {small[1]}x{small[0]} once downscaled to "
+                             f"{MAX_SIDE} px on its longer side; at least {MIN_SIDE} px per side are needed")
+    return small
+
+
 def check_image_file(path: str | Path, what: str = "image") -> None:
     """Fail at once, before any model loads, when ``path`` cannot be the photo (``what="image"``: missing, a
-    folder, not an image, not a :data:`PHOTO_FORMATS` format, a side below :data:`MIN_SIDE`) or the mask
+    folder, not an image, not a :data:`PHOTO_FORMATS` format, a side below :data:`MIN_SIDE` as read or once
+    downscaled, :func:`checked_size`) or the mask
     (``what="mask"``); only the header is read (a truncated file fails when :func:`prepare_photo` reads it)."""
     name = str(path)
     with _read_errors(name, what), Image.open(path) as im:
         size = im.size
         if what == "image":
             check_photo_format(im.format, name)
-    if what == "image" and min(size) < MIN_SIDE:
-        raise DepthnerfError(f"{name}: image is {size[0]}x{size[1]} px; at least {MIN_SIDE} px per side are needed")
+    if what == "image":
+        checked_size((size[1], size[0]), name)
 
 
 def _open(source: str | Path | Image.Image, name: str, notes: list[str]) -> Image.Image:
@@ -195,12 +220,8 @@ def read_photo(source: ImageLike, notes: list[str]) -> tuple[np.ndarray, np.ndar
         size = arr.shape[:2]
     else:
         size = (im.height, im.width)
-    if min(size) < MIN_SIDE:
-        raise DepthnerfError(f"{name}: image is {size[1]}x{size[0]} px; at least {MIN_SIDE} px per side are needed")
-    small = size
-    if max(size) > MAX_SIDE:
-        scale = MAX_SIDE / max(size)
-        small = (max(1, round(size[0] * scale)), max(1, round(size[1] * scale)))  # the aspect ratio kept
+    small = checked_size(size, name)
+    if small != size:
         notes.append(f"downscaled from {size[1]}x{size[0]} to {small[1]}x{small[0]} (box filter) first")
         if im is not None:
             im = im.resize((small[1], small[0]), Image.Resampling.BOX)
@@ -234,19 +255,23 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
         with _read_errors(where, "mask", TypeError):  # TypeError: an array Pillow cannot take
             im = Image.fromarray(np.asarray(mask)) if isinstance(mask, np.ndarray) else (
                 mask if isinstance(mask, Image.Image) else upright(Image.open(mask), notes, "mask"))
-            im = im.convert("L")
+            im = im.convert("L").convert("F")  # float: a downscaled 0/1 mask keeps its averages
         if source_size is not None and (im.height, im.width) == source_size != (height, width):
             im = im.resize((width, height), Image.Resampling.BOX)
         if (im.height, im.width) != (height, width):
             raise DepthnerfError(f"{where}: mask is {im.width}x{im.height} but the image is "
                                  f"{(source_size or (height, width))[1]}x{(source_size or (height, width))[0]}")
-        notes.append("mask: given (value > 127 of 255 = object)")
-        values = np.asarray(im)
-        grey = float(((values > MASK_DARK) & (values < 255 - MASK_DARK)).mean())
+        values = np.asarray(im, dtype=np.float32)
+        peak = float(values.max())
+        if peak <= 0:
+            raise DepthnerfError(f"{where}: the mask marks no object (every pixel is 0)")
+        notes.append(f"mask: given (object: value > {peak / 2:g}, half its maximum {peak:g})")
+        dark, bright = peak * MASK_DARK / 255, peak * (255 - MASK_DARK) / 255
+        grey = float(((values > dark) & (values < bright)).mean())
         if grey > MASK_GREY_SHARE:
             notes.append(f"mask: {grey:.0%} of its pixels are neither dark nor bright (a photo rather than a mask?); "
                          "check input_mask.png")
-        out = values > 127
+        out = values > peak / 2
     elif alpha is not None:
         notes.append(f"mask: alpha > {ALPHA_THRESHOLD}")
         out = alpha > ALPHA_THRESHOLD
@@ -260,12 +285,25 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
                      f"more than {BACKGROUND_TOLERANCE}")
         check_plain_background(out, ring, name, hint)
     if not out.any():
-        if mask is not None:
-            raise DepthnerfError(f"{where}: the mask marks no object (no pixel above 127 of 255)")
         if alpha is not None:
             raise DepthnerfError(f"{name}: no object found (the alpha channel is transparent everywhere)")
         raise DepthnerfError(f"{name}: no object found (every pixel has the border's colour); pass a mask (--mask)")
+    check_object_size(out, where if mask is not None else name, source_size)
     return out
+
+
+def check_object_size(mask: np.ndarray, name: str, source_size: tuple[int, int] | None = None) -> None:
+    """Refuse an object whose mask box is below :data:`MIN_OBJECT_SIDE` px on its longer side, in one line naming
+    ``name`` (the mask file, or the photo); ``source_size``: the photo's size as read, named when it was
+    downscaled."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    height, width = int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1)
+    if max(height, width) >= MIN_OBJECT_SIDE:
+        return
+    scaled = (f" of the photo downscaled to {mask.shape[1]}x{mask.shape[0]}"
+              if source_size is not None and tuple(source_size) != mask.shape else "")
+    raise DepthnerfError(f"{name}: the object is {width}x{height} px{scaled} (its mask's box); at least "
+                         f"{MIN_OBJECT_SIDE} px on its longer side are needed")
 
 
 def border_ring(mask: np.ndarray, ring: int) -> np.ndarray:

@@ -138,9 +138,24 @@ def encodings(session: InferenceSession, src: ObjectViews, inputs: str, plane: S
                              torch.from_numpy(framed_mask)[None], src.poses[0], intr, symmetry_plane=plane)
 
 
+def check_fit(session: InferenceSession, checkpoint: str | Path, cfg: FacingHeadConfig) -> None:
+    """Refuse, before any view is encoded, a fit that means nothing: data of another category than the model's
+    (a head learns how the model's objects look from each side), or a pooling grid finer than the encoder's feature
+    maps (the cells would repeat feature values; the features grow with ``grid^2``)."""
+    trained = session.spec.category
+    if cfg.category != trained:
+        raise DepthnerfError(f"{checkpoint}: a {trained} model, given {cfg.category} data (--category "
+                             f"{cfg.category}); fit its facing head on {trained} views")
+    side = session.model.cfg.encoder.feature_side(session.spec.resolution)
+    if cfg.grid > side:
+        raise DepthnerfError(f"--grid must be <= {side} (the encoder's feature maps are {side} x {side} at the "
+                             f"model's resolution {session.spec.resolution}), got {cfg.grid}")
+
+
 def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHeadFit:
     """Fit a head for ``checkpoint`` (module docstring)."""
     session, records = dataset_session(checkpoint, cfg)
+    check_fit(session, checkpoint, cfg)
     if len(records) < 5:
         raise DepthnerfError(f"{cfg.data}/{cfg.category}_{cfg.split}: {len(records)} objects; a facing head needs "
                              "at least 5 (one fifth is held out to choose the ridge weight)")

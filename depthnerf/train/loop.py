@@ -218,7 +218,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
         model = PixelNeRF(cfg.model, depth_aware=cfg.prior.enabled).to(info.device)
         warm = None
         if latest is None and cfg.init_from is not None:
-            warm = warm_start(model, cfg.init_from, cfg.model, cfg.prior.enabled)
+            warm = warm_start(model, cfg.init_from, cfg.model, cfg.prior.enabled, cat)
         if info.device.type == "cuda":
             model.encoder.to(memory_format=torch.channels_last)
         cuda = info.device.type == "cuda"

@@ -8,6 +8,8 @@ difference is allowed because it adds to the network without changing its functi
 ``global_features`` starts a run with them (:data:`ADDED_AT_ZERO`), the new linears starting at zero weights and
 bias, so the run's first step starts from the source's function and the new term grows from its gradient.
 Settings of training alone (:data:`TRAINING_ONLY`: whose statistics the encoder normalises with) may differ too.
+A source trained on another category than the run's data is one warning line, not an error: a cross-category warm
+start may be deliberate.
 
 Steps in all. A chain of warm starts is recorded as the steps behind each source *in all*
 (:attr:`WarmStart.total_steps`, :func:`steps_in_all`): the source's ``total_steps`` metadata (written by
@@ -20,13 +22,14 @@ trained from scratch, or a chain that predates the field).
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from depthnerf.config_io import differences, to_dict
-from depthnerf.errors import DepthnerfError
+from depthnerf.errors import DepthnerfError, UsageWarning
 from depthnerf.files import sha256_file
 from depthnerf.model.config import PixelNeRFConfig
 from depthnerf.model.facing_head import PREFIX as HEAD_PREFIX
@@ -102,12 +105,17 @@ def _run_warm_start_steps(path: Path) -> int:
     return behind
 
 
-def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, depth_aware: bool) -> WarmStart:
-    """Load ``source``'s weights into ``model`` (strictly) after checking that it is the same network."""
+def warm_start(model: torch.nn.Module, source: str, model_cfg: PixelNeRFConfig, depth_aware: bool,
+               category: str | None = None) -> WarmStart:
+    """Load ``source``'s weights into ``model`` (strictly) after checking that it is the same network; a source
+    trained on another ``category`` than the run's data is warned of in one line (it may be deliberate)."""
     path = resolve_checkpoint(source)
     tensors, meta = read_weights(path)
     tensors = {k: v for k, v in tensors.items() if not k.startswith(HEAD_PREFIX)}  # a facing head is refitted
     spec = spec_from_metadata(meta, str(path))
+    if category is not None and spec.category != category:
+        warnings.warn(f"{path}: --init-from is a {spec.category} model, the run trains on {category} data; the "
+                      f"warm start begins from another category's weights", UsageWarning, stacklevel=2)
     if spec.depth_aware != depth_aware:
         kind = {True: "depth-aware", False: "a baseline (no prior)"}
         raise DepthnerfError(f"{path}: --init-from is {kind[spec.depth_aware]}, the run is {kind[depth_aware]}; "
