@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from fixtures_srn import first_object
 from PIL import Image
 
@@ -106,6 +107,22 @@ def _mesh_truncated(root: Path) -> tuple[Path, str]:
     return path, "truncated PLY mesh"
 
 
+def _mesh_face_out_of_range(root: Path) -> tuple[Path, str]:
+    path = first_object(root) / "mesh.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n3 0 1 99\n")
+    return path, "face 0 names vertex 99, but the mesh has 3 vertices"
+
+
+def _mesh_nan_vertex(root: Path) -> tuple[Path, str]:
+    path = first_object(root) / "mesh.ply"
+    mesh = trimesh.load(path, force="mesh", process=False)
+    mesh.vertices[1] = np.nan
+    mesh.export(path)
+    return path, "mesh has non-finite vertices"
+
+
 BAD_OPTIONAL_CASES = {
     "mask_size_vs_intrinsics": ("mask", _mask_size),
     "mask_truncated": ("mask", _mask_truncated),
@@ -124,6 +141,8 @@ BAD_OPTIONAL_CASES = {
     "depth_integer_npy": ("depth", _depth_array("000001.npy", np.ones((16, 16), np.uint16), "expected floats")),
     "mesh_not_ply": ("mesh", _mesh_garbage),
     "mesh_truncated": ("mesh", _mesh_truncated),
+    "mesh_face_out_of_range": ("mesh", _mesh_face_out_of_range),
+    "mesh_nan_vertex": ("mesh", _mesh_nan_vertex),
 }
 """Ways to break an *optional* part of the first train object of a ``make_srn_fixture(..., with_depth=True,
 with_mask=True, with_mesh=True)`` folder: ``name -> (part, mutate)``; ``mutate(root)`` returns ``(path, text)``.
