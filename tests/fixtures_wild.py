@@ -86,6 +86,14 @@ def _depth_png_no_scale(root: Path) -> tuple[Path, str]:
     return path, "16-bit PNG depth needs a scale: write the world units per PNG unit"
 
 
+def _depth_png_8bit_no_scale(root: Path) -> tuple[Path, str]:
+    obj = first_object(root)
+    (obj / "depth" / "000001.npz").unlink()
+    path = obj / "depth" / "000001.png"
+    Image.fromarray(np.full((16, 16), 40, np.uint8), mode="L").save(path)
+    return path, "PNG depth must be 16-bit grey, got mode L"
+
+
 def _depth_bad_scale(root: Path) -> tuple[Path, str]:
     _depth_png_no_scale(root)
     path = root / "cars_train" / srn_format.DEPTH_SCALE_FILE
@@ -133,6 +141,7 @@ BAD_OPTIONAL_CASES = {
     "depth_stray_file": ("depth", _depth_stray),
     "depth_exr": ("depth", _depth_exr),
     "depth_png_without_scale": ("depth", _depth_png_no_scale),
+    "depth_png_8bit_without_scale": ("depth", _depth_png_8bit_no_scale),
     "depth_scale_malformed": ("depth", _depth_bad_scale),
     "depth_nan_filled": ("depth", _depth_array("000001.npy", np.full((16, 16), np.nan, np.float32), "NaN or inf")),
     "depth_all_zero": ("depth", _depth_array("000001.npy", np.zeros((16, 16), np.float32), "all zero")),

@@ -195,14 +195,31 @@ def _check_numpy_signature(path: Path, suffix: str) -> None:
                              f"numpy.{'savez' if suffix == '.npz' else 'save'}")
 
 
+def _png16_mode_error(path: Path, mode: str) -> DepthnerfError:
+    return DepthnerfError(f"{path}: PNG depth must be 16-bit grey, got mode {mode} (8-bit depth is too coarse; "
+                          "store 16-bit PNG, .npy or .npz)")
+
+
+def check_png_depth_mode(path: Path) -> None:
+    """Check from its header that a PNG depth file is 16-bit grey (the error :func:`read_depth` would give), so
+    that a file no scale can help is reported before a missing ``depth_scale.txt``."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            mode = im.mode
+    except (OSError, Image.DecompressionBombError) as err:
+        raise DepthnerfError(f"{path}: unreadable depth map ({err})") from None
+    if mode not in _PNG16_MODES:
+        raise _png16_mode_error(path, mode)
+
+
 def _depth_png(path: Path, png_scale: float | None) -> np.ndarray:
     with Image.open(path) as im:
         im.load()
         mode = im.mode
         arr = np.asarray(im)
     if mode not in _PNG16_MODES:
-        raise DepthnerfError(f"{path}: PNG depth must be 16-bit grey, got mode {mode} (8-bit depth is too coarse; "
-                             "store 16-bit PNG, .npy or .npz)")
+        raise _png16_mode_error(path, mode)
     if png_scale is None:
         raise DepthnerfError(f"{path}: 16-bit PNG depth needs a scale: write the world units per PNG unit (e.g. "
                              f"0.001) into {DEPTH_SCALE_FILE} in the object, split or dataset folder")
