@@ -309,3 +309,24 @@ def test_train_with_a_worker_prints_a_damaged_prior_as_one_line(data, tmp_path, 
                         f"{data} --depth bundled --depth-checkpoint {ckpt} --category cars --splits train "
                         "--resolution 16\n"), err
     assert "Traceback" not in err
+
+
+def test_a_cache_folder_without_its_manifest_names_the_manifest_and_depth_restores_it(data, tmp_path, capsys):
+    """The folder of the right weights and resolution exists, its manifest.json is gone: the error names the
+    manifest (not 'no priors ... found only: <that folder>'), and rerunning depth writes the manifest again."""
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt) == 0
+    store = PriorStore.open(data, "bundled", ckpt, resolution=16)
+    manifest = store.root / "manifest.json"
+    kept = json.loads(manifest.read_text())
+    manifest.unlink()
+    with pytest.raises(DepthnerfError) as err:
+        PriorStore.open(data, "bundled", ckpt, resolution=16)
+    assert str(err.value).startswith(f"{manifest}: cache manifest is missing")
+    assert f"rerun: depthnerf depth --data {data}" in str(err.value) and "found only" not in str(err.value)
+    capsys.readouterr()
+    assert _depth(data, ckpt) == 0
+    assert "0 objects computed (0 were stale), 3 already up to date" in capsys.readouterr().out
+    restored = json.loads(manifest.read_text())
+    assert restored["splits"] == kept["splits"] and restored["provenance"] == kept["provenance"]
+    PriorStore.open(data, "bundled", ckpt, resolution=16).check(index_split(data, "cars", "train").objects)
