@@ -172,6 +172,19 @@ def test_bad_inputs_are_one_line_errors(data, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("flags, line", [
+    (["--resolution", "7"], "--resolution must be >= 8, got 7"),  # was: cached at 7 px, which nothing reads
+    (["--category", "planes"], "{data}: --category planes: no planes_<split> folder (train, val, test) exists here "
+                               "(categories here: cars)"),  # was: 'none of the requested splits exist'
+])
+def test_depth_refuses_flags_that_cannot_work_in_one_line(data, tmp_path, capsys, flags, line):
+    """Before an estimator loads or a prior is written, in the words train and eval use."""
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, *flags) == 2
+    assert capsys.readouterr().err == f"error: {line.format(data=data)}\n"
+    assert not (data / "depth_priors").exists()
+
+
+@pytest.mark.parametrize("flags, line", [
     (["--max-objects", "0"], "--max-objects must be positive, got 0"),  # was: every object, exit 0
     (["--max-objects", "-1"], "--max-objects must be positive, got -1"),  # was: an IndexError traceback
     (["--batch-size", "0"], "--batch-size must be positive, got 0"),  # was: a ValueError traceback
