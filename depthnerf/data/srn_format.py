@@ -15,7 +15,8 @@ EXR depth is refused (:data:`EXR_UNSUPPORTED`). Every reader raises :class:`~dep
 with one line naming the file and the problem. Which files an object folder uses, and what happens when an
 optional one is bad, is :mod:`depthnerf.data.srn_parts`'s business.
 
-The text writers (intrinsics, poses) write atomically through :mod:`depthnerf.files`. The image and depth writers
+The text readers (intrinsics, poses, ``depth_scale.txt``) skip a UTF-8 byte-order mark (Windows editors write
+one). The text writers (intrinsics, poses) write atomically through :mod:`depthnerf.files`. The image and depth writers
 write in place: a dataset generator marks a finished object by writing its own marker last
 (:mod:`depthnerf.data.synth.generate`), which is what makes a torn view file impossible to mistake for a
 finished one.
@@ -45,7 +46,7 @@ def read_intrinsics(path: Path) -> Intrinsics:
     """Parse ``intrinsics.txt`` (focal, principal point on line 1; ``H W`` on the last line)."""
     path = Path(path)
     try:
-        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+        lines = [ln.split() for ln in path.read_text(encoding="utf-8-sig").splitlines() if ln.strip()]
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read intrinsics ({err.strerror or err})") from None
     except UnicodeDecodeError:
@@ -77,7 +78,7 @@ def read_pose(path: Path) -> np.ndarray:
     """Read a 4x4 camera-to-world pose and check that it is a finite rigid transform."""
     path = Path(path)
     try:
-        values = np.array(path.read_text().split(), dtype=np.float64)
+        values = np.array(path.read_text(encoding="utf-8-sig").split(), dtype=np.float64)
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read pose ({err.strerror or err})") from None
     except ValueError:
@@ -315,7 +316,7 @@ def read_depth_scale(path: Path) -> float:
     """The number in a ``depth_scale.txt``: world units per 16-bit PNG depth unit (finite, > 0)."""
     path = Path(path)
     try:
-        text = path.read_text().split()
+        text = path.read_text(encoding="utf-8-sig").split()
         scale = float(text[0]) if len(text) == 1 else float("nan")
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read the depth scale ({err.strerror or err})") from None
