@@ -151,7 +151,9 @@ class LogConfig:
     val_objects: int = 4
     """Number of fixed validation objects (the first ones of the val split)."""
     val_views: tuple[int, ...] = (0, 125, 200)
-    """Target views rendered per validation object (view 64 is the input, as in the test protocol)."""
+    """Target views rendered per validation object (view 64 is the input, as in the test protocol). Views other
+    than these defaults (SRN's 251-view val objects) must exist in every val object; the defaults fall back to
+    views an object has, with a note."""
     val_input_views: tuple[int, ...] = ()
     """Views each validation object is conditioned on, the first the primary (``64,104``: a model trained with
     ``--data.source_views 2`` validated, and its best checkpoint chosen, as pixelNeRF's two-view protocol scores
