@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
 from fixtures_srn import first_object
 from PIL import Image
 
@@ -85,6 +86,14 @@ def _depth_png_no_scale(root: Path) -> tuple[Path, str]:
     return path, "16-bit PNG depth needs a scale: write the world units per PNG unit"
 
 
+def _depth_png_8bit_no_scale(root: Path) -> tuple[Path, str]:
+    obj = first_object(root)
+    (obj / "depth" / "000001.npz").unlink()
+    path = obj / "depth" / "000001.png"
+    Image.fromarray(np.full((16, 16), 40, np.uint8), mode="L").save(path)
+    return path, "PNG depth must be 16-bit grey, got mode L"
+
+
 def _depth_bad_scale(root: Path) -> tuple[Path, str]:
     _depth_png_no_scale(root)
     path = root / "cars_train" / srn_format.DEPTH_SCALE_FILE
@@ -106,6 +115,22 @@ def _mesh_truncated(root: Path) -> tuple[Path, str]:
     return path, "truncated PLY mesh"
 
 
+def _mesh_face_out_of_range(root: Path) -> tuple[Path, str]:
+    path = first_object(root) / "mesh.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n3 0 1 99\n")
+    return path, "face 0 names vertex 99, but the mesh has 3 vertices"
+
+
+def _mesh_nan_vertex(root: Path) -> tuple[Path, str]:
+    path = first_object(root) / "mesh.ply"
+    mesh = trimesh.load(path, force="mesh", process=False)
+    mesh.vertices[1] = np.nan
+    mesh.export(path)
+    return path, "mesh has non-finite vertices"
+
+
 BAD_OPTIONAL_CASES = {
     "mask_size_vs_intrinsics": ("mask", _mask_size),
     "mask_truncated": ("mask", _mask_truncated),
@@ -116,6 +141,7 @@ BAD_OPTIONAL_CASES = {
     "depth_stray_file": ("depth", _depth_stray),
     "depth_exr": ("depth", _depth_exr),
     "depth_png_without_scale": ("depth", _depth_png_no_scale),
+    "depth_png_8bit_without_scale": ("depth", _depth_png_8bit_no_scale),
     "depth_scale_malformed": ("depth", _depth_bad_scale),
     "depth_nan_filled": ("depth", _depth_array("000001.npy", np.full((16, 16), np.nan, np.float32), "NaN or inf")),
     "depth_all_zero": ("depth", _depth_array("000001.npy", np.zeros((16, 16), np.float32), "all zero")),
@@ -124,6 +150,8 @@ BAD_OPTIONAL_CASES = {
     "depth_integer_npy": ("depth", _depth_array("000001.npy", np.ones((16, 16), np.uint16), "expected floats")),
     "mesh_not_ply": ("mesh", _mesh_garbage),
     "mesh_truncated": ("mesh", _mesh_truncated),
+    "mesh_face_out_of_range": ("mesh", _mesh_face_out_of_range),
+    "mesh_nan_vertex": ("mesh", _mesh_nan_vertex),
 }
 """Ways to break an *optional* part of the first train object of a ``make_srn_fixture(..., with_depth=True,
 with_mask=True, with_mesh=True)`` folder: ``name -> (part, mutate)``; ``mutate(root)`` returns ``(path, text)``.

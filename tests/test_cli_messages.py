@@ -229,6 +229,7 @@ def test_the_cli_and_the_app_refuse_the_same_formats(tmp_path, capsys):
     (["--max-steps", "-5"], "--max-steps must be >= 1, got -5"),
     (["--max-steps", "0"], "--max-steps must be >= 1, got 0"),
     (["--checkpoint-every", "0"], "--checkpoint-every must be >= 1, got 0"),
+    (["--seed", "-1"], "--seed must be >= 0, got -1"),  # as synth and demo refuse it
     (["--schedule.lr", "-1"], "--schedule.lr must be > 0, got -1.0"),
     (["--schedule.rays_per_object", "0"], "--schedule.rays_per_object must be >= 1, got 0"),
     (["--model.coarse.d_hidden", "-4"], "--model.coarse.d_hidden -4: model config: field.d_hidden must be >= 1, got -4"),

@@ -172,6 +172,19 @@ def test_bad_inputs_are_one_line_errors(data, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("flags, line", [
+    (["--resolution", "7"], "--resolution must be >= 8, got 7"),  # was: cached at 7 px, which nothing reads
+    (["--category", "planes"], "{data}: --category planes: no planes_<split> folder (train, val, test) exists here "
+                               "(categories here: cars)"),  # was: 'none of the requested splits exist'
+])
+def test_depth_refuses_flags_that_cannot_work_in_one_line(data, tmp_path, capsys, flags, line):
+    """Before an estimator loads or a prior is written, in the words train and eval use."""
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt, *flags) == 2
+    assert capsys.readouterr().err == f"error: {line.format(data=data)}\n"
+    assert not (data / "depth_priors").exists()
+
+
+@pytest.mark.parametrize("flags, line", [
     (["--max-objects", "0"], "--max-objects must be positive, got 0"),  # was: every object, exit 0
     (["--max-objects", "-1"], "--max-objects must be positive, got -1"),  # was: an IndexError traceback
     (["--batch-size", "0"], "--batch-size must be positive, got 0"),  # was: a ValueError traceback
@@ -309,3 +322,24 @@ def test_train_with_a_worker_prints_a_damaged_prior_as_one_line(data, tmp_path, 
                         f"{data} --depth bundled --depth-checkpoint {ckpt} --category cars --splits train "
                         "--resolution 16\n"), err
     assert "Traceback" not in err
+
+
+def test_a_cache_folder_without_its_manifest_names_the_manifest_and_depth_restores_it(data, tmp_path, capsys):
+    """The folder of the right weights and resolution exists, its manifest.json is gone: the error names the
+    manifest (not 'no priors ... found only: <that folder>'), and rerunning depth writes the manifest again."""
+    ckpt = _weights(tmp_path / "a.safetensors", 0)
+    assert _depth(data, ckpt) == 0
+    store = PriorStore.open(data, "bundled", ckpt, resolution=16)
+    manifest = store.root / "manifest.json"
+    kept = json.loads(manifest.read_text())
+    manifest.unlink()
+    with pytest.raises(DepthnerfError) as err:
+        PriorStore.open(data, "bundled", ckpt, resolution=16)
+    assert str(err.value).startswith(f"{manifest}: cache manifest is missing")
+    assert f"rerun: depthnerf depth --data {data}" in str(err.value) and "found only" not in str(err.value)
+    capsys.readouterr()
+    assert _depth(data, ckpt) == 0
+    assert "0 objects computed (0 were stale), 3 already up to date" in capsys.readouterr().out
+    restored = json.loads(manifest.read_text())
+    assert restored["splits"] == kept["splits"] and restored["provenance"] == kept["provenance"]
+    PriorStore.open(data, "bundled", ckpt, resolution=16).check(index_split(data, "cars", "train").objects)

@@ -8,7 +8,9 @@ seconds.
 
 from __future__ import annotations
 
+import csv
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -183,8 +185,6 @@ def test_compare_marks_partly_empty_meshes_and_leaves_full_ones_plain(tmp_path):
 def test_max_objects_checks_the_files_of_the_objects_it_scores(case, tmp_path, capsys):
     """``--max-objects N`` reads and checks the files of the N objects it evaluates, not the whole split's: a
     broken pose in another object does not stop it, while the whole split's evaluation names that file."""
-    import shutil
-
     root = tmp_path / "data"
     shutil.copytree(case["root"], root)
     second = sorted(p for p in (root / "cars_test").iterdir() if p.is_dir())[1]
@@ -212,3 +212,28 @@ def test_gather_inside_reaches_the_fields_and_scores_the_same(case, tmp_path, mo
         psnr[gather] = json.loads((tmp_path / gather / "summary.json").read_text())["psnr"]
     assert len(seen) == 2  # the inside run's coarse and fine forwards (--gather inside implies --compile)
     assert psnr["inside"] == pytest.approx(psnr["before"], abs=1e-4)
+
+
+@pytest.mark.parametrize("body, problem", [
+    ("0 0 0\n1 0 0\n0 1 0\n3 0 1 99\n", "face 0 names vertex 99, but the mesh has 3 vertices (0-2)"),
+    ("0 0 0\nnan 0 0\n0 1 0\n3 0 1 2\n", "mesh has non-finite vertices"),
+])
+def test_a_bad_ground_truth_mesh_is_one_warning_and_that_object_goes_unscored(case, tmp_path, capsys, body: str,
+                                                                               problem: str):
+    """mesh.ply is optional: a face naming a missing vertex or a NaN vertex turns it off for its object (one
+    warning naming the file) as for an object without one; the other object is still scored."""
+    root = tmp_path / "data"
+    shutil.copytree(case["root"], root)
+    bad = sorted((root / "cars_test").iterdir())[0] / "mesh.ply"
+    bad.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 1\nproperty list uchar int vertex_indices\nend_header\n" + body)
+    out = tmp_path / "eval"
+    assert main(["eval", "--checkpoint", str(case["plain"]), "--data", str(root), "--out", str(out),
+                 "--mesh-resolution", "8", "--mesh-points", "200", "--no-progress"]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith(("warning", "error"))]
+    assert err == [f"warning: {bad}: {problem}; mesh.ply not used for this object"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert "1 of 2 objects have mesh.ply" in summary["mesh_status"], summary["mesh_status"]
+    rows = {row["object_id"]: row for row in csv.DictReader((out / "per_object.csv").open())}
+    assert rows[bad.parent.name]["chamfer_l1"] == "" and rows[bad.parent.name]["psnr"] != ""
+    assert all(row["chamfer_l1"] != "" for name, row in rows.items() if name != bad.parent.name)

@@ -144,6 +144,14 @@ def test_protocol_text_and_mesh_status_name_what_ran():
         "deterministic sampling")
     assert protocol_text([SimpleNamespace(views=protocol_views(66, 1, (3, 9)))], 1, "test", "cars", 1, 32, 32,
                          True).startswith("SRN-style protocol: input views 3, 9, targets = all other 64 views")
+    # asked for with --input-views: said so, never passed off as the protocol's choice by view count
+    asked = [SimpleNamespace(views=protocol_views(251, 50, (0,)))]
+    assert protocol_text(asked, 1, "test", "cars", 50, 32, 32, True, chosen=True).startswith(
+        "SRN-style protocol: input view 0 (chosen with --input-views; SRN uses view 64), targets = all other 250 ")
+    assert protocol_text(small, 1, "val", "chairs", 1, 32, 32, True, chosen=True).startswith(
+        "SRN-style protocol: input view 0 (chosen with --input-views; SRN uses view 64), targets = all other 9 ")
+    assert protocol_text([SimpleNamespace(views=protocol_views(251, 50, (64,)))], 1, "test", "cars", 50, 32, 32,
+                         True, chosen=True).startswith("SRN protocol: input view 64, targets")
     assert input_views_record(mixed) == [[0], [64]] and input_views_record(two) == [64, 104]
     assert mesh_status(0, 2, 3) == "ok: 2 of 3 objects have mesh.ply; "
     assert mesh_status(1, 2, 3) == ("1 of 2 predicted meshes empty (worst-case values in the means); "
@@ -276,7 +284,8 @@ def test_eval_on_two_input_views_records_them_and_refuses_to_resume_on_one(setup
     summary = json.loads((out / "summary.json").read_text())
     targets = [v for v in range(66) if v not in (64, 10)][::16]
     assert summary["input_views"] == [64, 10] and summary["views"] == 3 * len(targets)
-    assert summary["protocol"].startswith("SRN-style protocol: input views 64, 10, targets = all other 64 views "
+    assert summary["protocol"].startswith("SRN-style protocol: input views 64, 10 (chosen with --input-views), "
+                                          "targets = all other 64 views "
                                           f"with stride 16 ({len(targets)} views)")
     assert summary["method"] == "pixelNeRF (baseline), 2 input views"
     rows = _read_csv(out / "per_object.csv")

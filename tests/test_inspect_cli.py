@@ -149,7 +149,8 @@ def test_inspect_reports_what_a_third_party_layout_holds(tmp_path: Path, capsys)
     assert len(err) == 1 and err[0].startswith("note: ") and "render_log.txt (1)" in err[0]
 
 
-@pytest.mark.parametrize("case", ["depth_png_without_scale", "depth_nan_filled", "mask_truncated", "mesh_not_ply"])
+@pytest.mark.parametrize("case", ["depth_png_without_scale", "depth_nan_filled", "mask_truncated", "mesh_not_ply",
+                                  "mesh_face_out_of_range", "mesh_nan_vertex"])
 def test_inspect_bad_optional_part_warns_and_strict_fails(tmp_path: Path, case: str, capsys):
     root = make_srn_fixture(tmp_path, with_depth=True, with_mask=True, with_mesh=True)
     part, mutate = BAD_OPTIONAL_CASES[case]

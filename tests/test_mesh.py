@@ -156,6 +156,16 @@ def test_load_mesh_roundtrip_and_errors(tmp_path):
     broken.export(tmp_path / "nan.ply")
     with pytest.raises(DepthnerfError, match="nan.ply: mesh has non-finite vertices"):
         load_mesh(tmp_path / "nan.ply")
+    (tmp_path / "index.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                        "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+                                        "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 99\n")
+    with pytest.raises(DepthnerfError, match=r"index.ply: face 0 names vertex 99, but the mesh has 3 vertices"):
+        load_mesh(tmp_path / "index.ply")
+    flat = sphere.copy()
+    flat.vertices[:] = 0.0
+    flat.export(tmp_path / "flat.ply")
+    with pytest.raises(DepthnerfError, match="flat.ply: mesh has no surface"):
+        load_mesh(tmp_path / "flat.ply")
 
 
 def test_a_level_at_or_below_zero_is_capped_by_empty_space_below_it():

@@ -18,8 +18,10 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 import pytest
+import safetensors.torch
 import torch
 import trimesh
+from fixtures_checkpoints import save_tiny, tiny_config
 from fixtures_srn import make_srn_fixture
 from PIL import Image
 from scipy import ndimage
@@ -33,6 +35,8 @@ from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import PixelNeRF
 from depthnerf.pretrained.load import load_pretrained
+from depthnerf.pretrained.spec import SPEC_KEY, spec_from_metadata
+from depthnerf.pretrained.weights import read_weights
 from depthnerf.reconstruct.orbit import srn_intrinsics
 from depthnerf.reconstruct.photo import prepare_photo
 from depthnerf.reconstruct.reconstructor import ReconstructConfig, Reconstructor
@@ -182,6 +186,22 @@ def test_bad_photos(tmp_path):
     clear[..., :3] = 200
     with pytest.raises(DepthnerfError, match=r"no object found \(the alpha channel is transparent everywhere\)$"):
         prepare_photo(clear, None, 32)
+
+
+def test_a_checkpoint_of_an_unknown_category_is_named_with_the_flags_that_replace_its_camera(tmp_path, capsys):
+    """A spec naming a category without camera defaults (a hand-edited or foreign checkpoint): one line naming the
+    checkpoint file and --radius / --focal, not the bare 'unknown SRN category' of the data reader."""
+    path = save_tiny(tmp_path / "planes.safetensors", tiny_config("cars", "none"))
+    tensors, meta = read_weights(path)
+    spec = json.loads(spec_from_metadata(meta, str(path)).to_json())
+    safetensors.torch.save_file(tensors, str(path), metadata={**meta, SPEC_KEY: json.dumps({**spec,
+                                                                                          "category": "planes"})})
+    Image.fromarray(disc_photo(64, 64, (32, 32), 16)).save(tmp_path / "photo.png")
+    assert main(["reconstruct", "--checkpoint", str(path), str(tmp_path / "photo.png"), "--out",
+                 str(tmp_path / "out"), "--background-removal", "off", "--views", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith(f"error: {path}: unknown SRN category 'planes'"), err
+    assert "pass both --radius and --focal" in err
 
 
 def test_huge_image_is_downscaled_first():

@@ -287,6 +287,20 @@ def test_intrinsics_and_pose_files_read_as_the_format_states(tmp_path: Path):
         srn_format.read_pose(tmp_path / "mirror.txt")
 
 
+def test_text_files_saved_with_a_byte_order_mark_read_as_without(tmp_path: Path):
+    """Windows editors start UTF-8 text with a byte-order mark; it is not part of the first number (intrinsics.txt
+    was 'malformed intrinsics', a pose 'not 16 numbers')."""
+    bom = "\ufeff"
+    (tmp_path / "intrinsics.txt").write_text(bom + "100.0 31.5 15.5 0.\n0. 0. 0.\n1.\n32 64\n", encoding="utf-8")
+    assert srn_format.read_intrinsics(tmp_path / "intrinsics.txt") == Intrinsics(focal=100.0, cx=31.5, cy=15.5,
+                                                                                 height=32, width=64)
+    srn_format.write_pose(tmp_path / "pose.txt", np.eye(4))
+    (tmp_path / "pose.txt").write_text(bom + (tmp_path / "pose.txt").read_text(), encoding="utf-8")
+    np.testing.assert_array_equal(srn_format.read_pose(tmp_path / "pose.txt"), np.eye(4, dtype=np.float32))
+    (tmp_path / "depth_scale.txt").write_text(bom + "0.001\n", encoding="utf-8")
+    assert srn_format.read_depth_scale(tmp_path / "depth_scale.txt") == 0.001
+
+
 @pytest.mark.parametrize("case", sorted(BAD_INPUT_CASES))
 def test_bad_input_raises_one_line_naming_the_file(tmp_path: Path, case: str):
     root = make_srn_fixture(tmp_path, with_depth=True, with_mask=True)

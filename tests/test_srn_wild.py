@@ -212,7 +212,7 @@ def test_binary_ply_min_bytes_is_a_triangle_meshs_exact_size(tmp_path: Path):
     """For triangle meshes (every face a 3-list) the lower bound is the body's exact size; ASCII is not sized."""
     import trimesh
 
-    from depthnerf.data.validate import binary_ply_min_bytes
+    from depthnerf.data.mesh_file import binary_ply_min_bytes
 
     for k, mesh in enumerate([trimesh.creation.box(), trimesh.creation.icosphere(1), trimesh.creation.cylinder(0.5, 1)]):
         mesh.visual.vertex_colors = [200, 10, 10, 255] if k == 1 else mesh.visual.vertex_colors  # uchar properties too

@@ -310,6 +310,24 @@ def test_validation_views_an_object_lacks_are_named_with_what_is_rendered(tmp_pa
         "note: --log.val_views 0: a has 3 views, input view 0; validation renders its views 1")
 
 
+@pytest.mark.parametrize("views", ["9999", "1,3"])
+def test_validation_views_the_val_objects_lack_are_refused(data, tmp_path, capsys, views):
+    """Asked-for views a val object lacks (a config's [9999]) were replaced by another view with only a note; the
+    presets' views, meant for SRN's 251-view val objects, still fall back with the note."""
+    from depthnerf.data.protocol import check_validation_views
+
+    flags = ["--data", str(data), "--max-steps", "1", "--log.val_every", "1", "--log.val_objects", "1"]
+    assert main([*BASE, *flags, "--out", str(tmp_path / "r"), "--log.val_views", views]) == 2
+    val = next(p for p in sorted((data / "cars_val").iterdir()) if p.is_dir())
+    missing = views.split(",")[-1]
+    assert one_error(capsys) == (f"error: --log.val_views {views}: view {missing} does not exist: val object {val} "
+                                 "has 3 views (0-2); name views below 3")
+    assert not (tmp_path / "r" / "checkpoints").exists()
+    check_validation_views([0, 2], [("a", 3), ("b", 251)])  # views every object has: accepted
+    with pytest.raises(DepthnerfError, match="val object a has 3 views"):
+        check_validation_views([125], [("b", 251), ("a", 3)])  # the object with the fewest is named
+
+
 def test_the_run_lock_waits_for_a_lock_released_meanwhile(tmp_path):
     """A lock held elsewhere (a crashed node's, until its lease ends) is waited for: released after ~1 s, it is
     taken; held past the wait, one line."""

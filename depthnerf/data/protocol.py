@@ -94,6 +94,19 @@ def validation_targets(views: Sequence[int], num_views: int, inputs: Sequence[in
                          if (chosen[0] + k) % num_views not in chosen)]
 
 
+def check_validation_views(views: Sequence[int], objects: Sequence[tuple[str, int]]) -> None:
+    """Refuse ``--log.val_views`` naming a view that some val ``objects`` (``(path, views)`` pairs) lack: one line
+    naming the flag, the object with the fewest views and how many it has (rendering another view instead would
+    score what was not asked for)."""
+    if not objects:
+        return
+    path, count = min(objects, key=lambda o: o[1])
+    missing = [v for v in views if v >= count]
+    if missing:
+        raise DepthnerfError(f"--log.val_views {','.join(map(str, views))}: view {missing[0]} does not exist: val "
+                             f"object {path} has {count} views (0-{count - 1}); name views below {count}")
+
+
 def validation_views_note(views: Sequence[int], objects: Sequence[tuple[str, int]],
                           inputs: Sequence[int] | None = None) -> str | None:
     """A note saying what validation renders instead of ``--log.val_views`` where some val ``objects``

@@ -15,7 +15,8 @@ EXR depth is refused (:data:`EXR_UNSUPPORTED`). Every reader raises :class:`~dep
 with one line naming the file and the problem. Which files an object folder uses, and what happens when an
 optional one is bad, is :mod:`depthnerf.data.srn_parts`'s business.
 
-The text writers (intrinsics, poses) write atomically through :mod:`depthnerf.files`. The image and depth writers
+The text readers (intrinsics, poses, ``depth_scale.txt``) skip a UTF-8 byte-order mark (Windows editors write
+one). The text writers (intrinsics, poses) write atomically through :mod:`depthnerf.files`. The image and depth writers
 write in place: a dataset generator marks a finished object by writing its own marker last
 (:mod:`depthnerf.data.synth.generate`), which is what makes a torn view file impossible to mistake for a
 finished one.
@@ -45,7 +46,7 @@ def read_intrinsics(path: Path) -> Intrinsics:
     """Parse ``intrinsics.txt`` (focal, principal point on line 1; ``H W`` on the last line)."""
     path = Path(path)
     try:
-        lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip()]
+        lines = [ln.split() for ln in path.read_text(encoding="utf-8-sig").splitlines() if ln.strip()]
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read intrinsics ({err.strerror or err})") from None
     except UnicodeDecodeError:
@@ -77,7 +78,7 @@ def read_pose(path: Path) -> np.ndarray:
     """Read a 4x4 camera-to-world pose and check that it is a finite rigid transform."""
     path = Path(path)
     try:
-        values = np.array(path.read_text().split(), dtype=np.float64)
+        values = np.array(path.read_text(encoding="utf-8-sig").split(), dtype=np.float64)
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read pose ({err.strerror or err})") from None
     except ValueError:
@@ -205,14 +206,31 @@ def _check_numpy_signature(path: Path, suffix: str) -> None:
                              f"numpy.{'savez' if suffix == '.npz' else 'save'}")
 
 
+def _png16_mode_error(path: Path, mode: str) -> DepthnerfError:
+    return DepthnerfError(f"{path}: PNG depth must be 16-bit grey, got mode {mode} (8-bit depth is too coarse; "
+                          "store 16-bit PNG, .npy or .npz)")
+
+
+def check_png_depth_mode(path: Path) -> None:
+    """Check from its header that a PNG depth file is 16-bit grey (the error :func:`read_depth` would give), so
+    that a file no scale can help is reported before a missing ``depth_scale.txt``."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            mode = im.mode
+    except (OSError, Image.DecompressionBombError) as err:
+        raise DepthnerfError(f"{path}: unreadable depth map ({err})") from None
+    if mode not in _PNG16_MODES:
+        raise _png16_mode_error(path, mode)
+
+
 def _depth_png(path: Path, png_scale: float | None) -> np.ndarray:
     with Image.open(path) as im:
         im.load()
         mode = im.mode
         arr = np.asarray(im)
     if mode not in _PNG16_MODES:
-        raise DepthnerfError(f"{path}: PNG depth must be 16-bit grey, got mode {mode} (8-bit depth is too coarse; "
-                             "store 16-bit PNG, .npy or .npz)")
+        raise _png16_mode_error(path, mode)
     if png_scale is None:
         raise DepthnerfError(f"{path}: 16-bit PNG depth needs a scale: write the world units per PNG unit (e.g. "
                              f"0.001) into {DEPTH_SCALE_FILE} in the object, split or dataset folder")
@@ -308,7 +326,7 @@ def read_depth_scale(path: Path) -> float:
     """The number in a ``depth_scale.txt``: world units per 16-bit PNG depth unit (finite, > 0)."""
     path = Path(path)
     try:
-        text = path.read_text().split()
+        text = path.read_text(encoding="utf-8-sig").split()
         scale = float(text[0]) if len(text) == 1 else float("nan")
     except OSError as err:
         raise DepthnerfError(f"{path}: cannot read the depth scale ({err.strerror or err})") from None

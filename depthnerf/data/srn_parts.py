@@ -24,7 +24,13 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from depthnerf.data.srn_format import DEPTH_SCALE_FILE, DEPTH_SUFFIXES, EXR_UNSUPPORTED, read_depth_scale
+from depthnerf.data.srn_format import (
+    DEPTH_SCALE_FILE,
+    DEPTH_SUFFIXES,
+    EXR_UNSUPPORTED,
+    check_png_depth_mode,
+    read_depth_scale,
+)
 from depthnerf.errors import DataNote, DataWarning, DepthnerfError
 
 KNOWN_ENTRIES = frozenset({"intrinsics.txt", "rgb", "pose", "depth", "mask", "mesh.ply", DEPTH_SCALE_FILE})
@@ -100,6 +106,11 @@ def _depth_scale(first_png: Path, dirs: Sequence[Path], report: PartReport) -> f
             except DepthnerfError as err:
                 report.add_error("depth", path, err)
                 return None
+    try:
+        check_png_depth_mode(first_png)  # a scale cannot help an 8-bit PNG: say that first
+    except DepthnerfError as err:
+        report.add_error("depth", first_png, err)
+        return None
     report.add("depth", first_png, f"{first_png}: 16-bit PNG depth needs a scale: write the world units per PNG "
                f"unit (e.g. 0.001) into {DEPTH_SCALE_FILE} in the object, split or dataset folder")
     return None

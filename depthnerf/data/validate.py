@@ -4,7 +4,7 @@
 header without decoding pixels (PIL ``verify``: the chunk structure and CRCs are checked, so truncated or
 corrupted files are caught, at ~1/5 of the cost of a decode). It checks that every image and mask has the
 ``H x W`` that ``intrinsics.txt`` states, reads every depth map whole (shape, NaN/inf, negative, all zero), and
-reads the header of ``mesh.ply``. Bad required files raise :class:`~depthnerf.errors.DepthnerfError` with one line
+reads ``mesh.ply`` whole (:func:`~depthnerf.data.mesh_file.check_mesh`: face indices in range, finite vertices). Bad required files raise :class:`~depthnerf.errors.DepthnerfError` with one line
 naming the file; a bad optional part is reported as a :class:`~depthnerf.data.srn_parts.PartIssue` (or raises,
 with ``strict``). It also counts the file formats it saw; an ``rgb/`` image that holds other data than PNG (a JPEG
 saved under a ``.png`` name), found from the header it opens anyway, is listed for one warning per split
@@ -19,7 +19,6 @@ OpenGL / Blender camera axes (looking down -z), which the loaders do not convert
 from __future__ import annotations
 
 import math
-import re
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field
@@ -28,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from depthnerf.data.mesh_file import check_mesh
 from depthnerf.data.records import ObjectCheck, ObjectRecord, SplitIndex
 from depthnerf.data.srn_format import (
     NOT_AN_IMAGE,
@@ -84,54 +84,6 @@ def image_size(path: Path, what: str = "image") -> tuple[int, int]:
     return image_header(path, what)[0]
 
 
-def check_mesh_header(path: Path) -> None:
-    """Check that ``path`` starts like a PLY file with vertices (``ply``, ``element vertex N > 0``,
-    ``end_header``); the body is read when the mesh is used."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(4096)
-    except OSError as err:
-        raise DepthnerfError(f"{path}: cannot read mesh ({err.strerror or err})") from None
-    text = head.split(b"end_header")[0].decode("ascii", errors="replace")
-    vertices = re.search(r"^element vertex (\d+)", text, flags=re.MULTILINE)
-    if not head.startswith(b"ply") or b"end_header" not in head or not vertices or int(vertices.group(1)) == 0:
-        raise DepthnerfError(f"{path}: not a PLY mesh with vertices (bad or missing header)")
-    need = binary_ply_min_bytes(text)
-    if need is not None:
-        body = path.stat().st_size - (head.index(b"end_header") + len(b"end_header\n"))
-        if body < need:
-            raise DepthnerfError(f"{path}: truncated PLY mesh (its header needs at least {need} bytes of data, the "
-                                 f"file has {max(body, 0)})")
-
-
-PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-             "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
-"""Bytes of each PLY scalar type."""
-
-
-def binary_ply_min_bytes(header: str) -> int | None:
-    """The fewest data bytes a binary PLY ``header`` (its text before ``end_header``) describes: every element's
-    fixed properties, and a list property as its count plus 3 entries (a face has at least 3 vertices); None for
-    an ASCII PLY or a header this cannot size (an unknown type)."""
-    if not re.search(r"^format binary_(little|big)_endian ", header, flags=re.MULTILINE):
-        return None
-    total, count, stride = 0, 0, 0
-    for line in header.splitlines():
-        words = line.split()
-        if words[:1] == ["element"] and len(words) == 3 and words[2].isdigit():
-            total, count, stride = total + count * stride, int(words[2]), 0
-        elif words[:2] == ["property", "list"] and len(words) == 5:
-            if words[2] not in PLY_SIZES or words[3] not in PLY_SIZES:
-                return None
-            stride += PLY_SIZES[words[2]] + 3 * PLY_SIZES[words[3]]
-        elif words[:1] == ["property"] and len(words) == 3:
-            if words[1] not in PLY_SIZES:
-                return None
-            stride += PLY_SIZES[words[1]]
-    return total + count * stride
-
-
 def _size_checked(path: Path, what: str, expected: tuple[int, int], intrinsics: Path) -> str:
     size, name = image_header(path, what)
     if size != expected:
@@ -180,7 +132,7 @@ def _depth_format(name: str) -> str:
 
 
 def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
-    """Read every pose, open every image/mask header, read every depth map and the mesh header of ``record``.
+    """Read every pose, open every image/mask header, read every depth map and the mesh of ``record``.
 
     A bad required file raises on the first one; a bad optional part is reported once (its first bad file) in
     ``issues`` and not checked further, or raises with ``strict``. RGB images that are not PNG data are listed in
@@ -222,7 +174,7 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
     check_cameras_face_origin(record.pose_path(0), np.stack(poses))
     if record.mesh_path is not None:
         try:
-            check_mesh_header(record.mesh_path)
+            check_mesh(record.mesh_path)
         except DepthnerfError as err:
             report.add_error("mesh", record.mesh_path, err)
     return ObjectCheck(num_views=record.num_views, radius_min=min(radii), radius_max=max(radii),

@@ -333,6 +333,8 @@ class CachedPriorStore(PriorStore):
 
     def _missing_message(self) -> str:
         prov = self._provenance
+        if self.root.is_dir():  # the folder of these weights and resolution, its manifest lost
+            return f"{self.root / 'manifest.json'}: cache manifest is missing; rerun: {self.command()}"
         others = sorted(p.name for p in (self.data_root / CACHE_DIRNAME).glob("*") if p.is_dir())
         found = f" (found only: {', '.join(others)})" if others else ""
         return (f"{self.root}: no '{prov.estimator}' depth priors for weights {prov.short_hash} at "

@@ -31,6 +31,10 @@ from depthnerf.depth.estimators import CACHED_ESTIMATORS, DepthEstimator, descri
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_json_atomic
 
+MIN_RESOLUTION = 8
+"""The least ``--resolution`` priors are cached at: the least image side training and eval take
+(``data.resolution`` of ``depthnerf.train.config.NUMBER_RULES``)."""
+
 
 @dataclass
 class PrecomputeConfig:
@@ -85,8 +89,13 @@ def _records(cfg: PrecomputeConfig, summary_missing: list[str]) -> list:
         raise DepthnerfError(f"{cfg.data_root}: no <category>_<split> folders found")
     records = []
     for category in categories:
+        present = [s for s in cfg.splits if split_dir(cfg.data_root, category, s).is_dir()]
+        if cfg.categories and not present and not cfg.require_splits:  # a named category with nothing: a typo?
+            found = ", ".join(discover_categories(cfg.data_root)) or "none"
+            raise DepthnerfError(f"{cfg.data_root}: --category {category}: no {category}_<split> folder "
+                                 f"({', '.join(cfg.splits)}) exists here (categories here: {found})")
         for split in cfg.splits:
-            if not split_dir(cfg.data_root, category, split).is_dir():
+            if split not in present:
                 if cfg.require_splits:
                     raise DepthnerfError(f"{split_dir(cfg.data_root, category, split)}: split folder does not exist")
                 summary_missing.append(f"{category}_{split}")
@@ -99,8 +108,6 @@ def _records(cfg: PrecomputeConfig, summary_missing: list[str]) -> list:
 
 def _resolution(cfg: PrecomputeConfig, records: list) -> int:
     if cfg.resolution is not None:
-        if cfg.resolution <= 0:
-            raise DepthnerfError(f"--resolution must be positive, got {cfg.resolution}")
         return cfg.resolution
     sizes = {(r.intrinsics.height, r.intrinsics.width) for r in records}
     if len(sizes) > 1:
@@ -128,6 +135,8 @@ def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
         raise DepthnerfError(f"estimator '{cfg.estimator}' is not cached (cached: {', '.join(CACHED_ESTIMATORS)})")
     if cfg.batch_size <= 0:
         raise DepthnerfError(f"--batch-size must be positive, got {cfg.batch_size}")
+    if cfg.resolution is not None and cfg.resolution < MIN_RESOLUTION:
+        raise DepthnerfError(f"--resolution must be >= {MIN_RESOLUTION}, got {cfg.resolution}")
     provenance = describe_estimator(cfg.estimator, cfg.checkpoint)
     assert provenance is not None
     missing: list[str] = []

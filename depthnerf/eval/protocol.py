@@ -330,7 +330,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
     total = time.perf_counter() - t_start
     summary.update({
         "protocol": protocol_text(results, len(ids), cfg.split, category, cfg.views_stride, eval_res,
-                                  input_res, deterministic, skipped),
+                                  input_res, deterministic, skipped, chosen=cfg.input_views is not None),
         "protocol_choices": choices.record(skipped),
         "method": cfg.method or method_label(estimator) + (
             " + mirror symmetry" if evaluator.symmetry_plane is not None else "") + (

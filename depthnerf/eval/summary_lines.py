@@ -20,22 +20,28 @@ def input_views_record(results: Sequence[_Scored]) -> list[int] | list[list[int]
     return list(distinct[0]) if len(distinct) == 1 else [list(v) for v in distinct]
 
 
-def _inputs_head(inputs: list[tuple[int, ...]]) -> str:
+def _inputs_head(inputs: list[tuple[int, ...]], chosen: bool) -> str:
     if inputs == [(INPUT_VIEW,)]:
         return f"SRN protocol: input view {INPUT_VIEW}"
+    if inputs == [TWO_VIEW_INPUTS]:
+        return f"two-view SRN protocol (pixelNeRF's): input views {TWO_VIEW_INPUTS[0]} and {TWO_VIEW_INPUTS[1]}"
+    names = "; ".join(", ".join(map(str, v)) for v in inputs)
+    if chosen:  # the same views for every object, as asked
+        several = max(map(len, inputs)) > 1
+        return (f"SRN-style protocol: input view{'s' if several else ''} {names} (chosen with --input-views"
+                f"{'' if several else f'; SRN uses view {INPUT_VIEW}'})")
     if inputs == [(0,)]:
         return f"SRN-style protocol: input view 0 (objects have <= {INPUT_VIEW} views; SRN uses view {INPUT_VIEW})"
     if inputs == [(0,), (INPUT_VIEW,)]:
         return f"SRN protocol: input view {INPUT_VIEW} (view 0 for objects with <= {INPUT_VIEW} views)"
-    if inputs == [TWO_VIEW_INPUTS]:
-        return f"two-view SRN protocol (pixelNeRF's): input views {TWO_VIEW_INPUTS[0]} and {TWO_VIEW_INPUTS[1]}"
-    names = "; ".join(", ".join(map(str, v)) for v in inputs)
     return f"SRN-style protocol: input view{'s' if max(map(len, inputs)) > 1 else ''} {names}"
 
 
 def protocol_text(results: Sequence[_Scored], total_objects: int, split: str, category: str, stride: int,
-                  eval_res: int, input_res: int, deterministic: bool, skipped: Sequence[str] = ()) -> str:
-    """One line saying exactly which protocol ran."""
+                  eval_res: int, input_res: int, deterministic: bool, skipped: Sequence[str] = (),
+                  chosen: bool = False) -> str:
+    """One line saying exactly which protocol ran; ``chosen``: the input views were asked for (``--input-views``),
+    not the protocol's choice by view count."""
     inputs = sorted({r.views.input_views for r in results})
     others = sorted({r.views.others for r in results})
     scored = sorted({len(r.views.targets) for r in results})
@@ -49,7 +55,7 @@ def protocol_text(results: Sequence[_Scored], total_objects: int, split: str, ca
         res += f" (input view{plural} encoded at the training resolution {input_res}x{input_res})"
     sampling = "deterministic sampling" if deterministic else "random sampling (render.sampler.eval_random)"
     left_out = f" ({', '.join(skipped)} left out: pixelNeRF cannot load it)" if skipped else ""
-    return (f"{_inputs_head(inputs)}, {targets}, {len(results)} of {total_objects} objects of {category}_{split}"
+    return (f"{_inputs_head(inputs, chosen)}, {targets}, {len(results)} of {total_objects} objects of {category}_{split}"
             f"{left_out}, {res}, {sampling}")
 
 

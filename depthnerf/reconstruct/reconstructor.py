@@ -47,7 +47,7 @@ from tqdm import tqdm
 
 from depthnerf.data.cameras import Intrinsics
 from depthnerf.data.photo_framing import category_fill
-from depthnerf.data.srn import SRN_IMAGE_SIZE, category_defaults
+from depthnerf.data.srn import CATEGORY_DEFAULTS, SRN_IMAGE_SIZE, category_defaults
 from depthnerf.data.symmetry import facing_plane
 from depthnerf.errors import DepthnerfError
 from depthnerf.infer.facing import (
@@ -243,7 +243,12 @@ class Reconstructor:
         if cfg.radius is not None and cfg.focal is not None:
             radius, focal, image_size = cfg.radius, cfg.focal, SRN_IMAGE_SIZE  # --focal's frame: SRN's
         else:
-            cat = category_defaults(spec.category)  # unknown category: an error asking for both
+            if spec.category not in CATEGORY_DEFAULTS:
+                raise DepthnerfError(
+                    f"{self.session.name}: unknown SRN category {spec.category!r} in the checkpoint's spec (known: "
+                    f"{', '.join(sorted(CATEGORY_DEFAULTS))}), so no default camera; pass both --radius and --focal "
+                    "(focal in pixels of a 128 px frame)")
+            cat = category_defaults(spec.category)
             radius = cfg.radius if cfg.radius is not None else cat.camera_radius
             focal = cfg.focal if cfg.focal is not None else cat.focal
             image_size = cat.image_size

@@ -43,6 +43,7 @@ from skimage.measure import marching_cubes
 from torch import Tensor
 
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.mesh_file import read_mesh
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
 from depthnerf.render.mesh_colors import RadianceFn, seen_from, vertex_colors
@@ -258,19 +259,9 @@ def keep_pieces(mesh: trimesh.Trimesh, keep: str) -> tuple[trimesh.Trimesh, Mesh
 
 
 def load_mesh(path: Path) -> trimesh.Trimesh:
-    """Read a mesh file (``mesh.ply`` of an SRN-format object) as one triangle mesh with at least one face."""
-    path = Path(path)
-    if not path.is_file():
-        raise DepthnerfError(f"{path}: mesh file not found")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as err:  # trimesh raises many types for malformed files
-        raise DepthnerfError(f"{path}: cannot read mesh ({type(err).__name__}: {err})") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise DepthnerfError(f"{path}: mesh has no triangles")
-    if not np.isfinite(mesh.vertices).all():
-        raise DepthnerfError(f"{path}: mesh has non-finite vertices")
-    return mesh
+    """Read a mesh file (``mesh.ply`` of an SRN-format object) as one triangle mesh with at least one face, face
+    indices in range and finite vertices (:func:`depthnerf.data.mesh_file.read_mesh`)."""
+    return read_mesh(path)
 
 
 def field_radiance(model: PixelNeRF, enc: EncodedViews, runtime: FieldRuntime | None = None) -> RadianceFn:

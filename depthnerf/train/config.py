@@ -151,7 +151,9 @@ class LogConfig:
     val_objects: int = 4
     """Number of fixed validation objects (the first ones of the val split)."""
     val_views: tuple[int, ...] = (0, 125, 200)
-    """Target views rendered per validation object (view 64 is the input, as in the test protocol)."""
+    """Target views rendered per validation object (view 64 is the input, as in the test protocol). Views other
+    than these defaults (SRN's 251-view val objects) must exist in every val object; the defaults fall back to
+    views an object has, with a note."""
     val_input_views: tuple[int, ...] = ()
     """Views each validation object is conditioned on, the first the primary (``64,104``: a model trained with
     ``--data.source_views 2`` validated, and its best checkpoint chosen, as pixelNeRF's two-view protocol scores
@@ -198,7 +200,7 @@ def with_prior(cfg: TrainConfig, estimator: str, checkpoint: str | None = None) 
 
 
 NUMBER_RULES: NumberRules = {
-    "data.resolution": (8, True), "data.target_views": (0, True),
+    "seed": (0, True), "data.resolution": (8, True), "data.target_views": (0, True),
     "data.num_workers": (0, True),
     "schedule.max_steps": (1, True), "schedule.lr": (0, False), "schedule.bbox_steps": (0, True),
     "schedule.objects_phase1": (1, True), "schedule.objects_phase2": (1, True), "schedule.rays_per_object": (1, True),
@@ -210,7 +212,7 @@ NUMBER_RULES: NumberRules = {
     "log.val_objects": (0, True), "log.checkpoint_every": (1, True), "log.keep_last": (1, True),
     "log.render_chunk": (1, True), **RENDER_NUMBER_RULES}
 """Config path -> (bound, inclusive): the value must be ``>= bound`` (inclusive) or ``> bound``."""
-NAMED_FLAGS = {"schedule.max_steps": "--max-steps", "log.checkpoint_every": "--checkpoint-every"}
+NAMED_FLAGS = {"seed": "--seed", "schedule.max_steps": "--max-steps", "log.checkpoint_every": "--checkpoint-every"}
 """Config paths that have a named ``depthnerf train`` flag (the others are set as ``--section.field``)."""
 
 

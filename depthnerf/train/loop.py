@@ -39,7 +39,7 @@ from tqdm import tqdm
 from depthnerf.config_io import to_dict
 from depthnerf.crash_hook import crash_point
 from depthnerf.data.card import card_path, read_dataset_card
-from depthnerf.data.protocol import record_views, validation_views_note
+from depthnerf.data.protocol import check_validation_views, record_views, validation_views_note
 from depthnerf.data.srn import index_split
 from depthnerf.data.symmetry import dataset_plane
 from depthnerf.data.synth.framing import dataset_framing
@@ -53,7 +53,7 @@ from depthnerf.pretrained.spec import InferenceSpec
 from depthnerf.train import checkpoint as ckpt
 from depthnerf.train import memory
 from depthnerf.train.batching import BatchPlan, StepSampler, check_world_split, collate_packed, step_keys
-from depthnerf.train.config import TrainConfig, inference_spec
+from depthnerf.train.config import LogConfig, TrainConfig, inference_spec
 from depthnerf.train.freeze import freeze_parameters, hold_frozen_modules, trainable_parameters
 from depthnerf.train.items import TrainItems, ready_view_store
 from depthnerf.train.run_log import RunLog, check_run_dir, read_run_record, record_launch, run_lock
@@ -197,8 +197,10 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             inputs = cfg.log.val_input_views or None
             for record in val_records:  # a val object without the input views: one line now, not at the first validation
                 record_views(record, inputs=inputs, flag="--log.val_input_views")
-            views_note = validation_views_note(cfg.log.val_views, [(str(r.path), r.num_views) for r in val_records],
-                                               inputs)
+            val_counts = [(str(r.path), r.num_views) for r in val_records]
+            if tuple(cfg.log.val_views) != LogConfig().val_views:  # the presets' (SRN's) fall back with the note
+                check_validation_views(cfg.log.val_views, val_counts)
+            views_note = validation_views_note(cfg.log.val_views, val_counts, inputs)
             if views_note is not None:
                 print(views_note, file=sys.stderr, flush=True)
         plane = None
