@@ -36,6 +36,7 @@ import torch
 from floater_sides import AXES, card_up_axis, side_fractions
 
 from depthnerf.data.card import read_dataset_card
+from depthnerf.data.mesh_file import read_mesh
 from depthnerf.data.srn import index_split
 from depthnerf.depth.normalize import BACKGROUND_VALUE
 from depthnerf.depth.prior import PriorConfig, open_prior
@@ -45,7 +46,7 @@ from depthnerf.eval.objects import prepare_object, protocol_views
 from depthnerf.infer.session import InferenceSession, SessionOptions
 from depthnerf.model.conditioning import condition_views
 from depthnerf.pretrained.load import load_pretrained
-from depthnerf.render.mesh import MeshConfig, input_camera_mesh, load_mesh
+from depthnerf.render.mesh import MeshConfig, input_camera_mesh
 from depthnerf.render.views import render_poses
 
 DEPTH_CONDITIONS = ("as-trained", "bn-batch-stats", "oracle-prior", "flat-prior", "no-mask-prior")
@@ -104,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         obj = prepare_object(session, record, protocol_views(record.num_views, args.stride))
         src, tgt = obj.source, obj.targets
         oracle_prior = condition_views(oracle, src).inputs.disparity if depth_aware else None
-        gt_mesh = load_mesh(record.mesh_path)
+        gt_mesh = read_mesh(record.mesh_path)
         for name in conditions:
             net = twin if name == "bn-batch-stats" else model
             inputs = obj.encoded.inputs

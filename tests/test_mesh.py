@@ -11,6 +11,7 @@ import torch
 import trimesh
 
 from depthnerf.data.cameras import Intrinsics, look_at, project, world_to_camera
+from depthnerf.data.mesh_file import read_mesh
 from depthnerf.errors import DepthnerfError
 from depthnerf.eval.geometry_metrics import (
     GeometryConfig,
@@ -21,7 +22,7 @@ from depthnerf.eval.geometry_metrics import (
     sample_surface,
     summarize_geometry,
 )
-from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, keep_pieces, load_mesh, sample_density
+from depthnerf.render.mesh import CameraGrid, MeshConfig, extract_mesh, keep_pieces, sample_density
 
 INTR = Intrinsics(focal=131.25, cx=63.5, cy=63.5, height=128, width=128)  # SRN cars at 128x128
 C2W = look_at(torch.tensor([1.1, -0.5, 0.6]))
@@ -141,31 +142,31 @@ def test_empty_bad_and_coloured_extraction():
     assert (mesh.visual.vertex_colors[:, 3] == 255).all()
 
 
-def test_load_mesh_roundtrip_and_errors(tmp_path):
+def test_read_mesh_roundtrip_and_errors(tmp_path):
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
     sphere.export(tmp_path / "mesh.ply")
-    loaded = load_mesh(tmp_path / "mesh.ply")
+    loaded = read_mesh(tmp_path / "mesh.ply")
     np.testing.assert_allclose(loaded.vertices, sphere.vertices, atol=1e-6)
     with pytest.raises(DepthnerfError, match="not found"):
-        load_mesh(tmp_path / "missing.ply")
+        read_mesh(tmp_path / "missing.ply")
     (tmp_path / "bad.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nend_header\n")
     with pytest.raises(DepthnerfError, match="bad.ply"):
-        load_mesh(tmp_path / "bad.ply")
+        read_mesh(tmp_path / "bad.ply")
     broken = sphere.copy()
     broken.vertices[3] = np.nan
     broken.export(tmp_path / "nan.ply")
     with pytest.raises(DepthnerfError, match="nan.ply: mesh has non-finite vertices"):
-        load_mesh(tmp_path / "nan.ply")
+        read_mesh(tmp_path / "nan.ply")
     (tmp_path / "index.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
                                         "property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
                                         "end_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 99\n")
     with pytest.raises(DepthnerfError, match=r"index.ply: face 0 names vertex 99, but the mesh has 3 vertices"):
-        load_mesh(tmp_path / "index.ply")
+        read_mesh(tmp_path / "index.ply")
     flat = sphere.copy()
     flat.vertices[:] = 0.0
     flat.export(tmp_path / "flat.ply")
     with pytest.raises(DepthnerfError, match="flat.ply: mesh has no surface"):
-        load_mesh(tmp_path / "flat.ply")
+        read_mesh(tmp_path / "flat.ply")
 
 
 def test_a_level_at_or_below_zero_is_capped_by_empty_space_below_it():

@@ -4,8 +4,8 @@
 long as its header says. :func:`read_mesh` reads the whole file as one triangle mesh and checks what a reader
 takes on trust: every face index names a vertex, every vertex is finite, and the triangles have area.
 :func:`depthnerf.data.validate.check_object` runs both when a split is indexed, so a bad mesh is a bad optional
-part (one warning naming the file; the object is scored without it); ``depthnerf.render.mesh.load_mesh`` reads
-through :func:`read_mesh`. Every problem raises :class:`~depthnerf.errors.DepthnerfError` with one line naming
+part (one warning naming the file; the object is scored without it); evaluation reads
+the ground truth with :func:`read_mesh`. Every problem raises :class:`~depthnerf.errors.DepthnerfError` with one line naming
 the file.
 """
 

@@ -105,6 +105,7 @@ def check_cameras_face_origin(first_pose: Path, poses: np.ndarray) -> None:
                              "object is expected (its +z axis, OpenCV's viewing direction, points away): OpenGL / "
                              "Blender camera axes look down -z; convert each pose with c2w @ diag(1, -1, -1, 1)")
 
+
 def write_pose(path: Path, c2w: np.ndarray) -> None:
     """Write a 4x4 camera-to-world pose as 16 numbers on one line (atomically)."""
     write_text_atomic(path, " ".join(f"{v:.8f}" for v in np.asarray(c2w, dtype=np.float64).reshape(-1)) + "\n")

@@ -53,9 +53,9 @@ from scipy.spatial import cKDTree
 
 from depthnerf.data import srn_format
 from depthnerf.data.cameras import Intrinsics, backproject
+from depthnerf.data.mesh_file import read_mesh
 from depthnerf.data.srn import ObjectRecord
 from depthnerf.errors import DepthnerfError
-from depthnerf.render.mesh import load_mesh
 
 
 @dataclass(frozen=True)
@@ -209,7 +209,7 @@ def object_geometry(pred: trimesh.Trimesh, record: ObjectRecord,
     maps when it has them, else ``mesh.ply`` (module docstring)."""
     if record.mesh_path is None:
         raise DepthnerfError(f"{record.path}: no mesh.ply to score against")
-    gt = load_mesh(record.mesh_path)
+    gt = read_mesh(record.mesh_path)
     points = visible_surface_points(record, config.n_points, config.depth_pixel_center)
     metrics = geometry_metrics(pred, gt, config, points)
     if points is None:

@@ -33,7 +33,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -43,7 +42,6 @@ from skimage.measure import marching_cubes
 from torch import Tensor
 
 from depthnerf.data.cameras import Intrinsics
-from depthnerf.data.mesh_file import read_mesh
 from depthnerf.errors import DepthnerfError
 from depthnerf.model.pixelnerf import EncodedViews, FieldRuntime, PixelNeRF
 from depthnerf.render.mesh_colors import RadianceFn, seen_from, vertex_colors
@@ -256,12 +254,6 @@ def keep_pieces(mesh: trimesh.Trimesh, keep: str) -> tuple[trimesh.Trimesh, Mesh
     main = labels == int(np.argmax(counts))
     kept = mesh.submesh([np.flatnonzero(main)], append=True, repair=False)
     return kept, MeshPieces(len(counts), faces, int(main.sum()))
-
-
-def load_mesh(path: Path) -> trimesh.Trimesh:
-    """Read a mesh file (``mesh.ply`` of an SRN-format object) as one triangle mesh with at least one face, face
-    indices in range and finite vertices (:func:`depthnerf.data.mesh_file.read_mesh`)."""
-    return read_mesh(path)
 
 
 def field_radiance(model: PixelNeRF, enc: EncodedViews, runtime: FieldRuntime | None = None) -> RadianceFn:
