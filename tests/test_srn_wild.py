@@ -83,6 +83,22 @@ def test_bad_optional_part_is_off_for_that_object_only(tmp_path: Path, case: str
                 srn.load_object(lazy, with_depth=True, pixel_center=0.0)
 
 
+@pytest.mark.parametrize("case, body_problem", [("mesh_face_out_of_range", True), ("mesh_nan_vertex", True),
+                                                ("mesh_truncated", False), ("mesh_not_ply", False)])
+def test_training_checks_only_the_mesh_header(tmp_path: Path, case: str, body_problem: bool):
+    """``mesh_body=False`` (training, which never uses mesh.ply) reads only the header: a bad body goes unreported
+    and the mesh stays on, a bad header is still a warning; ``strict`` reads the body anyway."""
+    root = make_srn_fixture(tmp_path, splits={"train": 2}, with_mesh=True)
+    path, text = BAD_OPTIONAL_CASES[case][1](root)
+    index, caught = _index(root, mesh_body=False)
+    if body_problem:
+        assert caught == [] and all(r.mesh_path is not None and not r.issues for r in index.objects)
+    else:
+        assert len(caught) == 1 and text in str(caught[0].message) and index.objects[0].mesh_path is None
+    with pytest.raises(DepthnerfError, match=text):
+        srn.index_split(root, "cars", "train", strict=True, mesh_body=False)
+
+
 def test_equal_problems_of_a_split_are_one_warning(tmp_path: Path):
     root = make_srn_fixture(tmp_path, splits={"train": 3}, with_depth=True)
     for obj in sorted((root / "cars_train").iterdir()):

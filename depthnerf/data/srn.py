@@ -237,7 +237,8 @@ def object_dirs(root: Path, category: str, split: str) -> list[Path]:
 
 
 def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False, check_files: bool = True,
-                progress: bool = False, strict: bool = False, only: Collection[str] | None = None) -> SplitIndex:
+                progress: bool = False, strict: bool = False, only: Collection[str] | None = None,
+                mesh_body: bool = True) -> SplitIndex:
     """Index ``<root>/<category>_<split>``.
 
     Always: reads every ``intrinsics.txt`` and pairs view files by name. ``check_files``: also reads and checks
@@ -248,6 +249,8 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
     image holding other data than PNG (a JPEG under a ``.png`` name) is read as what it holds, with one warning
     per split (first file, count), or with ``strict`` an error. A split without usable objects is an error.
     ``only``: index just the objects of these ids (names from :func:`object_dirs`; None: every object).
+    ``mesh_body``: with ``check_files``, read every ``mesh.ply`` whole; False checks only its header (training,
+    which never uses the mesh; ``strict`` always reads it whole).
     ``progress`` shows a tqdm bar on stderr (when it is a terminal).
     """
     folder = split_dir(root, category, split)
@@ -263,7 +266,7 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
         try:
             record = index_object(obj_dir, category, split, strict=strict, root=root)
             if check_files:
-                check = check_object(record, strict=strict)
+                check = check_object(record, strict=strict, mesh_body=mesh_body or strict)
                 index.checks[record.object_id] = check
                 record = srn_parts.with_issues(record, check.issues)
         except DepthnerfError as err:

@@ -4,11 +4,12 @@
 header without decoding pixels (PIL ``verify``: the chunk structure and CRCs are checked, so truncated or
 corrupted files are caught, at ~1/5 of the cost of a decode). It checks that every image and mask has the
 ``H x W`` that ``intrinsics.txt`` states, reads every depth map whole (shape, NaN/inf, negative, all zero), and
-reads ``mesh.ply`` whole (:func:`~depthnerf.data.mesh_file.check_mesh`: face indices in range, finite vertices). Bad required files raise :class:`~depthnerf.errors.DepthnerfError` with one line
-naming the file; a bad optional part is reported as a :class:`~depthnerf.data.srn_parts.PartIssue` (or raises,
-with ``strict``). It also counts the file formats it saw; an ``rgb/`` image that holds other data than PNG (a JPEG
-saved under a ``.png`` name), found from the header it opens anyway, is listed for one warning per split
-(:func:`warn_rgb_not_png`), or raises with ``strict``.
+reads ``mesh.ply`` whole (:func:`~depthnerf.data.mesh_file.check_mesh`: face indices in range, finite vertices;
+only its header for training, which never uses it). Bad required files raise
+:class:`~depthnerf.errors.DepthnerfError` with one line naming the file; a bad optional part is reported as a
+:class:`~depthnerf.data.srn_parts.PartIssue` (or raises, with ``strict``). It also counts the file formats it saw;
+an ``rgb/`` image that holds other data than PNG (a JPEG saved under a ``.png`` name), found from the header it
+opens anyway, is listed for one warning per split (:func:`warn_rgb_not_png`), or raises with ``strict``.
 
 The *camera radius* of a view is the norm of its pose translation (the distance of the camera from the world
 origin, where SRN objects are centred). An object all of whose cameras look away from the origin (the camera's +z
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from depthnerf.data.mesh_file import check_mesh
+from depthnerf.data.mesh_file import check_mesh, check_mesh_header
 from depthnerf.data.records import ObjectCheck, ObjectRecord, SplitIndex
 from depthnerf.data.srn_format import (
     NOT_AN_IMAGE,
@@ -131,12 +132,14 @@ def _depth_format(name: str) -> str:
     return "16-bit PNG" if name.endswith(".png") else Path(name).suffix
 
 
-def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
+def check_object(record: ObjectRecord, strict: bool = False, mesh_body: bool = True) -> ObjectCheck:
     """Read every pose, open every image/mask header, read every depth map and the mesh of ``record``.
 
     A bad required file raises on the first one; a bad optional part is reported once (its first bad file) in
     ``issues`` and not checked further, or raises with ``strict``. RGB images that are not PNG data are listed in
-    ``rgb_not_png`` (the first one raises with ``strict``).
+    ``rgb_not_png`` (the first one raises with ``strict``). ``mesh_body``: read ``mesh.ply`` whole
+    (:func:`~depthnerf.data.mesh_file.check_mesh`); False: check only its header
+    (:func:`~depthnerf.data.mesh_file.check_mesh_header`), for callers that never use the mesh (training).
     """
     intr = record.intrinsics
     expected = (intr.height, intr.width)
@@ -174,7 +177,7 @@ def check_object(record: ObjectRecord, strict: bool = False) -> ObjectCheck:
     check_cameras_face_origin(record.pose_path(0), np.stack(poses))
     if record.mesh_path is not None:
         try:
-            check_mesh(record.mesh_path)
+            (check_mesh if mesh_body else check_mesh_header)(record.mesh_path)
         except DepthnerfError as err:
             report.add_error("mesh", record.mesh_path, err)
     return ObjectCheck(num_views=record.num_views, radius_min=min(radii), radius_max=max(radii),

@@ -85,7 +85,7 @@ class FacingHeadFit:
 def dataset_session(checkpoint: str | Path, cfg: FacingHeadConfig) -> tuple[InferenceSession, list]:
     """A session of ``checkpoint`` reading ``cfg``'s dataset (views, plane; the cached prior for ``dataset`` inputs,
     else the prior computed from each encoded image) and the split's first ``cfg.objects`` records."""
-    records = index_split(cfg.data, cfg.category, cfg.split).objects[: cfg.objects]
+    records = index_split(cfg.data, cfg.category, cfg.split, mesh_body=False).objects[: cfg.objects]
     options = (SessionOptions(device=cfg.device, inputs="dataset", data_root=cfg.data, records=records)
                if cfg.inputs == "dataset" else SessionOptions(device=cfg.device, data_root=cfg.data))
     session = InferenceSession(checkpoint, options)

@@ -163,7 +163,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
             ViewStore(cfg.data.view_store, cfg.data.resolution, cfg.data.pixel_center).check()
         root, cat = Path(cfg.data.root), cfg.data.category
         try:
-            records = index_split(root, cat, "train").objects
+            records = index_split(root, cat, "train", mesh_body=False).objects
         except DepthnerfError as err:
             if resume and latest is None:  # most likely a mistyped --out: say so, not only what the data lacks
                 raise DepthnerfError(f"{err} (--resume found no checkpoint in {run_dir}, so a new run would start "
@@ -189,7 +189,7 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
         val_records = []
         if cfg.log.val_every > 0 and info.is_main and validate is not None:
             try:
-                val_records = index_split(root, cat, "val").objects[: cfg.log.val_objects]
+                val_records = index_split(root, cat, "val", mesh_body=False).objects[: cfg.log.val_objects]
             except DepthnerfError as err:
                 raise DepthnerfError(f"{err} (validation needs a val split; pass --log.val_every 0 to train without)"
                                      ) from None
