@@ -121,6 +121,28 @@ def test_grid_finer_than_the_feature_maps_is_refused(case, tmp_path, capsys, mon
     assert not out.exists()
 
 
+def test_a_fit_larger_than_the_host_memory_is_refused(case, tmp_path, capsys, monkeypatch):
+    """The fit's memory (``FIT_BYTES_PER_VALUE`` a pooled value) is sized before any view is encoded: above all of
+    the host's memory, one line naming the settings that size it."""
+    import depthnerf.train.facing_head as facing_head
+
+    monkeypatch.setattr(facing_head, "gather", lambda *a, **k: pytest.fail("views encoded"))
+    dim = tiny_model(apply_overrides(tiny_config("cars", "none"), [])).encoder.latent_size * 4
+    need = facing_head.fit_memory(6 * 2, dim)  # 6 objects x 1 view x 2 (--inputs both); --grid 2
+    monkeypatch.setattr(facing_head, "device_memory", lambda device: need - 1)
+    out = tmp_path / "h.safetensors"
+    assert _fit(case, out) == 2
+    err = _one_error_line(capsys)
+    assert err.startswith(f"error: 12 encoded views (6 objects x up to 1 (--views-per-object) x 2 for --inputs both) "
+                          f"x {dim:,} pooled values (--grid 2: {dim // 4} channels x 2^2): the fit would need about "), err
+    assert "more than all the host's memory" in err and "lower --grid" in err and not out.exists()
+    monkeypatch.setattr(facing_head, "device_memory", lambda device: need)
+    monkeypatch.setattr(facing_head, "gather", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("sized")))
+    with pytest.raises(RuntimeError, match="sized"):  # at the bound the fit goes on to encode the views
+        _fit(case, out)
+    assert capsys.readouterr().err.startswith("fitting on 12 encoded views")
+
+
 @pytest.mark.parametrize("scale", [1.0, 0.5, 1.5])
 def test_feature_side_is_the_encoded_maps_side(scale):
     cfg = apply_overrides(tiny_config("cars", "none"), ["--model.encoder.image_scale", str(scale)])

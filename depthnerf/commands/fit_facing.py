@@ -11,14 +11,16 @@ The head reads the angle of the object's mirror plane from the input view's feat
 ``reconstruct`` frames a photo, or both ways) and written into ``--out``: the checkpoint's weights file with the
 head added (any head it had is replaced). ``--out`` is never the checkpoint's own file, and an existing file
 only with ``--overwrite``; it and ``--json`` are checked before any work, and the data must be of the model's
-category. Prints, per ridge weight tried, the median and 90th-percentile angle error on the held-out objects;
-``--json`` writes them with the head's description.
+category. Prints the fit's size and memory before any view is encoded (a fit larger than all of the host's
+memory is refused), then, per ridge weight tried, the median and 90th-percentile angle error on the held-out
+objects; ``--json`` writes them with the head's description.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from depthnerf.errors import DepthnerfError
@@ -61,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = FacingHeadConfig(data=args.data, category=args.category, split=args.split, objects=args.objects,
                            views_per_object=args.views_per_object, grid=args.grid, seed=args.seed, device=args.device,
                            inputs=args.inputs)
-    fit = fit_facing_head(source, cfg)
+    fit = fit_facing_head(source, cfg, log=lambda line: print(line, file=sys.stderr, flush=True))
     for lam, score in fit.validation.items():
         chosen = "  <- chosen" if float(lam) == fit.head.info["lambda"] else ""
         print(f"lambda {lam:>6}: held-out |angle error| median {score['median_deg']:.2f} deg, "

@@ -15,7 +15,7 @@ be vertical and the cameras without roll (as in SRN and the synthetic benchmark)
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,11 +35,16 @@ from depthnerf.model.facing_head import (
     fit_ridges,
     pool_features,
 )
+from depthnerf.train.memory import device_memory, readable_bytes
 
 LAMBDAS = (10.0, 100.0, 1000.0, 10000.0)
 """Ridge weights tried on the held-out objects."""
 INPUTS = ("dataset", "photo", "both")
 """How a drawn view is encoded (``FacingHeadConfig.inputs``, module docstring)."""
+FIT_BYTES_PER_VALUE = 32
+"""Peak host bytes per pooled feature value of a fit: the float32 rows (4), the held-out split's float32 copy
+(about 3) and :func:`~depthnerf.model.facing_head.fit_ridges`'s float64 copy, centred temporary and standardised
+rows (8 each); measured at 31-32 on 2000-16000 rows of 2048-16384 values."""
 
 
 @dataclass(frozen=True)
@@ -152,8 +157,32 @@ def check_fit(session: InferenceSession, checkpoint: str | Path, cfg: FacingHead
                              f"model's resolution {session.spec.resolution}), got {cfg.grid}")
 
 
-def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHeadFit:
-    """Fit a head for ``checkpoint`` (module docstring)."""
+def fit_memory(rows: int, dim: int) -> int:
+    """Peak host memory (bytes) of a fit on ``rows`` encoded views of ``dim`` pooled values each:
+    :data:`FIT_BYTES_PER_VALUE` a value, plus the float64 Gram matrix and its regularised copy (the smaller of
+    ``rows`` and ``dim`` squared)."""
+    side = min(rows, dim)
+    return rows * dim * FIT_BYTES_PER_VALUE + 2 * side * side * 8
+
+
+def check_fit_memory(rows: int, dim: int, objects: int, cfg: FacingHeadConfig) -> str:
+    """One line sizing the fit on ``objects`` objects (:func:`fit_memory`); refuse, before any view is encoded, a fit that needs more than
+    all of the host's memory (RAM plus swap) in one line naming the settings that size it."""
+    need = fit_memory(rows, dim)
+    size = (f"{rows:,} encoded views ({objects} objects x up to {cfg.views_per_object} (--views-per-object)"
+            f"{' x 2 for --inputs both' if cfg.inputs == 'both' else ''}) x {dim:,} pooled values (--grid "
+            f"{cfg.grid}: {dim // (cfg.grid * cfg.grid)} channels x {cfg.grid}^2)")
+    have = device_memory(torch.device("cpu"))
+    if have is not None and need > have:
+        raise DepthnerfError(f"{size}: the fit would need about {readable_bytes(need)}, more than all the host's "
+                             f"memory ({readable_bytes(have)}); lower --grid, --objects or --views-per-object")
+    return f"fitting on {size}: about {readable_bytes(need)} of memory"
+
+
+def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig,
+                    log: Callable[[str], None] = lambda line: None) -> FacingHeadFit:
+    """Fit a head for ``checkpoint`` (module docstring); ``log`` receives one line sizing the fit before any view
+    is encoded (:func:`check_fit_memory`)."""
     session, records = dataset_session(checkpoint, cfg)
     check_fit(session, checkpoint, cfg)
     if len(records) < 5:
@@ -161,8 +190,10 @@ def fit_facing_head(checkpoint: str | Path, cfg: FacingHeadConfig) -> FacingHead
                              "at least 5 (one fifth is held out to choose the ridge weight)")
     if not session.model.cfg.mirror:
         raise DepthnerfError(f"{checkpoint}: not a mirror model, so it has no plane for a facing head to find")
-    pooled, psi, owner = gather(session, cfg, records)
     channels = session.model.encoder.latent_size
+    rows = sum(len(picks) for picks in drawn_views(records, cfg)) * (2 if cfg.inputs == "both" else 1)
+    log(check_fit_memory(rows, channels * cfg.grid * cfg.grid, len(records), cfg))
+    pooled, psi, owner = gather(session, cfg, records)
     held = np.random.default_rng(cfg.seed + 1).permutation(len(records))[: max(1, len(records) // 5)]
     val = torch.from_numpy(np.isin(owner, held))
     scores = {}
