@@ -99,7 +99,7 @@ class ViewMetrics:
     psnr: float
     """dB, MSE floored at :data:`MSE_FLOOR`."""
     ssim: float
-    """Mean over channels of scikit-image SSIM."""
+    """SSIM in the variant :attr:`ImageMetricsConfig.ssim_window` (:func:`ssim`), mean over channels."""
     lpips: float | None
     """LPIPS (VGG), None when LPIPS is unavailable."""
 

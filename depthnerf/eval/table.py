@@ -10,8 +10,8 @@ provenance line says so.
 
 A path given to :func:`find_summaries` is a summary file, an eval output directory (``DIR/summary.json``) or a run
 directory (``DIR/eval/*/summary.json``). Rows are methods (first-seen order), column groups are categories
-(chairs, cars, then others alphabetically), each with PSNR and SSIM, plus Chamfer-L1 / F-score / LPIPS columns
-when some summary of that category has a non-null value; a missing cell is ``—``. Two summaries with the same
+(chairs, cars, then others alphabetically), each with PSNR and SSIM, plus Chamfer-L1 / F-score / Floaters / LPIPS
+columns when some summary of that category has a non-null value; a missing cell is ``—``. Two summaries with the same
 method and category are an error (they would share a cell).
 """
 
