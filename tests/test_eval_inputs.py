@@ -107,7 +107,10 @@ def test_out_of_memory_while_evaluating_is_one_line_naming_the_sizes(case, tmp_p
     (["--mesh-points", "0"], "--mesh-points must be >= 1"),
     (["--symmetry-plane", "0", "0", "0", "0"], "--symmetry-plane: a symmetry plane is 4 finite numbers"),
     (["--guided-align-samples", "-5"], "--guided-align-samples must be >= 1, got -5"),  # was ignored: no --guided
-    (["--lpips-trunk", "vgg.pth"], "--lpips-trunk vgg.pth: no such file"),  # was LPIPS "unavailable", exit 0
+    (["--lpips-trunk", "vgg.pth"], "--lpips-trunk vgg.pth: no such file"),
+    (["--samples", "1", "16", "8"], "--samples takes three counts, coarse >= 2, importance >= 0 and Gaussian >= 0, "
+                                    "got 1 16 8"),
+    (["--samples", "32", "-1", "8"], "got 32 -1 8"),  # was LPIPS "unavailable", exit 0
 ])
 def test_flag_values_that_cannot_work_are_refused_before_anything_loads(tmp_path, capsys, flags, text):
     """A checkpoint path that does not exist: were the flag checked after loading, the error would be about it."""
@@ -237,3 +240,20 @@ def test_a_bad_ground_truth_mesh_is_one_warning_and_that_object_goes_unscored(ca
     rows = {row["object_id"]: row for row in csv.DictReader((out / "per_object.csv").open())}
     assert rows[bad.parent.name]["chamfer_l1"] == "" and rows[bad.parent.name]["psnr"] != ""
     assert all(row["chamfer_l1"] != "" for name, row in rows.items() if name != bad.parent.name)
+
+
+def test_samples_replace_the_sampler_counts_and_are_part_of_the_settings(case, tmp_path, capsys):
+    """``--samples`` equal to the checkpoint's trained counts (8 4 2) scores exactly what the checkpoint's sampler
+    does; other counts render otherwise, are recorded in summary.json and the method label, and an evaluation
+    folder of the other counts is not resumed into."""
+    summaries = {}
+    for name, flags in (("own", []), ("same", ["--samples", 8, 4, 2]), ("more", ["--samples", 16, 8, 4])):
+        assert _eval(case, tmp_path / name, "--no-mesh", *flags) == 0
+        summaries[name] = json.loads((tmp_path / name / "summary.json").read_text())
+    assert summaries["same"]["psnr"] == summaries["own"]["psnr"]
+    assert summaries["more"]["psnr"] != summaries["own"]["psnr"]
+    assert [s["sampler_counts"] for s in summaries.values()] == [[8, 4, 2], [8, 4, 2], [16, 8, 4]]
+    assert summaries["more"]["method"].endswith(" + 16+8+4 samples/ray")
+    capsys.readouterr()
+    assert _eval(case, tmp_path / "own", "--no-mesh", "--samples", 16, 8, 4) == 2
+    assert "settings" in _one_error_line(capsys)

@@ -86,6 +86,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override the depth prior recorded in the checkpoint (its cache must exist)")
     p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
     add_guided_flags(p)
+    p.add_argument("--samples", type=int, nargs=3, metavar=("COARSE", "IMPORTANCE", "GAUSSIAN"),
+                   help="samples per ray of the checkpoint's sampler instead of its trained counts (e.g. the "
+                   "paper's 64 16 16 for a CPU preset's 32 16 8)")
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
     p.add_argument("--pixel-center", type=float,
                    help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
@@ -229,6 +232,7 @@ def _request(args: argparse.Namespace):
     from depthnerf.eval.geometry_metrics import GeometryConfig
     from depthnerf.eval.metrics import LpipsConfig
     from depthnerf.eval.protocol import ProtocolConfig
+    from depthnerf.infer.session import check_samples
     from depthnerf.render.mesh_level import parse_level
 
     check_flags(args)
@@ -242,6 +246,7 @@ def _request(args: argparse.Namespace):
             raise DepthnerfError("--out OUT_DIR is required with --checkpoint")
         out = args.run / "eval" / args.split
     guided = guided_request(args.guided, args.guided_align_samples)
+    check_samples(args.samples)
     cfg = ProtocolConfig(
         split=args.split, category=args.category, views_stride=args.views_stride, max_objects=args.max_objects,
         input_views=None if args.input_views is None else tuple(args.input_views), resolution=args.resolution,
@@ -298,7 +303,8 @@ def _session(args: argparse.Namespace, info, out: Path, guided):
         device=info.device, depth=args.depth, depth_checkpoint=args.depth_checkpoint, inputs="dataset",
         data_root=data, fp32=args.fp32, compile=args.compile, compile_mode=args.compile_mode,
         bf16_residual=args.bf16_residual, gather=args.gather, chunk=args.chunk, guided=guided,
-        pixel_center=args.pixel_center, encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
+        samples=None if args.samples is None else tuple(args.samples), pixel_center=args.pixel_center,
+        encoder_norm=args.encoder_norm, symmetry=not args.no_symmetry,
         symmetry_plane=None if args.symmetry_plane is None else tuple(args.symmetry_plane)))
 
 

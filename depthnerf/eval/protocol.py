@@ -251,6 +251,7 @@ def _settings(session: InferenceSession, cfg: ProtocolConfig, data_root: Path, c
             "autocast": str(session.policy.autocast), "point_chunk": session.policy.point_chunk,
             **({"residual": str(session.policy.residual)} if session.policy.residual is not None else {}),
             **({"encoder_norm": session.options.encoder_norm} if session.options.encoder_norm != "running" else {}),
+            **({"samples": list(session.options.samples)} if session.options.samples is not None else {}),
             **({"symmetry_plane": None if session.options.symmetry_plane is None
                 else list(session.options.symmetry_plane), "symmetry": session.options.symmetry}
                if session.model.cfg.mirror else {})}
@@ -341,9 +342,13 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
             else "") + (
             " + encoder without first pool" if not spec.model.encoder.use_first_pool else "") + (
             f" + guided sampling ({guided.budget}/ray)" if guided is not None else "") + (
+            f" + {'+'.join(map(str, session.options.samples))} samples/ray" if session.options.samples is not None
+            else "") + (
             f", {len(cfg.input_views)} input views" if cfg.input_views is not None and len(cfg.input_views) > 1
             else ""),
         "guided_sampling": None if guided is None else guided_record(guided),
+        "sampler_counts": [spec.render.sampler.n_coarse, spec.render.sampler.n_importance,
+                           spec.render.sampler.n_gaussian],
         "category": category, "split": cfg.split, "preset": spec.preset,
         "depth_prior": estimator, "depth_prior_provenance": session.prior_source.provenance,
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,

@@ -7,7 +7,8 @@ spec
     :attr:`InferenceSession.spec`, the checkpoint's :class:`~depthnerf.pretrained.spec.InferenceSpec` with the
     overrides applied: the prior (:func:`resolve_prior`: ``--depth`` / ``--depth-checkpoint`` through
     :meth:`PriorConfig.override <depthnerf.depth.prior.PriorConfig.override>`, checked against the model), the
-    pixel centre (``--pixel-center``), the render config with the guided request (``--guided``), and the framing
+    pixel centre (``--pixel-center``), the render config with the sampler's counts (``--samples``) and the guided
+    request (``--guided``), and the framing
     (stated by the spec, or derived at load for older checkpoints). The stored spec stays ``pretrained.spec``.
 prior source
     :attr:`InferenceSession.prior_source` of the resolved prior, by what the inputs are
@@ -107,6 +108,10 @@ class SessionOptions:
     """Depth-guided sampling (``--guided [BUDGET]``): a budget (samples per occupied ray), True for the default
     budget or a :class:`GuidedConfig` (:func:`~depthnerf.render.source_guide.as_guided`); None: the checkpoint's
     own sampler."""
+    samples: tuple[int, int, int] | None = None
+    """``--samples C I G``: samples per ray of the checkpoint's coarse-to-fine sampler at inference, ``C`` coarse,
+    ``I`` importance and ``G`` Gaussian ones (``render.sampler``'s ``n_coarse``, ``n_importance``, ``n_gaussian``)
+    instead of those it was trained with; None: the checkpoint's."""
     pixel_center: float | None = None
     """``--pixel-center``: read data with another pixel-centre convention; None: the checkpoint's."""
     policy: InferencePolicy | None = None
@@ -132,6 +137,7 @@ class SessionOptions:
         if self.encoder_norm not in ENCODER_NORMS:
             raise DepthnerfError(f"--encoder-norm must be one of {', '.join(ENCODER_NORMS)}, "
                                  f"got {self.encoder_norm!r}")
+        check_samples(self.samples)
         if self.inputs not in ("photos", "views", "dataset"):
             raise DepthnerfError(f"SessionOptions.inputs must be photos, views or dataset, got {self.inputs!r}")
 
@@ -140,6 +146,14 @@ class SessionOptions:
         return self.policy or inference_policy(self.device, fp32=self.fp32, compile=self.compile,
                                                compile_mode=self.compile_mode, bf16_residual=self.bf16_residual,
                                                gather=self.gather)
+
+
+def check_samples(samples: Sequence[int] | None) -> None:
+    """Refuse ``--samples`` counts the sampler cannot take, in one line: three counts, coarse >= 2 (the importance
+    samples are drawn over the coarse bins), importance and Gaussian >= 0."""
+    if samples is not None and (len(samples) != 3 or samples[0] < 2 or min(samples[1:]) < 0):
+        raise DepthnerfError(f"--samples takes three counts, coarse >= 2, importance >= 0 and Gaussian >= 0, got "
+                             f"{' '.join(map(str, samples))}")
 
 
 def resolve_prior(trained: PriorConfig, depth: str | None, depth_checkpoint: str | None, *, photos: bool,
@@ -210,12 +224,17 @@ class InferenceSession:
         prior = resolve_prior(trained.prior, options.depth, options.depth_checkpoint,
                               photos=options.inputs == "photos", where=self.name)
         guided = as_guided(options.guided)
-        guided = None if guided is None else dataclasses.replace(guided, enabled=True)
+        render = trained.render
+        if guided is not None:
+            render = dataclasses.replace(render, guided=dataclasses.replace(guided, enabled=True))
+        if options.samples is not None:
+            counts = dict(zip(("n_coarse", "n_importance", "n_gaussian"), options.samples, strict=True))
+            render = dataclasses.replace(render, sampler=dataclasses.replace(render.sampler, **counts))
         self.spec = dataclasses.replace(
             trained, prior=prior,
             prior_weights_hash=trained.prior_weights_hash if prior == trained.prior else None,
             pixel_center=trained.pixel_center if options.pixel_center is None else options.pixel_center,
-            render=trained.render if guided is None else dataclasses.replace(trained.render, guided=guided))
+            render=render)
         """The resolved spec (module docstring); ``pretrained.spec`` is the checkpoint's own."""
         self.policy = options.policy or options.device_policy()
         self.chunk = options.chunk or self.policy.ray_chunk
