@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
 from pathlib import Path
 
 import torch
@@ -88,3 +90,18 @@ def test_resume_mends_best_only_when_it_holds_another_step(tmp_path):
     assert json.loads((tmp_path / "best" / "state.json").read_text())["step"] == 2 and not marker.exists()
     assert not any(stray.exists() for stray in strays)
     assert ckpt.restore_best(tmp_path, ckpt.TrainingState(2, 12.5, best_step=2)) is None
+
+
+def test_a_best_copy_after_a_kill_that_left_its_old_folder_replaces_best(tmp_path):
+    """A kill after ``best/`` took its new copy but before the old one was removed leaves ``.best.PID.old`` (the
+    resume finds ``best/`` complete and leaves it); a later process with the same process id (a container's
+    training process usually has one) must still replace ``best/``, not fail on the stale folder."""
+    first = _save(tmp_path, 1)
+    ckpt.mark_best(tmp_path, first)
+    stale = tmp_path / f".best.{os.getpid()}.old"
+    shutil.copytree(first, stale)  # what the killed process left, under this process's id
+    assert ckpt.restore_best(tmp_path, ckpt.TrainingState(1, 12.5, best_step=1)) is None
+    second = _save(tmp_path, 2, best_step=2)
+    ckpt.mark_best(tmp_path, second)
+    assert json.loads((tmp_path / "best" / "state.json").read_text())["step"] == 2
+    assert not stale.exists()

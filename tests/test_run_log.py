@@ -86,6 +86,24 @@ def test_a_resumed_runs_tensorboard_scalars_are_those_of_an_uninterrupted_run(tm
                                                                          (5, 15.0), (6, 16.0)]
 
 
+def test_a_restart_before_the_first_checkpoint_drops_the_killed_attempts_tensorboard_scalars(tmp_path):
+    """A run killed before its first checkpoint starts again from step 0 (``--resume`` finds no checkpoint): its
+    metric lines are dropped, and TensorBoard (its own reader) shows only the new attempt's steps too."""
+    accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
+    log = RunLog(tmp_path, 0)
+    for step in range(1, 7):
+        log.log(step, {"loss": float(step)})
+    log.close()
+    log = RunLog(tmp_path, 0)
+    for step in (1, 2):
+        log.log(step, {"loss": 10.0 + step})
+    log.close()
+    assert [(m["step"], m["loss"]) for m in read_metrics(tmp_path)] == [(1, 11.0), (2, 12.0)]
+    events = accumulator.EventAccumulator(str(tmp_path / "tb"))
+    events.Reload()
+    assert [(e.step, e.value) for e in events.Scalars("train/loss")] == [(1, 11.0), (2, 12.0)]
+
+
 def test_launches_note_only_a_resume_with_another_world_size(tmp_path):
     """A first start, a restart from step 0 on 2 ranks (nothing to compare: no note), a resume on the same 2
     ranks (no note), a resume on 1 rank (a note naming both sizes)."""

@@ -78,6 +78,21 @@ def test_learning_rate_schedule_closed_form():
     assert math.isclose(learning_rate(cfg, plan, step), s.lr * s.lr_decay ** 5)
 
 
+def test_exponential_learning_rate_counts_whole_epochs_exactly_at_their_boundaries():
+    """Brute force: count the objects phase 2 has consumed step by step; the decay's exponent is how many whole
+    epochs that is, also at the steps where an epoch ends exactly (where a difference of two fractional epochs
+    rounds to just below the whole number: 7 objects, 4 per step, step 899 of cpu-cars)."""
+    cfg = preset("cpu-cars")
+    s = cfg.schedule
+    for objects in (3, 7, 1200):
+        plan = BatchPlan(num_objects=objects, seed=0, bbox_steps=s.bbox_steps, objects_phase1=s.objects_phase1,
+                         objects_phase2=s.objects_phase2)
+        consumed = 0
+        for step in range(s.bbox_steps, s.bbox_steps + 3000):
+            assert learning_rate(cfg, plan, step) == s.lr * s.lr_decay ** (consumed // objects), (objects, step)
+            consumed += s.objects_phase2
+
+
 def test_cosine_learning_rate_closed_form_and_its_bounds():
     cfg = apply_overrides(preset("cpu-chairs"), ["--schedule.lr_schedule", "cosine", "--schedule.lr_final", "1e-5"])
     s = cfg.schedule

@@ -199,6 +199,7 @@ def mark_best(ckpt_root: Path, ckpt_dir: Path) -> None:
     step = int(ckpt_dir.name.split("_")[-1]) if ckpt_dir.name.startswith("step_") else -1
     crash_point("best-copied", step)
     old = ckpt_root / f".best.{os.getpid()}.old"
+    shutil.rmtree(old, ignore_errors=True)  # a killed process's, under this id: a rename onto it would fail
     if (ckpt_root / "best").exists():
         os.replace(ckpt_root / "best", old)
     crash_point("best-moved", step)

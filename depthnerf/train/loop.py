@@ -77,7 +77,7 @@ def learning_rate(cfg: TrainConfig, plan: BatchPlan, step: int) -> float:
         return s.lr_final + (s.lr - s.lr_final) * 0.5 * (1.0 + math.cos(math.pi * t))
     if s.lr_decay == 1.0:
         return s.lr
-    epochs = math.floor(plan.epoch(step) - plan.epoch(s.bbox_steps))
+    epochs = (plan.consumed(step) - plan.consumed(s.bbox_steps)) // plan.num_objects  # integers: exact at the ends
     return s.lr * s.lr_decay ** epochs
 
 

@@ -56,7 +56,8 @@ class RunLog:
             from torch.utils.tensorboard import SummaryWriter
 
             # the step of the checkpoint was logged before it was written: only later events are the interrupted run's
-            self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=start_step + 1 if start_step else None)
+            # (from step 0 too: a run killed before its first checkpoint starts again, its events are all stale)
+            self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=start_step + 1)
 
     def _truncate(self, start_step: int) -> None:
         if not self.path.exists():
