@@ -111,6 +111,14 @@ def test_cosine_learning_rate_closed_form_and_its_bounds():
         check_config(apply_overrides(cfg, ["--schedule.lr_final", "1e-3"]))
 
 
+def test_an_lr_decay_above_one_is_refused():
+    cfg = preset("cpu-cars")
+    assert check_config(apply_overrides(cfg, ["--schedule.lr_decay", "1"])).schedule.lr_decay == 1
+    for bad in ("1.01", "nan"):
+        with pytest.raises(DepthnerfError, match=r"--schedule\.lr_decay must be (in \(0, 1\]|> 0)"):
+            check_config(apply_overrides(cfg, ["--schedule.lr_decay", bad]))
+
+
 def test_baseline_and_depth_aware_presets_differ_only_in_the_prior_switch():
     base, depth = with_prior(preset("paper-cars"), "none"), with_prior(preset("paper-cars"), "bundled")
     assert not base.prior.enabled and depth.prior.enabled  # depth-awareness is derived from the prior, never stored

@@ -237,6 +237,9 @@ def check_config(cfg: TrainConfig) -> TrainConfig:
     if cfg.schedule.lr_final > cfg.schedule.lr:
         raise DepthnerfError(f"--schedule.lr_final must be <= --schedule.lr ({cfg.schedule.lr:g}), got "
                              f"{cfg.schedule.lr_final:g}")
+    if not cfg.schedule.lr_decay <= 1:  # > 0 by NUMBER_RULES; above 1 the rate would grow every epoch
+        raise DepthnerfError(f"--schedule.lr_decay must be in (0, 1] (1 keeps the rate constant), got "
+                             f"{cfg.schedule.lr_decay:g}")
     if not 0 <= cfg.data.channel_permute <= 1:  # NaN fails too
         raise DepthnerfError(f"--data.channel_permute must be in [0, 1], got {cfg.data.channel_permute}")
     if not 0 <= cfg.schedule.depth_loss_min_opacity < 1:  # NaN fails too; 1 would leave no ray
