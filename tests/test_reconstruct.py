@@ -406,6 +406,24 @@ def test_guided_reconstruction_from_the_api_and_the_cli(models, tmp_path, capsys
 
 
 
+def test_samples_flag_sets_the_sampler_counts_of_a_reconstruction(models, tmp_path, capsys):
+    """``reconstruct --samples C I G`` renders with those counts and records them in manifest.json; counts the
+    sampler cannot take are refused before the model loads."""
+    photo = tmp_path / "photo.png"
+    Image.fromarray(disc_photo()).save(photo)
+    counts = {}
+    for name, flags in (("own", []), ("few", ["--samples", "4", "2", "0"])):
+        assert main(["reconstruct", str(photo), "--checkpoint", str(models["baseline"]), "--out", str(tmp_path / name),
+                     "--views", "2", "--mesh-resolution", "0", "--no-progress", *flags]) == 0
+        counts[name] = json.loads((tmp_path / name / "manifest.json").read_text())["settings"]["sampler_counts"]
+    own = Reconstructor.from_pretrained(models["baseline"]).session.spec.render.sampler
+    assert counts == {"own": [own.n_coarse, own.n_importance, own.n_gaussian], "few": [4, 2, 0]}
+    capsys.readouterr()
+    assert main(["reconstruct", str(photo), "--checkpoint", str(tmp_path / "missing.safetensors"), "--out",
+                 str(tmp_path / "bad"), "--samples", "1", "2", "3"]) == 2
+    assert "--samples takes three counts, coarse >= 2" in capsys.readouterr().err
+
+
 def test_the_python_api_takes_a_guided_budget_as_the_cli_does(models):
     """``guided=12`` (session or per call) is ``--guided 12``; ``True`` the default budget; other values one line."""
     rec = Reconstructor.from_pretrained(models["constant"], guided=12)

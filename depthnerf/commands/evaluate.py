@@ -86,9 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="override the depth prior recorded in the checkpoint (its cache must exist)")
     p.add_argument("--depth-checkpoint", help="override the depth estimator weights recorded in the checkpoint")
     add_guided_flags(p)
-    p.add_argument("--samples", type=int, nargs=3, metavar=("COARSE", "IMPORTANCE", "GAUSSIAN"),
-                   help="samples per ray of the checkpoint's sampler instead of its trained counts (e.g. the "
-                   "paper's 64 16 16 for a CPU preset's 32 16 8)")
+    add_samples_flag(p)
     p.add_argument("--lpips-trunk", type=Path, help="local torchvision VGG16 weights for LPIPS (never downloaded)")
     p.add_argument("--pixel-center", type=float,
                    help="read the data with pixel (i, j) at (j + C, i + C) instead of the checkpoint's trained "
@@ -135,6 +133,14 @@ def add_guided_flags(p: argparse.ArgumentParser, budget: Callable[[str], int] = 
     p.add_argument("--guided-align-samples", type=int, default=GuidedConfig.align_samples,
                    help="coarse samples of the source render the prior is aligned to for --guided "
                         f"(default {GuidedConfig.align_samples})")
+
+
+def add_samples_flag(p: argparse.ArgumentParser) -> None:
+    """``--samples COARSE IMPORTANCE GAUSSIAN`` (``eval`` and ``reconstruct``; :attr:`SessionOptions.samples
+    <depthnerf.infer.session.SessionOptions.samples>`, checked by :func:`~depthnerf.infer.session.check_samples`)."""
+    p.add_argument("--samples", type=int, nargs=3, metavar=("COARSE", "IMPORTANCE", "GAUSSIAN"),
+                   help="samples per ray of the checkpoint's sampler instead of its trained counts (the CPU "
+                   "presets': 32 16 8; 16 8 4 renders about twice as fast)")
 
 
 def guided_request(budget: int | None, align_samples: int):

@@ -15,7 +15,12 @@ import math
 import sys
 from pathlib import Path
 
-from depthnerf.commands.evaluate import add_guided_flags, add_precision_flags, guided_request
+from depthnerf.commands.evaluate import (
+    add_guided_flags,
+    add_precision_flags,
+    add_samples_flag,
+    guided_request,
+)
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.distributed import pick_device
 from depthnerf.infer.facing import AUTO, MIN_CONFIDENCE
@@ -87,6 +92,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "--depth-estimator: same)")
     p.add_argument("--depth-checkpoint", help="depth estimator weights (hub id / local dir / weights file)")
     add_guided_flags(p, _budget)
+    add_samples_flag(p)
     p.add_argument("--chunk", type=int, help="rays per render pass (default 4096 on CPU, 65536 on CUDA)")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     add_precision_flags(p)
@@ -140,7 +146,8 @@ def run(args: argparse.Namespace) -> int:
     options = SessionOptions(device=pick_device(args.device), depth=args.depth,
                              depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
                              compile_mode=args.compile_mode, bf16_residual=args.bf16_residual, gather=args.gather,
-                             chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples))
+                             chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples),
+                             samples=None if args.samples is None else tuple(args.samples))
     check_output_dir(args.out, args.overwrite)
     check_image_file(args.image)  # a missing or non-image photo / mask fails before any model loads
     if args.mask is not None:

@@ -189,7 +189,7 @@ class Reconstructor:
         ``load_pretrained``) into a session on photos; ``depth_estimator`` / ``depth_checkpoint`` (``--depth`` /
         ``--depth-checkpoint``) override the checkpoint's prior, ``options`` are further
         :class:`~depthnerf.infer.session.SessionOptions` (``fp32``, ``compile``, ``compile_mode``, ``bf16_residual``,
-        ``gather``, ``chunk``, ``guided``, ``pixel_center``, ``policy``, ``inputs``)."""
+        ``gather``, ``chunk``, ``guided``, ``samples``, ``pixel_center``, ``policy``, ``inputs``)."""
         return cls(InferenceSession(checkpoint, SessionOptions(device=device, depth=depth_estimator,
                                                                depth_checkpoint=depth_checkpoint, **options)))
 
@@ -372,6 +372,8 @@ class Reconstructor:
                     "z_range": [near, far], "category": spec.category,
                     "depth_estimator": spec.prior.estimator, "depth_checkpoint": spec.prior.checkpoint,
                     "guided_sampling": None if guided is None else guided.budget,
+                    "sampler_counts": [spec.render.sampler.n_coarse, spec.render.sampler.n_importance,
+                                       spec.render.sampler.n_gaussian],
                     "mesh_resolution": cfg.mesh_resolution, "mesh_threshold": cfg.mesh_threshold,
                     "mesh_level": level and level.level, "mesh_level_rule": level and level.describe(),
                     "mesh_keep": cfg.mesh_keep, "mesh_pieces": pieces.pieces, "mesh_faces_extracted": pieces.faces,
