@@ -204,3 +204,25 @@ def test_an_object_below_the_minimum_size_is_refused():
     big[1000:1006, 1000:1006] = 255  # 3 x 3 px once downscaled with a 2048 px photo
     with pytest.raises(DepthnerfError, match=r"^mask: the object is 3x3 px of the photo downscaled to 1024x1024 "):
         photo_mask(np.ones((1024, 1024, 3), np.float32), None, big, [], source_size=(2048, 2048))
+
+
+@pytest.mark.parametrize("dtype, peak", [(np.float32, 0.9), (np.float64, 1.0), (np.uint16, 65535), (np.int32, 40000)])
+def test_a_float_or_16_bit_mask_is_object_above_half_its_own_maximum(dtype, peak, tmp_path):
+    """A soft mask (a segmentation model's scores in [0, 1], a 16-bit matte) splits at half its own maximum as an
+    8-bit one does; read as 8-bit grey first, floats below 1 became 0 (a mask peaking at 0.9 'marked no object')
+    and 16-bit values above 255 saturated (an edge at 200 of 65535 was object)."""
+    rng = np.random.default_rng(5)
+    given = np.zeros((20, 20), dtype)
+    given[4:16, 4:16] = (rng.uniform(0.0, 1.0, (12, 12)) * peak).astype(dtype)
+    given[0, 0] = dtype(peak)
+    want = given.astype(np.float64) > float(given.max()) / 2
+    assert 10 < want.sum() < 140
+    notes: list[str] = []
+    np.testing.assert_array_equal(photo_mask(np.zeros((20, 20, 3), np.float32), None, given, notes), want)
+    assert f"half its maximum {float(given.max()):g}" in notes[0], notes
+    if dtype == np.uint16:  # a 16-bit PNG mask file alike
+        from PIL import Image
+
+        Image.fromarray(given).save(tmp_path / "mask.png")
+        np.testing.assert_array_equal(photo_mask(np.zeros((20, 20, 3), np.float32), None, tmp_path / "mask.png", []),
+                                      want)
