@@ -226,3 +226,24 @@ def test_a_float_or_16_bit_mask_is_object_above_half_its_own_maximum(dtype, peak
         Image.fromarray(given).save(tmp_path / "mask.png")
         np.testing.assert_array_equal(photo_mask(np.zeros((20, 20, 3), np.float32), None, tmp_path / "mask.png", []),
                                       want)
+
+
+@pytest.mark.parametrize("channels", [2, 4])
+def test_downscaling_an_array_with_alpha_does_not_bleed_transparent_colours(channels):
+    """A 2048 px cut-out array (its transparent pixels random colours, as cut-outs leave them) downscaled 2x: each
+    pixel composited on white is the 2 x 2 block's composite, ``mean(alpha * c) + 1 - mean(alpha)`` (straight
+    colours averaged with alpha, as a PIL image is resampled); averaging the colours unweighted darkened or
+    tinted the object's edge by the hidden colours."""
+    rng = np.random.default_rng(7)
+    arr = rng.integers(0, 256, (2048, 2048, channels)).astype(np.uint8)
+    arr[..., -1] = 0
+    arr[501:1501, 301:1701, :-1] = (200, 90, 30)[:channels - 1]
+    arr[501:1501, 301:1701, -1] = 255
+    arr[1600:1700, 101:201, -1] = 128  # half transparent, random colours
+    rgb, alpha, _ = read_photo(arr, [])
+    f = arr.astype(np.float64) / 255
+    a = f[..., -1:]
+    c = np.repeat(f[..., :1], 3, -1) if channels == 2 else f[..., :3]
+    block = (a * c + 1 - a).reshape(1024, 2, 1024, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(rgb * alpha[..., None] + 1 - alpha[..., None], block, atol=1e-5)
+    np.testing.assert_allclose(alpha, a[..., 0].reshape(1024, 2, 1024, 2).mean(axis=(1, 3)), atol=1e-6)

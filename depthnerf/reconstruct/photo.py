@@ -229,9 +229,15 @@ def read_photo(source: ImageLike, notes: list[str]) -> tuple[np.ndarray, np.ndar
         img = _to_float(np.asarray(im))
     else:
         img = _to_float(arr)
-        if small != size:
+        if small != size:  # colours averaged with alpha (premultiplied), as Pillow resamples an image with alpha
+            has_alpha = img.shape[-1] in (2, 4)
+            if has_alpha:
+                img = np.concatenate([img[..., :-1] * img[..., -1:], img[..., -1:]], axis=-1)
             t = torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1)[None]
             img = F.interpolate(t, size=small, mode="area")[0].permute(1, 2, 0).numpy()
+            if has_alpha:
+                a = img[..., -1:]
+                img = np.concatenate([np.clip(img[..., :-1] / np.maximum(a, 1e-12), 0.0, 1.0), a], axis=-1)
     if img.shape[-1] in (1, 2):
         notes.append("grayscale image: replicated to RGB")
         img = np.concatenate([np.repeat(img[..., :1], 3, axis=-1), img[..., 1:]], axis=-1)
