@@ -263,7 +263,8 @@ def photo_mask(rgb: np.ndarray, alpha: np.ndarray | None, mask: ImageLike | None
                 mask if isinstance(mask, Image.Image) else upright(Image.open(mask), notes, "mask"))
             # float: a downscaled 0/1 mask keeps its averages; float and 16/32-bit masks keep their values (8-bit
             # grey first made soft scores below 1 zero and saturated 16-bit values above 255)
-            im = im.convert("F") if im.mode in ("F", "I") or im.mode.startswith("I;16") else im.convert("L").convert("F")
+            wide = im.mode in ("F", "I") or im.mode.startswith("I;16")
+            im = im.convert("F") if wide else im.convert("L").convert("F")
         if source_size is not None and (im.height, im.width) == source_size != (height, width):
             im = im.resize((width, height), Image.Resampling.BOX)
         if (im.height, im.width) != (height, width):
