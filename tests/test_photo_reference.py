@@ -247,3 +247,16 @@ def test_downscaling_an_array_with_alpha_does_not_bleed_transparent_colours(chan
     block = (a * c + 1 - a).reshape(1024, 2, 1024, 2, 3).mean(axis=(1, 3))
     np.testing.assert_allclose(rgb * alpha[..., None] + 1 - alpha[..., None], block, atol=1e-5)
     np.testing.assert_allclose(alpha, a[..., 0].reshape(1024, 2, 1024, 2).mean(axis=(1, 3)), atol=1e-6)
+
+
+def test_a_given_mask_cuts_out_an_rgba_photo_whose_alpha_is_empty():
+    """An RGBA photo whose alpha is 0 everywhere (an export that dropped it) with a mask: the mask's pixels are the
+    photo's colours on white, noted; compositing on the empty alpha first made the whole input white, silently."""
+    arr = np.zeros((32, 32, 4), np.uint8)
+    arr[..., :3] = np.random.default_rng(2).integers(0, 200, (32, 32, 3))
+    mask = np.zeros((32, 32), np.uint8)
+    mask[8:24, 10:22] = 255
+    prep = prepare_photo(arr, mask, 32, "keep")
+    want = np.where(mask[..., None] > 0, arr[..., :3] / 255, 1.0)
+    np.testing.assert_allclose(prep.image, want, atol=1e-6)
+    assert any("alpha channel" in n and "ignored" in n for n in prep.notes), prep.notes

@@ -11,7 +11,8 @@ Input photo (assumption: ONE object, roughly centred, on a plain background)
     is ``MAX_SIDE`` (noted), and a side that this leaves below :data:`MIN_SIDE` is an error too (a 4000x20
     photo). An object whose mask box is below :data:`MIN_OBJECT_SIDE` px on its longer side is an error. Mask, in order: the given mask (a pixel is object where its value is above half the
     mask's own maximum, so 0/1, 0/100 and 0/255 masks all work and an anti-aliased 0..255 edge splits at 127.5; an
-    all-zero mask is an error; same size as the upright image);
+    all-zero mask is an error; same size as the upright image; an alpha channel with no pixel above 0.5 is then
+    ignored, noted);
     else the alpha channel (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
     (:mod:`depthnerf.reconstruct.background`), its foreground score as the alpha (then as for alpha; the RGBA
     cut-out is kept in :attr:`PreparedImage.cutout`); else the *background colour* = the per-channel median
@@ -342,6 +343,9 @@ def prepare_photo(image: ImageLike, mask: ImageLike | None, resolution: int, fra
     notes: list[str] = []
     rgb, alpha, size = read_photo(image, notes)
     name = str(image) if isinstance(image, str | Path) else "image"
+    if mask is not None and alpha is not None and not (alpha > ALPHA_THRESHOLD).any():
+        notes.append("alpha channel: transparent everywhere, ignored (the given mask cuts out the object)")
+        alpha = None  # composited on it, the whole photo was white
     cutout = None
     if mask is None and alpha is None and background is not None:
         if background.available:
