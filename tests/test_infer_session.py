@@ -183,3 +183,16 @@ def test_training_states_the_framing_and_older_checkpoints_derive_it(tmp_path):
     (tmp_path / "older.json").write_text(json.dumps({"framing": "legacy"}))
     pre = load_pretrained(older)
     assert pre.spec.framing == "legacy" and pre.framing_origin == str(tmp_path / "older.json")
+
+
+def test_a_reconstruction_records_the_pixel_centre_and_encoder_norm_it_ran_with(tiny):
+    """``pixel_center`` and ``encoder_norm`` change what a reconstruction renders (the input camera, the encoder's
+    statistics), so the manifest's settings state them, overridden or not, as eval's summary does."""
+    cfg = ReconstructConfig(views=1, mesh_resolution=0, background_removal="off")
+    plain = Reconstructor.from_pretrained(tiny["ckpt"]).reconstruct(examples()[0], config=cfg)
+    assert plain.settings["pixel_center"] == 0.0 and plain.settings["encoder_norm"] == "running"
+    rec = Reconstructor.from_pretrained(tiny["ckpt"], pixel_center=0.5, encoder_norm="image")
+    out = rec.reconstruct(examples()[0], config=cfg)
+    assert out.settings["pixel_center"] == 0.5 and out.settings["encoder_norm"] == "image"
+    manifest = rec.save(out, tiny["tmp"] / "recorded")
+    assert (manifest["settings"]["pixel_center"], manifest["settings"]["encoder_norm"]) == (0.5, "image")

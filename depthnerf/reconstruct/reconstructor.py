@@ -369,7 +369,8 @@ class Reconstructor:
                                      source_size=(encoded.intr.height, encoded.intr.width))
         disparity, normalized = encoded.disparity, encoded.inputs.disparity
         settings = {"resolution": spec.resolution, "render_resolution": render_intr.height, "views": len(poses),
-                    "z_range": [near, far], "category": spec.category,
+                    "z_range": [near, far], "category": spec.category, "pixel_center": spec.pixel_center,
+                    "encoder_norm": self.session.options.encoder_norm,
                     "depth_estimator": spec.prior.estimator, "depth_checkpoint": spec.prior.checkpoint,
                     "guided_sampling": None if guided is None else guided.budget,
                     "sampler_counts": [spec.render.sampler.n_coarse, spec.render.sampler.n_importance,
