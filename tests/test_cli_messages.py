@@ -126,6 +126,28 @@ def test_an_unusable_output_folder_fails_before_any_work(tmp_path, capsys, monke
         assert "cannot write the output folder" in one_error(capsys)
 
 
+def test_overwrite_never_replaces_the_photo_or_mask_it_reads(tmp_path, capsys, monkeypatch):
+    """A photo named ``input.png`` (or a mask named ``input_mask.png``) inside ``--out`` is one of the files a
+    reconstruction writes there: ``--overwrite`` deleted the user's own photo and put the framed view in its
+    place. It is refused before any work, with or without ``--overwrite``; files of the same name elsewhere are
+    not."""
+    import depthnerf.infer.session as session
+
+    monkeypatch.setattr(session, "load_pretrained", lambda *a, **k: pytest.fail("loaded before --out was checked"))
+    out = tmp_path / "car"
+    (out / "views").mkdir(parents=True)
+    photo, mask = out / "input.png", out / "views" / "view_000.png"
+    photo.write_bytes(CAR.read_bytes())
+    Image.fromarray(np.full((16, 16), 255, np.uint8)).save(mask)
+    for args in ((photo,), (CAR, "--mask", mask)):
+        for flags in ((), ("--overwrite",)):
+            assert reconstruct(*args, "--checkpoint", "cpu-cars-depth", "--out", out, *flags) == 2
+            name = "input.png" if args[0] == photo else "views/view_000.png"
+            assert one_error(capsys) == (f"error: {out / name}: a reconstruction in {out} writes a file of this name; "
+                                         "choose another --out, or move the file")
+    assert photo.read_bytes() == CAR.read_bytes() and mask.is_file()
+
+
 def test_precision_flags_the_device_cannot_run_are_refused_before_loading(tmp_path, capsys, monkeypatch):
     import depthnerf.infer.session as session
 

@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> int:
                              compile_mode=args.compile_mode, bf16_residual=args.bf16_residual, gather=args.gather,
                              chunk=args.chunk, guided=guided_request(args.guided, args.guided_align_samples),
                              samples=None if args.samples is None else tuple(args.samples))
-    check_output_dir(args.out, args.overwrite)
+    check_output_dir(args.out, args.overwrite, [p for p in (args.image, args.mask) if p is not None])
     check_image_file(args.image)  # a missing or non-image photo / mask fails before any model loads
     if args.mask is not None:
         check_image_file(args.mask, "mask")

@@ -28,7 +28,8 @@ only when all of them are written are the earlier outputs removed and the new on
 ``manifest.json`` last. So a failure while writing (a full disk, a bad mesh export, Ctrl-C) leaves an earlier
 reconstruction as it was and removes the staging folder; ``manifest.json`` present means the folder is complete.
 (A process killed outright may leave its staging folder behind; it is hidden, and nothing reads it.) :func:`check_output_dir` is what ``depthnerf reconstruct`` runs before any work: the
-folder must be creatable and writable, and may hold an earlier reconstruction only with ``--overwrite``.
+folder must be creatable and writable, may hold an earlier reconstruction only with ``--overwrite``, and
+never holds the photo or mask under one of these names (writing would replace it).
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ import re
 import shutil
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -75,12 +77,27 @@ def earlier_outputs(out: Path) -> list[Path]:
     return found
 
 
-def check_output_dir(out: Path, overwrite: bool = False) -> None:
+def owned_output(out: Path, path: Path) -> bool:
+    """Whether ``path`` is a file a reconstruction in ``out`` writes, and so replaces (:data:`OUTPUT_NAMES`,
+    :data:`NUMBERED_OUTPUTS`)."""
+    out, path = Path(out).resolve(), Path(path).resolve()
+    if path.parent == out:
+        return path.name in OUTPUT_NAMES
+    pattern = NUMBERED_OUTPUTS.get(path.parent.name)
+    return path.parent.parent == out and pattern is not None and pattern.fullmatch(path.name) is not None
+
+
+def check_output_dir(out: Path, overwrite: bool = False, inputs: Sequence[Path] = ()) -> None:
     """Fail at once, before any work, when ``out`` cannot take a reconstruction: a file, not creatable or not
-    writable, or holding an earlier reconstruction (unless ``overwrite``). Creates nothing."""
+    writable, holding an earlier reconstruction (unless ``overwrite``), or where the reconstruction would replace
+    one of its ``inputs`` (the photo, the mask). Creates nothing."""
     out = Path(out)
     if (problem := folder_problem(out, "--out")) is not None:
         raise DepthnerfError(problem)
+    for path in inputs:
+        if owned_output(out, path):
+            raise DepthnerfError(f"{path}: a reconstruction in {out} writes a file of this name; choose another "
+                                 "--out, or move the file")
     existing = nearest_existing(out)
     try:
         handle, probe = tempfile.mkstemp(dir=existing, prefix=".depthnerf-write-check-")
