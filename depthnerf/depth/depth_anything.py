@@ -16,8 +16,8 @@ model's ``predicted_depth`` (relative disparity: larger = closer) is resized bac
 the processor's ``post_process_depth_estimation`` (bicubic).
 
 Weights hash: SHA-256 over ``*.safetensors`` plus ``config.json`` and ``preprocessor_config.json`` of a local
-directory (file names and bytes, sorted by name; the configs are included because they change the output), or of
-``"hub:<id>@<revision>"`` for a hub id.
+directory (file names and bytes: the weights sorted by name, then the two configs in that order; the configs are
+included because they change the output), or of ``"hub:<id>@<revision>"`` for a hub id.
 
 Licences: Depth-Anything-V2-Small is Apache-2.0; Depth-Anything-V2-Base and -Large are CC-BY-NC-4.0
 (non-commercial).
