@@ -16,7 +16,7 @@ from depthnerf.depth.bundled import (
     network_size,
     save_bundled,
 )
-from depthnerf.depth.depth_anything import make_tiny_checkpoint
+from depthnerf.depth.depth_anything import licence_of, make_tiny_checkpoint
 from depthnerf.depth.estimators import DepthEstimator, describe_estimator, make_estimator
 from depthnerf.errors import DepthnerfError
 
@@ -63,6 +63,16 @@ def test_depth_anything_hash_follows_weights_and_bad_paths_fail(tiny_da, tmp_pat
     hub = describe_estimator("depth-anything-v2")
     assert hub.checkpoint == "depth-anything/Depth-Anything-V2-Base-hf" and "CC-BY-NC-4.0" in hub.licence
     assert "Apache-2.0" in describe_estimator("depth-anything-v2", "depth-anything/Depth-Anything-V2-Small-hf").licence
+
+
+def test_depth_anything_licence_is_judged_from_the_checkpoints_own_name(tmp_path):
+    """A size word in a folder above the checkpoint named the licence: a non-commercial Large model under
+    ``small_disk/`` was recorded as Apache-2.0."""
+    assert "CC-BY-NC-4.0" in licence_of("/data/small_disk/Depth-Anything-V2-Large-hf")
+    assert "Apache-2.0" in licence_of("/data/large_disk/Depth-Anything-V2-Small-hf/")
+    assert licence_of("/srv/database/da-v2").startswith("unknown")
+    folder = make_tiny_checkpoint(tmp_path / "small_runs" / "Depth-Anything-V2-Base-hf")
+    assert "CC-BY-NC-4.0" in describe_estimator("depth-anything-v2", str(folder)).licence
 
 
 def test_bundled_network_round_trip_and_resizing(tmp_path):

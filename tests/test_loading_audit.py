@@ -175,7 +175,12 @@ def test_checkpoint_metadata_a_user_did_not_write(tmp_path):
              "samples": ({SPEC_KEY: json.dumps({**spec, "render": {**spec["render"], "sampler": {
                  **spec["render"]["sampler"], "n_coarse": 0}}})}, "render.sampler.n_coarse must be >= 1, got 0"),
              "pixel-centre": ({SPEC_KEY: json.dumps({**spec, "pixel_center": 5.0})},
-                              "pixel_center must be in [0, 1), got 5.0")}
+                              "pixel_center must be in [0, 1), got 5.0"),
+             # a field every spec holds, gone: a TypeError traceback, or (model) a default config's network built
+             "no-render": ({SPEC_KEY: json.dumps({k: v for k, v in spec.items() if k != "render"})},
+                           "inference spec lacks render"),
+             "no-model": ({SPEC_KEY: json.dumps({k: v for k, v in spec.items() if k != "model"})},
+                          "inference spec lacks model")}
     for name, (changes, says) in cases.items():
         path = _with_meta(good, tmp_path / f"{name}.safetensors", **changes)
         with pytest.raises(DepthnerfError) as err:

@@ -16,8 +16,8 @@ model's ``predicted_depth`` (relative disparity: larger = closer) is resized bac
 the processor's ``post_process_depth_estimation`` (bicubic).
 
 Weights hash: SHA-256 over ``*.safetensors`` plus ``config.json`` and ``preprocessor_config.json`` of a local
-directory (file names and bytes, sorted by name; the configs are included because they change the output), or of
-``"hub:<id>@<revision>"`` for a hub id.
+directory (file names and bytes: the weights sorted by name, then the two configs in that order; the configs are
+included because they change the output), or of ``"hub:<id>@<revision>"`` for a hub id.
 
 Licences: Depth-Anything-V2-Small is Apache-2.0; Depth-Anything-V2-Base and -Large are CC-BY-NC-4.0
 (non-commercial).
@@ -53,8 +53,9 @@ HASHED_CONFIGS = ("config.json", "preprocessor_config.json")
 
 
 def licence_of(checkpoint: str) -> str:
-    """Licence text of a Depth Anything V2 checkpoint, judged from its name."""
-    low = checkpoint.lower()
+    """Licence text of a Depth Anything V2 checkpoint, judged from its name (the hub id's repository or the
+    directory's own name, never the folders above it)."""
+    low = Path(checkpoint).name.lower()
     if "small" in low:
         return "Apache-2.0 (Depth-Anything-V2-Small)"
     if "base" in low or "large" in low:
@@ -89,9 +90,10 @@ def depth_anything_provenance(checkpoint: str | None = None) -> PriorProvenance:
     checkpoint = checkpoint or DEFAULT_CHECKPOINT
     local = _local_dir(checkpoint)
     if local is not None:
-        digest = _hash_local_dir(local.resolve())
+        folder = local.resolve()
+        digest = _hash_local_dir(folder)
         size = _processor_size(local)
-        return PriorProvenance("depth-anything-v2", str(local.resolve()), digest, size, licence_of(checkpoint))
+        return PriorProvenance("depth-anything-v2", str(folder), digest, size, licence_of(str(folder)))
     digest = hashlib.sha256(f"hub:{checkpoint}@{DEFAULT_REVISION}".encode()).hexdigest()
     return PriorProvenance("depth-anything-v2", checkpoint, digest, 518, licence_of(checkpoint))
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import copy
 import json
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass, fields
 from typing import Any
 
 from depthnerf.config_io import NumberRules, broken_rule, from_dict, to_dict
@@ -98,8 +98,11 @@ def spec_from_json(text: str, where: str) -> InferenceSpec:
         raise DepthnerfError(f"{where}: inference spec is not valid JSON") from None
     if not isinstance(data, dict) or not isinstance(data.get("prior"), dict):
         raise DepthnerfError(f"{where}: inference spec has no prior")
+    missing = [f.name for f in fields(InferenceSpec) if f.default is MISSING and f.name not in data]
+    if missing:  # every spec ever written holds them; a default model config would be another network's
+        raise DepthnerfError(f"{where}: inference spec lacks {', '.join(missing)}")
     prior = from_dict(PriorConfig, data["prior"], where=f"{where} prior")
-    model = model_config_from_dict(data.get("model", {}), prior.enabled, f"{where} model")
+    model = model_config_from_dict(data["model"], prior.enabled, f"{where} model")
     rest = {k: v for k, v in data.items() if k not in ("model", "prior", "extra")}  # older specs: an unused "extra"
     spec = from_dict(InferenceSpec, {**rest, "model": {}, "prior": {}}, where=where)
     spec.model, spec.prior = model, prior
