@@ -9,10 +9,10 @@ Input photo (assumption: ONE object, roughly centred, on a plain background)
     is a mask file (noted); grayscale is replicated to RGB (noted); sides below :data:`MIN_SIDE` px are an error;
     images larger than :data:`MAX_SIDE` px are first downscaled (box filter, aspect ratio kept) so the longer side
     is ``MAX_SIDE`` (noted), and a side that this leaves below :data:`MIN_SIDE` is an error too (a 4000x20
-    photo). An object whose mask box is below :data:`MIN_OBJECT_SIDE` px on its longer side is an error. Mask, in order: the given mask (a pixel is object where its value is above half the
-    mask's own maximum, so 0/1, 0/100 and 0/255 masks all work and an anti-aliased 0..255 edge splits at 127.5; an
-    all-zero mask is an error; same size as the upright image; an alpha channel with no pixel above 0.5 is then
-    ignored, noted);
+    photo). An object whose mask box is below :data:`MIN_OBJECT_SIDE` px on its longer side is an error. Mask, in
+    order: the given mask (a pixel is object where its value is above half the mask's own maximum, so 0/1, 0/100
+    and 0/255 masks all work and an anti-aliased 0..255 edge splits at 127.5; an all-zero mask is an error; same
+    size as the upright image; an alpha channel with no pixel above 0.5 is then ignored, noted);
     else the alpha channel (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
     (:mod:`depthnerf.reconstruct.background`), its foreground score as the alpha (then as for alpha; the RGBA
     cut-out is kept in :attr:`PreparedImage.cutout`); else the *background colour* = the per-channel median
