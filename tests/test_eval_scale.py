@@ -109,6 +109,7 @@ def test_killed_evaluation_resumes_without_recomputing(case):
     assert {p: p.stat().st_mtime_ns for p in finished} == stamps  # finished objects were not written again
     timing = json.loads((out / "summary.json").read_text())["timing"]
     assert (timing["objects_computed"], timing["objects_resumed"]) == (OBJECTS - 2, 2)
+    assert timing["per_object_s"] == pytest.approx(timing["total_s"] / (OBJECTS - 2))  # the resumed cost nothing
     assert outputs(out) == outputs(case["reference"])
 
 

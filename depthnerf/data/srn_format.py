@@ -362,8 +362,9 @@ def mask_not_png(path: Path, image_format: str) -> str:
 def read_mask(path: Path) -> np.ndarray:
     """Read a mask PNG of any bit depth and mode as a boolean ``H x W`` array.
 
-    Any other format (a JPEG named ``.png``) is an error. A pixel is object when its colour is non-zero (any channel; palette images by their palette colour); where
-    the image has alpha, a fully transparent pixel is background. (Pillow reads 16-bit *colour* PNGs at 8-bit
+    Any other format (a JPEG named ``.png``) is an error. A pixel is object when its colour is non-zero (any
+    channel; palette images by their palette colour); where the image has alpha, a fully transparent pixel is
+    background. (Pillow reads 16-bit *colour* PNGs at 8-bit
     precision, so there a value below 256 reads as 0; 16-bit grey keeps full precision.)
     """
     path = Path(path)

@@ -363,7 +363,8 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
         "dataset_pixel_center": cfg.geometry.depth_pixel_center, "z_range": list(spec.z_range),
         "metrics_path": METRICS_PATH[choices.scored],
         "world_size": info.world,
-        "timing": {"total_s": total, "per_object_s": total / len(results),
+        "timing": {"total_s": total,  # per object: over those computed now (resumed ones cost nothing here)
+                   "per_object_s": total / counts.computed if counts.computed else None,
                    **{f"{k}_s": float(sum(r.seconds[k] for r in results)) for k in ("render", "metrics", "mesh")},
                    "device": str(device), "torch_threads": torch.get_num_threads(),
                    "objects_computed": counts.computed, "objects_resumed": counts.resumed},
