@@ -133,8 +133,9 @@ def test_a_fit_larger_than_the_host_memory_is_refused(case, tmp_path, capsys, mo
     out = tmp_path / "h.safetensors"
     assert _fit(case, out) == 2
     err = _one_error_line(capsys)
-    assert err.startswith(f"error: 12 encoded views (6 objects x up to 1 (--views-per-object) x 2 for --inputs both) "
-                          f"x {dim:,} pooled values (--grid 2: {dim // 4} channels x 2^2): the fit would need about "), err
+    assert err.startswith(f"error: 12 encoded views (6 objects x up to 1 (--views-per-object) x 2 for --inputs "
+                          f"both) x {dim:,} pooled values (--grid 2: {dim // 4} channels x 2^2): the fit would need "
+                          "about "), err
     assert "more than all the host's memory" in err and "lower --grid" in err and not out.exists()
     monkeypatch.setattr(facing_head, "device_memory", lambda device: need)
     monkeypatch.setattr(facing_head, "gather", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("sized")))

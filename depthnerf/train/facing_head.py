@@ -166,8 +166,9 @@ def fit_memory(rows: int, dim: int) -> int:
 
 
 def check_fit_memory(rows: int, dim: int, objects: int, cfg: FacingHeadConfig) -> str:
-    """One line sizing the fit on ``objects`` objects (:func:`fit_memory`); refuse, before any view is encoded, a fit that needs more than
-    all of the host's memory (RAM plus swap) in one line naming the settings that size it."""
+    """One line sizing the fit on ``objects`` objects (:func:`fit_memory`); refuse, before any view is encoded, a
+    fit that needs more than all of the host's memory (RAM plus swap) in one line naming the settings that size
+    it."""
     need = fit_memory(rows, dim)
     size = (f"{rows:,} encoded views ({objects} objects x up to {cfg.views_per_object} (--views-per-object)"
             f"{' x 2 for --inputs both' if cfg.inputs == 'both' else ''}) x {dim:,} pooled values (--grid "
