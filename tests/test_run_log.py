@@ -67,41 +67,35 @@ def test_a_run_folder_deleted_while_training_is_one_line_naming_the_metrics_file
         log.log(2, {"loss": 0.4})
 
 
+def _two_attempts(run, start_step: int, steps: tuple[int, ...]) -> list[tuple[int, float]]:
+    """Steps 1..6 logged (loss = step), then a second process starting at ``start_step`` logs ``steps`` (loss =
+    10 + step); the ``train/loss`` curve TensorBoard's own reader gives back."""
+    accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
+    log = RunLog(run, 0)
+    for step in range(1, 7):
+        log.log(step, {"loss": float(step)})
+    log.close()
+    log = RunLog(run, start_step)
+    for step in steps:
+        log.log(step, {"loss": 10.0 + step})
+    log.close()
+    events = accumulator.EventAccumulator(str(run / "tb"))
+    events.Reload()
+    return [(e.step, e.value) for e in events.Scalars("train/loss")]
+
+
 def test_a_resumed_runs_tensorboard_scalars_are_those_of_an_uninterrupted_run(tmp_path):
     """Read back with TensorBoard's own reader: steps 1..6 logged, a resume from the checkpoint of step 4 logs
     steps 5 and 6 again; the curve is steps 1..6 with the first process's values up to step 4 (which the
     checkpoint holds) and the resumed ones after, as an uninterrupted run would have logged them."""
-    accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
-    log = RunLog(tmp_path, 0)
-    for step in range(1, 7):
-        log.log(step, {"loss": float(step)})
-    log.close()
-    log = RunLog(tmp_path, 4)
-    for step in (5, 6):
-        log.log(step, {"loss": 10.0 + step})
-    log.close()
-    events = accumulator.EventAccumulator(str(tmp_path / "tb"))
-    events.Reload()
-    assert [(e.step, e.value) for e in events.Scalars("train/loss")] == [(1, 1.0), (2, 2.0), (3, 3.0), (4, 4.0),
-                                                                         (5, 15.0), (6, 16.0)]
+    assert _two_attempts(tmp_path, 4, (5, 6)) == [(1, 1.0), (2, 2.0), (3, 3.0), (4, 4.0), (5, 15.0), (6, 16.0)]
 
 
 def test_a_restart_before_the_first_checkpoint_drops_the_killed_attempts_tensorboard_scalars(tmp_path):
     """A run killed before its first checkpoint starts again from step 0 (``--resume`` finds no checkpoint): its
     metric lines are dropped, and TensorBoard (its own reader) shows only the new attempt's steps too."""
-    accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
-    log = RunLog(tmp_path, 0)
-    for step in range(1, 7):
-        log.log(step, {"loss": float(step)})
-    log.close()
-    log = RunLog(tmp_path, 0)
-    for step in (1, 2):
-        log.log(step, {"loss": 10.0 + step})
-    log.close()
+    assert _two_attempts(tmp_path, 0, (1, 2)) == [(1, 11.0), (2, 12.0)]
     assert [(m["step"], m["loss"]) for m in read_metrics(tmp_path)] == [(1, 11.0), (2, 12.0)]
-    events = accumulator.EventAccumulator(str(tmp_path / "tb"))
-    events.Reload()
-    assert [(e.step, e.value) for e in events.Scalars("train/loss")] == [(1, 11.0), (2, 12.0)]
 
 
 def test_launches_note_only_a_resume_with_another_world_size(tmp_path):
