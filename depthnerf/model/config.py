@@ -92,12 +92,11 @@ class EncoderConfig:
         return -(-side // 2)
 
     def deepest_side(self, resolution: int) -> int:
-        """Side in pixels of the deepest feature stage for square ``resolution`` inputs: ``image_scale`` (floored,
-        as ``F.interpolate`` sizes it), then a ceil-halving for conv1, for the max-pool (with more than one stage)
-        and for each of layer2 and layer3 that is built (layer1 keeps its input size)."""
-        side = math.floor(resolution * self.image_scale) if self.image_scale != 1.0 else resolution
-        halvings = 1 + int(self.num_layers > 1 and self.use_first_pool) + max(0, self.num_layers - 2)
-        for _ in range(halvings):
+        """Side in pixels of the deepest feature stage for square ``resolution`` inputs: :meth:`feature_side`
+        (``image_scale``, conv1), then a ceil-halving for the max-pool (with more than one stage) and for each of
+        layer2 and layer3 that is built (layer1 keeps its input size)."""
+        side = self.feature_side(resolution)
+        for _ in range(int(self.num_layers > 1 and self.use_first_pool) + max(0, self.num_layers - 2)):
             side = -(-side // 2)
         return side
 

@@ -44,6 +44,7 @@ from jaxtyping import Bool, Float
 from PIL import Image, ImageOps
 
 from depthnerf.data.photo_framing import DEFAULT_FILL, frame_photo
+from depthnerf.data.srn import mask_bboxes
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import BackgroundRemover
 
@@ -306,8 +307,8 @@ def check_object_size(mask: np.ndarray, name: str, source_size: tuple[int, int] 
     """Refuse an object whose mask box is below :data:`MIN_OBJECT_SIDE` px on its longer side, in one line naming
     ``name`` (the mask file, or the photo); ``source_size``: the photo's size as read, named when it was
     downscaled."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    height, width = int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1)
+    x0, y0, x1, y1 = mask_bboxes(torch.from_numpy(mask)[None])[0].tolist()
+    height, width = y1 - y0 + 1, x1 - x0 + 1
     if max(height, width) >= MIN_OBJECT_SIDE:
         return
     scaled = (f" of the photo downscaled to {mask.shape[1]}x{mask.shape[0]}"
