@@ -347,8 +347,7 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
             f", {len(cfg.input_views)} input views" if cfg.input_views is not None and len(cfg.input_views) > 1
             else ""),
         "guided_sampling": None if guided is None else guided_record(guided),
-        "sampler_counts": [spec.render.sampler.n_coarse, spec.render.sampler.n_importance,
-                           spec.render.sampler.n_gaussian],
+        "sampler_counts": list(spec.render.sampler.counts),
         "category": category, "split": cfg.split, "preset": spec.preset,
         "depth_prior": estimator, "depth_prior_provenance": session.prior_source.provenance,
         "checkpoint": str(pre.path.resolve()), "checkpoint_sha256": pre.sha256, "checkpoint_step": pre.step,

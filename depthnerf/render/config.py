@@ -49,6 +49,11 @@ class SamplerConfig:
     """Draw random samples at evaluation as pixelNeRF does (its sampler jitters in eval too). False (default)
     makes evaluation deterministic: bin midpoints, quantile importance samples, normal-quantile Gaussian samples."""
 
+    @property
+    def counts(self) -> tuple[int, int, int]:
+        """``(n_coarse, n_importance, n_gaussian)``: the samples per ray of each kind (what ``--samples`` sets)."""
+        return self.n_coarse, self.n_importance, self.n_gaussian
+
 
 DEFAULT_BUDGET = 48
 """Samples per occupied ray of ``--guided`` without a number: the smallest budget measured to cost at most 0.1 dB of
