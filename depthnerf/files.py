@@ -33,16 +33,22 @@ def nearest_existing(path: Path) -> Path:
     return path
 
 
-def folder_problem(path: Path, what: str) -> str | None:
-    """Why ``path`` cannot be (or become) a folder, as one line naming it and ``what`` it is for (a flag such as
-    ``--out``), or None. Looks only: the path itself or its nearest existing ancestor must be a folder."""
-    path = Path(path)
-    existing = nearest_existing(path)
+def _file_in_the_way(path: Path, what: str, existing: Path) -> str | None:
+    """The line :func:`folder_problem` and :func:`file_problem` give when ``existing`` (``path`` or its nearest
+    existing ancestor) is a file rather than a folder, naming ``path`` and ``what`` it is for; None when it is a
+    folder."""
     if existing.is_dir():
         return None
     if existing == path:
         return f"{path}: {what} is a file, not a folder"
     return f"{path}: {what} lies under {existing}, which is a file, not a folder"
+
+
+def folder_problem(path: Path, what: str) -> str | None:
+    """Why ``path`` cannot be (or become) a folder, as one line naming it and ``what`` it is for (a flag such as
+    ``--out``), or None. Looks only: the path itself or its nearest existing ancestor must be a folder."""
+    path = Path(path)
+    return _file_in_the_way(path, what, nearest_existing(path))
 
 
 def file_problem(path: Path, what: str) -> str | None:
@@ -53,8 +59,8 @@ def file_problem(path: Path, what: str) -> str | None:
     if path.is_dir():
         return f"{path}: {what} is a folder; name the file to write"
     existing = nearest_existing(path.parent)
-    if not existing.is_dir():
-        return f"{path}: {what} lies under {existing}, which is a file, not a folder"
+    if (problem := _file_in_the_way(path, what, existing)) is not None:
+        return problem
     if not os.access(existing, os.W_OK | os.X_OK):
         return f"{path}: {what} cannot be written ({existing}: permission denied)"
     return None

@@ -10,6 +10,7 @@ import pytest
 
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import (
+    file_problem,
     folder_problem,
     make_folder,
     sha256_file,
@@ -48,6 +49,25 @@ def test_make_folder_makes_parents_and_names_a_file_in_the_way(tmp_path):
     with pytest.raises(DepthnerfError, match="lies under"):
         make_folder(deep, "--out")
     assert not (tmp_path / "f").is_dir()
+
+
+def test_file_problem_names_a_folder_or_a_file_in_the_way(tmp_path):
+    (tmp_path / "f").write_text("x")
+    assert file_problem(tmp_path / "new" / "out.json", "--json") is None  # a missing parent is made when written
+    assert file_problem(tmp_path / "f", "--json") is None  # an existing file is replaced
+    assert file_problem(tmp_path, "--json") == f"{tmp_path}: --json is a folder; name the file to write"
+    deep = tmp_path / "f" / "x" / "out.json"
+    assert file_problem(deep, "--json") == f"{deep}: --json lies under {tmp_path / 'f'}, which is a file, not a folder"
+    assert file_problem(tmp_path / "f" / "out.json", "--json") == (
+        f"{tmp_path / 'f' / 'out.json'}: --json lies under {tmp_path / 'f'}, which is a file, not a folder")
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write anywhere")
+def test_file_problem_names_an_unwritable_folder(tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    assert file_problem(locked / "a" / "out.json", "--out") == (
+        f"{locked / 'a' / 'out.json'}: --out cannot be written ({locked}: permission denied)")
 
 
 @pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write anywhere")
