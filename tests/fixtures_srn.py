@@ -111,18 +111,34 @@ def make_srn_fixture(root: Path, category: str = "cars", splits: dict[str, int] 
     return root
 
 
-def write_png16(path: Path, arr: np.ndarray) -> None:
-    """Write a 16-bit RGB or RGBA PNG (``H x W x 3|4`` uint16); Pillow cannot write these itself."""
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    """One PNG chunk: length, type, data, CRC."""
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+
+def write_png16(path: Path, arr: np.ndarray, key: tuple[int, int, int] | None = None) -> None:
+    """Write a 16-bit RGB or RGBA PNG (``H x W x 3|4`` uint16); Pillow cannot write these itself. ``key``: an RGB
+    file's colour-key transparency (a ``tRNS`` chunk: pixels of exactly that colour are transparent)."""
     height, width, channels = arr.shape
     color_type = {3: 2, 4: 6}[channels]
     raw = b"".join(b"\x00" + np.ascontiguousarray(row, dtype=">u2").tobytes() for row in arr)
 
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
     header = struct.pack(">IIBBBBB", width, height, 16, color_type, 0, 0, 0)
-    Path(path).write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw))
-                           + chunk(b"IEND", b""))
+    trns = b"" if key is None else _chunk(b"tRNS", struct.pack(">HHH", *key))
+    Path(path).write_bytes(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + trns
+                           + _chunk(b"IDAT", zlib.compress(raw)) + _chunk(b"IEND", b""))
+
+
+def write_grey_png(path: Path, rows: np.ndarray, depth: int, key: int | None = None) -> None:
+    """Write a grey PNG of bit ``depth`` from its packed rows (``H x row bytes`` uint8, as the file stores them);
+    ``key``: its colour-key transparency (a ``tRNS`` chunk), a stored value."""
+    height = rows.shape[0]
+    width = rows.shape[1] * 8 // depth
+    raw = b"".join(b"\x00" + bytes(row) for row in np.asarray(rows, dtype=np.uint8))
+    header = struct.pack(">IIBBBBB", width, height, depth, 0, 0, 0, 0)
+    trns = b"" if key is None else _chunk(b"tRNS", struct.pack(">H", key))
+    Path(path).write_bytes(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + trns
+                           + _chunk(b"IDAT", zlib.compress(raw)) + _chunk(b"IEND", b""))
 
 
 def _srn_number(x: float) -> str:

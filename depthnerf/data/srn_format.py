@@ -3,7 +3,7 @@
 One object folder ``<root>/<category>_<split>/<object_id>/`` holds::
 
     intrinsics.txt        4 lines: "f cx cy 0." / "0. 0. 0." / "1." / "H W"   (f, c in pixels of an H x W image)
-    rgb/NNNNNN.png        RGB or RGBA, 8- or 16-bit; RGBA is composited on white
+    rgb/NNNNNN.png        RGB or RGBA, 8- or 16-bit; RGBA is composited on white, and so is a colour key
     pose/NNNNNN.txt       16 numbers, a 4x4 camera-to-world matrix, OpenCV camera axes (see ``cameras``)
     depth/NNNNNN.npz      optional: float z-depth under key "depth", 0 where there is no surface (what we write)
           NNNNNN.npy      optional: the same as one ``np.save`` array
@@ -32,6 +32,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from depthnerf.data.cameras import Intrinsics
+from depthnerf.data.png_files import is_sixteen_bit_colour_png, with_colour_key
 from depthnerf.errors import DepthnerfError
 from depthnerf.files import write_text_atomic
 
@@ -111,30 +112,9 @@ def write_pose(path: Path, c2w: np.ndarray) -> None:
     write_text_atomic(path, " ".join(f"{v:.8f}" for v in np.asarray(c2w, dtype=np.float64).reshape(-1)) + "\n")
 
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-"""The first 8 bytes of every PNG file."""
-
-
-def png_ihdr(head: bytes) -> tuple[int, int] | None:
-    """Bit depth and colour type (0 grey, 2 RGB, 3 palette, 4 grey+alpha, 6 RGBA) from a file's first 26 bytes,
-    or None when they are not a PNG's signature and ``IHDR`` chunk."""
-    if len(head) < 26 or head[:8] != PNG_SIGNATURE or head[12:16] != b"IHDR":
-        return None
-    return head[24], head[25]
-
-
-def _is_sixteen_bit_colour_png(path: Path) -> bool:
-    """Whether ``path`` is a 16-bit colour PNG (RGB or RGBA, the layouts Pillow reads by their high bytes)."""
-    try:
-        with open(path, "rb") as fh:
-            ihdr = png_ihdr(fh.read(26))
-    except OSError:
-        return False
-    return ihdr is not None and ihdr[0] == 16 and ihdr[1] in (2, 6)
-
-
 def read_rgb(path: Path) -> np.ndarray:
-    """Read an RGB(A) PNG of 8 or 16 bits as float32 ``H x W x 3`` in [0, 1], alpha composited on white.
+    """Read an RGB(A) PNG of 8 or 16 bits as float32 ``H x W x 3`` in [0, 1], alpha composited on white (a grey or
+    RGB file's colour-key transparency too, as alpha: :func:`depthnerf.data.png_files.with_colour_key`).
 
     A 16-bit colour PNG whose high bytes are all zero (8-bit values stored in 16 bits, which Pillow's 8-bit reading
     of 16-bit colour would turn into a black or, with alpha, a blank image) is an error naming the file.
@@ -143,6 +123,7 @@ def read_rgb(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as im:
             im.load()
+            im = with_colour_key(im, str(path), path)  # a grey or RGB file's transparent colour, as alpha
             if im.mode in ("P", "PA", "LA", "CMYK", "YCbCr", "HSV", "1"):
                 im = im.convert("RGBA")  # palette and other modes: let PIL resolve them to colours
             arr = np.asarray(im)
@@ -154,7 +135,7 @@ def read_rgb(path: Path) -> np.ndarray:
     except (OSError, ValueError, Image.DecompressionBombError) as err:
         raise DepthnerfError(f"{path}: unreadable image ({err})") from None
     if arr.dtype == np.uint8:
-        if not arr.any() and _is_sixteen_bit_colour_png(path):
+        if not arr.any() and is_sixteen_bit_colour_png(path):
             raise DepthnerfError(f"{path}: a 16-bit colour PNG whose values all lie below 256 (8-bit values saved as "
                                  "16-bit?); it would read as a blank image: re-save it as an 8-bit PNG")
         img = arr.astype(np.float32) / 255.0

@@ -29,6 +29,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from depthnerf.data.mesh_file import check_mesh, check_mesh_header
+from depthnerf.data.png_files import png_ihdr
 from depthnerf.data.records import ObjectCheck, ObjectRecord, SplitIndex
 from depthnerf.data.srn_format import (
     NOT_AN_IMAGE,
@@ -36,7 +37,6 @@ from depthnerf.data.srn_format import (
     check_empty_depth,
     check_empty_mask,
     mask_not_png,
-    png_ihdr,
     read_depth,
     read_mask,
     read_pose,

@@ -13,7 +13,8 @@ Input photo (assumption: ONE object, roughly centred, on a plain background)
     order: the given mask (a pixel is object where its value is above half the mask's own maximum, so 0/1, 0/100
     and 0/255 masks all work and an anti-aliased 0..255 edge splits at 127.5; an all-zero mask is an error; same
     size as the upright image; an alpha channel with no pixel above 0.5 is then ignored, noted);
-    else the alpha channel (``alpha > 0.5``) when the image has a non-opaque alpha; else, with a background model
+    else the alpha channel (``alpha > 0.5``) when the image has a non-opaque alpha (a grey or RGB PNG's colour
+    key counts as alpha: :func:`depthnerf.data.png_files.with_colour_key`); else, with a background model
     (:mod:`depthnerf.reconstruct.background`), its foreground score as the alpha (then as for alpha; the RGBA
     cut-out is kept in :attr:`PreparedImage.cutout`); else the *background colour* = the per-channel median
     of the image border (a ring ``max(1, 2%)`` of the shorter side wide) and object = pixels whose largest channel
@@ -44,6 +45,7 @@ from jaxtyping import Bool, Float
 from PIL import Image, ImageOps
 
 from depthnerf.data.photo_framing import DEFAULT_FILL, frame_photo
+from depthnerf.data.png_files import with_colour_key
 from depthnerf.data.srn import mask_bboxes
 from depthnerf.errors import DepthnerfError
 from depthnerf.reconstruct.background import BackgroundRemover
@@ -198,6 +200,7 @@ def _open(source: str | Path | Image.Image, name: str, notes: list[str]) -> Imag
         im.load()
         if getattr(im, "is_animated", False):  # an animated PNG or WebP: its first frame, as a viewer's still
             notes.append(f"animated image: the first of its {im.n_frames} frames is used")
+        im = with_colour_key(im, name, None if isinstance(source, Image.Image) else Path(source))
         if not isinstance(source, Image.Image):
             im = upright(im, notes)
     if im.mode in ("P", "PA", "CMYK", "YCbCr", "HSV", "LAB", "RGBa", "La"):
