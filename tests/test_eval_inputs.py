@@ -23,6 +23,10 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.eval.table import load_summary, markdown_table
 from depthnerf.train.config import check_config, preset
 
+PLY_HEADER = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+              "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+"""An ASCII PLY header for 3 vertices and 1 face; the tests append bodies with problems."""
+
 
 @pytest.fixture(scope="module")
 def case(tmp_path_factory) -> dict[str, Path]:
@@ -228,8 +232,7 @@ def test_a_bad_ground_truth_mesh_is_one_warning_and_that_object_goes_unscored(ca
     root = tmp_path / "data"
     shutil.copytree(case["root"], root)
     bad = sorted((root / "cars_test").iterdir())[0] / "mesh.ply"
-    bad.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
-                   "element face 1\nproperty list uchar int vertex_indices\nend_header\n" + body)
+    bad.write_text(PLY_HEADER + body)
     out = tmp_path / "eval"
     assert main(["eval", "--checkpoint", str(case["plain"]), "--data", str(root), "--out", str(out),
                  "--mesh-resolution", "8", "--mesh-points", "200", "--no-progress"]) == 0
@@ -240,6 +243,20 @@ def test_a_bad_ground_truth_mesh_is_one_warning_and_that_object_goes_unscored(ca
     rows = {row["object_id"]: row for row in csv.DictReader((out / "per_object.csv").open())}
     assert rows[bad.parent.name]["chamfer_l1"] == "" and rows[bad.parent.name]["psnr"] != ""
     assert all(row["chamfer_l1"] != "" for name, row in rows.items() if name != bad.parent.name)
+
+
+def test_without_mesh_scoring_only_the_mesh_header_is_checked(case, tmp_path, capsys):
+    """``--no-mesh`` scores no geometry, so indexing reads only each mesh.ply's header (as training does): a bad
+    body is not read, and no warning about a part that is not used anyway."""
+    root = tmp_path / "data"
+    shutil.copytree(case["root"], root)
+    bad = sorted((root / "cars_test").iterdir())[0] / "mesh.ply"
+    bad.write_text(PLY_HEADER + "0 0 0\n1 0 0\n0 1 0\n3 0 1 99\n")  # a face naming a missing vertex
+    out = tmp_path / "eval"
+    assert main(["eval", "--checkpoint", str(case["plain"]), "--data", str(root), "--out", str(out), "--no-mesh",
+                 "--no-progress"]) == 0
+    assert [line for line in capsys.readouterr().err.splitlines() if line.startswith(("warning", "error"))] == []
+    assert json.loads((out / "summary.json").read_text())["mesh_status"] == "skipped (--no-mesh)"
 
 
 def test_samples_replace_the_sampler_counts_and_are_part_of_the_settings(case, tmp_path, capsys):

@@ -3,9 +3,11 @@
 :func:`check_mesh_header` is the cheap part: the file starts like a PLY with vertices and, when binary, is as
 long as its header says. :func:`read_mesh` reads the whole file as one triangle mesh and checks what a reader
 takes on trust: every face index names a vertex, every vertex is finite, and the triangles have area.
-:func:`depthnerf.data.validate.check_object` runs both when a split is indexed (training, which never uses the
-mesh, only the header), so a bad mesh is a bad optional part (one warning naming the file; the object is scored
-without it); evaluation reads the ground truth with :func:`read_mesh`. Every problem raises
+:func:`depthnerf.data.validate.check_object` runs both when a split is indexed (training and ``eval --no-mesh``,
+which never use the mesh, only the header), so a bad mesh is a bad optional part (one warning naming the file, before
+any object is rendered; the object is scored without it); evaluation reads the ground truth again with
+:func:`read_mesh` when it scores the object (kept between the two, every mesh of a split would be in memory at
+once). Every problem raises
 :class:`~depthnerf.errors.DepthnerfError` with one line naming the file.
 """
 

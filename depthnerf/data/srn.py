@@ -249,8 +249,8 @@ def index_split(root: Path, category: str, split: str, *, skip_bad: bool = False
     image holding other data than PNG (a JPEG under a ``.png`` name) is read as what it holds, with one warning
     per split (first file, count), or with ``strict`` an error. A split without usable objects is an error.
     ``only``: index just the objects of these ids (names from :func:`object_dirs`; None: every object).
-    ``mesh_body``: with ``check_files``, read every ``mesh.ply`` whole; False checks only its header (training,
-    which never uses the mesh; ``strict`` always reads it whole).
+    ``mesh_body``: with ``check_files``, read every ``mesh.ply`` whole; False checks only its header (training and
+    ``eval --no-mesh``, which never use the mesh; ``strict`` always reads it whole).
     ``progress`` shows a tqdm bar on stderr (when it is a terminal).
     """
     folder = split_dir(root, category, split)

@@ -139,7 +139,8 @@ def check_object(record: ObjectRecord, strict: bool = False, mesh_body: bool = T
     ``issues`` and not checked further, or raises with ``strict``. RGB images that are not PNG data are listed in
     ``rgb_not_png`` (the first one raises with ``strict``). ``mesh_body``: read ``mesh.ply`` whole
     (:func:`~depthnerf.data.mesh_file.check_mesh`); False: check only its header
-    (:func:`~depthnerf.data.mesh_file.check_mesh_header`), for callers that never use the mesh (training).
+    (:func:`~depthnerf.data.mesh_file.check_mesh_header`), for callers that never use the mesh (training,
+    ``eval --no-mesh``).
     """
     intr = record.intrinsics
     expected = (intr.height, intr.width)

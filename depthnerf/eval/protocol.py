@@ -293,7 +293,8 @@ def evaluate_protocol(session: InferenceSession, out_dir: Path, cfg: ProtocolCon
             raise DepthnerfError(f"{data_root}: every object of {category}_{cfg.split} is left out by --objects "
                                  f"{choices.objects}")
         chosen = set(kept[: cfg.max_objects] if cfg.max_objects else kept)
-        records = index_split(data_root, category, cfg.split, only=chosen).objects  # every file of these checked
+        # every file of these checked; mesh.ply whole only when geometry is scored (else its header, as training)
+        records = index_split(data_root, category, cfg.split, only=chosen, mesh_body=cfg.mesh).objects
         views_of = _views_of(cfg)
         for record in records:
             views_of(record)
