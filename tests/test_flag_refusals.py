@@ -1,0 +1,60 @@
+"""Flags that cannot work, or that contradict each other, are one ``error:`` line naming the flag (exit status 2)
+before any model loads or any work starts: never a traceback, never a flag quietly left unused.
+
+Each case here was once a traceback (``depth-eval`` on a folder without datasets, ``fit-facing --seed -1``,
+``train --model.encoder.image_scale inf``), an exit status 0 on nothing (``depth --depth oracle`` on a folder
+without datasets or with flags that cannot work), or a flag silently dropped (``eval --symmetry-plane`` with
+``--no-symmetry``, ``reconstruct --fill`` with ``--framing keep``, ``--background-model`` with
+``--background-removal off``, ``--facing-min-confidence`` without ``--facing auto``, ``--guided-align-samples``
+without ``--guided``, ``app --background-model`` naming a file that is not there)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from depthnerf.cli import main
+from depthnerf.errors import DepthnerfError
+from depthnerf.model.config import EncoderConfig, FieldConfig
+from tests.fixtures_srn import make_srn_fixture
+
+PHOTO = Path(__file__).resolve().parent.parent / "depthnerf" / "app" / "examples" / "car_rgba.png"
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    return make_srn_fixture(tmp_path_factory.mktemp("flag_refusals") / "data", "cars", {"train": 1, "test": 1},
+                            views=2, size=16, with_depth=True)
+
+
+def _one_error(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    return err.strip()
+
+
+def test_depth_eval_on_a_folder_without_datasets_is_one_line(tmp_path, capsys):
+    """It was an IndexError traceback (no records, then ``records[0]``)."""
+    assert main(["depth-eval", "--data", str(tmp_path), "--depth", "oracle", "--no-progress"]) == 2
+    assert _one_error(capsys) == f"error: {tmp_path}: no <category>_<split> folders found"
+
+
+@pytest.mark.parametrize("estimator", ["oracle", "none"])
+@pytest.mark.parametrize("flags, line", [
+    ([], "{empty}: no <category>_<split> folders found"),
+    (["--category", "trucks"], "{data}: --category trucks: no trucks_<split> folder (train, val, test) exists here "
+                               "(categories here: cars)"),
+    (["--batch-size", "0"], "--batch-size must be positive, got 0"),
+    (["--resolution", "-16"], "--resolution must be >= 8, got -16"),
+])
+def test_depth_without_a_cache_checks_the_request_as_a_cached_estimator_does(data, tmp_path, capsys, estimator,
+                                                                            flags, line):
+    """``oracle`` and ``none`` cache nothing, but said "needs no cache" with exit status 0 to any of these."""
+    root = tmp_path if not flags else data
+    assert main(["depth", "--data", str(root), "--depth", estimator, "--no-progress", *flags]) == 2
+    assert _one_error(capsys) == "error: " + line.format(empty=tmp_path, data=data)
+    assert main(["depth", "--data", str(data), "--depth", estimator, "--no-progress"]) == 0
+    assert "needs no cache" in capsys.readouterr().out
+
