@@ -58,3 +58,10 @@ def test_depth_without_a_cache_checks_the_request_as_a_cached_estimator_does(dat
     assert main(["depth", "--data", str(data), "--depth", estimator, "--no-progress"]) == 0
     assert "needs no cache" in capsys.readouterr().out
 
+
+def test_fit_facing_refuses_a_negative_seed_before_loading(tmp_path, capsys):
+    """It was numpy's ValueError traceback once the views were drawn."""
+    assert main(["fit-facing", "--checkpoint", str(tmp_path / "none.safetensors"), "--data", str(tmp_path),
+                 "--category", "cars", "--out", str(tmp_path / "out.safetensors"), "--seed", "-1"]) == 2
+    assert _one_error(capsys) == "error: --seed must be >= 0, got -1"
+
