@@ -65,3 +65,18 @@ def test_fit_facing_refuses_a_negative_seed_before_loading(tmp_path, capsys):
                  "--category", "cars", "--out", str(tmp_path / "out.safetensors"), "--seed", "-1"]) == 2
     assert _one_error(capsys) == "error: --seed must be >= 0, got -1"
 
+
+def test_model_configs_refuse_an_infinite_image_scale_and_a_frequency_base_that_is_not_positive(tmp_path, capsys):
+    """``image_scale inf`` passed the config and ended in an OverflowError traceback (``floor(inf)``); a base
+    frequency of 0 made every sin/cos of the positional encoding a constant."""
+    for scale in (math.inf, -math.inf, math.nan, 0.0):
+        with pytest.raises(DepthnerfError, match="encoder.image_scale must be a finite number > 0"):
+            EncoderConfig(image_scale=scale)
+    for factor in (0.0, -1.5, math.inf, math.nan):
+        with pytest.raises(DepthnerfError, match="field.freq_factor must be a finite number > 0"):
+            FieldConfig(freq_factor=factor)
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "run"), "--model.encoder.image_scale",
+                 "inf", "--print-config"]) == 2
+    assert "encoder.image_scale must be a finite number > 0, got inf" in _one_error(capsys)
+    assert not (tmp_path / "run").exists()
+
