@@ -80,3 +80,38 @@ def test_model_configs_refuse_an_infinite_image_scale_and_a_frequency_base_that_
     assert "encoder.image_scale must be a finite number > 0, got inf" in _one_error(capsys)
     assert not (tmp_path / "run").exists()
 
+
+def test_eval_refuses_a_symmetry_plane_with_no_symmetry(tmp_path, capsys):
+    """The plane was silently dropped (``--no-symmetry`` won); checked before the checkpoint loads."""
+    assert main(["eval", "--checkpoint", str(tmp_path / "none.safetensors"), "--out", str(tmp_path / "out"),
+                 "--symmetry-plane", "1", "0", "0", "0", "--no-symmetry"]) == 2
+    assert _one_error(capsys) == ("error: --symmetry-plane and --no-symmetry contradict each other: pass one of "
+                                  "them")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("command", ["eval", "reconstruct"])
+def test_guided_align_samples_needs_guided(tmp_path, capsys, command):
+    """It set the alignment render of a guided sampler that does not run (nothing said so)."""
+    head = (["eval", "--checkpoint", str(tmp_path / "none.safetensors")] if command == "eval"
+            else ["reconstruct", str(PHOTO), "--checkpoint", str(tmp_path / "none.safetensors")])
+    assert main([*head, "--out", str(tmp_path / "out"), "--guided-align-samples", "16"]) == 2
+    assert _one_error(capsys) == "error: --guided-align-samples 16 applies only with --guided"
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("flags, line", [
+    (["--fill", "0.5", "--framing", "keep"], "--fill applies only with --framing auto (keep only pads the photo "
+                                             "to a square)"),
+    (["--background-model", "u2net", "--background-removal", "off"],
+     "--background-model applies only when the background is removed (drop --background-removal off)"),
+    (["--facing-min-confidence", "0.5"], "--facing-min-confidence applies only with --facing auto"),
+    (["--facing", "90", "--facing-min-confidence", "0.5"], "--facing-min-confidence applies only with --facing auto"),
+])
+def test_reconstruct_refuses_flags_another_flag_turns_off(tmp_path, capsys, flags, line):
+    """Each was accepted and had no effect; refused before the output folder is made or the checkpoint loads."""
+    assert main(["reconstruct", str(PHOTO), "--checkpoint", str(tmp_path / "none.safetensors"), "--out",
+                 str(tmp_path / "out"), *flags]) == 2
+    assert _one_error(capsys) == f"error: {line}"
+    assert not (tmp_path / "out").exists()
+
