@@ -115,3 +115,18 @@ def test_reconstruct_refuses_flags_another_flag_turns_off(tmp_path, capsys, flag
     assert _one_error(capsys) == f"error: {line}"
     assert not (tmp_path / "out").exists()
 
+
+def test_app_refuses_a_background_model_that_is_not_there_before_serving(tmp_path, capsys, monkeypatch):
+    """It served the page, and every photo without alpha then failed on the missing file."""
+    pytest.importorskip("gradio")
+    import depthnerf.app.page as page
+
+    def never(*args, **kwargs):
+        raise AssertionError("the app started serving")
+
+    monkeypatch.setattr(page, "serve", never)
+    missing = tmp_path / "missing.onnx"
+    assert main(["app", "--background-model", str(missing), "--port", "7999"]) == 2
+    assert _one_error(capsys) == f"error: {missing}: background model file not found"
+    assert main(["app", "--background-model", "no-such-model", "--port", "7999"]) == 2
+    assert _one_error(capsys).startswith("error: --background-model no-such-model: not a model file and not one of ")
