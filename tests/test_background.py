@@ -150,9 +150,12 @@ def test_without_weights_the_cluttered_photo_says_how_to_get_them(photo, models,
         f"`{download_command('u2net')}` where there is internet" in err and "--background-model FILE.onnx" in err
     err = one_line_error(capsys, reconstruct(path, tmp_path / "out", "--background-model", "isnet-general-use"))
     assert err.startswith("error: the background model isnet-general-use is not downloaded")
+    err = one_line_error(capsys, reconstruct(path, tmp_path / "out", "--background-removal", "off"))
+    assert f"{CLUTTER}" in err and "background removal is off" in err
     err = one_line_error(capsys, reconstruct(path, tmp_path / "out", "--background-removal", "off",
                                              "--background-model", str(models["dark"])))
-    assert f"{CLUTTER}" in err and "background removal is off" in err
+    assert err == ("error: --background-model applies only when the background is removed (drop "
+                   "--background-removal off)\n")  # a model that would not run is refused, not ignored
     assert reconstruct(Path(__file__).parents[1] / "depthnerf/app/examples/chair_white.png",
                        tmp_path / "plain") == 0  # a plain background needs no model in auto mode
 

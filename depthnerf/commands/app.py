@@ -51,6 +51,10 @@ def run(args: argparse.Namespace) -> int:
     check_mesh_resolution(args.mesh_resolution)
     if not 0 < args.port < 65536:
         raise DepthnerfError(f"--port must be within 1..65535, got {args.port}")
+    if args.background_model is not None:  # else the page served and every cut-out failed on it
+        from depthnerf.reconstruct.background import check_model
+
+        check_model(args.background_model)
     device = pick_device(args.device)  # a device that is not there: one line, not the first model's traceback
     if args.work_dir is not None:  # a file or a folder that cannot be made: one line
         make_folder(args.work_dir, "--work-dir")

@@ -8,7 +8,8 @@
 
 Writes ``DIR/depth_priors/<estimator>-<hash12>-<res>/<category>_<split>/<object_id>.safetensors`` plus a
 ``manifest.json`` (see :mod:`depthnerf.depth.cache`); resumable (finished objects are skipped), atomic writes.
-``oracle`` and ``none`` need no cache: the command says so and exits 0.
+``oracle`` and ``none`` need no cache: the command checks the request as for a cached estimator (the data
+folder, ``--category``, ``--splits``, the counts), says so and exits 0.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 
 from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import CACHED_ESTIMATORS, ESTIMATORS
-from depthnerf.depth.precompute import PrecomputeConfig, precompute_priors
+from depthnerf.depth.precompute import PrecomputeConfig, precompute_priors, requested_records
 
 DEFAULT_SPLITS = ("train", "val", "test")
 
@@ -67,10 +68,13 @@ def run(args: argparse.Namespace) -> int:
     device = pick_device(args.device)  # a device this process lacks: one line, before any work
     if args.for_checkpoint is not None:
         _prior_of_checkpoint(args)
+    cfg = PrecomputeConfig(
+        data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint,
+        splits=tuple(args.splits or DEFAULT_SPLITS), categories=tuple(args.category) if args.category else None,
+        require_splits=args.splits is not None, batch_size=args.batch_size, resolution=args.resolution,
+        device=str(device), progress=not args.no_progress)
     if args.depth not in CACHED_ESTIMATORS:
-        from depthnerf.data.srn import discover_categories
-
-        discover_categories(args.data)  # nothing to cache, but a --data that is no dataset is still one line
+        requested_records(cfg)  # nothing to cache, but a request that could not work is still one line
         print(f"estimator '{args.depth}' needs no cache "
               f"({'computed from depth/ on the fly' if args.depth == 'oracle' else 'no depth prior'})")
         return 0
@@ -81,11 +85,6 @@ def run(args: argparse.Namespace) -> int:
             for split in args.splits or DEFAULT_SPLITS:
                 if args.splits or split_dir(args.data, category, split).is_dir():
                     index_split(args.data, category, split, strict=True)
-    cfg = PrecomputeConfig(
-        data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint,
-        splits=tuple(args.splits or DEFAULT_SPLITS), categories=tuple(args.category) if args.category else None,
-        require_splits=args.splits is not None, batch_size=args.batch_size, resolution=args.resolution,
-        device=str(device), progress=not args.no_progress)
     summary = precompute_priors(cfg)
     for group in summary.missing_splits:
         print(f"note: {group} does not exist under {args.data}, skipped")

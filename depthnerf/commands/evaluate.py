@@ -130,7 +130,7 @@ def add_guided_flags(p: argparse.ArgumentParser, budget: Callable[[str], int] = 
     p.add_argument("--guided", type=budget, nargs="?", const=DEFAULT_BUDGET, metavar="BUDGET",
                    help="render with depth-guided sampling, BUDGET samples per occupied ray "
                         f"(default {DEFAULT_BUDGET})")
-    p.add_argument("--guided-align-samples", type=int, default=GuidedConfig.align_samples,
+    p.add_argument("--guided-align-samples", type=int, default=None,
                    help="coarse samples of the source render the prior is aligned to for --guided "
                         f"(default {GuidedConfig.align_samples})")
 
@@ -143,21 +143,25 @@ def add_samples_flag(p: argparse.ArgumentParser) -> None:
                    "presets': 32 16 8; 16 8 4 renders about twice as fast)")
 
 
-def guided_request(budget: int | None, align_samples: int):
+def guided_request(budget: int | None, align_samples: int | None):
     """The ``--guided [BUDGET]`` / ``--guided-align-samples`` flags: None (the checkpoint's sampler) or the guided
-    config of that budget (:func:`depthnerf.render.source_guide.guided_config`); a count below 1 is refused with
-    or without ``--guided``."""
+    config of that budget (:func:`depthnerf.render.source_guide.guided_config`; ``align_samples`` None: the
+    default count); a count below 1 is refused, and so is a count without ``--guided`` (it would set nothing)."""
     from depthnerf.render.source_guide import guided_config
 
-    if align_samples < 1:
+    if align_samples is not None and align_samples < 1:
         raise DepthnerfError(f"--guided-align-samples must be >= 1, got {align_samples}")
-    return None if budget is None else guided_config(budget, align_samples)
+    if budget is None:
+        if align_samples is not None:
+            raise DepthnerfError(f"--guided-align-samples {align_samples} applies only with --guided")
+        return None
+    return guided_config(budget, GuidedConfig.align_samples if align_samples is None else align_samples)
 
 
 def check_flags(args: argparse.Namespace) -> None:
     """One line naming the flag when ``--pixel-center``, ``--mesh-points``, ``--fscore-tau``,
-    ``--symmetry-plane`` or ``--lpips-trunk`` (a file that is not there) cannot work (checked before anything
-    loads)."""
+    ``--symmetry-plane`` (or it with ``--no-symmetry``) or ``--lpips-trunk`` (a file that is not there) cannot work
+    (checked before anything loads)."""
     from depthnerf.data.symmetry import normalized_plane
 
     if args.pixel_center is not None and not 0 <= args.pixel_center < 1:  # NaN fails too
@@ -169,6 +173,8 @@ def check_flags(args: argparse.Namespace) -> None:
         raise DepthnerfError(f"--fscore-tau must be > 0 (a distance in GT diagonals), got {args.fscore_tau}")
     if args.symmetry_plane is not None:
         normalized_plane(args.symmetry_plane, "--symmetry-plane")
+        if args.no_symmetry:  # else the plane was silently dropped
+            raise DepthnerfError("--symmetry-plane and --no-symmetry contradict each other: pass one of them")
     if args.lpips_trunk is not None and not args.lpips_trunk.is_file():  # else LPIPS were silently "unavailable"
         raise DepthnerfError(f"--lpips-trunk {args.lpips_trunk}: no such file (torchvision VGG16 weights, "
                              "e.g. vgg16-397923af.pth)")

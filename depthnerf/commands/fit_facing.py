@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.train.facing_head import FacingHeadConfig, fit_facing_head
 
     for flag, value, low in (("--objects", args.objects, 5), ("--views-per-object", args.views_per_object, 1),
-                             ("--grid", args.grid, 1)):
+                             ("--grid", args.grid, 1), ("--seed", args.seed, 0)):
         if value < low:
             raise DepthnerfError(f"{flag} must be >= {low}, got {value}")
     if args.out.suffix != ".safetensors":

@@ -23,6 +23,7 @@ from depthnerf.commands.evaluate import (
 )
 from depthnerf.depth.estimators import PHOTO_ESTIMATORS
 from depthnerf.distributed import pick_device
+from depthnerf.errors import DepthnerfError
 from depthnerf.infer.facing import AUTO, MIN_CONFIDENCE
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
@@ -63,7 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "view; a few degrees off costs more than no plane); auto = estimated from the photo (read by "
                         "the checkpoint's facing head when it has one, else the plane whose render of the photo is "
                         "closest, or none); none = no symmetry plane")
-    p.add_argument("--facing-min-confidence", type=float, default=MIN_CONFIDENCE, metavar="C",
+    p.add_argument("--facing-min-confidence", type=float, default=argparse.SUPPRESS, metavar="C",
                    help="--facing auto with a facing head: no plane where the head's confidence in its reading "
                         f"(printed; about 1 when sure) is below C (default {MIN_CONFIDENCE:g}: the head's plane always)")
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
@@ -124,6 +125,19 @@ def _facing(text: str) -> float | str | None:
     return value
 
 
+def check_flags(args: argparse.Namespace) -> None:
+    """One line for a flag that another flag turns off (it would be accepted and do nothing): ``--fill`` with
+    ``--framing keep``, ``--background-model`` with ``--background-removal off``, ``--facing-min-confidence``
+    without ``--facing auto``."""
+    if args.fill is not None and args.framing == "keep":
+        raise DepthnerfError("--fill applies only with --framing auto (keep only pads the photo to a square)")
+    if args.background_model is not None and args.background_removal == "off":
+        raise DepthnerfError("--background-model applies only when the background is removed (drop "
+                             "--background-removal off)")
+    if hasattr(args, "facing_min_confidence") and getattr(args, "facing", None) != AUTO:
+        raise DepthnerfError("--facing-min-confidence applies only with --facing auto")
+
+
 def run(args: argparse.Namespace) -> int:
     from depthnerf.distributed import DistInfo
     from depthnerf.infer.session import InferenceSession, SessionOptions
@@ -142,7 +156,8 @@ def run(args: argparse.Namespace) -> int:
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model,
                             facing=getattr(args, "facing", DEFAULT_FACING),
-                            facing_min_confidence=args.facing_min_confidence)
+                            facing_min_confidence=getattr(args, "facing_min_confidence", MIN_CONFIDENCE))
+    check_flags(args)
     options = SessionOptions(device=pick_device(args.device), depth=args.depth,
                              depth_checkpoint=args.depth_checkpoint, fp32=args.fp32, compile=args.compile,
                              compile_mode=args.compile_mode, bf16_residual=args.bf16_residual, gather=args.gather,

@@ -114,6 +114,8 @@ def evaluate_depth(cfg: DepthEvalConfig) -> DepthEvalResult:
     if provenance is None:
         raise DepthnerfError("estimator 'none' produces no depth, there is nothing to evaluate")
     categories = list(cfg.categories) if cfg.categories else discover_categories(cfg.data_root)
+    if not categories:  # a folder that holds no dataset: nothing to score (records[0] below)
+        raise DepthnerfError(f"{cfg.data_root}: no <category>_<split> folders found")
     records = []
     for category in categories:
         objects = index_split(cfg.data_root, category, cfg.split, check_files=False).objects

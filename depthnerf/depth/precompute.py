@@ -106,6 +106,22 @@ def _records(cfg: PrecomputeConfig, summary_missing: list[str]) -> list:
     return records
 
 
+def _check_counts(cfg: PrecomputeConfig) -> None:
+    if cfg.batch_size <= 0:
+        raise DepthnerfError(f"--batch-size must be positive, got {cfg.batch_size}")
+    if cfg.resolution is not None and cfg.resolution < MIN_RESOLUTION:
+        raise DepthnerfError(f"--resolution must be >= {MIN_RESOLUTION}, got {cfg.resolution}")
+
+
+def requested_records(cfg: PrecomputeConfig) -> list:
+    """The objects ``cfg`` asks for, checked as :func:`precompute_priors` checks them (one line for a
+    ``--batch-size`` or ``--resolution`` that cannot work, a folder without datasets, a category or split that is
+    not there), whichever estimator ``cfg`` names: ``depthnerf depth`` checks the request of one without a cache
+    with it. Reads the split indexes only."""
+    _check_counts(cfg)
+    return _records(cfg, [])
+
+
 def _resolution(cfg: PrecomputeConfig, records: list) -> int:
     if cfg.resolution is not None:
         return cfg.resolution
@@ -133,10 +149,7 @@ def precompute_priors(cfg: PrecomputeConfig) -> PrecomputeSummary:
 
     if cfg.estimator not in CACHED_ESTIMATORS:
         raise DepthnerfError(f"estimator '{cfg.estimator}' is not cached (cached: {', '.join(CACHED_ESTIMATORS)})")
-    if cfg.batch_size <= 0:
-        raise DepthnerfError(f"--batch-size must be positive, got {cfg.batch_size}")
-    if cfg.resolution is not None and cfg.resolution < MIN_RESOLUTION:
-        raise DepthnerfError(f"--resolution must be >= {MIN_RESOLUTION}, got {cfg.resolution}")
+    _check_counts(cfg)
     provenance = describe_estimator(cfg.estimator, cfg.checkpoint)
     assert provenance is not None
     missing: list[str] = []

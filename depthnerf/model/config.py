@@ -75,8 +75,9 @@ class EncoderConfig:
                                  f"got {self.backbone!r}")
         if not 1 <= self.num_layers <= 4:
             raise DepthnerfError(f"model config: encoder.num_layers must be 1..4, got {self.num_layers}")
-        if not self.image_scale > 0:
-            raise DepthnerfError(f"model config: encoder.image_scale must be > 0, got {self.image_scale}")
+        if not (math.isfinite(self.image_scale) and self.image_scale > 0):  # inf: floor(inf) in feature_side
+            raise DepthnerfError(f"model config: encoder.image_scale must be a finite number > 0, "
+                                 f"got {self.image_scale}")
         if self.norm_stats not in NORM_STATS:
             raise DepthnerfError(f"model config: encoder.norm_stats must be one of {', '.join(NORM_STATS)}, "
                                  f"got {self.norm_stats!r}")
@@ -158,6 +159,9 @@ class FieldConfig:
         if not 0 <= self.combine_layer <= self.n_blocks:
             raise DepthnerfError(f"model config: field.combine_layer must be in 0..n_blocks={self.n_blocks}, "
                                  f"got {self.combine_layer}")
+        if not (math.isfinite(self.freq_factor) and self.freq_factor > 0):  # 0: every sin/cos a constant
+            raise DepthnerfError(f"model config: field.freq_factor must be a finite number > 0, "
+                                 f"got {self.freq_factor}")
         if self.point_frame not in ("rotated", "camera"):
             raise DepthnerfError(f"model config: field.point_frame must be 'rotated' or 'camera', "
                                  f"got {self.point_frame!r}")

@@ -159,19 +159,35 @@ def _session_options():
     return options
 
 
+def model_file(model: str | None) -> Path | None:
+    """The ONNX file ``model`` names, or None for a name of :data:`NAMED_MODELS` (None = :data:`DEFAULT_MODEL`);
+    a one-line :class:`DepthnerfError` for a word that is neither. The file need not exist (:func:`check_model`)."""
+    name = model or DEFAULT_MODEL
+    path = Path(name).expanduser()
+    if name.lower().endswith(".onnx") or path.exists() or "/" in name:
+        return path
+    if name not in NAMED_MODELS:
+        raise DepthnerfError(f"--background-model {name}: not a model file and not one of "
+                             f"{', '.join(NAMED_MODELS)}")
+    return None
+
+
+def check_model(model: str | None) -> None:
+    """One line, without loading anything, when ``model`` is neither a name of :data:`NAMED_MODELS` nor a file
+    that exists (``depthnerf app`` checks its ``--background-model`` so before it serves)."""
+    path = model_file(model)
+    if path is not None and not path.is_file():
+        raise DepthnerfError(f"{path}: background model file not found")
+
+
 def load_remover(model: str | None = None) -> BackgroundRemover:
     """The model ``model`` names (module docstring; None = :data:`DEFAULT_MODEL`); a one-line
     :class:`DepthnerfError` saying what is missing and how to get it otherwise."""
     name = model or DEFAULT_MODEL
-    path = Path(name).expanduser()
-    is_file = name.lower().endswith(".onnx") or path.exists() or "/" in name
-    if not is_file and name not in NAMED_MODELS:
-        raise DepthnerfError(f"--background-model {name}: not a model file and not one of "
-                             f"{', '.join(NAMED_MODELS)}")
+    path = model_file(model)
     new_session, sessions_class = _import_rembg()
-    if is_file:
-        if not path.is_file():
-            raise DepthnerfError(f"{path}: background model file not found")
+    if path is not None:
+        check_model(model)  # after the import: a missing rembg is the first thing to say
         try:
             session = _file_session(path)
         except Exception as err:  # noqa: BLE001 - onnxruntime's errors for a file that is not an ONNX graph
