@@ -110,6 +110,9 @@ class TrainingState:
     best_step: int | None = None
     """The step whose checkpoint scored ``best_psnr`` (what ``best/`` holds; None: no validation yet, or a state
     file that predates it)."""
+    validation_due: bool = False
+    """The step was a validation step whose validation did not run (a stop signal came before it ended): a resume
+    runs it before the next step (False in state files that predate it)."""
 
 
 def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -163,12 +166,32 @@ def _write_checkpoint_files(tmp: Path, model: torch.nn.Module, optimizer: torch.
     opt_tensors, opt_info = _optimizer_to_files(optimizer)
     write_bytes_atomic(tmp / "optimizer.safetensors", save(opt_tensors))
     crash_point("optimizer", state.step)
-    best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
-    payload = {"step": state.step, "best_psnr": best, "best_step": state.best_step, "world_size": state.world_size,
-               "optimizer": opt_info}
-    write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1, allow_nan=False))
+    write_text_atomic(tmp / "state.json", _state_json(state, opt_info))
     _fsync_dir(tmp)
     crash_point("state", state.step)
+
+
+def _state_json(state: TrainingState, opt_info: dict[str, Any]) -> str:
+    """``state.json``'s text: the state and the optimizer's hyper-parameters and scalars."""
+    best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
+    payload = {"step": state.step, "best_psnr": best, "best_step": state.best_step, "world_size": state.world_size,
+               "validation_due": state.validation_due, "optimizer": opt_info}
+    return json.dumps(payload, indent=1, allow_nan=False)
+
+
+def rewrite_state(ckpt_dir: Path, state: TrainingState) -> None:
+    """Replace the training state of the checkpoint ``ckpt_dir`` (of the same step; its weights and optimizer
+    unchanged) by ``state``, in one atomic write of its ``state.json``: what a resume that ran the step's due
+    validation records (its best PSNR and step, no validation due)."""
+    where = Path(ckpt_dir) / "state.json"
+    try:
+        payload = json.loads(where.read_text())
+        if int(payload["step"]) != state.step:
+            raise ValueError(f"holds step {payload['step']}, not {state.step}")
+        write_text_atomic(where, _state_json(state, payload["optimizer"]))
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise DepthnerfError(f"{where}: could not record the step's validation ({type(err).__name__}: {err}); "
+                             "the run keeps its checkpoint: --resume validates the step again") from None
 
 
 def restore_best(ckpt_root: Path, state: TrainingState) -> str | None:
@@ -238,7 +261,8 @@ def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.opt
         best, best_step = payload["best_psnr"], payload.get("best_step")  # older files: an unused "extra" mapping
         state = TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best),
                               world_size=int(payload.get("world_size", 1)),
-                              best_step=None if best_step is None else int(best_step))
+                              best_step=None if best_step is None else int(best_step),
+                              validation_due=bool(payload.get("validation_due", False)))
         opt_info = payload["optimizer"] if optimizer is not None else None
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:  # JSONDecodeError is a ValueError
         raise DepthnerfError(f"{where}: unreadable training state ({type(err).__name__}: {err})") from None
