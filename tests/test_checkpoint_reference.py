@@ -72,6 +72,46 @@ def test_pruning_keeps_the_newest_and_a_step_saved_again_is_replaced(tmp_path):
     assert (tmp_path / "latest").read_text() == "step_00000003\n"
 
 
+def test_pruning_counts_only_complete_checkpoints_and_removes_half_deleted_folders(tmp_path):
+    """Step folders an earlier kill left half-deleted (a newer one without its optimizer and state, an empty older
+    one) are not counted among the ``keep_last`` kept: the two newest complete checkpoints stay, the leftovers go."""
+    for step in (1, 2):
+        _save(tmp_path, step)
+    half = tmp_path / "step_00000003"
+    shutil.copytree(tmp_path / "step_00000002", half)
+    for name in ("optimizer.safetensors", "state.json"):
+        (half / name).unlink()
+    (tmp_path / "step_00000000").mkdir()
+    _save(tmp_path, 4)  # keep_last=2
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_00000002", "step_00000004"]
+
+
+def test_a_kill_while_pruning_leaves_no_half_deleted_step_folder(tmp_path, monkeypatch):
+    """A pruned folder is renamed away before it is deleted: a kill in the middle of the deletion (here: after its
+    first file) leaves only a temporary name, which the resume removes; every step folder left is complete."""
+    for step in (1, 2):
+        _save(tmp_path, step)
+    delete = shutil.rmtree
+
+    def killed_midway(path, *args, **kwargs):
+        files = sorted(Path(path).glob("*.safetensors")) if Path(path).is_dir() else []
+        if not files:
+            return delete(path, *args, **kwargs)
+        files[0].unlink()
+        raise KeyboardInterrupt  # stands for the kill: nothing after it runs
+
+    monkeypatch.setattr(shutil, "rmtree", killed_midway)
+    try:
+        _save(tmp_path, 3)
+    except KeyboardInterrupt:
+        pass
+    monkeypatch.undo()
+    assert all((p / "state.json").is_file() and (p / "model.safetensors").is_file() and
+               (p / "optimizer.safetensors").is_file() for p in tmp_path.glob("step_*"))
+    ckpt.restore_best(tmp_path, ckpt.TrainingState(3, 12.5))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest", "step_00000002", "step_00000003"]
+
+
 def test_resume_mends_best_only_when_it_holds_another_step(tmp_path):
     """``best/`` holding the recorded best step is left alone (no copy, no note); holding another step, or missing,
     it becomes a copy of the best step's folder; stray temporary folders of killed writers are removed."""

@@ -52,6 +52,8 @@ from depthnerf.pretrained.weights import (  # noqa: F401 - re-exported for the r
 )
 from depthnerf.state_dicts import load_state_strict
 
+CHECKPOINT_FILES = ("model.safetensors", "optimizer.safetensors", "state.json")
+"""The files of a complete checkpoint folder."""
 CRASH_STAGES = ("weights", "optimizer", "state", "renamed", "latest", "pruned", "best-copied", "best-moved")
 """Points of a checkpoint write where ``DEPTHNERF_CRASH_AT`` can kill the process: after the weights / optimizer /
 state files of the temporary folder are written, after the folder is renamed into place, after the ``latest``
@@ -147,11 +149,29 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     crash_point("latest", state.step)
-    steps = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())
-    for old in steps[:-keep_last] if keep_last > 0 else []:
-        shutil.rmtree(old, ignore_errors=True)
+    prune(ckpt_root, keep_last)
     crash_point("pruned", state.step)
     return final
+
+
+def prune(ckpt_root: Path, keep_last: int) -> None:
+    """Keep the newest ``keep_last`` complete checkpoints of ``ckpt_root`` (all of them when 0); remove older ones
+    and incomplete step folders (what a kill during an earlier deletion left), never counted among those kept. Each
+    is renamed to ``.step_XXXXXXXX.PID.old`` before it is deleted, so a kill during a deletion leaves a temporary
+    name (removed by the resume, :func:`restore_best`), not a half-deleted step folder."""
+    folders = sorted(p for p in Path(ckpt_root).glob("step_*") if p.is_dir())
+    complete = [p for p in folders if all((p / name).is_file() for name in CHECKPOINT_FILES)]
+    kept = set(complete[-keep_last:] if keep_last > 0 else complete)
+    for old in folders:
+        if old in kept:
+            continue
+        trash = old.with_name(f".{old.name}.{os.getpid()}.old")
+        shutil.rmtree(trash, ignore_errors=True)  # a killed process's, under this id: a rename onto it would fail
+        try:
+            os.replace(old, trash)
+        except OSError:  # cannot rename it (permissions): delete it where it is
+            trash = old
+        shutil.rmtree(trash, ignore_errors=True)
 
 
 def _write_checkpoint_files(tmp: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -195,11 +215,11 @@ def rewrite_state(ckpt_dir: Path, state: TrainingState) -> None:
 
 
 def restore_best(ckpt_root: Path, state: TrainingState) -> str | None:
-    """On resume: remove the temporary folders a killed writer left, and when ``best/`` does not hold the state's
+    """On resume: remove the temporary folders a killed writer or pruning left, and when ``best/`` does not hold the state's
     ``best_step`` (a kill between that checkpoint and its copy, or during the copy) copy it there now; returns a
     one-line note when it did."""
     ckpt_root = Path(ckpt_root)
-    for stray in [*ckpt_root.glob(".step_*.tmp"), *ckpt_root.glob(".best.*.tmp")]:
+    for stray in [*ckpt_root.glob(".step_*.tmp"), *ckpt_root.glob(".step_*.old"), *ckpt_root.glob(".best.*.tmp")]:
         shutil.rmtree(stray, ignore_errors=True)
     source = ckpt_root / f"step_{state.best_step:08d}" if state.best_step is not None else None
     try:
