@@ -214,6 +214,16 @@ def rewrite_state(ckpt_dir: Path, state: TrainingState) -> None:
                              "the run keeps its checkpoint: --resume validates the step again") from None
 
 
+def last_step(ckpt_root: Path) -> int:
+    """The step of the newest complete checkpoint in ``ckpt_root`` (:func:`latest_checkpoint`), what a resume
+    continues from; 0 when there is none, or when its state file is unreadable (:func:`load_checkpoint` says so)."""
+    latest = latest_checkpoint(ckpt_root) if Path(ckpt_root).is_dir() else None
+    try:
+        return int(json.loads((latest / "state.json").read_text())["step"]) if latest is not None else 0
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
 def restore_best(ckpt_root: Path, state: TrainingState) -> str | None:
     """On resume: remove the temporary folders a killed writer or pruning left, and when ``best/`` does not hold the state's
     ``best_step`` (a kill between that checkpoint and its copy, or during the copy) copy it there now; returns a

@@ -149,8 +149,9 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
            progress: bool, validate: Validator | None, compile: bool, compile_step: bool) -> dict:
     """:func:`train`'s body; ``hold`` keeps the run's lock until :func:`train` returns."""
     sched = cfg.schedule
-    try:  # from the config and the world size alone: every rank refuses alike, rank 0 prints it
-        check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world)
+    try:  # from the config, the world size and the run's last checkpoint: every rank refuses alike, rank 0 prints it
+        check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world,
+                          start=ckpt.last_step(run_dir / "checkpoints") if resume else 0)
     except DepthnerfError as err:
         raise refusal(str(err), info.rank) from None
     with checked_together(info, "checking the run's settings, data and folder"):  # agreed by the ranks: one line
