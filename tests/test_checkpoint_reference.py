@@ -145,3 +145,36 @@ def test_a_best_copy_after_a_kill_that_left_its_old_folder_replaces_best(tmp_pat
     ckpt.mark_best(tmp_path, second)
     assert json.loads((tmp_path / "best" / "state.json").read_text())["step"] == 2
     assert not stale.exists()
+
+
+def _adam_steps(model: torch.nn.Module, opt: torch.optim.Optimizer, steps: int) -> None:
+    torch.manual_seed(5)
+    for _ in range(steps):
+        opt.zero_grad()
+        model(torch.randn(4, 3)).pow(2).sum().backward()
+        opt.step()
+
+
+def test_a_resume_on_another_device_keeps_its_own_fused_adam_setting(tmp_path):
+    """A checkpoint of a CUDA run records fused Adam (``"fused": true``, crafted here into a CPU checkpoint's
+    ``state.json``): a CPU resume keeps the setting it built its optimizer with (how the update runs on this device,
+    not what it computes), and its next steps equal those of a resume from the CPU checkpoint itself."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters(), lr=0.01)
+    _adam_steps(model, opt, 2)
+    saved = ckpt.save_checkpoint(tmp_path / "cpu", model, opt, {"toy": 1}, ckpt.TrainingState(2, 12.5))
+    cuda = shutil.copytree(saved, tmp_path / "cuda" / saved.name)
+    state = json.loads((cuda / "state.json").read_text())
+    for group in state["optimizer"]["param_groups"]:
+        group["fused"] = True
+    (cuda / "state.json").write_text(json.dumps(state))
+    weights = []
+    for folder in (saved, cuda):
+        fresh = torch.nn.Linear(3, 2)
+        fresh_opt = torch.optim.Adam(fresh.parameters(), lr=0.01, fused=None)
+        ckpt.load_checkpoint(folder, fresh, fresh_opt, {"toy": 1})
+        assert [g["fused"] for g in fresh_opt.param_groups] == [None]
+        _adam_steps(fresh, fresh_opt, 2)
+        weights.append(fresh.state_dict())
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])

@@ -54,6 +54,9 @@ from depthnerf.state_dicts import load_state_strict
 
 CHECKPOINT_FILES = ("model.safetensors", "optimizer.safetensors", "state.json")
 """The files of a complete checkpoint folder."""
+RUNTIME_KEYS = ("fused", "foreach", "capturable")
+"""Optimizer settings of how the update runs on a device, not what it computes: a loaded optimizer keeps the ones it
+was built with (a CUDA run's fused Adam is not carried into a CPU resume, nor its absence into a CUDA one)."""
 CRASH_STAGES = ("weights", "optimizer", "state", "renamed", "latest", "pruned", "best-copied", "best-moved")
 """Points of a checkpoint write where ``DEPTHNERF_CRASH_AT`` can kill the process: after the weights / optimizer /
 state files of the temporary folder are written, after the folder is renamed into place, after the ``latest``
@@ -90,7 +93,10 @@ def _optimizer_from_files(opt: torch.optim.Optimizer, tensors: dict[str, torch.T
         state.setdefault(int(pid), {})[name] = value
     for pid, st in info.get("scalars", {}).items():
         state.setdefault(int(pid), {}).update(st)
-    opt.load_state_dict({"state": state, "param_groups": info["param_groups"]})
+    # this device's settings before the load: torch places each parameter's step count by them as it loads
+    groups = [{**saved, **{k: group[k] for k in RUNTIME_KEYS if k in group}}
+              for saved, group in zip(info["param_groups"], opt.param_groups, strict=False)]
+    opt.load_state_dict({"state": state, "param_groups": groups})
     # Files hold contiguous tensors; a channels-last parameter's moments must have its strides again (CUDA's fused
     # Adam refuses a layout mismatch). Same values, bit for bit.
     for param, st in opt.state.items():
