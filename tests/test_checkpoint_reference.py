@@ -74,7 +74,8 @@ def test_pruning_keeps_the_newest_and_a_step_saved_again_is_replaced(tmp_path):
 
 def test_pruning_counts_only_complete_checkpoints_and_removes_half_deleted_folders(tmp_path):
     """Step folders an earlier kill left half-deleted (a newer one without its optimizer and state, an empty older
-    one) are not counted among the ``keep_last`` kept: the two newest complete checkpoints stay, the leftovers go."""
+    one) are not counted among the ``keep_last`` kept: the two newest complete checkpoints stay; a leftover goes
+    with the steps older than those."""
     for step in (1, 2):
         _save(tmp_path, step)
     half = tmp_path / "step_00000003"
@@ -83,7 +84,9 @@ def test_pruning_counts_only_complete_checkpoints_and_removes_half_deleted_folde
         (half / name).unlink()
     (tmp_path / "step_00000000").mkdir()
     _save(tmp_path, 4)  # keep_last=2
-    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_00000002", "step_00000004"]
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_00000002", "step_00000003", "step_00000004"]
+    _save(tmp_path, 5)
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_00000004", "step_00000005"]
 
 
 def test_a_kill_while_pruning_leaves_no_half_deleted_step_folder(tmp_path, monkeypatch):

@@ -161,16 +161,19 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
 
 
 def prune(ckpt_root: Path, keep_last: int) -> None:
-    """Keep the newest ``keep_last`` complete checkpoints of ``ckpt_root`` (all of them when 0); remove older ones
-    and incomplete step folders (what a kill during an earlier deletion left), never counted among those kept. Each
-    is renamed to ``.step_XXXXXXXX.PID.old`` before it is deleted, so a kill during a deletion leaves a temporary
-    name (removed by the resume, :func:`restore_best`), not a half-deleted step folder."""
+    """Keep the newest ``keep_last`` complete checkpoints of ``ckpt_root`` (all of them when 0) and remove every
+    step folder older than those, complete or not. A folder an earlier kill left half-deleted is not counted among
+    those kept; it goes once its step is that old. Each folder is renamed to ``.step_XXXXXXXX.PID.old`` before it is
+    deleted, so a kill during a deletion leaves a temporary name (removed by the resume, :func:`restore_best`), not
+    a half-deleted step folder."""
     folders = sorted(p for p in Path(ckpt_root).glob("step_*") if p.is_dir())
     complete = [p for p in folders if all((p / name).is_file() for name in CHECKPOINT_FILES)]
-    kept = set(complete[-keep_last:] if keep_last > 0 else complete)
+    if keep_last <= 0 or not complete:
+        return
+    oldest_kept = complete[-keep_last:][0]
     for old in folders:
-        if old in kept:
-            continue
+        if old >= oldest_kept:
+            break
         trash = old.with_name(f".{old.name}.{os.getpid()}.old")
         shutil.rmtree(trash, ignore_errors=True)  # a killed process's, under this id: a rename onto it would fail
         try:
