@@ -72,6 +72,49 @@ def test_pruning_keeps_the_newest_and_a_step_saved_again_is_replaced(tmp_path):
     assert (tmp_path / "latest").read_text() == "step_00000003\n"
 
 
+def test_pruning_counts_only_complete_checkpoints_and_removes_half_deleted_folders(tmp_path):
+    """Step folders an earlier kill left half-deleted (a newer one without its optimizer and state, an empty older
+    one) are not counted among the ``keep_last`` kept: the two newest complete checkpoints stay; a leftover goes
+    with the steps older than those."""
+    for step in (1, 2):
+        _save(tmp_path, step)
+    half = tmp_path / "step_00000003"
+    shutil.copytree(tmp_path / "step_00000002", half)
+    for name in ("optimizer.safetensors", "state.json"):
+        (half / name).unlink()
+    (tmp_path / "step_00000000").mkdir()
+    _save(tmp_path, 4)  # keep_last=2
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_00000002", "step_00000003", "step_00000004"]
+    _save(tmp_path, 5)
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_00000004", "step_00000005"]
+
+
+def test_a_kill_while_pruning_leaves_no_half_deleted_step_folder(tmp_path, monkeypatch):
+    """A pruned folder is renamed away before it is deleted: a kill in the middle of the deletion (here: after its
+    first file) leaves only a temporary name, which the resume removes; every step folder left is complete."""
+    for step in (1, 2):
+        _save(tmp_path, step)
+    delete = shutil.rmtree
+
+    def killed_midway(path, *args, **kwargs):
+        files = sorted(Path(path).glob("*.safetensors")) if Path(path).is_dir() else []
+        if not files:
+            return delete(path, *args, **kwargs)
+        files[0].unlink()
+        raise KeyboardInterrupt  # stands for the kill: nothing after it runs
+
+    monkeypatch.setattr(shutil, "rmtree", killed_midway)
+    try:
+        _save(tmp_path, 3)
+    except KeyboardInterrupt:
+        pass
+    monkeypatch.undo()
+    assert all((p / "state.json").is_file() and (p / "model.safetensors").is_file() and
+               (p / "optimizer.safetensors").is_file() for p in tmp_path.glob("step_*"))
+    ckpt.restore_best(tmp_path, ckpt.TrainingState(3, 12.5))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["latest", "step_00000002", "step_00000003"]
+
+
 def test_resume_mends_best_only_when_it_holds_another_step(tmp_path):
     """``best/`` holding the recorded best step is left alone (no copy, no note); holding another step, or missing,
     it becomes a copy of the best step's folder; stray temporary folders of killed writers are removed."""
@@ -105,3 +148,36 @@ def test_a_best_copy_after_a_kill_that_left_its_old_folder_replaces_best(tmp_pat
     ckpt.mark_best(tmp_path, second)
     assert json.loads((tmp_path / "best" / "state.json").read_text())["step"] == 2
     assert not stale.exists()
+
+
+def _adam_steps(model: torch.nn.Module, opt: torch.optim.Optimizer, steps: int) -> None:
+    torch.manual_seed(5)
+    for _ in range(steps):
+        opt.zero_grad()
+        model(torch.randn(4, 3)).pow(2).sum().backward()
+        opt.step()
+
+
+def test_a_resume_on_another_device_keeps_its_own_fused_adam_setting(tmp_path):
+    """A checkpoint of a CUDA run records fused Adam (``"fused": true``, crafted here into a CPU checkpoint's
+    ``state.json``): a CPU resume keeps the setting it built its optimizer with (how the update runs on this device,
+    not what it computes), and its next steps equal those of a resume from the CPU checkpoint itself."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 2)
+    opt = torch.optim.Adam(model.parameters(), lr=0.01)
+    _adam_steps(model, opt, 2)
+    saved = ckpt.save_checkpoint(tmp_path / "cpu", model, opt, {"toy": 1}, ckpt.TrainingState(2, 12.5))
+    cuda = shutil.copytree(saved, tmp_path / "cuda" / saved.name)
+    state = json.loads((cuda / "state.json").read_text())
+    for group in state["optimizer"]["param_groups"]:
+        group["fused"] = True
+    (cuda / "state.json").write_text(json.dumps(state))
+    weights = []
+    for folder in (saved, cuda):
+        fresh = torch.nn.Linear(3, 2)
+        fresh_opt = torch.optim.Adam(fresh.parameters(), lr=0.01, fused=None)
+        ckpt.load_checkpoint(folder, fresh, fresh_opt, {"toy": 1})
+        assert [g["fused"] for g in fresh_opt.param_groups] == [None]
+        _adam_steps(fresh, fresh_opt, 2)
+        weights.append(fresh.state_dict())
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])

@@ -48,6 +48,22 @@ def test_a_resume_keeps_the_metric_lines_up_to_its_step_and_none_after_a_cut_lin
     assert [m["step"] for m in read_metrics(tmp_path)] == [1, 2]
 
 
+def test_a_resume_whose_validation_is_due_drops_that_steps_validation_line(tmp_path):
+    """The checkpoint of step 4 has its validation due: a validation line of step 4 (a resume killed after logging
+    it, before recording it in the checkpoint) goes, step 4's training line and earlier validations stay; without
+    the flag the line stays."""
+    log = RunLog(tmp_path, 0, tensorboard=False)
+    for step in (2, 4):
+        log.log(step, {"loss": step / 10})
+        log.log(step, {"val_psnr": 10.0 + step}, prefix="val")
+    RunLog(tmp_path, 4, tensorboard=False, validation_due=True)
+    assert [(m["step"], "val_psnr" in m) for m in read_metrics(tmp_path)] == [(2, False), (2, True), (4, False)]
+    log = RunLog(tmp_path, 4, tensorboard=False)
+    log.log(4, {"val_psnr": 14.0}, prefix="val")
+    RunLog(tmp_path, 4, tensorboard=False)
+    assert [(m["step"], "val_psnr" in m) for m in read_metrics(tmp_path)][-1] == (4, True)
+
+
 def test_non_finite_values_are_written_as_strict_json_nulls(tmp_path):
     log = RunLog(tmp_path, 0, tensorboard=False)
     log.log(1, {"loss": math.inf, "psnr": -math.inf, "depth": math.nan, "lr": 0.5, "count": 3})

@@ -89,11 +89,13 @@ class BatchPlan:
         return out
 
 
-def check_world_split(bbox_steps: int, objects_phase1: int, objects_phase2: int, max_steps: int, world: int) -> None:
-    """Refuse, in one line, a world size that a global batch the run will use does not divide (every rank takes an
-    equal share of each step's objects, so the result does not depend on how the batch is split)."""
-    used = ([("objects_phase1", objects_phase1)] if bbox_steps > 0 else []) + \
-        ([("objects_phase2", objects_phase2)] if max_steps > bbox_steps else [])
+def check_world_split(bbox_steps: int, objects_phase1: int, objects_phase2: int, max_steps: int, world: int,
+                      start: int = 0) -> None:
+    """Refuse, in one line, a world size that a global batch the run will still use does not divide (every rank
+    takes an equal share of each step's objects, so the result does not depend on how the batch is split); ``start``:
+    the step the run starts or resumes at (a phase that ends before it has no steps left to split)."""
+    used = ([("objects_phase1", objects_phase1)] if start < bbox_steps else []) + \
+        ([("objects_phase2", objects_phase2)] if max_steps > max(bbox_steps, start) else [])
     for name, size in used:
         if size % world:
             sizes = sorted({n for _, n in used})

@@ -52,6 +52,11 @@ from depthnerf.pretrained.weights import (  # noqa: F401 - re-exported for the r
 )
 from depthnerf.state_dicts import load_state_strict
 
+CHECKPOINT_FILES = ("model.safetensors", "optimizer.safetensors", "state.json")
+"""The files of a complete checkpoint folder."""
+RUNTIME_KEYS = ("fused", "foreach", "capturable")
+"""Optimizer settings of how the update runs on a device, not what it computes: a loaded optimizer keeps the ones it
+was built with (a CUDA run's fused Adam is not carried into a CPU resume, nor its absence into a CUDA one)."""
 CRASH_STAGES = ("weights", "optimizer", "state", "renamed", "latest", "pruned", "best-copied", "best-moved")
 """Points of a checkpoint write where ``DEPTHNERF_CRASH_AT`` can kill the process: after the weights / optimizer /
 state files of the temporary folder are written, after the folder is renamed into place, after the ``latest``
@@ -88,7 +93,10 @@ def _optimizer_from_files(opt: torch.optim.Optimizer, tensors: dict[str, torch.T
         state.setdefault(int(pid), {})[name] = value
     for pid, st in info.get("scalars", {}).items():
         state.setdefault(int(pid), {}).update(st)
-    opt.load_state_dict({"state": state, "param_groups": info["param_groups"]})
+    # this device's settings before the load: torch places each parameter's step count by them as it loads
+    groups = [{**saved, **{k: group[k] for k in RUNTIME_KEYS if k in group}}
+              for saved, group in zip(info["param_groups"], opt.param_groups, strict=False)]
+    opt.load_state_dict({"state": state, "param_groups": groups})
     # Files hold contiguous tensors; a channels-last parameter's moments must have its strides again (CUDA's fused
     # Adam refuses a layout mismatch). Same values, bit for bit.
     for param, st in opt.state.items():
@@ -110,6 +118,9 @@ class TrainingState:
     best_step: int | None = None
     """The step whose checkpoint scored ``best_psnr`` (what ``best/`` holds; None: no validation yet, or a state
     file that predates it)."""
+    validation_due: bool = False
+    """The step was a validation step whose validation did not run (a stop signal came before it ended): a resume
+    runs it before the next step (False in state files that predate it)."""
 
 
 def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -144,11 +155,32 @@ def save_checkpoint(ckpt_root: Path, model: torch.nn.Module, optimizer: torch.op
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     crash_point("latest", state.step)
-    steps = sorted(p for p in ckpt_root.glob("step_*") if p.is_dir())
-    for old in steps[:-keep_last] if keep_last > 0 else []:
-        shutil.rmtree(old, ignore_errors=True)
+    prune(ckpt_root, keep_last)
     crash_point("pruned", state.step)
     return final
+
+
+def prune(ckpt_root: Path, keep_last: int) -> None:
+    """Keep the newest ``keep_last`` complete checkpoints of ``ckpt_root`` (all of them when 0) and remove every
+    step folder older than those, complete or not. A folder an earlier kill left half-deleted is not counted among
+    those kept; it goes once its step is that old. Each folder is renamed to ``.step_XXXXXXXX.PID.old`` before it is
+    deleted, so a kill during a deletion leaves a temporary name (removed by the resume, :func:`restore_best`), not
+    a half-deleted step folder."""
+    folders = sorted(p for p in Path(ckpt_root).glob("step_*") if p.is_dir())
+    complete = [p for p in folders if all((p / name).is_file() for name in CHECKPOINT_FILES)]
+    if keep_last <= 0 or not complete:
+        return
+    oldest_kept = complete[-keep_last:][0]
+    for old in folders:
+        if old >= oldest_kept:
+            break
+        trash = old.with_name(f".{old.name}.{os.getpid()}.old")
+        shutil.rmtree(trash, ignore_errors=True)  # a killed process's, under this id: a rename onto it would fail
+        try:
+            os.replace(old, trash)
+        except OSError:  # cannot rename it (permissions): delete it where it is
+            trash = old
+        shutil.rmtree(trash, ignore_errors=True)
 
 
 def _write_checkpoint_files(tmp: Path, model: torch.nn.Module, optimizer: torch.optim.Optimizer,
@@ -163,20 +195,50 @@ def _write_checkpoint_files(tmp: Path, model: torch.nn.Module, optimizer: torch.
     opt_tensors, opt_info = _optimizer_to_files(optimizer)
     write_bytes_atomic(tmp / "optimizer.safetensors", save(opt_tensors))
     crash_point("optimizer", state.step)
-    best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
-    payload = {"step": state.step, "best_psnr": best, "best_step": state.best_step, "world_size": state.world_size,
-               "optimizer": opt_info}
-    write_text_atomic(tmp / "state.json", json.dumps(payload, indent=1, allow_nan=False))
+    write_text_atomic(tmp / "state.json", _state_json(state, opt_info))
     _fsync_dir(tmp)
     crash_point("state", state.step)
 
 
+def _state_json(state: TrainingState, opt_info: dict[str, Any]) -> str:
+    """``state.json``'s text: the state and the optimizer's hyper-parameters and scalars."""
+    best = state.best_psnr if math.isfinite(state.best_psnr) else None  # strict JSON
+    payload = {"step": state.step, "best_psnr": best, "best_step": state.best_step, "world_size": state.world_size,
+               "validation_due": state.validation_due, "optimizer": opt_info}
+    return json.dumps(payload, indent=1, allow_nan=False)
+
+
+def rewrite_state(ckpt_dir: Path, state: TrainingState) -> None:
+    """Replace the training state of the checkpoint ``ckpt_dir`` (of the same step; its weights and optimizer
+    unchanged) by ``state``, in one atomic write of its ``state.json``: what a resume that ran the step's due
+    validation records (its best PSNR and step, no validation due)."""
+    where = Path(ckpt_dir) / "state.json"
+    try:
+        payload = json.loads(where.read_text())
+        if int(payload["step"]) != state.step:
+            raise ValueError(f"holds step {payload['step']}, not {state.step}")
+        write_text_atomic(where, _state_json(state, payload["optimizer"]))
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise DepthnerfError(f"{where}: could not record the step's validation ({type(err).__name__}: {err}); "
+                             "the run keeps its checkpoint: --resume validates the step again") from None
+
+
+def last_step(ckpt_root: Path) -> int:
+    """The step of the newest complete checkpoint in ``ckpt_root`` (:func:`latest_checkpoint`), what a resume
+    continues from; 0 when there is none, or when its state file is unreadable (:func:`load_checkpoint` says so)."""
+    latest = latest_checkpoint(ckpt_root) if Path(ckpt_root).is_dir() else None
+    try:
+        return int(json.loads((latest / "state.json").read_text())["step"]) if latest is not None else 0
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
 def restore_best(ckpt_root: Path, state: TrainingState) -> str | None:
-    """On resume: remove the temporary folders a killed writer left, and when ``best/`` does not hold the state's
+    """On resume: remove the temporary folders a killed writer or pruning left, and when ``best/`` does not hold the state's
     ``best_step`` (a kill between that checkpoint and its copy, or during the copy) copy it there now; returns a
     one-line note when it did."""
     ckpt_root = Path(ckpt_root)
-    for stray in [*ckpt_root.glob(".step_*.tmp"), *ckpt_root.glob(".best.*.tmp")]:
+    for stray in [*ckpt_root.glob(".step_*.tmp"), *ckpt_root.glob(".step_*.old"), *ckpt_root.glob(".best.*.tmp")]:
         shutil.rmtree(stray, ignore_errors=True)
     source = ckpt_root / f"step_{state.best_step:08d}" if state.best_step is not None else None
     try:
@@ -238,7 +300,8 @@ def load_checkpoint(ckpt_dir: Path, model: torch.nn.Module, optimizer: torch.opt
         best, best_step = payload["best_psnr"], payload.get("best_step")  # older files: an unused "extra" mapping
         state = TrainingState(step=int(payload["step"]), best_psnr=-math.inf if best is None else float(best),
                               world_size=int(payload.get("world_size", 1)),
-                              best_step=None if best_step is None else int(best_step))
+                              best_step=None if best_step is None else int(best_step),
+                              validation_due=bool(payload.get("validation_due", False)))
         opt_info = payload["optimizer"] if optimizer is not None else None
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:  # JSONDecodeError is a ValueError
         raise DepthnerfError(f"{where}: unreadable training state ({type(err).__name__}: {err})") from None

@@ -14,7 +14,9 @@ On CUDA: bf16 autocast, fused Adam, channels-last encoder, pinned host batches, 
 device until a log step reads them (the only host synchronisation of the loop besides validation/checkpoints).
 
 SIGTERM / SIGINT end the loop after the current step with a checkpoint of that step (:mod:`depthnerf.train.stop`);
-the returned state then names the signal (``stopped_by``). Every start and resume appends one line to the run's
+the returned state then names the signal (``stopped_by``). A validation the signal skipped or abandoned is due in
+that checkpoint (``validation_due``), and the resume runs it before its first step, so the validation records and
+``best/`` are those of an uninterrupted run. Every start and resume appends one line to the run's
 ``launches.jsonl`` (:func:`~depthnerf.train.run_log.record_launch`: step, world size, device, determinism).
 """
 
@@ -58,8 +60,8 @@ from depthnerf.train.freeze import freeze_parameters, hold_frozen_modules, train
 from depthnerf.train.items import TrainItems, ready_view_store
 from depthnerf.train.run_log import RunLog, check_run_dir, read_run_record, record_launch, run_lock
 from depthnerf.train.step import BatchLoss, compiled_fields, train_step
-from depthnerf.train.stop import STOP_SIGNALS, StopRequest, ValidationInterrupted, exit_code, signal_name
-from depthnerf.train.validator import Validator
+from depthnerf.train.stop import STOP_SIGNALS, StopRequest, exit_code, signal_name
+from depthnerf.train.validator import ValidationPhase, Validator
 from depthnerf.train.warm_start import warm_start
 
 __all__ = ["learning_rate", "train"]
@@ -147,8 +149,9 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
            progress: bool, validate: Validator | None, compile: bool, compile_step: bool) -> dict:
     """:func:`train`'s body; ``hold`` keeps the run's lock until :func:`train` returns."""
     sched = cfg.schedule
-    try:  # from the config and the world size alone: every rank refuses alike, rank 0 prints it
-        check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world)
+    try:  # from the config, the world size and the run's last checkpoint: every rank refuses alike, rank 0 prints it
+        check_world_split(sched.bbox_steps, sched.objects_phase1, sched.objects_phase2, sched.max_steps, info.world,
+                          start=ckpt.last_step(run_dir / "checkpoints") if resume else 0)
     except DepthnerfError as err:
         raise refusal(str(err), info.rank) from None
     with checked_together(info, "checking the run's settings, data and folder"):  # agreed by the ranks: one line
@@ -282,7 +285,8 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                         collate_fn=collate_packed, num_workers=cfg.data.num_workers, pin_memory=cuda,
                         persistent_workers=False, prefetch_factor=4 if cfg.data.num_workers else None,
                         worker_init_fn=_ignore_stop_signals if cfg.data.num_workers else None)
-    log = RunLog(run_dir, start) if info.is_main else None
+    log = RunLog(run_dir, start, validation_due=state.validation_due) if info.is_main else None
+    phase = ValidationPhase(validate, val_records, prior_source, spec, cfg, info, plane, progress and info.is_main)
     bar = tqdm(total=s.max_steps, initial=start, desc="train", unit="it", dynamic_ncols=True,
                disable=not (progress and info.is_main))
     amp = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
@@ -290,13 +294,17 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
     model.train()
     hold_frozen_modules(model)
     step, best, best_step, last_saved = start, state.best_psnr, state.best_step, None
-    saved_step, stopping = None, False
+    saved_step, stopping, pending = None, False, state.validation_due and phase.enabled
     t_last, rays_since = time.perf_counter(), 0
     # out of memory: one line naming the step's settings, the step and the last checkpoint as they are then
     oom = memory.one_line_out_of_memory(info, lambda: memory.in_training_step(cfg, info.world, step,
                                                                                last_saved or latest))
     with StopRequest(info) as stop, oom, contextlib.ExitStack() as cleanup:
-        batches = iter(loader)
+        if pending:  # the step's validation a stop signal skipped or abandoned, before the next step
+            best, best_step, pending = (phase.due_on_resume(stop, model, state, log, latest) if info.is_main
+                                        else (best, best_step, False))
+            stopping = stop.requested()  # a signal during it: stop before training (its validation stays due)
+        batches = iter(() if stopping else loader)
         cleanup.callback(_stop_workers, batches)  # also when a step raises: see _stop_workers
         for batch in batches:
             lr = learning_rate(cfg, plan, step)
@@ -330,32 +338,25 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
                 log.log(step, values)
                 bar.set_postfix(loss=f"{values['loss']:.4f}", psnr=f"{psnr:.2f}")
                 t_last, rays_since = now, 0
-            val_now = validate is not None and cfg.log.val_every > 0 and stop.signum is None and (
-                step % cfg.log.val_every == 0 or step == s.max_steps)
-            improved = False
-            if info.is_main and val_now:
-                try:
-                    res = _validate(validate, stop, model, val_records, prior_source, spec, cfg, info, step,
-                                    progress and info.is_main, plane, last_saved or latest)
-                except ValidationInterrupted:
-                    pass  # stop.signum is set: the step's checkpoint follows
-                else:
-                    log.log(step, {"val_psnr": res.psnr, "val_ssim": res.ssim}, prefix="val")
-                    log.images(step, res.images)
-                    improved = res.psnr > best
-                    best, best_step = (res.psnr, step) if improved else (best, best_step)
+            due = info.is_main and phase.due(step)  # a signal skips it; one during it abandons it: due on resume
+            res = phase.score(stop, model, step, log, last_saved or latest) if due and stop.signum is None else None
+            improved = res is not None and res.psnr > best
+            best, best_step = (res.psnr, step) if improved else (best, best_step)
+            pending = due and res is None
             if info.is_main and (step % cfg.log.checkpoint_every == 0 or step == s.max_steps or improved):
-                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, (best, best_step), cfg, spec, info)
+                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, (best, best_step), cfg, spec, info,
+                                   pending)
                 saved_step = step
                 if improved:
                     ckpt.mark_best(ckpt_root, last_saved)
             stopping = stop.requested()  # after the step's checkpoint: a signal during its write counts too
             if info.is_main and stopping and saved_step != step:
-                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, (best, best_step), cfg, spec, info)
+                last_saved = _save(ckpt_root, model, optimizer, model_cfg, step, (best, best_step), cfg, spec, info,
+                                   pending)
                 saved_step = step
             if stopping:
                 break
-        finished = step >= s.max_steps  # a signal after the last step stops nothing
+        finished = step >= s.max_steps and not pending  # a signal after the last step and its validation: nothing
         stopped_by = signal_name(stop.signum) if stopping and stop.signum and not finished else None
     bar.close()
     if log is not None:
@@ -368,10 +369,12 @@ def _train(cfg: TrainConfig, run_dir: Path, info: DistInfo, hold: contextlib.Exi
 
 
 def _save(ckpt_root: Path, model: PixelNeRF, optimizer: torch.optim.Optimizer, model_cfg: dict, step: int,
-          best: tuple[float, int | None], cfg: TrainConfig, spec: InferenceSpec, info: DistInfo) -> Path:
+          best: tuple[float, int | None], cfg: TrainConfig, spec: InferenceSpec, info: DistInfo,
+          validation_due: bool) -> Path:
     """The run checkpoint of ``step`` (:func:`depthnerf.train.checkpoint.save_checkpoint`); ``best``: the best
-    validation PSNR so far and its step."""
-    state = ckpt.TrainingState(step=step, best_psnr=best[0], best_step=best[1], world_size=info.world)
+    validation PSNR so far and its step; ``validation_due``: the step's validation did not run."""
+    state = ckpt.TrainingState(step=step, best_psnr=best[0], best_step=best[1], world_size=info.world,
+                               validation_due=validation_due)
     return ckpt.save_checkpoint(ckpt_root, model, optimizer, model_cfg, state, keep_last=cfg.log.keep_last,
                                 train_config=to_dict(cfg), spec_json=spec.to_json())
 
@@ -392,15 +395,3 @@ def _ignore_stop_signals(worker_id: int) -> None:
     for sig in STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
 
-
-def _validate(validate: Validator, stop: StopRequest, model: PixelNeRF, records: list, prior_source: PriorSource,
-              spec: InferenceSpec, cfg: TrainConfig, info: DistInfo, step: int, progress: bool,
-              plane: tuple[float, ...] | None, checkpoint: Path | None):
-    """One validation as its own phase: a second progress bar over the val objects; interruptible by a stop
-    signal (:meth:`StopRequest.interruptible`); out of memory, one line (``checkpoint``: the run's last)."""
-    with tqdm(total=len(records), desc=f"validate (step {step})", unit="object", leave=False, position=1,
-              dynamic_ncols=True, disable=not progress) as vbar, stop.interruptible(), \
-            memory.one_line_out_of_memory(info, lambda: memory.in_validation(cfg, step, checkpoint)):
-        crash_point("validation", step)
-        return validate(model, records, prior_source, cfg.log.val_views, spec, cfg.log.render_chunk, info.device,
-                        progress=vbar.update, symmetry_plane=plane, inputs=cfg.log.val_input_views or None)

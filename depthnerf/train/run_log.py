@@ -6,7 +6,9 @@ overwrites a ``config.json`` that is not a run's) and :func:`run_lock` (one proc
 
 On resume from step ``s`` every ``metrics.jsonl`` line with ``step > s`` (written by the interrupted process after
 its last checkpoint) is dropped and TensorBoard is opened with ``purge_step = s + 1`` (TensorBoard hides the events
-of steps ``>= purge_step``), so the logged curves of a resumed run are exactly those of an uninterrupted one.
+of steps ``>= purge_step``), so the logged curves of a resumed run are exactly those of an uninterrupted one. When
+the checkpoint's validation of step ``s`` is still due (a stop signal came first), a validation line of step ``s`` is
+dropped too (an earlier resume's, killed before it recorded that validation in the checkpoint).
 """
 
 from __future__ import annotations
@@ -48,9 +50,9 @@ def _clean(value: Any) -> Any:
 class RunLog:
     """Writer for ``RUN_DIR/metrics.jsonl`` and ``RUN_DIR/tb`` (rank 0 only)."""
 
-    def __init__(self, run_dir: Path, start_step: int, tensorboard: bool = True) -> None:
+    def __init__(self, run_dir: Path, start_step: int, tensorboard: bool = True, validation_due: bool = False) -> None:
         self.path = Path(run_dir) / "metrics.jsonl"
-        self._truncate(start_step)
+        self._truncate(start_step, validation_due)
         self.writer = None
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
@@ -59,13 +61,15 @@ class RunLog:
             # (from step 0 too: a run killed before its first checkpoint starts again, its events are all stale)
             self.writer = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=start_step + 1)
 
-    def _truncate(self, start_step: int) -> None:
+    def _truncate(self, start_step: int, validation_due: bool) -> None:
         if not self.path.exists():
             return
         keep = []
         for line in self.path.read_text().splitlines():
             try:
-                if json.loads(line).get("step", 0) <= start_step:
+                record = json.loads(line)
+                step = record.get("step", 0)
+                if step < start_step or (step == start_step and not (validation_due and "val_psnr" in record)):
                     keep.append(line)
             except json.JSONDecodeError:
                 break  # a line cut by a kill: everything after it is also after the checkpoint
