@@ -32,8 +32,9 @@ from depthnerf.errors import DepthnerfError
 from depthnerf.eval.config import protocol_mismatch, recorded_choices
 
 METRICS: dict[str, bool] = {"psnr": True, "ssim": True, "chamfer_l1": False, "fscore": True,
-                             "floater_fraction": False}
-"""Metric column of per_object.csv -> whether higher is better."""
+                             "accuracy": False, "completeness": False, "floater_fraction": False}
+"""Metric column of per_object.csv -> whether higher is better (accuracy and completeness: the two halves of
+Chamfer-L1, mesh to truth and truth to mesh; a column an evaluation lacks is skipped)."""
 SCORING_KEYS = {"category": "category", "split": "--split", "views_stride": "--views-stride",
                 "resolution": "--resolution"}
 """``summary.json`` keys two paired evaluations must share (the same views, scored at the same size), with the

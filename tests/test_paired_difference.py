@@ -162,6 +162,21 @@ def test_common_objects_metric_directions_and_single_object_metrics(tmp_path: Pa
     assert fl.baseline_mean == pytest.approx(0.1) and fl.mean_diff == pytest.approx(-0.05)
 
 
+def test_accuracy_and_completeness_are_paired_lower_is_better(tmp_path: Path) -> None:
+    """The two halves of Chamfer-L1 (per_object.csv ``accuracy``, ``completeness``) get rows of their own, lower
+    better: accuracy d = (+0.01, -0.02, +0.03): 1 win; completeness d = (0, -0.01, -0.01): 2 wins, 3 no worse."""
+    pd = _load()
+    base = _write_columns(tmp_path / "base", {"method": "b"},
+                          {"accuracy": ["0.02", "0.05", "0.03"], "completeness": ["0.01", "0.02", "0.03"]})
+    meth = _write_columns(tmp_path / "meth", {"method": "m"},
+                          {"accuracy": ["0.03", "0.03", "0.06"], "completeness": ["0.01", "0.01", "0.02"]})
+    rows = {s.metric: s for s in pd.paired(base, meth)}
+    assert set(rows) == {"accuracy", "completeness"}
+    a, c = rows["accuracy"], rows["completeness"]
+    assert (a.wins, a.no_worse) == (1, 1) and a.mean_diff == pytest.approx(0.02 / 3)
+    assert (c.wins, c.no_worse) == (2, 3) and c.mean_diff == pytest.approx(-0.02 / 3)
+
+
 def _eval_with_views(folder: Path, data: Path, inputs: list[int] | None, per_view: dict[str, list[float]]) -> Path:
     """An eval folder of 12-view objects (``objects/<id>.json`` per-view PSNR in target order, per_object.csv with
     the per-object means and a Chamfer-L1), scored on every view but ``inputs`` (None: the default, view 0)."""
