@@ -6,7 +6,8 @@ Each case here was once a traceback (``depth-eval`` on a folder without datasets
 without datasets or with flags that cannot work), or a flag silently dropped (``eval --symmetry-plane`` with
 ``--no-symmetry``, ``reconstruct --fill`` with ``--framing keep``, ``--background-model`` with
 ``--background-removal off``, ``--facing-min-confidence`` without ``--facing auto``, ``--guided-align-samples``
-without ``--guided``, ``app --background-model`` naming a file that is not there)."""
+without ``--guided``, ``app --background-model`` naming a file that is not there, ``demo --cars-checkpoint`` with
+``--categories chairs``, a mesh flag with ``eval --no-mesh`` or ``reconstruct --mesh-resolution 0``)."""
 
 from __future__ import annotations
 
@@ -90,6 +91,19 @@ def test_eval_refuses_a_symmetry_plane_with_no_symmetry(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("flags, line", [
+    (["--mesh-resolution", "64"], "--mesh-resolution sets the mesh, which --no-mesh skips: pass one or the other"),
+    (["--fscore-tau", "0.02", "--mesh-points", "1000"],
+     "--fscore-tau --mesh-points set the mesh, which --no-mesh skips: pass one or the other"),
+])
+def test_eval_refuses_mesh_flags_with_no_mesh(tmp_path, capsys, flags, line):
+    """Each was accepted and ignored (no mesh is made, so nothing used it); checked before the checkpoint loads."""
+    assert main(["eval", "--checkpoint", str(tmp_path / "none.safetensors"), "--out", str(tmp_path / "out"),
+                 "--no-mesh", *flags]) == 2
+    assert _one_error(capsys) == f"error: {line}"
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("command", ["eval", "reconstruct"])
 def test_guided_align_samples_needs_guided(tmp_path, capsys, command):
     """It set the alignment render of a guided sampler that does not run (nothing said so)."""
@@ -107,6 +121,10 @@ def test_guided_align_samples_needs_guided(tmp_path, capsys, command):
      "--background-model applies only when the background is removed (drop --background-removal off)"),
     (["--facing-min-confidence", "0.5"], "--facing-min-confidence applies only with --facing auto"),
     (["--facing", "90", "--facing-min-confidence", "0.5"], "--facing-min-confidence applies only with --facing auto"),
+    (["--mesh-resolution", "0", "--mesh-keep", "largest"],
+     "--mesh-keep applies only to the mesh, which --mesh-resolution 0 skips: pass one or the other"),
+    (["--mesh-resolution", "0", "--mesh-threshold", "auto", "--mesh-fill", "0"],
+     "--mesh-threshold --mesh-fill apply only to the mesh, which --mesh-resolution 0 skips: pass one or the other"),
 ])
 def test_reconstruct_refuses_flags_another_flag_turns_off(tmp_path, capsys, flags, line):
     """Each was accepted and had no effect; refused before the output folder is made or the checkpoint loads."""
@@ -130,3 +148,13 @@ def test_app_refuses_a_background_model_that_is_not_there_before_serving(tmp_pat
     assert _one_error(capsys) == f"error: {missing}: background model file not found"
     assert main(["app", "--background-model", "no-such-model", "--port", "7999"]) == 2
     assert _one_error(capsys).startswith("error: --background-model no-such-model: not a model file and not one of ")
+
+
+def test_demo_refuses_a_checkpoint_for_a_category_it_leaves_out(tmp_path, capsys):
+    """``--cars-checkpoint`` was ignored when ``--categories`` named chairs only."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--categories", "chairs", "--cars-checkpoint", str(tmp_path / "m.safetensors"),
+                 "--out", str(out), "--no-progress"]) == 2
+    assert _one_error(capsys) == ("error: --cars-checkpoint is given but --categories chairs leaves cars out: add "
+                                  "cars to --categories or drop --cars-checkpoint")
+    assert not out.exists()

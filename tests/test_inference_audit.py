@@ -99,7 +99,7 @@ def test_reconstruct_refuses_a_bad_photo_or_mask_before_loading_the_model(tmp_pa
     (["--ssim", "gaussian11", "--resolution", "10"], "--resolution must be >= 11 (SSIM gaussian11), got 10"),
     (["--mesh-resolution", "1"], "--mesh-resolution must be >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got 1"),
     (["--mesh-resolution", "5000"], "--mesh-resolution must be >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got 5000"),
-    (["--no-mesh", "--mesh-resolution", "1"], "--mesh-resolution must be >= 2 and at most 1024 (up to 1024^3 density samples, 4.3 GB), got 1"),
+    (["--no-mesh", "--mesh-resolution", "1"], "--mesh-resolution sets the mesh, which --no-mesh skips: pass one or the other"),
 ])
 def test_eval_checks_its_protocol_flags_before_loading(tmp_path, capsys, flags, line):
     """Before: the checkpoint, the data and the prior cache were loaded first (a missing cache asked for a

@@ -143,6 +143,7 @@ def test_depth_for_a_checkpoint_caches_what_it_reads(tmp_path):
     assert [p.name for p in (root / "depth_priors").iterdir()] == [f"bundled-{file_hash(a)[:12]}-16"]
     InferenceSession(ckpt, options)
     assert quiet("depth", "--data", root, "--for", ckpt, "--depth-checkpoint", a, "--no-progress") == 2
+    assert quiet("depth", "--data", root, "--for", ckpt, "--resolution", "0", "--no-progress") == 2  # not its 16
 
 
 def test_cli_prints_the_override_warning_as_one_line(tmp_path):

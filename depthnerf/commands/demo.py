@@ -47,12 +47,25 @@ def process_seconds() -> float | None:
         return None
 
 
+def check_checkpoint_flags(args: argparse.Namespace, categories: tuple[str, ...]) -> None:
+    """One line when ``--<category>-checkpoint`` names another checkpoint than its default for a category that
+    ``--categories`` leaves out (it would be ignored)."""
+    from depthnerf.demo import CATEGORIES, DEFAULT_CHECKPOINTS
+    from depthnerf.errors import DepthnerfError
+
+    for cat in CATEGORIES:
+        if cat not in categories and getattr(args, f"{cat}_checkpoint") != DEFAULT_CHECKPOINTS[cat]:
+            raise DepthnerfError(f"--{cat}-checkpoint is given but --categories {' '.join(categories)} leaves "
+                                 f"{cat} out: add {cat} to --categories or drop --{cat}-checkpoint")
+
+
 def run(args: argparse.Namespace) -> int:
     from depthnerf.demo import DemoConfig, run_demo
     from depthnerf.distributed import pick_device
 
     t0 = time.perf_counter()
     cats = tuple(dict.fromkeys(args.categories))
+    check_checkpoint_flags(args, cats)
     cfg = DemoConfig(out=args.out, seed=args.seed, categories=cats,
                      checkpoints={c: getattr(args, f"{c}_checkpoint") for c in cats},
                      views_stride=args.views_stride, turntable_views=args.turntable_views, mesh=not args.no_mesh,

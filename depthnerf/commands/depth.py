@@ -59,7 +59,8 @@ def _prior_of_checkpoint(args: argparse.Namespace) -> None:
         raise DepthnerfError("--for takes the weights from the checkpoint; drop --depth-checkpoint")
     spec = load_pretrained(args.for_checkpoint).spec
     args.depth, args.depth_checkpoint = spec.prior.estimator, spec.prior.checkpoint
-    args.resolution = args.resolution or spec.resolution
+    if args.resolution is None:  # a given one (0 too) is kept, and checked with the other counts
+        args.resolution = spec.resolution
 
 
 def run(args: argparse.Namespace) -> int:

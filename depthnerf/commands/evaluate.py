@@ -59,14 +59,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int,
                    help="rays per render pass (bounds memory; default 4096 on CPU, 65536 on CUDA)")
     p.add_argument("--no-mesh", action="store_true", help="skip mesh extraction and Chamfer/F-score")
-    p.add_argument("--mesh-resolution", type=int, default=128, help="marching-cubes grid samples (default 128)")
-    p.add_argument("--mesh-threshold", default="auto",
+    p.add_argument("--mesh-resolution", type=int, default=None, help="marching-cubes grid samples (default 128)")
+    p.add_argument("--mesh-threshold", default=None,
                    help="marching-cubes density level: a number, auto (default: half the median peak density "
                         "along the opaque input rays), silhouette (the level whose input-view outline best matches "
                         "the input's mask: keeps thin parts, a thicker surface) or local (half the peak along each "
                         "input ray, between the two)")
-    p.add_argument("--fscore-tau", type=float, default=0.01, help="F-score threshold in GT diagonals (0.01)")
-    p.add_argument("--mesh-points", type=int, default=100_000, help="surface samples per mesh (default 100000)")
+    p.add_argument("--fscore-tau", type=float, default=None, help="F-score threshold in GT diagonals (0.01)")
+    p.add_argument("--mesh-points", type=int, default=None, help="surface samples per mesh (default 100000)")
     p.add_argument("--save-renders", action="store_true", help="write renders, meshes and renders.csv")
     p.add_argument("--ssim", choices=("uniform7", "gaussian11", "gaussian11-zeropad"), default="uniform7",
                    help="SSIM: uniform7 (default, pixelNeRF: 7x7 uniform window), gaussian11 (11x11 "
@@ -158,12 +158,27 @@ def guided_request(budget: int | None, align_samples: int | None):
     return guided_config(budget, GuidedConfig.align_samples if align_samples is None else align_samples)
 
 
+MESH_FLAG_DEFAULTS: dict[str, object] = {"mesh_resolution": 128, "mesh_threshold": "auto", "fscore_tau": 0.01,
+                                         "mesh_points": 100_000}
+"""The geometry flags of ``eval`` (argparse ``dest``) and their defaults, filled in by :func:`check_flags` (the
+parser leaves them None, so that one given with ``--no-mesh`` is refused instead of ignored)."""
+
+
 def check_flags(args: argparse.Namespace) -> None:
     """One line naming the flag when ``--pixel-center``, ``--mesh-points``, ``--fscore-tau``,
-    ``--symmetry-plane`` (or it with ``--no-symmetry``) or ``--lpips-trunk`` (a file that is not there) cannot work
-    (checked before anything loads)."""
+    ``--symmetry-plane`` (or it with ``--no-symmetry``) or ``--lpips-trunk`` (a file that is not there) cannot work,
+    or a geometry flag comes with ``--no-mesh`` (checked before anything loads); then fills in the geometry flags
+    not given (:data:`MESH_FLAG_DEFAULTS`)."""
     from depthnerf.data.symmetry import normalized_plane
 
+    given = [dest for dest in MESH_FLAG_DEFAULTS if getattr(args, dest) is not None]
+    if args.no_mesh and given:  # else the flag was silently ignored
+        flags = " ".join("--" + dest.replace("_", "-") for dest in given)
+        raise DepthnerfError(f"{flags} {'sets' if len(given) == 1 else 'set'} the mesh, which --no-mesh skips: "
+                             "pass one or the other")
+    for dest, default in MESH_FLAG_DEFAULTS.items():
+        if getattr(args, dest) is None:
+            setattr(args, dest, default)
     if args.pixel_center is not None and not 0 <= args.pixel_center < 1:  # NaN fails too
         raise DepthnerfError(f"--pixel-center must be in [0, 1) (a principal-point shift of a fraction of a pixel: "
                              f"0.0 = pixelNeRF's reading, 0.5 = Blender's), got {args.pixel_center}")

@@ -70,21 +70,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--render-resolution", type=int, help="side of the rendered views (default: training res)")
     p.add_argument("--mesh-resolution", type=int, default=128,
                    help="marching-cubes grid samples (default 128; 0 = no mesh)")
-    p.add_argument("--mesh-threshold", default="local",
+    p.add_argument("--mesh-threshold", default=argparse.SUPPRESS,
                    help="marching-cubes density level: a number, local (default: half the peak density along each "
                         "input ray, between the auto and silhouette levels on the mask's rays, auto elsewhere: "
                         "keeps thin parts), auto (half the median peak density along the opaque input rays: one "
                         "tight surface) or silhouette (the level whose input-view outline best matches the input's "
                         "mask: a thicker surface)")
-    p.add_argument("--mesh-keep", choices=["all", "largest"], default="all",
+    p.add_argument("--mesh-keep", choices=["all", "largest"], default=argparse.SUPPRESS,
                    help="all pieces of the mesh (default), or only the largest connected piece; manifest.json "
                         "records the pieces and faces either way")
-    p.add_argument("--mesh-colors", choices=MESH_COLOR_RULES, default=PHOTO,
+    p.add_argument("--mesh-colors", choices=MESH_COLOR_RULES, default=argparse.SUPPRESS,
                    help="vertex colours: photo (default: the photo's colour where it sees the vertex or, for a "
                         "mirror model, its mirror image; elsewhere normal-ray's), normal-ray (the colour the "
                         "renderer gives a short ray into the surface along its normal) or point (the network's "
                         "colour at the vertex, seen from the input camera; speckled)")
-    p.add_argument("--mesh-fill", type=float, default=PHOTO_FILL,
+    p.add_argument("--mesh-fill", type=float, default=argparse.SUPPRESS,
                    help="photo colours: how far the photo's colours spread over the surface into what it does not "
                         "see, in world units per unit of the network's RMS colour error where it sees (default "
                         f"{PHOTO_FILL:g}; 0: the network's colours there)")
@@ -128,7 +128,13 @@ def _facing(text: str) -> float | str | None:
 def check_flags(args: argparse.Namespace) -> None:
     """One line for a flag that another flag turns off (it would be accepted and do nothing): ``--fill`` with
     ``--framing keep``, ``--background-model`` with ``--background-removal off``, ``--facing-min-confidence``
-    without ``--facing auto``."""
+    without ``--facing auto``, a mesh flag with ``--mesh-resolution 0`` (no mesh; the mesh flags' defaults are
+    argparse-suppressed so that a given one shows)."""
+    given = [flag for flag in ("--mesh-threshold", "--mesh-keep", "--mesh-colors", "--mesh-fill")
+             if hasattr(args, flag[2:].replace("-", "_"))]
+    if args.mesh_resolution == 0 and given:
+        raise DepthnerfError(f"{' '.join(given)} {'applies' if len(given) == 1 else 'apply'} only to the mesh, which "
+                             "--mesh-resolution 0 skips: pass one or the other")
     if args.fill is not None and args.framing == "keep":
         raise DepthnerfError("--fill applies only with --framing auto (keep only pads the photo to a square)")
     if args.background_model is not None and args.background_removal == "off":
@@ -145,14 +151,16 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.reconstruct.photo import check_image_file
     from depthnerf.reconstruct.reconstructor import DEFAULT_FACING, ReconstructConfig, Reconstructor
-    from depthnerf.render.mesh_level import parse_level
+    from depthnerf.render.mesh_level import LOCAL_LEVEL, parse_level
     from depthnerf.train.memory import one_line_out_of_memory
 
     # every flag and the output folder are checked before the model is loaded or anything rendered
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
-                            mesh_resolution=args.mesh_resolution, mesh_threshold=parse_level(args.mesh_threshold),
-                            mesh_keep=args.mesh_keep, mesh_colors=args.mesh_colors, mesh_fill=args.mesh_fill,
+                            mesh_resolution=args.mesh_resolution,
+                            mesh_threshold=parse_level(getattr(args, "mesh_threshold", LOCAL_LEVEL)),
+                            mesh_keep=getattr(args, "mesh_keep", "all"), mesh_colors=getattr(args, "mesh_colors", PHOTO),
+                            mesh_fill=getattr(args, "mesh_fill", PHOTO_FILL),
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model,
                             facing=getattr(args, "facing", DEFAULT_FACING),
