@@ -203,7 +203,7 @@ def eval_args(weights: Path, data: Path, out: Path) -> list:
 
 
 @pytest.mark.parametrize(("bad", "said"), [
-    ({"--mesh-points": "0"}, "error: --mesh-points must be >= 1, got 0"),  # a flag beyond the parser's
+    ({"--pixel-center": "2"}, "error: --pixel-center must be in [0, 1)"),  # a flag beyond the parser's
     ({"--checkpoint": "MISSING/none.safetensors"}, "error: MISSING/none.safetensors"),  # agreed by the ranks
     ({"--out": "FILE"}, "error: FILE: --out is a file, not a folder"),
     ({"--data": "MISSING"}, "error: MISSING"),  # the data's, checked in the protocol

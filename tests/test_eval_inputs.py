@@ -40,8 +40,10 @@ def case(tmp_path_factory) -> dict[str, Path]:
 
 
 def _eval(case: dict, out: Path, *flags: str, checkpoint: str = "plain") -> int:
+    """``depthnerf eval`` of the case's data, with a small mesh unless ``--no-mesh`` is among ``flags``."""
+    mesh = [] if "--no-mesh" in flags else ["--mesh-resolution", "8", "--mesh-points", "200"]
     return main(["eval", "--checkpoint", str(case[checkpoint]), "--data", str(case["root"]), "--out", str(out),
-                 "--mesh-resolution", "8", "--mesh-points", "200", "--no-progress", *[str(f) for f in flags]])
+                 *mesh, "--no-progress", *[str(f) for f in flags]])
 
 
 def _one_error_line(capsys) -> str:
