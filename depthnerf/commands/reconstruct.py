@@ -28,7 +28,7 @@ from depthnerf.infer.facing import AUTO, MIN_CONFIDENCE
 from depthnerf.reconstruct.background import DEFAULT_MODEL, MODES, NAMED_MODELS
 from depthnerf.render.config import DEFAULT_BUDGET
 from depthnerf.render.mesh_colors import MESH_COLOR_RULES
-from depthnerf.render.photo_colors import PHOTO, PHOTO_FILL
+from depthnerf.render.photo_colors import PHOTO_FILL
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -125,13 +125,22 @@ def _facing(text: str) -> float | str | None:
     return value
 
 
+MESH_FLAGS = ("mesh_threshold", "mesh_keep", "mesh_colors", "mesh_fill")
+"""The mesh flags (argparse ``dest``) beside ``--mesh-resolution``: their defaults are argparse-suppressed, so a
+flag is in the namespace only when given (:func:`given_mesh_flags`); else the default of
+:class:`~depthnerf.reconstruct.reconstructor.ReconstructConfig` holds."""
+
+
+def given_mesh_flags(args: argparse.Namespace) -> dict[str, object]:
+    """The :data:`MESH_FLAGS` given on the command line, by ``dest``, as they were given."""
+    return {dest: getattr(args, dest) for dest in MESH_FLAGS if hasattr(args, dest)}
+
+
 def check_flags(args: argparse.Namespace) -> None:
     """One line for a flag that another flag turns off (it would be accepted and do nothing): ``--fill`` with
     ``--framing keep``, ``--background-model`` with ``--background-removal off``, ``--facing-min-confidence``
-    without ``--facing auto``, a mesh flag with ``--mesh-resolution 0`` (no mesh; the mesh flags' defaults are
-    argparse-suppressed so that a given one shows)."""
-    given = [flag for flag in ("--mesh-threshold", "--mesh-keep", "--mesh-colors", "--mesh-fill")
-             if hasattr(args, flag[2:].replace("-", "_"))]
+    without ``--facing auto``, a mesh flag with ``--mesh-resolution 0`` (no mesh)."""
+    given = ["--" + dest.replace("_", "-") for dest in given_mesh_flags(args)]
     if args.mesh_resolution == 0 and given:
         raise DepthnerfError(f"{' '.join(given)} {'applies' if len(given) == 1 else 'apply'} only to the mesh, which "
                              "--mesh-resolution 0 skips: pass one or the other")
@@ -151,16 +160,16 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.reconstruct.exports import check_output_dir
     from depthnerf.reconstruct.photo import check_image_file
     from depthnerf.reconstruct.reconstructor import DEFAULT_FACING, ReconstructConfig, Reconstructor
-    from depthnerf.render.mesh_level import LOCAL_LEVEL, parse_level
+    from depthnerf.render.mesh_level import parse_level
     from depthnerf.train.memory import one_line_out_of_memory
 
     # every flag and the output folder are checked before the model is loaded or anything rendered
+    mesh = given_mesh_flags(args)  # the others keep ReconstructConfig's defaults
+    if "mesh_threshold" in mesh:
+        mesh["mesh_threshold"] = parse_level(mesh["mesh_threshold"])
     cfg = ReconstructConfig(views=args.views, elevation=args.elevation, radius=args.radius, focal=args.focal,
                             framing=args.framing, fill=args.fill, render_resolution=args.render_resolution,
-                            mesh_resolution=args.mesh_resolution,
-                            mesh_threshold=parse_level(getattr(args, "mesh_threshold", LOCAL_LEVEL)),
-                            mesh_keep=getattr(args, "mesh_keep", "all"), mesh_colors=getattr(args, "mesh_colors", PHOTO),
-                            mesh_fill=getattr(args, "mesh_fill", PHOTO_FILL),
+                            mesh_resolution=args.mesh_resolution, **mesh,
                             progress=not args.no_progress, background_removal=args.background_removal,
                             background_model=args.background_model,
                             facing=getattr(args, "facing", DEFAULT_FACING),
