@@ -62,18 +62,22 @@ def test_file_problem_names_a_folder_or_a_file_in_the_way(tmp_path):
         f"{tmp_path / 'f' / 'out.json'}: --json lies under {tmp_path / 'f'}, which is a file, not a folder")
 
 
-@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write anywhere")
-def test_file_problem_names_an_unwritable_folder(tmp_path):
-    locked = tmp_path / "locked"
-    locked.mkdir(mode=0o500)
+@pytest.fixture
+def locked(tmp_path):
+    """A folder this process may read but not write in (skipped as root, who may write anywhere)."""
+    if not hasattr(os, "geteuid") or os.geteuid() == 0:
+        pytest.skip("root may write anywhere")
+    folder = tmp_path / "locked"
+    folder.mkdir(mode=0o500)
+    return folder
+
+
+def test_file_problem_names_an_unwritable_folder(locked):
     assert file_problem(locked / "a" / "out.json", "--out") == (
         f"{locked / 'a' / 'out.json'}: --out cannot be written ({locked}: permission denied)")
 
 
-@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write anywhere")
-def test_make_folder_gives_the_systems_reason(tmp_path):
-    locked = tmp_path / "locked"
-    locked.mkdir(mode=0o500)
+def test_make_folder_gives_the_systems_reason(locked):
     with pytest.raises(DepthnerfError, match=r"cannot create --out \(Permission denied\)"):
         make_folder(locked / "run", "--out")
 
