@@ -7,8 +7,7 @@ takes on trust: every face index names a vertex, every vertex is finite, and the
 which never use the mesh, only the header), so a bad mesh is a bad optional part (one warning naming the file, before
 any object is rendered; the object is scored without it); evaluation reads the ground truth again with
 :func:`read_mesh` when it scores the object (kept between the two, every mesh of a split would be in memory at
-once). Every problem raises
-:class:`~depthnerf.errors.DepthnerfError` with one line naming the file.
+once). Every problem raises :class:`~depthnerf.errors.DepthnerfError` with one line naming the file.
 """
 
 from __future__ import annotations

@@ -345,8 +345,8 @@ def read_mask(path: Path) -> np.ndarray:
 
     Any other format (a JPEG named ``.png``) is an error. A pixel is object when its colour is non-zero (any
     channel; palette images by their palette colour); where the image has alpha, a fully transparent pixel is
-    background. (Pillow reads 16-bit *colour* PNGs at 8-bit
-    precision, so there a value below 256 reads as 0; 16-bit grey keeps full precision.)
+    background. (Pillow reads 16-bit *colour* PNGs at 8-bit precision, so there a value below 256 reads as 0;
+    16-bit grey keeps full precision.)
     """
     path = Path(path)
     try:

@@ -234,9 +234,9 @@ def last_step(ckpt_root: Path) -> int:
 
 
 def restore_best(ckpt_root: Path, state: TrainingState) -> str | None:
-    """On resume: remove the temporary folders a killed writer or pruning left, and when ``best/`` does not hold the state's
-    ``best_step`` (a kill between that checkpoint and its copy, or during the copy) copy it there now; returns a
-    one-line note when it did."""
+    """On resume: remove the temporary folders a killed writer or pruning left, and when ``best/`` does not hold the
+    state's ``best_step`` (a kill between that checkpoint and its copy, or during the copy) copy it there now;
+    returns a one-line note when it did."""
     ckpt_root = Path(ckpt_root)
     for stray in [*ckpt_root.glob(".step_*.tmp"), *ckpt_root.glob(".step_*.old"), *ckpt_root.glob(".best.*.tmp")]:
         shutil.rmtree(stray, ignore_errors=True)

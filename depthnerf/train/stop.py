@@ -1,14 +1,14 @@
 """Stopping a training run cleanly on SIGTERM (what a cluster sends before it preempts a job) or SIGINT (Ctrl+C).
 
 While the loop runs, :class:`StopRequest` replaces the process's SIGTERM and SIGINT handlers by one that only
-records the signal; the loop asks :meth:`StopRequest.requested` after every step, and when a signal came it writes
-a checkpoint at that step (the usual atomic write) and returns, so ``--resume`` continues exactly from it. A
-signal that arrives during validation abandons the validation (single process; with several ranks the other
-ranks wait for rank 0 in the next step's gradient reduction, so rank 0 finishes it) and the checkpoint of the
-step is written all the same, with that validation due: the resume runs it first (:mod:`depthnerf.train.loop`). A second Ctrl+C while the checkpoint is being written raises ``KeyboardInterrupt``
-(the write is atomic: the run keeps its previous checkpoint). With several ranks (torchrun), every rank reports
-whether it saw a signal after each step (one MAX all-reduce of one number, over gloo), so all ranks stop at the
-same step and none is left waiting in a collective.
+records the signal; the loop asks :meth:`StopRequest.requested` after every step, and when a signal came it writes a
+checkpoint at that step (the usual atomic write) and returns, so ``--resume`` continues exactly from it. A signal
+that arrives during validation abandons the validation (single process; with several ranks the other ranks wait for
+rank 0 in the next step's gradient reduction, so rank 0 finishes it) and the checkpoint of the step is written all
+the same, with that validation due: the resume runs it first (:mod:`depthnerf.train.loop`). A second Ctrl+C while
+the checkpoint is being written raises ``KeyboardInterrupt`` (the write is atomic: the run keeps its previous
+checkpoint). With several ranks (torchrun), every rank reports whether it saw a signal after each step (one MAX
+all-reduce of one number, over gloo), so all ranks stop at the same step and none is left waiting in a collective.
 
 Exit status of ``depthnerf train`` after such a stop: ``128 + signal number`` (130 for SIGINT, 143 for SIGTERM).
 Handlers are installed only in the main thread (Python allows no other); the previous handlers come back when
