@@ -19,13 +19,14 @@ Surface
     :class:`~depthnerf.errors.DepthnerfError`.
 
 Surface level
-    ``MeshConfig.threshold`` is a fixed density or a per-object rule (``"auto"``, the default of eval, reconstruct
-    and demo; ``"silhouette"``; ``"local"``), resolved from the densities along the input camera's rays: see
-    :mod:`depthnerf.render.mesh_level`.
+    ``MeshConfig.threshold`` is a fixed density or a per-object rule (``"auto"``, the default of eval;
+    ``"silhouette"``; ``"local"``, the default of reconstruct and the demo), resolved from the densities along the
+    input camera's rays: see :mod:`depthnerf.render.mesh_level`.
 
 Colours
     :func:`input_camera_mesh` colours the vertices by ``MeshConfig.colors`` (:mod:`depthnerf.render.mesh_colors`):
-    by default the renderer's colour of a short ray that looks at each vertex from outside along its normal.
+    by default (``photo``) the input photo's colour where it sees the vertex or its mirror image, elsewhere the
+    renderer's colour of a short ray that looks at the vertex from outside along its normal (``normal-ray``).
 """
 
 from __future__ import annotations
