@@ -140,6 +140,32 @@ def test_importance_on_a_ray_without_mass_spreads_over_its_positive_width_bins()
     drawn = sample_pdf(edges[:1], weights[:1], 4000, random=True, generator=g, epsilon=0.0)
     assert drawn.min() >= 0 and drawn.max() <= 3 and abs(drawn.mean().item() - 1.5) < 0.05
 
+
+def test_importance_samples_match_a_loop_that_inverts_the_cdf_bin_by_bin():
+    """Given variates ``u``: walk the bins in order, accumulating mass ``(w_k + eps) / sum`` over positive-width
+    bins, and place ``u`` in the first bin whose cumulative mass exceeds it, linearly inside it."""
+    g = torch.Generator().manual_seed(2)
+    rays, n_bins, n, eps = 5, 9, 40, 0.05
+    edges = torch.sort(torch.rand(rays, n_bins + 1, generator=g, dtype=torch.float64), dim=-1).values
+    edges[:, 3] = edges[:, 4]  # one zero-width bin per ray
+    weights = torch.rand(rays, n_bins, generator=g, dtype=torch.float64)
+    u = torch.rand(rays, n, generator=g, dtype=torch.float64)
+    t = sample_pdf(edges, weights, n, random=True, epsilon=eps, u=u)
+    for r in range(rays):
+        e = edges[r].tolist()
+        mass = [(weights[r, k].item() + eps) if e[k + 1] > e[k] else 0.0 for k in range(n_bins)]
+        total = sum(mass)
+        for j in range(n):
+            below = 0.0
+            for k in range(n_bins):
+                p = mass[k] / total
+                if p > 0 and u[r, j].item() < below + p:
+                    expect = e[k] + (u[r, j].item() - below) / p * (e[k + 1] - e[k])
+                    break
+                below += p
+            assert abs(t[r, j].item() - expect) < 1e-12
+
+
 def test_stratified_eval_offset_places_samples_at_that_fraction_of_each_bin():
     near, far = torch.tensor([[0.8, 1.0]]), torch.tensor([[1.8, 3.0]])
     t = stratified_samples(near, far, 8, random=False, eval_offset=0.25)
