@@ -14,7 +14,7 @@ from depthnerf.data.synth.chairs import CHAIR_ARCHETYPES, CHAIR_DIAGONAL, build_
 from depthnerf.data.synth.framing import SRN_INTRINSICS
 from depthnerf.data.synth.generate import category_spec
 from depthnerf.data.synth.primitives import box, cylinder, loft, superellipsoid
-from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, render_view
+from depthnerf.data.synth.raycast import PixelRays, Raycaster, SynthRenderConfig, _edge_pixels, render_view
 from depthnerf.data.synth.views import ViewConfig, eyes_from_angles, poses_from_eyes, spiral_eyes
 
 
@@ -142,3 +142,17 @@ def test_background_is_white_and_antialiasing_only_touches_rgb() -> None:
         near |= np.roll(np.roll(aa.mask, di, 0), dj, 1)
     assert (aa.rgb[~near] == 1.0).all()  # ... and the background away from the object stays pure white
     assert changed.mean() < 0.25  # adaptive: only a minority of pixels
+
+
+def test_edge_pixels_are_those_differing_from_an_8_neighbour() -> None:
+    """Against a loop over every pixel's 8 neighbours (inside the image): a pixel is an edge pixel when some
+    neighbour has another key or a brightness more than the threshold away."""
+    rng = np.random.default_rng(0)
+    for h, w in ((1, 1), (1, 6), (5, 1), (4, 7), (7, 7)):
+        key, luma, threshold = rng.integers(0, 3, (h, w)), rng.random((h, w)), 0.4
+        expect = np.zeros((h, w), dtype=bool)
+        for i, j, di, dj in itertools.product(range(h), range(w), (-1, 0, 1), (-1, 0, 1)):
+            a, b = i + di, j + dj
+            if (di or dj) and 0 <= a < h and 0 <= b < w:
+                expect[i, j] |= key[a, b] != key[i, j] or abs(luma[a, b] - luma[i, j]) > threshold
+        np.testing.assert_array_equal(_edge_pixels(key, luma, threshold), expect)
