@@ -67,6 +67,33 @@ def test_silhouette_choice_on_a_tie_and_when_every_ray_is_kept():
     assert (level, iou) == (1.0, 1.0) and (peak > level).all()
 
 
+def test_silhouette_level_stays_positive_when_rays_in_the_target_have_zero_peaks():
+    """No positive level keeps a ray whose peak is 0, so keeping every ray is not a choice: with every ray a target,
+    peaks 4, 2, 0, 0 give the two positive rays kept (IoU 2/4) at level 1, half the lowest kept peak."""
+    peak, target = np.array([0.0, 4.0, 0.0, 2.0]), np.ones(4, dtype=bool)
+    level, iou = silhouette_choice(peak, target)
+    assert (level, iou) == (1.0, 0.5)
+    assert brute_force_iou(peak, target, level) == pytest.approx(iou, abs=1e-12)
+
+
+def test_local_level_of_a_ball_under_a_full_image_mask_is_a_mesh_of_the_ball():
+    """A mask over the whole image, most of whose rays miss the ball (density 0 there): the silhouette level (the
+    local rule's floor) stays positive, and the local mesh lies on the ball's falloff shell."""
+    c2w, intr = _camera(), Intrinsics(focal=20.0, cx=7.5, cy=7.5, height=16, width=16)
+    mask = np.ones((16, 16), dtype=bool)
+
+    def density(p: torch.Tensor) -> torch.Tensor:  # 50 inside radius 0.25, falling linearly to 0 at 0.3
+        return (50.0 * (0.3 - p.norm(dim=-1)) / 0.05).clamp(0.0, 50.0)
+
+    level = silhouette_level(density, c2w, intr, NEAR, FAR, mask)
+    assert level.level > 0 and level.iou < 1
+    mesh, local = source_mesh(density, c2w, intr, NEAR, FAR, MeshConfig(resolution=48, threshold="local"),
+                              mask=mask)
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    assert local.rule == "local" and local.floor > 0
+    assert len(radii) and 0.25 - 0.02 < radii.min() and radii.max() < 0.3 + 0.02
+
+
 def test_silhouette_level_of_a_constant_ball_is_half_its_density():
     def density(p: torch.Tensor) -> torch.Tensor:
         return torch.where(p.norm(dim=-1) < 0.5, torch.tensor(7.0), torch.tensor(0.0))

@@ -26,11 +26,12 @@ silhouette of the object seen from the input camera.
     wide at 64 px. Over the rays sorted by peak
     (descending), keeping the first ``k`` gives ``IoU_k = TP_k / (|M| + k - TP_k)`` with ``TP_k`` the opaque rays
     among them, so the search is one sort and one cumulative sum (over the ``k`` that end a run of equal peaks: a
-    level keeps all of a tie or none of it). The level is the midpoint between the ``k*``-th
-    and the next peak (half the last peak when every ray is kept), ``k*`` the smallest maximiser (the highest
-    level on a tie). A thin part that renders opaque is kept when keeping it gains more opaque rays than it adds
-    background ones; a faint haze outside the silhouette is left out. A soft model, whose thin parts render
-    half-transparent, still gets them from the mask.
+    level keeps all of a tie or none of it; and only ``k`` whose ``k``-th peak is positive, as no positive level
+    keeps a ray of peak 0). The level is the midpoint between the ``k*``-th and the next peak (half the ``k*``-th
+    when every ray is kept or the next peak is 0), ``k*`` the smallest maximiser (the highest level on a tie).
+    A thin part that renders opaque is kept when keeping it gains more opaque rays than it adds background ones; a
+    faint haze outside the silhouette is left out. A soft model, whose thin parts render half-transparent, still
+    gets them from the mask.
 
 ``local`` (:data:`LOCAL_LEVEL`, :func:`local_surface`)
     **the half-maximum along each input ray, between the silhouette level and the auto level**: the level at a
@@ -223,9 +224,11 @@ def silhouette_choice(peak: Float[np.ndarray, " R"], opaque: np.ndarray) -> tupl
     kept = np.arange(1, len(peak) + 1)
     iou = tp / (int(opaque.sum()) + kept - tp)
     ends = np.append(sorted_peak[:-1] > sorted_peak[1:], True)  # a level keeps all of a tie or none of it
+    positive = sorted_peak > 0  # no positive level keeps a ray whose peak is not
+    ends = ends & positive if (ends & positive).any() else ends
     iou = np.where(ends, iou, -1.0)
     k = int(np.argmax(iou))  # first maximiser: the fewest rays kept, the highest level
-    below = sorted_peak[k + 1] if k + 1 < len(peak) else 0.0
+    below = max(float(sorted_peak[k + 1]), 0.0) if k + 1 < len(peak) else 0.0
     return 0.5 * float(sorted_peak[k] + below), float(iou[k])
 
 
