@@ -7,8 +7,8 @@ without datasets or with flags that cannot work), or a flag silently dropped (``
 ``--no-symmetry``, ``reconstruct --fill`` with ``--framing keep``, ``--background-model`` with
 ``--background-removal off``, ``--facing-min-confidence`` without ``--facing auto``, ``--guided-align-samples``
 without ``--guided``, ``app --background-model`` or a later ``app --checkpoint`` naming a file that is not there,
-``demo --cars-checkpoint`` with ``--categories chairs``, a mesh flag with ``eval --no-mesh`` or ``reconstruct
---mesh-resolution 0``)."""
+``demo --cars-checkpoint`` with ``--categories chairs``, a mesh flag with ``eval --no-mesh``, ``demo --no-mesh``
+or ``reconstruct --mesh-resolution 0``)."""
 
 from __future__ import annotations
 
@@ -173,4 +173,12 @@ def test_demo_refuses_a_checkpoint_for_a_category_it_leaves_out(tmp_path, capsys
                  "--out", str(out), "--no-progress"]) == 2
     assert _one_error(capsys) == ("error: --cars-checkpoint is given but --categories chairs leaves cars out: add "
                                   "cars to --categories or drop --cars-checkpoint")
+    assert not out.exists()
+
+
+def test_demo_refuses_a_mesh_resolution_with_no_mesh(tmp_path, capsys):
+    """``--mesh-resolution`` was accepted with ``--no-mesh`` and ignored, as ``eval`` refuses it."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--no-mesh", "--mesh-resolution", "64", "--out", str(out), "--no-progress"]) == 2
+    assert _one_error(capsys) == "error: --mesh-resolution sets the mesh, which --no-mesh skips: pass one or the other"
     assert not out.exists()
