@@ -140,6 +140,18 @@ def test_request_checks(session, tmp_path):
     assert out.message.startswith("error: ") and "nope.safetensors" in out.message and "\n" not in out.message
 
 
+def test_the_preview_refuses_the_foreground_ratios_the_run_refuses(session):
+    """The preview (also the page's HTTP API ``/preview``) showed a framing at a ratio the run then refused, and
+    took 0 for the training fill."""
+    example = examples()[0]
+    for ratio in (0.0, 0.01, 1.5):
+        run = session.run(RunRequest(example, "car", views=1, foreground_ratio=ratio)).message
+        image, preview = session.preview(RunRequest(example, "car", foreground_ratio=ratio))
+        assert image is None and preview == run == f"error: foreground ratio must be within 0.05..1, got {ratio}"
+    image, preview = session.preview(RunRequest(example, "car", foreground_ratio=0.05))
+    assert image is not None and preview.startswith("ready: ")
+
+
 def test_resolve_model_and_messages(tmp_path):
     assert resolve_model(RunRequest(None, "car")) == "cpu-cars-sym-pp"
     assert resolve_model(RunRequest(None, "chair")) == "cpu-chairs-sym-pp"

@@ -6,8 +6,9 @@ Each case here was once a traceback (``depth-eval`` on a folder without datasets
 without datasets or with flags that cannot work), or a flag silently dropped (``eval --symmetry-plane`` with
 ``--no-symmetry``, ``reconstruct --fill`` with ``--framing keep``, ``--background-model`` with
 ``--background-removal off``, ``--facing-min-confidence`` without ``--facing auto``, ``--guided-align-samples``
-without ``--guided``, ``app --background-model`` naming a file that is not there, ``demo --cars-checkpoint`` with
-``--categories chairs``, a mesh flag with ``eval --no-mesh`` or ``reconstruct --mesh-resolution 0``)."""
+without ``--guided``, ``app --background-model`` or a later ``app --checkpoint`` naming a file that is not there,
+``demo --cars-checkpoint`` with ``--categories chairs``, a mesh flag with ``eval --no-mesh``, ``demo --no-mesh``
+or ``reconstruct --mesh-resolution 0``)."""
 
 from __future__ import annotations
 
@@ -150,6 +151,21 @@ def test_app_refuses_a_background_model_that_is_not_there_before_serving(tmp_pat
     assert _one_error(capsys).startswith("error: --background-model no-such-model: not a model file and not one of ")
 
 
+def test_app_refuses_a_menu_checkpoint_that_is_not_there_before_serving(tmp_path, capsys, monkeypatch):
+    """Only the menu's first checkpoint was loaded at start: a later one that is not there was served, and failed
+    when chosen."""
+    pytest.importorskip("gradio")
+    import depthnerf.app.page as page
+
+    def never(*args, **kwargs):
+        raise AssertionError("the app started serving")
+
+    monkeypatch.setattr(page, "serve", never)
+    missing = tmp_path / "missing.safetensors"
+    assert main(["app", "--checkpoint", "cpu-cars-sym-pp", str(missing), "--port", "7999"]) == 2
+    assert _one_error(capsys).startswith(f"error: --checkpoint {missing}: not a checkpoint file")
+
+
 def test_demo_refuses_a_checkpoint_for_a_category_it_leaves_out(tmp_path, capsys):
     """``--cars-checkpoint`` was ignored when ``--categories`` named chairs only."""
     out = tmp_path / "demo"
@@ -157,4 +173,12 @@ def test_demo_refuses_a_checkpoint_for_a_category_it_leaves_out(tmp_path, capsys
                  "--out", str(out), "--no-progress"]) == 2
     assert _one_error(capsys) == ("error: --cars-checkpoint is given but --categories chairs leaves cars out: add "
                                   "cars to --categories or drop --cars-checkpoint")
+    assert not out.exists()
+
+
+def test_demo_refuses_a_mesh_resolution_with_no_mesh(tmp_path, capsys):
+    """``--mesh-resolution`` was accepted with ``--no-mesh`` and ignored, as ``eval`` refuses it."""
+    out = tmp_path / "demo"
+    assert main(["demo", "--no-mesh", "--mesh-resolution", "64", "--out", str(out), "--no-progress"]) == 2
+    assert _one_error(capsys) == "error: --mesh-resolution sets the mesh, which --no-mesh skips: pass one or the other"
     assert not out.exists()

@@ -50,6 +50,22 @@ def test_inspect_category_and_split_filters(srn_root_full: Path, tmp_path: Path,
     assert "dataset folder does not exist" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("where, said", [("folder", "--json is a folder; name the file to write"),
+                                         ("under a file", "--json lies under")])
+def test_inspect_refuses_a_json_path_it_cannot_write_before_indexing(tmp_path: Path, where: str, said: str, capsys):
+    """The summary is written last: a ``--json`` that cannot take it is one line before any split is read, and
+    nothing is left beside it."""
+    root = make_srn_fixture(tmp_path / "data", splits={"train": 1}, views=2, size=8)
+    (tmp_path / "a_file").write_text("")
+    target = {"folder": tmp_path / "out", "under a file": tmp_path / "a_file" / "s.json"}[where]
+    (tmp_path / "out").mkdir()
+    before = sorted(tmp_path.iterdir())
+    assert main(["inspect", "--data", str(root), "--json", str(target)]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith(f"error: {target}: {said}") and err.count("\n") == 1, (out, err)
+    assert sorted(tmp_path.iterdir()) == before and not any((tmp_path / "out").iterdir())
+
+
 def test_inspect_mixed_resolutions(tmp_path: Path, capsys):
     make_srn_fixture(tmp_path, splits={"train": 1}, size=16)
     (tmp_path / "cars_train").rename(tmp_path / "a")

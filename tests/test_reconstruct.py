@@ -283,6 +283,16 @@ def test_constant_field_reconstruction_matches_closed_forms(models):
     assert res.settings["depth_estimator"] == "bundled" and res.settings["fill"] == category_fill("cars", res.settings["training_framing"])
 
 
+@pytest.mark.parametrize("rule", ["photo", "normal-ray", "point"])
+def test_the_manifests_mesh_note_names_the_colour_rule(models, tmp_path, rule):
+    """The note said "vertex colours from the fine network" whatever the rule, the photo's colours included."""
+    rec = Reconstructor.from_pretrained(models["constant"])
+    res = rec.reconstruct(disc_photo(), config=ReconstructConfig(views=1, mesh_resolution=8, mesh_colors=rule))
+    manifest = rec.save(res, tmp_path / rule)
+    assert manifest["mesh"]["faces"] > 0
+    assert manifest["mesh"]["note"] == f"world frame, vertex colours by the {rule} rule (settings: mesh_colors)"
+
+
 def test_cli_writes_every_listed_output(models, tmp_path, capsys):
     photo, mask = tmp_path / "photo.png", tmp_path / "mask.png"
     Image.fromarray(disc_photo()).save(photo)

@@ -194,6 +194,13 @@ def examples() -> list[Path]:
     return sorted(EXAMPLES_DIR.glob("*.png"))
 
 
+def check_ratio(ratio: float | None) -> None:
+    """One line unless a request's foreground ratio is None (the training fill) or within 0.05..1: the rule of the
+    preview and the run alike."""
+    if ratio is not None and not 0.05 <= ratio <= 1.0:
+        raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {ratio}")
+
+
 def resolve_model(request: RunRequest) -> str:
     """Checkpoint of a request: the path field if filled in, else the menu entry (labels mapped)."""
     checkpoint = request.checkpoint_path.strip() or request.model
@@ -286,8 +293,9 @@ class AppSession:
         try:
             path = check_upload(request.image)
             self.check_paths(request)
+            check_ratio(request.foreground_ratio)
             rec = self.models.get(resolve_model(request))
-            fill = request.foreground_ratio or rec.default_fill
+            fill = rec.default_fill if request.foreground_ratio is None else request.foreground_ratio
             prep = prepare_photo(path, None, model_resolution(rec), "auto", fill,
                                  rec.background_remover(*self.background(request)))
         except Exception as err:  # noqa: BLE001 - every failure is one line on the page
@@ -343,8 +351,7 @@ class AppSession:
         max_views = self.config.max_views
         if not 1 <= int(request.views) <= max_views:
             raise DepthnerfError(f"orbit views must be within 1..{max_views}, got {request.views}")
-        if request.foreground_ratio is not None and not 0.05 <= request.foreground_ratio <= 1.0:
-            raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {request.foreground_ratio}")
+        check_ratio(request.foreground_ratio)
         if request.mesh_level not in LEVEL_RULES:
             raise DepthnerfError(f"mesh level must be one of {', '.join(LEVEL_RULES)}, got {request.mesh_level!r}")
         if request.mesh_colors not in MESH_COLOR_RULES:

@@ -39,6 +39,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(default u2net from rembg's model folder; needs pip install 'depthnerf[bg]')")
 
 
+def check_menu(checkpoints: tuple[str, ...]) -> None:
+    """One line naming ``--checkpoint`` when a menu entry names no checkpoint (a shipped name, weights file,
+    checkpoint or run folder; a Hub file is fetched when it is chosen): only the first one loads before the page
+    serves."""
+    from depthnerf.pretrained.hub import is_hub_reference
+    from depthnerf.pretrained.load import resolve_checkpoint
+
+    for checkpoint in checkpoints:
+        if not is_hub_reference(checkpoint):
+            try:
+                resolve_checkpoint(checkpoint)
+            except DepthnerfError as err:
+                raise DepthnerfError(f"--checkpoint {err}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("gradio") is None:
         raise DepthnerfError(INSTALL_HINT)
@@ -56,11 +71,13 @@ def run(args: argparse.Namespace) -> int:
 
         check_model(args.background_model)
     device = pick_device(args.device)  # a device that is not there: one line, not the first model's traceback
+    checkpoints = tuple(args.checkpoint or SHIPPED_MODELS.values())
+    check_menu(checkpoints)
     if args.work_dir is not None:  # a file or a folder that cannot be made: one line
         make_folder(args.work_dir, "--work-dir")
     check_port(args.host, args.port)  # before gradio is imported and the first model loaded
     config = AppConfig(host=args.host, port=args.port,
-                       checkpoints=tuple(args.checkpoint or SHIPPED_MODELS.values()), share=args.share,
+                       checkpoints=checkpoints, share=args.share,
                        views=args.views, max_views=args.max_views, mesh_resolution=args.mesh_resolution,
                        device=str(device), work_dir=args.work_dir, allow_checkpoint_paths=not args.share,
                        background_model=args.background_model)

@@ -31,7 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--categories", nargs="+", choices=CATEGORIES, default=list(CATEGORIES),
                    help="run only these categories (default: cars chairs)")
     p.add_argument("--turntable-views", type=int, default=16, help="turntable frames (default 16)")
-    p.add_argument("--mesh-resolution", type=int, default=96, help="marching-cubes grid samples (default 96)")
+    p.add_argument("--mesh-resolution", type=int, default=None, help="marching-cubes grid samples (default 96)")
     p.add_argument("--no-mesh", action="store_true", help="skip the mesh")
     p.add_argument("--device", default="auto", help="auto (CUDA if available), cpu, cuda or cuda:N")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -59,6 +59,14 @@ def check_checkpoint_flags(args: argparse.Namespace, categories: tuple[str, ...]
                                  f"{cat} out: add {cat} to --categories or drop --{cat}-checkpoint")
 
 
+def check_mesh_flags(args: argparse.Namespace) -> None:
+    """One line when ``--mesh-resolution`` comes with ``--no-mesh`` (it would be ignored)."""
+    from depthnerf.errors import DepthnerfError
+
+    if args.no_mesh and args.mesh_resolution is not None:
+        raise DepthnerfError("--mesh-resolution sets the mesh, which --no-mesh skips: pass one or the other")
+
+
 def run(args: argparse.Namespace) -> int:
     from depthnerf.demo import DemoConfig, run_demo
     from depthnerf.distributed import pick_device
@@ -66,10 +74,12 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     cats = tuple(dict.fromkeys(args.categories))
     check_checkpoint_flags(args, cats)
+    check_mesh_flags(args)
+    mesh_resolution = {} if args.mesh_resolution is None else {"mesh_resolution": args.mesh_resolution}
     cfg = DemoConfig(out=args.out, seed=args.seed, categories=cats,
                      checkpoints={c: getattr(args, f"{c}_checkpoint") for c in cats},
                      views_stride=args.views_stride, turntable_views=args.turntable_views, mesh=not args.no_mesh,
-                     mesh_resolution=args.mesh_resolution, progress=not args.no_progress)
+                     progress=not args.no_progress, **mesh_resolution)
     demo = run_demo(cfg, pick_device(args.device))
     rows = [("category", "checkpoint", "prior", "object", "views", "PSNR", "SSIM", "seconds")]
     for cat, r in demo["categories"].items():

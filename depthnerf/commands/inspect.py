@@ -12,7 +12,8 @@ distance) disagrees with a split's files gets a warning (``--strict``: an error)
 docs/data.md. A tqdm bar on
 stderr shows progress when stderr is a terminal.
 
-``--json PATH`` writes the same summary as JSON::
+``--json PATH`` writes the same summary as JSON (a PATH that cannot be written, a folder or one under a file, is
+refused before any split is read)::
 
     {"root": "<DIR>",
      "splits": [{"category", "split", "path", "objects", "views_min", "views_max", "views_total",
@@ -46,7 +47,7 @@ from depthnerf.data.symmetry import plane_from_card
 from depthnerf.data.synth.framing import dataset_framing
 from depthnerf.data.validate import SplitSummary, card_camera_disagreements, summarize_split
 from depthnerf.errors import DataWarning, DepthnerfError
-from depthnerf.files import write_text_atomic
+from depthnerf.files import file_problem, write_text_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -130,6 +131,8 @@ def _card_against_files(card: dict, where: str, summary: SplitSummary, strict: b
 
 def run(args: argparse.Namespace) -> int:
     root: Path = args.data
+    if args.json is not None and (problem := file_problem(args.json, "--json")) is not None:
+        raise DepthnerfError(problem)  # before the splits are read: the summary is written last
     categories = [args.category] if args.category else discover_categories(root)
     if not categories:
         raise DepthnerfError(f"{root}: no <category>_<split> folders (e.g. cars_train) found")

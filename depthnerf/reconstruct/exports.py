@@ -248,7 +248,8 @@ def write_outputs(result: Reconstruction, out: Path, provenance: dict[str, Any],
     empty = len(result.mesh.faces) == 0
     mesh_note = ("not made (mesh resolution 0)" if not made else
                  "the density never reached the marching-cubes level inside the input frustum" if empty else
-                 "world frame, vertex colours from the fine network")
+                 f"world frame, vertex colours by the {result.settings.get('mesh_color_rule')} rule (settings: "
+                 "mesh_colors)")
     manifest = {
         **provenance,
         "files": files,

@@ -23,10 +23,11 @@ Depth prior (depth-aware checkpoints)
 Outputs
     N views on the orbit through the input camera (rendered at ``render_resolution``, default the training one),
     their depth (ray distance, opacity-normalised) and opacity, a mesh (marching cubes over the input camera's
-    frustum box with the run's z-range, at the auto level of :mod:`depthnerf.render.mesh_level` unless set) with
-    vertex colours = the fine network's rgb at each vertex seen along the input camera's ray through it, and a
-    point cloud = the rendered depth of every orbit view unprojected where opacity > :data:`POINT_OPACITY` (at
-    most ``max_points`` points, an even subsample). :meth:`Reconstructor.save` writes them (:mod:`depthnerf.reconstruct.exports`).
+    frustum box with the run's z-range, at the ``local`` level of :mod:`depthnerf.render.mesh_level` unless set)
+    with vertex colours by ``mesh_colors``' rule (:mod:`depthnerf.render.mesh_colors`; by default the photo's own
+    where it sees the surface), and a point cloud = the rendered depth of every orbit view unprojected where
+    opacity > :data:`POINT_OPACITY` (at most ``max_points`` points, an even subsample). :meth:`Reconstructor.save`
+    writes them (:mod:`depthnerf.reconstruct.exports`).
 """
 
 from __future__ import annotations
