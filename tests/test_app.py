@@ -18,6 +18,7 @@ import sys
 import time
 import zlib
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -28,6 +29,7 @@ from depthnerf.app.logic import (
     DEPTH_PRIORS,
     AppConfig,
     AppSession,
+    ModelCache,
     RunRequest,
     background_installed,
     examples,
@@ -128,7 +130,8 @@ def test_request_checks(session, tmp_path):
     assert session.run(RunRequest(example, "car", foreground_ratio=1.5)).message.startswith(
         "error: foreground ratio must be within 0.05..1")
     out = session.run(RunRequest(example, "car", depth_prior="midas"))
-    assert out.message.startswith("error: depth prior must be one of bundled, depth-anything-v2") and not out.ok
+    assert out.message.startswith("error: depth prior must be one of trained, bundled, depth-anything-v2")
+    assert not out.ok
     out = session.run(RunRequest(example, "car", depth_prior="depth-anything-v2",
                                  depth_checkpoint=str(tmp_path / "no-da-weights")))
     assert out.message.startswith("error: ") and "no-da-weights" in out.message and "\n" not in out.message
@@ -307,7 +310,33 @@ def test_messages_speak_the_pages_language(session, tmp_path, monkeypatch):
             assert expected in preview and not flags_outside_commands(preview), (kind, preview)
 
 
+def test_the_trained_prior_is_the_checkpoints_own_and_the_weights_field_is_for_depth_anything(monkeypatch):
+    """The page's default prior is the one the checkpoint was trained with (a Depth Anything model keeps Depth
+    Anything, as ``reconstruct`` without ``--depth``); the weights field reaches only a Depth Anything prior."""
+    import depthnerf
+    import depthnerf.pretrained.load as load
+
+    trained = {"estimator": "depth-anything-v2"}
+    monkeypatch.setattr(load, "load_pretrained", lambda checkpoint, device: SimpleNamespace(
+        spec=SimpleNamespace(depth_aware=True, prior=SimpleNamespace(estimator=trained["estimator"]))))
+    calls = []
+    monkeypatch.setattr(depthnerf.Reconstructor, "from_pretrained",
+                        classmethod(lambda cls, pre, device, **kw: calls.append(kw) or kw))
+    cache = ModelCache()
+    assert cache.get("da.safetensors") == {"depth_checkpoint": None, "depth_estimator": "depth-anything-v2"}
+    assert cache.get("da.safetensors", "trained", "dir/small")["depth_checkpoint"] == "dir/small"
+    assert cache.get("da.safetensors", "bundled", "dir/small") == {"depth_checkpoint": None,
+                                                                     "depth_estimator": "bundled"}
+    trained["estimator"] = "bundled"
+    assert cache.get("b.safetensors", "trained", "dir/small") == {"depth_checkpoint": None,
+                                                                  "depth_estimator": "bundled"}
+    assert cache.get("b.safetensors", "depth-anything-v2", "dir/small")["depth_checkpoint"] == "dir/small"
+    assert len(calls) == 5
+    assert RunRequest("x.png", "car").depth_prior == "trained"
+
+
 def test_prior_choice_names_the_weights_it_loads_and_their_licence():
+    assert prior_description("trained").startswith("as trained: the prior the chosen model was trained with")
     assert prior_description("bundled").endswith("(MIT)")
     base = prior_description("depth-anything-v2")
     assert base.startswith("Depth Anything V2 Base (depth-anything/Depth-Anything-V2-Base-hf, the paper's prior)")

@@ -59,8 +59,9 @@ from depthnerf.pretrained.recommended import RECOMMENDED
 
 EXAMPLES_DIR = Path(__file__).resolve().parent / "examples"
 """Bundled example photos (``scripts/make_app_examples.py``)."""
-DEPTH_PRIORS = ("bundled", "depth-anything-v2")
-"""Depth priors the page offers."""
+DEPTH_PRIORS = ("trained", "bundled", "depth-anything-v2")
+"""Depth priors the page offers; ``trained``: the one the checkpoint was trained with (``bundled`` for the shipped
+models), as ``depthnerf reconstruct`` without ``--depth``."""
 SHIPPED_MODELS = {"car": RECOMMENDED["cars"], "chair": RECOMMENDED["chairs"]}
 """Page label -> the best shipped checkpoint per category (:data:`~depthnerf.pretrained.recommended.RECOMMENDED`)."""
 ProgressFn = Callable[[float, str], None]
@@ -110,10 +111,11 @@ class RunRequest:
     """A model-menu entry (shipped name or path; a page label of :data:`SHIPPED_MODELS` also works)."""
     checkpoint_path: str = ""
     """A local checkpoint path that overrides ``model`` when not empty."""
-    depth_prior: str = "bundled"
+    depth_prior: str = "trained"
     """One of :data:`DEPTH_PRIORS` (ignored by checkpoints without a depth prior)."""
     depth_checkpoint: str = ""
-    """Weights of the depth prior: a Depth Anything V2 hub id or local directory ("" = its default)."""
+    """Weights of a Depth Anything V2 prior: a hub id or local directory ("" = its default, or with ``trained``
+    the checkpoint's own); ignored for the bundled prior."""
     foreground_ratio: float | None = None
     """Object's longer side / frame side (``ReconstructConfig.fill``); None = the checkpoint's training fill."""
     elevation: float = 20.0
@@ -217,7 +219,7 @@ class ModelCache:
         self._models: OrderedDict[tuple[str, str, str], Any] = OrderedDict()
         self._lock = threading.Lock()
 
-    def get(self, checkpoint: str, depth_prior: str = "bundled", depth_checkpoint: str = ""):
+    def get(self, checkpoint: str, depth_prior: str = "trained", depth_checkpoint: str = ""):
         """The Reconstructor (loaded on first use)."""
         from depthnerf import Reconstructor
         from depthnerf.pretrained.load import load_pretrained
@@ -231,9 +233,10 @@ class ModelCache:
                 return self._models[key]
             pretrained = load_pretrained(checkpoint, self.device)
             depth_aware = pretrained.spec.depth_aware  # the page's prior menu is for depth-aware models
-            rec = Reconstructor.from_pretrained(pretrained, self.device,
-                                                depth_estimator=depth_prior if depth_aware else None,
-                                                depth_checkpoint=(key[2] or None) if depth_aware else None)
+            estimator = pretrained.spec.prior.estimator if depth_prior == "trained" else depth_prior
+            weights = (key[2] or None) if depth_aware and estimator == "depth-anything-v2" else None
+            rec = Reconstructor.from_pretrained(pretrained, self.device, depth_checkpoint=weights,
+                                                depth_estimator=estimator if depth_aware else None)
             self._models[key] = rec
             while len(self._models) > self.capacity:
                 self._models.popitem(last=False)

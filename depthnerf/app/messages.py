@@ -52,6 +52,9 @@ def page_words(text: str) -> str:
 
 def prior_description(prior: str, depth_checkpoint: str = "") -> str:
     """Which weights a depth prior choice loads, and their licence (one line for the page)."""
+    if prior == "trained":
+        return ("as trained: the prior the chosen model was trained with (the shipped models: this project's bundled "
+                "depth network, MIT)")
     if prior == "bundled":
         return "bundled: this project's small depth network, trained on the synthetic benchmark only (MIT)"
     from depthnerf.depth.depth_anything import DEFAULT_CHECKPOINT, licence_of

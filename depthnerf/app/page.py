@@ -58,7 +58,7 @@ LOCAL = ("127.0.0.1", "localhost", "::1")
 """Host names that only this machine can reach."""
 MAX_UPLOAD = "100mb"
 """Largest upload Gradio accepts (a 6000x4000 PNG is well below)."""
-PRIOR_CHOICES = [("bundled (MIT)", "bundled"),
+PRIOR_CHOICES = [("as the model was trained", "trained"), ("bundled (MIT)", "bundled"),
                  ("Depth Anything V2 (Base by default, as the paper; Base/Large CC-BY-NC-4.0, Small Apache-2.0)",
                   "depth-anything-v2")]
 """(label, value) of the depth prior choice; the line under it names the exact weights and licence."""
@@ -168,12 +168,12 @@ def build_page(session: AppSession) -> gr.Blocks:
                 bg_model = gr.Textbox(label="Background model (rembg name in its model folder, or an .onnx file)",
                                       placeholder="u2net", visible=config.allow_checkpoint_paths,
                                       elem_id="background-model")
-                prior = gr.Radio(PRIOR_CHOICES, value="bundled", label="Depth prior", elem_id="prior")
+                prior = gr.Radio(PRIOR_CHOICES, value="trained", label="Depth prior", elem_id="prior")
                 prior_ckpt = gr.Textbox(label="Depth Anything V2 weights (hub id in the local cache"
                                         + (", or a folder)" if config.allow_checkpoint_paths else ")"),
                                         placeholder="depth-anything/Depth-Anything-V2-Base-hf (default)",
                                         elem_id="prior-checkpoint")
-                prior_info = gr.Markdown(prior_description("bundled"), elem_id="prior-info")
+                prior_info = gr.Markdown(prior_description("trained"), elem_id="prior-info")
                 ratio = gr.Slider(0.3, 1.0, value=start_fill, step=0.01, label="Foreground ratio", info=RATIO_INFO,
                                   elem_id="ratio")
                 elevation = gr.Slider(-10, 60, value=20, step=1, label="Elevation (degrees)", elem_id="elevation")
