@@ -90,15 +90,8 @@ def _make_parent(path: Path) -> None:
 
 
 def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically and durably (temporary sibling, fsync, rename)."""
-    path = Path(path)
-    _make_parent(path)
-    tmp = temporary_sibling(path)
-    with open(tmp, "w") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    """:func:`write_bytes_atomic` of ``text`` in UTF-8."""
+    write_bytes_atomic(path, text.encode("utf-8"))
 
 
 def write_bytes_atomic(path: Path, data: bytes, mode: int = 0o644) -> None:

@@ -15,6 +15,7 @@ from depthnerf.files import (
     make_folder,
     sha256_file,
     sha256_files,
+    write_bytes_atomic,
     write_json_atomic,
     write_text_atomic,
 )
@@ -89,3 +90,16 @@ def test_an_atomic_write_under_a_file_names_both(tmp_path):
             write(tmp_path / "f" / "sub" / "out.json")
         assert str(err.value) == (f"{tmp_path / 'f' / 'sub' / 'out.json'}: cannot be written there: {tmp_path / 'f'} "
                                   "is a file, not a folder")
+
+
+def test_an_atomic_write_that_fails_leaves_no_temporary_file(tmp_path, monkeypatch):
+    """A rename that fails (a full disk, a folder in the way) raises and takes its temporary sibling with it."""
+    def refuse(src, dst):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("depthnerf.files.os.replace", refuse)
+    for write in (lambda p: write_text_atomic(p, "t"), lambda p: write_json_atomic(p, {}),
+                  lambda p: write_bytes_atomic(p, b"b")):
+        with pytest.raises(OSError, match="No space left"):
+            write(tmp_path / "out")
+        assert list(tmp_path.iterdir()) == []
