@@ -126,7 +126,13 @@ def test_every_bad_input_is_one_line_and_the_session_keeps_working(session, tmp_
 
 def test_request_checks(session, tmp_path):
     example = examples()[0]
-    assert session.run(RunRequest(example, "car", views=0)).message == "error: orbit views must be within 1..36, got 0"
+    for views in (0, 37, 2.7, float("nan"), None, "8"):  # the page's slider sends whole numbers; its API anything
+        message = session.run(RunRequest(example, "car", views=views)).message
+        assert message == f"error: orbit views must be a whole number within 1..36, got {views}", message
+    assert session.run(RunRequest(example, "car", elevation=None)).message == \
+        "error: the elevation must be a number, got None"
+    assert session.run(RunRequest(example, "car", facing="front")).message == \
+        "error: the object facing must be a number, got 'front'"
     assert session.run(RunRequest(example, "car", foreground_ratio=1.5)).message.startswith(
         "error: foreground ratio must be within 0.05..1")
     out = session.run(RunRequest(example, "car", depth_prior="midas"))

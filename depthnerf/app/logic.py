@@ -53,7 +53,15 @@ from typing import Any
 
 import numpy as np
 
-from depthnerf.app.messages import check_local_paths, check_upload, display_name, one_line
+from depthnerf.app.messages import (
+    as_number,
+    check_local_paths,
+    check_ratio,
+    check_upload,
+    check_views,
+    display_name,
+    one_line,
+)
 from depthnerf.errors import DepthnerfError
 from depthnerf.pretrained.recommended import RECOMMENDED
 
@@ -194,13 +202,6 @@ def check_port(host: str, port: int) -> None:
 def examples() -> list[Path]:
     """The bundled example photos."""
     return sorted(EXAMPLES_DIR.glob("*.png"))
-
-
-def check_ratio(ratio: float | None) -> None:
-    """One line unless a request's foreground ratio is None (the training fill) or within 0.05..1: the rule of the
-    preview and the run alike."""
-    if ratio is not None and not 0.05 <= ratio <= 1.0:
-        raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {ratio}")
 
 
 def resolve_model(request: RunRequest) -> str:
@@ -351,9 +352,7 @@ class AppSession:
 
         path = check_upload(request.image)
         self.check_paths(request)
-        max_views = self.config.max_views
-        if not 1 <= int(request.views) <= max_views:
-            raise DepthnerfError(f"orbit views must be within 1..{max_views}, got {request.views}")
+        check_views(request.views, self.config.max_views)
         check_ratio(request.foreground_ratio)
         if request.mesh_level not in LEVEL_RULES:
             raise DepthnerfError(f"mesh level must be one of {', '.join(LEVEL_RULES)}, got {request.mesh_level!r}")
@@ -367,11 +366,12 @@ class AppSession:
         mode, background_model = self.background(request)
         from depthnerf.infer.facing import AUTO
 
-        cfg = ReconstructConfig(views=int(request.views), elevation=float(request.elevation),
+        facing = request.facing if request.facing in (None, AUTO) else as_number(request.facing, "the object facing")
+        cfg = ReconstructConfig(views=int(request.views), elevation=as_number(request.elevation, "the elevation"),
                                 fill=request.foreground_ratio, mesh_resolution=self.config.mesh_resolution,
                                 mesh_threshold=request.mesh_level, mesh_colors=request.mesh_colors,
                                 progress=True, background_removal=mode, background_model=background_model,
-                                facing=request.facing if request.facing in (None, AUTO) else float(request.facing),
+                                facing=facing,
                                 guided=bool(request.guided))
         result = rec.reconstruct(path, config=cfg)
         progress(0.95, "writing outputs")

@@ -1,5 +1,6 @@
-"""What the page says: errors in one line and in the page's words, the depth-prior line, the upload check and
-the rule for local paths on a publicly shared page (:func:`check_local_paths`).
+"""What the page says: errors in one line and in the page's words, the depth-prior line, the checks of an upload
+and of a request's numbers (the page's HTTP API passes whatever a client sends), and the rule for local paths on a
+publicly shared page (:func:`check_local_paths`).
 
 Messages from the package name command-line flags (``--mask``, ``--depth-checkpoint`` ...); the page shows them
 with its own field names (:data:`PAGE_WORDS`).
@@ -7,8 +8,10 @@ with its own field names (:data:`PAGE_WORDS`).
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
+from typing import Any
 
 from PIL import Image
 
@@ -108,3 +111,25 @@ def check_local_paths(checkpoint_path: str, background_model: str, depth_checkpo
     if weights and (is_local_path(weights) or weights.count("/") != 1):
         raise DepthnerfError(f"Depth Anything weights {weights!r}: local folders are off on this shared page; enter "
                              "a hub id (depth-anything/Depth-Anything-V2-Small-hf), or leave it empty")
+
+
+def check_ratio(ratio: float | None) -> None:
+    """One line unless a request's foreground ratio is None (the training fill) or within 0.05..1: the rule of the
+    preview and the run alike."""
+    if ratio is not None and not 0.05 <= ratio <= 1.0:
+        raise DepthnerfError(f"foreground ratio must be within 0.05..1, got {ratio}")
+
+
+def check_views(views: Any, max_views: int) -> None:
+    """One line unless ``views`` is a whole number within ``1..max_views``."""
+    if not (isinstance(views, int | float) and math.isfinite(views) and views == int(views)
+            and 1 <= views <= max_views):
+        raise DepthnerfError(f"orbit views must be a whole number within 1..{max_views}, got {views}")
+
+
+def as_number(value: Any, what: str) -> float:
+    """``value`` as a float; one line naming ``what`` otherwise."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise DepthnerfError(f"{what} must be a number, got {value!r}") from None
