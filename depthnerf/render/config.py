@@ -119,8 +119,9 @@ class GuidedConfig:
     """A crossing of the source-visible surface is trusted only if the march points on both sides of it are
     within this distance (source z) of the surface; otherwise the ray entered the source's shadow."""
     mask_dilation: int = 2
-    """Source-mask dilation in pixels (dilated pixels take the nearest foreground depth) so rays grazing the
-    silhouette, where soft density still renders, are not classed as empty."""
+    """Widening of the source's z map in pixels (a background pixel within that many pixels of the mask takes the
+    smallest foreground z there) so rays grazing the silhouette, where soft density still renders, are not classed
+    as empty; the mask itself, where a surface guess is trusted, is not widened."""
     march_chunk: int = 8192
     """Target rays marched at once (bounds memory to about ``march_chunk * march_steps * 60`` bytes)."""
 

@@ -91,15 +91,16 @@ def align_disparity_to_depth(disp: Float[Tensor, "B H W"], ref_depth: Float[Tens
     return z.reshape(disp.shape)
 
 
-def _dilate(depth: Tensor, mask: Tensor, pixels: int) -> tuple[Tensor, Tensor]:
-    """Foreground z (``inf`` elsewhere) with the mask dilated by ``pixels``; dilated pixels get the smallest
-    foreground z among their neighbours."""
+def _widened_z(depth: Tensor, mask: Tensor, pixels: int) -> Tensor:
+    """Foreground z (``inf`` elsewhere) widened by ``pixels``: a background pixel within ``pixels`` of the mask
+    (a square window) takes the smallest foreground z among its neighbours. Only the z map widens; the mask itself
+    still marks where the surface guess is trusted."""
     z = torch.where(mask, depth, torch.full_like(depth, float("inf")))
     if pixels <= 0:
-        return z, mask
+        return z
     k = 2 * pixels + 1
     z_min = -torch.nn.functional.max_pool2d(-z[:, None], k, stride=1, padding=pixels)[:, 0]
-    return torch.where(mask, z, z_min), mask
+    return torch.where(mask, z, z_min)
 
 
 def _march_chunk(source_c2w: Tensor, intr: Intrinsics, z_map: Tensor, fg: Tensor, rays: RayBundle,
@@ -148,7 +149,7 @@ def build_depth_guide(source_c2w: Float[Tensor, "B 4 4"], source_intr: Intrinsic
         raise ValueError(f"build_depth_guide: depth {tuple(source_depth.shape)}, mask {tuple(source_mask.shape)} "
                          f"and intrinsics {source_intr.height}x{source_intr.width} disagree")
     fg = source_mask.bool() & (source_depth > 0) & torch.isfinite(source_depth)
-    z_map, fg = _dilate(source_depth, fg, cfg.mask_dilation)
+    z_map = _widened_z(source_depth, fg, cfg.mask_dilation)
     outs = [_march_chunk(source_c2w, source_intr, z_map, fg, rays.slice(s, s + cfg.march_chunk), cfg)
             for s in range(0, rays.num_rays, cfg.march_chunk)]
     t_guess, t_enter, valid, occupied = (torch.cat([o[i] for o in outs], dim=1) for i in range(4))
