@@ -9,7 +9,8 @@ For each eval folder (``depthnerf eval --save-renders``) and every scored view, 
 * ``delta_ab``: the mean distance between render and ground truth in the ``(a, b)`` plane (hue and saturation
   error, lightness left out).
 
-Views are split by the angle between their optical axis and the input view's (``scripts/angle_bins.py``), each
+Views are split by the angle between their optical axis and the input view's as ``scripts/angle_bins.py`` splits
+them (a bin holds ``lo <= angle < hi``, the last one its upper edge too; views outside the edges are in no bin), each
 object's views averaged per bin, then the objects.
 
     python scripts/colour_fidelity.py study/eval/cpu-cars-baseline study/eval/cars-none-sym [--bins 0 90 180]
@@ -29,7 +30,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from angle_bins import view_angles
+from angle_bins import bin_index, view_angles
 from paired_difference import t_interval
 from skimage.color import rgb2lab
 
@@ -56,14 +57,17 @@ def view_colour(render: np.ndarray, gt: np.ndarray, white: float) -> tuple[float
 
 
 def object_colour(folder: Path, bins: list[float], white: float) -> dict[str, dict[str, np.ndarray]]:
-    """Bin label -> object id -> the mean over its views in that bin of (chroma, gt_chroma, delta_ab)."""
+    """Bin label -> object id -> the mean over its views in that bin of (chroma, gt_chroma, delta_ab); ``bins``:
+    the edges, in any order (:func:`angle_bins.bin_index`)."""
+    edges = sorted(bins)
     angles = view_angles(folder)
     per_object: dict[str, dict[str, list[tuple[float, float, float]]]] = defaultdict(lambda: defaultdict(list))
     with open(folder / "renders.csv", newline="") as f:
         for row in csv.DictReader(f):
-            key = (row["object_id"], int(row["view"]))
-            angle = angles[key]
-            label = next(f"{lo:g}-{hi:g}" for lo, hi in zip(bins, bins[1:], strict=False) if angle <= hi)
+            k = bin_index(angles[(row["object_id"], int(row["view"]))], edges)
+            if k is None:
+                continue
+            label = f"{edges[k]:g}-{edges[k + 1]:g}"
             gt_path = Path(row["gt_path"])
             gt = read_rgb(gt_path if gt_path.is_absolute() else folder / gt_path)
             got = view_colour(read_rgb(folder / row["render_path"]), gt, white)

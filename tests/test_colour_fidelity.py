@@ -77,3 +77,64 @@ def test_colour_probe_recovers_an_exact_linear_map_and_scores_a_constant_guess_a
     assert np.allclose(exact["r2"], 1.0, atol=1e-9) and exact["rmse"] < 1e-8
     noise = probe.ridge_probe(gen.normal(size=(300, 6)), y[:300], gen.normal(size=(100, 6)), y[300:], alpha=1.0)
     assert max(noise["r2"]) < 0.05
+
+
+def _colour_eval(tmp_path, azimuths):
+    """An eval folder of 2 fixture objects whose views sit at ``azimuths`` (degrees) around the input view 0, each
+    target's render a uniform colour that says which view it is (its red channel: 20 * view)."""
+    import csv
+    import json
+    import math
+
+    import torch
+    from PIL import Image
+
+    from depthnerf.data.cameras import look_at
+    from tests.fixtures_srn import make_srn_fixture
+
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 2}, views=len(azimuths), size=8)
+    folder = tmp_path / "eval"
+    (folder / "renders").mkdir(parents=True)
+    ids = sorted(p.name for p in (root / "cars_test").iterdir())
+    rows = []
+    for oid in ids:
+        for k, az in enumerate(azimuths):
+            a = math.radians(az)
+            pose = look_at(torch.tensor([1.3 * math.cos(a), 1.3 * math.sin(a), 0.0])).numpy()
+            np.savetxt(root / "cars_test" / oid / "pose" / f"{k:06d}.txt", pose.reshape(1, 16))
+            if k == 0:
+                continue
+            Image.fromarray(np.full((8, 8, 3), (20 * k, 120, 60), np.uint8)).save(folder / "renders" / f"{oid}_{k}.png")
+            rows.append({"object_id": oid, "view": k, "psnr": 20.0, "ssim": 0.5,
+                         "render_path": f"renders/{oid}_{k}.png",
+                         "gt_path": str(root / "cars_test" / oid / "rgb" / f"{k:06d}.png")})
+    (folder / "summary.json").write_text(json.dumps({"data_card": {"root": str(root)}, "category": "cars",
+                                                     "split": "test", "views_stride": 1,
+                                                     "renders_csv": "renders.csv"}))
+    for name, fields, data in (("per_object.csv", ["object_id", "input_view"],
+                                [{"object_id": oid, "input_view": 0} for oid in ids]),
+                               ("renders.csv", list(rows[0]), rows)):
+        with open(folder / name, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields)
+            w.writeheader()
+            w.writerows(data)
+    return folder
+
+
+def test_views_are_binned_as_angle_bins_bins_them(tmp_path):
+    """A view is in the bin with ``lo <= angle < hi`` (the last one its upper edge too) and in no bin outside the
+    edges, as scripts/angle_bins.py bins PSNR: with edges 45, 90, 180 the view at 30 degrees is left out (not put
+    in 45-90), and with edges 0, 90 the views at 100 and 170 degrees are left out."""
+    colour = _load()
+    folder = _colour_eval(tmp_path, [0.0, 30.0, 100.0, 170.0])
+    render = lambda k: np.full((8, 8, 3), (20 * k, 120, 60), np.uint8)  # noqa: E731
+    got = colour.object_colour(folder, [45, 90, 180], white=0.95)
+    assert set(got) == {"90-180"}
+    for oid, value in got["90-180"].items():
+        gt = colour.read_rgb(folder.parent / "data" / "cars_test" / oid / "rgb" / "000002.png")
+        gt3 = colour.read_rgb(folder.parent / "data" / "cars_test" / oid / "rgb" / "000003.png")
+        want = np.mean([colour.view_colour(render(2), gt, 0.95), colour.view_colour(render(3), gt3, 0.95)], axis=0)
+        assert value == pytest.approx(want, rel=1e-9)
+    near = colour.object_colour(folder, [0, 90], white=0.95)
+    assert set(near) == {"0-90"} and len(near["0-90"]) == 2
+    assert colour.object_colour(folder, [90, 0, 45], white=0.95).keys() == {"0-45"}  # edges in any order
