@@ -80,6 +80,13 @@ def read_per_object(folder: Path) -> dict[str, dict[str, str]]:
         return {row["object_id"]: row for row in csv.DictReader(f)}
 
 
+def same_views(a: dict[str, str], b: dict[str, str]) -> bool:
+    """Whether two ``per_object.csv`` rows of an object were scored on the same views: the same number of target
+    views, primary input view and input views (``input_views``, else ``input_view`` in a file without it)."""
+    inputs = [row.get("input_views") or row.get("input_view") for row in (a, b)]
+    return all(a.get(k) == b.get(k) for k in ("views", "input_view")) and inputs[0] == inputs[1]
+
+
 def read_summary(folder: Path) -> dict:
     """``folder/summary.json`` as a mapping; empty when the folder has none (an error names it if unreadable)."""
     path = folder / "summary.json"
@@ -188,8 +195,7 @@ def paired(baseline: Path, method: Path, common: bool = False, common_views: boo
         print(f"pairing {method} on the target views both scored: at least {fewest} per object", file=sys.stderr)
     else:
         for oid in base:
-            inputs = [row.get("input_views") or row.get("input_view") for row in (base[oid], other[oid])]
-            if any(base[oid].get(k) != other[oid].get(k) for k in ("views", "input_view")) or inputs[0] != inputs[1]:
+            if not same_views(base[oid], other[oid]):
                 raise SystemExit(f"error: {method}/per_object.csv: object {oid} was scored on other views than "
                                  f"in {baseline} (--common-views pairs the views both scored)")
     out = []

@@ -28,7 +28,7 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from paired_difference import METRICS, check_pairable, method_name, read_per_object, t_interval
+from paired_difference import METRICS, check_pairable, method_name, read_per_object, same_views, t_interval
 from scipy import stats
 
 
@@ -60,14 +60,13 @@ class SeedStat:
 
 
 def load_arm(folders: list[Path]) -> list[dict[str, dict[str, str]]]:
-    """Each folder's per-object rows; every folder must score the same objects on the same views, the same way
-    (``paired_difference.check_pairable``)."""
+    """Each folder's per-object rows; every folder must score the same objects on the same views
+    (``paired_difference.same_views``), the same way (``paired_difference.check_pairable``)."""
     arms = [read_per_object(f) for f in folders]
     first = arms[0]
     for folder, rows in zip(folders[1:], arms[1:], strict=True):
         check_pairable(folders[0], folder)
-        if set(rows) != set(first) or any(rows[o].get(k) != first[o].get(k) for o in first
-                                          for k in ("views", "input_view")):
+        if set(rows) != set(first) or not all(same_views(rows[o], first[o]) for o in first):
             raise SystemExit(f"error: {folder}/per_object.csv: objects or views differ from "
                              f"{folders[0]}/per_object.csv")
     return arms

@@ -78,3 +78,19 @@ def test_seeds_scored_at_another_resolution_are_refused(tmp_path: Path) -> None:
         (folder / "summary.json").write_text(json.dumps({"method": folder.name, "resolution": res}))
     with pytest.raises(SystemExit, match="--resolution 128 but .* not paired"):
         spd.seed_paired([b0], [m0])
+
+
+def test_seeds_conditioned_on_other_input_views_are_refused(tmp_path: Path) -> None:
+    """One input view against two (``input_views`` 64 against 64 104) with as many targets scored: the same
+    ``input_view`` and ``views`` are not the same views, as in paired_difference.py."""
+    b0 = _write(tmp_path / "b0", [20.0, 22.0, 18.0], [0.10, 0.20, 0.30])
+    m0 = _write(tmp_path / "m0", [21.0, 22.0, 20.0], [0.05, 0.25, 0.30])
+    for folder, inputs in ((b0, "64"), (m0, "64 104")):
+        with open(folder / "per_object.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        with open(folder / "per_object.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=[*rows[0], "input_view", "input_views"])
+            w.writeheader()
+            w.writerows({**r, "input_view": "64", "input_views": inputs} for r in rows)
+    with pytest.raises(SystemExit, match="m0/per_object.csv: objects or views differ"):
+        spd.seed_paired([b0], [m0])
