@@ -72,12 +72,39 @@ def t_interval(diffs: list[float]) -> tuple[float, float, float]:
 
 
 def read_per_object(folder: Path) -> dict[str, dict[str, str]]:
-    """Rows of ``folder/per_object.csv`` keyed by object id (an error names the file if it is missing)."""
+    """Rows of ``folder/per_object.csv`` keyed by object id; a one-line error names the file when it is missing or
+    unreadable, lacks the ``object_id`` column, lists an object twice or has a :data:`METRICS` cell that is neither
+    empty nor a finite number."""
     path = folder / "per_object.csv"
     if not path.is_file():
         raise SystemExit(f"error: {path}: missing (run depthnerf eval with --out {folder})")
-    with open(path, newline="") as f:
-        return {row["object_id"]: row for row in csv.DictReader(f)}
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            columns = reader.fieldnames or []
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise SystemExit(f"error: {path}: unreadable ({err})") from None
+    if "object_id" not in columns:
+        raise SystemExit(f"error: {path}: no object_id column (not a per_object.csv of depthnerf eval)")
+    out: dict[str, dict[str, str]] = {}
+    for row in rows:
+        oid = row["object_id"]
+        if oid in out:
+            raise SystemExit(f"error: {path}: object {oid} is listed twice")
+        for metric in METRICS:
+            text = row.get(metric)
+            if text and not _finite(text):
+                raise SystemExit(f"error: {path}: object {oid}: {metric} {text!r} is not a finite number")
+        out[oid] = row
+    return out
+
+
+def _finite(text: str) -> bool:
+    try:
+        return math.isfinite(float(text))
+    except ValueError:
+        return False
 
 
 def same_views(a: dict[str, str], b: dict[str, str]) -> bool:

@@ -221,3 +221,30 @@ def test_common_views_pair_one_input_view_against_two_on_the_views_both_scored(t
     assert stats_by["chamfer_l1"].mean_diff == 0.0 and stats_by["ssim"].mean_diff == 0.0
     per_view = [line for line in capsys.readouterr().err.splitlines() if line.startswith("view ")]
     assert per_view == [f"view {v}: PSNR +1.00 +- 0.50 dB over 2 objects" for v in two]  # 0.5 and 1.5 per view
+
+
+@pytest.mark.parametrize(("text", "says"), [
+    ("id,psnr\nobj0,20\nobj1,21\n", "no object_id column"),
+    ("object_id,psnr\nobj0,20\nobj0,21\n", "object obj0 is listed twice"),
+    ("object_id,psnr\nobj0,20\nobj1,abc\n", "object obj1: psnr 'abc' is not a finite number"),
+    ("object_id,psnr\nobj0,nan\nobj1,21\n", "object obj0: psnr 'nan' is not a finite number"),
+])
+def test_a_corrupt_per_object_csv_is_one_line_naming_it(tmp_path: Path, capsys, text: str, says: str) -> None:
+    """A per_object.csv without the object_id column, with an object twice (the later row would replace the
+    earlier) or with a metric cell that is not a finite number is refused in one line naming the file, for
+    paired_difference.py and seed_paired_difference.py alike."""
+    pd = _load()
+    base = _write(tmp_path / "base", "baseline", [20.0, 22.0], [0.1, 0.2])
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "per_object.csv").write_text(text)
+    for argv in (["--baseline", str(base), "--method", str(bad)], ["--baseline", str(bad), "--method", str(base)]):
+        with pytest.raises(SystemExit) as err:
+            pd.main(argv)
+        assert str(err.value).startswith(f"error: {bad / 'per_object.csv'}: {says}") and "\n" not in str(err.value)
+    spd = load_script("seed_paired_difference")
+    with pytest.raises(SystemExit, match=f"error: {bad / 'per_object.csv'}: {says}"):
+        spd.seed_paired([base], [bad])
+    (bad / "per_object.csv").write_bytes(b"object_id,psnr\nobj0,20\n\xff\xfe,21\n")
+    with pytest.raises(SystemExit, match=f"error: {bad / 'per_object.csv'}: unreadable"):
+        pd.paired(base, bad)
