@@ -20,21 +20,27 @@ object's views averaged per bin, then the objects.
 the render's chroma with a 95% t-interval, and on how many objects the folder's ``delta_ab`` is lower.
 
     python scripts/colour_fidelity.py --baseline gl/eval/control gl/eval/global
+
+A missing folder or file, or a folder scored on other views or another way than the ``--baseline`` (another
+``--views-stride``, ``--resolution``, split, ``--ssim`` or ``--scored``: ``paired_difference.pairing_refusal``), is
+one ``error:`` line, exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import sys
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from angle_bins import bin_index, view_angles
-from paired_difference import t_interval
+from angle_bins import bin_index, read_summary, view_angles
+from paired_difference import pairing_refusal, t_interval
 from skimage.color import rgb2lab
 
 from depthnerf.data.srn_format import read_rgb
+from depthnerf.errors import DepthnerfError
 
 
 def unit_rgb(image: np.ndarray) -> np.ndarray:
@@ -111,33 +117,49 @@ def interval(mean: float, half_width: float) -> str:
     return f"{mean:+.2f} [{mean - half_width:+.2f}, {mean + half_width:+.2f}]"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("evals", nargs="+", type=Path, help="eval folders (depthnerf eval --save-renders)")
     p.add_argument("--bins", type=float, nargs="+", default=[0, 90, 180], help="bin edges, degrees")
     p.add_argument("--white", type=float, default=0.95, help="ground-truth object pixels: any channel below this")
     p.add_argument("--baseline", type=Path, help="pair each eval folder with this one per object")
-    args = p.parse_args()
+    args = p.parse_args(argv)
+    try:
+        return _run(args)
+    except DepthnerfError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    edges = sorted(args.bins)
+    if len(edges) < 2 or edges[0] < 0 or edges[-1] > 180:
+        raise DepthnerfError("--bins needs >= 2 edges within 0..180")
     if args.baseline is not None:
-        base = object_colour(args.baseline, args.bins, args.white)
+        for folder in args.evals:
+            refusal = pairing_refusal(args.baseline, read_summary(args.baseline), folder, read_summary(folder))
+            if refusal is not None:
+                raise DepthnerfError(refusal)
+        base = object_colour(args.baseline, edges, args.white)
         print(f"paired against {args.baseline.name}: method - baseline, 95% interval")
         print("| eval | bin (deg) | objects | delta ab | difference | chroma difference | lower delta ab |")
         print("|---|---|---:|---|---|---|---:|")
         for folder in args.evals:
-            for label, r in paired_colour(base, object_colour(folder, args.bins, args.white)).items():
+            for label, r in paired_colour(base, object_colour(folder, edges, args.white)).items():
                 delta = interval(r["delta_ab_diff"], r["delta_ab_hw"])
                 chroma = interval(r["chroma_diff"], r["chroma_hw"])
                 print(f"| {folder.name} | {label} | {r['objects']} | {r['delta_ab_baseline']:.2f} -> "
                       f"{r['delta_ab_method']:.2f} | {delta} | {chroma} | {r['lower']}/{r['objects']} |")
-        return
+        return 0
     print("| eval | bin (deg) | objects | render chroma | ground-truth chroma | mean delta ab |")
     print("|---|---|---:|---:|---:|---:|")
     for folder in args.evals:
-        result = folder_colour(folder, args.bins, args.white)
+        result = folder_colour(folder, edges, args.white)
         for label in sorted(result, key=lambda s: float(s.split("-")[0])):
             chroma, gt_chroma, delta, n = result[label]
             print(f"| {folder.name} | {label} | {n} | {chroma:.2f} | {gt_chroma:.2f} | {delta:.2f} |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

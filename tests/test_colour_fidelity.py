@@ -138,3 +138,30 @@ def test_views_are_binned_as_angle_bins_bins_them(tmp_path):
     near = colour.object_colour(folder, [0, 90], white=0.95)
     assert set(near) == {"0-90"} and len(near["0-90"]) == 2
     assert colour.object_colour(folder, [90, 0, 45], white=0.95).keys() == {"0-45"}  # edges in any order
+
+
+def test_a_missing_folder_or_an_eval_scored_another_way_is_one_error_line(tmp_path, monkeypatch, capsys):
+    """As scripts/angle_bins.py: a missing eval folder, and a folder paired with a ``--baseline`` scored at another
+    ``--resolution`` (paired_difference.pairing_refusal), are one ``error:`` line and exit status 2."""
+    import json
+    import sys
+
+    colour = _load()
+    base, method = (_colour_eval(tmp_path / name, [0.0, 30.0, 100.0]) for name in ("b", "m"))
+
+    def run(*argv):
+        monkeypatch.setattr(sys, "argv", ["colour_fidelity.py", *map(str, argv)])
+        assert colour.main() == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1, err
+        return err
+
+    assert f"{tmp_path / 'nowhere'}: no such eval folder" in run(tmp_path / "nowhere")
+    assert f"{tmp_path / 'nowhere'}: no such eval folder" in run("--baseline", tmp_path / "nowhere", method)
+    assert colour.main(["--baseline", str(base), str(method), "--bins", "0", "90", "180"]) == 0
+    assert "| eval | 0-90 | 2 |" in capsys.readouterr().out
+    for folder, res in ((base, 64), (method, 128)):
+        summary = json.loads((folder / "summary.json").read_text())
+        (folder / "summary.json").write_text(json.dumps({**summary, "resolution": res}))
+    err = run("--baseline", base, method)
+    assert "--resolution 128 but" in err and "not paired" in err
