@@ -63,14 +63,16 @@ def read_summary(folder: Path) -> dict:
 def read_renders(folder: Path, summary: dict, records: dict[str, ObjectRecord]) -> list[dict[str, str]]:
     """The rows of ``folder/renders.csv``, refused (one line) unless they are the views the summary's evaluation
     scored: the summary names ``renders.csv`` (written with ``--save-renders``), and the file lists exactly the
-    objects of ``per_object.csv`` with each object's protocol targets at the summary's ``views_stride``. A
-    renders.csv an earlier evaluation left behind fails this."""
+    objects of ``per_object.csv`` with each object's protocol targets at the summary's ``views_stride`` (and its
+    ``input_views``, when every object had the same). A renders.csv an earlier evaluation left behind fails this."""
     path = folder / "renders.csv"
     redo = f"re-run depthnerf eval --save-renders --overwrite --out {folder}"
     if summary.get("renders_csv") != path.name:
         raise DepthnerfError(f"{path}: not written by the evaluation of {folder / 'summary.json'} (it records no "
                              f"renders.csv: evaluated without --save-renders); {redo}")
     stride = summary.get("views_stride", 1)
+    inputs = summary.get("input_views")  # the same views for every object: a list of view indices
+    inputs = inputs if isinstance(inputs, list) and inputs and isinstance(inputs[0], int) else None
     objects = [row["object_id"] for row in _read_csv(folder / "per_object.csv")]
     rows = _read_csv(path)
     views: dict[str, list[int]] = defaultdict(list)
@@ -83,11 +85,15 @@ def read_renders(folder: Path, summary: dict, records: dict[str, ObjectRecord]) 
         if oid not in records:
             raise DepthnerfError(f"{folder / 'summary.json'}: object {oid} is not in the dataset it names "
                                  f"({summary['data_card'].get('root')})")
-        expected = protocol_views(records[oid].num_views, stride).targets
+        try:
+            expected = protocol_views(records[oid].num_views, stride, inputs).targets
+        except DepthnerfError as err:
+            raise DepthnerfError(f"{folder / 'summary.json'}: object {oid}: {err}") from None
         if tuple(sorted(views[oid])) != expected:
+            chosen = f" and input views {' '.join(map(str, inputs))}" if inputs else ""
             raise DepthnerfError(f"{path}: object {oid} has views {sorted(views[oid])[:4]}..., not the "
-                                 f"{len(expected)} targets of views_stride {stride} that summary.json records: a "
-                                 f"renders.csv of another evaluation; {redo}")
+                                 f"{len(expected)} targets of views_stride {stride}{chosen} that summary.json "
+                                 f"records: a renders.csv of another evaluation; {redo}")
     return rows
 
 

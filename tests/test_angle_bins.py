@@ -152,3 +152,29 @@ def test_a_method_scored_on_other_views_or_another_way_is_refused(tmp_path, caps
         (folder / "summary.json").write_text(json.dumps({**summary, **recorded, **extra}))
     err = _main_error(mod, capsys, "--baseline", b, "--method", m)
     assert text in err and "not paired" in err
+
+
+def test_an_evaluation_with_chosen_input_views_is_binned_on_its_targets(tmp_path, capsys):
+    """``depthnerf eval --input-views 0 2`` scores views 1 and 3 of 4-view objects (summary.json ``input_views``
+    [0, 2]): those are its targets, not another evaluation's; angles are measured from the primary input view 0."""
+    mod = _load()
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 2}, views=4, size=8)
+    for obj in sorted((root / "cars_test").iterdir()):
+        for k, az in enumerate([0.0, 30.0, 100.0, 170.0]):
+            a = math.radians(az)
+            pose = look_at(torch.tensor([1.3 * math.cos(a), 1.3 * math.sin(a), 0.0])).numpy()
+            np.savetxt(obj / "pose" / f"{k:06d}.txt", pose.reshape(1, 16))
+    ids = sorted(p.name for p in (root / "cars_test").iterdir())
+    folders = []
+    for name, gain in (("base", 0.0), ("method", 1.0)):
+        folder = _eval(tmp_path / name, root, {(oid, v): 20.0 + v + gain for oid in ids for v in (1, 3)})
+        summary = json.loads((folder / "summary.json").read_text())
+        (folder / "summary.json").write_text(json.dumps({**summary, "input_views": [0, 2]}))
+        folders.append(folder)
+    assert mod.main(["--baseline", str(folders[0]), "--method", str(folders[1])]) == 0, capsys.readouterr().err
+    angles = mod.view_angles(folders[0])
+    assert sorted(round(a, 4) for (oid, _), a in angles.items() if oid == ids[0]) == [30.0, 170.0]
+    rows = {r["bin"]: r for r in mod.compare(mod.binned(folders[0], [0, 90, 180], angles),
+                                             mod.binned(folders[1], [0, 90, 180], angles), [0, 90, 180])
+            if r["metric"] == "psnr"}
+    assert rows["0-90"]["diff"] == pytest.approx(1.0) and rows["90-180"]["wins"] == 2
