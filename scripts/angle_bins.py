@@ -12,8 +12,8 @@ views with ``lo <= angle < hi`` (the last one its upper edge too); views outside
 
 A folder whose ``renders.csv`` is not the one its ``summary.json`` was written with (an earlier evaluation's, left
 behind) is refused; so is a ``--method`` evaluation scored on other views or another way than the baseline (another
-``--views-stride``, ``--resolution``, split, ``--ssim`` or ``--scored``: ``paired_difference.pairing_refusal``),
-and a missing folder or file: one ``error:`` line, exit status 2.
+``--views-stride``, ``--resolution``, split, ``--ssim`` or ``--scored``: ``paired_difference.pairing_refusal``) or
+conditioned on other ``--input-views``, and a missing folder or file: one ``error:`` line, exit status 2.
 """
 
 from __future__ import annotations
@@ -95,6 +95,23 @@ def read_renders(folder: Path, summary: dict, records: dict[str, ObjectRecord]) 
                                  f"{len(expected)} targets of views_stride {stride}{chosen} that summary.json "
                                  f"records: a renders.csv of another evaluation; {redo}")
     return rows
+
+
+def bin_pairing_refusal(baseline: Path, base: dict, method: Path, other: dict) -> str | None:
+    """One line refusing to pair, bin by bin, the evaluation in ``method`` (its ``summary.json`` mapping ``other``)
+    with the one in ``baseline`` (``base``): scored differently (``paired_difference.pairing_refusal``) or
+    conditioned on other input views (``input_views``; a summary that does not record them is not compared), which
+    puts other views in each bin; None when they pair."""
+    refusal = pairing_refusal(baseline, base, method, other)
+    if refusal is not None:
+        return refusal
+    views = [s.get("input_views") for s in (base, other)]
+    if None in views or views[0] == views[1]:
+        return None
+    named = [" ".join(map(str, v)) if isinstance(v, list) else str(v) for v in views]
+    return (f"{method / 'summary.json'} was scored with --input-views {named[1]} but {baseline / 'summary.json'} "
+            f"with --input-views {named[0]}: other views in each bin, so not paired (paired_difference.py "
+            "--common-views pairs the views both scored)")
 
 
 def optical_axis(record: ObjectRecord, view: int) -> np.ndarray:
@@ -186,7 +203,7 @@ def _run(args: argparse.Namespace) -> int:
     report = {}
     for folder in args.method:
         method_angles = view_angles(folder)
-        refusal = pairing_refusal(args.baseline, base_summary, folder, read_summary(folder))
+        refusal = bin_pairing_refusal(args.baseline, base_summary, folder, read_summary(folder))
         if refusal is not None:
             raise DepthnerfError(refusal)
         rows = compare(base, binned(folder, edges, method_angles), edges)

@@ -22,8 +22,8 @@ the render's chroma with a 95% t-interval, and on how many objects the folder's 
     python scripts/colour_fidelity.py --baseline gl/eval/control gl/eval/global
 
 A missing folder or file, or a folder scored on other views or another way than the ``--baseline`` (another
-``--views-stride``, ``--resolution``, split, ``--ssim`` or ``--scored``: ``paired_difference.pairing_refusal``), is
-one ``error:`` line, exit status 2.
+``--views-stride``, ``--resolution``, split, ``--ssim``, ``--scored`` or ``--input-views``:
+``angle_bins.bin_pairing_refusal``), is one ``error:`` line, exit status 2.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from angle_bins import bin_index, read_summary, view_angles
-from paired_difference import pairing_refusal, t_interval
+from angle_bins import bin_index, bin_pairing_refusal, read_summary, view_angles
+from paired_difference import t_interval
 from skimage.color import rgb2lab
 
 from depthnerf.data.srn_format import read_rgb
@@ -137,7 +137,7 @@ def _run(args: argparse.Namespace) -> int:
         raise DepthnerfError("--bins needs >= 2 edges within 0..180")
     if args.baseline is not None:
         for folder in args.evals:
-            refusal = pairing_refusal(args.baseline, read_summary(args.baseline), folder, read_summary(folder))
+            refusal = bin_pairing_refusal(args.baseline, read_summary(args.baseline), folder, read_summary(folder))
             if refusal is not None:
                 raise DepthnerfError(refusal)
         base = object_colour(args.baseline, edges, args.white)

@@ -178,3 +178,19 @@ def test_an_evaluation_with_chosen_input_views_is_binned_on_its_targets(tmp_path
                                              mod.binned(folders[1], [0, 90, 180], angles), [0, 90, 180])
             if r["metric"] == "psnr"}
     assert rows["0-90"]["diff"] == pytest.approx(1.0) and rows["90-180"]["wins"] == 2
+
+
+def test_a_method_conditioned_on_other_input_views_is_refused(tmp_path, capsys):
+    """One input view against two (summary.json ``input_views`` [0] against [0, 2]): the bins would hold other
+    views of each, so not paired (paired_difference.py --common-views pairs the views both scored)."""
+    mod = _load()
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 2}, views=4, size=8)
+    ids = sorted(p.name for p in (root / "cars_test").iterdir())
+    folders = []
+    for name, views, inputs in (("base", (1, 2, 3), [0]), ("method", (1, 3), [0, 2])):
+        folder = _eval(tmp_path / name, root, {(oid, v): 20.0 + v for oid in ids for v in views})
+        summary = json.loads((folder / "summary.json").read_text())
+        (folder / "summary.json").write_text(json.dumps({**summary, "input_views": inputs}))
+        folders.append(folder)
+    err = _main_error(mod, capsys, "--baseline", folders[0], "--method", folders[1])
+    assert "--input-views 0 2 but" in err and "not paired" in err
