@@ -35,13 +35,35 @@ from depthnerf.data.srn_format import read_pose
 from depthnerf.errors import DepthnerfError
 
 METRICS = ("psnr", "ssim")
+PER_OBJECT = ("object_id", "input_view")
+"""Columns of ``per_object.csv`` read here."""
+RENDERS = ("object_id", "view", *METRICS)
+"""Columns of ``renders.csv`` read here."""
 
 
-def _read_csv(path: Path) -> list[dict[str, str]]:
+def _read_csv(path: Path, columns: tuple[str, ...], numbers: tuple[str, ...] = ()) -> list[dict[str, str]]:
+    """The rows of ``path``; a one-line error when it is missing or unreadable, lacks one of ``columns``, or has a
+    cell of ``numbers`` that is not a finite number (a whole one in the view columns)."""
     if not path.is_file():
         raise DepthnerfError(f"{path}: missing (run depthnerf eval with --save-renders --out {path.parent})")
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            reader = csv.DictReader(f)
+            rows, header = list(reader), reader.fieldnames or []
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise DepthnerfError(f"{path}: unreadable ({err})") from None
+    missing = [c for c in columns if c not in header]
+    if missing:
+        raise DepthnerfError(f"{path}: no {', '.join(missing)} column (not the file depthnerf eval writes)")
+    for line, row in enumerate(rows, start=2):
+        for column in numbers:
+            try:
+                ok = math.isfinite(int(row[column]) if column.endswith("view") else float(row[column]))
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                raise DepthnerfError(f"{path}: line {line}: {column} {row[column]!r} is not a finite number")
+    return rows
 
 
 def read_summary(folder: Path) -> dict:
@@ -73,8 +95,8 @@ def read_renders(folder: Path, summary: dict, records: dict[str, ObjectRecord]) 
     stride = summary.get("views_stride", 1)
     inputs = summary.get("input_views")  # the same views for every object: a list of view indices
     inputs = inputs if isinstance(inputs, list) and inputs and isinstance(inputs[0], int) else None
-    objects = [row["object_id"] for row in _read_csv(folder / "per_object.csv")]
-    rows = _read_csv(path)
+    objects = [row["object_id"] for row in _read_csv(folder / "per_object.csv", PER_OBJECT, ("input_view",))]
+    rows = _read_csv(path, RENDERS, ("view", *METRICS))
     views: dict[str, list[int]] = defaultdict(list)
     for row in rows:
         views[row["object_id"]].append(int(row["view"]))
@@ -131,7 +153,8 @@ def view_angles(folder: Path) -> dict[tuple[str, int], float]:
     root = Path(summary["data_card"]["root"])
     records = {r.object_id: r for r in index_split(root, summary["category"], summary["split"],
                                                    check_files=False).objects}
-    inputs = {row["object_id"]: int(row["input_view"]) for row in _read_csv(folder / "per_object.csv")}
+    inputs = {row["object_id"]: int(row["input_view"])
+              for row in _read_csv(folder / "per_object.csv", PER_OBJECT, ("input_view",))}
     rows = read_renders(folder, summary, records)
     input_axes = {oid: optical_axis(records[oid], view) for oid, view in inputs.items()}
     return {(row["object_id"], int(row["view"])): axis_angle(input_axes[row["object_id"]],
@@ -150,7 +173,7 @@ def bin_index(angle: float, edges: list[float]) -> int | None:
 def binned(folder: Path, edges: list[float], angles: dict[tuple[str, int], float]) -> dict[int, dict[str, dict]]:
     """bin -> object id -> {metric: mean over the object's views in the bin, "views": count}."""
     acc: dict[int, dict[str, dict[str, list[float]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
-    for row in _read_csv(folder / "renders.csv"):
+    for row in _read_csv(folder / "renders.csv", RENDERS, ("view", *METRICS)):
         k = bin_index(angles[(row["object_id"], int(row["view"]))], edges)
         if k is None:
             continue

@@ -13,13 +13,31 @@ import sys
 from pathlib import Path
 
 
+def log_rows(path: Path) -> list[dict]:
+    """The JSON lines of a run's log; a cut-off last line (a run killed while writing it) is left out, and any
+    other line that is not a JSON object is a one-line error naming the file and the line."""
+    lines = path.read_text().splitlines()
+    rows = []
+    for number, line in enumerate(lines, start=1):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            if number == len(lines):
+                break
+            raise SystemExit(f"error: {path}: line {number} is not JSON") from None
+        if not isinstance(row, dict):
+            raise SystemExit(f"error: {path}: line {number} is not a JSON object")
+        rows.append(row)
+    return rows
+
+
 def ms_per_step(run_dir: Path) -> float | None:
     """The figure of the module docstring; None without a config, a log or a timed step."""
     run_dir = Path(run_dir)
     if not (run_dir / "config.json").is_file() or not (run_dir / "metrics.jsonl").is_file():
         return None
     sched = json.loads((run_dir / "config.json").read_text())["schedule"]
-    rows = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    rows = log_rows(run_dir / "metrics.jsonl")
     timed = [r for r in rows if "loss" in r and r.get("rays_per_s")]
 
     def rays(step: int) -> int:

@@ -194,3 +194,20 @@ def test_a_method_conditioned_on_other_input_views_is_refused(tmp_path, capsys):
         folders.append(folder)
     err = _main_error(mod, capsys, "--baseline", folders[0], "--method", folders[1])
     assert "--input-views 0 2 but" in err and "not paired" in err
+
+
+@pytest.mark.parametrize("name, edit, text", [
+    ("renders.csv", lambda t: t.replace("psnr,", "score,", 1), "no psnr column"),
+    ("renders.csv", lambda t: t.replace("21.0", "n/a", 1), "psnr 'n/a' is not a finite number"),
+    ("renders.csv", lambda t: t.replace("21.0", "nan", 1), "psnr 'nan' is not a finite number"),
+    ("per_object.csv", lambda t: t.replace("input_view", "first_view"), "no input_view column"),
+    ("per_object.csv", lambda t: t.replace(",0", ",0.5", 1), "input_view '0.5' is not a finite number"),
+])
+def test_a_corrupt_csv_is_one_line_naming_it(tmp_path, capsys, name, edit, text):
+    mod = _load()
+    b, m = _folders(tmp_path)
+    (m / name).write_text(edit((m / name).read_text()))
+    err = _main_error(mod, capsys, "--baseline", b, "--method", m)
+    assert f"{m / name}: " in err and text in err, err
+    (m / name).write_bytes(b"\xff\xfe\x00bad")
+    assert f"{m / name}: unreadable" in _main_error(mod, capsys, "--baseline", b, "--method", m)
