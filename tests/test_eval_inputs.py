@@ -110,6 +110,8 @@ def test_out_of_memory_while_evaluating_is_one_line_naming_the_sizes(case, tmp_p
     (["--pixel-center", "nan"], "--pixel-center must be in [0, 1)"),
     (["--fscore-tau", "-1"], "--fscore-tau must be > 0"),
     (["--fscore-tau", "0"], "--fscore-tau must be > 0"),
+    (["--fscore-tau", "inf"], "--fscore-tau must be > 0 and finite"),  # every point within: F-score 1, no measure
+    (["--fscore-tau", "nan"], "--fscore-tau must be > 0 and finite"),
     (["--mesh-points", "0"], "--mesh-points must be >= 1"),
     (["--symmetry-plane", "0", "0", "0", "0"], "--symmetry-plane: a symmetry plane is 4 finite numbers"),
     (["--guided-align-samples", "-5"], "--guided-align-samples must be >= 1, got -5"),  # was ignored: no --guided

@@ -25,6 +25,7 @@ its files: :mod:`depthnerf.data.fingerprint`) are refused unless ``--overwrite``
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -184,8 +185,9 @@ def check_flags(args: argparse.Namespace) -> None:
                              f"0.0 = pixelNeRF's reading, 0.5 = Blender's), got {args.pixel_center}")
     if args.mesh_points < 1:
         raise DepthnerfError(f"--mesh-points must be >= 1, got {args.mesh_points}")
-    if not args.fscore_tau > 0:
-        raise DepthnerfError(f"--fscore-tau must be > 0 (a distance in GT diagonals), got {args.fscore_tau}")
+    if not 0 < args.fscore_tau < math.inf:  # NaN fails too; at inf every point is within it (F-score 1)
+        raise DepthnerfError(f"--fscore-tau must be > 0 and finite (a distance in GT diagonals), got "
+                             f"{args.fscore_tau}")
     if args.symmetry_plane is not None:
         normalized_plane(args.symmetry_plane, "--symmetry-plane")
         if args.no_symmetry:  # else the plane was silently dropped
