@@ -83,6 +83,17 @@ def test_fit_facing_refuses_a_negative_seed_before_loading(tmp_path, capsys):
     assert _one_error(capsys) == "error: --seed must be >= 0, got -1"
 
 
+@pytest.mark.parametrize("device, line", [
+    ("nope", "--device nope: choose cpu, cuda or cuda:N"),
+    ("auto", "--device auto: choose cpu, cuda or cuda:N"),
+])
+def test_fit_facing_refuses_a_device_it_cannot_use_before_loading(tmp_path, capsys, device, line):
+    """It was checked when the model loaded, after the checkpoint and the data, in words without the flag."""
+    assert main(["fit-facing", "--checkpoint", str(tmp_path / "none.safetensors"), "--data", str(tmp_path),
+                 "--category", "cars", "--out", str(tmp_path / "out.safetensors"), "--device", device]) == 2
+    assert _one_error(capsys) == f"error: {line}"
+
+
 def test_model_configs_refuse_an_infinite_image_scale_and_a_frequency_base_that_is_not_positive(tmp_path, capsys):
     """``image_scale inf`` passed the config and ended in an OverflowError traceback (``floor(inf)``); a base
     frequency of 0 made every sin/cos of the positional encoding a constant."""
