@@ -72,16 +72,21 @@ def _refusing_empty(convert, flag: str):
     return checked
 
 
-PATH_FLAGS = ("--out", "--data")
-"""Options that name a path in every subcommand that has them, also where it takes them as strings (``train``)."""
+PATH_FLAGS = ("--out", "--data", "--checkpoint", "--depth-checkpoint", "--init-from", "--for", "--config",
+              "--background-model")
+"""Options that name a path, a checkpoint or weights in every subcommand that has them, also where it takes them as
+strings (an empty one would be ``Path('')``, the current folder: ``--checkpoint ''`` would load the run folder the
+command was started in)."""
 
 
 def refuse_empty_paths(parser: argparse.ArgumentParser) -> None:
     """Make every option of ``parser`` that names a path (``type=Path``, and :data:`PATH_FLAGS`) refuse an empty
-    value: ``error: PROG: --out is empty``, before any command runs."""
+    value: ``error: PROG: --out is empty``, before any command runs (an option with aliases is named by its first
+    long name)."""
     for action in parser._actions:
         if action.option_strings and (action.type is Path or set(PATH_FLAGS) & set(action.option_strings)):
-            action.type = _refusing_empty(action.type or str, action.option_strings[-1])
+            name = next(s for s in action.option_strings if s.startswith("--"))
+            action.type = _refusing_empty(action.type or str, name)
 
 
 def _command_module(name: str):

@@ -356,10 +356,22 @@ def test_an_unknown_flag_is_named_with_its_subcommand(capsys):
     (["train", "--data", ""], "--data"), (["synth", "--category", "cars", "--out", ""], "--out"),
     (["compare", "x", "--out", ""], "--out"), (["demo", "--out", ""], "--out"),
     (["fit-facing", "--checkpoint", "x", "--data", "d", "--category", "cars", "--out", ""], "--out"),
-    (["inspect", "d", "--json", ""], "--json"), (["depth-eval", "--data", "d", "--json", ""], "--json")])
+    (["inspect", "d", "--json", ""], "--json"), (["depth-eval", "--data", "d", "--json", ""], "--json"),
+    (["eval", "--checkpoint", "", "--out", "o"], "--checkpoint"),
+    (["reconstruct", "photo.png", "--checkpoint", "", "--out", "o"], "--checkpoint"),
+    (["reconstruct", "photo.png", "--checkpoint", "x", "--out", "o", "--background-model", ""],
+     "--background-model"),
+    (["fit-facing", "--checkpoint", "", "--data", "d", "--category", "cars", "--out", "o.safetensors"],
+     "--checkpoint"),
+    (["train", "--init-from", "", "--out", "r"], "--init-from"), (["train", "--config", ""], "--config"),
+    (["train", "--depth-checkpoint", "", "--print-config"], "--depth-checkpoint"),
+    (["depth", "--data", "d", "--for", ""], "--for"),
+    (["depth", "--data", "d", "--depth", "bundled", "--checkpoint", ""], "--depth-checkpoint"),
+    (["depth-eval", "--data", "d", "--depth", "bundled", "--depth-checkpoint", ""], "--depth-checkpoint")])
 def test_an_empty_path_flag_is_refused_before_any_work(argv, flag, tmp_path, capsys, monkeypatch):
-    """``--out ''`` would be ``Path('')``, the current folder, where ``reconstruct`` wrote its files: every option
-    naming a path refuses an empty value while the flags are parsed."""
+    """``--out ''`` would be ``Path('')``, the current folder, where ``reconstruct`` wrote its files, and
+    ``--checkpoint ''`` the run folder the command was started in: every option naming a path or a checkpoint
+    refuses an empty value while the flags are parsed (an alias's refusal names the flag's first name)."""
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SystemExit) as stop:
         main(argv)

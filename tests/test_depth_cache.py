@@ -197,6 +197,16 @@ def test_depth_eval_refuses_flags_that_cannot_work_in_one_line(data, capsys, fla
     assert capsys.readouterr().err == f"error: {line.format(data=data)}\n"
 
 
+def test_depth_eval_refuses_a_json_path_under_a_file_before_scoring(data, tmp_path, capsys):
+    """It was found only when the scores were written, after every image had been scored."""
+    (tmp_path / "notes").write_text("")
+    out = tmp_path / "notes" / "scores.json"
+    assert main(["depth-eval", "--data", str(data), "--depth", "oracle", "--no-progress", "--json", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == f"error: {out}: --json lies under {tmp_path / 'notes'}, which is a file, not a folder\n"
+    assert captured.out == ""
+
+
 @pytest.mark.parametrize("estimator", ["oracle", "none"])
 def test_an_estimator_without_a_cache_still_checks_the_data_folder(tmp_path, capsys, estimator):
     """``depthnerf depth --data /typo --depth oracle`` said "needs no cache" and exited 0."""

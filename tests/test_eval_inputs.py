@@ -74,6 +74,20 @@ def test_overwrite_removes_every_output_of_the_earlier_evaluation_and_nothing_el
     assert summary["views_stride"] == 2 and summary["views"] == 2 * 2 and summary["renders_csv"] is None
 
 
+@pytest.mark.parametrize("inside", ["", "cars_test/scores", "cars_val"])
+def test_an_out_inside_the_dataset_is_refused_before_anything_is_written(case, tmp_path, capsys, inside):
+    """Written into a split folder, the outputs became an object of it that the next read refused (or, as
+    ``cars_val``, a split of their own): the dataset is read, never written into."""
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 1}, views=2, size=16)
+    before = _files(root)
+    out = root / inside
+    assert main(["eval", "--checkpoint", str(case["plain"]), "--data", str(root), "--out", str(out), "--no-mesh",
+                 "--no-progress"]) == 2
+    assert _one_error_line(capsys) == (f"error: {out}: --out lies inside the dataset {root}, which eval reads; "
+                                       "choose an --out outside it\n")
+    assert _files(root) == before
+
+
 @pytest.mark.parametrize("name, make", [("per_object.csv", Path.mkdir), ("summary.json", Path.mkdir),
                                         ("objects", Path.touch), ("meshes", Path.touch)])
 def test_an_output_name_taken_by_the_other_kind_of_entry_is_one_line(case, tmp_path, capsys, name, make):
@@ -110,6 +124,8 @@ def test_out_of_memory_while_evaluating_is_one_line_naming_the_sizes(case, tmp_p
     (["--pixel-center", "nan"], "--pixel-center must be in [0, 1)"),
     (["--fscore-tau", "-1"], "--fscore-tau must be > 0"),
     (["--fscore-tau", "0"], "--fscore-tau must be > 0"),
+    (["--fscore-tau", "inf"], "--fscore-tau must be > 0 and finite"),  # every point within: F-score 1, no measure
+    (["--fscore-tau", "nan"], "--fscore-tau must be > 0 and finite"),
     (["--mesh-points", "0"], "--mesh-points must be >= 1"),
     (["--symmetry-plane", "0", "0", "0", "0"], "--symmetry-plane: a symmetry plane is 4 finite numbers"),
     (["--guided-align-samples", "-5"], "--guided-align-samples must be >= 1, got -5"),  # was ignored: no --guided

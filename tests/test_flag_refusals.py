@@ -61,11 +61,37 @@ def test_depth_without_a_cache_checks_the_request_as_a_cached_estimator_does(dat
     assert "needs no cache" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("inside", ["", "cars_train/run", "cars_val"])
+def test_train_refuses_an_out_inside_the_dataset(tmp_path, capsys, inside):
+    """The run folder became an object of a split (the next read refused the dataset) or, as ``cars_val``, a split
+    of its own; refused before the run folder is made, also on ``--resume``."""
+    root = make_srn_fixture(tmp_path / "data", "cars", {"train": 1}, views=2, size=16)
+    before = sorted(root.rglob("*"))
+    out = root / inside
+    for resume in ([], ["--resume"]):
+        assert main(["train", "--data", str(root), "--out", str(out), "--depth", "none", "--max-steps", "1",
+                     "--data.resolution", "32", "--log.val_every", "0", "--no-progress", *resume]) == 2
+        assert _one_error(capsys) == (f"error: {out}: --out lies inside the dataset {root}, which training "
+                                      "reads; choose an --out outside it")
+    assert sorted(root.rglob("*")) == before
+
+
 def test_fit_facing_refuses_a_negative_seed_before_loading(tmp_path, capsys):
     """It was numpy's ValueError traceback once the views were drawn."""
     assert main(["fit-facing", "--checkpoint", str(tmp_path / "none.safetensors"), "--data", str(tmp_path),
                  "--category", "cars", "--out", str(tmp_path / "out.safetensors"), "--seed", "-1"]) == 2
     assert _one_error(capsys) == "error: --seed must be >= 0, got -1"
+
+
+@pytest.mark.parametrize("device, line", [
+    ("nope", "--device nope: choose cpu, cuda or cuda:N"),
+    ("auto", "--device auto: choose cpu, cuda or cuda:N"),
+])
+def test_fit_facing_refuses_a_device_it_cannot_use_before_loading(tmp_path, capsys, device, line):
+    """It was checked when the model loaded, after the checkpoint and the data, in words without the flag."""
+    assert main(["fit-facing", "--checkpoint", str(tmp_path / "none.safetensors"), "--data", str(tmp_path),
+                 "--category", "cars", "--out", str(tmp_path / "out.safetensors"), "--device", device]) == 2
+    assert _one_error(capsys) == f"error: {line}"
 
 
 def test_model_configs_refuse_an_infinite_image_scale_and_a_frequency_base_that_is_not_positive(tmp_path, capsys):

@@ -22,7 +22,7 @@ from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.depth.evaluate import DepthEvalConfig, evaluate_depth
 from depthnerf.errors import DepthnerfError
-from depthnerf.files import write_text_atomic
+from depthnerf.files import file_problem, write_text_atomic
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -48,8 +48,11 @@ def run(args: argparse.Namespace) -> int:
     from depthnerf.distributed import pick_device
 
     device = pick_device(args.device)  # a device this process lacks: one line, before any work
-    if args.json is not None and args.json.is_dir():  # found before the estimator runs, not after
-        raise DepthnerfError(f"{args.json}: --json names a folder; give the path of the JSON file to write")
+    if args.json is not None:  # found before the estimator runs, not after
+        if args.json.is_dir():
+            raise DepthnerfError(f"{args.json}: --json names a folder; give the path of the JSON file to write")
+        if (problem := file_problem(args.json, "--json")) is not None:
+            raise DepthnerfError(problem)
     cfg = DepthEvalConfig(
         data_root=args.data, estimator=args.depth, checkpoint=args.depth_checkpoint, split=args.split,
         categories=tuple(args.category) if args.category else None, max_objects=args.max_objects,

@@ -6,7 +6,7 @@
 [--overwrite] [--strict]``
 
 Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
-with ``--run``, required with ``--checkpoint``), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
+with ``--run``, required with ``--checkpoint``; never inside the dataset it reads), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
 defaults to the dataset the run was trained on. Targets are scored at the training resolution unless
 ``--resolution`` says otherwise (``--resolution 128`` = the paper's protocol); the input view is always encoded at
 the training resolution, with the run's depth prior (its cache must exist for the split: ``depthnerf depth ...
@@ -25,6 +25,7 @@ its files: :mod:`depthnerf.data.fingerprint`) are refused unless ``--overwrite``
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -48,7 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, help="dataset root (default: the run's training data root)")
     p.add_argument("--category", help="category folder prefix (default: the run's)")
     p.add_argument("--split", default="test", choices=["train", "val", "test"], help="split (default test)")
-    p.add_argument("--out", type=Path, help="output folder (default RUN_DIR/eval/<split> with --run)")
+    p.add_argument("--out", type=Path, help="output folder (default RUN_DIR/eval/<split> with --run); not inside "
+                                             "the dataset")
     p.add_argument("--views-stride", type=int, default=1, help="score every K-th target view (default 1: all)")
     p.add_argument("--input-views", type=int, nargs="+", metavar="VIEW",
                    help="views each object is conditioned on, the first the primary one (default: 64, the SRN "
@@ -184,8 +186,9 @@ def check_flags(args: argparse.Namespace) -> None:
                              f"0.0 = pixelNeRF's reading, 0.5 = Blender's), got {args.pixel_center}")
     if args.mesh_points < 1:
         raise DepthnerfError(f"--mesh-points must be >= 1, got {args.mesh_points}")
-    if not args.fscore_tau > 0:
-        raise DepthnerfError(f"--fscore-tau must be > 0 (a distance in GT diagonals), got {args.fscore_tau}")
+    if not 0 < args.fscore_tau < math.inf:  # NaN fails too; at inf every point is within it (F-score 1)
+        raise DepthnerfError(f"--fscore-tau must be > 0 and finite (a distance in GT diagonals), got "
+                             f"{args.fscore_tau}")
     if args.symmetry_plane is not None:
         normalized_plane(args.symmetry_plane, "--symmetry-plane")
         if args.no_symmetry:  # else the plane was silently dropped
@@ -308,6 +311,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _session(args: argparse.Namespace, info, out: Path, guided):
     """The output folder checked, the checkpoint loaded and its data checked: the evaluation's session."""
+    from depthnerf.files import lies_within
     from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.pretrained.load import load_pretrained
     from depthnerf.reconstruct.exports import check_output_dir
@@ -320,6 +324,9 @@ def _session(args: argparse.Namespace, info, out: Path, guided):
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
+    if lies_within(out, data):  # its folders would be read as objects or splits of the dataset
+        raise DepthnerfError(f"{out}: --out lies inside the dataset {data}, which eval reads; choose an --out "
+                             "outside it")
     check_category(data, args.category, args.split, pre.spec.category, str(args.run or args.checkpoint),
                    warn=info.is_main)
     if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too

@@ -10,8 +10,8 @@ The head reads the angle of the object's mirror plane from the input view's feat
 (:mod:`depthnerf.train.facing_head`; ``--inputs``: encoded as the evaluation encodes them, framed as
 ``reconstruct`` frames a photo, or both ways) and written into ``--out``: the checkpoint's weights file with the
 head added (any head it had is replaced). ``--out`` is never the checkpoint's own file, and an existing file
-only with ``--overwrite``; it and ``--json`` are checked before any work, and the data must be of the model's
-category. Prints the fit's size and memory before any view is encoded (a fit larger than all of the host's
+only with ``--overwrite``; it, ``--json`` and ``--device`` are checked before any work, and the data must be of the
+model's category. Prints the fit's size and memory before any view is encoded (a fit larger than all of the host's
 memory is refused), then, per ridge weight tried, the median and 90th-percentile angle error on the held-out
 objects; ``--json`` writes them with the head's description.
 """
@@ -48,6 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from depthnerf.distributed import pick_device
     from depthnerf.pretrained.load import resolve_checkpoint
     from depthnerf.pretrained.weights import save_with_head
     from depthnerf.train.facing_head import FacingHeadConfig, fit_facing_head
@@ -58,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
             raise DepthnerfError(f"{flag} must be >= {low}, got {value}")
     if args.out.suffix != ".safetensors":
         raise DepthnerfError(f"--out {args.out}: write a .safetensors file")
+    pick_device(args.device, auto=False)  # a device this process lacks: one line naming the flag, before any work
     source = resolve_checkpoint(args.checkpoint)
     check_outputs(args, Path(source))
     cfg = FacingHeadConfig(data=args.data, category=args.category, split=args.split, objects=args.objects,
