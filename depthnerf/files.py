@@ -33,13 +33,6 @@ def nearest_existing(path: Path) -> Path:
     return path
 
 
-def lies_within(path: Path, folder: Path) -> bool:
-    """Whether ``path`` is ``folder`` or lies inside it, both resolved (symlinks followed, relative to the current
-    folder); neither need exist."""
-    path, folder = Path(path).resolve(), Path(folder).resolve()
-    return path == folder or folder in path.parents
-
-
 def _file_in_the_way(path: Path, what: str, existing: Path) -> str | None:
     """The line :func:`folder_problem` and :func:`file_problem` give when ``existing`` (``path`` or its nearest
     existing ancestor) is a file rather than a folder, naming ``path`` and ``what`` it is for; None when it is a

@@ -293,3 +293,15 @@ def test_an_all_background_mask_of_a_view_that_shows_an_object_is_refused(tmp_pa
     assert any("000002.png: mask is all background" in str(w.message) for w in caught)
     with pytest.raises(DepthnerfError, match="000002.png: mask is all background"):  # ... or strict
         index_split(root, "cars", "train", strict=True)
+
+
+def test_in_dataset_is_the_root_and_its_split_folders_only(tmp_path):
+    from depthnerf.data.records import in_dataset
+
+    root = tmp_path / "data"
+    (root / "cars_test").mkdir(parents=True)
+    inside = [root, root / "cars_test", root / "cars_test" / "x" / "y", root / "cars_val", root / "chairs_train" / "r"]
+    beside = [root / "runs", root / "runs" / "cars_test", root / "depth_priors", tmp_path, tmp_path / "cars_test"]
+    assert [in_dataset(p, root) for p in inside] == [True] * len(inside)
+    assert [in_dataset(p, root) for p in beside] == [False] * len(beside)
+    assert in_dataset(root / ".." / "data" / "cars_test", root)  # resolved

@@ -83,9 +83,16 @@ def test_an_out_inside_the_dataset_is_refused_before_anything_is_written(case, t
     out = root / inside
     assert main(["eval", "--checkpoint", str(case["plain"]), "--data", str(root), "--out", str(out), "--no-mesh",
                  "--no-progress"]) == 2
-    assert _one_error_line(capsys) == (f"error: {out}: --out lies inside the dataset {root}, which eval reads; "
-                                       "choose an --out outside it\n")
+    assert _one_error_line(capsys) == (f"error: {out}: --out is the dataset {root} or lies in one of its split "
+                                       "folders, which eval reads; choose an --out outside them\n")
     assert _files(root) == before
+
+
+def test_an_out_beside_the_split_folders_is_an_output_folder_like_any(case, tmp_path):
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 1}, views=2, size=16)
+    assert main(["eval", "--checkpoint", str(case["plain"]), "--data", str(root), "--out", str(root / "evals" / "a"),
+                 "--no-mesh", "--no-progress"]) == 0
+    assert (root / "evals" / "a" / "summary.json").is_file()
 
 
 @pytest.mark.parametrize("name, make", [("per_object.csv", Path.mkdir), ("summary.json", Path.mkdir),

@@ -71,8 +71,8 @@ def test_train_refuses_an_out_inside_the_dataset(tmp_path, capsys, inside):
     for resume in ([], ["--resume"]):
         assert main(["train", "--data", str(root), "--out", str(out), "--depth", "none", "--max-steps", "1",
                      "--data.resolution", "32", "--log.val_every", "0", "--no-progress", *resume]) == 2
-        assert _one_error(capsys) == (f"error: {out}: --out lies inside the dataset {root}, which training "
-                                      "reads; choose an --out outside it")
+        assert _one_error(capsys) == (f"error: {out}: --out is the dataset {root} or lies in one of its split "
+                                      "folders, which training reads; choose an --out outside them")
     assert sorted(root.rglob("*")) == before
 
 

@@ -6,7 +6,7 @@
 [--overwrite] [--strict]``
 
 Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
-with ``--run``, required with ``--checkpoint``; never inside the dataset it reads), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
+with ``--run``, required with ``--checkpoint``; never the dataset root or one of its split folders), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
 defaults to the dataset the run was trained on. Targets are scored at the training resolution unless
 ``--resolution`` says otherwise (``--resolution 128`` = the paper's protocol); the input view is always encoded at
 the training resolution, with the run's depth prior (its cache must exist for the split: ``depthnerf depth ...
@@ -49,8 +49,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, help="dataset root (default: the run's training data root)")
     p.add_argument("--category", help="category folder prefix (default: the run's)")
     p.add_argument("--split", default="test", choices=["train", "val", "test"], help="split (default test)")
-    p.add_argument("--out", type=Path, help="output folder (default RUN_DIR/eval/<split> with --run); not inside "
-                                             "the dataset")
+    p.add_argument("--out", type=Path, help="output folder (default RUN_DIR/eval/<split> with --run); not the "
+                                             "dataset or one of its split folders")
     p.add_argument("--views-stride", type=int, default=1, help="score every K-th target view (default 1: all)")
     p.add_argument("--input-views", type=int, nargs="+", metavar="VIEW",
                    help="views each object is conditioned on, the first the primary one (default: 64, the SRN "
@@ -311,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _session(args: argparse.Namespace, info, out: Path, guided):
     """The output folder checked, the checkpoint loaded and its data checked: the evaluation's session."""
-    from depthnerf.files import lies_within
+    from depthnerf.data.records import in_dataset
     from depthnerf.infer.session import InferenceSession, SessionOptions
     from depthnerf.pretrained.load import load_pretrained
     from depthnerf.reconstruct.exports import check_output_dir
@@ -324,9 +324,9 @@ def _session(args: argparse.Namespace, info, out: Path, guided):
     if args.data is None and pre.data_root is None:
         raise DepthnerfError(f"{pre.path}: records no training data root; pass --data DIR")
     data = args.data or Path(pre.data_root)
-    if lies_within(out, data):  # its folders would be read as objects or splits of the dataset
-        raise DepthnerfError(f"{out}: --out lies inside the dataset {data}, which eval reads; choose an --out "
-                             "outside it")
+    if in_dataset(out, data):  # its folders would be read as objects or splits of the dataset
+        raise DepthnerfError(f"{out}: --out is the dataset {data} or lies in one of its split folders, which eval "
+                             "reads; choose an --out outside them")
     check_category(data, args.category, args.split, pre.spec.category, str(args.run or args.checkpoint),
                    warn=info.is_main)
     if args.strict:  # the protocol checks every file itself (leniently); this makes optional parts strict too

@@ -30,10 +30,11 @@ from pathlib import Path
 from typing import Any
 
 from depthnerf.config_io import apply_overrides, differences, to_dict
+from depthnerf.data.records import in_dataset
 from depthnerf.depth.bundled import shipped_nets_text
 from depthnerf.depth.estimators import ESTIMATORS
 from depthnerf.errors import DepthnerfError, launch_rank, refusal
-from depthnerf.files import lies_within, read_json_object
+from depthnerf.files import read_json_object
 from depthnerf.train.config import PRESETS, TrainConfig, check_config, from_dict_config, preset, with_prior
 
 ACCEPTS_OVERRIDES = True
@@ -54,8 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "output, or only the fields that differ); the flags apply on top of it")
     p.add_argument("--data", help="dataset root (SRN layout); default: the preset's; stored resolved to an "
                                   "absolute path; on --resume it may point at the run's data moved elsewhere")
-    p.add_argument("--out", help="run folder (config, metrics.jsonl, TensorBoard events, checkpoints/); not inside "
-                                 "the dataset")
+    p.add_argument("--out", help="run folder (config, metrics.jsonl, TensorBoard events, checkpoints/); not the "
+                                 "dataset or one of its split folders")
     p.add_argument("--depth", choices=ESTIMATORS,
                    help="depth prior: none = pixelNeRF baseline; default: the preset's")
     p.add_argument("--depth-checkpoint",
@@ -193,9 +194,9 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if not args.out:
             raise DepthnerfError("--out RUN_DIR is required to train")
-        if lies_within(Path(args.out), Path(cfg.data.root)):  # its folders would be read as objects or splits
-            raise DepthnerfError(f"{args.out}: --out lies inside the dataset {cfg.data.root}, which training "
-                                 "reads; choose an --out outside it")
+        if in_dataset(Path(args.out), Path(cfg.data.root)):  # its folders would be read as objects or splits
+            raise DepthnerfError(f"{args.out}: --out is the dataset {cfg.data.root} or lies in one of its split "
+                                 "folders, which training reads; choose an --out outside them")
         from depthnerf.distributed import checked_together, setup, teardown
         from depthnerf.eval.validation import validate
         from depthnerf.train.loop import train

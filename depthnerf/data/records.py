@@ -19,6 +19,19 @@ SPLITS = ("train", "val", "test")
 """The split names of an SRN release, as they appear in ``<category>_<split>`` folder names."""
 
 
+def in_dataset(path: Path, root: Path) -> bool:
+    """Whether a folder ``path`` is the dataset ``root`` itself, or is or lies in one of its ``<category>_<split>``
+    folders (one that exists or one so named), both resolved: where an output would be read back as an object or
+    a split. A folder beside the splits (``root/runs``) is not."""
+    path, root = Path(path).resolve(), Path(root).resolve()
+    if path == root:
+        return True
+    if root not in path.parents:
+        return False
+    top = path.relative_to(root).parts[0]
+    return top.rpartition("_")[2] in SPLITS
+
+
 @dataclass(frozen=True)
 class ObjectCheck:
     """What :func:`~depthnerf.data.validate.check_object` measured on one object while checking it."""
