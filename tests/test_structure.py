@@ -174,7 +174,7 @@ def test_one_estimator_registry_feeds_every_flag():
     assert estimator_entry("none").describe(None) is None
     with pytest.raises(DepthnerfError, match="unknown depth estimator 'midas'"):
         estimator_entry("midas")
-    with pytest.raises(DepthnerfError, match="--depth 'midas'"):
+    with pytest.raises(DepthnerfError, match="^unknown depth prior 'midas': choose depth-anything-v2, bundled"):
         PriorConfig("midas")
     assert not PriorConfig("none").enabled and all(PriorConfig(n).enabled for n in ESTIMATORS if n != "none")
     import argparse

@@ -53,7 +53,7 @@ class PriorConfig:
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
-            raise DepthnerfError(f"--depth {self.estimator!r}: choose {', '.join(ESTIMATORS)}")
+            raise DepthnerfError(f"unknown depth prior {self.estimator!r}: choose {', '.join(ESTIMATORS)}")
 
     @property
     def enabled(self) -> bool:
