@@ -122,6 +122,25 @@ def mesh_report(mesh: trimesh.Trimesh, c2w: np.ndarray, intrinsics: np.ndarray, 
             "outside_edge_px": off}
 
 
+def read_folder(path: Path) -> tuple[trimesh.Trimesh, np.ndarray, np.ndarray, np.ndarray]:
+    """The mesh, the input camera (``depths.npz`` ``poses[0]`` and ``intrinsics``) and the input's mask of a
+    reconstruct folder; a ValueError naming the file when one cannot be read."""
+    def read(name: str, load):
+        try:
+            return load(path / name)
+        except Exception as err:  # noqa: BLE001 - numpy, zipfile, PIL and trimesh each raise their own
+            raise ValueError(f"{path / name}: unreadable ({type(err).__name__}: {err})") from None
+
+    def cameras(file: Path):
+        with np.load(file) as cams:
+            return np.asarray(cams["poses"][0]), np.asarray(cams["intrinsics"])
+
+    c2w, intrinsics = read("depths.npz", cameras)
+    mask = read("input_mask.png", lambda f: np.asarray(Image.open(f).convert("L")) > 127)
+    mesh = read("mesh.ply", lambda f: trimesh.load(f, process=False, force="mesh"))
+    return mesh, c2w, intrinsics, mask
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("paths", nargs="+", type=Path, help="depthnerf reconstruct output folders")
@@ -142,10 +161,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {path / missing[0]}: missing (not a depthnerf reconstruct folder with a mesh?)",
                   file=sys.stderr)
             return 2
-        cams = np.load(path / "depths.npz")
-        mask = np.asarray(Image.open(path / "input_mask.png").convert("L")) > 127
-        rep = mesh_report(trimesh.load(path / "mesh.ply", process=False, force="mesh"), cams["poses"][0],
-                          cams["intrinsics"], mask, args.above, args.edge, args.min_seen)
+        try:
+            mesh, c2w, intrinsics, mask = read_folder(path)
+        except ValueError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        rep = mesh_report(mesh, c2w, intrinsics, mask, args.above, args.edge, args.min_seen)
         reports[str(path)] = rep
         ok &= (rep["object_share"] >= args.min_object_share and rep["main_share"] >= args.min_main_share
                and rep["above_share"] == 0.0)

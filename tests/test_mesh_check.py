@@ -144,3 +144,28 @@ def test_a_detached_part_the_photo_shows_counts_as_the_object() -> None:
     # a box shows at most 3 of its 6 sides: 0.5 of its faces, so --min-seen above that counts it stray
     strict = mc.mesh_report(trimesh.util.concatenate([body, runner]), c2w, intr, sil, 0.10, min_seen=0.6)
     assert strict["seen_pieces"] == 0 and strict["object_share"] == 0.5
+
+
+def test_a_corrupt_file_of_a_folder_is_one_error_line(tmp_path, capsys) -> None:
+    from PIL import Image
+
+    mod = _load()
+    folder = tmp_path / "out"
+    folder.mkdir()
+    trimesh.creation.box(extents=(0.4, 0.4, 0.4)).export(folder / "mesh.ply")
+    c2w = np.eye(4)
+    c2w[2, 3] = -2.0
+    np.savez(folder / "depths.npz", poses=c2w[None], intrinsics=np.array([32.0, 15.5, 15.5, 32, 32]))
+    Image.fromarray(np.full((32, 32), 255, np.uint8)).save(folder / "input_mask.png")
+    assert mod.main([str(folder)]) in (0, 1)
+    capsys.readouterr()
+    for name, junk in (("depths.npz", b"not a zip"), ("input_mask.png", b"\x89PNG broken"), ("mesh.ply", b"ply\nx")):
+        good = (folder / name).read_bytes()
+        (folder / name).write_bytes(junk)
+        assert mod.main([str(folder)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {folder / name}: unreadable") and err.count("\n") == 1, err
+        (folder / name).write_bytes(good)
+    np.savez(folder / "depths.npz", intrinsics=np.ones(5))  # no poses
+    assert mod.main([str(folder)]) == 2
+    assert "depths.npz: unreadable (KeyError" in capsys.readouterr().err
