@@ -165,7 +165,8 @@ def test_checkpoint_metadata_a_user_did_not_write(tmp_path):
     assert load_pretrained(good).spec.framing == "srn"
     cases = {"step": ({"step": "abc"}, "metadata 'step' is 'abc'"),  # was a ValueError traceback
              "framing": ({SPEC_KEY: json.dumps({**spec, "framing": "weird"})}, "framing 'weird'"),
-             "prior": ({SPEC_KEY: json.dumps({**spec, "prior": {"estimator": "midas"}})}, "inference spec: unknown depth prior 'midas': choose "),
+             "prior": ({SPEC_KEY: json.dumps({**spec, "prior": {"estimator": "midas"}})},
+                       "inference spec: unknown depth prior 'midas': choose "),
              # numbers training never writes: each was a traceback in rendering, or (pixel_center) silently used
              "z-range": ({SPEC_KEY: json.dumps({**spec, "z_near": 5.0, "z_far": 1.0})},
                          "inference spec: z_near / z_far must satisfy 0 <= z_near < z_far (finite), got 5.0, 1.0"),

@@ -5,14 +5,14 @@
 [--mesh-threshold auto|silhouette|local|X] [--save-renders] [--ssim uniform7|gaussian11|gaussian11-zeropad] [--scored png8|float] [--objects pixelnerf|all]
 [--overwrite] [--strict]``
 
-Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>``
-with ``--run``, required with ``--checkpoint``; never the dataset root or one of its split folders), so ``depthnerf compare RUN_DIR`` finds the summary. ``--data``
-defaults to the dataset the run was trained on. Targets are scored at the training resolution unless
-``--resolution`` says otherwise (``--resolution 128`` = the paper's protocol); the input view is always encoded at
-the training resolution, with the run's depth prior (its cache must exist for the split: ``depthnerf depth ...
---splits test --resolution <training resolution>``). Every file of the split is checked before anything is
-scored (as ``train`` does), so a corrupt image in a view that is not scored is still an error; ``--strict`` makes
-problems in the optional parts (depth, masks, meshes) errors too (see docs/data.md).
+Writes ``OUT_DIR/summary.json`` and ``OUT_DIR/per_object.csv`` (default ``OUT_DIR``: ``RUN_DIR/eval/<split>`` with
+``--run``, required with ``--checkpoint``; never the dataset root or one of its split folders), so ``depthnerf
+compare RUN_DIR`` finds the summary. ``--data`` defaults to the dataset the run was trained on. Targets are scored
+at the training resolution unless ``--resolution`` says otherwise (``--resolution 128`` = the paper's protocol); the
+input view is always encoded at the training resolution, with the run's depth prior (its cache must exist for the
+split: ``depthnerf depth ... --splits test --resolution <training resolution>``). Every file of the split is checked
+before anything is scored (as ``train`` does), so a corrupt image in a view that is not scored is still an error;
+``--strict`` makes problems in the optional parts (depth, masks, meshes) errors too (see docs/data.md).
 
 ``--ssim``, ``--scored`` and ``--objects`` select the protocol choices that move published numbers (defaults:
 pixelNeRF's; :mod:`depthnerf.eval.config`). Every object's result is kept under ``OUT_DIR/objects/``: the same
