@@ -216,10 +216,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-def _run(args: argparse.Namespace) -> int:
-    edges = sorted(args.bins)
+def checked_edges(bins: list[float]) -> list[float]:
+    """``--bins`` sorted; a one-line error unless there are at least two edges within 0..180 degrees."""
+    edges = sorted(bins)
     if len(edges) < 2 or edges[0] < 0 or edges[-1] > 180:
         raise DepthnerfError("--bins needs >= 2 edges within 0..180")
+    return edges
+
+
+def _run(args: argparse.Namespace) -> int:
+    edges = checked_edges(args.bins)
     angles = view_angles(args.baseline)
     base = binned(args.baseline, edges, angles)
     base_summary = read_summary(args.baseline)

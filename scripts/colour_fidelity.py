@@ -35,7 +35,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from angle_bins import bin_index, bin_pairing_refusal, read_summary, view_angles
+from angle_bins import bin_index, bin_pairing_refusal, checked_edges, read_summary, view_angles
 from paired_difference import t_interval
 from skimage.color import rgb2lab
 
@@ -132,9 +132,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    edges = sorted(args.bins)
-    if len(edges) < 2 or edges[0] < 0 or edges[-1] > 180:
-        raise DepthnerfError("--bins needs >= 2 edges within 0..180")
+    edges = checked_edges(args.bins)
     if args.baseline is not None:
         for folder in args.evals:
             refusal = bin_pairing_refusal(args.baseline, read_summary(args.baseline), folder, read_summary(folder))

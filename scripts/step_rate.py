@@ -12,23 +12,9 @@ import statistics
 import sys
 from pathlib import Path
 
+from plot_training_curves import read_records
 
-def log_rows(path: Path) -> list[dict]:
-    """The JSON lines of a run's log; a cut-off last line (a run killed while writing it) is left out, and any
-    other line that is not a JSON object is a one-line error naming the file and the line."""
-    lines = path.read_text().splitlines()
-    rows = []
-    for number, line in enumerate(lines, start=1):
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            if number == len(lines):
-                break
-            raise SystemExit(f"error: {path}: line {number} is not JSON") from None
-        if not isinstance(row, dict):
-            raise SystemExit(f"error: {path}: line {number} is not a JSON object")
-        rows.append(row)
-    return rows
+from depthnerf.errors import DepthnerfError
 
 
 def ms_per_step(run_dir: Path) -> float | None:
@@ -37,7 +23,7 @@ def ms_per_step(run_dir: Path) -> float | None:
     if not (run_dir / "config.json").is_file() or not (run_dir / "metrics.jsonl").is_file():
         return None
     sched = json.loads((run_dir / "config.json").read_text())["schedule"]
-    rows = log_rows(run_dir / "metrics.jsonl")
+    rows = read_records(run_dir / "metrics.jsonl")  # a cut-off last line left out, any other bad line an error
     timed = [r for r in rows if "loss" in r and r.get("rays_per_s")]
 
     def rays(step: int) -> int:
@@ -48,6 +34,10 @@ def ms_per_step(run_dir: Path) -> float | None:
 
 
 if __name__ == "__main__":
-    value = ms_per_step(Path(sys.argv[1]))
+    try:
+        value = ms_per_step(Path(sys.argv[1]))
+    except DepthnerfError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
     if value is not None:
         print(f"{value:.3f}")

@@ -15,6 +15,9 @@ from fixtures_scripts import load_script
 from depthnerf.data.cameras import look_at
 from tests.fixtures_srn import make_srn_fixture
 
+AZIMUTHS = (0.0, 30.0, 100.0, 170.0)
+"""Azimuths of the four views of :func:`_horizontal_cameras`."""
+
 
 def _load():
     return load_script("angle_bins")
@@ -37,14 +40,19 @@ def _eval(folder: Path, root: Path, psnr: dict[tuple[str, int], float]) -> Path:
     return folder
 
 
-def test_bins_follow_the_camera_angle_and_pair_per_object(tmp_path):
-    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 3}, views=4, size=8)
-    azimuths = [0.0, 30.0, 100.0, 170.0]  # horizontal cameras: the angle to view 0 is the azimuth
+def _horizontal_cameras(root: Path) -> None:
+    """Every test object's four views on a horizontal circle at azimuths 0, 30, 100 and 170 degrees, so the angle
+    of view k to view 0 is its azimuth."""
     for obj in sorted((root / "cars_test").iterdir()):
-        for k, az in enumerate(azimuths):
+        for k, az in enumerate(AZIMUTHS):
             a = math.radians(az)
             pose = look_at(torch.tensor([1.3 * math.cos(a), 1.3 * math.sin(a), 0.0])).numpy()
             np.savetxt(obj / "pose" / f"{k:06d}.txt", pose.reshape(1, 16))
+
+
+def test_bins_follow_the_camera_angle_and_pair_per_object(tmp_path):
+    root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 3}, views=4, size=8)
+    _horizontal_cameras(root)
     ids = sorted(p.name for p in (root / "cars_test").iterdir())
     base = {(oid, v): 20.0 + v for oid in ids for v in (1, 2, 3)}
     gain = {ids[0]: 1.0, ids[1]: 2.0, ids[2]: 0.0}
@@ -118,11 +126,7 @@ def test_views_beyond_the_last_edge_are_in_no_bin(tmp_path):
     edge, to the last bin, and a view below the first edge to none."""
     mod = _load()
     root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 2}, views=4, size=8)
-    for obj in sorted((root / "cars_test").iterdir()):
-        for k, az in enumerate([0.0, 30.0, 100.0, 170.0]):
-            a = math.radians(az)
-            pose = look_at(torch.tensor([1.3 * math.cos(a), 1.3 * math.sin(a), 0.0])).numpy()
-            np.savetxt(obj / "pose" / f"{k:06d}.txt", pose.reshape(1, 16))
+    _horizontal_cameras(root)
     ids = sorted(p.name for p in (root / "cars_test").iterdir())
     b = _eval(tmp_path / "base", root, {(oid, v): 20.0 + v for oid in ids for v in (1, 2, 3)})
     bins = mod.binned(b, [0, 45, 90], mod.view_angles(b))
@@ -159,11 +163,7 @@ def test_an_evaluation_with_chosen_input_views_is_binned_on_its_targets(tmp_path
     [0, 2]): those are its targets, not another evaluation's; angles are measured from the primary input view 0."""
     mod = _load()
     root = make_srn_fixture(tmp_path / "data", "cars", splits={"test": 2}, views=4, size=8)
-    for obj in sorted((root / "cars_test").iterdir()):
-        for k, az in enumerate([0.0, 30.0, 100.0, 170.0]):
-            a = math.radians(az)
-            pose = look_at(torch.tensor([1.3 * math.cos(a), 1.3 * math.sin(a), 0.0])).numpy()
-            np.savetxt(obj / "pose" / f"{k:06d}.txt", pose.reshape(1, 16))
+    _horizontal_cameras(root)
     ids = sorted(p.name for p in (root / "cars_test").iterdir())
     folders = []
     for name, gain in (("base", 0.0), ("method", 1.0)):
